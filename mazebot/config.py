@@ -1,0 +1,305 @@
+"""The configuration of one robot: pydantic models of ``config.toml``.
+
+Every tunable lives here, grouped in one section per part of the robot. Unknown keys
+are rejected (a typo must not silently fall back to a default), every number carries
+its unit in its name, and ``mazebot config defaults`` renders these models (with the
+descriptions as comments) into a complete default file.
+
+Algorithms never receive this object: small ``from_config`` builders at the edge pick
+the plain values they need.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from mazebot.errors import ConfigError
+
+#: Absolute speed limits of the robot; the configured limits may not exceed them.
+ABSOLUTE_MAX_SPEED_MPS = 0.5
+ABSOLUTE_MAX_YAW_RATE_RADPS = 1.2
+
+ENV_CONFIG = "MAZEBOT_CONFIG"
+
+BcmPin = Annotated[int, Field(ge=0, le=27)]
+
+
+class Section(BaseModel):
+    """A config section: unknown keys rejected, values validated on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class LidarConfig(Section):
+    """Slamtec RPLidar A1M8 on its USB serial adapter."""
+
+    port: str = Field("/dev/ttyUSB0", description="serial device of the lidar's USB adapter")
+    baudrate: int = Field(115200, description="serial speed; the A1 speaks 115200 baud")
+    scan_mode: Literal["standard", "express"] = Field(
+        "standard", description="standard: 5-byte samples (~2000/s); express: capsules (~4000/s)"
+    )
+    motor_control: Literal["dtr", "none"] = Field(
+        "dtr",
+        description="dtr: the A1 USB adapter drives the motor from DTR (cleared = spinning); "
+        "none: the motor is powered some other way",
+    )
+    spin_up_s: float = Field(
+        0.5, gt=0, le=5, description="wait after starting the motor before asking for a scan"
+    )
+    no_data_timeout_s: float = Field(
+        1.0, gt=0, le=30, description="restart the scan when no sample arrives for this long"
+    )
+    reconnect_backoff_min_s: float = Field(
+        0.5, gt=0, description="first wait before reopening a port that vanished"
+    )
+    reconnect_backoff_max_s: float = Field(
+        8.0, gt=0, description="longest wait between reconnect attempts"
+    )
+    min_range_m: float = Field(
+        0.15, ge=0, description="returns closer than this are invalid (A1M8 datasheet: 0.15 m)"
+    )
+    max_range_m: float = Field(12.0, gt=0, description="returns farther than this are invalid")
+    mount_yaw_deg: float = Field(
+        0.0, ge=-180, le=180, description="angle of the lidar's 0° mark from the robot's heading"
+    )
+    mount_x_m: float = Field(0.0, description="lidar centre ahead of the wheel axle centre")
+    mount_y_m: float = Field(0.0, description="lidar centre left of the wheel axle centre")
+
+    @model_validator(mode="after")
+    def _ranges_ordered(self) -> LidarConfig:
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(
+                f"min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})"
+            )
+        if self.reconnect_backoff_min_s > self.reconnect_backoff_max_s:
+            raise ValueError("reconnect_backoff_min_s must not exceed reconnect_backoff_max_s")
+        return self
+
+
+class EncodersConfig(Section):
+    """One quadrature encoder per drive wheel, on BCM GPIO numbers."""
+
+    left_a_pin: BcmPin = Field(17, description="BCM pin of the left encoder's channel A")
+    left_b_pin: BcmPin = Field(18, description="BCM pin of the left encoder's channel B")
+    right_a_pin: BcmPin = Field(22, description="BCM pin of the right encoder's channel A")
+    right_b_pin: BcmPin = Field(23, description="BCM pin of the right encoder's channel B")
+    counts_per_rev: int = Field(
+        360,
+        gt=0,
+        description="encoder lines (pulses of channel A) per wheel revolution, after the gearbox",
+    )
+    decoding: Literal["x1", "x2", "x4"] = Field(
+        "x4", description="edges counted per line: x1 (A rising), x2 (A both), x4 (A and B both)"
+    )
+    pull_up: bool = Field(True, description="enable the Pi's internal pull-ups on A and B")
+    left_invert: bool = Field(False, description="count the left wheel backwards")
+    right_invert: bool = Field(True, description="count the right wheel backwards (mirrored)")
+    odometry_rate_hz: float = Field(
+        50.0, ge=10, le=1000, description="rate of dead reckoning from encoder ticks"
+    )
+
+    @model_validator(mode="after")
+    def _pins_distinct(self) -> EncodersConfig:
+        pins = [self.left_a_pin, self.left_b_pin, self.right_a_pin, self.right_b_pin]
+        if len(set(pins)) != len(pins):
+            raise ValueError(f"encoder pins must be four different GPIOs, got {pins}")
+        return self
+
+    @property
+    def ticks_per_rev(self) -> int:
+        """Counted ticks per wheel revolution for the chosen decoding."""
+        return self.counts_per_rev * {"x1": 1, "x2": 2, "x4": 4}[self.decoding]
+
+
+class MotorsConfig(Section):
+    """Two DC gear motors on the Adafruit DC & Stepper Motor HAT."""
+
+    backend: Literal["motorkit", "fake"] = Field(
+        "motorkit", description="motorkit: the real HAT over I2C; fake: no hardware (tests)"
+    )
+    i2c_address: int = Field(0x60, ge=0x03, le=0x77, description="I2C address of the HAT")
+    pwm_frequency_hz: float = Field(
+        1600.0, ge=24, le=1526, description="PCA9685 PWM frequency (datasheet: 24..1526 Hz)"
+    )
+    left_channel: Literal[1, 2, 3, 4] = Field(1, description="HAT motor terminal of the left wheel")
+    right_channel: Literal[1, 2, 3, 4] = Field(
+        2, description="HAT motor terminal of the right wheel"
+    )
+    left_invert: bool = Field(False, description="reverse the left motor's polarity in software")
+    right_invert: bool = Field(True, description="reverse the right motor's polarity (mirrored)")
+    command_ttl_s: float = Field(
+        0.3, gt=0, le=2, description="a throttle not refreshed within this time becomes a stop"
+    )
+
+    @model_validator(mode="after")
+    def _channels_distinct(self) -> MotorsConfig:
+        if self.left_channel == self.right_channel:
+            raise ValueError(f"left and right motors share channel {self.left_channel}")
+        return self
+
+
+class DriveConfig(Section):
+    """Geometry and speed limits of the differential drive."""
+
+    wheel_diameter_m: float = Field(0.065, gt=0.01, lt=0.5, description="drive wheel diameter")
+    track_width_m: float = Field(
+        0.15, gt=0.03, lt=1.0, description="distance between the wheels' contact points"
+    )
+    max_speed_mps: float = Field(
+        0.3, gt=0, le=ABSOLUTE_MAX_SPEED_MPS, description="forward speed limit (absolute 0.5)"
+    )
+    max_accel_mps2: float = Field(0.6, gt=0, le=5, description="forward acceleration limit")
+    max_yaw_rate_radps: float = Field(
+        1.2, gt=0, le=ABSOLUTE_MAX_YAW_RATE_RADPS, description="turn rate limit (absolute 1.2)"
+    )
+    max_yaw_accel_radps2: float = Field(3.0, gt=0, le=20, description="turn acceleration limit")
+    max_wheel_speed_mps: float = Field(
+        0.6, gt=0, le=3, description="wheel surface speed at full throttle (for feed-forward)"
+    )
+
+
+class RobotConfig(Section):
+    """The robot's body."""
+
+    footprint_radius_m: float = Field(
+        0.09, gt=0.02, lt=0.5, description="radius of a circle that holds the whole robot"
+    )
+    clearance_m: float = Field(
+        0.02, ge=0, lt=0.3, description="extra margin kept from walls beyond the footprint"
+    )
+
+
+class DaemonConfig(Section):
+    """The ``mazebot run`` process."""
+
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        "info", description="stderr log level (journald adds timestamps)"
+    )
+    exit_on_fault: bool = Field(
+        False,
+        description="exit (code 70) when a task crashes; default: stop motors, keep serving",
+    )
+    state_dir: str = Field(
+        "", description="where runs and the control token are kept; empty: a per-user default"
+    )
+    control_period_s: float = Field(
+        0.05, gt=0.001, le=0.5, description="period of the motor control loop (20 Hz)"
+    )
+
+
+class WebConfig(Section):
+    """The web page and websocket served to the phone."""
+
+    host: str = Field("0.0.0.0", description="interface to bind; 127.0.0.1 keeps it local")
+    port: int = Field(8080, ge=1, le=65535, description="TCP port of the web page")
+
+
+class Config(BaseModel):
+    """The whole configuration file: one section per part of the robot."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    lidar: LidarConfig = Field(default_factory=LidarConfig)
+    encoders: EncodersConfig = Field(default_factory=EncodersConfig)
+    motors: MotorsConfig = Field(default_factory=MotorsConfig)
+    drive: DriveConfig = Field(default_factory=DriveConfig)
+    robot: RobotConfig = Field(default_factory=RobotConfig)
+    daemon: DaemonConfig = Field(default_factory=DaemonConfig)
+    web: WebConfig = Field(default_factory=WebConfig)
+
+    @property
+    def wheel_circumference_m(self) -> float:
+        return math.pi * self.drive.wheel_diameter_m
+
+
+def default_config_path() -> Path | None:
+    """``$MAZEBOT_CONFIG`` if set, else ``./config.toml`` if present, else no file."""
+    env = os.environ.get(ENV_CONFIG)
+    if env:
+        return Path(env)
+    local = Path("config.toml")
+    return local if local.is_file() else None
+
+
+def _describe_error(err: dict[str, Any]) -> str:
+    path = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    kind = err["type"]
+    value = err.get("input")
+    if kind == "extra_forbidden":
+        return f"{path}: unknown key (value {value!r}); check the spelling against `mazebot config defaults`"
+    if kind == "missing":
+        return f"{path}: required key is missing"
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    return f"{path}: {value!r} is not allowed: {msg}"
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
+    """Validate a parsed TOML document; raise ConfigError with one line per problem."""
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        problems = [f"{source}: {_describe_error(e)}" for e in exc.errors()]
+        raise ConfigError(problems[0], problems) from None
+
+
+def load_config(path: str | os.PathLike[str] | None = None) -> Config:
+    """Load and validate a config file; with no path, the defaults (or ``$MAZEBOT_CONFIG``)."""
+    if path is None:
+        path = default_config_path()
+        if path is None:
+            return Config()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config file ({exc.strerror or exc})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p}: not valid TOML: the file is not UTF-8 text") from None
+    return parse_config(data, str(p))
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return f'"{escaped}"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def render_toml(config: Config | None = None) -> str:
+    """The config as a commented TOML file (``mazebot config defaults``)."""
+    config = config if config is not None else Config()
+    lines = [
+        "# mazebot configuration. Every key is optional; these are the defaults.",
+        "# Check a file with `mazebot config check PATH`.",
+    ]
+    for name, field in Config.model_fields.items():
+        section = getattr(config, name)
+        lines.append("")
+        lines.append(f"# {type(section).__doc__.strip().splitlines()[0]}")
+        lines.append(f"[{name}]")
+        for key, sub in type(section).model_fields.items():
+            if sub.description:
+                lines.append(f"# {sub.description}")
+            lines.append(f"{key} = {_toml_value(getattr(section, key))}")
+        del field
+    return "\n".join(lines) + "\n"

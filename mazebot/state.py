@@ -1,0 +1,82 @@
+"""The shared in-memory world of the daemon: run state, faults, pose, sensor health.
+
+One writer per piece (see DESIGN.md, "Data flow"): SLAM writes map and pose, the
+planner writes goal and path, control writes motor commands, the supervisor writes
+faults, and the web layer only reads and posts commands into ``commands``. Everything
+runs on one event loop, so plain attributes are enough; nothing here is touched from
+another thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from dataclasses import dataclass, field
+
+
+class RunState(enum.StrEnum):
+    """What the robot is doing, as the user sees it."""
+
+    IDLE = "idle"  # ready, waiting for start
+    RUNNING = "running"  # exploring
+    STOPPED = "stopped"  # the user pressed stop
+    DONE = "done"  # exploration finished, back at the start
+    FAULT = "fault"  # something failed; motors are at zero until the fault clears
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A problem the user must see: where it happened and a human sentence."""
+
+    source: str  # task or device name, e.g. "lidar"
+    message: str  # one human sentence
+    time_s: float  # clock time when it was raised
+
+
+@dataclass
+class Pose2D:
+    """Robot pose in the map frame: metres and radians (counter-clockwise)."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    theta_rad: float = 0.0
+
+
+@dataclass
+class SensorStats:
+    """Counters a user debugging the wiring wants to see."""
+
+    lidar_revolutions: int = 0
+    lidar_bytes_dropped: int = 0
+    lidar_reconnects: int = 0
+    encoder_ticks_left: int = 0
+    encoder_ticks_right: int = 0
+    encoder_invalid_transitions: int = 0
+
+
+@dataclass
+class SharedState:
+    """Everything the tasks share. Created once by ``main.py`` and handed to each task."""
+
+    run_state: RunState = RunState.IDLE
+    faults: list[Fault] = field(default_factory=list)
+    pose: Pose2D = field(default_factory=Pose2D)
+    sensors: SensorStats = field(default_factory=SensorStats)
+    commands: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=32))
+    started_at_s: float | None = None
+
+    def raise_fault(self, source: str, message: str, time_s: float) -> None:
+        """Record a fault and move to FAULT. Motors are the supervisor's job, not this."""
+        self.faults.append(Fault(source, message, time_s))
+        del self.faults[:-50]  # keep the recent history bounded
+        self.run_state = RunState.FAULT
+
+    def clear_faults(self, source: str | None = None) -> None:
+        """Forget faults (of one source, or all); FAULT falls back to IDLE when none remain."""
+        self.faults = [f for f in self.faults if source is not None and f.source != source]
+        if not self.faults and self.run_state is RunState.FAULT:
+            self.run_state = RunState.IDLE
+
+    @property
+    def active_fault(self) -> Fault | None:
+        return self.faults[-1] if self.faults else None

@@ -25,10 +25,19 @@ class Clock(Protocol):
 
 
 class RealClock:
-    """Wall-clock monotonic time; ``sleep`` is ``asyncio.sleep``."""
+    """The running event loop's clock; ``sleep`` is ``asyncio.sleep``.
+
+    Reading the loop's ``time()`` (monotonic seconds on a normal loop) rather than
+    ``time.monotonic()`` directly is what lets the simulator's virtual-time loop run the
+    same task code faster than real time: timers, ``asyncio.sleep`` and this clock all
+    move together. Outside a running loop it falls back to ``time.monotonic()``.
+    """
 
     def now_s(self) -> float:
-        return time.monotonic()
+        try:
+            return asyncio.get_running_loop().time()
+        except RuntimeError:
+            return time.monotonic()
 
     async def sleep(self, duration_s: float) -> None:
         await asyncio.sleep(max(0.0, duration_s))

@@ -125,7 +125,7 @@ class MotorsConfig(Section):
     )
     i2c_address: int = Field(0x60, ge=0x03, le=0x77, description="I2C address of the HAT")
     pwm_frequency_hz: float = Field(
-        1600.0, ge=24, le=1526, description="PCA9685 PWM frequency (datasheet: 24..1526 Hz)"
+        1600.0, ge=24, le=2000, description="PCA9685 PWM frequency (MotorKit's default is 1600 Hz)"
     )
     left_channel: Literal[1, 2, 3, 4] = Field(1, description="HAT motor terminal of the left wheel")
     right_channel: Literal[1, 2, 3, 4] = Field(

@@ -11,7 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import enum
+from collections import deque
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mazebot.io.scan import Scan
+    from mazebot.slam.odometry import OdometryPose
 
 
 class RunState(enum.StrEnum):
@@ -64,6 +70,13 @@ class SharedState:
     sensors: SensorStats = field(default_factory=SensorStats)
     commands: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=32))
     started_at_s: float | None = None
+    latest_scan: Scan | None = None  # written by the lidar task
+    odometry: OdometryPose | None = None  # written by the odometry task
+    #: (left, right) throttle the planner wants and the clock time it was set; the control
+    #: task applies it only while RUNNING and only while it is fresh.
+    throttle_command: tuple[float, float, float] | None = None
+    #: recent lateness of control ticks beyond their period, milliseconds
+    control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
 
     def raise_fault(self, source: str, message: str, time_s: float) -> None:
         """Record a fault and move to FAULT. Motors are the supervisor's job, not this."""

@@ -1,1 +1,1 @@
-"""tasks"""
+"""The coroutines that join devices, SLAM, the planner and the motors (thin glue)."""

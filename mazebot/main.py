@@ -1,0 +1,187 @@
+"""The daemon: build config, backends and shared state, run every task in one loop.
+
+``mazebot run`` on the robot opens the real devices (motor HAT first, so the wheels can
+always be stopped, then GPIO, then the lidar); ``mazebot run --sim`` puts the same task
+code on a simulated robot whose devices speak the same protocols. Start-up order and
+shutdown order are owned here: motors stop in ``finally`` blocks, never in ``__del__``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+from collections.abc import Awaitable, Callable
+from contextlib import AsyncExitStack
+from dataclasses import dataclass, field
+from typing import Any
+
+from mazebot.clock import Clock, RealClock
+from mazebot.config import Config, load_config
+from mazebot.errors import EXIT_OK, HardwareUnavailable, UsageError
+from mazebot.state import SharedState
+from mazebot.tasks.supervisor import Supervisor, TaskFactory
+
+log = logging.getLogger("mazebot")
+
+
+@dataclass
+class Hardware:
+    """The devices one run drives, real or simulated, already opened.
+
+    ``extra_tasks`` are tasks the backend itself needs (the simulator's physics);
+    ``description`` is one line for the log and the status page.
+    """
+
+    lidar: Any  # mazebot.io.rplidar.RPLidar
+    encoders: Any  # mazebot.io.encoders.WheelEncoders
+    motors: Any  # mazebot.io.motors.DifferentialMotors
+    description: str
+    extra_tasks: list[tuple[str, TaskFactory]] = field(default_factory=list)
+    sim: Any = None  # the simulator, when there is one (ground truth for the page and bench)
+
+
+HardwareBuilder = Callable[[Config, Clock, AsyncExitStack], Awaitable[Hardware]]
+
+
+async def open_robot_hardware(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
+    """Open the real robot's devices; a missing one raises HardwareUnavailable (exit 69)."""
+    from mazebot.io.encoders import WheelEncoders
+    from mazebot.io.motors import DifferentialMotors, open_motorkit
+    from mazebot.io.rplidar import RPLidar
+    from mazebot.io.serial_link import SerialLink
+
+    kit = open_motorkit(config.motors.i2c_address, config.motors.pwm_frequency_hz)
+    motors = DifferentialMotors.from_config(config.motors, kit, clock)
+    stack.callback(motors.close)
+    motors.stop()
+
+    try:
+        from gpiozero.pins.lgpio import LGPIOFactory
+
+        pin_factory = LGPIOFactory()
+    except Exception as exc:
+        raise HardwareUnavailable(
+            f"GPIO for the wheel encoders is not available ({type(exc).__name__}: {exc}); "
+            "`mazebot run` needs a Raspberry Pi with lgpio, use `mazebot run --sim` elsewhere"
+        ) from None
+    stack.callback(pin_factory.close)
+    encoders = WheelEncoders.from_config(config.encoders, pin_factory)
+    stack.callback(encoders.close)
+
+    # Open the port once now so a missing lidar is reported at start-up (exit 69),
+    # not as an endless reconnect loop.
+    probe = await SerialLink.open(config.lidar.port, config.lidar.baudrate)
+    await probe.close()
+    lidar = RPLidar.from_config(config.lidar, clock)
+    await stack.enter_async_context(lidar)
+    return Hardware(
+        lidar=lidar,
+        encoders=encoders,
+        motors=motors,
+        description=f"robot: lidar on {config.lidar.port}, motor HAT at {config.motors.i2c_address:#04x}",
+    )
+
+
+async def run_daemon(
+    config: Config,
+    build_hardware: HardwareBuilder,
+    *,
+    clock: Clock | None = None,
+    ready: asyncio.Event | None = None,
+    install_signal_handlers: bool = True,
+) -> int:
+    """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code."""
+    from mazebot.tasks import command_task, control_task, lidar_task, odometry_task
+    from mazebot.web.server import start_web_server
+
+    clock = clock or RealClock()
+    loop = asyncio.get_running_loop()
+    state = SharedState()
+    async with AsyncExitStack() as stack:
+        hardware = await build_hardware(config, clock, stack)
+        motors = hardware.motors
+        stack.callback(motors.stop)  # runs on every exit path, after the tasks are gone
+        supervisor = Supervisor(state, motors, clock, exit_on_fault=config.daemon.exit_on_fault)
+        if install_signal_handlers:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, supervisor.request_stop, f"signal {sig.name}")
+                stack.callback(loop.remove_signal_handler, sig)
+        for name, factory in hardware.extra_tasks:
+            supervisor.start(name, factory)
+        supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state))
+        supervisor.start(
+            "odometry",
+            lambda: odometry_task.run(hardware.encoders, state, clock, config.encoders, config.drive),
+        )
+        supervisor.start(
+            "control", lambda: control_task.run(motors, state, clock, config.daemon.control_period_s)
+        )
+        supervisor.start("commands", lambda: command_task.run(state, motors, clock))
+        web = await start_web_server(state, config, hardware)
+        stack.push_async_callback(web.cleanup)
+        log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
+        if ready is not None:
+            ready.set()
+        return await supervisor.wait()
+    return EXIT_OK  # pragma: no cover - unreachable, keeps type checkers calm
+
+
+def setup_logging(level: str) -> None:
+    """Log to stderr without timestamps: journald adds its own."""
+    logging.basicConfig(
+        stream=sys.stderr,
+        level=getattr(logging, level.upper()),
+        format="%(levelname)s %(name)s: %(message)s",
+        force=True,
+    )
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size expects WxH like 6x6, got {text!r}") from None
+    if not (2 <= w <= 32 and 2 <= h <= 32):
+        raise UsageError(f"--size {text}: each side must be between 2 and 32 cells")
+    return w, h
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    if args.host is not None:
+        config.web.host = args.host
+    if args.port is not None:
+        config.web.port = args.port
+    setup_logging(args.log_level or config.daemon.log_level)
+    if args.sim:
+        from mazebot.sim.backend import sim_hardware_builder
+
+        builder = sim_hardware_builder(
+            maze_path=args.maze,
+            seed=args.seed,
+            size=_parse_size(args.size) if args.size else None,
+        )
+    else:
+        if args.maze or args.seed is not None or args.size:
+            raise UsageError("--maze, --seed and --size only make sense with --sim")
+        builder = open_robot_hardware
+    with contextlib.suppress(KeyboardInterrupt):
+        return asyncio.run(run_daemon(config, builder))
+    return EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    run = sub.add_parser("run", help="run the robot (or, with --sim, the simulated robot)")
+    run.add_argument("--config", default=None, help="config file (default: $MAZEBOT_CONFIG or ./config.toml)")
+    run.add_argument("--sim", action="store_true", help="drive a simulated robot instead of the hardware")
+    run.add_argument("--maze", default=None, help="maze file in micromouse text format (with --sim)")
+    run.add_argument("--seed", type=int, default=None, help="generate a maze from this seed (with --sim)")
+    run.add_argument("--size", default=None, help="size of a generated maze, WxH cells (with --sim)")
+    run.add_argument("--host", default=None, help="web server interface (overrides [web] host)")
+    run.add_argument("--port", type=int, default=None, help="web server port (overrides [web] port)")
+    run.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"])
+    run.set_defaults(func=_cmd_run)

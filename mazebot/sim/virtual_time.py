@@ -1,0 +1,68 @@
+"""An asyncio event loop whose clock jumps ahead instead of waiting.
+
+Benchmarks run the daemon's real task code against the simulator with no real I/O
+(the lidar talks over in-memory streams, the encoders are mock pins). Every wait in
+such a run is a timer, so when nothing is ready the loop can advance its clock straight
+to the next timer instead of sleeping: the run goes as fast as the CPU allows, and the
+order of events is exactly the one real time would give. Sockets still work (the
+selector is polled without blocking), but their timing becomes meaningless, so the web
+server is not started on this loop. Work handed to an executor takes no virtual time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import selectors
+from typing import Any
+
+
+class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc, valid-type]
+    """A selector that polls without blocking and moves the loop's clock instead."""
+
+    def __init__(self, loop_ref: list[VirtualTimeLoop]) -> None:
+        super().__init__()
+        self._loop_ref = loop_ref
+
+    def select(self, timeout: float | None = None) -> list[tuple[Any, int]]:
+        if timeout is None:  # no timer pending: only I/O (an executor job) can wake us
+            return super().select(None)
+        events = super().select(0)
+        if not events and self._loop_ref and timeout is not None and timeout > 0:
+            self._loop_ref[0].advance(timeout)
+        return events
+
+
+class VirtualTimeLoop(asyncio.SelectorEventLoop):
+    """A selector event loop on virtual time, starting at ``start_s``.
+
+    Example::
+
+        loop = VirtualTimeLoop()
+        loop.run_until_complete(asyncio.sleep(3600))   # returns at once
+        loop.time()  # 3600.0
+    """
+
+    def __init__(self, start_s: float = 0.0) -> None:
+        ref: list[VirtualTimeLoop] = []
+        super().__init__(selector=_JumpingSelector(ref))
+        ref.append(self)
+        self._now_s = start_s
+
+    def time(self) -> float:
+        return self._now_s
+
+    def advance(self, duration_s: float) -> None:
+        """Move the clock forward; only the loop itself calls this, when it is idle."""
+        self._now_s += duration_s
+
+
+def run_virtual(coro: Any, start_s: float = 0.0) -> Any:
+    """``asyncio.run`` on virtual time."""
+    loop = VirtualTimeLoop(start_s)
+    try:
+        asyncio.set_event_loop(loop)
+        return loop.run_until_complete(coro)
+    finally:
+        asyncio.set_event_loop(None)
+        loop.run_until_complete(loop.shutdown_asyncgens())
+        loop.close()

@@ -90,9 +90,10 @@ class EncodersConfig(Section):
     right_a_pin: BcmPin = Field(22, description="BCM pin of the right encoder's channel A")
     right_b_pin: BcmPin = Field(23, description="BCM pin of the right encoder's channel B")
     counts_per_rev: int = Field(
-        360,
+        210,
         gt=0,
-        description="encoder lines (pulses of channel A) per wheel revolution, after the gearbox",
+        description="encoder lines (pulses of channel A) per wheel revolution, after the gearbox "
+        "(e.g. a 7-pulse hall encoder on a 30:1 gear motor)",
     )
     decoding: Literal["x1", "x2", "x4"] = Field(
         "x4", description="edges counted per line: x1 (A rising), x2 (A both), x4 (A and B both)"
@@ -200,6 +201,46 @@ class WebConfig(Section):
     port: int = Field(8080, ge=1, le=65535, description="TCP port of the web page")
 
 
+class SimConfig(Section):
+    """The simulated robot and world used by ``mazebot run --sim`` and ``mazebot bench``.
+
+    The simulated robot is the one the other sections describe (wheel size, track, pins,
+    channels, inversion), plus the imperfections below that a real robot has.
+    """
+
+    maze: str = Field("", description="maze file (micromouse text); empty: generate one")
+    maze_kind: Literal["perfect", "braided", "rooms"] = Field(
+        "braided", description="kind of generated maze: perfect (a tree), braided (loops), rooms (open 3x3 areas)"
+    )
+    maze_width: int = Field(6, ge=2, le=32, description="generated maze width in cells")
+    maze_height: int = Field(6, ge=2, le=32, description="generated maze height in cells")
+    seed: int = Field(1, ge=0, description="seed of the maze generator and of every noise source")
+    cell_size_m: float = Field(0.3048, gt=0.1, le=2.0, description="maze cell size (1 ft)")
+    wall_thickness_m: float = Field(0.012, gt=0.001, le=0.1, description="maze wall thickness")
+    physics_rate_hz: float = Field(400.0, ge=200, le=5000, description="integration rate of the robot physics")
+    step_period_s: float = Field(
+        0.005, gt=0, le=0.05, description="period of the simulator task (physics, encoder edges)"
+    )
+    motor_time_constant_s: float = Field(0.08, gt=0, le=2, description="first-order lag of a driven wheel")
+    brake_time_constant_s: float = Field(0.04, gt=0, le=2, description="lag of a wheel braked at throttle 0")
+    deadband: float = Field(0.08, ge=0, lt=1, description="throttle below which a motor does not turn")
+    gain_left: float = Field(1.0, gt=0.5, lt=1.5, description="left motor speed gain (mismatch)")
+    gain_right: float = Field(0.97, gt=0.5, lt=1.5, description="right motor speed gain (mismatch)")
+    battery_sag: float = Field(0.05, ge=0, lt=0.5, description="speed loss at full throttle on both motors")
+    wheel_diameter_left_scale: float = Field(
+        1.0, gt=0.9, lt=1.1, description="true left wheel diameter over the configured one"
+    )
+    wheel_diameter_right_scale: float = Field(
+        1.004, gt=0.9, lt=1.1, description="true right wheel diameter over the configured one"
+    )
+    slip_std: float = Field(0.01, ge=0, lt=0.5, description="random wheel slip (fraction, per physics step)")
+    lidar_rev_per_s: float = Field(5.5, gt=1, le=20, description="lidar rotation rate (A1M8 typical 5.5)")
+    lidar_rev_jitter: float = Field(0.03, ge=0, lt=0.5, description="relative jitter of the rotation rate")
+    lidar_samples_per_rev: int = Field(360, ge=36, le=4000, description="samples per revolution")
+    lidar_range_noise: float = Field(0.01, ge=0, lt=0.2, description="range noise std as a fraction of range")
+    lidar_dropout: float = Field(0.02, ge=0, lt=1, description="probability that a sample has no return")
+
+
 class Config(BaseModel):
     """The whole configuration file: one section per part of the robot."""
 
@@ -212,6 +253,7 @@ class Config(BaseModel):
     robot: RobotConfig = Field(default_factory=RobotConfig)
     daemon: DaemonConfig = Field(default_factory=DaemonConfig)
     web: WebConfig = Field(default_factory=WebConfig)
+    sim: SimConfig = Field(default_factory=SimConfig)
 
     @property
     def wheel_circumference_m(self) -> float:

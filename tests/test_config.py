@@ -47,9 +47,9 @@ def test_unknown_and_bad_keys_name_the_key_path(tmp_path: Path) -> None:
 
 
 def test_cross_field_rules(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="encoders: .*four different GPIOs"):
+    with pytest.raises(ConfigError, match=r"encoders: .*four different GPIOs"):
         parse_config({"encoders": {"left_a_pin": 5, "right_b_pin": 5}})
-    with pytest.raises(ConfigError, match="motors: .*share channel 1"):
+    with pytest.raises(ConfigError, match=r"motors: .*share channel 1"):
         parse_config({"motors": {"right_channel": 1}})
     with pytest.raises(ConfigError, match="min_range_m"):
         parse_config({"lidar": {"min_range_m": 13.0}})

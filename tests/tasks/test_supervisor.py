@@ -66,7 +66,7 @@ async def test_request_stop_zeroes_motors_before_anything_is_cancelled() -> None
     assert all(t.done() for t in sup.tasks.values())
 
 
-async def test_a_failing_motor_stop_is_not_swallowed_silently(caplog) -> None:  # noqa: ANN001
+async def test_a_failing_motor_stop_is_not_swallowed_silently(caplog) -> None:
     class BrokenMotors:
         def stop(self) -> None:
             raise OSError("I2C write failed")

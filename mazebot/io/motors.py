@@ -1,0 +1,480 @@
+"""The two drive motors on the Adafruit DC & Stepper Motor HAT, and a fake with a log.
+
+The hardware boundary is an object shaped like ``adafruit_motorkit.MotorKit``:
+``kit.motor1`` … ``kit.motor4``, each with a ``throttle`` in [-1, 1] (0 = brake, ``None``
+= coast). :func:`open_motorkit` builds the real one, importing ``adafruit_motorkit``
+(and with it Blinka's ``board``, which fails off a Pi) only when called;
+:class:`FakeMotorKit` is the same shape for tests and the simulator.
+:class:`DifferentialMotors` is what the rest of mazebot drives: left/right throttles,
+per-side channel and polarity, and the safety rules.
+
+Safety rules, each a test:
+
+* A throttle that is not refreshed within ``command_ttl_s`` becomes a brake: each
+  :meth:`DifferentialMotors.set` re-arms a ``loop.call_later`` handle (one timer, no
+  polling task to die silently), and a control loop can also call
+  :meth:`DifferentialMotors.expire_stale` with the clock's time.
+* A failed write (I²C error) never leaves the other motor running: both motors are
+  commanded to brake, the error is counted and :class:`MotorWriteError` is raised so the
+  supervisor can fault.
+* Non-finite throttles (NaN, ±inf: an upstream bug) are treated as 0 and logged; finite
+  ones are clamped to [-1, 1].
+* The HAT keeps its last PWM output across process restarts, so
+  :class:`DifferentialMotors` brakes both motors when it is created, and again in
+  :meth:`~DifferentialMotors.close` (idempotent; use it as a context manager). Never in
+  ``__del__``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Final, Literal, Protocol, Self
+
+from mazebot.clock import Clock
+from mazebot.config import MotorsConfig
+from mazebot.errors import EXIT_UNAVAILABLE, HardwareUnavailable, MazebotError
+
+logger = logging.getLogger(__name__)
+
+CHANNELS: Final = (1, 2, 3, 4)
+
+#: Slack when comparing clock times, so a check exactly one TTL later (virtual time,
+#: float sums of periods) counts as expired rather than one tick late.
+_TIME_EPSILON_S: Final = 1e-9
+
+#: Log a non-finite throttle the first time and then once every this many times.
+_NONFINITE_LOG_EVERY: Final = 100
+
+
+class MotorWriteError(MazebotError):
+    """A throttle write to the motor HAT failed (I²C error); both motors were told to brake.
+
+    ``channel`` is the HAT terminal whose write failed, ``side`` "left"/"right",
+    ``stopped`` whether the brake commands that followed all succeeded (if not, a
+    motor may still be turning: cut power).
+    """
+
+    exit_code = EXIT_UNAVAILABLE
+
+    def __init__(self, message: str, *, channel: int, side: str, stopped: bool) -> None:
+        super().__init__(message)
+        self.channel = channel
+        self.side = side
+        self.stopped = stopped
+
+
+class MotorLike(Protocol):
+    """One DC motor: ``throttle`` in [-1, 1], 0 brakes, ``None`` coasts."""
+
+    throttle: float | None
+
+
+class MotorKitLike(Protocol):
+    """Anything shaped like ``adafruit_motorkit.MotorKit`` for DC motors."""
+
+    @property
+    def motor1(self) -> MotorLike: ...
+
+    @property
+    def motor2(self) -> MotorLike: ...
+
+    @property
+    def motor3(self) -> MotorLike: ...
+
+    @property
+    def motor4(self) -> MotorLike: ...
+
+
+def open_motorkit(i2c_address: int = 0x60, pwm_frequency_hz: float = 1600.0) -> MotorKitLike:
+    """Open the real motor HAT over I²C.
+
+    Imports ``adafruit_motorkit`` here, not at module import: it imports Blinka's
+    ``board``, which fails on anything but a supported board. Every way this fails
+    off a Pi or without a HAT (no ``board`` support, no I²C bus, nothing answering at
+    the address) becomes one :class:`HardwareUnavailable` line. ``AttributeError`` is
+    included because Blinka on an unrecognised Linux machine imports fine but has no
+    ``board.I2C``.
+    """
+    try:
+        from adafruit_motorkit import MotorKit
+
+        return MotorKit(address=i2c_address, pwm_frequency=pwm_frequency_hz)
+    except (ImportError, OSError, RuntimeError, ValueError, AttributeError) as error:
+        reason = " ".join(f"{type(error).__name__}: {error}".split())
+        raise HardwareUnavailable(
+            f"motor HAT not found at I2C address 0x{i2c_address:02x} ({reason}); "
+            "check the HAT is seated and I2C is enabled (raspi-config)"
+        ) from error
+
+
+# --- the fake -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class ThrottleWrite:
+    """One successful throttle write seen by :class:`FakeMotorKit`."""
+
+    time_s: float
+    channel: int
+    throttle: float | None
+
+
+class FakeMotor:
+    """One fake DC motor; writes go through its kit so they are logged (or fail)."""
+
+    def __init__(self, kit: FakeMotorKit, channel: int) -> None:
+        self._kit = kit
+        self.channel = channel
+        self._throttle: float | None = None
+
+    @property
+    def throttle(self) -> float | None:
+        return self._throttle
+
+    @throttle.setter
+    def throttle(self, value: float | None) -> None:
+        self._kit._write(self.channel, value)
+        self._throttle = value
+
+
+class FakeMotorKit:
+    """Same shape as ``MotorKit``; records every write, and can be told to fail writes.
+
+    Like adafruit_motor's ``DCMotor``, a throttle outside [-1, 1] raises ``ValueError``
+    (so clamping bugs show up in tests). Motors start coasting (``None``).
+
+    Test controls: :attr:`command_log` (successful writes, in order),
+    :meth:`fail_writes` / :meth:`heal` (make writes raise ``OSError`` like a broken I²C
+    bus), :attr:`failed_writes`.
+
+    Example::
+
+        kit = FakeMotorKit()
+        kit.motor1.throttle = 0.5
+        kit.command_log[-1].throttle   # 0.5
+        kit.fail_writes(channels=[2])
+        kit.motor2.throttle = 0.1      # raises OSError (EIO)
+    """
+
+    def __init__(self, clock: Clock | None = None) -> None:
+        self._clock = clock
+        self.command_log: list[ThrottleWrite] = []
+        self.failed_writes = 0
+        self._failing: frozenset[int] = frozenset()
+        self._failures_left: int | None = None
+        self._motors = {channel: FakeMotor(self, channel) for channel in CHANNELS}
+
+    @property
+    def motor1(self) -> FakeMotor:
+        return self._motors[1]
+
+    @property
+    def motor2(self) -> FakeMotor:
+        return self._motors[2]
+
+    @property
+    def motor3(self) -> FakeMotor:
+        return self._motors[3]
+
+    @property
+    def motor4(self) -> FakeMotor:
+        return self._motors[4]
+
+    def throttles(self) -> dict[int, float | None]:
+        """The current throttle of every channel."""
+        return {channel: motor.throttle for channel, motor in self._motors.items()}
+
+    def fail_writes(self, channels: Iterable[int] = CHANNELS, times: int | None = None) -> None:
+        """Make writes to ``channels`` raise ``OSError``: the next ``times`` writes, or all."""
+        self._failing = frozenset(channels)
+        self._failures_left = times
+
+    def heal(self) -> None:
+        """Stop failing writes."""
+        self._failing = frozenset()
+        self._failures_left = None
+
+    def _write(self, channel: int, throttle: float | None) -> None:
+        if throttle is not None and not -1.0 <= throttle <= 1.0:
+            raise ValueError(f"throttle must be None or between -1.0 and +1.0, got {throttle}")
+        if channel in self._failing and self._failures_left != 0:
+            if self._failures_left is not None:
+                self._failures_left -= 1
+            self.failed_writes += 1
+            raise OSError(errno.EIO, f"injected I2C write failure on motor{channel}")
+        time_s = self._clock.now_s() if self._clock is not None else 0.0
+        self.command_log.append(ThrottleWrite(time_s, channel, throttle))
+
+
+# --- the differential drive ---------------------------------------------------------
+
+CommandKind = Literal["set", "stop", "coast", "expired"]
+
+
+@dataclass(frozen=True, slots=True)
+class MotorCommand:
+    """The last command given to both motors, before inversion (for telemetry).
+
+    ``left``/``right`` are the throttles actually written (after clamping), ``None``
+    when coasting. ``kind`` "expired" is a stop caused by the command time-to-live.
+    """
+
+    left: float | None
+    right: float | None
+    time_s: float
+    kind: CommandKind
+
+
+class DifferentialMotors:
+    """Left and right drive motors on a MotorKit-shaped ``kit``, with the safety rules.
+
+    Throttles are in [-1, 1], positive drives the robot forward (``left_invert`` /
+    ``right_invert`` fix the wiring polarity; mirrored motors usually need one side
+    inverted). Creating it brakes both motors (an I²C write).
+
+    Writes are synchronous I²C transactions (a few short ones per call), cheap enough
+    for the 20 Hz control loop to make on the event loop.
+
+    Time-to-live: every :meth:`set` arms ``loop.call_later(command_ttl_s)`` on ``loop``
+    (or, if none was given, the running loop of the caller), cancelling the previous
+    handle; if it fires, both motors brake. Call :meth:`set` from the loop's thread.
+    Without any loop (synchronous use), only :meth:`expire_stale` enforces the TTL.
+
+    Example::
+
+        with DifferentialMotors(FakeMotorKit(), command_ttl_s=0.3, clock=RealClock()) as m:
+            m.set(0.4, 0.4)    # forward; brakes by itself 0.3 s later unless refreshed
+    """
+
+    def __init__(
+        self,
+        kit: MotorKitLike,
+        *,
+        left_channel: int = 1,
+        right_channel: int = 2,
+        left_invert: bool = False,
+        right_invert: bool = False,
+        command_ttl_s: float = 0.3,
+        clock: Clock,
+        loop: asyncio.AbstractEventLoop | None = None,
+    ) -> None:
+        for name, channel in (("left_channel", left_channel), ("right_channel", right_channel)):
+            if channel not in CHANNELS:
+                raise ValueError(f"{name} must be a HAT motor terminal 1..4, got {channel!r}")
+        if left_channel == right_channel:
+            raise ValueError(f"left and right motors share channel {left_channel}")
+        if not command_ttl_s > 0:
+            raise ValueError(f"command_ttl_s must be > 0 s, got {command_ttl_s!r}")
+        self._sides = (
+            ("left", left_channel, _motor(kit, left_channel), -1.0 if left_invert else 1.0),
+            ("right", right_channel, _motor(kit, right_channel), -1.0 if right_invert else 1.0),
+        )
+        self.command_ttl_s = command_ttl_s
+        self._clock = clock
+        self._loop = loop
+        self._ttl_handle: asyncio.TimerHandle | None = None
+        self._closed = False
+        self._warned_no_loop = False
+        self.last_command: MotorCommand | None = None
+        self.write_errors = 0
+        self.last_error: MotorWriteError | None = None  # for a supervisor to poll
+        self.nonfinite_commands = 0
+        self.expirations = 0
+        # The HAT may still be running the PWM of a previous process: brake first.
+        self._write_both(0.0, 0.0, "stop")
+
+    @classmethod
+    def from_config(
+        cls,
+        cfg: MotorsConfig,
+        kit: MotorKitLike,
+        clock: Clock,
+        *,
+        loop: asyncio.AbstractEventLoop | None = None,
+    ) -> DifferentialMotors:
+        """Build from the ``[motors]`` section; ``kit`` comes from :func:`open_motorkit`
+        or is a :class:`FakeMotorKit` (``backend = "fake"``)."""
+        return cls(
+            kit,
+            left_channel=cfg.left_channel,
+            right_channel=cfg.right_channel,
+            left_invert=cfg.left_invert,
+            right_invert=cfg.right_invert,
+            command_ttl_s=cfg.command_ttl_s,
+            clock=clock,
+            loop=loop,
+        )
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def set(self, left: float, right: float) -> None:
+        """Drive: throttles in [-1, 1] (clamped; non-finite -> 0), valid for the TTL.
+
+        Raises :class:`MotorWriteError` if the HAT write fails (both motors were then
+        told to brake), ``RuntimeError`` after :meth:`close`.
+        """
+        if self._closed:
+            raise RuntimeError("DifferentialMotors is closed; it cannot drive the motors")
+        left_t = self._sanitize("left", left)
+        right_t = self._sanitize("right", right)
+        self._write_both(left_t, right_t, "set")
+        if left_t == 0.0 and right_t == 0.0:
+            self._cancel_ttl()  # a zero command is a brake already: nothing to expire
+        else:
+            self._arm_ttl()
+
+    def stop(self) -> None:
+        """Brake both motors (throttle 0). Allowed after :meth:`close`."""
+        self._cancel_ttl()
+        self._write_both(0.0, 0.0, "stop")
+
+    def coast(self) -> None:
+        """Let both motors spin freely (throttle ``None``)."""
+        self._cancel_ttl()
+        self._write_both(None, None, "coast")
+
+    def expire_stale(self, now_s: float) -> bool:
+        """Brake if the last :meth:`set` is older than the TTL at clock time ``now_s``.
+
+        For a control loop that checks each tick (and for virtual-time runs, where the
+        event loop's timer does not follow the clock). Returns whether it braked.
+        """
+        last = self.last_command
+        if last is None or last.kind != "set" or (last.left == 0.0 and last.right == 0.0):
+            return False
+        if now_s - last.time_s < self.command_ttl_s - _TIME_EPSILON_S:
+            return False
+        self._expire()
+        return True
+
+    def close(self) -> None:
+        """Brake both motors and refuse further :meth:`set`. Idempotent.
+
+        Raises :class:`MotorWriteError` (on the first call only) if the brake could
+        not be written.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        self.stop()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        (_, left_ch, _, _), (_, right_ch, _, _) = self._sides
+        return (
+            f"<DifferentialMotors left=motor{left_ch} right=motor{right_ch} "
+            f"ttl={self.command_ttl_s}s last={self.last_command}>"
+        )
+
+    # --- internals ------------------------------------------------------------------
+
+    def _sanitize(self, side: str, throttle: float) -> float:
+        value = float(throttle)
+        if not math.isfinite(value):
+            self.nonfinite_commands += 1
+            if self.nonfinite_commands % _NONFINITE_LOG_EVERY == 1:
+                logger.warning(
+                    "non-finite %s throttle %r treated as 0 (%d so far): a bug upstream",
+                    side,
+                    throttle,
+                    self.nonfinite_commands,
+                )
+            return 0.0
+        return min(1.0, max(-1.0, value))
+
+    def _write_both(self, left: float | None, right: float | None, kind: CommandKind) -> None:
+        """Write both throttles; on any failure, brake both and raise MotorWriteError."""
+        for (side, channel, motor, sign), throttle in zip(self._sides, (left, right), strict=True):
+            try:
+                # "+ 0.0" turns an inverted brake (-0.0) into 0.0 for the log and the HAT.
+                motor.throttle = None if throttle is None else sign * throttle + 0.0
+            except Exception as error:
+                # Safety first: whatever went wrong, do not leave either motor running.
+                self.write_errors += 1
+                self._cancel_ttl()
+                stopped = self._brake_all_best_effort()
+                reason = " ".join(f"{type(error).__name__}: {error}".split())
+                outcome = "both motors braked" if stopped else "BRAKE FAILED, cut motor power"
+                fault = MotorWriteError(
+                    f"motor HAT write failed on motor{channel} ({side}) ({reason}); "
+                    f"{outcome}; check the HAT's I2C wiring and power",
+                    channel=channel,
+                    side=side,
+                    stopped=stopped,
+                )
+                self.last_error = fault
+                raise fault from error
+        self.last_command = MotorCommand(left, right, self._clock.now_s(), kind)
+
+    def _brake_all_best_effort(self) -> bool:
+        """Throttle 0 on both motors, each tried even if the other fails."""
+        stopped = True
+        for side, channel, motor, _ in self._sides:
+            try:
+                motor.throttle = 0.0
+            except Exception:
+                stopped = False
+                self.write_errors += 1
+                logger.exception("could not brake motor%d (%s)", channel, side)
+        self.last_command = MotorCommand(0.0, 0.0, self._clock.now_s(), "stop")
+        return stopped
+
+    def _arm_ttl(self) -> None:
+        loop = self._loop
+        if loop is None:
+            try:
+                loop = asyncio.get_running_loop()
+            except RuntimeError:
+                loop = None
+        self._cancel_ttl()
+        if loop is None:
+            if not self._warned_no_loop:
+                self._warned_no_loop = True
+                logger.warning(
+                    "motor command TTL has no event loop: only expire_stale() will stop "
+                    "a stale command"
+                )
+            return
+        try:
+            self._ttl_handle = loop.call_later(self.command_ttl_s, self._on_ttl_expired)
+        except RuntimeError:  # the loop is closed: nothing would ever expire this command
+            self._brake_all_best_effort()
+            raise
+
+    def _cancel_ttl(self) -> None:
+        if self._ttl_handle is not None:
+            self._ttl_handle.cancel()
+            self._ttl_handle = None
+
+    def _on_ttl_expired(self) -> None:
+        """Timer callback: runs on the loop, where exceptions would only be logged."""
+        self._ttl_handle = None
+        try:
+            self._expire()
+        except MotorWriteError:
+            logger.exception("motor command expired and the brake write failed")
+
+    def _expire(self) -> None:
+        self.expirations += 1
+        logger.warning(
+            "motor command not refreshed within %.3f s: braking", self.command_ttl_s
+        )
+        self._cancel_ttl()
+        self._write_both(0.0, 0.0, "expired")
+
+
+def _motor(kit: MotorKitLike, channel: int) -> MotorLike:
+    motor: MotorLike = getattr(kit, f"motor{channel}")
+    return motor

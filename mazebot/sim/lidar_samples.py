@@ -1,0 +1,169 @@
+"""What a spinning RPLidar A1M8 measures in a simulated world, sample by sample.
+
+The head turns at ~5.5 rev/s (with a few percent of jitter from one revolution to the
+next) and takes one range sample at evenly spaced angles. Every sample is taken at its
+own time, from the robot's pose at that time: a robot driving at 0.3 m/s moves ~5 cm
+during one revolution, and SLAM has to de-skew that, so the simulator must produce it.
+
+Device conventions (Slamtec A1M8 datasheet and protocol documentation): angles in
+degrees clockwise seen from above, 0° at the lidar's front mark; distance 0 means "no
+valid return" (too close, below 0.15 m; too far, beyond 12 m; or no echo).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mazebot.sim.raycast import cast_rays
+from mazebot.sim.world import World
+
+
+@dataclass(frozen=True)
+class LidarParams:
+    """The emulated lidar's behaviour; defaults are the A1M8 in standard scan mode."""
+
+    rev_per_s: float = 5.5  # nominal rotation rate
+    rev_jitter: float = 0.03  # relative std of the rate, drawn once per revolution
+    samples_per_rev: int = 360  # standard mode: ~2000 samples/s at 5.5 rev/s
+    min_range_m: float = 0.15  # closer returns are reported as distance 0
+    max_range_m: float = 12.0  # farther returns are reported as distance 0
+    range_noise: float = 0.01  # range noise std as a fraction of the range
+    dropout: float = 0.02  # probability that a sample has no return (quality 0)
+    quality: int = 47  # quality of a good return (the A1 reports ~47 of 63 on walls)
+    mount_x_m: float = 0.0  # lidar centre ahead of the robot's axle centre
+    mount_y_m: float = 0.0  # lidar centre left of the robot's axle centre
+    mount_yaw_rad: float = 0.0  # robot-frame angle (CCW) of the lidar's 0° mark
+
+
+@dataclass(frozen=True)
+class DeviceSamples:
+    """Samples in the device's own terms, ready to be encoded into protocol bytes."""
+
+    time_s: np.ndarray  # when each sample was taken (simulation clock)
+    angle_deg: np.ndarray  # clockwise from the lidar's 0° mark, [0, 360)
+    dist_mm: np.ndarray  # 0 = no valid return
+    quality: np.ndarray  # 0..63
+    start: np.ndarray  # True on the first sample of a revolution
+
+    def __len__(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+class PoseHistory:
+    """Recent true poses of the robot, interpolated at any sample time.
+
+    The simulator appends a pose after every physics step; the lidar asks for the pose
+    at each sample's time. Heading is unwrapped before interpolation.
+    """
+
+    def __init__(self, horizon_s: float = 1.0) -> None:
+        self._horizon_s = horizon_s
+        self._t: deque[float] = deque()
+        self._x: deque[float] = deque()
+        self._y: deque[float] = deque()
+        self._th: deque[float] = deque()
+
+    def append(self, time_s: float, x_m: float, y_m: float, theta_rad: float) -> None:
+        if self._th:
+            last = self._th[-1]
+            theta_rad = last + math.remainder(theta_rad - last, math.tau)
+        self._t.append(time_s)
+        self._x.append(x_m)
+        self._y.append(y_m)
+        self._th.append(theta_rad)
+        while len(self._t) > 2 and self._t[0] < time_s - self._horizon_s:
+            for d in (self._t, self._x, self._y, self._th):
+                d.popleft()
+
+    def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Poses at the given times (clamped to the known span)."""
+        if not self._t:
+            raise RuntimeError("no pose recorded yet")
+        t = np.fromiter(self._t, float, len(self._t))
+        return (
+            np.interp(times_s, t, np.fromiter(self._x, float, len(t))),
+            np.interp(times_s, t, np.fromiter(self._y, float, len(t))),
+            np.interp(times_s, t, np.fromiter(self._th, float, len(t))),
+        )
+
+
+class SpinningLidar:
+    """The rotating head: turns elapsed time into samples of the world.
+
+    Example::
+
+        head = SpinningLidar(world, LidarParams(), np.random.default_rng(1))
+        samples = head.advance(now_s=0.2, poses=history)   # everything since the last call
+    """
+
+    def __init__(self, world: World, params: LidarParams, rng: np.random.Generator) -> None:
+        self._world = world
+        self.params = params
+        self._rng = rng
+        self._time_s: float | None = None  # time of the last emitted sample
+        self._index_in_rev = 0  # index of the next sample within its revolution
+        self._period_s = self._draw_period_s()
+
+    def _draw_period_s(self) -> float:
+        p = self.params
+        rate = p.rev_per_s * (1.0 + p.rev_jitter * float(self._rng.standard_normal()))
+        return 1.0 / (max(rate, 0.2 * p.rev_per_s) * p.samples_per_rev)
+
+    def restart(self, now_s: float) -> None:
+        """The scan (re)starts now: the next sample begins a new revolution."""
+        self._time_s = now_s
+        self._index_in_rev = 0
+
+    def advance(self, now_s: float, poses: PoseHistory) -> DeviceSamples:
+        """All samples whose time falls in (last call, now]."""
+        if self._time_s is None:
+            self.restart(now_s)
+        times: list[float] = []
+        indices: list[int] = []
+        t = self._time_s
+        assert t is not None
+        n = self.params.samples_per_rev
+        while t + self._period_s <= now_s:
+            t += self._period_s
+            times.append(t)
+            indices.append(self._index_in_rev)
+            self._index_in_rev += 1
+            if self._index_in_rev == n:
+                self._index_in_rev = 0
+                self._period_s = self._draw_period_s()
+        self._time_s = t
+        return self.measure(np.asarray(times), np.asarray(indices, dtype=np.int64), poses)
+
+    def measure(self, times_s: np.ndarray, indices: np.ndarray, poses: PoseHistory) -> DeviceSamples:
+        """Range samples at the given times and within-revolution indices."""
+        p = self.params
+        k = times_s.shape[0]
+        angle_deg = indices * (360.0 / p.samples_per_rev)
+        if k == 0:
+            empty = np.zeros(0)
+            return DeviceSamples(empty, empty, empty, np.zeros(0, np.uint8), np.zeros(0, bool))
+        x, y, th = poses.at(times_s)
+        ox = x + p.mount_x_m * np.cos(th) - p.mount_y_m * np.sin(th)
+        oy = y + p.mount_x_m * np.sin(th) + p.mount_y_m * np.cos(th)
+        ray_world_rad = th + p.mount_yaw_rad - np.deg2rad(angle_deg)
+        true_m = cast_rays(
+            np.column_stack([ox, oy]), ray_world_rad, self._world.segments, self._world.circles, p.max_range_m
+        )
+        measured_m = true_m * (1.0 + p.range_noise * self._rng.standard_normal(k))
+        valid = np.isfinite(true_m) & (true_m >= p.min_range_m) & (measured_m <= p.max_range_m)
+        valid &= self._rng.random(k) >= p.dropout
+        dist_mm = np.where(valid, np.round(measured_m * 1000.0 * 4.0) / 4.0, 0.0)
+        quality = np.where(valid, p.quality, 0).astype(np.uint8)
+        return DeviceSamples(times_s, angle_deg, dist_mm, quality, indices == 0)
+
+
+def concat(parts: Iterable[DeviceSamples]) -> DeviceSamples:
+    """Join consecutive sample batches."""
+    parts = list(parts)
+    return DeviceSamples(*(np.concatenate([getattr(s, f) for s in parts]) for f in
+                           ("time_s", "angle_deg", "dist_mm", "quality", "start")))

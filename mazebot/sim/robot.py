@@ -1,0 +1,136 @@
+"""The simulated robot: physics, motor HAT, encoder pins and lidar head in one world.
+
+It stands behind the same hardware boundaries as the real robot (DESIGN.md, "Hardware
+boundaries"): the daemon's motor driver writes throttles into a fake MotorKit, whose
+channels turn the simulated wheels; the wheels' true rotation becomes quadrature edges
+on gpiozero mock pins that the real encoder code counts; the lidar head measures the
+world from the robot's true pose and the emulator serves it as RPLidar protocol bytes.
+
+The simulated robot is the one ``config.toml`` describes (wheel size, track width,
+pins, channels, and the wiring that the inversion flags correct for), plus the
+imperfections of ``[sim]``: motor lag and mismatch, unequal wheels, slip, lidar noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from gpiozero.pins.mock import MockFactory
+
+from mazebot.clock import Clock
+from mazebot.config import Config
+from mazebot.io.motors import FakeMotorKit
+from mazebot.sim.encoder_signals import QuadratureSignal
+from mazebot.sim.lidar_samples import LidarParams, PoseHistory, SpinningLidar
+from mazebot.sim.physics import PhysicsParams, RobotPhysics
+from mazebot.sim.world import World
+
+
+def physics_params(config: Config) -> PhysicsParams:
+    """The simulated robot's physics from the robot's config and its ``[sim]`` section."""
+    sim = config.sim
+    return PhysicsParams(
+        wheel_diameter_m=config.drive.wheel_diameter_m,
+        track_width_m=config.drive.track_width_m,
+        max_wheel_speed_mps=config.drive.max_wheel_speed_mps,
+        motor_time_constant_s=sim.motor_time_constant_s,
+        brake_time_constant_s=sim.brake_time_constant_s,
+        deadband=sim.deadband,
+        gain_left=sim.gain_left,
+        gain_right=sim.gain_right,
+        battery_sag=sim.battery_sag,
+        wheel_diameter_left_scale=sim.wheel_diameter_left_scale,
+        wheel_diameter_right_scale=sim.wheel_diameter_right_scale,
+        slip_std=sim.slip_std,
+        footprint_radius_m=config.robot.footprint_radius_m,
+        rate_hz=sim.physics_rate_hz,
+    )
+
+
+def lidar_params(config: Config) -> LidarParams:
+    """The emulated lidar from ``[lidar]`` (range limits, mounting) and ``[sim]`` (noise)."""
+    sim, lidar = config.sim, config.lidar
+    samples = sim.lidar_samples_per_rev * (2 if lidar.scan_mode == "express" else 1)
+    return LidarParams(
+        rev_per_s=sim.lidar_rev_per_s,
+        rev_jitter=sim.lidar_rev_jitter,
+        samples_per_rev=samples,
+        min_range_m=lidar.min_range_m,
+        max_range_m=lidar.max_range_m,
+        range_noise=sim.lidar_range_noise,
+        dropout=sim.lidar_dropout,
+        mount_x_m=lidar.mount_x_m,
+        mount_y_m=lidar.mount_y_m,
+        mount_yaw_rad=float(np.deg2rad(lidar.mount_yaw_deg)),
+    )
+
+
+class SimulatedRobot:
+    """One robot in one world. ``step(now_s)`` advances everything to ``now_s``.
+
+    Example::
+
+        robot = SimulatedRobot(world, config, seed=1)
+        robot.kit.motor1.throttle = 0.5       # what the motor driver does
+        robot.step(0.1)                       # physics, encoder edges, pose history
+    """
+
+    def __init__(self, world: World, config: Config, seed: int) -> None:
+        self.world = world
+        self.config = config
+        rngs = np.random.default_rng(seed).spawn(2)
+        self.physics = RobotPhysics(physics_params(config), world, world.start_pose, rngs[0])
+        self.kit = FakeMotorKit()
+        self.pin_factory = MockFactory()
+        enc = config.encoders
+        self.left_signal = QuadratureSignal(self.pin_factory, enc.left_a_pin, enc.left_b_pin, enc.counts_per_rev)
+        self.right_signal = QuadratureSignal(self.pin_factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev)
+        self.poses = PoseHistory()
+        self.lidar_head = SpinningLidar(world, lidar_params(config), rngs[1])
+        self.time_s: float | None = None
+        self.trajectory: list[tuple[float, float, float, float]] = []  # (t, x, y, theta), ground truth
+
+    def _channel_throttle(self, channel: int, inverted_wiring: bool) -> float | None:
+        throttle = getattr(self.kit, f"motor{channel}").throttle
+        if throttle is None:
+            return None
+        return -throttle if inverted_wiring else throttle
+
+    def step(self, now_s: float) -> None:
+        """Advance the world to ``now_s``: motors → physics → encoder pins → pose history."""
+        if self.time_s is None:
+            self.time_s = now_s
+            self._record(now_s)
+            return
+        dt_s = now_s - self.time_s
+        if dt_s <= 0:
+            return
+        self.time_s = now_s
+        motors = self.config.motors
+        # The wiring the config's inversion flags correct for: a motor flagged inverted
+        # is mounted mirrored, so its wheel turns forward on a negative throttle.
+        self.physics.set_throttle(
+            self._channel_throttle(motors.left_channel, motors.left_invert),
+            self._channel_throttle(motors.right_channel, motors.right_invert),
+        )
+        self.physics.step(dt_s)
+        left_rad, right_rad = self.physics.wheel_angle_rad
+        enc = self.config.encoders
+        self.left_signal.update(-left_rad if enc.left_invert else left_rad)
+        self.right_signal.update(-right_rad if enc.right_invert else right_rad)
+        self._record(now_s)
+
+    def _record(self, now_s: float) -> None:
+        x, y, th = self.physics.pose
+        self.poses.append(now_s, x, y, th)
+        if not self.trajectory or now_s - self.trajectory[-1][0] >= 0.05:
+            self.trajectory.append((now_s, x, y, th))
+
+    async def run(self, clock: Clock) -> None:
+        """The simulator task: step the world every ``[sim] step_period_s``."""
+        period_s = self.config.sim.step_period_s
+        while True:
+            self.step(clock.now_s())
+            await clock.sleep(period_s)
+
+    def close(self) -> None:
+        self.pin_factory.close()

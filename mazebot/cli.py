@@ -25,6 +25,7 @@ _COMMAND_MODULES = (
     "mazebot.main",
     "mazebot.io.lidar_cli",
     "mazebot.sim.cli",
+    "mazebot.slam.posegraph_cli",
     "mazebot.bench.cli",
 )
 

@@ -1,0 +1,1092 @@
+"""The Slamtec RPLidar A1 serial protocol as pure functions: bytes in, values out.
+
+No port, no asyncio, no clock: the driver (``mazebot.io.rplidar``), the emulator in
+``mazebot.sim`` and the ``mazebot lidar decode`` command all share these functions, so
+what the emulator writes is byte for byte what the decoder reads, and both follow the
+real device (Slamtec "RPLIDAR Interface Protocol and Application Notes", and the
+reference decoder ``_capsuleToNormal`` of Slamtec's ``rplidar_sdk``).
+
+Wire formats, in one place::
+
+    request          A5 cmd                                  (cmd < 0x80)
+                     A5 cmd size payload... checksum         (cmd >= 0x80; XOR of all before)
+    descriptor       A5 5A  u32le(length | mode << 30)  dtype
+    standard sample  [q<<2 | !S<<1 | S] [angle_q6 low7 <<1 | C=1] [angle_q6 >> 7] [dist_q2 u16le]
+    express capsule  [0xA<<4 | cs&0xF] [0x5<<4 | cs>>4] [start_q6 | S<<15 u16le] 16 x cabin
+    cabin            [d1 u16le = dist_mm<<2 | dθ1 bits 4-5] [d2 u16le likewise]
+                     [dθ1 bits 0-3 | dθ2 bits 0-3 << 4]
+
+Angles are the device's: degrees, clockwise seen from above, 0 at the front mark.
+The scan decoders never raise on bad bytes: a serial line that drops or corrupts bytes
+is normal life for a lidar, so they resynchronise byte by byte and count what they drop.
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from mazebot.errors import ProtocolError
+
+# --- requests ------------------------------------------------------------------------
+
+SYNC_BYTE = 0xA5
+SYNC_BYTE2 = 0x5A
+
+CMD_STOP = 0x25
+CMD_RESET = 0x40
+CMD_SCAN = 0x20
+CMD_FORCE_SCAN = 0x21
+CMD_GET_INFO = 0x50
+CMD_GET_HEALTH = 0x52
+CMD_GET_SAMPLERATE = 0x59
+CMD_EXPRESS_SCAN = 0x82
+
+#: Commands with this bit set carry ``size payload checksum`` after the command byte.
+CMD_FLAG_HAS_PAYLOAD = 0x80
+
+#: EXPRESS_SCAN payload for the legacy capsule format: working mode 0, 4 reserved bytes.
+EXPRESS_SCAN_PAYLOAD = bytes(5)
+
+COMMAND_NAMES = {
+    CMD_STOP: "STOP",
+    CMD_RESET: "RESET",
+    CMD_SCAN: "SCAN",
+    CMD_FORCE_SCAN: "FORCE_SCAN",
+    CMD_GET_INFO: "GET_INFO",
+    CMD_GET_HEALTH: "GET_HEALTH",
+    CMD_GET_SAMPLERATE: "GET_SAMPLERATE",
+    CMD_EXPRESS_SCAN: "EXPRESS_SCAN",
+}
+
+
+def _xor(data: bytes | bytearray) -> int:
+    return int(np.bitwise_xor.reduce(np.frombuffer(bytes(data), dtype=np.uint8))) if data else 0
+
+
+def build_request(cmd: int, payload: bytes = b"") -> bytes:
+    """The bytes of one request: ``A5 cmd`` or ``A5 cmd size payload checksum``.
+
+    The device tells the two forms apart by bit 7 of ``cmd``, so a payload on a command
+    without that bit (or a payload command without payload) could never be understood.
+    """
+    if not 0 <= cmd <= 0xFF:
+        raise ValueError(f"command must be one byte, got {cmd:#x}")
+    if not cmd & CMD_FLAG_HAS_PAYLOAD:
+        if payload:
+            raise ValueError(f"command {cmd:#04x} takes no payload (bit 7 clear), got {len(payload)} bytes")
+        return bytes((SYNC_BYTE, cmd))
+    if not 0 < len(payload) <= 0xFF:
+        raise ValueError(f"command {cmd:#04x} needs a payload of 1..255 bytes, got {len(payload)}")
+    head = bytes((SYNC_BYTE, cmd, len(payload))) + payload
+    return head + bytes((_xor(head),))
+
+
+def parse_request(buf: bytes | bytearray) -> tuple[int, bytes, int] | None:
+    """Parse the request at the start of ``buf``: ``(cmd, payload, bytes consumed)``.
+
+    Returns None while ``buf`` holds only the beginning of a request (read more and call
+    again). Raises ProtocolError when ``buf`` does not start with a request or the
+    checksum is wrong; the caller (the emulator) then drops one byte and tries again.
+    """
+    if not buf:
+        return None
+    if buf[0] != SYNC_BYTE:
+        raise ProtocolError(f"request: expected sync byte 0xa5, found {buf[0]:#04x}")
+    if len(buf) < 2:
+        return None
+    cmd = buf[1]
+    if not cmd & CMD_FLAG_HAS_PAYLOAD:
+        return cmd, b"", 2
+    if len(buf) < 3:
+        return None
+    size = buf[2]
+    end = 3 + size + 1
+    if len(buf) < end:
+        return None
+    expected = _xor(buf[: end - 1])
+    if buf[end - 1] != expected:
+        raise ProtocolError(
+            f"request {cmd:#04x}: expected checksum {expected:#04x}, found {buf[end - 1]:#04x}"
+        )
+    return cmd, bytes(buf[3 : end - 1]), end
+
+
+# --- response descriptors ------------------------------------------------------------
+
+DESCRIPTOR_LEN = 7
+
+TYPE_INFO = 0x04
+TYPE_HEALTH = 0x06
+TYPE_SAMPLERATE = 0x15
+TYPE_SCAN = 0x81
+TYPE_EXPRESS = 0x82
+
+
+class SendMode(enum.IntEnum):
+    """How many responses follow one descriptor."""
+
+    SINGLE = 0
+    MULTIPLE = 1
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    """A response descriptor: the 7 bytes the device sends before any response data.
+
+    ``length`` is the size in bytes of one response (of each one, for MULTIPLE mode).
+    """
+
+    length: int
+    mode: SendMode
+    dtype: int
+
+    def __str__(self) -> str:
+        return f"length {self.length}, {self.mode.name.lower()}, type {self.dtype:#04x}"
+
+    def encode(self) -> bytes:
+        return encode_descriptor(self.length, self.mode, self.dtype)
+
+
+INFO_DESCRIPTOR = Descriptor(20, SendMode.SINGLE, TYPE_INFO)
+HEALTH_DESCRIPTOR = Descriptor(3, SendMode.SINGLE, TYPE_HEALTH)
+SAMPLERATE_DESCRIPTOR = Descriptor(4, SendMode.SINGLE, TYPE_SAMPLERATE)
+SCAN_DESCRIPTOR = Descriptor(5, SendMode.MULTIPLE, TYPE_SCAN)
+EXPRESS_DESCRIPTOR = Descriptor(84, SendMode.MULTIPLE, TYPE_EXPRESS)
+
+
+def encode_descriptor(length: int, mode: int, dtype: int) -> bytes:
+    """``A5 5A`` + 30-bit length and 2-bit send mode in one u32le + data type."""
+    if not 0 <= length < 1 << 30:
+        raise ValueError(f"descriptor length must fit 30 bits, got {length}")
+    if not 0 <= mode <= 3:
+        raise ValueError(f"send mode must fit 2 bits, got {mode}")
+    if not 0 <= dtype <= 0xFF:
+        raise ValueError(f"data type must be one byte, got {dtype:#x}")
+    return struct.pack("<BBIB", SYNC_BYTE, SYNC_BYTE2, length | (mode << 30), dtype)
+
+
+def parse_descriptor(data: bytes | bytearray, expected: Descriptor | None = None) -> Descriptor:
+    """Parse the 7 descriptor bytes; with ``expected``, insist on that exact descriptor.
+
+    Raises ProtocolError naming what was expected and what was found, because a wrong
+    descriptor means the device answered something else than what was asked (or the
+    line is out of step) and no byte after it can be trusted.
+    """
+    what = f"descriptor ({expected})" if expected is not None else "descriptor"
+    if len(data) < DESCRIPTOR_LEN:
+        raise ProtocolError(f"expected a 7-byte {what}, found {len(data)} bytes: {bytes(data).hex(' ')}")
+    if data[0] != SYNC_BYTE or data[1] != SYNC_BYTE2:
+        raise ProtocolError(f"expected {what} starting a5 5a, found {bytes(data[:7]).hex(' ')}")
+    (word,) = struct.unpack_from("<I", data, 2)
+    mode_bits = word >> 30
+    if mode_bits > SendMode.MULTIPLE:
+        raise ProtocolError(f"expected {what} with send mode 0 or 1, found mode {mode_bits}")
+    found = Descriptor(word & 0x3FFFFFFF, SendMode(mode_bits), data[6])
+    if expected is not None and found != expected:
+        raise ProtocolError(f"expected descriptor ({expected}), found ({found})")
+    return found
+
+
+# --- single responses ----------------------------------------------------------------
+
+HEALTH_STATUS_NAMES = {0: "good", 1: "warning", 2: "error"}
+HEALTH_GOOD = 0
+HEALTH_WARNING = 1
+HEALTH_ERROR = 2
+
+#: GET_INFO model byte of the A1M8 (high nibble: series A1, low nibble: M8).
+MODEL_A1M8 = 0x18
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """GET_INFO answer: model, firmware and hardware versions, 16-byte serial number."""
+
+    model: int
+    firmware_minor: int
+    firmware_major: int
+    hardware: int
+    serial_number: bytes
+
+    @property
+    def model_name(self) -> str:
+        """``A1M8`` for model 0x18: series in the high nibble, sub-model in the low one."""
+        return f"A{self.model >> 4}M{self.model & 0x0F}"
+
+    @property
+    def firmware_version(self) -> str:
+        return f"{self.firmware_major}.{self.firmware_minor:02d}"
+
+    @property
+    def serial_hex(self) -> str:
+        return self.serial_number.hex().upper()
+
+
+@dataclass(frozen=True)
+class DeviceHealth:
+    """GET_HEALTH answer: 0 good, 1 warning, 2 error (protection stop) and a code."""
+
+    status: int
+    error_code: int
+
+    @property
+    def status_name(self) -> str:
+        return HEALTH_STATUS_NAMES.get(self.status, f"unknown({self.status})")
+
+
+@dataclass(frozen=True)
+class SampleRate:
+    """GET_SAMPLERATE answer: time per sample in microseconds, per scan mode."""
+
+    standard_us: int
+    express_us: int
+
+
+def _need(data: bytes | bytearray, n: int, what: str) -> None:
+    if len(data) != n:
+        raise ProtocolError(f"{what}: expected {n} bytes, found {len(data)}")
+
+
+def encode_info(info: DeviceInfo) -> bytes:
+    if len(info.serial_number) != 16:
+        raise ValueError(f"serial number must be 16 bytes, got {len(info.serial_number)}")
+    return (
+        bytes((info.model, info.firmware_minor, info.firmware_major, info.hardware))
+        + info.serial_number
+    )
+
+
+def parse_info(data: bytes | bytearray) -> DeviceInfo:
+    _need(data, INFO_DESCRIPTOR.length, "GET_INFO response")
+    return DeviceInfo(data[0], data[1], data[2], data[3], bytes(data[4:20]))
+
+
+def encode_health(health: DeviceHealth) -> bytes:
+    return struct.pack("<BH", health.status, health.error_code)
+
+
+def parse_health(data: bytes | bytearray) -> DeviceHealth:
+    _need(data, HEALTH_DESCRIPTOR.length, "GET_HEALTH response")
+    status, code = struct.unpack("<BH", data)
+    if status not in HEALTH_STATUS_NAMES:
+        raise ProtocolError(f"GET_HEALTH response: expected status 0, 1 or 2, found {status}")
+    return DeviceHealth(status, code)
+
+
+def encode_samplerate(rate: SampleRate) -> bytes:
+    return struct.pack("<HH", rate.standard_us, rate.express_us)
+
+
+def parse_samplerate(data: bytes | bytearray) -> SampleRate:
+    _need(data, SAMPLERATE_DESCRIPTOR.length, "GET_SAMPLERATE response")
+    std, exp = struct.unpack("<HH", data)
+    return SampleRate(std, exp)
+
+
+# --- decoded samples -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DecodedSamples:
+    """Samples decoded from a scan stream, in device terms (see the module docstring).
+
+    ``dist_mm`` is 0 where the device had no valid return. ``quality`` is 0..63 in
+    standard mode; express capsules carry no quality, so it is 1 where the distance is
+    valid and 0 where not. ``start`` marks the first sample of a new revolution.
+    """
+
+    angle_deg: np.ndarray  # float64, clockwise, [0, 360)
+    dist_mm: np.ndarray  # float64
+    quality: np.ndarray  # uint8
+    start: np.ndarray  # bool
+
+    def __len__(self) -> int:
+        return int(self.angle_deg.shape[0])
+
+    @classmethod
+    def empty(cls) -> DecodedSamples:
+        return cls(
+            np.empty(0, np.float64), np.empty(0, np.float64), np.empty(0, np.uint8), np.empty(0, bool)
+        )
+
+    @classmethod
+    def concat(cls, parts: list[DecodedSamples]) -> DecodedSamples:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        if len(parts) == 1:
+            return parts[0]
+        return cls(
+            np.concatenate([p.angle_deg for p in parts]),
+            np.concatenate([p.dist_mm for p in parts]),
+            np.concatenate([p.quality for p in parts]),
+            np.concatenate([p.start for p in parts]),
+        )
+
+    def slice(self, begin: int, end: int | None = None) -> DecodedSamples:
+        s = slice(begin, end)
+        return DecodedSamples(self.angle_deg[s], self.dist_mm[s], self.quality[s], self.start[s])
+
+
+# --- standard scan: 5-byte samples ---------------------------------------------------
+
+STANDARD_SAMPLE_LEN = 5
+_FULL_TURN_Q6 = 360 * 64
+
+
+def encode_standard_samples(
+    angle_deg: np.ndarray | list[float],
+    dist_mm: np.ndarray | list[float],
+    quality: np.ndarray | list[int],
+    start: np.ndarray | list[bool],
+) -> bytes:
+    """Many standard samples at once (the emulator sends ~2000 a second)."""
+    angle = np.asarray(angle_deg, dtype=np.float64)
+    dist = np.asarray(dist_mm, dtype=np.float64)
+    qual = np.asarray(quality, dtype=np.int64)
+    flag = np.asarray(start, dtype=bool)
+    n = angle.shape[0]
+    if not dist.shape[0] == qual.shape[0] == flag.shape[0] == n:
+        raise ValueError("angle_deg, dist_mm, quality and start must have the same length")
+    if np.any((qual < 0) | (qual > 63)):
+        raise ValueError("quality must be in 0..63")
+    if np.any((dist < 0) | (dist * 4 > 0xFFFF)):
+        raise ValueError("dist_mm must be in 0..16383.75")
+    angle_q6 = np.rint(angle * 64).astype(np.int64) % _FULL_TURN_Q6
+    dist_q2 = np.rint(dist * 4).astype(np.int64)
+    out = np.empty((n, STANDARD_SAMPLE_LEN), dtype=np.uint8)
+    out[:, 0] = (qual << 2) | ((~flag).astype(np.int64) << 1) | flag.astype(np.int64)
+    out[:, 1] = ((angle_q6 & 0x7F) << 1) | 1
+    out[:, 2] = angle_q6 >> 7
+    out[:, 3] = dist_q2 & 0xFF
+    out[:, 4] = dist_q2 >> 8
+    return out.tobytes()
+
+
+def encode_standard_sample(angle_deg: float, dist_mm: float, quality: int, start: bool) -> bytes:
+    """One 5-byte standard sample (angle rounded to 1/64°, distance to 1/4 mm)."""
+    return encode_standard_samples([angle_deg], [dist_mm], [quality], [start])
+
+
+def _wrap_deg(x: np.ndarray | float) -> np.ndarray | float:
+    """Angle difference folded into [-180, 180)."""
+    return (np.asarray(x) + 180.0) % 360.0 - 180.0
+
+
+class StandardScanDecoder:
+    """Streaming decoder of a standard (SCAN) response stream into samples.
+
+    Feed it whatever the port delivers; it keeps a partial sample for the next call.
+    A sample is well-formed when S != !S, the check bit C is 1 and the angle is below
+    360°; where the stream is not, one byte is dropped and the next offset tried.
+
+    Well-formedness alone is weak (about one offset in six of random bytes passes), so
+    the decoder also uses what a spinning head guarantees: consecutive samples step by
+    a nearly constant angle (the "rhythm", the median of the last steps). Once there is
+    a rhythm:
+
+    * at sample boundaries, a sample must step within max(1.5°, half the rhythm) and
+      either match the rhythm closely (to 1/64°) or be followed by a sample that fits;
+    * after dropped bytes, decoding resumes on a sample that continues the rhythm
+      (inserted bytes lose no sample), or on a fresh regular run of four samples
+      (lost bytes, a restarted scan).
+
+    A stream without rhythm (synthetic test data) is decoded by form alone, and after a
+    resync a run is believed only when it is eight samples long or ends the data.
+    Decisions look at most ~45 bytes ahead; call ``flush()`` at the end of a finite
+    stream to decide on the last bytes. Results do not depend on how the stream was cut
+    into ``feed`` calls.
+
+    An embedded scan descriptor (``A5 5A 05 00 00 40 81``, e.g. at the start of a
+    captured file or after a restarted scan) is skipped without counting as dropped.
+
+    Example::
+
+        dec = StandardScanDecoder()
+        samples = dec.feed(port_bytes)   # DecodedSamples, possibly empty
+        dec.bytes_dropped, dec.samples_decoded
+    """
+
+    #: A resync may restart on a regular run of this many samples.
+    REGULAR_RUN = 4
+    #: An irregular run is believed only when it is this long (or ends the data).
+    LONG_RUN = 8
+    #: Steps remembered to estimate the rhythm (the median of these).
+    HISTORY = 8
+    #: Largest plausible step between consecutive samples, degrees.
+    MAX_STEP_DEG = 90.0
+    #: A step may differ from the rhythm by max(this, half the rhythm), degrees.
+    LOOSE_TOLERANCE_DEG = 1.5
+    #: Resuming after dropped bytes: max(this, a tenth of the rhythm), degrees.
+    GAP_TOLERANCE_DEG = 0.3
+    #: "Matches the rhythm" without a confirming neighbour: one angle unit (1/64°).
+    EXACT_TOLERANCE_DEG = 1.0 / 64.0 + 1e-9
+
+    _ACCEPT_CONTINUE, _ACCEPT_FRESH, _AFTER_DESCRIPTOR, _REJECT, _WAIT = range(5)
+
+    def __init__(self) -> None:
+        self._tail = b""
+        self._synced = False  # the tail starts at a sample boundary (no resync needed)
+        self._last_angle: float | None = None
+        self._steps: list[float] = []  # recent steps (deg) of accepted samples
+        # (rhythm, loose, gap, exact) or None; False: to be computed
+        self._rhythm_cache: tuple[float, float, float, float] | bool | None = False
+        self.bytes_dropped = 0
+        self.samples_decoded = 0
+        self.descriptors_skipped = 0
+        self._descriptor = SCAN_DESCRIPTOR.encode()
+
+    def reset(self, *, synced: bool = False) -> None:
+        """Forget the stream; ``synced``: the next byte starts a sample (after a descriptor)."""
+        self._tail = b""
+        self._synced = synced
+        self._forget_rhythm()
+
+    def feed(self, data: bytes) -> DecodedSamples:
+        """Decode what can be decided now; keep the rest for the next call."""
+        return self._decode(self._tail + bytes(data), final=False)
+
+    def flush(self) -> DecodedSamples:
+        """End of stream: decide on the kept bytes; an incomplete sample counts as dropped."""
+        return self._decode(self._tail, final=True)
+
+    # -- the rhythm of the head ------------------------------------------------------
+
+    def _forget_rhythm(self) -> None:
+        self._last_angle = None
+        self._steps = []
+        self._rhythm_cache = False
+
+    @classmethod
+    def _regular(cls, angles: np.ndarray) -> bool:
+        """Do these consecutive sample angles step with one plausible rhythm?"""
+        steps = _wrap_deg(np.diff(angles))
+        m = float(np.median(steps))
+        if not 0.0 < m <= cls.MAX_STEP_DEG:
+            return False
+        return bool(np.all(np.abs(steps - m) <= max(cls.LOOSE_TOLERANCE_DEG, 0.5 * m)))
+
+    def _offset(self, fields: _Fields, q: int, m: float) -> float:
+        """How far the step from the last accepted sample to ``q`` is from the rhythm."""
+        assert self._last_angle is not None
+        return abs(float(_wrap_deg(fields.angle[q] - self._last_angle)) - m)
+
+    def _confirmed(
+        self, fields: _Fields, q: int, n: int, rhythm: tuple[float, float, float, float]
+    ) -> bool | None:
+        """Does the sample after ``q`` confirm it (None: not received yet)?"""
+        assert self._last_angle is not None
+        m, loose, gap, _ = rhythm
+        nxt = q + STANDARD_SAMPLE_LEN
+        if nxt + STANDARD_SAMPLE_LEN > n:
+            return None
+        step = float(_wrap_deg(fields.angle[nxt] - fields.angle[q]))
+        two = float(_wrap_deg(fields.angle[nxt] - self._last_angle))
+        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= gap
+
+    @classmethod
+    def _has_regular_window(cls, angles: np.ndarray) -> bool:
+        w = cls.REGULAR_RUN
+        return any(cls._regular(angles[j : j + w]) for j in range(angles.size - w + 1))
+
+    def _tolerances(self, m: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(loose, gap, exact) tolerances in degrees for a rhythm and its step spread.
+
+        Loose: a plausible step for a spinning head. Gap: continuing the rhythm across
+        dropped bytes. Exact: matching the rhythm so closely that no neighbour needs to
+        confirm it. The last two widen with the spread of the recent steps, so a head
+        that jitters more is judged by its own jitter.
+        """
+        loose = np.maximum(self.LOOSE_TOLERANCE_DEG, 0.5 * np.abs(m))
+        gap = np.minimum(loose, np.maximum(np.maximum(self.GAP_TOLERANCE_DEG, 0.1 * m), 4 * spread))
+        exact = np.minimum(gap, np.maximum(np.maximum(self.EXACT_TOLERANCE_DEG, 0.01 * m), 2 * spread))
+        return loose, gap, exact
+
+    def _rhythm(self) -> tuple[float, float, float, float] | None:
+        """(rhythm, loose, gap, exact) from the recent accepted steps, if they keep one."""
+        if self._rhythm_cache is False:
+            fit = self._window_rhythm(np.array([self._steps[-self.HISTORY :]], dtype=np.float64))
+            if fit is None or not fit[0][0]:
+                self._rhythm_cache = None
+            else:
+                _, m, loose, gap, exact = fit
+                self._rhythm_cache = (float(m[0]), float(loose[0]), float(gap[0]), float(exact[0]))
+        return self._rhythm_cache
+
+    def _window_rhythm(self, win: np.ndarray) -> tuple[np.ndarray, ...] | None:
+        """Per row of recent steps (NaN = none): has rhythm, rhythm, loose, gap, exact.
+
+        A row has a rhythm when it holds at least 3 steps, their median is a plausible
+        step and the last 3 steps keep to it. None when no row has 3 steps.
+        """
+        count = np.sum(~np.isnan(win), axis=1)
+        need = count >= 3
+        if not np.any(need):
+            return None
+        m = _row_median(win, count)
+        spread = _row_median(np.abs(win - m[:, None]), count)
+        loose, gap, exact = self._tolerances(m, spread)
+        with np.errstate(invalid="ignore"):
+            has = need & (m > 0) & (m <= self.MAX_STEP_DEG)
+            has &= np.all(np.abs(win[:, -3:] - m[:, None]) <= loose[:, None], axis=1)
+        return has, m, loose, gap, exact
+
+    def _rhythm_fit(self, angle: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per candidate at consecutive sample boundaries: (plausible, believed).
+
+        Plausible: well-placed for a spinning head (its step fits the rhythm loosely).
+        Believed: plausible, and either it matches the rhythm exactly or the next
+        candidate (well-formed, ``ok``) confirms it: it fits after it, and the two steps
+        together make two rhythm steps. Without a rhythm everything is plausible and believed.
+
+        Each candidate is judged against the rhythm of the samples accepted before it,
+        as if every earlier candidate were accepted; that is exactly the situation of
+        the first failing one (the run stops there), so the outcome does not depend on
+        how the stream was cut into reads.
+        """
+        k = angle.shape[0]
+        prev = np.empty(k)
+        prev[0] = np.nan if self._last_angle is None else self._last_angle
+        prev[1:] = angle[:-1]
+        step = _wrap_deg(angle - prev)  # step[0] is nan without a previous sample
+        h = self.HISTORY
+        known = np.array(self._steps[-h:], dtype=np.float64)
+        hist = np.concatenate([np.full(h - known.size, np.nan), known, step])
+        # window j holds the (up to h) steps accepted before candidate j
+        win = np.lib.stride_tricks.sliding_window_view(hist, h)[:k]
+        fit = self._window_rhythm(win)
+        everything = np.ones(k, dtype=bool)
+        if fit is None:
+            return everything, everything
+        has, m, loose, gap, exact = fit
+        with np.errstate(invalid="ignore"):
+            off = np.abs(step - m)
+            plausible = ~has | (off <= loose)
+            # the next candidate as seen with this candidate's rhythm
+            nxt_step = np.full(k, np.nan)
+            nxt_step[:-1] = step[1:]
+            two = np.full(k, np.nan)
+            two[:-1] = _wrap_deg(angle[1:] - prev[:-1])
+            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= gap)
+            confirmed[:-1] &= ok[1:]
+            believed = ~has | ((off <= loose) & ((off <= exact) | confirmed))
+        return plausible, believed
+
+    def _remember(self, angle: np.ndarray) -> None:
+        if self._last_angle is not None:
+            angle = np.concatenate([[self._last_angle], angle])
+        steps = _wrap_deg(np.diff(angle))[-self.HISTORY :]
+        self._steps = (self._steps + [float(s) for s in steps])[-self.HISTORY :]
+        self._last_angle = float(angle[-1])
+        self._rhythm_cache = False
+
+    # -- decoding --------------------------------------------------------------------
+
+    def _decode(self, buf: bytes, final: bool) -> DecodedSamples:
+        arr = np.frombuffer(buf, dtype=np.uint8)
+        n = len(buf)
+        parts: list[DecodedSamples] = []
+        pos = 0
+        fields: _Fields | None = None  # per-offset form and angle, computed on first resync
+        resumed_on_sample = False
+        while True:
+            if self._synced:
+                taken, waiting = self._take_locked(arr, pos, final)
+                if len(taken):
+                    parts.append(taken)
+                    pos += STANDARD_SAMPLE_LEN * len(taken)
+                elif resumed_on_sample and not waiting and n - pos >= STANDARD_SAMPLE_LEN:
+                    # cannot happen by construction (the judge applies the same rules as
+                    # the locked path), but never loop on one offset
+                    self.bytes_dropped += 1
+                    pos += 1
+                if waiting or n - pos < STANDARD_SAMPLE_LEN:
+                    break
+                self._synced = False  # the sample at pos does not fit: resync from here
+            if fields is None:
+                fields = _Fields(arr)
+            pos, verdict = self._hunt(buf, fields, pos, final)
+            if verdict is None or verdict == self._WAIT:
+                break
+            self._synced = True
+            resumed_on_sample = verdict != self._AFTER_DESCRIPTOR
+        if final:
+            self.bytes_dropped += n - pos
+            pos = n
+            self._synced = False
+        self._tail = buf[pos:]
+        out = DecodedSamples.concat(parts)
+        self.samples_decoded += len(out)
+        return out
+
+    def _take_locked(self, arr: np.ndarray, pos: int, final: bool) -> tuple[DecodedSamples, bool]:
+        """Accept the run of samples at sample boundaries from ``pos`` (vectorized).
+
+        Works in growing blocks so that a short run in a long buffer costs little.
+        Returns the samples and whether the run stopped only for want of the next
+        sample (which would confirm the last one).
+        """
+        total = (len(arr) - pos) // STANDARD_SAMPLE_LEN
+        parts: list[DecodedSamples] = []
+        done = 0
+        block = 32
+        while done < total:
+            size = min(block, total - done)
+            # one candidate more than the block, so its last one can be confirmed
+            look = min(size + 1, total - done)
+            begin = pos + done * STANDARD_SAMPLE_LEN
+            rows = arr[begin : begin + look * STANDARD_SAMPLE_LEN].reshape(look, STANDARD_SAMPLE_LEN)
+            at_end = done + look == total
+            taken, stop, waiting = self._take_rows(rows, size, final and at_end, at_end)
+            if len(taken):
+                parts.append(taken)
+                done += len(taken)
+            if stop:
+                return DecodedSamples.concat(parts), waiting
+            block = min(block * 4, 4096)
+        return DecodedSamples.concat(parts), False
+
+    def _take_rows(
+        self, rows: np.ndarray, size: int, final: bool, at_end: bool
+    ) -> tuple[DecodedSamples, bool, bool]:
+        """Accept the leading good samples among the first ``size`` of ``rows``.
+
+        Returns (samples, stopped before ``size``, stopped only to await the next).
+        """
+        k = rows.shape[0]
+        b0 = rows[:, 0].astype(np.int32)
+        b1 = rows[:, 1].astype(np.int32)
+        angle_q6 = (b1 >> 1) | (rows[:, 2].astype(np.int32) << 7)
+        ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
+        angle = angle_q6 / 64.0
+        plausible, believed = self._rhythm_fit(angle, ok)
+        good = ok & believed
+        waiting = False
+        if at_end and not good[-1] and ok[-1] and plausible[-1]:
+            # the very last candidate received awaits the one that would confirm it
+            if final:
+                good[-1] = True
+            else:
+                waiting = True
+        bad = np.flatnonzero(~good[:size])
+        r = int(bad[0]) if bad.size else size
+        waiting = waiting and r == k - 1
+        if r == 0:
+            return DecodedSamples.empty(), True, waiting
+        rows = rows[:r]
+        angle = angle[:r]
+        self._remember(angle)
+        samples = DecodedSamples(
+            angle,
+            (rows[:, 3].astype(np.int32) | (rows[:, 4].astype(np.int32) << 8)) / 4.0,
+            (rows[:, 0] >> 2).astype(np.uint8),
+            (rows[:, 0] & 1).astype(bool),
+        )
+        return samples, r < size, waiting
+
+    def _hunt(self, buf: bytes, fields: _Fields, pos: int, final: bool) -> tuple[int, int | None]:
+        """Find where samples resume at or after ``pos``; drop the bytes before it.
+
+        Returns (new position, verdict): an ACCEPT (decode from the new position on),
+        AFTER_DESCRIPTOR (a descriptor was skipped), WAIT (more bytes are needed to
+        decide at the new position) or None (fewer than 5 bytes left).
+        """
+        n = len(buf)
+        desc = self._descriptor
+        cands = fields.candidates
+        for q in (int(c) for c in cands[int(np.searchsorted(cands, pos)) :]):
+            if buf[q] == SYNC_BYTE and (q + 1 == n or buf[q + 1] == SYNC_BYTE2):
+                head = buf[q : q + DESCRIPTOR_LEN]
+                if head == desc:
+                    self.bytes_dropped += q - pos
+                    self.descriptors_skipped += 1
+                    self._forget_rhythm()
+                    return q + DESCRIPTOR_LEN, self._AFTER_DESCRIPTOR
+                if len(head) < DESCRIPTOR_LEN and desc.startswith(head) and not final:
+                    self.bytes_dropped += q - pos
+                    return q, self._WAIT  # maybe a descriptor: wait for the rest
+            if fields.ok[q]:
+                verdict = self._judge(fields, q, n, final)
+                if verdict == self._REJECT:
+                    continue
+                self.bytes_dropped += q - pos
+                if verdict == self._ACCEPT_FRESH:
+                    self._forget_rhythm()
+                return q, verdict
+        # no sample can start before the last 4 bytes: keep those for the next read
+        keep_from = max(pos, n - (STANDARD_SAMPLE_LEN - 1))
+        self.bytes_dropped += keep_from - pos
+        return keep_from, None
+
+    @staticmethod
+    def _chain(fields: _Fields, q: int, n: int, limit: int) -> tuple[np.ndarray, bool]:
+        """Angles of the run of well-formed samples at q, q+5, ... (at most ``limit``).
+
+        Also says whether the run was cut by the end of the buffer (so more bytes could
+        make it longer) rather than by a malformed sample or the limit.
+        """
+        last = min(n - STANDARD_SAMPLE_LEN, q + STANDARD_SAMPLE_LEN * (limit - 1))
+        idx = np.arange(q, last + 1, STANDARD_SAMPLE_LEN)
+        bad = np.flatnonzero(~fields.ok[idx])
+        length = int(bad[0]) if bad.size else idx.size
+        cut_by_end = (not bad.size) and idx.size < limit
+        return fields.angle[idx[:length]], cut_by_end
+
+    def _judge(self, fields: _Fields, q: int, n: int, final: bool) -> int:
+        """Should decoding resume with the well-formed sample at ``q``?"""
+        rhythm = self._rhythm()
+        if rhythm is not None and self._last_angle is not None:
+            # continuing the rhythm across dropped bytes: inserted bytes lose no sample,
+            # so this is one ordinary step; the rules of ``_rhythm_fit`` apply, with the
+            # gap tolerance instead of the loose one
+            m, _, gap, exact = rhythm
+            off = self._offset(fields, q, m)
+            if off <= gap:
+                confirmed = self._confirmed(fields, q, n, rhythm)
+                if confirmed is None:  # no next sample yet
+                    return self._ACCEPT_CONTINUE if final else self._WAIT
+                if confirmed:
+                    return self._ACCEPT_CONTINUE
+                if off <= exact:
+                    # matches the rhythm, unconfirmed: believe it unless a confirmed
+                    # continuation overlaps it (then q is noise over real bytes)
+                    for p in range(q + 1, q + STANDARD_SAMPLE_LEN):
+                        if not fields.ok[p] or self._offset(fields, p, m) > gap:
+                            continue
+                        other = self._confirmed(fields, p, n, rhythm)
+                        if other is None and not final:
+                            return self._WAIT
+                        if other:
+                            return self._REJECT
+                    return self._ACCEPT_CONTINUE
+        chain, cut = self._chain(fields, q, n, self.LONG_RUN)
+        if cut and not final:
+            return self._WAIT
+        if chain.size >= self.REGULAR_RUN and self._regular(chain[: self.REGULAR_RUN]):
+            return self._ACCEPT_FRESH  # a new regular run (after lost bytes, a restart)
+        if self._has_regular_window(chain[1:]):
+            return self._REJECT  # regular only after its head: the head is noise
+        other_lengths = []
+        for p in range(q + 1, q + STANDARD_SAMPLE_LEN):
+            if not fields.ok[p]:
+                other_lengths.append(0)
+                continue
+            other, other_cut = self._chain(fields, p, n, self.LONG_RUN)
+            if other_cut and not final:
+                return self._WAIT
+            if self._has_regular_window(other):
+                return self._REJECT  # a regular run is nearby at another offset: q is noise
+            other_lengths.append(other.size)
+        if rhythm is not None:
+            return self._REJECT  # a regular stream does not turn irregular
+        reaches_end = q + STANDARD_SAMPLE_LEN * (chain.size + 1) > n
+        long_enough = chain.size >= self.LONG_RUN or (final and reaches_end)
+        if long_enough and chain.size >= max(other_lengths):
+            return self._ACCEPT_FRESH  # an irregular stream: believe the form
+        return self._REJECT
+
+
+def _row_median(rows: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Median of the non-NaN values of each row (``count`` of them; 0 where none).
+
+    NaN sorts last, so the known values are the first ``count`` of each sorted row.
+    """
+    srt = np.sort(rows, axis=1)
+    width = rows.shape[1]
+    if np.all(count == width):  # the usual case: a full history
+        return 0.5 * (srt[:, (width - 1) // 2] + srt[:, width // 2])
+    r = np.arange(rows.shape[0])
+    lo = srt[r, (np.maximum(count, 1) - 1) // 2]
+    hi = srt[r, np.minimum(count // 2, width - 1)]
+    return np.where(count > 0, 0.5 * (lo + hi), 0.0)
+
+
+class _Fields:
+    """For every byte offset of a buffer: is a well-formed sample there, and its angle.
+
+    ``candidates`` are the offsets where a resync could stop: well-formed samples and
+    0xA5 bytes (a descriptor may start there).
+    """
+
+    def __init__(self, arr: np.ndarray) -> None:
+        n = arr.shape[0]
+        self.ok = np.zeros(n + STANDARD_SAMPLE_LEN, dtype=bool)
+        self.angle = np.zeros(n + STANDARD_SAMPLE_LEN)
+        if n >= STANDARD_SAMPLE_LEN:
+            b0 = arr[: n - 4].astype(np.int32)
+            b1 = arr[1 : n - 3].astype(np.int32)
+            angle_q6 = (b1 >> 1) | (arr[2 : n - 2].astype(np.int32) << 7)
+            ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
+            self.ok[: n - 4] = ok
+            self.angle[: n - 4] = angle_q6 / 64.0
+        self.candidates = np.flatnonzero(self.ok[:n] | (arr == SYNC_BYTE))
+
+
+# --- express scan: 84-byte capsules (legacy format) ----------------------------------
+
+CAPSULE_LEN = 84
+CAPSULE_SAMPLES = 32
+_CABINS = 16
+_SYNC_NIBBLE_1 = 0xA
+_SYNC_NIBBLE_2 = 0x5
+_START_FLAG = 0x8000
+_MAX_COMPENSATION_Q3 = 31
+_MAX_EXPRESS_DIST_MM = (1 << 14) - 1
+
+
+def encode_express_capsule(
+    start_angle_deg: float,
+    dists_mm: np.ndarray | list[float],
+    compensation_deg: np.ndarray | list[float] | None = None,
+    *,
+    start: bool = False,
+) -> bytes:
+    """One 84-byte express capsule of 32 samples.
+
+    A decoder gives sample ``i`` the angle ``start + i * (next_start - start) / 32 -
+    compensation[i]``, where ``next_start`` is the start angle of the *next* capsule, so
+    an emulator that takes its 32 samples evenly between two capsule start angles needs
+    no compensation (the default). ``start`` marks the first capsule after EXPRESS_SCAN.
+
+    The compensation is limited to 0..3.875° (q3 values 0..31): in that range the
+    Slamtec SDK (which reads the 6-bit field unsigned), the datasheet's signed reading
+    and the ``rplidar`` Python package (sign and magnitude) all decode the same angle.
+    Distances are whole millimetres, 0..16383.
+    """
+    dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
+    if dist.shape != (CAPSULE_SAMPLES,):
+        raise ValueError(f"an express capsule holds {CAPSULE_SAMPLES} distances, got {dist.shape}")
+    if np.any((dist < 0) | (dist > _MAX_EXPRESS_DIST_MM)):
+        raise ValueError(f"express distances must be in 0..{_MAX_EXPRESS_DIST_MM} mm")
+    if compensation_deg is None:
+        comp = np.zeros(CAPSULE_SAMPLES, dtype=np.int64)
+    else:
+        comp = np.rint(np.asarray(compensation_deg, dtype=np.float64) * 8).astype(np.int64)
+        if comp.shape != (CAPSULE_SAMPLES,):
+            raise ValueError(f"an express capsule holds {CAPSULE_SAMPLES} compensations, got {comp.shape}")
+        if np.any((comp < 0) | (comp > _MAX_COMPENSATION_Q3)):
+            raise ValueError("express angle compensation must be in 0..3.875 degrees")
+    start_q6 = round(start_angle_deg * 64) % _FULL_TURN_Q6
+    word = np.empty(CAPSULE_SAMPLES, dtype=np.int64)
+    word[:] = (dist << 2) | ((comp >> 4) & 0x3)
+    cabins = np.empty((_CABINS, 5), dtype=np.uint8)
+    d1, d2 = word[0::2], word[1::2]
+    cabins[:, 0] = d1 & 0xFF
+    cabins[:, 1] = d1 >> 8
+    cabins[:, 2] = d2 & 0xFF
+    cabins[:, 3] = d2 >> 8
+    cabins[:, 4] = (comp[0::2] & 0xF) | ((comp[1::2] & 0xF) << 4)
+    body = struct.pack("<H", start_q6 | (_START_FLAG if start else 0)) + cabins.tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+def express_compensation_deg(
+    start_angle_deg: float, next_start_angle_deg: float, angles_deg: np.ndarray | list[float]
+) -> np.ndarray:
+    """The compensation that makes a capsule decode to ``angles_deg`` (32 values).
+
+    Raises ValueError when an angle is not within 0..3.875° before its interpolated
+    position (the range every decoder agrees on, see ``encode_express_capsule``).
+    """
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    if angles.shape != (CAPSULE_SAMPLES,):
+        raise ValueError(f"an express capsule holds {CAPSULE_SAMPLES} angles, got {angles.shape}")
+    s = round(start_angle_deg * 64) % _FULL_TURN_Q6 / 64.0
+    e = round(next_start_angle_deg * 64) % _FULL_TURN_Q6 / 64.0
+    diff = (e - s) % 360.0
+    interp = s + np.arange(CAPSULE_SAMPLES) * diff / CAPSULE_SAMPLES
+    comp = np.asarray(_wrap_deg(interp - angles))
+    if np.any(comp < -1e-9) or np.any(comp > _MAX_COMPENSATION_Q3 / 8 + 1e-9):
+        raise ValueError("express sample angles must lie 0..3.875 degrees before their interpolated angle")
+    return np.clip(comp, 0.0, _MAX_COMPENSATION_Q3 / 8)
+
+
+def _capsules_valid(rows: np.ndarray) -> np.ndarray:
+    """Per 84-byte row: both sync nibbles and the checksum of bytes 2..83 match."""
+    cs = np.bitwise_xor.reduce(rows[:, 2:], axis=1)
+    recv = (rows[:, 0] & 0x0F) | ((rows[:, 1] & 0x0F) << 4)
+    return (rows[:, 0] >> 4 == _SYNC_NIBBLE_1) & (rows[:, 1] >> 4 == _SYNC_NIBBLE_2) & (cs == recv)
+
+
+def _start_word(rows: np.ndarray) -> np.ndarray:
+    return rows[:, 2].astype(np.int64) | (rows[:, 3].astype(np.int64) << 8)
+
+
+def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Samples of the capsules ``prev`` (m x 84), each interpolated up to ``cur``'s start.
+
+    Follows the SDK's fixed-point arithmetic (q8 start angles, q16 interpolation, q6
+    result) so this decoder and the SDK agree to the last bit on the angle.
+    Returns angle_q6, dist_q2, raw interpolated angle q16 (m x 32 each).
+    """
+    prev_q8 = (_start_word(prev) & 0x7FFF) << 2
+    cur_q8 = (_start_word(cur) & 0x7FFF) << 2
+    diff_q8 = cur_q8 - prev_q8
+    diff_q8 = np.where(prev_q8 > cur_q8, diff_q8 + (360 << 8), diff_q8)
+    inc_q16 = diff_q8 << 3
+    i = np.arange(CAPSULE_SAMPLES, dtype=np.int64)
+    raw_q16 = (prev_q8 << 8)[:, None] + inc_q16[:, None] * i[None, :]
+    cab = prev[:, 4:].reshape(-1, _CABINS, 5).astype(np.int64)
+    word = np.empty((prev.shape[0], CAPSULE_SAMPLES), dtype=np.int64)
+    word[:, 0::2] = cab[:, :, 0] | (cab[:, :, 1] << 8)
+    word[:, 1::2] = cab[:, :, 2] | (cab[:, :, 3] << 8)
+    low = np.empty_like(word)
+    low[:, 0::2] = cab[:, :, 4] & 0xF
+    low[:, 1::2] = cab[:, :, 4] >> 4
+    comp_q3 = low | ((word & 0x3) << 4)
+    comp_q3 = np.where(comp_q3 >= 32, comp_q3 - 64, comp_q3)  # signed 6-bit (datasheet)
+    angle_q6 = ((raw_q16 - (comp_q3 << 13)) >> 10) % _FULL_TURN_Q6
+    return angle_q6, word & 0xFFFC, raw_q16 % (360 << 16)
+
+
+class ExpressScanDecoder:
+    """Streaming decoder of an EXPRESS_SCAN (legacy capsule) response stream.
+
+    A capsule is believed when its sync nibbles (0xA, 0x5) and its checksum match
+    (a 1 in 65536 chance for random bytes); otherwise one byte is dropped and the next
+    offset tried. As on the device's SDK, a capsule's 32 samples are interpolated
+    between its start angle and the next capsule's, so they come out only when the
+    next valid capsule arrives; a capsule followed by dropped bytes, by a capsule with
+    the start flag (a new scan), or by the end of the stream is discarded
+    (``capsules_discarded``). Capsules carry no revolution flag: ``start`` is set on
+    the first sample whose interpolated angle wrapped past 360°.
+
+    Example::
+
+        dec = ExpressScanDecoder()
+        samples = dec.feed(port_bytes)
+    """
+
+    def __init__(self) -> None:
+        self._tail = b""
+        self._synced = False
+        self._pending: np.ndarray | None = None  # last valid capsule, waiting for the next
+        self._last_raw_q16: int | None = None  # uncompensated angle of the last sample
+        self.bytes_dropped = 0
+        self.samples_decoded = 0
+        self.capsules_decoded = 0
+        self.capsules_discarded = 0
+        self.descriptors_skipped = 0
+        self._descriptor = EXPRESS_DESCRIPTOR.encode()
+
+    def reset(self, *, synced: bool = False) -> None:
+        """Forget the stream; ``synced``: the next byte starts a capsule."""
+        self._tail = b""
+        self._synced = synced
+        self._break()
+
+    def _break(self) -> None:
+        if self._pending is not None:
+            self.capsules_discarded += 1
+        self._pending = None
+        self._last_raw_q16 = None
+
+    def feed(self, data: bytes) -> DecodedSamples:
+        return self._decode(self._tail + bytes(data), final=False)
+
+    def flush(self) -> DecodedSamples:
+        """End of stream: the kept bytes are dropped, the last capsule discarded."""
+        out = self._decode(self._tail, final=True)
+        self._break()
+        return out
+
+    def _decode(self, buf: bytes, final: bool) -> DecodedSamples:
+        arr = np.frombuffer(buf, dtype=np.uint8)
+        n = len(buf)
+        pos = 0
+        parts: list[DecodedSamples] = []
+        while True:
+            if self._synced:
+                k = (n - pos) // CAPSULE_LEN
+                if k > 0:
+                    rows = arr[pos : pos + k * CAPSULE_LEN].reshape(k, CAPSULE_LEN)
+                    bad = np.flatnonzero(~_capsules_valid(rows))
+                    r = int(bad[0]) if bad.size else k
+                    if r:
+                        parts.append(self._emit(rows[:r]))
+                        pos += r * CAPSULE_LEN
+                    if r < k:
+                        self._synced = False
+                if self._synced:
+                    break
+            pos, found = self._hunt(buf, arr, pos, final)
+            if not found:
+                break
+            self._synced = True
+        if final:
+            self.bytes_dropped += n - pos
+            pos = n
+            self._synced = False
+        self._tail = buf[pos:]
+        out = DecodedSamples.concat(parts)
+        self.samples_decoded += len(out)
+        return out
+
+    def _hunt(self, buf: bytes, arr: np.ndarray, pos: int, final: bool) -> tuple[int, bool]:
+        """Drop bytes up to the next valid capsule (or descriptor); True when found."""
+        n = len(buf)
+        desc = self._descriptor
+        if n - pos >= 2:
+            hi = arr[pos:] >> 4
+            cands = np.flatnonzero((hi[:-1] == _SYNC_NIBBLE_1) & (hi[1:] == _SYNC_NIBBLE_2)) + pos
+        else:
+            cands = np.empty(0, dtype=np.int64)
+        for q in (int(c) for c in cands):
+            head = buf[q : q + DESCRIPTOR_LEN]
+            if head == desc:
+                self._drop(q - pos)
+                self.descriptors_skipped += 1
+                self._break()
+                return q + DESCRIPTOR_LEN, True
+            if q + CAPSULE_LEN > n:
+                if final:
+                    continue
+                self._drop(q - pos)  # maybe a capsule: wait for the rest of it
+                return q, False
+            if _capsules_valid(arr[q : q + CAPSULE_LEN][None, :])[0]:
+                self._drop(q - pos)
+                return q, True
+        # no candidate: keep a last byte that could begin a capsule
+        keep = 1 if (n > pos and arr[n - 1] >> 4 == _SYNC_NIBBLE_1 and not final) else 0
+        self._drop(n - keep - pos)
+        return n - keep, False
+
+    def _drop(self, count: int) -> None:
+        if count > 0:
+            self.bytes_dropped += count
+            self._break()
+
+    def _emit(self, rows: np.ndarray) -> DecodedSamples:
+        """Samples of every capsule that now has a successor, from contiguous ``rows``."""
+        if self._pending is not None:
+            rows = np.concatenate([self._pending[None, :], rows])
+        opens_scan = (_start_word(rows) & _START_FLAG) != 0
+        # capsule j is decoded with j+1, unless j+1 opens a new scan (then j is lost)
+        idx = np.flatnonzero(~opens_scan[1:])
+        self.capsules_discarded += int(np.count_nonzero(opens_scan[1:]))
+        self._pending = rows[-1].copy()
+        if idx.size == 0:
+            if opens_scan[-1]:
+                self._last_raw_q16 = None
+            return DecodedSamples.empty()
+        angle_q6, dist_q2, raw = _decode_capsule_pairs(rows[idx], rows[idx + 1])
+        # the revolution flag compares each sample with the one before it; a skipped
+        # capsule (new scan) or a fresh start leaves nothing to compare with
+        fresh = np.zeros(idx.size, dtype=bool)
+        fresh[1:] = idx[1:] != idx[:-1] + 1
+        fresh[0] = self._last_raw_q16 is None or idx[0] > 0
+        raw_flat = raw.reshape(-1)
+        prev = np.empty_like(raw_flat)
+        prev[1:] = raw_flat[:-1]
+        prev[0] = raw_flat[0] if self._last_raw_q16 is None else self._last_raw_q16
+        start = raw_flat < prev
+        start[np.flatnonzero(fresh) * CAPSULE_SAMPLES] = False
+        self._last_raw_q16 = None if opens_scan[-1] else int(raw_flat[-1])
+        self.capsules_decoded += idx.size
+        dist = dist_q2.reshape(-1) / 4.0
+        return DecodedSamples(angle_q6.reshape(-1) / 64.0, dist, (dist > 0).astype(np.uint8), start)

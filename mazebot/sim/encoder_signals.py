@@ -31,15 +31,20 @@ class QuadratureSignal:
         signal.update(wheel_angle_rad=math.pi)   # half a turn: 420 edges
     """
 
-    def __init__(self, factory: MockFactory, a_pin: int, b_pin: int, lines_per_rev: int) -> None:
+    def __init__(
+        self, factory: MockFactory, a_pin: int, b_pin: int, lines_per_rev: int, *, idle_high: bool = True
+    ) -> None:
         if lines_per_rev <= 0:
             raise ValueError(f"lines_per_rev must be positive, got {lines_per_rev}")
         self._a = factory.pin(a_pin)
         self._b = factory.pin(b_pin)
         self._steps_per_rad = 4 * lines_per_rev / math.tau
+        # Start where the pins rest when the encoder driver enables its pull resistors
+        # (both high with pull-ups), so claiming the pins later changes nothing.
+        self._offset = 2 if idle_high else 0
         self._step = 0
         self.edges = 0  # edges driven so far, for tests and stats
-        self._drive(_GRAY[0])
+        self._drive(_GRAY[self._offset])
 
     def _drive(self, levels: tuple[int, int]) -> None:
         for pin, level in ((self._a, levels[0]), (self._b, levels[1])):
@@ -56,7 +61,7 @@ class QuadratureSignal:
         direction = 1 if n > 0 else -1
         for _ in range(abs(n)):
             self._step += direction
-            a, b = _GRAY[self._step % 4]
+            a, b = _GRAY[(self._step + self._offset) % 4]
             # exactly one channel changes per quarter step
             pin, level = (self._a, a) if self._a.state != a else (self._b, b)
             if level:

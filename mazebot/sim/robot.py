@@ -82,8 +82,12 @@ class SimulatedRobot:
         self.kit = FakeMotorKit()
         self.pin_factory = MockFactory()
         enc = config.encoders
-        self.left_signal = QuadratureSignal(self.pin_factory, enc.left_a_pin, enc.left_b_pin, enc.counts_per_rev)
-        self.right_signal = QuadratureSignal(self.pin_factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev)
+        self.left_signal = QuadratureSignal(
+            self.pin_factory, enc.left_a_pin, enc.left_b_pin, enc.counts_per_rev, idle_high=enc.pull_up
+        )
+        self.right_signal = QuadratureSignal(
+            self.pin_factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev, idle_high=enc.pull_up
+        )
         self.poses = PoseHistory()
         self.lidar_head = SpinningLidar(world, lidar_params(config), rngs[1])
         self.time_s: float | None = None

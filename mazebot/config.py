@@ -219,7 +219,7 @@ class SimConfig(Section):
     wall_thickness_m: float = Field(0.012, gt=0.001, le=0.1, description="maze wall thickness")
     physics_rate_hz: float = Field(400.0, ge=200, le=5000, description="integration rate of the robot physics")
     step_period_s: float = Field(
-        0.005, gt=0, le=0.05, description="period of the simulator task (physics, encoder edges)"
+        0.01, gt=0, le=0.05, description="period of the simulator task; physics sub-steps at physics_rate_hz"
     )
     motor_time_constant_s: float = Field(0.08, gt=0, le=2, description="first-order lag of a driven wheel")
     brake_time_constant_s: float = Field(0.04, gt=0, le=2, description="lag of a wheel braked at throttle 0")

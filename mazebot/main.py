@@ -93,14 +93,21 @@ async def run_daemon(
     clock: Clock | None = None,
     ready: asyncio.Event | None = None,
     install_signal_handlers: bool = True,
+    serve_web: bool = True,
+    state: SharedState | None = None,
+    on_started: Callable[[Hardware, SharedState, Supervisor], None] | None = None,
 ) -> int:
-    """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code."""
+    """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
+
+    ``on_started`` is called once every task runs (the benchmark adds its driver and
+    recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs).
+    """
     from mazebot.tasks import command_task, control_task, lidar_task, odometry_task
     from mazebot.web.server import start_web_server
 
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
-    state = SharedState()
+    state = state if state is not None else SharedState()
     async with AsyncExitStack() as stack:
         hardware = await build_hardware(config, clock, stack)
         motors = hardware.motors
@@ -121,9 +128,14 @@ async def run_daemon(
             "control", lambda: control_task.run(motors, state, clock, config.daemon.control_period_s)
         )
         supervisor.start("commands", lambda: command_task.run(state, motors, clock))
-        web = await start_web_server(state, config, hardware)
-        stack.push_async_callback(web.cleanup)
-        log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
+        if serve_web:
+            web = await start_web_server(state, config, hardware)
+            stack.push_async_callback(web.cleanup)
+            log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
+        else:
+            log.info("%s; no web page", hardware.description)
+        if on_started is not None:
+            on_started(hardware, state, supervisor)
         if ready is not None:
             ready.set()
         return await supervisor.wait()

@@ -38,7 +38,8 @@ class SimLidarLine:
         self._served: set[asyncio.Task[None]] = set()
 
     async def connect(self) -> ByteLink:
-        link, device_reader, device_writer = memory_link_pair(on_dtr=self.emulator.set_dtr)
+        # The driver turns the motor on by clearing DTR, as on the A1's USB adapter.
+        link, (device_reader, device_writer) = memory_link_pair(on_motor=lambda on: self.emulator.set_dtr(not on))
         task = asyncio.create_task(self.emulator.serve(device_reader, device_writer), name="sim-lidar-device")
         self._served.add(task)
         task.add_done_callback(self._served.discard)

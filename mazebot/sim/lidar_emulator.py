@@ -50,9 +50,10 @@ class RPLidarEmulator:
         await emulator.serve(device_reader, device_writer)   # until the line closes
     """
 
-    #: How often streamed samples are written while scanning (the real device sends
-    #: continuously; 10 ms batches are ~20 standard samples).
-    SEND_PERIOD_S = 0.01
+    #: How often streamed samples are written while scanning. The device sends
+    #: continuously, but its USB serial adapter hands bytes to the host in packets;
+    #: 20 ms batches (~40 standard samples) are what a host typically reads at once.
+    SEND_PERIOD_S = 0.02
 
     def __init__(
         self,

@@ -15,6 +15,9 @@ import asyncio
 import selectors
 from typing import Any
 
+#: Virtual time one pass of the event loop takes.
+LOOP_PASS_S = 1e-6
+
 
 class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc, valid-type]
     """A selector that polls without blocking and moves the loop's clock instead."""
@@ -27,8 +30,11 @@ class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc, valid-t
         if timeout is None:  # no timer pending: only I/O (an executor job) can wake us
             return super().select(None)
         events = super().select(0)
-        if not events and self._loop_ref and timeout is not None and timeout > 0:
-            self._loop_ref[0].advance(timeout)
+        # Every pass of the loop costs a little time, as on a real clock; without it a
+        # task that polls with waits shorter than float resolution would never see the
+        # clock move, and the run would spin for ever at one instant.
+        step_s = timeout if (not events and timeout > 0) else 0.0
+        self._loop_ref[0].advance(max(step_s, LOOP_PASS_S))
         return events
 
 

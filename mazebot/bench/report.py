@@ -1,0 +1,95 @@
+"""results.json, report.md and the figures of a benchmark run."""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mazebot.bench.png import Canvas, write_png
+from mazebot.bench.runner import RunRecord
+from mazebot.sim.raster import true_occupancy
+
+#: Keys aggregated in the summary (median over runs, ignoring nulls).
+SUMMARY_KEYS = (
+    "time_s", "wall_s", "realtime_factor", "path_m", "avg_speed_mps", "coverage", "collisions", "revisits",
+    "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "scan_ms_p50", "scan_ms_p99",
+    "control_jitter_ms_p99", "cpu_percent", "rss_mb",
+)
+
+
+def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Median of each metric over the runs; null where no run has it."""
+    out: dict[str, Any] = {"runs": len(runs), "done": sum(1 for r in runs if r["done"])}
+    for key in SUMMARY_KEYS:
+        values = [r[key] for r in runs if r.get(key) is not None]
+        out[f"{key}_median"] = round(statistics.median(values), 4) if values else None
+    out["collisions_total"] = sum(r["collisions"] for r in runs)
+    return out
+
+
+def write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def trajectory_figure(record: RunRecord, path: Path) -> None:
+    """True walls (grey), true trajectory (blue), estimated trajectory (red), in world frame."""
+    assert record.hardware is not None
+    world = record.hardware.sim.world
+    canvas = Canvas(world.bounds_m, pixels_per_m=400)
+    occ, origin = true_occupancy(world, 0.01)
+    canvas.paint_mask(occ, origin, 0.01, (150, 150, 150))
+    truth = np.asarray(record.true_poses).reshape(-1, 3)
+    est = np.asarray(record.est_poses).reshape(-1, 3)
+    if len(truth):
+        x0, y0, t0 = truth[0]
+        c, s = np.cos(t0), np.sin(t0)
+        est_world = np.column_stack([x0 + c * est[:, 0] - s * est[:, 1], y0 + s * est[:, 0] + c * est[:, 1]])
+        canvas.polyline(truth[:, :2], (40, 90, 220), width_px=2)
+        canvas.polyline(est_world, (220, 40, 40), width_px=1)
+    write_png(path, canvas.rgb)
+
+
+def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], command: str) -> dict[str, Any]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    metrics = [m for m, _ in runs]
+    lines = [
+        "# mazebot benchmark", "", f"Command: `{command}`", "",
+        "| maze | seed | done | sim s | wall s | x real time | path m | collisions | revisits | "
+        "ATE rms m | ATE max m | heading rms ° | coverage | map F1 | scan ms p50 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for i, (m, record) in enumerate(runs):
+        fig = f"run{i:02d}-{m['maze']}-seed{m['seed']}-trajectory.png"
+        trajectory_figure(record, out_dir / fig)
+        m["figures"] = {"trajectory": fig, "map": None}
+
+        def cell(v: Any) -> str:
+            return "null" if v is None else str(v)
+
+        lines.append("| " + " | ".join(cell(m[k]) for k in (
+            "maze", "seed", "done", "time_s", "wall_s", "realtime_factor", "path_m", "collisions", "revisits",
+            "ate_rms_m", "ate_max_m", "heading_rms_deg", "coverage", "map_f1", "scan_ms_p50")) + " |")
+    summary = summarize(metrics)
+    results = {"command": command, "runs": metrics, "summary": summary}
+    write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
+    lines += ["", "## Summary (medians)", "", "```json", json.dumps(summary, indent=2), "```", "", "## Figures", ""]
+    for m in metrics:
+        lines.append(f"- {m['maze']} seed {m['seed']}: true trajectory (blue) and estimate (red) over the true "
+                     f"walls: ![trajectory]({m['figures']['trajectory']})")
+    lines += ["", "`null` marks a metric whose part mazebot does not have yet (the map needs SLAM), "
+              "never a guess. The estimate is " + (metrics[0]["estimate"] if metrics else "") + "."]
+    write_atomic(out_dir / "report.md", "\n".join(lines) + "\n")
+    return results

@@ -1,0 +1,192 @@
+"""CARMEN laser logs: ``FLASER``, ``RLASER``, ``ROBOTLASER1`` and ``ODOM`` lines.
+
+The format of the CARMEN robot toolkit's ``logger`` (carmen/src/logger, "CARMEN Logfile"
+header), one message per line, fields separated by blanks::
+
+    FLASER num_readings [range_readings] x y theta odom_x odom_y odom_theta
+           ipc_timestamp ipc_hostname logger_timestamp
+    ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range
+           accuracy remission_mode num_readings [range_readings] num_remissions
+           [remission values] laser_pose_x laser_pose_y laser_pose_theta robot_pose_x
+           robot_pose_y robot_pose_theta laser_tv laser_rv forward_safety_dist
+           side_safety_dist turn_axis ipc_timestamp ipc_hostname logger_timestamp
+    ODOM x y theta tv rv accel ipc_timestamp ipc_hostname logger_timestamp
+
+Old-style ``FLASER``/``RLASER`` lines do not carry their geometry: the front laser is a
+SICK LMS covering 180° from the right (−90°) counter-clockwise, ``fov / num_readings``
+apart (1° for the 180 beams of the Intel lab log). Their pose ``x y theta`` is the
+laser's pose; in a ``*.gfs.log`` it is the pose GMapping corrected, which is why the
+Intel log serves as ground truth for scan matching. Other messages (``PARAM``,
+``NEFF``, ``#`` comments, ...) are skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mazebot.errors import UsageError
+from mazebot.io.scan import Scan
+
+
+class CarmenLogError(UsageError):
+    """A CARMEN log is missing or has a malformed line; the message names the file and line."""
+
+
+@dataclass(frozen=True)
+class LaserRecord:
+    """One laser message: beams in the laser frame (CCW, 0 ahead) and the poses it carries.
+
+    ``pose`` (3,) is the laser's pose ``(x_m, y_m, theta_rad)`` (corrected in GMapping
+    logs), ``odom_pose`` (3,) the raw odometry. Ranges at or beyond ``max_range_m`` are
+    no-return beams.
+    """
+
+    angle_rad: np.ndarray
+    range_m: np.ndarray
+    pose: np.ndarray
+    odom_pose: np.ndarray
+    timestamp_s: float
+    max_range_m: float
+    line_number: int
+    kind: str = "FLASER"
+
+    def points_xy(self, max_range_m: float | None = None) -> np.ndarray:
+        """Returns (N, 2) in the laser frame, metres, for beams closer than ``max_range_m``."""
+        limit = self.max_range_m if max_range_m is None else min(max_range_m, self.max_range_m)
+        ok = (self.range_m > 0) & (self.range_m < limit)
+        r, a = self.range_m[ok], self.angle_rad[ok]
+        return np.column_stack((r * np.cos(a), r * np.sin(a)))
+
+    def to_scan(self) -> Scan:
+        """The message as a :class:`~mazebot.io.scan.Scan` (all samples at the message time).
+
+        Samples at the sensor's maximum stay ``valid``, so :func:`mazebot.slam.preprocess.prepare_scan`
+        treats them as no-return beams beyond its ``max_range_m``.
+        """
+        n = self.range_m.shape[0]
+        return Scan(
+            angle_rad=self.angle_rad.copy(),
+            range_m=self.range_m.copy(),
+            quality=np.full(n, 47, dtype=np.uint8),
+            time_s=np.full(n, self.timestamp_s),
+            valid=self.range_m > 0,
+        )
+
+
+@dataclass(frozen=True)
+class OdometryRecord:
+    """One ``ODOM`` message: pose (3,), translational/rotational velocity, acceleration."""
+
+    pose: np.ndarray
+    tv_mps: float
+    rv_radps: float
+    accel_mps2: float
+    timestamp_s: float
+    line_number: int
+
+
+@dataclass
+class CarmenLog:
+    """The laser and odometry messages of a log, in file order."""
+
+    lasers: list[LaserRecord] = field(default_factory=list)
+    odometry: list[OdometryRecord] = field(default_factory=list)
+
+
+def parse_carmen(
+    lines: Iterable[str],
+    source: str = "<text>",
+    flaser_fov_rad: float = math.pi,
+    flaser_max_range_m: float = 81.0,
+) -> CarmenLog:
+    """Parse the lines of a CARMEN log.
+
+    ``flaser_fov_rad`` and ``flaser_max_range_m`` describe the laser behind old-style
+    ``FLASER``/``RLASER`` lines (a SICK LMS by default: 180°, no return reported as
+    81.83 m). A malformed line raises :class:`CarmenLogError` naming ``source`` and
+    the line number.
+    """
+    log = CarmenLog()
+    for number, line in enumerate(lines, start=1):
+        tokens = line.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        kind = tokens[0]
+        try:
+            if kind in ("FLASER", "RLASER"):
+                log.lasers.append(_parse_flaser(tokens, number, flaser_fov_rad, flaser_max_range_m))
+            elif kind == "ROBOTLASER1":
+                log.lasers.append(_parse_robotlaser(tokens, number))
+            elif kind == "ODOM":
+                log.odometry.append(_parse_odom(tokens, number))
+        except (ValueError, IndexError) as error:
+            raise CarmenLogError(f"{source} line {number}: bad {kind} message ({error})") from None
+    return log
+
+
+def read_carmen(path: str | Path, **kwargs: float) -> CarmenLog:
+    """Read a CARMEN log file; see :func:`parse_carmen`."""
+    path = Path(path)
+    try:
+        with path.open(encoding="utf-8", errors="replace") as f:
+            return parse_carmen(f, source=str(path), **kwargs)
+    except FileNotFoundError:
+        raise CarmenLogError(f"CARMEN log {path} not found") from None
+    except OSError as error:
+        raise CarmenLogError(f"CARMEN log {path} cannot be read ({error})") from None
+
+
+def _floats(tokens: list[str], start: int, count: int, what: str) -> np.ndarray:
+    if start + count > len(tokens):
+        raise ValueError(f"expected {count} {what} from field {start}, the line has {len(tokens)} fields")
+    values = np.array([float(t) for t in tokens[start : start + count]])
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{what} must be finite numbers")
+    return values
+
+
+def _count(tokens: list[str], index: int, what: str) -> int:
+    n = int(tokens[index])
+    if n < 0:
+        raise ValueError(f"{what} must not be negative, got {n}")
+    return n
+
+
+def _parse_flaser(tokens: list[str], number: int, fov_rad: float, max_range_m: float) -> LaserRecord:
+    n = _count(tokens, 1, "num_readings")
+    expected = 2 + n + 6 + 3
+    if len(tokens) != expected:
+        raise ValueError(f"{n} readings need {expected} fields, found {len(tokens)}")
+    ranges = _floats(tokens, 2, n, "ranges")
+    poses = _floats(tokens, 2 + n, 6, "poses")
+    timestamp = float(tokens[2 + n + 6])
+    angles = -fov_rad / 2.0 + np.arange(n) * (fov_rad / max(n, 1))
+    return LaserRecord(angles, ranges, poses[:3], poses[3:], timestamp, max_range_m, number, tokens[0])
+
+
+def _parse_robotlaser(tokens: list[str], number: int) -> LaserRecord:
+    head = _floats(tokens, 2, 6, "laser header")  # start_angle fov resolution max_range accuracy remission_mode
+    start_angle, _fov, resolution, max_range = head[:4]
+    n = _count(tokens, 8, "num_readings")
+    ranges = _floats(tokens, 9, n, "ranges")
+    n_rem = _count(tokens, 9 + n, "num_remissions")
+    tail = 10 + n + n_rem
+    expected = tail + 11 + 3
+    if len(tokens) != expected:
+        raise ValueError(f"{n} readings and {n_rem} remissions need {expected} fields, found {len(tokens)}")
+    poses = _floats(tokens, tail, 6, "poses")
+    timestamp = float(tokens[tail + 11])
+    angles = start_angle + np.arange(n) * resolution
+    return LaserRecord(angles, ranges, poses[:3], poses[3:], timestamp, float(max_range), number, tokens[0])
+
+
+def _parse_odom(tokens: list[str], number: int) -> OdometryRecord:
+    if len(tokens) != 10:
+        raise ValueError(f"ODOM needs 10 fields, found {len(tokens)}")
+    v = _floats(tokens, 1, 7, "values")
+    return OdometryRecord(v[:3], float(v[3]), float(v[4]), float(v[5]), float(v[6]), number)

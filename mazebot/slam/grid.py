@@ -1,0 +1,345 @@
+"""A log-odds occupancy grid that grows as the robot explores.
+
+Each cell holds the log odds ``l = log(p / (1 − p))`` that it is occupied, starting at
+0 (p = 0.5, unknown). A scan adds ``l_hit`` to the cells holding a beam's endpoint and
+``l_miss`` (negative) to the cells the beams cross on their way there: the inverse
+sensor model update of Thrun, Burgard & Fox, *Probabilistic Robotics*, ch. 9
+(Table 9.1, eq. 9.7), with the prior term 0. Values are clamped to
+``[l_min, l_max]`` so a cell that changes (a door, a mapping error fixed after loop
+closure) can flip back within a few scans.
+
+Within one :meth:`OccupancyGrid.integrate` call a cell is updated at most once, and a
+hit wins over a miss (the rule of Cartographer's probability grid): a beam grazing a
+wall must not erase the cell another beam of the same scan hit, and cells near the
+robot, crossed by hundreds of beams, count as one observation per scan.
+
+Beams are traced by sampling each at ``trace_step`` of a cell (vectorized over all
+beams with ``np.repeat``; no Python loop per beam or cell). The sample that falls in the
+endpoint's cell and everything after it is not marked free.
+
+The array grows: when a scan reaches past its edge it is reallocated with a margin,
+content kept at the same world coordinates. Frame: ``grid[row, col]``, row 0 south,
+column 0 west, cell (row, col) spanning ``origin + (col, row) * resolution`` — the ROS
+``map_server`` orientation. The origin is always a multiple of the resolution, so cell
+boundaries never move between reallocations or rebuilds.
+
+For the websocket deltas, :meth:`OccupancyGrid.take_dirty` returns the cells whose
+three-state value (-1 unknown, 0 free, 100 occupied) changed since the previous call;
+``generation`` counts reallocations and rebuilds, after which clients need a full map.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+UNKNOWN = -1
+FREE = 0
+OCCUPIED = 100
+
+
+@dataclass(frozen=True)
+class DirtyCells:
+    """Cells whose three-state value changed: ``rows``, ``cols`` (int64) and new ``values`` (int8).
+
+    Indices are in the grid of ``generation``; a client holding another generation
+    needs the full map instead.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    values: np.ndarray
+    generation: int
+
+    def __len__(self) -> int:
+        return int(self.rows.shape[0])
+
+
+def _logit(p: float) -> float:
+    return float(np.log(p / (1.0 - p)))
+
+
+class OccupancyGrid:
+    """Log-odds occupancy grid in float32, growing on demand.
+
+    Example::
+
+        grid = OccupancyGrid(resolution_m=0.02)
+        grid.integrate(sensor_pose, endpoints_world, hit_mask)
+        walls = grid.occupied_mask()        # bool [row, col], row 0 south
+        delta = grid.take_dirty()           # for the websocket
+
+    Parameters: ``l_hit``/``l_miss`` are the log-odds increments, ``l_min``/``l_max`` the
+    clamp, ``occupied_prob``/``free_prob`` the three-state thresholds (a cell is
+    occupied above ``occupied_prob``, free below ``free_prob``), ``max_free_range_m``
+    the length up to which a no-return beam clears space, ``margin_m`` the extra room
+    added on each side when the grid grows.
+    """
+
+    def __init__(
+        self,
+        resolution_m: float = 0.02,
+        l_hit: float = 0.85,
+        l_miss: float = -0.4,
+        l_min: float = -5.0,
+        l_max: float = 5.0,
+        occupied_prob: float = 0.65,
+        free_prob: float = 0.25,
+        max_free_range_m: float = 4.0,
+        margin_m: float = 1.0,
+        trace_step: float = 0.5,
+    ) -> None:
+        if resolution_m <= 0:
+            raise ValueError(f"resolution_m must be positive, got {resolution_m}")
+        if not (l_hit > 0 > l_miss and l_min < 0 < l_max):
+            raise ValueError(f"need l_hit > 0 > l_miss and l_min < 0 < l_max, got {l_hit}, {l_miss}, {l_min}, {l_max}")
+        if not 0.0 < free_prob <= 0.5 <= occupied_prob < 1.0:
+            raise ValueError(f"need 0 < free_prob <= 0.5 <= occupied_prob < 1, got {free_prob}, {occupied_prob}")
+        if not 0.0 < trace_step <= 1.0:
+            raise ValueError(f"trace_step is a fraction of a cell in (0, 1], got {trace_step}")
+        self.resolution_m = float(resolution_m)
+        self.l_hit, self.l_miss = float(l_hit), float(l_miss)
+        self.l_min, self.l_max = float(l_min), float(l_max)
+        self.occupied_logodds = _logit(occupied_prob)
+        self.free_logodds = _logit(free_prob)
+        self.max_free_range_m = float(max_free_range_m)
+        self.margin_m = float(margin_m)
+        self.trace_step = float(trace_step)
+        self.generation = 0
+        self._clear()
+
+    def _clear(self) -> None:
+        self.log_odds = np.zeros((0, 0), dtype=np.float32)
+        self._origin_cells = (0, 0)  # (col, row) index of cell (0, 0) in the infinite lattice
+        self._reported = np.zeros((0, 0), dtype=np.int8)  # three-state last handed out
+        self._touched = np.zeros((0, 0), dtype=bool)  # cells updated since take_dirty (bounded memory)
+
+    # -- frame -------------------------------------------------------------------------
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of the current array."""
+        return self.log_odds.shape  # type: ignore[return-value]
+
+    @property
+    def origin_m(self) -> tuple[float, float]:
+        """World (x, y) in metres of the south-west corner of cell (0, 0)."""
+        return (self._origin_cells[0] * self.resolution_m, self._origin_cells[1] * self.resolution_m)
+
+    def to_cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, cols) int64 of the cells holding world points ``xy`` (N, 2); may be off the grid."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        col = np.floor(p[:, 0] / self.resolution_m).astype(np.int64) - self._origin_cells[0]
+        row = np.floor(p[:, 1] / self.resolution_m).astype(np.int64) - self._origin_cells[1]
+        return row, col
+
+    def to_world(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """World coordinates (N, 2) in metres of the centres of cells (rows, cols)."""
+        r = np.asarray(rows, dtype=np.float64).reshape(-1)
+        c = np.asarray(cols, dtype=np.float64).reshape(-1)
+        ox, oy = self.origin_m
+        return np.column_stack((ox + (c + 0.5) * self.resolution_m, oy + (r + 0.5) * self.resolution_m))
+
+    # -- reading -----------------------------------------------------------------------
+
+    def three_state(self) -> np.ndarray:
+        """int8 [row, col]: -1 unknown, 0 free, 100 occupied (the ROS ``OccupancyGrid`` values)."""
+        return self._classify(self.log_odds)
+
+    def _classify(self, log_odds: np.ndarray) -> np.ndarray:
+        out = np.full(log_odds.shape, UNKNOWN, dtype=np.int8)
+        out[log_odds > self.occupied_logodds] = OCCUPIED
+        out[log_odds < self.free_logodds] = FREE
+        return out
+
+    def occupied_mask(self) -> np.ndarray:
+        """bool [row, col]: cells believed occupied."""
+        return self.log_odds > self.occupied_logodds
+
+    def known_free_mask(self) -> np.ndarray:
+        """bool [row, col]: cells believed free (the numerator of coverage)."""
+        return self.log_odds < self.free_logodds
+
+    def probability(self) -> np.ndarray:
+        """float32 [row, col]: occupancy probability ``1 − 1 / (1 + exp(l))``."""
+        return (1.0 / (1.0 + np.exp(-self.log_odds))).astype(np.float32)
+
+    # -- writing -----------------------------------------------------------------------
+
+    def integrate(
+        self,
+        sensor_pose: np.ndarray,
+        endpoints_world: np.ndarray,
+        hit_mask: np.ndarray,
+        origins_world: np.ndarray | None = None,
+    ) -> None:
+        """Add one scan: free along every beam, occupied at the endpoints of hits.
+
+        ``sensor_pose`` (3,) (or (2,)) is the lidar's world pose; only its position is
+        used, as the start of every beam unless ``origins_world`` (N, 2) gives one start
+        per beam (de-skewed scans: the lidar moved during the revolution).
+        ``endpoints_world`` (N, 2) in metres; ``hit_mask`` (N,) False for beams without
+        a return, which clear space up to ``max_free_range_m`` and mark no hit.
+        """
+        starts, ends, hit = self._rays(sensor_pose, endpoints_world, hit_mask, origins_world)
+        if ends.shape[0] == 0:
+            return
+        self._ensure_contains(np.concatenate((starts, ends)))
+        # beams in continuous cell units of the current array: (col, row) = xy / res - origin
+        origin = np.array(self._origin_cells, dtype=np.float64)
+        start_c = starts / self.resolution_m - origin
+        end_c = ends / self.resolution_m - origin
+        end_cell = np.floor(end_c).astype(np.int64)
+        free_c, free_r = self._trace_free(start_c, end_c, end_cell, hit)
+        hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
+
+        # one update per cell per scan, a hit winning over a miss: mark a window, then update
+        lo = np.minimum(end_cell.min(axis=0), np.floor(start_c.min(axis=0)).astype(np.int64))
+        hi = np.maximum(end_cell.max(axis=0), np.floor(start_c.max(axis=0)).astype(np.int64))
+        shape = (int(hi[1] - lo[1]) + 1, int(hi[0] - lo[0]) + 1)
+        is_free = np.zeros(shape, dtype=bool)
+        is_hit = np.zeros(shape, dtype=bool)
+        is_free[free_r - lo[1], free_c - lo[0]] = True
+        is_hit[hit_r - lo[1], hit_c - lo[0]] = True
+        is_free &= ~is_hit
+        cols = self.shape[1]
+        fr, fc = np.nonzero(is_free)
+        hr, hc = np.nonzero(is_hit)
+        free_flat = (fr + lo[1]) * cols + (fc + lo[0])
+        hit_flat = (hr + lo[1]) * cols + (hc + lo[0])
+        flat = self.log_odds.reshape(-1)
+        flat[free_flat] = np.maximum(flat[free_flat] + self.l_miss, self.l_min)
+        flat[hit_flat] = np.minimum(flat[hit_flat] + self.l_hit, self.l_max)
+        touched = self._touched.reshape(-1)
+        touched[free_flat] = True
+        touched[hit_flat] = True
+
+    def _rays(
+        self,
+        sensor_pose: np.ndarray,
+        endpoints_world: np.ndarray,
+        hit_mask: np.ndarray,
+        origins_world: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Checked (starts, ends, hit) arrays, no-return beams shortened to ``max_free_range_m``."""
+        ends = np.asarray(endpoints_world, dtype=np.float64).reshape(-1, 2)
+        hit = np.asarray(hit_mask, dtype=bool).reshape(-1)
+        if hit.shape[0] != ends.shape[0]:
+            raise ValueError(f"hit_mask has {hit.shape[0]} entries for {ends.shape[0]} endpoints")
+        if origins_world is None:
+            starts = np.broadcast_to(np.asarray(sensor_pose, dtype=np.float64).reshape(-1)[:2], ends.shape)
+        else:
+            starts = np.asarray(origins_world, dtype=np.float64).reshape(-1, 2)
+            if starts.shape != ends.shape:
+                raise ValueError(f"origins_world must have shape {ends.shape}, got {starts.shape}")
+        vec = ends - starts
+        length = np.hypot(vec[:, 0], vec[:, 1])
+        cap = np.where(hit, length, np.minimum(length, self.max_free_range_m))
+        scale = np.divide(cap, length, out=np.zeros_like(cap), where=length > 0)
+        return starts, starts + vec * scale[:, None], hit
+
+    def _trace_free(
+        self, start_c: np.ndarray, end_c: np.ndarray, end_cell: np.ndarray, hit: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Cells (cols, rows) crossed by the beams before their endpoint's cell.
+
+        Beams are given in continuous cell units. Samples every ``trace_step`` cell along
+        each beam, all beams at once (``np.repeat`` builds the flat sample list). A beam's
+        samples inside its own endpoint cell are dropped for hits (that cell is the wall);
+        no-return beams keep theirs.
+        """
+        step = self.trace_step
+        vec = end_c - start_c
+        length = np.hypot(vec[:, 0], vec[:, 1])
+        count = np.ceil(length / step).astype(np.int64)  # samples at 0, step, ... short of the end
+        total = int(count.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        beam = np.repeat(np.arange(count.size), count)
+        k = np.arange(total, dtype=np.float64) - np.repeat(np.cumsum(count) - count, count)
+        frac = np.divide(step, length, out=np.zeros_like(length), where=length > 0)[beam] * k  # in [0, 1)
+        col = np.floor(start_c[beam, 0] + vec[beam, 0] * frac).astype(np.int64)
+        row = np.floor(start_c[beam, 1] + vec[beam, 1] * frac).astype(np.int64)
+        keep = ~((col == end_cell[beam, 0]) & (row == end_cell[beam, 1]) & hit[beam])
+        return col[keep], row[keep]
+
+    def _ensure_contains(self, xy: np.ndarray) -> None:
+        """Grow the array (with ``margin_m`` on each side) so every point lies on it."""
+        res = self.resolution_m
+        lo = np.floor(xy.min(axis=0) / res).astype(np.int64)  # (col, row) in the lattice
+        hi = np.floor(xy.max(axis=0) / res).astype(np.int64)
+        rows, cols = self.shape
+        oc, orow = self._origin_cells
+        if rows and cols and lo[0] >= oc and lo[1] >= orow and hi[0] < oc + cols and hi[1] < orow + rows:
+            return
+        margin = int(np.ceil(self.margin_m / res))
+        if rows and cols:
+            lo = np.minimum(lo, (oc, orow))
+            hi = np.maximum(hi, (oc + cols - 1, orow + rows - 1))
+        new_oc, new_or = int(lo[0]) - margin, int(lo[1]) - margin
+        new_cols = int(hi[0]) + margin + 1 - new_oc
+        new_rows = int(hi[1]) + margin + 1 - new_or
+        grown = np.zeros((new_rows, new_cols), dtype=np.float32)
+        reported = np.full((new_rows, new_cols), UNKNOWN, dtype=np.int8)
+        touched = np.zeros((new_rows, new_cols), dtype=bool)
+        dr, dc = orow - new_or, oc - new_oc
+        if rows and cols:  # the content, what clients were told and pending changes move together
+            grown[dr : dr + rows, dc : dc + cols] = self.log_odds
+            reported[dr : dr + rows, dc : dc + cols] = self._reported
+            touched[dr : dr + rows, dc : dc + cols] = self._touched
+        self.log_odds = grown
+        self._reported = reported
+        self._touched = touched
+        self._origin_cells = (new_oc, new_or)
+        self.generation += 1
+
+    # -- deltas and rebuilds -----------------------------------------------------------
+
+    def take_dirty(self) -> DirtyCells:
+        """Cells whose three-state value changed since the last call, and forget them."""
+        touched = np.flatnonzero(self._touched)
+        self._touched[...] = False
+        cols = self.shape[1]
+        now = self._classify(self.log_odds.reshape(-1)[touched])
+        reported = self._reported.reshape(-1)
+        changed = touched[now != reported[touched]]
+        values = now[now != reported[touched]]
+        reported[changed] = values
+        return DirtyCells(changed // max(cols, 1), changed % max(cols, 1), values, self.generation)
+
+    def rebuild(self, keyframes: Iterable[Sequence[np.ndarray]]) -> None:
+        """Recompute the grid from scratch, e.g. after a loop closure moved the poses.
+
+        Each keyframe is ``(pose (3,), endpoints (N, 2), hit_mask (N,))`` or with a fourth
+        ``origins (N, 2)``, endpoints and origins in the keyframe's robot frame (the
+        beams of :meth:`mazebot.slam.preprocess.PreparedScan.beams`); without origins
+        beams start at the pose's position. The array is sized once for all keyframes;
+        ``generation`` increments and the next :meth:`take_dirty` reports only later
+        changes (clients reload the full map).
+        """
+        rays = []
+        for kf in keyframes:
+            pose = np.asarray(kf[0], dtype=np.float64)
+            ends = _transform(pose, np.asarray(kf[1], dtype=np.float64).reshape(-1, 2))
+            origins = None if len(kf) < 4 else _transform(pose, np.asarray(kf[3], dtype=np.float64).reshape(-1, 2))
+            rays.append(self._rays(pose, ends, np.asarray(kf[2], dtype=bool), origins))
+        generation = self.generation
+        self._clear()
+        rays = [r for r in rays if r[1].shape[0]]
+        if rays:  # size the array once for all keyframes
+            self._ensure_contains(np.concatenate([xy for starts, ends, _ in rays for xy in (starts, ends)]))
+        for starts, ends, hit in rays:
+            self.integrate(starts[0], ends, hit, starts)
+        self.generation = generation + 1
+        self._touched[...] = False
+        self._reported = self.three_state()
+
+
+def _transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) from a frame at ``pose`` (x_m, y_m, theta_rad) into its parent frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.column_stack(
+        (c * points_xy[:, 0] - s * points_xy[:, 1] + pose[0], s * points_xy[:, 0] + c * points_xy[:, 1] + pose[1])
+    )

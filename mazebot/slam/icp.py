@@ -1,0 +1,391 @@
+"""Point-to-line ICP (2D point-to-plane) of a scan against a local submap.
+
+The method is the one of seed ``000`` section III.B: a kd-tree over the reference
+(target) points, point-to-plane error, outlier rejection, and a convergence test of at
+most 150 iterations or a step below 1 cm / 0.01 rad. Each iteration:
+
+1. **Transform** the source points by the current pose estimate ``(x, y, θ)``.
+2. **Associate** each with its nearest target point (scipy ``cKDTree``), among the
+   ``candidates`` nearest keeping the first whose surface faces the lidar (a lidar never
+   sees the back of a wall: with 12 mm maze walls both faces lie within one grid cell,
+   and matching the wrong face biases the pose by the wall's thickness).
+3. **Reject outliers**: a distance gate that starts at ``max_correspondence_m`` and
+   shrinks to the mean + 3 std of the accepted distances (Zhang, IJCV 1994; the seed's
+   "mean distance plus a margin" rule, made adaptive), never below
+   ``min_correspondence_m``.
+4. **Weight** the point-to-line residuals ``r_i = n_iᵀ(R p_i + t − q_i)`` (Chen &
+   Medioni 1992; Censi, "An ICP variant using a point-to-line metric", ICRA 2008) with
+   the Cauchy kernel ``w = 1 / (1 + (r/c)²)``, ``c`` from the residuals' median
+   absolute deviation.
+5. **Solve** the linearized least squares ``(JᵀWJ) δ = −JᵀWr`` (3×3) in the eigenbasis
+   of ``JᵀWJ``: directions whose eigenvalue is below ``degeneracy_ratio`` times the
+   largest are not observable (a straight corridor does not say where along it the
+   robot is), so the pose keeps its prior (odometry) value along them instead of
+   sliding (Zhang, Kaess & Singh, "On degeneracy of optimization-based state estimation
+   problems", ICRA 2016: solution remapping).
+6. **Stop** when the step is below ``stop_translation_m`` / ``stop_rotation_rad``; the
+   result counts as converged when the last step met the seed's criteria.
+
+The rotation column of the Jacobian is scaled by the points' RMS lever arm ``L`` so the
+Hessian has one unit (m⁻²) and its eigenvalues can be compared.
+
+Target normals come from a PCA of each target point's ``normal_neighbours`` nearest
+neighbours (Hoppe et al., SIGGRAPH 1992); points whose neighbourhood is not a line
+(corners, isolated returns) are dropped from the target.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class IcpParams:
+    """ICP settings; distances in metres, angles in radians."""
+
+    max_iterations: int = 150  # seed: at most 150 iterations
+    converged_translation_m: float = 0.01  # seed: a step below 1 cm ...
+    converged_rotation_rad: float = 0.01  # ... and 0.01 rad counts as converged
+    stop_translation_m: float = 5e-4  # keep refining until the step is this small
+    stop_rotation_rad: float = 5e-4
+    max_correspondence_m: float = 0.3  # initial distance gate (about the initial pose error)
+    min_correspondence_m: float = 0.05  # the gate never shrinks below this
+    candidates: int = 16  # nearest neighbours searched when the nearest faces away from the lidar
+    robust_scale_min_m: float = 0.01  # floor of the Cauchy kernel's scale
+    degeneracy_ratio: float = 0.02  # eigenvalue / largest eigenvalue below this: unobservable
+    sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix
+    min_correspondences: int = 10  # fewer matches than this: give up, keep the prior
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
+        if not 0.0 < self.min_correspondence_m <= self.max_correspondence_m:
+            raise ValueError(
+                f"need 0 < min_correspondence_m <= max_correspondence_m, got "
+                f"{self.min_correspondence_m}, {self.max_correspondence_m}"
+            )
+        if not 0.0 <= self.degeneracy_ratio < 1.0:
+            raise ValueError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio}")
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    """Outcome of :func:`match_scan`.
+
+    ``pose`` (3,) is the source frame's pose in the target frame. ``fitness`` is the
+    share of source points with an accepted correspondence, ``rmse_m`` their unweighted
+    point-to-line RMS. ``information`` (3×3, for the pose graph) is ``JᵀWJ / σ²`` with
+    ``σ²`` the weighted residual variance, with unobservable directions removed (there
+    the pose is the prior, so the scan adds no information). ``degenerate`` says some
+    direction was unobservable; ``weak_direction`` (3,) is the weakest one as a unit
+    pose step ``(dx, dy, dθ)``, or None.
+    """
+
+    pose: np.ndarray
+    converged: bool
+    iterations: int
+    fitness: float
+    rmse_m: float
+    information: np.ndarray
+    degenerate: bool
+    weak_direction: np.ndarray | None
+    correspondences: int
+
+
+class Target:
+    """A submap prepared for matching: kd-tree and surface normals, built once.
+
+    ``points_xy`` (M, 2) in the target (world) frame. ``viewpoints_xy`` (2,) or (M, 2)
+    are the lidar positions the points were seen from; with them the normals point
+    towards free space and ICP only matches surfaces that face the scanning lidar.
+    ``normals`` (M, 2) may be given instead of estimated (e.g. from a known world).
+    Estimated normals use the ``normal_neighbours`` nearest points within
+    ``normal_radius_m``; points whose neighbourhood spreads more than ``max_line_spread``
+    (eigenvalue ratio) across the line are dropped (see :func:`estimate_normals`).
+
+    Example::
+
+        target = Target(submap_points, viewpoints)
+        result = match_scan(target, scan.points_match, initial_pose=odometry_guess)
+    """
+
+    def __init__(
+        self,
+        points_xy: np.ndarray,
+        viewpoints_xy: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
+        normal_neighbours: int = 10,
+        normal_radius_m: float = 0.1,
+        max_line_spread: float = 0.2,
+    ) -> None:
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        view = (
+            None if viewpoints_xy is None else np.broadcast_to(np.asarray(viewpoints_xy, dtype=np.float64), pts.shape)
+        )
+        if normals is None:
+            normals, good = estimate_normals(pts, normal_neighbours, normal_radius_m, max_line_spread, view)
+        else:
+            normals = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
+            if normals.shape != pts.shape:
+                raise ValueError(f"normals must have the shape of points {pts.shape}, got {normals.shape}")
+            good = np.ones(pts.shape[0], dtype=bool)
+        self.oriented = viewpoints_xy is not None
+        if view is not None:
+            flip = np.einsum("ij,ij->i", normals, view - pts) < 0
+            normals = np.where(flip[:, None], -normals, normals)
+        self.points = pts[good]
+        self.normals = normals[good]
+        # one extra row: cKDTree reports a missing neighbour as index M
+        self._normals_pad = np.vstack((self.normals, np.zeros((1, 2))))
+        self.tree = cKDTree(self.points)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @classmethod
+    def from_scans(
+        cls,
+        scans: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
+        voxel_size_m: float = 0.02,
+        normal_neighbours: int = 10,
+        normal_radius_m: float = 0.1,
+        max_line_spread: float = 0.2,
+    ) -> Target:
+        """A target from several scans ``(pose (3,), points_robot (N, 2), sensor_robot (2,))``.
+
+        The points are moved into the world frame, viewpoints kept, and the union thinned
+        to one point per ``voxel_size_m`` square (the first, so no point is invented).
+        ``sensor_robot`` is the lidar centre in the robot frame (``PreparedScan.sensor_xy``).
+        """
+        all_pts, all_view = [], []
+        for pose, pts, sensor in scans:
+            pose = np.asarray(pose, dtype=np.float64)
+            world = _transform(pose, np.asarray(pts, dtype=np.float64))
+            view = _transform(pose, np.asarray(sensor, dtype=np.float64).reshape(1, 2))
+            all_pts.append(world)
+            all_view.append(np.broadcast_to(view, world.shape))
+        if not all_pts:
+            raise ValueError("a target needs at least one scan")
+        pts = np.concatenate(all_pts)
+        view = np.concatenate(all_view)
+        cells = np.floor(pts / voxel_size_m).astype(np.int64)
+        _, first = np.unique((cells[:, 0] << 32) ^ (cells[:, 1] & 0xFFFFFFFF), return_index=True)
+        first.sort()
+        return cls(pts[first], view[first], None, normal_neighbours, normal_radius_m, max_line_spread)
+
+
+def estimate_normals(
+    points_xy: np.ndarray,
+    neighbours: int,
+    radius_m: float,
+    max_line_spread: float,
+    viewpoints_xy: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (M, 2) by PCA of each point's neighbourhood, and a mask of usable ones.
+
+    The 2×2 covariance of the neighbours within ``radius_m`` has the closed-form
+    principal angle ``φ = ½ atan2(2 c_xy, c_xx − c_yy)``; the normal is perpendicular.
+    A normal is usable with at least 3 neighbours and ``λ_min / λ_max <= max_line_spread``.
+    With ``viewpoints_xy`` (M, 2) only neighbours seen from the same side count, so the
+    two faces of a 12 mm wall, seen from opposite sides, do not blur into one thick line.
+    """
+    m = points_xy.shape[0]
+    if m == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    k = min(neighbours, m)
+    dist, idx = cKDTree(points_xy).query(points_xy, k=k, distance_upper_bound=radius_m)
+    dist, idx = dist.reshape(m, k), idx.reshape(m, k)
+    ok = np.isfinite(dist)
+    if viewpoints_xy is not None:
+        look = viewpoints_xy - points_xy
+        look_pad = np.vstack((look, np.zeros((1, 2))))
+        ok &= np.einsum("md,mkd->mk", look, look_pad[idx]) > 0
+    count = ok.sum(axis=1)
+    pad = np.vstack((points_xy, np.zeros((1, 2))))
+    nb = pad[idx]  # (M, k, 2), missing neighbours at (0, 0) and masked below
+    w = ok.astype(np.float64)
+    mean = np.einsum("mk,mkd->md", w, nb) / np.maximum(count, 1)[:, None]
+    d = (nb - mean[:, None, :]) * w[:, :, None]
+    cxx = np.einsum("mk,mk->m", d[..., 0], d[..., 0])
+    cyy = np.einsum("mk,mk->m", d[..., 1], d[..., 1])
+    cxy = np.einsum("mk,mk->m", d[..., 0], d[..., 1])
+    phi = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+    normals = np.column_stack((-np.sin(phi), np.cos(phi)))
+    half_tr = 0.5 * (cxx + cyy)
+    root = np.sqrt((0.5 * (cxx - cyy)) ** 2 + cxy**2)
+    lam_max, lam_min = half_tr + root, half_tr - root
+    good = (count >= 3) & (lam_min <= max_line_spread * np.maximum(lam_max, 1e-18))
+    return normals, good
+
+
+def match_scan(
+    target: Target,
+    source_xy: np.ndarray,
+    initial_pose: np.ndarray,
+    params: IcpParams | None = None,
+    sensor_xy: np.ndarray | None = None,
+    prior_pose: np.ndarray | None = None,
+) -> IcpResult:
+    """Align ``source_xy`` (N, 2, robot frame) to ``target``, starting at ``initial_pose``.
+
+    ``sensor_xy`` (2,) is the lidar centre in the robot frame (for the facing test);
+    ``prior_pose`` (default ``initial_pose``) is what unobservable directions keep.
+    """
+    p = params or IcpParams()
+    src = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
+    pose = np.array(initial_pose, dtype=np.float64).reshape(3)
+    prior = pose.copy() if prior_pose is None else np.array(prior_pose, dtype=np.float64).reshape(3)
+    sensor = np.zeros(2) if sensor_xy is None else np.asarray(sensor_xy, dtype=np.float64).reshape(2)
+    gate_m = p.max_correspondence_m
+    k = max(1, p.candidates if target.oriented else 1)
+    converged = False
+    last: tuple = ()
+    iterations = 0
+    if len(target) == 0 or src.shape[0] == 0:
+        return _give_up(prior, 0)
+
+    for iterations in range(1, p.max_iterations + 1):
+        # 1. transform the source by the current estimate
+        c, sn = math.cos(pose[2]), math.sin(pose[2])
+        rot = np.array([[c, -sn], [sn, c]])
+        rp = src @ rot.T  # R p: the lever arms about the robot's position
+        moved = rp + pose[:2]
+
+        # 2. associate with the nearest target point whose surface faces the lidar
+        rows, j, d = _associate(target, moved, rot @ sensor + pose[:2], gate_m, k)
+        m = rows.size
+        if m < p.min_correspondences:
+            return _give_up(prior, iterations, m / src.shape[0])
+
+        # 3. outlier gate for the next iteration: mean + 3 std of the accepted distances
+        mean_d = float(d.sum()) / m
+        std_d = math.sqrt(max(0.0, float(d @ d) / m - mean_d * mean_d))
+        gate_m = min(gate_m, max(p.min_correspondence_m, mean_d + 3.0 * std_d))
+
+        # 4. point-to-line residuals r = nᵀ(R p + t − q) to the matched target points q, Cauchy weights
+        n = target.normals[j]
+        r = np.einsum("ij,ij->i", n, moved[rows] - target.points[j])
+        abs_r = np.abs(r)
+        scale = max(p.robust_scale_min_m, 1.4826 * float(np.partition(abs_r, m // 2)[m // 2]))  # MAD
+        w = 1.0 / (1.0 + (r / scale) ** 2)
+
+        # 5. linearized least squares; the rotation column scaled by the lever arm to metres
+        arm = rp[rows]
+        lever_m = max(0.1, math.sqrt(float(np.einsum("ij,ij->", arm, arm)) / m))
+        unit = np.array([1.0, 1.0, lever_m])
+        jac = np.empty((m, 3))
+        jac[:, :2] = n
+        jac[:, 2] = (arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]) / lever_m
+        jw = jac * w[:, None]
+        hess = jw.T @ jac
+        step_s, strong, eigval, eigvec = _solve_observable(hess, jw.T @ r, p.degeneracy_ratio)
+        # unobservable directions go back to the prior instead of sliding along them
+        offset = pose - prior
+        offset[2] = math.remainder(offset[2], math.tau)
+        weak = eigvec[:, ~strong]
+        step_s -= weak @ (weak.T @ (offset * unit))
+        step = step_s / unit
+        pose += step
+        last = (m, r, w, strong, eigval, eigvec, lever_m)
+
+        # 6. convergence: the seed's criteria, then finer steps until they stop mattering
+        step_t, step_r = math.hypot(step[0], step[1]), abs(float(step[2]))
+        converged = step_t < p.converged_translation_m and step_r < p.converged_rotation_rad
+        if step_t < p.stop_translation_m and step_r < p.stop_rotation_rad:
+            break
+
+    count, r, w, strong, eigval, eigvec, lever_m = last
+    pose[2] = math.remainder(pose[2], math.tau)
+    sigma2 = max(p.sigma_min_m**2, float(np.sum(w * r**2) / np.sum(w)))
+    # information of the observable directions only, back in (x, y, θ) units
+    kept = eigvec[:, strong]
+    hess_obs = (kept * eigval[strong]) @ kept.T
+    unscale = np.array([1.0, 1.0, lever_m])
+    information = hess_obs * np.outer(unscale, unscale) / sigma2
+    weak_direction = None
+    if not strong.all():
+        v = eigvec[:, int(np.argmin(eigval))] / unscale
+        weak_direction = v / np.linalg.norm(v)
+    return IcpResult(
+        pose=pose,
+        converged=converged,
+        iterations=iterations,
+        fitness=count / src.shape[0],
+        rmse_m=float(np.sqrt(np.mean(r**2))),
+        information=information,
+        degenerate=not bool(strong.all()),
+        weak_direction=weak_direction,
+        correspondences=int(count),
+    )
+
+
+def _associate(
+    target: Target, moved: np.ndarray, lidar_xy: np.ndarray, gate_m: float, candidates: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Correspondences of the transformed source points ``moved`` (N, 2): (rows, target index, distance).
+
+    The nearest target point within ``gate_m``; on an oriented target, where that point's
+    surface faces away from the lidar (the far face of a thin wall), the nearest of
+    ``candidates`` neighbours that faces it, or none.
+    """
+    dist, j = target.tree.query(moved, k=1)  # gating afterwards is faster than distance_upper_bound
+    ok = dist <= gate_m
+    if target.oriented:
+        toward = lidar_xy - moved
+        away = ok & (np.einsum("ij,ij->i", target._normals_pad[j], toward) <= 0)
+        if candidates > 1 and away.any():
+            again = np.flatnonzero(away)
+            d2, j2 = target.tree.query(moved[again], k=min(candidates, len(target)), distance_upper_bound=gate_m)
+            d2, j2 = d2.reshape(again.size, -1), j2.reshape(again.size, -1)
+            facing = (d2 <= gate_m) & (np.einsum("nkd,nd->nk", target._normals_pad[j2], toward[again]) > 0)
+            pick = np.argmax(facing, axis=1)
+            pos = np.arange(again.size)
+            found = facing[pos, pick]
+            dist[again] = d2[pos, pick]
+            j[again] = j2[pos, pick]
+            away[again[found]] = False
+        ok &= ~away
+    rows = np.flatnonzero(ok)
+    return rows, j[rows], dist[rows]
+
+
+def _solve_observable(
+    hess: np.ndarray, grad: np.ndarray, ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton step ``−H⁻¹g`` restricted to the well-constrained eigen-directions of ``H``.
+
+    Returns the step, the mask of strong directions, eigenvalues and eigenvectors.
+    """
+    eigval, eigvec = np.linalg.eigh(hess)
+    strong = eigval > ratio * max(float(eigval[-1]), 1e-12)
+    proj = eigvec.T @ grad
+    coef = np.where(strong, -proj / np.where(strong, eigval, 1.0), 0.0)
+    return eigvec @ coef, strong, eigval, eigvec
+
+
+def _give_up(prior: np.ndarray, iterations: int, fitness: float = 0.0) -> IcpResult:
+    """Too little overlap to say anything: the prior, no information."""
+    return IcpResult(
+        pose=prior.copy(),
+        converged=False,
+        iterations=iterations,
+        fitness=float(fitness),
+        rmse_m=float("nan"),
+        information=np.zeros((3, 3)),
+        degenerate=True,
+        weak_direction=None,
+        correspondences=0,
+    )
+
+
+def _transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) from a frame at ``pose`` into its parent frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.column_stack(
+        (c * points_xy[:, 0] - s * points_xy[:, 1] + pose[0], s * points_xy[:, 0] + c * points_xy[:, 1] + pose[1])
+    )

@@ -1,0 +1,122 @@
+"""CARMEN logs: the real Intel lab log, hand-written lines of each message type, bad lines."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mazebot.errors import EXIT_USAGE
+from mazebot.slam.carmen import CarmenLogError, parse_carmen, read_carmen
+from mazebot.slam.preprocess import PrepareParams, prepare_scan
+
+
+def _flaser(n: int = 4, ranges: str = "1 2 3 81.83") -> str:
+    return f"FLASER {n} {ranges} 0.5 -0.25 0.1 0.6 -0.2 0.12 12.5 pippo 12.6"
+
+
+def test_reads_the_intel_log(intel_log_path: Path) -> None:
+    log = read_carmen(intel_log_path)
+    assert len(log.lasers) == 910
+    assert len(log.odometry) == 14541
+    first = log.lasers[0]
+    assert first.range_m.shape == (180,) and first.angle_rad.shape == (180,)
+    # 180 beams, 1 degree apart, from the right (-90) counter-clockwise
+    assert math.degrees(first.angle_rad[0]) == pytest.approx(-90.0)
+    assert math.degrees(first.angle_rad[-1]) == pytest.approx(89.0)
+    np.testing.assert_allclose(first.pose, [0.600266, -0.0320327, -0.354665])
+    assert first.timestamp_s == pytest.approx(32.9068)
+    assert first.range_m[0] == pytest.approx(1.09)
+    assert first.line_number == 171
+    times = np.array([rec.timestamp_s for rec in log.lasers])
+    assert np.count_nonzero(np.diff(times) < 0) <= 4  # file order is time order, bar a few late messages
+    # ODOM lines: zero while the robot stands, raw odometry afterwards
+    assert not log.odometry[0].pose.any()
+    moving = next(o for o in log.odometry if o.pose.any())
+    np.testing.assert_allclose(moving.pose, [2.458e-06, -0.000999997, 0.0])
+    assert moving.timestamp_s == pytest.approx(27.7902)
+
+
+def test_intel_scans_are_consistent_with_their_corrected_poses(intel_log_path: Path) -> None:
+    """Two scans a second apart, placed with their GMapping poses, see the same walls."""
+    from scipy.spatial import cKDTree
+
+    lasers = read_carmen(intel_log_path).lasers
+    a, b = lasers[100], lasers[101]
+
+    def world(rec):  # laser frame -> world with the record's pose
+        p = rec.points_xy(20.0)
+        c, s = math.cos(rec.pose[2]), math.sin(rec.pose[2])
+        return p @ np.array([[c, s], [-s, c]]) + rec.pose[:2]
+
+    d, _ = cKDTree(world(a)).query(world(b))
+    assert np.median(d) < 0.05
+
+
+def test_parses_flaser_robotlaser1_and_odom_lines() -> None:
+    text = "\n".join(
+        [
+            "# CARMEN Logfile",
+            "PARAM robot_length 0.5 nohost 0",
+            _flaser(),
+            "ROBOTLASER1 0 -1.5 3.0 1.0 8.0 0.01 0 4 1.0 2.0 3.0 4.0 2 7 8 "
+            "1.0 2.0 0.5 0.9 2.0 0.5 0.1 0.0 0.2 0.1 0.0 20.0 host 20.1",
+            "ODOM 1.5 2.5 0.25 0.3 0.1 0.0 30.0 host 30.1",
+            "NEFF 15",
+            "",
+        ]
+    )
+    log = parse_carmen(text.splitlines())
+    flaser, robot = log.lasers
+    np.testing.assert_allclose(np.degrees(flaser.angle_rad), [-90.0, -45.0, 0.0, 45.0])
+    np.testing.assert_allclose(flaser.range_m, [1, 2, 3, 81.83])
+    np.testing.assert_allclose(flaser.pose, [0.5, -0.25, 0.1])
+    np.testing.assert_allclose(flaser.odom_pose, [0.6, -0.2, 0.12])
+    assert flaser.timestamp_s == 12.5 and flaser.line_number == 3
+    np.testing.assert_allclose(flaser.points_xy(), [[0, -1], [2 / math.sqrt(2), -2 / math.sqrt(2)], [3, 0]], atol=1e-12)
+    assert robot.kind == "ROBOTLASER1"
+    np.testing.assert_allclose(robot.angle_rad, [-1.5, -0.5, 0.5, 1.5])
+    np.testing.assert_allclose(robot.pose, [1.0, 2.0, 0.5])
+    np.testing.assert_allclose(robot.odom_pose, [0.9, 2.0, 0.5])
+    assert robot.max_range_m == 8.0 and robot.timestamp_s == 20.0
+    (odom,) = log.odometry
+    np.testing.assert_allclose(odom.pose, [1.5, 2.5, 0.25])
+    assert (odom.tv_mps, odom.rv_radps, odom.timestamp_s) == (0.3, 0.1, 30.0)
+
+
+def test_a_record_becomes_a_scan_for_prepare_scan() -> None:
+    (rec,) = parse_carmen([_flaser()]).lasers
+    scan = rec.to_scan()
+    assert len(scan) == 4 and scan.valid.all()
+    prepared = prepare_scan(scan, None, PrepareParams(max_range_m=30.0, median_window=1, circular=False))
+    assert prepared.points_full.shape == (3, 2)
+    assert prepared.free_endpoints.shape == (1, 2)  # the 81.83 m "no return"
+    assert prepared.time_s == 12.5
+
+
+@pytest.mark.parametrize(
+    ("line", "fragment"),
+    [
+        (_flaser(5), "line 2: bad FLASER message"),
+        (_flaser(4, "1 2 x 4"), "line 2: bad FLASER message"),
+        (_flaser(4, "1 2 nan 4"), "finite"),
+        ("FLASER -3 1 2", "line 2: bad FLASER"),
+        ("ODOM 1 2 3", "line 2: bad ODOM message (ODOM needs 10 fields, found 4)"),
+        ("ROBOTLASER1 0 -1.5 3.0 1.0 8.0 0.01 0 4 1 2 3", "line 2: bad ROBOTLASER1"),
+    ],
+)
+def test_bad_lines_are_one_clear_error_with_the_line_number(line: str, fragment: str) -> None:
+    with pytest.raises(CarmenLogError) as info:
+        parse_carmen([_flaser(), line], source="run.log")
+    message = str(info.value)
+    assert message.startswith("run.log line 2: ")
+    assert fragment in message
+    assert "\n" not in message
+    assert info.value.exit_code == EXIT_USAGE
+
+
+def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(CarmenLogError, match="not found"):
+        read_carmen(tmp_path / "nope.log")

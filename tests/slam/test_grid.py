@@ -1,0 +1,227 @@
+"""The occupancy grid against ground-truth rasters: walls, free space, growth, deltas, rebuilds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from mazebot.sim.raster import true_occupancy
+from mazebot.sim.world import World
+from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
+
+RES_M = 0.02
+
+
+def _beams(angles: np.ndarray, ranges: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World endpoints and hit mask of a static scan; no-return beams end at 12 m."""
+    hit = np.isfinite(ranges)
+    r = np.where(hit, ranges, 12.0)
+    a = angles + pose[2]
+    return np.column_stack((pose[0] + r * np.cos(a), pose[1] + r * np.sin(a))), hit
+
+
+def _hits(angles: np.ndarray, ranges: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Only the beams with a return."""
+    ends, hit = _beams(angles, ranges, pose)
+    return ends[hit], hit[hit]
+
+
+def _tour(world: World) -> list[np.ndarray]:
+    """A pose in every cell of the maze, near its centre, varied headings."""
+    assert world.maze is not None
+    rng = np.random.default_rng(4)
+    poses = []
+    for row in range(world.maze.height):
+        for col in range(world.maze.width):
+            x, y = world.maze.cell_center_m((col, row))
+            poses.append(np.array([x + rng.uniform(-0.03, 0.03), y + rng.uniform(-0.03, 0.03), rng.uniform(-3, 3)]))
+    return poses
+
+
+@pytest.fixture(scope="module")
+def mapped_maze(maze_world: World) -> OccupancyGrid:
+    from mazebot.sim.raycast import cast_rays
+
+    grid = OccupancyGrid(resolution_m=RES_M)
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    for pose in _tour(maze_world):
+        ranges = cast_rays(pose[:2], angles + pose[2], maze_world.segments, maze_world.circles, 12.0)
+        ends, hit = _beams(angles, ranges, pose)
+        grid.integrate(pose, ends, hit)
+    return grid
+
+
+def test_perfect_scans_give_the_true_walls(mapped_maze: OccupancyGrid, maze_world: World) -> None:
+    grid = mapped_maze
+    truth, _ = true_occupancy(maze_world, RES_M, origin_m=grid.origin_m, shape=grid.shape)
+    occupied = grid.occupied_mask()
+    # F1 of occupied cells, a cell counting as right when the other side has one within a cell
+    near_truth = ndimage.binary_dilation(truth, structure=np.ones((3, 3), bool))
+    near_map = ndimage.binary_dilation(occupied, structure=np.ones((3, 3), bool))
+    precision = np.count_nonzero(occupied & near_truth) / np.count_nonzero(occupied)
+    recall = np.count_nonzero(truth & near_map) / np.count_nonzero(truth)
+    f1 = 2 * precision * recall / (precision + recall)
+    assert f1 >= 0.9, (precision, recall)
+
+
+def test_free_cells_are_never_on_walls(mapped_maze: OccupancyGrid, maze_world: World) -> None:
+    grid = mapped_maze
+    truth, _ = true_occupancy(maze_world, RES_M, origin_m=grid.origin_m, shape=grid.shape)
+    free = grid.known_free_mask()
+    assert np.count_nonzero(free) > 0.8 * np.count_nonzero(~truth & _inside(maze_world, grid))
+    assert not np.any(free & truth)
+
+
+def _inside(world: World, grid: OccupancyGrid) -> np.ndarray:
+    xmin, ymin, xmax, ymax = world.bounds_m
+    rows, cols = np.indices(grid.shape)
+    xy = grid.to_world(rows.ravel(), cols.ravel())
+    ok = (xy[:, 0] > xmin) & (xy[:, 0] < xmax) & (xy[:, 1] > ymin) & (xy[:, 1] < ymax)
+    return ok.reshape(grid.shape)
+
+
+def test_one_update_per_cell_per_scan_and_hits_win() -> None:
+    grid = OccupancyGrid(resolution_m=0.1, margin_m=0.5)
+    # beam 1 ends at (1.05, 0.05); beam 2 passes through that cell to (2.05, 0.05)
+    grid.integrate(np.array([0.05, 0.05, 0.0]), np.array([[1.05, 0.05], [2.05, 0.05]]), np.array([True, True]))
+    rows, cols = grid.to_cell(np.array([[1.05, 0.05], [0.55, 0.05], [2.05, 0.05], [0.05, 0.05]]))
+    values = grid.log_odds[rows, cols]
+    np.testing.assert_allclose(values, [grid.l_hit, grid.l_miss, grid.l_hit, grid.l_miss], rtol=1e-6)
+
+
+def test_no_return_beams_clear_up_to_the_cap_and_mark_no_hit() -> None:
+    grid = OccupancyGrid(resolution_m=0.05, max_free_range_m=2.0, margin_m=0.2)
+    grid.integrate(np.zeros(3), np.array([[12.0, 0.01]]), np.array([False]))
+    assert not grid.occupied_mask().any()
+    xs = np.array([[0.5, 0.01], [1.9, 0.01], [2.3, 0.01]])
+    rows, cols = grid.to_cell(xs)
+    inside = (rows >= 0) & (rows < grid.shape[0]) & (cols >= 0) & (cols < grid.shape[1])
+    assert inside[:2].all()
+    np.testing.assert_allclose(grid.log_odds[rows[:2], cols[:2]], grid.l_miss)
+    assert not inside[2] or grid.log_odds[rows[2], cols[2]] == 0.0
+
+
+def test_three_state_thresholds_and_clamping() -> None:
+    grid = OccupancyGrid(resolution_m=0.1, occupied_prob=0.65, free_prob=0.25, margin_m=0.3)
+    sensor = np.array([0.05, 0.05, 0.0])
+    wall = np.array([[0.55, 0.05]])
+    grid.integrate(sensor, wall, np.array([True]))  # one hit: 0.85 > logit(0.65) = 0.62
+    r, c = grid.to_cell(np.array([[0.55, 0.05], [0.25, 0.05]]))
+    assert grid.three_state()[r[0], c[0]] == OCCUPIED
+    assert grid.three_state()[r[1], c[1]] == UNKNOWN  # one miss: -0.4 > logit(0.25) = -1.10
+    for _ in range(2):
+        grid.integrate(sensor, wall, np.array([True]))
+    assert grid.three_state()[r[1], c[1]] == FREE  # three misses: -1.2
+    for _ in range(20):
+        grid.integrate(sensor, wall, np.array([True]))
+    assert grid.log_odds[r[0], c[0]] == pytest.approx(grid.l_max)
+    assert grid.log_odds[r[1], c[1]] == pytest.approx(grid.l_min)
+    assert grid.three_state().dtype == np.int8
+    assert grid.probability()[r[0], c[0]] > 0.99
+
+
+def test_growth_keeps_content_at_the_same_world_coordinates(maze_world: World, cast_scan) -> None:
+    grid = OccupancyGrid(resolution_m=RES_M, margin_m=0.1)
+    first = np.array([0.15, 0.15, 0.3])
+    # hits within 0.6 m only: the two scans below touch disjoint areas
+    angles, ranges = cast_scan(maze_world, first, max_range_m=0.6)
+    grid.integrate(first, *_hits(angles, ranges, first))
+    generation, shape, origin = grid.generation, grid.shape, grid.origin_m
+    rows, cols = np.indices(shape)
+    xy = grid.to_world(rows.ravel(), cols.ravel())
+    before = grid.log_odds.ravel().copy()
+
+    far = np.array([1.68, 1.68, -2.0])  # the opposite corner of the maze
+    angles, ranges = cast_scan(maze_world, far, max_range_m=0.6)
+    grid.integrate(far, *_hits(angles, ranges, far))
+    assert grid.generation == generation + 1
+    assert grid.shape[0] > shape[0] and grid.shape[1] > shape[1]
+    assert origin[0] / RES_M == pytest.approx(round(origin[0] / RES_M))  # cell boundaries never move
+    r, c = grid.to_cell(xy)
+    np.testing.assert_array_equal(grid.log_odds[r, c], before)
+    # integrating inside the current extent does not reallocate
+    grid.integrate(far, *_hits(angles, ranges, far))
+    assert grid.generation == generation + 1
+
+
+def test_dirty_set_is_exactly_the_changed_cells(maze_world: World, cast_scan) -> None:
+    grid = OccupancyGrid(resolution_m=RES_M, margin_m=0.05)
+    rng = np.random.default_rng(2)
+    shown = None  # what a client holds, updated only through deltas and full maps
+    generation = -1
+    for step in range(12):
+        pose = np.array([rng.uniform(0.1, 1.7), rng.uniform(0.1, 1.7), rng.uniform(-3, 3)])
+        angles, ranges = cast_scan(maze_world, pose, max_range_m=1.0)
+        before = None if shown is None else grid.three_state().copy()
+        grid.integrate(pose, *_beams(angles, ranges, pose))
+        delta = grid.take_dirty()
+        now = grid.three_state()
+        if delta.generation != generation:  # reallocated: the client reloads the full map
+            shown, generation = now.copy(), delta.generation
+            continue
+        assert before is not None
+        changed = np.argwhere(now != before)
+        assert sorted(map(tuple, changed)) == sorted(zip(delta.rows.tolist(), delta.cols.tolist(), strict=True))
+        np.testing.assert_array_equal(delta.values, now[delta.rows, delta.cols])
+        shown[delta.rows, delta.cols] = delta.values
+        np.testing.assert_array_equal(shown, now)
+        assert len(grid.take_dirty()) == 0, f"step {step}: a second call has nothing new"
+
+
+def test_dirty_cells_follow_a_reallocation() -> None:
+    grid = OccupancyGrid(resolution_m=0.1, margin_m=0.0)
+    grid.integrate(np.array([0.05, 0.05]), np.array([[0.55, 0.05]]), np.array([True]))
+    grid.integrate(np.array([0.05, 0.05]), np.array([[-0.45, 0.05]]), np.array([True]))  # grows west
+    delta = grid.take_dirty()
+    xy = grid.to_world(delta.rows, delta.cols)
+    occupied = xy[delta.values == OCCUPIED]
+    np.testing.assert_allclose(sorted(occupied[:, 0]), [-0.45, 0.55], atol=1e-9)
+
+
+def test_rebuild_equals_integrating_from_scratch(maze_world: World, cast_scan) -> None:
+    keyframes = []
+    sequential = OccupancyGrid(resolution_m=RES_M)
+    for pose in _tour(maze_world)[:8]:
+        angles, ranges = cast_scan(maze_world, pose)
+        ends_world, hit = _beams(angles, ranges, pose)
+        sequential.integrate(pose, ends_world, hit)
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        local = (ends_world - pose[:2]) @ np.array([[c, -s], [s, c]])
+        keyframes.append((pose, local, hit))
+    rebuilt = OccupancyGrid(resolution_m=RES_M)
+    rebuilt.integrate(np.zeros(3), np.array([[5.0, 5.0]]), np.array([True]))  # stale content
+    rebuilt.take_dirty()
+    generation = rebuilt.generation
+    rebuilt.rebuild(keyframes)
+    assert rebuilt.generation == generation + 1
+    assert len(rebuilt.take_dirty()) == 0  # clients reload the map; no stale deltas
+    # same content at the same world coordinates
+    rows, cols = np.nonzero(sequential.log_odds)
+    r, c = rebuilt.to_cell(sequential.to_world(rows, cols))
+    np.testing.assert_allclose(rebuilt.log_odds[r, c], sequential.log_odds[rows, cols], rtol=1e-6)
+    assert np.count_nonzero(rebuilt.log_odds) == rows.size
+
+
+def test_cells_and_world_coordinates_round_trip() -> None:
+    grid = OccupancyGrid(resolution_m=0.05, margin_m=0.0)
+    grid.integrate(np.array([-1.02, -0.51]), np.array([[2.03, 1.01]]), np.array([True]))
+    rows, cols = np.indices(grid.shape)
+    xy = grid.to_world(rows.ravel(), cols.ravel())
+    r, c = grid.to_cell(xy)
+    np.testing.assert_array_equal(r, rows.ravel())
+    np.testing.assert_array_equal(c, cols.ravel())
+    # row 0 is south, column 0 west
+    assert grid.to_world(np.array([0]), np.array([0]))[0, 1] < grid.to_world(np.array([1]), np.array([0]))[0, 1]
+    ox, oy = grid.origin_m
+    assert ox <= -1.02 and oy <= -0.51
+
+
+def test_bad_arguments_are_refused() -> None:
+    with pytest.raises(ValueError, match="resolution"):
+        OccupancyGrid(resolution_m=0.0)
+    with pytest.raises(ValueError, match="free_prob"):
+        OccupancyGrid(occupied_prob=0.4)
+    grid = OccupancyGrid()
+    with pytest.raises(ValueError, match="hit_mask"):
+        grid.integrate(np.zeros(3), np.zeros((3, 2)), np.ones(2, bool))

@@ -24,6 +24,7 @@ log = logging.getLogger("mazebot")
 _COMMAND_MODULES = (
     "mazebot.main",
     "mazebot.io.lidar_cli",
+    "mazebot.io.motors_cli",
     "mazebot.sim.cli",
     "mazebot.slam.posegraph_cli",
     "mazebot.bench.cli",

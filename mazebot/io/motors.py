@@ -31,6 +31,7 @@ import asyncio
 import errno
 import logging
 import math
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, Self
@@ -42,6 +43,8 @@ from mazebot.errors import EXIT_UNAVAILABLE, HardwareUnavailable, MazebotError
 logger = logging.getLogger(__name__)
 
 CHANNELS: Final = (1, 2, 3, 4)
+#: Throttle writes the fake remembers (the newest ones).
+COMMAND_LOG_LENGTH: Final = 10_000
 
 #: Slack when comparing clock times, so a check exactly one TTL later (virtual time,
 #: float sums of periods) counts as expired rather than one tick late.
@@ -163,7 +166,8 @@ class FakeMotorKit:
 
     def __init__(self, clock: Clock | None = None) -> None:
         self._clock = clock
-        self.command_log: list[ThrottleWrite] = []
+        # bounded: the simulator runs this fake for hours at 40 writes a second
+        self.command_log: deque[ThrottleWrite] = deque(maxlen=COMMAND_LOG_LENGTH)
         self.failed_writes = 0
         self._failing: frozenset[int] = frozenset()
         self._failures_left: int | None = None

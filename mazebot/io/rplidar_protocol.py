@@ -377,6 +377,9 @@ def _wrap_deg(x: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(x) + 180.0) % 360.0 - 180.0
 
 
+_Rhythm = tuple[float, float, float, float]  # rhythm, loose, gap, exact tolerance (deg)
+
+
 class StandardScanDecoder:
     """Streaming decoder of a standard (SCAN) response stream into samples.
 
@@ -386,20 +389,19 @@ class StandardScanDecoder:
 
     Well-formedness alone is weak (about one offset in six of random bytes passes), so
     the decoder also uses what a spinning head guarantees: consecutive samples step by
-    a nearly constant angle (the "rhythm", the median of the last steps). Once there is
-    a rhythm:
+    a nearly constant angle (the "rhythm": the median of the recent steps). Once there
+    is a rhythm, a sample is believed when its step fits the rhythm and the next sample
+    confirms it (its step fits too, and the two steps make two rhythm steps). After
+    dropped bytes, decoding resumes on a sample that continues the rhythm (inserted
+    bytes lose no sample) or on a fresh run of four samples keeping the rhythm (lost
+    bytes, a restarted scan). A lone sample between two stretches of noise is believed
+    when it matches the rhythm to one angle unit and nothing nearby matches better.
 
-    * at sample boundaries, a sample must step within max(1.5°, half the rhythm) and
-      either match the rhythm closely (to 1/64°) or be followed by a sample that fits;
-    * after dropped bytes, decoding resumes on a sample that continues the rhythm
-      (inserted bytes lose no sample), or on a fresh regular run of four samples
-      (lost bytes, a restarted scan).
-
-    A stream without rhythm (synthetic test data) is decoded by form alone, and after a
-    resync a run is believed only when it is eight samples long or ends the data.
-    Decisions look at most ~45 bytes ahead; call ``flush()`` at the end of a finite
-    stream to decide on the last bytes. Results do not depend on how the stream was cut
-    into ``feed`` calls.
+    A stream without rhythm (synthetic test data, or a head whose angles jitter by more
+    than a twentieth of a step) is decoded by form alone; after a resync a run is then
+    believed only when it is eight samples long or ends the data.
+    Decisions look at most ~110 bytes ahead, so call ``flush()`` at the end of a finite
+    stream. Results do not depend on how the stream is cut into ``feed`` calls.
 
     An embedded scan descriptor (``A5 5A 05 00 00 40 81``, e.g. at the start of a
     captured file or after a restarted scan) is skipped without counting as dropped.
@@ -411,39 +413,53 @@ class StandardScanDecoder:
         dec.bytes_dropped, dec.samples_decoded
     """
 
-    #: A resync may restart on a regular run of this many samples.
+    #: A resync may restart on a run of this many samples keeping one rhythm.
     REGULAR_RUN = 4
-    #: An irregular run is believed only when it is this long (or ends the data).
+    #: Without a rhythm, a run is believed only when it is this long (or ends the data).
     LONG_RUN = 8
-    #: Steps remembered to estimate the rhythm (the median of these).
+    #: Steps remembered to estimate the rhythm, and how many it takes at least.
     HISTORY = 8
+    MIN_STEPS = 3
     #: Largest plausible step between consecutive samples, degrees.
     MAX_STEP_DEG = 90.0
-    #: A step may differ from the rhythm by max(this, half the rhythm), degrees.
+    #: Steps keep a rhythm when none deviates from their median by more than this
+    #: fraction of the step, or MIN_SPREAD_DEG (the angle's 1/64° quantisation).
+    #: A head that jitters more is decoded by form alone: never lose real samples.
+    MAX_SPREAD = 0.15
+    MIN_SPREAD_DEG = 2.0 / 64.0
+    #: A plausible step differs from the rhythm by at most max(this, half the rhythm).
     LOOSE_TOLERANCE_DEG = 1.5
-    #: Resuming after dropped bytes: max(this, a tenth of the rhythm), degrees.
+    #: Confirmation and resumption after dropped bytes: max(this, a tenth of the rhythm,
+    #: four times the spread of the recent steps), degrees.
     GAP_TOLERANCE_DEG = 0.3
-    #: "Matches the rhythm" without a confirming neighbour: one angle unit (1/64°).
+    #: A lone sample must match the rhythm to one angle unit (1/64°) or twice the spread.
     EXACT_TOLERANCE_DEG = 1.0 / 64.0 + 1e-9
+    #: How far a lone sample looks for a better continuation, bytes.
+    LOOKAHEAD_BYTES = 48
 
     _ACCEPT_CONTINUE, _ACCEPT_FRESH, _AFTER_DESCRIPTOR, _REJECT, _WAIT = range(5)
 
     def __init__(self) -> None:
         self._tail = b""
         self._synced = False  # the tail starts at a sample boundary (no resync needed)
+        self._approved = False  # the judge already accepted the sample at the boundary
+        self._adjacent_at = -1  # buffer offset just after the last accepted sample
+        self._clean = False  # the last run of samples ended only with the data
         self._last_angle: float | None = None
         self._steps: list[float] = []  # recent steps (deg) of accepted samples
-        # (rhythm, loose, gap, exact) or None; False: to be computed
-        self._rhythm_cache: tuple[float, float, float, float] | bool | None = False
+        self._rhythm_cache: _Rhythm | bool | None = False  # False: to be computed
+        self._descriptor = SCAN_DESCRIPTOR.encode()
+        self._descriptors_at: list[int] = []  # descriptor offsets in the buffer decoded
         self.bytes_dropped = 0
         self.samples_decoded = 0
         self.descriptors_skipped = 0
-        self._descriptor = SCAN_DESCRIPTOR.encode()
 
     def reset(self, *, synced: bool = False) -> None:
         """Forget the stream; ``synced``: the next byte starts a sample (after a descriptor)."""
         self._tail = b""
         self._synced = synced
+        self._approved = False
+        self._adjacent_at = -1
         self._forget_rhythm()
 
     def feed(self, data: bytes) -> DecodedSamples:
@@ -461,52 +477,48 @@ class StandardScanDecoder:
         self._steps = []
         self._rhythm_cache = False
 
-    @classmethod
-    def _regular(cls, angles: np.ndarray) -> bool:
-        """Do these consecutive sample angles step with one plausible rhythm?"""
-        steps = _wrap_deg(np.diff(angles))
-        m = float(np.median(steps))
-        if not 0.0 < m <= cls.MAX_STEP_DEG:
-            return False
-        return bool(np.all(np.abs(steps - m) <= max(cls.LOOSE_TOLERANCE_DEG, 0.5 * m)))
-
-    def _offset(self, fields: _Fields, q: int, m: float) -> float:
-        """How far the step from the last accepted sample to ``q`` is from the rhythm."""
-        assert self._last_angle is not None
-        return abs(float(_wrap_deg(fields.angle[q] - self._last_angle)) - m)
-
-    def _confirmed(
-        self, fields: _Fields, q: int, n: int, rhythm: tuple[float, float, float, float]
-    ) -> bool | None:
-        """Does the sample after ``q`` confirm it (None: not received yet)?"""
-        assert self._last_angle is not None
-        m, loose, gap, _ = rhythm
-        nxt = q + STANDARD_SAMPLE_LEN
-        if nxt + STANDARD_SAMPLE_LEN > n:
-            return None
-        step = float(_wrap_deg(fields.angle[nxt] - fields.angle[q]))
-        two = float(_wrap_deg(fields.angle[nxt] - self._last_angle))
-        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= gap
-
-    @classmethod
-    def _has_regular_window(cls, angles: np.ndarray) -> bool:
-        w = cls.REGULAR_RUN
-        return any(cls._regular(angles[j : j + w]) for j in range(angles.size - w + 1))
+    def _remember(self, angle: np.ndarray) -> None:
+        if self._last_angle is not None:
+            angle = np.concatenate([[self._last_angle], angle])
+        steps = _wrap_deg(np.diff(angle))[-self.HISTORY :]
+        self._steps = (self._steps + [float(s) for s in steps])[-self.HISTORY :]
+        self._last_angle = float(angle[-1])
+        self._rhythm_cache = False
 
     def _tolerances(self, m: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, ...]:
         """(loose, gap, exact) tolerances in degrees for a rhythm and its step spread.
 
-        Loose: a plausible step for a spinning head. Gap: continuing the rhythm across
-        dropped bytes. Exact: matching the rhythm so closely that no neighbour needs to
-        confirm it. The last two widen with the spread of the recent steps, so a head
-        that jitters more is judged by its own jitter.
+        Gap and exact widen with the spread of the recent steps, so a head that
+        jitters more is judged by its own jitter.
         """
         loose = np.maximum(self.LOOSE_TOLERANCE_DEG, 0.5 * np.abs(m))
         gap = np.minimum(loose, np.maximum(np.maximum(self.GAP_TOLERANCE_DEG, 0.1 * m), 4 * spread))
-        exact = np.minimum(gap, np.maximum(np.maximum(self.EXACT_TOLERANCE_DEG, 0.01 * m), 2 * spread))
+        exact = np.minimum(gap, np.maximum(self.EXACT_TOLERANCE_DEG, 2 * spread))
         return loose, gap, exact
 
-    def _rhythm(self) -> tuple[float, float, float, float] | None:
+    def _window_rhythm(self, win: np.ndarray) -> tuple[np.ndarray, ...] | None:
+        """Per row of recent steps (NaN = none): has a rhythm, rhythm, loose, gap, exact.
+
+        A row has a rhythm when it holds at least MIN_STEPS steps, their median is a
+        plausible step and every one of them is close to it. None when no row has
+        enough steps.
+        """
+        count = np.sum(~np.isnan(win), axis=1)
+        need = count >= self.MIN_STEPS
+        if not np.any(need):
+            return None
+        m = _row_median(win, count)
+        deviation = np.abs(win - m[:, None])
+        spread = _row_median(deviation, count)
+        loose, gap, exact = self._tolerances(m, spread)
+        with np.errstate(invalid="ignore"):
+            has = need & (m > 0) & (m <= self.MAX_STEP_DEG)
+            # every remembered step close to the median, not just most of them
+            worst = np.max(np.where(np.isnan(deviation), 0.0, deviation), axis=1)
+            has &= worst <= np.maximum(self.MAX_SPREAD * m, self.MIN_SPREAD_DEG)
+        return has, m, loose, gap, exact
+
+    def _rhythm(self) -> _Rhythm | None:
         """(rhythm, loose, gap, exact) from the recent accepted steps, if they keep one."""
         if self._rhythm_cache is False:
             fit = self._window_rhythm(np.array([self._steps[-self.HISTORY :]], dtype=np.float64))
@@ -515,38 +527,21 @@ class StandardScanDecoder:
             else:
                 _, m, loose, gap, exact = fit
                 self._rhythm_cache = (float(m[0]), float(loose[0]), float(gap[0]), float(exact[0]))
-        return self._rhythm_cache
-
-    def _window_rhythm(self, win: np.ndarray) -> tuple[np.ndarray, ...] | None:
-        """Per row of recent steps (NaN = none): has rhythm, rhythm, loose, gap, exact.
-
-        A row has a rhythm when it holds at least 3 steps, their median is a plausible
-        step and the last 3 steps keep to it. None when no row has 3 steps.
-        """
-        count = np.sum(~np.isnan(win), axis=1)
-        need = count >= 3
-        if not np.any(need):
-            return None
-        m = _row_median(win, count)
-        spread = _row_median(np.abs(win - m[:, None]), count)
-        loose, gap, exact = self._tolerances(m, spread)
-        with np.errstate(invalid="ignore"):
-            has = need & (m > 0) & (m <= self.MAX_STEP_DEG)
-            has &= np.all(np.abs(win[:, -3:] - m[:, None]) <= loose[:, None], axis=1)
-        return has, m, loose, gap, exact
+        return self._rhythm_cache  # type: ignore[return-value]
 
     def _rhythm_fit(self, angle: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per candidate at consecutive sample boundaries: (plausible, believed).
 
-        Plausible: well-placed for a spinning head (its step fits the rhythm loosely).
-        Believed: plausible, and either it matches the rhythm exactly or the next
-        candidate (well-formed, ``ok``) confirms it: it fits after it, and the two steps
-        together make two rhythm steps. Without a rhythm everything is plausible and believed.
+        Plausible: its step fits the rhythm loosely. Believed: plausible, and the next
+        candidate (well-formed per ``ok``) confirms it: its step fits loosely too, and
+        the two steps together make two rhythm steps (to half a step, or the gap
+        tolerance for a jittery head: noise between two real samples makes one step
+        out of two). Without a rhythm everything is both.
 
-        Each candidate is judged against the rhythm of the samples accepted before it,
-        as if every earlier candidate were accepted; that is exactly the situation of
-        the first failing one (the run stops there), so the outcome does not depend on
-        how the stream was cut into reads.
+        Each candidate is judged against the rhythm of the samples before it as if
+        every earlier candidate were accepted; that is exactly the situation of the
+        first failing one (the run stops there), so the outcome does not depend on how
+        the stream was cut into reads.
         """
         k = angle.shape[0]
         prev = np.empty(k)
@@ -559,30 +554,33 @@ class StandardScanDecoder:
         # window j holds the (up to h) steps accepted before candidate j
         win = np.lib.stride_tricks.sliding_window_view(hist, h)[:k]
         fit = self._window_rhythm(win)
-        everything = np.ones(k, dtype=bool)
         if fit is None:
+            everything = np.ones(k, dtype=bool)
             return everything, everything
-        has, m, loose, gap, exact = fit
+        has, m, loose, gap, _ = fit
         with np.errstate(invalid="ignore"):
-            off = np.abs(step - m)
-            plausible = ~has | (off <= loose)
-            # the next candidate as seen with this candidate's rhythm
-            nxt_step = np.full(k, np.nan)
+            plausible = np.abs(step - m) <= loose
+            nxt_step = np.full(k, np.nan)  # the next candidate's step, and the two steps
             nxt_step[:-1] = step[1:]
             two = np.full(k, np.nan)
             two[:-1] = _wrap_deg(angle[1:] - prev[:-1])
-            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= gap)
-            confirmed[:-1] &= ok[1:]
-            believed = ~has | ((off <= loose) & ((off <= exact) | confirmed))
-        return plausible, believed
+            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= np.maximum(0.5 * m, gap))
+        confirmed[:-1] &= ok[1:]
+        return ~has | plausible, ~has | (plausible & confirmed)
 
-    def _remember(self, angle: np.ndarray) -> None:
-        if self._last_angle is not None:
-            angle = np.concatenate([[self._last_angle], angle])
-        steps = _wrap_deg(np.diff(angle))[-self.HISTORY :]
-        self._steps = (self._steps + [float(s) for s in steps])[-self.HISTORY :]
-        self._last_angle = float(angle[-1])
-        self._rhythm_cache = False
+    @classmethod
+    def _regular(cls, angles: np.ndarray) -> bool:
+        """Do these consecutive angles step with one plausible rhythm (loosely)?"""
+        steps = _wrap_deg(np.diff(angles))
+        m = float(np.median(steps))
+        if not 0.0 < m <= cls.MAX_STEP_DEG:
+            return False
+        return bool(np.all(np.abs(steps - m) <= max(cls.LOOSE_TOLERANCE_DEG, 0.5 * m)))
+
+    @classmethod
+    def _has_regular_window(cls, angles: np.ndarray) -> bool:
+        w = cls.REGULAR_RUN
+        return any(cls._regular(angles[j : j + w]) for j in range(angles.size - w + 1))
 
     # -- decoding --------------------------------------------------------------------
 
@@ -591,90 +589,89 @@ class StandardScanDecoder:
         n = len(buf)
         parts: list[DecodedSamples] = []
         pos = 0
-        fields: _Fields | None = None  # per-offset form and angle, computed on first resync
-        resumed_on_sample = False
+        fields: _Fields | None = None  # per-offset form and angle, made on the first resync
+        self._descriptors_at = _find_all(buf, self._descriptor)
         while True:
             if self._synced:
                 taken, waiting = self._take_locked(arr, pos, final)
+                parts.append(taken)
+                pos += STANDARD_SAMPLE_LEN * len(taken)
                 if len(taken):
-                    parts.append(taken)
-                    pos += STANDARD_SAMPLE_LEN * len(taken)
-                elif resumed_on_sample and not waiting and n - pos >= STANDARD_SAMPLE_LEN:
-                    # cannot happen by construction (the judge applies the same rules as
-                    # the locked path), but never loop on one offset
-                    self.bytes_dropped += 1
-                    pos += 1
+                    self._adjacent_at = pos
                 if waiting or n - pos < STANDARD_SAMPLE_LEN:
                     break
-                self._synced = False  # the sample at pos does not fit: resync from here
+                self._synced = False  # the sample at pos is not believed: resync here
             if fields is None:
-                fields = _Fields(arr)
+                fields = _Fields(arr, self._descriptors_at)
             pos, verdict = self._hunt(buf, fields, pos, final)
             if verdict is None or verdict == self._WAIT:
                 break
             self._synced = True
-            resumed_on_sample = verdict != self._AFTER_DESCRIPTOR
+            self._approved = verdict != self._AFTER_DESCRIPTOR
         if final:
             self.bytes_dropped += n - pos
             pos = n
             self._synced = False
+        self._adjacent_at = self._adjacent_at - pos if self._adjacent_at >= pos else -1
         self._tail = buf[pos:]
         out = DecodedSamples.concat(parts)
         self.samples_decoded += len(out)
         return out
 
     def _take_locked(self, arr: np.ndarray, pos: int, final: bool) -> tuple[DecodedSamples, bool]:
-        """Accept the run of samples at sample boundaries from ``pos`` (vectorized).
+        """Accept the run of believed samples at sample boundaries from ``pos``.
 
-        Works in growing blocks so that a short run in a long buffer costs little.
-        Returns the samples and whether the run stopped only for want of the next
-        sample (which would confirm the last one).
+        Vectorized: in one block while the stream runs clean (each numpy call has a
+        fixed cost), in growing blocks after a break, so that a short run in a long
+        buffer costs little. Returns the samples and whether the run stopped only for
+        want of the sample that would confirm the last one.
         """
         total = (len(arr) - pos) // STANDARD_SAMPLE_LEN
         parts: list[DecodedSamples] = []
         done = 0
-        block = 32
+        block = total if self._clean else 32
         while done < total:
             size = min(block, total - done)
-            # one candidate more than the block, so its last one can be confirmed
-            look = min(size + 1, total - done)
+            look = min(size + 1, total - done)  # one more, to confirm the block's last
             begin = pos + done * STANDARD_SAMPLE_LEN
-            rows = arr[begin : begin + look * STANDARD_SAMPLE_LEN].reshape(look, STANDARD_SAMPLE_LEN)
-            at_end = done + look == total
-            taken, stop, waiting = self._take_rows(rows, size, final and at_end, at_end)
-            if len(taken):
-                parts.append(taken)
-                done += len(taken)
-            if stop:
+            end = begin + look * STANDARD_SAMPLE_LEN
+            rows = arr[begin:end].reshape(look, STANDARD_SAMPLE_LEN)
+            cuts = [d - begin for d in self._descriptors_at if begin < d < end]
+            taken, stopped, waiting = self._take_rows(rows, size, cuts, done + look == total and not final)
+            parts.append(taken)
+            done += len(taken)
+            if stopped:
+                self._clean = waiting
                 return DecodedSamples.concat(parts), waiting
             block = min(block * 4, 4096)
+        self._clean = True
         return DecodedSamples.concat(parts), False
 
     def _take_rows(
-        self, rows: np.ndarray, size: int, final: bool, at_end: bool
+        self, rows: np.ndarray, size: int, cuts: list[int], may_wait: bool
     ) -> tuple[DecodedSamples, bool, bool]:
-        """Accept the leading good samples among the first ``size`` of ``rows``.
+        """Accept the leading believed samples among the first ``size`` of ``rows``.
 
-        Returns (samples, stopped before ``size``, stopped only to await the next).
+        ``cuts``: offsets in ``rows`` where a descriptor starts (the sample it falls in
+        is cut short). Returns (samples, stopped before ``size``, stopped only to await
+        the sample that would confirm the last row; only when ``may_wait``).
         """
         k = rows.shape[0]
         b0 = rows[:, 0].astype(np.int32)
         b1 = rows[:, 1].astype(np.int32)
         angle_q6 = (b1 >> 1) | (rows[:, 2].astype(np.int32) << 7)
         ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
+        for d in cuts:
+            ok[d // STANDARD_SAMPLE_LEN] = False
         angle = angle_q6 / 64.0
         plausible, believed = self._rhythm_fit(angle, ok)
+        if self._approved:  # the judge looked further than this block can
+            believed[0] = True
+            self._approved = False
         good = ok & believed
-        waiting = False
-        if at_end and not good[-1] and ok[-1] and plausible[-1]:
-            # the very last candidate received awaits the one that would confirm it
-            if final:
-                good[-1] = True
-            else:
-                waiting = True
         bad = np.flatnonzero(~good[:size])
         r = int(bad[0]) if bad.size else size
-        waiting = waiting and r == k - 1
+        waiting = may_wait and r == k - 1 and bool(ok[r] and plausible[r])
         if r == 0:
             return DecodedSamples.empty(), True, waiting
         rows = rows[:r]
@@ -691,7 +688,7 @@ class StandardScanDecoder:
     def _hunt(self, buf: bytes, fields: _Fields, pos: int, final: bool) -> tuple[int, int | None]:
         """Find where samples resume at or after ``pos``; drop the bytes before it.
 
-        Returns (new position, verdict): an ACCEPT (decode from the new position on),
+        Returns (new position, verdict): ACCEPT_* (decode from the new position on),
         AFTER_DESCRIPTOR (a descriptor was skipped), WAIT (more bytes are needed to
         decide at the new position) or None (fewer than 5 bytes left).
         """
@@ -722,52 +719,29 @@ class StandardScanDecoder:
         self.bytes_dropped += keep_from - pos
         return keep_from, None
 
-    @staticmethod
-    def _chain(fields: _Fields, q: int, n: int, limit: int) -> tuple[np.ndarray, bool]:
-        """Angles of the run of well-formed samples at q, q+5, ... (at most ``limit``).
-
-        Also says whether the run was cut by the end of the buffer (so more bytes could
-        make it longer) rather than by a malformed sample or the limit.
-        """
-        last = min(n - STANDARD_SAMPLE_LEN, q + STANDARD_SAMPLE_LEN * (limit - 1))
-        idx = np.arange(q, last + 1, STANDARD_SAMPLE_LEN)
-        bad = np.flatnonzero(~fields.ok[idx])
-        length = int(bad[0]) if bad.size else idx.size
-        cut_by_end = (not bad.size) and idx.size < limit
-        return fields.angle[idx[:length]], cut_by_end
-
     def _judge(self, fields: _Fields, q: int, n: int, final: bool) -> int:
         """Should decoding resume with the well-formed sample at ``q``?"""
         rhythm = self._rhythm()
-        if rhythm is not None and self._last_angle is not None:
-            # continuing the rhythm across dropped bytes: inserted bytes lose no sample,
-            # so this is one ordinary step; the rules of ``_rhythm_fit`` apply, with the
-            # gap tolerance instead of the loose one
-            m, _, gap, exact = rhythm
-            off = self._offset(fields, q, m)
+        if rhythm is not None:
+            # does q continue the rhythm across the dropped bytes? (inserted bytes
+            # lose no sample, so it is one ordinary step from the last sample)
+            _, _, gap, exact = rhythm
+            off = self._offset(fields, q, rhythm)
             if off <= gap:
                 confirmed = self._confirmed(fields, q, n, rhythm)
-                if confirmed is None:  # no next sample yet
+                if confirmed is None:  # its confirmation has not arrived yet
                     return self._ACCEPT_CONTINUE if final else self._WAIT
                 if confirmed:
                     return self._ACCEPT_CONTINUE
-                if off <= exact:
-                    # matches the rhythm, unconfirmed: believe it unless a confirmed
-                    # continuation overlaps it (then q is noise over real bytes)
-                    for p in range(q + 1, q + STANDARD_SAMPLE_LEN):
-                        if not fields.ok[p] or self._offset(fields, p, m) > gap:
-                            continue
-                        other = self._confirmed(fields, p, n, rhythm)
-                        if other is None and not final:
-                            return self._WAIT
-                        if other:
-                            return self._REJECT
-                    return self._ACCEPT_CONTINUE
+                if off <= exact:  # a lone sample between stretches of noise?
+                    return self._lone_sample(fields, q, n, final, off, rhythm)
         chain, cut = self._chain(fields, q, n, self.LONG_RUN)
         if cut and not final:
             return self._WAIT
-        if chain.size >= self.REGULAR_RUN and self._regular(chain[: self.REGULAR_RUN]):
-            return self._ACCEPT_FRESH  # a new regular run (after lost bytes, a restart)
+        if chain.size >= self.REGULAR_RUN and self._fresh_run(chain[: self.REGULAR_RUN], rhythm):
+            return self._ACCEPT_FRESH
+        if chain.size >= self.LONG_RUN and self._regular(chain) and not self._continues(chain[1], rhythm):
+            return self._ACCEPT_FRESH  # a long run, regular enough: the rhythm changed
         if self._has_regular_window(chain[1:]):
             return self._REJECT  # regular only after its head: the head is noise
         other_lengths = []
@@ -789,6 +763,112 @@ class StandardScanDecoder:
             return self._ACCEPT_FRESH  # an irregular stream: believe the form
         return self._REJECT
 
+    def _offset(self, fields: _Fields, q: int, rhythm: _Rhythm) -> float:
+        """How far the step from the last accepted sample to ``q`` is from the rhythm."""
+        assert self._last_angle is not None
+        return abs(float(_wrap_deg(fields.angle[q] - self._last_angle)) - rhythm[0])
+
+    def _confirmed(self, fields: _Fields, q: int, n: int, rhythm: _Rhythm) -> bool | None:
+        """Does the sample after ``q`` confirm it as the next one? None: not received."""
+        assert self._last_angle is not None
+        m, loose, gap, _ = rhythm
+        nxt = q + STANDARD_SAMPLE_LEN
+        if nxt + STANDARD_SAMPLE_LEN > n:
+            return None
+        step = float(_wrap_deg(fields.angle[nxt] - fields.angle[q]))
+        two = float(_wrap_deg(fields.angle[nxt] - self._last_angle))
+        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= max(0.5 * m, gap)
+
+    def _lone_sample(self, fields: _Fields, q: int, n: int, final: bool, off: float, rhythm: _Rhythm) -> int:
+        """Believe an unconfirmed exact continuation unless a better one follows soon.
+
+        Noise matches the rhythm to one unit now and then, so every candidate within
+        ``LOOKAHEAD_BYTES`` that matches as exactly competes with ``q``. Each scores a
+        point for: directly following the last accepted sample (no byte dropped in
+        between); being confirmed by the sample right after it; being confirmed by a
+        sample a little later (noise in between). The most points win, then the
+        closest match, then the first.
+        """
+        look = self.LOOKAHEAD_BYTES
+        if not final and q + 2 * look + 2 * STANDARD_SAMPLE_LEN > n:
+            return self._WAIT
+        exact = rhythm[3]
+
+        def rank(c: int, c_off: float) -> tuple[int, float]:
+            points = (
+                int(c == self._adjacent_at)
+                + int(bool(self._confirmed(fields, c, n, rhythm)))
+                + int(self._confirmed_later(fields, c, n, rhythm))
+            )
+            return points, -c_off
+
+        mine = rank(q, off)
+        for p in range(q + 1, min(q + look, n - STANDARD_SAMPLE_LEN) + 1):
+            if fields.ok[p]:
+                p_off = self._offset(fields, p, rhythm)
+                if p_off <= exact and rank(p, p_off) > mine:
+                    return self._REJECT
+        return self._ACCEPT_CONTINUE
+
+    def _confirmed_later(self, fields: _Fields, c: int, n: int, rhythm: _Rhythm) -> bool:
+        """Is there, within the lookahead after ``c``, a sample one step after it?"""
+        assert self._last_angle is not None
+        m, _, gap, _ = rhythm
+        for s in range(c + STANDARD_SAMPLE_LEN, min(c + self.LOOKAHEAD_BYTES, n - STANDARD_SAMPLE_LEN) + 1):
+            if not fields.ok[s]:
+                continue
+            step = float(_wrap_deg(fields.angle[s] - fields.angle[c]))
+            two = float(_wrap_deg(fields.angle[s] - self._last_angle))
+            if abs(step - m) <= gap and abs(two - 2 * m) <= max(0.5 * m, gap):
+                return True
+        return False
+
+    def _continues(self, angle: float, rhythm: _Rhythm | None) -> bool:
+        """Is ``angle`` one rhythm step after the last accepted sample?"""
+        if rhythm is None or self._last_angle is None:
+            return False
+        return abs(float(_wrap_deg(angle - self._last_angle)) - rhythm[0]) <= rhythm[2]
+
+    def _fresh_run(self, angles: np.ndarray, rhythm: _Rhythm | None) -> bool:
+        """May decoding restart on this run of samples (after lost bytes, a restart)?
+
+        Without a rhythm: when it is regular. With one: when it keeps that rhythm to the
+        gap tolerance (the head turns as fast after lost bytes as before), and its
+        second sample does not simply continue from the last accepted one (then the
+        head is noise in front of resumed samples).
+        """
+        if rhythm is None or self._last_angle is None:
+            return self._regular(angles)
+        m, _, gap, _ = rhythm
+        steps = _wrap_deg(np.diff(angles))
+        if not np.all(np.abs(steps - m) <= gap):
+            return False
+        return not self._continues(float(angles[1]), rhythm)
+
+    @staticmethod
+    def _chain(fields: _Fields, q: int, n: int, limit: int) -> tuple[np.ndarray, bool]:
+        """Angles of the run of well-formed samples at q, q+5, ... (at most ``limit``).
+
+        Also says whether the run was cut by the end of the buffer (so more bytes could
+        make it longer) rather than by a malformed sample or the limit.
+        """
+        last = min(n - STANDARD_SAMPLE_LEN, q + STANDARD_SAMPLE_LEN * (limit - 1))
+        idx = np.arange(q, last + 1, STANDARD_SAMPLE_LEN)
+        bad = np.flatnonzero(~fields.ok[idx])
+        length = int(bad[0]) if bad.size else idx.size
+        cut_by_end = (not bad.size) and idx.size < limit
+        return fields.angle[idx[:length]], cut_by_end
+
+
+def _find_all(buf: bytes, pattern: bytes) -> list[int]:
+    """Offsets of every occurrence of ``pattern`` in ``buf``."""
+    found = []
+    at = buf.find(pattern)
+    while at >= 0:
+        found.append(at)
+        at = buf.find(pattern, at + 1)
+    return found
+
 
 def _row_median(rows: np.ndarray, count: np.ndarray) -> np.ndarray:
     """Median of the non-NaN values of each row (``count`` of them; 0 where none).
@@ -808,11 +888,14 @@ def _row_median(rows: np.ndarray, count: np.ndarray) -> np.ndarray:
 class _Fields:
     """For every byte offset of a buffer: is a well-formed sample there, and its angle.
 
+    A sample that a descriptor (at the offsets ``descriptors``) cuts short is not
+    well-formed, however good its first bytes look.
+
     ``candidates`` are the offsets where a resync could stop: well-formed samples and
     0xA5 bytes (a descriptor may start there).
     """
 
-    def __init__(self, arr: np.ndarray) -> None:
+    def __init__(self, arr: np.ndarray, descriptors: list[int]) -> None:
         n = arr.shape[0]
         self.ok = np.zeros(n + STANDARD_SAMPLE_LEN, dtype=bool)
         self.angle = np.zeros(n + STANDARD_SAMPLE_LEN)
@@ -823,6 +906,8 @@ class _Fields:
             ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
             self.ok[: n - 4] = ok
             self.angle[: n - 4] = angle_q6 / 64.0
+            for d in descriptors:  # a sample cut short by a descriptor is no sample
+                self.ok[max(0, d - STANDARD_SAMPLE_LEN + 1) : d] = False
         self.candidates = np.flatnonzero(self.ok[:n] | (arr == SYNC_BYTE))
 
 

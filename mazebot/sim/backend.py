@@ -59,7 +59,7 @@ def sim_hardware_builder(
 
     async def build(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
         world = make_world(config, maze_path, seed, size)
-        robot = SimulatedRobot(world, config, seed=config.sim.seed if seed is None else seed)
+        robot = SimulatedRobot(world, config, seed=config.sim.seed if seed is None else seed, clock=clock)
         stack.callback(robot.close)
         robot.step(clock.now_s())
 

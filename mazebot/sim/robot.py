@@ -74,12 +74,12 @@ class SimulatedRobot:
         robot.step(0.1)                       # physics, encoder edges, pose history
     """
 
-    def __init__(self, world: World, config: Config, seed: int) -> None:
+    def __init__(self, world: World, config: Config, seed: int, clock: Clock | None = None) -> None:
         self.world = world
         self.config = config
         rngs = np.random.default_rng(seed).spawn(2)
         self.physics = RobotPhysics(physics_params(config), world, world.start_pose, rngs[0])
-        self.kit = FakeMotorKit()
+        self.kit = FakeMotorKit(clock)
         self.pin_factory = MockFactory()
         enc = config.encoders
         self.left_signal = QuadratureSignal(

@@ -90,7 +90,7 @@ def test_fake_kit_logs_writes_and_rejects_out_of_range(kit: FakeMotorKit, clock:
     kit.motor3.throttle = -0.25
     clock.t = 101.0
     kit.motor3.throttle = None
-    assert kit.command_log == [ThrottleWrite(100.0, 3, -0.25), ThrottleWrite(101.0, 3, None)]
+    assert list(kit.command_log) == [ThrottleWrite(100.0, 3, -0.25), ThrottleWrite(101.0, 3, None)]
     with pytest.raises(ValueError, match=r"between -1\.0 and"):
         kit.motor1.throttle = 1.01
 
@@ -114,7 +114,7 @@ def test_fake_kit_injected_failures(kit: FakeMotorKit) -> None:
 
 def test_creation_brakes_both_motors(kit: FakeMotorKit, clock: FakeClock, loop: FakeLoop) -> None:
     motors = make(kit, clock, loop)
-    assert kit.command_log == [ThrottleWrite(100.0, 1, 0.0), ThrottleWrite(100.0, 2, 0.0)]
+    assert list(kit.command_log) == [ThrottleWrite(100.0, 1, 0.0), ThrottleWrite(100.0, 2, 0.0)]
     assert motors.last_command == MotorCommand(0.0, 0.0, 100.0, "stop")
     assert loop.live() == []
 
@@ -196,7 +196,7 @@ def test_bad_arguments_are_rejected_before_any_write(
 ) -> None:
     with pytest.raises(ValueError, match=match):
         make(kit, clock, loop, **kwargs)
-    assert kit.command_log == []
+    assert not kit.command_log
 
 
 # --- time-to-live ---------------------------------------------------------------------

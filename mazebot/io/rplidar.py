@@ -1,0 +1,560 @@
+"""Asyncio driver of the Slamtec RPLidar A1M8: requests, scans, and surviving a flaky USB link.
+
+The driver only buffers bytes and hands them to the pure decoders of
+``mazebot.io.rplidar_protocol``; what it adds is the device's life cycle:
+
+* start: motor on (DTR cleared), STOP, wait, flush, GET_HEALTH (on an error: RESET
+  and ask again), let the motor spin up, SCAN or EXPRESS_SCAN;
+* run: decode, stamp each sample with a clock time, cut the stream into revolutions
+  (``mazebot.io.scan.Scan``, one per turn, in the robot's angle convention);
+* trouble: no sample for ``no_data_timeout_s`` -> STOP and restart the scan; the port
+  vanishes (EOF, OSError) or the device stays unhealthy -> close it and reopen with an
+  exponential backoff. ``scans()`` never ends for a device fault, only when cancelled;
+  ``stats`` tells what happened.
+
+Example::
+
+    async with RPLidar.from_config(cfg.lidar, RealClock()) as lidar:
+        print(await lidar.get_info())
+        async for scan in lidar.scans():
+            ...
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+from typing import Literal, TypeVar
+
+import numpy as np
+
+from mazebot.clock import Clock
+from mazebot.config import LidarConfig
+from mazebot.errors import HardwareUnavailable, MazebotError, ProtocolError
+from mazebot.io import rplidar_protocol as proto
+from mazebot.io.rplidar_protocol import DecodedSamples, DeviceHealth, DeviceInfo, SampleRate
+from mazebot.io.scan import Scan
+from mazebot.io.serial_link import ByteLink, SerialLink
+
+log = logging.getLogger(__name__)
+
+ScanMode = Literal["standard", "express"]
+LinkFactory = Callable[[], Awaitable[ByteLink]]
+T = TypeVar("T")
+
+#: Nominal time per sample (A1M8 datasheet: ~2000 samples/s standard, ~4000 express).
+NOMINAL_SAMPLE_PERIOD_S = {"standard": 1 / 2000, "express": 1 / 4000}
+#: Datasheet: wait at least 1 ms after STOP before the next request; 10 ms also lets
+#: the bytes already on the wire arrive, so the flush removes them.
+STOP_SETTLE_S = 0.010
+#: Scan restarts in a row without a single sample before the port is reopened.
+MAX_RESTARTS_WITHOUT_DATA = 3
+#: Decode at most this often (a decoder call has a fixed cost of ~0.1-0.2 ms).
+DECODE_INTERVAL_S = 0.04
+#: A revolution longer than this many samples is cut (the start flag never came).
+MAX_SAMPLES_PER_REVOLUTION = 8192
+
+
+#: Every descriptor the A1 sends; a5 5a followed by anything else is stray data.
+_KNOWN_DESCRIPTORS = frozenset(
+    d.encode()
+    for d in (
+        proto.INFO_DESCRIPTOR,
+        proto.HEALTH_DESCRIPTOR,
+        proto.SAMPLERATE_DESCRIPTOR,
+        proto.SCAN_DESCRIPTOR,
+        proto.EXPRESS_DESCRIPTOR,
+    )
+)
+
+
+class _LinkLost(OSError):
+    """The link reported end of file: the port or the emulator went away."""
+
+
+@dataclass
+class LidarStats:
+    """Counters of what the driver went through; read them, never reset them."""
+
+    bytes_dropped: int = 0  # bytes the decoders skipped to resynchronise
+    reconnects: int = 0  # times the link was reopened after a fault
+    scan_restarts: int = 0  # scans restarted because no sample came in time
+    health_errors: int = 0  # GET_HEALTH answers with status "error"
+    revolutions: int = 0  # scans yielded
+    samples: int = 0  # samples decoded
+    last_error: str = ""  # the last fault, one line
+    connected: bool = False  # a link is open
+
+
+class RPLidar:
+    """The RPLidar A1M8 behind a ByteLink (serial port, pseudo-terminal or memory pipe).
+
+    Nothing is opened by the constructor: the link is made by ``link_factory`` on first
+    use, and again after a fault. Use it as an async context manager, or call
+    ``close()`` (idempotent), which stops the scan and the motor.
+
+    Example::
+
+        lidar = RPLidar(lambda: SerialLink.open("/dev/ttyUSB0", 115200), RealClock())
+        async with lidar:
+            health = await lidar.get_health()
+            async for scan in lidar.scans():
+                print(len(scan), lidar.stats.bytes_dropped)
+    """
+
+    def __init__(
+        self,
+        link_factory: LinkFactory,
+        clock: Clock,
+        *,
+        scan_mode: ScanMode = "standard",
+        motor_control: bool = True,
+        spin_up_s: float = 0.5,
+        no_data_timeout_s: float = 1.0,
+        backoff_min_s: float = 0.5,
+        backoff_max_s: float = 8.0,
+        min_range_m: float = 0.15,
+        max_range_m: float = 12.0,
+        mount_yaw_deg: float = 0.0,
+        response_timeout_s: float = 1.0,
+        reset_settle_s: float = 0.5,
+        sample_period_s: float | None = None,
+        name: str = "lidar",
+    ) -> None:
+        if scan_mode not in NOMINAL_SAMPLE_PERIOD_S:
+            raise ValueError(f"scan_mode must be 'standard' or 'express', got {scan_mode!r}")
+        if not 0 < backoff_min_s <= backoff_max_s:
+            raise ValueError(f"need 0 < backoff_min_s ({backoff_min_s}) <= backoff_max_s ({backoff_max_s})")
+        self._factory = link_factory
+        self._clock = clock
+        self.scan_mode: ScanMode = scan_mode
+        self._motor_control = motor_control
+        self._spin_up_s = spin_up_s
+        self._no_data_timeout_s = no_data_timeout_s
+        self._backoff_min_s = backoff_min_s
+        self._backoff_max_s = backoff_max_s
+        self._min_range_m = min_range_m
+        self._max_range_m = max_range_m
+        self._mount_yaw_rad = math.radians(mount_yaw_deg)
+        self._response_timeout_s = response_timeout_s
+        self._reset_settle_s = reset_settle_s
+        self._sample_period_s = sample_period_s
+        self.name = name
+        self.stats = LidarStats()
+        self._link: ByteLink | None = None
+        self._rx = bytearray()  # received, not yet consumed by a response
+        self._motor_on = False
+        self._scanning = False
+        self._closed = False
+        self._last_time_s = -math.inf  # time stamp of the last sample
+        self._dropped_before = 0  # bytes dropped by decoders of earlier scans
+        self._decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder | None = None
+
+    @classmethod
+    def from_config(
+        cls, cfg: LidarConfig, clock: Clock, link_factory: LinkFactory | None = None
+    ) -> RPLidar:
+        """The lidar of the ``[lidar]`` config section (default link: its serial port)."""
+        async def open_serial() -> ByteLink:
+            return await SerialLink.open(cfg.port, cfg.baudrate)
+
+        return cls(
+            link_factory or open_serial,
+            clock,
+            scan_mode=cfg.scan_mode,
+            motor_control=cfg.motor_control == "dtr",
+            spin_up_s=cfg.spin_up_s,
+            no_data_timeout_s=cfg.no_data_timeout_s,
+            backoff_min_s=cfg.reconnect_backoff_min_s,
+            backoff_max_s=cfg.reconnect_backoff_max_s,
+            min_range_m=cfg.min_range_m,
+            max_range_m=cfg.max_range_m,
+            mount_yaw_deg=cfg.mount_yaw_deg,
+            name=f"lidar on {cfg.port}",
+        )
+
+    async def __aenter__(self) -> RPLidar:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.close()
+
+    # -- link ------------------------------------------------------------------------
+
+    async def open(self) -> ByteLink:
+        """The open link, opening it if needed (HardwareUnavailable if it cannot be)."""
+        if self._closed:
+            raise RuntimeError(f"{self.name} is closed")
+        if self._link is None:
+            self._link = await self._factory()
+            self._rx.clear()
+            self._motor_on = False
+            self._scanning = False
+            self.stats.connected = True
+        return self._link
+
+    async def close(self) -> None:
+        """Stop the scan and the motor and close the link; harmless when repeated."""
+        self._closed = True
+        await self._drop_link(stop=True)
+
+    async def _drop_link(self, *, stop: bool) -> None:
+        link, self._link = self._link, None
+        self.stats.connected = False
+        self._rx.clear()
+        if link is None:
+            return
+        try:
+            if stop:
+                await link.write(proto.build_request(proto.CMD_STOP))
+                if self._motor_control:
+                    link.set_motor(False)
+        except OSError as exc:  # the port may be gone already
+            log.debug("%s: cannot stop before closing: %s", self.name, exc)
+        finally:
+            self._scanning = False
+            self._motor_on = False
+            await link.close()
+
+    async def _with_timeout(self, aw: Awaitable[T], timeout_s: float) -> T:
+        """``aw`` within ``timeout_s`` of this driver's clock, else TimeoutError."""
+        task = asyncio.ensure_future(aw)
+        timer = asyncio.ensure_future(self._clock.sleep(max(0.0, timeout_s)))
+        try:
+            await asyncio.wait({task, timer}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            timer.cancel()
+            if not task.done():
+                task.cancel()
+            await asyncio.gather(task, timer, return_exceptions=True)
+        if task.cancelled():
+            raise TimeoutError(f"{self.name}: no answer within {timeout_s:.3g} s")
+        return task.result()
+
+    async def _read(self, timeout_s: float) -> bytes:
+        """Some bytes within ``timeout_s`` (TimeoutError), or _LinkLost at end of file."""
+        link = await self.open()
+        data = await self._with_timeout(link.read(), timeout_s)
+        if not data:
+            raise _LinkLost(f"{self.name}: the port closed (end of file)")
+        return data
+
+    async def _send(self, cmd: int, payload: bytes = b"") -> None:
+        link = await self.open()
+        await link.write(proto.build_request(cmd, payload))
+
+    async def _flush(self) -> None:
+        link = await self.open()
+        link.reset_input_buffer()
+        self._rx.clear()
+
+    async def _descriptor(self, expected: proto.Descriptor, what: str) -> None:
+        """Read up to and including the descriptor that answers ``what``."""
+        deadline = self._clock.now_s() + self._response_timeout_s
+        while True:
+            at = self._rx.find(b"\xa5\x5a")
+            if at < 0:  # nothing yet; keep a last 0xA5, it may begin the descriptor
+                keep = 1 if self._rx[-1:] == b"\xa5" else 0
+                del self._rx[: len(self._rx) - keep]
+            else:
+                del self._rx[:at]
+                if len(self._rx) >= proto.DESCRIPTOR_LEN:
+                    head = bytes(self._rx[: proto.DESCRIPTOR_LEN])
+                    if head == expected.encode():
+                        del self._rx[: proto.DESCRIPTOR_LEN]
+                        return
+                    if head in _KNOWN_DESCRIPTORS:  # the device answered something else
+                        try:
+                            proto.parse_descriptor(head, expected)
+                        except ProtocolError as exc:
+                            raise ProtocolError(f"{self.name}, answer to {what}: {exc}") from None
+                    del self._rx[:1]  # a5 5a by chance in stale bytes: look further
+                    continue
+            await self._receive(deadline, what)
+
+    async def _receive(self, deadline_s: float, what: str) -> None:
+        remaining = deadline_s - self._clock.now_s()
+        try:
+            if remaining <= 0:
+                raise TimeoutError
+            self._rx += await self._read(remaining)
+        except TimeoutError:
+            raise HardwareUnavailable(
+                f"{self.name} did not answer {what} within {self._response_timeout_s:g} s; "
+                "check that the lidar is powered and that this is its port"
+            ) from None
+
+    async def _request(self, cmd: int, expected: proto.Descriptor) -> bytes:
+        """Send a single-response request and return its payload."""
+        if self._scanning:
+            await self.stop()
+        what = proto.COMMAND_NAMES[cmd]
+        await self._send(cmd)
+        await self._descriptor(expected, what)
+        deadline = self._clock.now_s() + self._response_timeout_s
+        while len(self._rx) < expected.length:
+            await self._receive(deadline, what)
+        payload = bytes(self._rx[: expected.length])
+        del self._rx[: expected.length]
+        return payload
+
+    # -- requests --------------------------------------------------------------------
+
+    async def get_info(self) -> DeviceInfo:
+        """Model, firmware, hardware and serial number (stops a running scan)."""
+        return proto.parse_info(await self._request(proto.CMD_GET_INFO, proto.INFO_DESCRIPTOR))
+
+    async def get_health(self) -> DeviceHealth:
+        """Health status (good / warning / error) and error code (stops a running scan)."""
+        return proto.parse_health(await self._request(proto.CMD_GET_HEALTH, proto.HEALTH_DESCRIPTOR))
+
+    async def get_samplerate(self) -> SampleRate:
+        """Time per sample of each scan mode, in microseconds (stops a running scan)."""
+        payload = await self._request(proto.CMD_GET_SAMPLERATE, proto.SAMPLERATE_DESCRIPTOR)
+        return proto.parse_samplerate(payload)
+
+    async def stop(self) -> None:
+        """Stop scanning (the motor keeps spinning) and discard what was in flight."""
+        await self._send(proto.CMD_STOP)
+        self._scanning = False
+        await self._clock.sleep(STOP_SETTLE_S)
+        await self._flush()
+
+    async def reset(self) -> None:
+        """Reboot the device's core (as after power-up) and discard its boot message."""
+        await self._send(proto.CMD_RESET)
+        self._scanning = False
+        await self._clock.sleep(self._reset_settle_s)
+        await self._flush()
+
+    async def start_scan(self, mode: ScanMode | None = None) -> bytes:
+        """Bring the device up and start scanning; returns the raw bytes received so far.
+
+        Motor on, STOP, flush, health check (RESET once on an error; HardwareUnavailable
+        if the error stays), spin-up wait if the motor was off, then SCAN or
+        EXPRESS_SCAN. The returned bytes are the scan's descriptor followed by any scan
+        data that came with it; read the rest with ``read_raw``.
+        """
+        mode = mode or self.scan_mode
+        link = await self.open()
+        spin_up = False
+        if self._motor_control and not self._motor_on:
+            link.set_motor(True)
+            self._motor_on = True
+            spin_up = True
+        await self.stop()
+        health = await self.get_health()
+        if health.status == proto.HEALTH_ERROR:
+            self.stats.health_errors += 1
+            log.warning("%s reports error %#06x; resetting it", self.name, health.error_code)
+            await self.reset()
+            health = await self.get_health()
+            if health.status == proto.HEALTH_ERROR:
+                self.stats.health_errors += 1
+                raise HardwareUnavailable(
+                    f"{self.name} reports a hardware error (code {health.error_code:#06x}) "
+                    "even after a reset; power-cycle it"
+                )
+        elif health.status == proto.HEALTH_WARNING:
+            log.warning("%s reports warning %#06x", self.name, health.error_code)
+        if spin_up:
+            await self._clock.sleep(self._spin_up_s)
+        if mode == "express":
+            await self._send(proto.CMD_EXPRESS_SCAN, proto.EXPRESS_SCAN_PAYLOAD)
+            expected = proto.EXPRESS_DESCRIPTOR
+        else:
+            await self._send(proto.CMD_SCAN)
+            expected = proto.SCAN_DESCRIPTOR
+        await self._descriptor(expected, "EXPRESS_SCAN" if mode == "express" else "SCAN")
+        self._scanning = True
+        data = expected.encode() + bytes(self._rx)
+        self._rx.clear()
+        return data
+
+    async def read_raw(self, timeout_s: float) -> bytes:
+        """Bytes received within ``timeout_s`` (b"" if none); HardwareUnavailable at EOF."""
+        try:
+            return await self._read(timeout_s)
+        except TimeoutError:
+            return b""
+        except _LinkLost as exc:
+            raise HardwareUnavailable(str(exc)) from None
+
+    # -- scanning --------------------------------------------------------------------
+
+    async def scans(self) -> AsyncIterator[Scan]:
+        """One Scan per revolution, for ever: device faults are survived, not raised.
+
+        Ends only when cancelled (or after ``close()``). The first, partial revolution
+        after each (re)start is dropped.
+        """
+        backoff_s = self._backoff_min_s
+        recovering = False
+        while not self._closed:
+            try:
+                leftover = await self.start_scan()
+                if recovering:
+                    self.stats.reconnects += 1
+                    recovering = False
+                    log.info("%s: scanning again", self.name)
+                async for scan in self._session(leftover[proto.DESCRIPTOR_LEN :]):
+                    backoff_s = self._backoff_min_s
+                    yield scan
+            except (OSError, TimeoutError, MazebotError) as exc:
+                if self._closed:
+                    return
+                self.stats.last_error = _one_line(exc)
+                log.warning("%s: %s; reconnecting in %.3g s", self.name, self.stats.last_error, backoff_s)
+                await self._drop_link(stop=False)
+                recovering = True
+                await self._clock.sleep(backoff_s)
+                backoff_s = min(2 * backoff_s, self._backoff_max_s)
+
+    async def _session(self, leftover: bytes) -> AsyncIterator[Scan]:
+        """Revolutions of one open link; raises on a link fault, restarts stalled scans."""
+        decoder = self._new_decoder()
+        revolution = _RevolutionBuilder(self)
+        restarts_without_data = 0
+        last_data_s = batch_since_s = stamped_until_s = self._clock.now_s()
+        batch = bytearray(leftover)
+        while True:
+            now_s = self._clock.now_s()
+            stalled = now_s - last_data_s >= self._no_data_timeout_s
+            if batch and (stalled or now_s - batch_since_s >= DECODE_INTERVAL_S):
+                samples = decoder.feed(bytes(batch))
+                batch.clear()
+                self.stats.bytes_dropped = self._dropped_before + decoder.bytes_dropped
+                if len(samples):
+                    last_data_s = now_s
+                    stalled = False
+                    restarts_without_data = 0
+                    self.stats.samples += len(samples)
+                    times = self._stamp(len(samples), now_s, stamped_until_s)
+                    stamped_until_s = now_s
+                    for scan in revolution.add(samples, times):
+                        yield scan
+            if not batch:
+                batch_since_s = now_s
+            if stalled:
+                self.stats.scan_restarts += 1
+                restarts_without_data += 1
+                if restarts_without_data > MAX_RESTARTS_WITHOUT_DATA:
+                    raise _LinkLost(f"{self.name}: no data after {MAX_RESTARTS_WITHOUT_DATA} scan restarts")
+                log.warning("%s: no data for %.3g s; restarting the scan", self.name, self._no_data_timeout_s)
+                batch = bytearray((await self.start_scan())[proto.DESCRIPTOR_LEN :])
+                decoder = self._new_decoder()
+                revolution = _RevolutionBuilder(self)
+                last_data_s = batch_since_s = stamped_until_s = self._clock.now_s()
+                continue
+            wait_s = last_data_s + self._no_data_timeout_s - now_s
+            if batch:  # come back when the batch is due
+                wait_s = min(wait_s, DECODE_INTERVAL_S - (now_s - batch_since_s))
+            try:
+                batch += await self._read(max(wait_s, 0.0))
+            except TimeoutError:
+                continue
+
+    def _new_decoder(self) -> proto.StandardScanDecoder | proto.ExpressScanDecoder:
+        """A decoder for a scan that just started (its bytes follow the descriptor)."""
+        if self._decoder is not None:  # keep counting what the previous one dropped
+            self._dropped_before += self._decoder.bytes_dropped
+        decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder = (
+            proto.ExpressScanDecoder() if self.scan_mode == "express" else proto.StandardScanDecoder()
+        )
+        decoder.reset(synced=True)
+        self._decoder = decoder
+        return decoder
+
+    def _stamp(self, count: int, received_s: float, since_s: float) -> np.ndarray:
+        """Clock times of ``count`` samples that arrived in (``since_s``, ``received_s``].
+
+        The last one is taken as received at ``received_s`` and the others one sample
+        period apart before it; when more samples came than fit in that interval at
+        that period (a backlog, a device faster than nominal), they are spread evenly
+        over it instead. Stamps are strictly increasing across calls.
+        """
+        if count <= 0:
+            return np.empty(0)
+        period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S[self.scan_mode]
+        period_s = min(period_s, max(received_s - since_s, 0.0) / count)
+        i = np.arange(count)
+        ideal = received_s - period_s * (count - 1 - i)
+        floor = self._last_time_s + 1e-6 * (i + 1)
+        times = np.maximum(ideal, floor)
+        self._last_time_s = float(times[-1])
+        return times
+
+    def to_scan(self, samples: DecodedSamples, time_s: np.ndarray, revolution: int) -> Scan:
+        """Device samples -> Scan: robot angles, metres, validity by distance and quality."""
+        angle = -np.deg2rad(samples.angle_deg) + self._mount_yaw_rad
+        angle_rad = (angle + math.pi) % math.tau - math.pi
+        range_m = samples.dist_mm / 1000.0
+        valid = (
+            (samples.dist_mm > 0)
+            & (samples.quality > 0)
+            & (range_m >= self._min_range_m)
+            & (range_m <= self._max_range_m)
+        )
+        return Scan(
+            angle_rad=angle_rad,
+            range_m=range_m,
+            quality=samples.quality.astype(np.uint8),
+            time_s=np.asarray(time_s, dtype=np.float64),
+            valid=valid,
+            revolution=revolution,
+        )
+
+
+class _RevolutionBuilder:
+    """Collects samples and cuts them into revolutions at the start flags."""
+
+    def __init__(self, lidar: RPLidar) -> None:
+        self._lidar = lidar
+        self._samples: list[DecodedSamples] = []
+        self._times: list[np.ndarray] = []
+        self._count = 0
+        self._synced = False  # a start flag was seen: what is collected is a revolution
+
+    def add(self, samples: DecodedSamples, time_s: np.ndarray) -> list[Scan]:
+        scans: list[Scan] = []
+        starts = np.flatnonzero(samples.start)
+        begin = 0
+        for s in (int(i) for i in starts):
+            if self._synced and (s > begin or self._count):
+                self._append(samples.slice(begin, s), time_s[begin:s])
+                scans.append(self._emit())
+            elif not self._synced:
+                self._discard()
+            self._synced = True
+            begin = s
+        if self._synced:
+            self._append(samples.slice(begin), time_s[begin:])
+        if self._count > MAX_SAMPLES_PER_REVOLUTION:
+            log.warning("%s: no start flag in %d samples; cutting the revolution", self._lidar.name, self._count)
+            scans.append(self._emit())
+        return scans
+
+    def _append(self, samples: DecodedSamples, time_s: np.ndarray) -> None:
+        if len(samples):
+            self._samples.append(samples)
+            self._times.append(time_s)
+            self._count += len(samples)
+
+    def _discard(self) -> None:
+        self._samples, self._times, self._count = [], [], 0
+
+    def _emit(self) -> Scan:
+        samples = DecodedSamples.concat(self._samples)
+        times = np.concatenate(self._times) if self._times else np.empty(0)
+        self._discard()
+        number = self._lidar.stats.revolutions
+        self._lidar.stats.revolutions += 1
+        return self._lidar.to_scan(samples, times, number)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__

@@ -1,0 +1,518 @@
+"""The RPLidar byte protocol, checked against byte strings written from the protocol spec."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from mazebot.errors import ProtocolError
+from mazebot.io import rplidar_protocol as proto
+
+# --- helpers -------------------------------------------------------------------------
+
+
+def sweep(n: int, step_deg: float = 0.99, start_deg: float = 0.0, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """A regular sweep like a spinning head's: angles, distances, qualities, start flags."""
+    rng = np.random.default_rng(seed)
+    angle = (start_deg + np.arange(n) * step_deg) % 360.0
+    q6 = np.rint(angle * 64) % (360 * 64)
+    angle = q6 / 64.0  # exactly representable, so comparisons are exact
+    dist = np.rint(rng.uniform(150, 8000, n) * 4) / 4
+    quality = rng.integers(0, 64, n)
+    start = np.zeros(n, dtype=bool)
+    start[1:] = np.diff(angle) < 0
+    return angle, dist, quality, start
+
+
+def decode_all(decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder, data: bytes) -> proto.DecodedSamples:
+    return proto.DecodedSamples.concat([decoder.feed(data), decoder.flush()])
+
+
+def as_tuples(s: proto.DecodedSamples) -> list[tuple[float, float, int, bool]]:
+    return list(zip(s.angle_deg.tolist(), s.dist_mm.tolist(), s.quality.tolist(), s.start.tolist(), strict=True))
+
+
+def expected_tuples(
+    angle: np.ndarray, dist: np.ndarray, quality: np.ndarray, start: np.ndarray
+) -> list[tuple[float, float, int, bool]]:
+    return [(float(a), float(d), int(q), bool(s)) for a, d, q, s in zip(angle, dist, quality, start, strict=True)]
+
+
+# --- requests ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("cmd", "wire"),
+    [
+        (proto.CMD_STOP, b"\xa5\x25"),
+        (proto.CMD_RESET, b"\xa5\x40"),
+        (proto.CMD_SCAN, b"\xa5\x20"),
+        (proto.CMD_FORCE_SCAN, b"\xa5\x21"),
+        (proto.CMD_GET_INFO, b"\xa5\x50"),
+        (proto.CMD_GET_HEALTH, b"\xa5\x52"),
+        (proto.CMD_GET_SAMPLERATE, b"\xa5\x59"),
+    ],
+)
+def test_requests_without_payload_are_two_bytes(cmd: int, wire: bytes) -> None:
+    assert proto.build_request(cmd) == wire
+    assert proto.parse_request(wire + b"\xa5") == (cmd, b"", 2)
+
+
+def test_express_scan_request_carries_size_payload_and_xor_checksum() -> None:
+    # A5 82 05 00 00 00 00 00 checksum: A5 ^ 82 ^ 05 = 0x22
+    wire = b"\xa5\x82\x05\x00\x00\x00\x00\x00\x22"
+    assert proto.build_request(proto.CMD_EXPRESS_SCAN, proto.EXPRESS_SCAN_PAYLOAD) == wire
+    assert proto.parse_request(wire) == (proto.CMD_EXPRESS_SCAN, bytes(5), 9)
+
+
+def test_parse_request_waits_for_a_complete_request() -> None:
+    wire = proto.build_request(proto.CMD_EXPRESS_SCAN, proto.EXPRESS_SCAN_PAYLOAD)
+    for cut in range(len(wire)):
+        assert proto.parse_request(wire[:cut]) is None
+
+
+def test_parse_request_rejects_bad_checksum_and_missing_sync() -> None:
+    wire = bytearray(proto.build_request(proto.CMD_EXPRESS_SCAN, proto.EXPRESS_SCAN_PAYLOAD))
+    wire[-1] ^= 0xFF
+    with pytest.raises(ProtocolError, match="expected checksum 0x22, found 0xdd"):
+        proto.parse_request(bytes(wire))
+    with pytest.raises(ProtocolError, match="expected sync byte 0xa5, found 0x25"):
+        proto.parse_request(b"\x25")
+
+
+def test_build_request_refuses_payload_mismatch() -> None:
+    with pytest.raises(ValueError, match="takes no payload"):
+        proto.build_request(proto.CMD_SCAN, b"\x00")
+    with pytest.raises(ValueError, match="needs a payload"):
+        proto.build_request(proto.CMD_EXPRESS_SCAN)
+
+
+# --- descriptors ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("descriptor", "wire"),
+    [
+        (proto.INFO_DESCRIPTOR, b"\xa5\x5a\x14\x00\x00\x00\x04"),
+        (proto.HEALTH_DESCRIPTOR, b"\xa5\x5a\x03\x00\x00\x00\x06"),
+        (proto.SAMPLERATE_DESCRIPTOR, b"\xa5\x5a\x04\x00\x00\x00\x15"),
+        (proto.SCAN_DESCRIPTOR, b"\xa5\x5a\x05\x00\x00\x40\x81"),
+        (proto.EXPRESS_DESCRIPTOR, b"\xa5\x5a\x54\x00\x00\x40\x82"),
+    ],
+)
+def test_descriptors_match_the_spec(descriptor: proto.Descriptor, wire: bytes) -> None:
+    assert descriptor.encode() == wire
+    assert proto.encode_descriptor(descriptor.length, descriptor.mode, descriptor.dtype) == wire
+    assert proto.parse_descriptor(wire) == descriptor
+    assert proto.parse_descriptor(wire, expected=descriptor) == descriptor
+
+
+def test_descriptor_length_is_30_bits_and_mode_the_top_2() -> None:
+    wire = proto.encode_descriptor((1 << 30) - 1, 1, 0x99)
+    assert wire == b"\xa5\x5a\xff\xff\xff\x7f\x99"
+    d = proto.parse_descriptor(wire)
+    assert (d.length, d.mode, d.dtype) == ((1 << 30) - 1, proto.SendMode.MULTIPLE, 0x99)
+
+
+def test_parse_descriptor_says_what_was_expected_and_found() -> None:
+    with pytest.raises(ProtocolError) as err:
+        proto.parse_descriptor(proto.HEALTH_DESCRIPTOR.encode(), expected=proto.INFO_DESCRIPTOR)
+    message = str(err.value)
+    assert "\n" not in message
+    assert "expected descriptor (length 20, single, type 0x04)" in message
+    assert "found (length 3, single, type 0x06)" in message
+    with pytest.raises(ProtocolError, match="starting a5 5a, found a5 a5"):
+        proto.parse_descriptor(b"\xa5\xa5\x05\x00\x00\x40\x81")
+    with pytest.raises(ProtocolError, match="7-byte descriptor"):
+        proto.parse_descriptor(b"\xa5\x5a\x05")
+    with pytest.raises(ProtocolError, match="send mode 0 or 1, found mode 2"):
+        proto.parse_descriptor(b"\xa5\x5a\x05\x00\x00\x80\x81")
+
+
+# --- single responses ----------------------------------------------------------------
+
+
+def test_info_layout() -> None:
+    wire = bytes([0x18, 29, 1, 7]) + bytes(range(16))
+    info = proto.parse_info(wire)
+    assert info == proto.DeviceInfo(0x18, 29, 1, 7, bytes(range(16)))
+    assert info.model_name == "A1M8"
+    assert info.firmware_version == "1.29"
+    assert info.serial_hex == "000102030405060708090A0B0C0D0E0F"
+    assert proto.encode_info(info) == wire
+    with pytest.raises(ProtocolError, match="expected 20 bytes, found 3"):
+        proto.parse_info(wire[:3])
+
+
+def test_health_layout_is_status_and_little_endian_code() -> None:
+    health = proto.parse_health(b"\x02\x01\x80")
+    assert health == proto.DeviceHealth(2, 0x8001)
+    assert health.status_name == "error"
+    assert proto.encode_health(health) == b"\x02\x01\x80"
+    assert proto.parse_health(b"\x00\x00\x00").status_name == "good"
+    assert proto.parse_health(b"\x01\x00\x00").status_name == "warning"
+    with pytest.raises(ProtocolError, match="status 0, 1 or 2, found 7"):
+        proto.parse_health(b"\x07\x00\x00")
+
+
+def test_samplerate_layout() -> None:
+    rate = proto.parse_samplerate(b"\xfc\x01\xfe\x00")
+    assert rate == proto.SampleRate(standard_us=508, express_us=254)
+    assert proto.encode_samplerate(rate) == b"\xfc\x01\xfe\x00"
+
+
+# --- standard samples ----------------------------------------------------------------
+
+
+def test_standard_sample_bytes_follow_the_spec() -> None:
+    # 90° = 5760 q6 = 0x1680; 1000 mm = 4000 q2 = 0x0FA0; quality 15, start
+    wire = proto.encode_standard_sample(90.0, 1000.0, 15, True)
+    assert wire == bytes([15 << 2 | 0b01, (0x1680 & 0x7F) << 1 | 1, 0x1680 >> 7, 0xA0, 0x0F])
+    wire = proto.encode_standard_sample(359.984375, 0.25, 63, False)
+    assert wire == bytes([63 << 2 | 0b10, (23039 & 0x7F) << 1 | 1, 23039 >> 7, 0x01, 0x00])
+    # one lone sample: believed at the end of the stream (nothing contradicts it)
+    assert as_tuples(decode_all(proto.StandardScanDecoder(), wire)) == [(359.984375, 0.25, 63, False)]
+
+
+def test_clean_stream_decodes_exactly() -> None:
+    angle, dist, quality, start = sweep(2000)
+    dec = proto.StandardScanDecoder()
+    out = decode_all(dec, proto.encode_standard_samples(angle, dist, quality, start))
+    assert as_tuples(out) == expected_tuples(angle, dist, quality, start)
+    assert (dec.bytes_dropped, dec.samples_decoded) == (0, 2000)
+
+
+def test_irregular_angles_decode_by_form_alone() -> None:
+    # synthetic data with no rhythm at all (e.g. a test's random angles)
+    rng = np.random.default_rng(5)
+    angle = np.rint(rng.uniform(0, 360, 50) * 64) % 23040 / 64
+    dist = np.full(50, 500.0)
+    quality = np.full(50, 10)
+    start = np.zeros(50, dtype=bool)
+    out = decode_all(proto.StandardScanDecoder(), proto.encode_standard_samples(angle, dist, quality, start))
+    assert out.angle_deg.tolist() == angle.tolist()
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 7])
+def test_a_few_samples_come_out_at_the_end_of_the_stream(count: int) -> None:
+    angle, dist, quality, start = sweep(count)
+    out = decode_all(proto.StandardScanDecoder(), proto.encode_standard_samples(angle, dist, quality, start))
+    assert as_tuples(out) == expected_tuples(angle, dist, quality, start)
+
+
+def test_every_split_point_gives_the_same_samples() -> None:
+    angle, dist, quality, start = sweep(60)
+    rng = np.random.default_rng(1)
+    clean = proto.encode_standard_samples(angle, dist, quality, start)
+    # a mid-stream start, garbage in the middle, a partial sample at the end
+    data = clean[3:100] + rng.integers(0, 256, 13, dtype=np.uint8).tobytes() + clean[100:] + clean[:2]
+    reference = as_tuples(decode_all(proto.StandardScanDecoder(), data))
+    assert len(reference) == 59
+    for cut in range(len(data) + 1):
+        dec = proto.StandardScanDecoder()
+        parts = [dec.feed(data[:cut]), dec.feed(data[cut:]), dec.flush()]
+        assert as_tuples(proto.DecodedSamples.concat(parts)) == reference, cut
+    dec = proto.StandardScanDecoder()
+    parts = [dec.feed(data[i : i + 1]) for i in range(len(data))] + [dec.flush()]
+    assert as_tuples(proto.DecodedSamples.concat(parts)) == reference
+
+
+@pytest.mark.parametrize("offset", [1, 2, 3, 4])
+def test_mid_stream_start_resynchronises(offset: int) -> None:
+    angle, dist, quality, start = sweep(100)
+    data = proto.encode_standard_samples(angle, dist, quality, start)
+    dec = proto.StandardScanDecoder()
+    out = decode_all(dec, data[offset:])
+    assert as_tuples(out) == expected_tuples(angle, dist, quality, start)[1:]
+    assert dec.bytes_dropped == 5 - offset
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_random_garbage_between_runs_is_dropped_exactly(seed: int) -> None:
+    rng = np.random.default_rng(100 + seed)
+    angle, dist, quality, start = sweep(3000, seed=seed)
+    wire = proto.encode_standard_samples(angle, dist, quality, start)
+    # the stream starts on a run long enough to show the head's rhythm
+    pieces, kept, i = [wire[:50]], list(range(10)), 10
+    garbage = 0
+    while i < 3000:
+        run = int(rng.integers(1, 25))
+        pieces.append(wire[5 * i : 5 * (i + run)])
+        kept.extend(range(i, min(i + run, 3000)))
+        i += run
+        junk = rng.integers(0, 256, int(rng.integers(1, 40)), dtype=np.uint8).tobytes()
+        pieces.append(junk)
+        garbage += len(junk)
+    dec = proto.StandardScanDecoder()
+    out = decode_all(dec, b"".join(pieces))
+    everything = expected_tuples(angle, dist, quality, start)
+    assert as_tuples(out) == [everything[k] for k in kept]
+    assert dec.bytes_dropped == garbage
+
+
+def test_leftover_of_an_unclean_run_and_a_descriptor_are_skipped() -> None:
+    old = proto.encode_standard_samples(*sweep(30, start_deg=200.0, seed=1))
+    new = sweep(40, seed=2)
+    data = old[:-2] + proto.SCAN_DESCRIPTOR.encode() + proto.encode_standard_samples(*new)
+    dec = proto.StandardScanDecoder()
+    out = decode_all(dec, data)
+    # the old run's whole samples are samples too; its cut last one is dropped
+    assert as_tuples(out)[-40:] == expected_tuples(*new)
+    assert len(out) == 29 + 40
+    assert dec.descriptors_skipped == 1
+    assert dec.bytes_dropped == 3
+
+
+def test_descriptor_at_the_start_of_a_capture_is_not_a_sample() -> None:
+    angle, dist, quality, start = sweep(20)
+    dec = proto.StandardScanDecoder()
+    out = decode_all(dec, proto.SCAN_DESCRIPTOR.encode() + proto.encode_standard_samples(angle, dist, quality, start))
+    assert as_tuples(out) == expected_tuples(angle, dist, quality, start)
+    assert (dec.bytes_dropped, dec.descriptors_skipped) == (0, 1)
+
+
+def test_samples_that_break_the_rhythm_are_dropped() -> None:
+    angle, dist, quality, start = sweep(40)
+    wire = proto.encode_standard_samples(angle, dist, quality, start)
+    # well-formed impostors: right form, wrong place in the turn
+    impostor = proto.encode_standard_sample(123.0, 500.0, 10, False)
+    data = wire[:100] + impostor + wire[100:150] + impostor + impostor + wire[150:]
+    dec = proto.StandardScanDecoder()
+    assert as_tuples(decode_all(dec, data)) == expected_tuples(angle, dist, quality, start)
+    assert dec.bytes_dropped == 15
+
+
+def test_lost_bytes_resume_on_a_fresh_regular_run() -> None:
+    angle, dist, quality, start = sweep(200)
+    wire = proto.encode_standard_samples(angle, dist, quality, start)
+    data = wire[:500] + wire[512:]  # a serial overrun: 12 bytes (2.4 samples) lost
+    out = decode_all(proto.StandardScanDecoder(), data)
+    expected = expected_tuples(angle, dist, quality, start)
+    assert as_tuples(out) == expected[:100] + expected[103:]
+
+
+def test_decoder_never_raises_on_random_bytes() -> None:
+    rng = np.random.default_rng(7)
+    dec = proto.StandardScanDecoder()
+    data = rng.integers(0, 256, 20000, dtype=np.uint8).tobytes()
+    for i in range(0, len(data), 777):
+        dec.feed(data[i : i + 777])
+    dec.flush()
+    assert dec.bytes_dropped + 5 * dec.samples_decoded == len(data)
+    assert dec.samples_decoded < 10  # random bytes have no rhythm: almost nothing believed
+
+
+def test_standard_decoding_is_fast() -> None:
+    data = proto.encode_standard_samples(*sweep(2000))  # about 1 s of A1 data
+    best = min(_timed(lambda: proto.StandardScanDecoder().feed(data)) for _ in range(5))
+    assert best < 0.005
+
+
+def _timed(fn: Callable[[], object]) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+# --- express capsules ----------------------------------------------------------------
+
+
+def sdk_capsule_angles(capsule: bytes, next_capsule: bytes) -> list[float]:
+    """The Slamtec SDK's fixed-point recipe, written out sample by sample (scalar)."""
+    start = (capsule[2] | capsule[3] << 8) & 0x7FFF
+    nxt = (next_capsule[2] | next_capsule[3] << 8) & 0x7FFF
+    prev_q8, cur_q8 = start << 2, nxt << 2
+    diff_q8 = cur_q8 - prev_q8 + (360 << 8 if prev_q8 > cur_q8 else 0)
+    inc_q16 = diff_q8 << 3
+    raw_q16 = prev_q8 << 8
+    angles = []
+    for cabin in range(16):
+        c = capsule[4 + 5 * cabin : 9 + 5 * cabin]
+        d1, d2 = c[0] | c[1] << 8, c[2] | c[3] << 8
+        for dist_word, low in ((d1, c[4] & 0xF), (d2, c[4] >> 4)):
+            comp_q3 = low | (dist_word & 0x3) << 4
+            angle_q6 = (raw_q16 - (comp_q3 << 13)) >> 10
+            angles.append((angle_q6 % (360 << 6)) / 64.0)
+            raw_q16 += inc_q16
+    return angles
+
+
+def test_express_capsule_bytes_follow_the_spec() -> None:
+    dists = np.arange(32) * 100.0 + 7
+    comp = np.zeros(32)
+    comp[0] = 0.125  # q3 = 1: low nibble of the first offset byte
+    comp[1] = 2.5  # q3 = 20 = 0b010100: bit 4 rides in distance word 2, low nibble 4
+    cap = proto.encode_express_capsule(10.0, dists, comp, start=True)
+    assert len(cap) == 84
+    assert cap[0] >> 4 == 0xA and cap[1] >> 4 == 0x5
+    checksum = 0
+    for b in cap[2:]:
+        checksum ^= b
+    assert (cap[0] & 0xF) | (cap[1] & 0xF) << 4 == checksum
+    assert cap[2] | cap[3] << 8 == 640 | 0x8000  # 10° in q6, start flag in bit 15
+    d1 = cap[4] | cap[5] << 8
+    d2 = cap[6] | cap[7] << 8
+    assert (d1 >> 2, d1 & 3) == (7, 0)
+    assert (d2 >> 2, d2 & 3) == (107, 0b01)
+    assert cap[8] == (1 & 0xF) | (20 & 0xF) << 4
+
+
+def test_express_angles_are_interpolated_to_the_next_capsule_minus_compensation() -> None:
+    dists = np.full(32, 1000.0)
+    comp = np.zeros(32)
+    comp[3] = 1.0
+    comp[31] = 3.875
+    first = proto.encode_express_capsule(350.0, dists, comp, start=True)
+    second = proto.encode_express_capsule(6.0, dists)  # wraps: 16° later
+    third = proto.encode_express_capsule(22.0, dists)
+    dec = proto.ExpressScanDecoder()
+    assert len(dec.feed(first)) == 0  # needs the next start angle
+    out = dec.feed(second)
+    expected = [(350.0 + 0.5 * i - comp[i]) % 360.0 for i in range(32)]
+    assert out.angle_deg.tolist() == pytest.approx(expected, abs=1 / 64)
+    assert out.angle_deg.tolist() == sdk_capsule_angles(first, second)
+    assert out.angle_deg[3] == 350.5  # 351.5 - 1.0
+    assert out.angle_deg[31] == 1.625  # 350 + 15.5 - 3.875, past 360°
+    # the revolution starts at the first sample past 360°: 350 + 0.5 * 20 = 360
+    assert np.flatnonzero(out.start).tolist() == [20]
+    np.testing.assert_array_equal(out.dist_mm, 1000.0)
+    np.testing.assert_array_equal(out.quality, 1)
+    out = dec.feed(third)
+    assert out.angle_deg.tolist() == sdk_capsule_angles(second, third)
+    assert not out.start.any()
+    assert dec.capsules_decoded == 2
+
+
+def test_express_angle_by_hand() -> None:
+    # start 100°, next 116°: 0.5° a sample; sample 5 at 102.5°, compensation 0.375° (q3 3)
+    comp = np.zeros(32)
+    comp[5] = 0.375
+    a = proto.encode_express_capsule(100.0, np.full(32, 500.0), comp)
+    b = proto.encode_express_capsule(116.0, np.full(32, 500.0))
+    out = decode_all(proto.ExpressScanDecoder(), a + b)
+    assert out.angle_deg[5] == 102.125
+    assert out.angle_deg[6] == 103.0
+
+
+def test_negative_compensation_reads_as_signed_six_bits() -> None:
+    # q3 field 0b111111 = -1 (-0.125°) by the datasheet's signed reading
+    a = bytearray(proto.encode_express_capsule(100.0, np.full(32, 500.0)))
+    a[4] |= 0b11  # distance word 1 bits 0-1: compensation bits 4-5
+    a[8] |= 0x0F  # low nibble: compensation bits 0-3
+    cs = 0
+    for x in a[2:]:
+        cs ^= x
+    a[0] = 0xA0 | (cs & 0xF)
+    a[1] = 0x50 | (cs >> 4)
+    b = proto.encode_express_capsule(116.0, np.full(32, 500.0))
+    out = decode_all(proto.ExpressScanDecoder(), bytes(a) + b)
+    assert out.angle_deg[0] == 100.125
+    assert out.dist_mm[0] == 500.0
+
+
+def test_express_round_trip_through_compensation_helper() -> None:
+    rng = np.random.default_rng(3)
+    starts = [0.0, 16.0, 32.5, 48.0]
+    decoded = []
+    wanted = []
+    caps = b""
+    for k in range(3):
+        interp = starts[k] + np.arange(32) * (starts[k + 1] - starts[k]) / 32
+        target = np.rint((interp - rng.uniform(0, 3.5, 32)) * 64) / 64
+        comp = proto.express_compensation_deg(starts[k], starts[k + 1], target)
+        caps += proto.encode_express_capsule(starts[k], rng.integers(0, 16000, 32), comp)
+        wanted.append(target)
+    caps += proto.encode_express_capsule(starts[3], np.zeros(32))
+    out = decode_all(proto.ExpressScanDecoder(), caps)
+    decoded = out.angle_deg.reshape(3, 32)
+    np.testing.assert_allclose(decoded, np.array(wanted) % 360, atol=0.125 + 1 / 64)
+    with pytest.raises(ValueError, match=r"0\.\.3\.875"):
+        proto.express_compensation_deg(0.0, 16.0, np.arange(32) * 0.5 + 1.0)
+
+
+def test_express_encoder_refuses_what_decoders_disagree_on() -> None:
+    with pytest.raises(ValueError, match="compensation"):
+        proto.encode_express_capsule(0.0, np.zeros(32), np.full(32, -0.125))
+    with pytest.raises(ValueError, match="16383"):
+        proto.encode_express_capsule(0.0, np.full(32, 20000.0))
+    with pytest.raises(ValueError, match="32 distances"):
+        proto.encode_express_capsule(0.0, np.zeros(31))
+
+
+def express_stream(n_caps: int, step_deg: float = 16.0) -> list[bytes]:
+    """Capsules of a steadily turning head, the first with the start flag."""
+    return [
+        proto.encode_express_capsule((k * step_deg) % 360, np.arange(32) + 100 * k, start=k == 0)
+        for k in range(n_caps)
+    ]
+
+
+def test_express_stream_split_at_every_offset() -> None:
+    caps = express_stream(5)
+    data = b"\x13\x37" + b"".join(caps)
+    reference = as_tuples(decode_all(proto.ExpressScanDecoder(), data))
+    assert len(reference) == 4 * 32
+    for cut in range(len(data) + 1):
+        dec = proto.ExpressScanDecoder()
+        parts = [dec.feed(data[:cut]), dec.feed(data[cut:]), dec.flush()]
+        assert as_tuples(proto.DecodedSamples.concat(parts)) == reference, cut
+
+
+def test_express_garbage_costs_the_capsule_before_it() -> None:
+    caps = express_stream(8)
+    rng = np.random.default_rng(9)
+    junk = rng.integers(0, 256, 50, dtype=np.uint8).tobytes()
+    # garbage after capsule 2: capsule 2 cannot be interpolated (like the SDK, it is lost)
+    data = b"".join(caps[:3]) + junk + b"".join(caps[3:])
+    dec = proto.ExpressScanDecoder()
+    out = decode_all(dec, data)
+    clean = decode_all(proto.ExpressScanDecoder(), b"".join(caps)).angle_deg.reshape(7, 32)
+    got = out.angle_deg.reshape(-1, 32)
+    np.testing.assert_array_equal(got, np.concatenate([clean[:2], clean[3:]]))
+    assert dec.bytes_dropped == 50
+    assert dec.capsules_discarded == 2  # capsule 2, and the last one (no successor)
+
+
+def test_express_corrupted_capsule_is_dropped_and_descriptor_skipped() -> None:
+    caps = express_stream(6)
+    bad = bytearray(caps[3])
+    bad[40] ^= 0x01  # checksum no longer matches
+    data = proto.EXPRESS_DESCRIPTOR.encode() + b"".join(caps[:3]) + bytes(bad) + b"".join(caps[4:])
+    dec = proto.ExpressScanDecoder()
+    out = decode_all(dec, data)
+    assert dec.descriptors_skipped == 1
+    assert dec.bytes_dropped == 84
+    assert len(out) == 2 * 32 + 32  # capsules 0, 1 and 4
+    assert dec.capsules_decoded == 3
+
+
+def test_express_start_flag_begins_a_new_scan() -> None:
+    caps = express_stream(3)
+    restart = proto.encode_express_capsule(200.0, np.zeros(32), start=True)
+    more = proto.encode_express_capsule(216.0, np.zeros(32))
+    dec = proto.ExpressScanDecoder()
+    out = decode_all(dec, b"".join(caps) + restart + more)
+    # capsule 2 had no successor in its scan; the new scan's first capsule decodes
+    assert len(out) == 3 * 32
+    assert out.angle_deg[64] == 200.0
+
+
+def test_express_decoder_survives_random_bytes() -> None:
+    rng = np.random.default_rng(11)
+    dec = proto.ExpressScanDecoder()
+    data = rng.integers(0, 256, 50000, dtype=np.uint8).tobytes()
+    for i in range(0, len(data), 1000):
+        dec.feed(data[i : i + 1000])
+    dec.flush()
+    assert dec.bytes_dropped + 84 * (dec.capsules_decoded + dec.capsules_discarded) >= len(data) - 84
+    assert dec.samples_decoded == 0
+
+
+def test_express_decoding_is_fast() -> None:
+    caps = express_stream(126, step_deg=360 / (4000 / 5.5) * 32)  # about 1 s of data
+    data = b"".join(caps)
+    best = min(_timed(lambda: proto.ExpressScanDecoder().feed(data)) for _ in range(5))
+    assert best < 0.005

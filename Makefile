@@ -5,6 +5,10 @@
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV ?= .venv
 BIN = $(VENV)/bin
+# Real data for tests and benchmarks (mazes, pose graphs, a laser log) lives outside the
+# repository; tests that need it skip with a reason when it cannot be found.
+MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data))
+export MAZEBOT_DATA
 
 .PHONY: run test lint clean
 

@@ -55,7 +55,9 @@ class ProtocolError(MazebotError):
 def serial_port_hint(port: str, error: BaseException) -> str:
     """One line explaining why ``port`` could not be opened and how to fix the usual causes."""
     reason = getattr(error, "strerror", None) or str(error) or type(error).__name__
-    hint = "check the USB cable"
+    dialout = "add your user to the 'dialout' group (sudo usermod -aG dialout $USER, then log in again)"
     if os.path.exists(port):
-        hint = "add your user to the 'dialout' group (sudo usermod -aG dialout $USER, then log in again)"
+        hint = dialout
+    else:
+        hint = f"check the USB cable and [lidar] port; once the device appears, {dialout} if it is refused"
     return f"lidar serial port {port} cannot be opened ({reason}); {hint}"

@@ -152,6 +152,7 @@ class RPLidar:
         self._last_time_s = -math.inf  # time stamp of the last sample
         self._dropped_before = 0  # bytes dropped by decoders of earlier scans
         self._decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder | None = None
+        self._revolutions_cut = 0  # numbers the revolutions (Scan.revolution)
 
     @classmethod
     def from_config(
@@ -435,6 +436,7 @@ class RPLidar:
                     times = self._stamp(len(samples), now_s, stamped_until_s)
                     stamped_until_s = now_s
                     for scan in revolution.add(samples, times):
+                        self.stats.revolutions += 1
                         yield scan
             if not batch:
                 batch_since_s = now_s
@@ -550,8 +552,8 @@ class _RevolutionBuilder:
         samples = DecodedSamples.concat(self._samples)
         times = np.concatenate(self._times) if self._times else np.empty(0)
         self._discard()
-        number = self._lidar.stats.revolutions
-        self._lidar.stats.revolutions += 1
+        number = self._lidar._revolutions_cut
+        self._lidar._revolutions_cut += 1
         return self._lidar.to_scan(samples, times, number)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -14,8 +15,18 @@ from mazebot.state import SharedState
 STATE_KEY = web.AppKey("state", SharedState)
 STATIC_DIR_KEY = web.AppKey("static_dir", Path)
 
-#: The page and its assets: the repository's ``static/`` folder.
-DEFAULT_STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
+
+
+def find_static_dir() -> Path:
+    """The page and its assets: the repository's ``static/`` folder in a checkout, or the
+    copy ``pip install`` puts under ``<prefix>/share/mazebot/static``."""
+    checkout = Path(__file__).resolve().parents[2] / "static"
+    if (checkout / "index.html").is_file():
+        return checkout
+    return Path(sys.prefix) / "share" / "mazebot" / "static"
+
+
+DEFAULT_STATIC_DIR = find_static_dir()
 
 
 def status_json(state: SharedState) -> dict[str, Any]:

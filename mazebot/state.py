@@ -16,7 +16,10 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from mazebot.io.scan import Scan
+    from mazebot.slam.grid import OccupancyGrid
     from mazebot.slam.odometry import OdometryPose
 
 
@@ -77,6 +80,15 @@ class SharedState:
     throttle_command: tuple[float, float, float] | None = None
     #: recent lateness of control ticks beyond their period, milliseconds
     control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+    # --- written by SLAM ---------------------------------------------------------------
+    map: OccupancyGrid | None = None  # the live occupancy grid, in the map frame (the start pose)
+    pose_covariance: np.ndarray | None = None  # 3x3 covariance of (x_m, y_m, theta_rad)
+    trajectory: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=2000))
+    scan_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))  # SLAM time per scan
+    # --- written by the planner --------------------------------------------------------
+    path: list[tuple[float, float]] = field(default_factory=list)  # planned waypoints, map frame
+    goal: tuple[float, float] | None = None  # the current exploration goal, map frame
+    coverage: float | None = None  # fraction of the maze the map knows, when the planner can tell
 
     def raise_fault(self, source: str, message: str, time_s: float) -> None:
         """Record a fault and move to FAULT. Motors are the supervisor's job, not this."""

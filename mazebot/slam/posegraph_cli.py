@@ -1,8 +1,10 @@
 """``mazebot posegraph optimize``: optimize a g2o 2D pose graph from the command line.
 
-Reads ``IN.g2o``, runs ``PoseGraph.optimize`` and prints what it did; ``--out`` writes the
-optimized graph (atomically) in the same format, keeping vertex ids, edges and ``FIX``
-lines. ``--json`` prints one JSON object instead of text, for scripts and benchmarks.
+Reads ``IN.g2o``, runs ``PoseGraph.optimize`` and prints one JSON line
+``{"poses", "edges", "chi2_initial", "chi2_final", "iterations", "seconds", ...}``
+(chi2 = sum of squared Mahalanobis residuals); ``--text`` prints two human lines
+instead. ``--out`` writes the optimized graph (atomically) in the same format, keeping
+vertex ids, edges and ``FIX`` lines.
 
 Example::
 
@@ -44,14 +46,14 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
         "edges": graph.edge_count,
         "fixed": fixed_ids,
         "method": result.method,
-        "chi2_before": result.chi2_before,
-        "chi2_after": result.chi2_after,
+        "chi2_initial": result.chi2_before,
+        "chi2_final": result.chi2_after,
         "iterations": result.iterations,
         "linear_solves": result.linear_solves,
         "converged": result.converged,
         "seconds": result.seconds,
     }
-    if args.json:
+    if not args.text:
         print(json.dumps(report))
         return EXIT_OK
     status = "converged" if result.converged else f"not converged after {args.iterations} iterations"
@@ -88,5 +90,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     optimize.add_argument(
         "--iterations", type=_positive_int, default=50, metavar="N", help="at most N linearizations (default 50)"
     )
-    optimize.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    output = optimize.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true", help="print one JSON line (the default)")
+    output.add_argument("--text", action="store_true", help="print two human-readable lines instead of JSON")
     optimize.set_defaults(func=_cmd_optimize)

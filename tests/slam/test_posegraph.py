@@ -347,15 +347,24 @@ def test_cli_optimize_prints_json_and_writes_the_graph(tmp_path: Path, capsys: p
     report = json.loads(capsys.readouterr().out)
     assert report["poses"] == len(graph) and report["edges"] == graph.edge_count
     assert report["method"] == "gn" and report["converged"] is True
-    assert report["chi2_after"] < report["chi2_before"]
+    assert report["chi2_final"] < report["chi2_initial"]
     assert {"iterations", "seconds", "linear_solves", "fixed", "output"} <= report.keys()
-    assert read_g2o(out).chi2() == pytest.approx(report["chi2_after"], rel=1e-9)
+    assert read_g2o(out).chi2() == pytest.approx(report["chi2_final"], rel=1e-9)
+
+
+def test_cli_prints_one_json_line_by_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    source = tmp_path / "three.g2o"
+    write_g2o(three_pose_graph(), source)
+    assert run_cli(["posegraph", "optimize", str(source)]) == EXIT_OK
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1
+    assert {"poses", "edges", "chi2_initial", "chi2_final", "iterations", "seconds"} <= json.loads(lines[0]).keys()
 
 
 def test_cli_text_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     source = tmp_path / "three.g2o"
     write_g2o(three_pose_graph(), source)
-    assert run_cli(["posegraph", "optimize", str(source), "--iterations", "5"]) == EXIT_OK
+    assert run_cli(["posegraph", "optimize", str(source), "--iterations", "5", "--text"]) == EXIT_OK
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"{source}: 3 poses, 3 edges, fixed [0]"
     assert lines[1].startswith("lm: chi2 ") and " iterations " in lines[1]

@@ -45,6 +45,31 @@ All per-edge work is vectorized over the edges with numpy. The sparsity pattern 
 are computed once per ``optimize`` call, so an iteration is: residuals and Jacobians
 (batched 3x3 products), one ``np.bincount`` scatter, one SuperLU factorization.
 
+Initialization from a poor guess (``initialize_orientations``, or
+``optimize(initialize="orientations")``): LM only finds the minimum of the basin it
+starts in, and a wrong heading early in a trajectory bends everything after it, so from
+a poor initial guess it can stall in a local minimum far above the optimum. Orientations
+are the non-convex part of the problem; given them, positions are a linear
+least-squares problem. So, as in the rotation initialization surveyed by Carlone, Tron,
+Daniilidis & Dellaert, "Initialization techniques for 3D SLAM: a survey on rotation
+estimation and its use in pose graph optimization", ICRA 2015, and in its planar
+ancestor LAGO (Carlone, Aragues, Castellanos & Bona, "A fast and accurate approximation
+for planar pose graph optimization", IJRR 33(7), 2014):
+
+1. headings alone: every edge says ``θ_j - θ_i = z_θ + 2π k_ij`` for an unknown
+   integer ``k_ij``. Headings composed along a spanning tree (breadth-first from the
+   fixed vertices, only measured rotations) fix every ``k_ij``: tree edges get 0, every
+   other edge the multiple of 2π that brings its residual along the tree nearest to 0.
+   With the ``k_ij`` known the problem is linear, ``min Σ w_ij (θ_j - θ_i - z_θ - 2π k_ij)²``
+   over unwrapped reals, a weighted graph Laplacian solved sparse; ``w_ij`` is the
+   rotation's marginal information ``1 / Σ_θθ = Ω_θθ - Ω_θtᵀ Ω_tt⁺ Ω_tθ`` (``Ω_θθ`` for
+   the usual block-diagonal ``Ω``);
+2. positions given those headings: ``e_ij`` is then affine in the translations, so the
+   ``chi2`` minimizer over all translations is one sparse linear solve (each edge adds
+   ``K = R(θ_i + z_θ) Ω_tt R(θ_i + z_θ)ᵀ`` to a block Laplacian);
+3. LM (or GN) from there corrects what the linear steps neglect (the coupling of heading
+   and position errors).
+
 Example::
 
     graph = PoseGraph()
@@ -64,22 +89,25 @@ from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
-from scipy.sparse import csc_matrix, csgraph
+from scipy.sparse import csc_matrix, csgraph, csr_matrix
 from scipy.sparse.linalg import splu
 
 from mazebot.errors import UsageError
 
 __all__ = [
     "Edge",
+    "InitializeResult",
     "OptimizeResult",
     "PoseGraph",
     "PoseGraphError",
     "compose",
     "edge_jacobians",
     "edge_residuals",
+    "estimate_headings",
     "invalid_information",
     "inverse",
     "relative_pose",
+    "rotation_information",
     "wrap_angle",
 ]
 
@@ -253,6 +281,23 @@ class OptimizeResult:
     seconds: float
     linear_solves: int = 0
     method: str = "lm"
+    initialize: str = "none"
+    chi2_initialized: float | None = None  # chi2 after the initialization, before the first iteration
+    initialize_seconds: float = 0.0  # part of ``seconds``
+
+
+@dataclass(frozen=True)
+class InitializeResult:
+    """What one ``PoseGraph.initialize_orientations`` call did.
+
+    ``wrapped_edges`` counts the edges whose heading constraint the spanning tree moved
+    by a non-zero multiple of 2π.
+    """
+
+    chi2_before: float
+    chi2_after: float
+    seconds: float
+    wrapped_edges: int
 
 
 class PoseGraph:
@@ -452,6 +497,7 @@ class PoseGraph:
         relative_tolerance: float = 1e-6,
         step_tolerance: float = 1e-10,
         initial_damping: float = 1e-5,
+        initialize: Literal["none", "orientations"] = "none",
     ) -> OptimizeResult:
         """Move the poses to a (local) minimum of ``chi2``; updates ``vertices`` in place.
 
@@ -464,29 +510,47 @@ class PoseGraph:
         ``step_tolerance`` (m, rad), or after ``max_iterations`` linearizations.
         ``initial_damping`` is LM's first ``λ`` (units of ``H``).
 
+        ``initialize="orientations"`` first replaces the initial guess by
+        ``initialize_orientations`` (headings, then positions, by linear least squares;
+        see the module docstring); use it when the initial guess may be poor. Its time
+        is part of ``seconds``; ``chi2_before`` stays the cost of the poses as given and
+        ``chi2_initialized`` is the cost after the initialization.
+
         Raises ``PoseGraphError`` for bad arguments or a part of the graph that no fixed
         vertex anchors (its poses would be undetermined).
         """
         if method not in ("lm", "gn"):
             raise PoseGraphError(f"method must be 'lm' or 'gn', got {method!r}")
+        if initialize not in ("none", "orientations"):
+            raise PoseGraphError(f"initialize must be 'none' or 'orientations', got {initialize!r}")
         if max_iterations < 0:
             raise PoseGraphError(f"max_iterations must be >= 0, got {max_iterations}")
         if not (relative_tolerance >= 0.0 and step_tolerance >= 0.0 and initial_damping > 0.0):
             raise PoseGraphError("tolerances must be >= 0 and initial_damping > 0")
         start_s = time.perf_counter()
-        anchors = sorted(self.fixed) if fixed is None else sorted({int(v) for v in fixed})
-        if not anchors and len(self):
-            anchors = [0]
+        anchors = self._anchors(fixed)
         system = _NormalEquations(self, anchors)
         x = self.vertices.copy()
         chi2_before = system.chi2(x)
-        if system.variable_count == 0 or max_iterations == 0 or chi2_before == 0.0:
-            return OptimizeResult(0, chi2_before, chi2_before, True, time.perf_counter() - start_s, 0, method)
+        chi2_start = chi2_before
+        chi2_initialized = None
+        initialize_s = 0.0
+        if initialize == "orientations" and system.variable_count and chi2_before > 0.0:
+            init_start_s = time.perf_counter()
+            x, _ = _initial_guess(x, system, anchors)
+            chi2_start = chi2_initialized = system.chi2(x)
+            initialize_s = time.perf_counter() - init_start_s
+        if system.variable_count == 0 or max_iterations == 0 or chi2_start == 0.0:
+            self.vertices = x
+            seconds = time.perf_counter() - start_s
+            return OptimizeResult(
+                0, chi2_before, chi2_start, True, seconds, 0, method, initialize, chi2_initialized, initialize_s
+            )
         settings = _Settings(max_iterations, relative_tolerance, step_tolerance, initial_damping)
         if method == "gn":
-            outcome = system.gauss_newton(x, chi2_before, settings)
+            outcome = system.gauss_newton(x, chi2_start, settings)
         else:
-            outcome = system.levenberg_marquardt(x, chi2_before, settings)
+            outcome = system.levenberg_marquardt(x, chi2_start, settings)
         self.vertices = outcome.vertices
         return OptimizeResult(
             iterations=outcome.iterations,
@@ -496,7 +560,255 @@ class PoseGraph:
             seconds=time.perf_counter() - start_s,
             linear_solves=outcome.linear_solves,
             method=method,
+            initialize=initialize,
+            chi2_initialized=chi2_initialized,
+            initialize_seconds=initialize_s,
         )
+
+    def initialize_orientations(self, fixed: Sequence[int] | None = None) -> InitializeResult:
+        """Replace the poses by a fresh initial guess built from the measurements alone.
+
+        Headings first (linear least squares over the angles, unwrapped along a
+        breadth-first spanning tree from the fixed vertices), then positions given those
+        headings (linear least squares); the method is in the module docstring. Only
+        the fixed vertices' poses are read from the current guess; they do not move.
+        ``fixed`` as in ``optimize``. Follow with ``optimize()`` to reach the optimum.
+
+        Raises ``PoseGraphError`` for a part of the graph that no fixed vertex anchors,
+        or if the translations are not determined by the edges' information.
+        """
+        start_s = time.perf_counter()
+        anchors = self._anchors(fixed)
+        system = _NormalEquations(self, anchors)  # checks the anchors and the connectivity
+        x = self.vertices.copy()
+        chi2_before = system.chi2(x)
+        if system.variable_count == 0 or len(system.edge_i) == 0:
+            return InitializeResult(chi2_before, chi2_before, time.perf_counter() - start_s, 0)
+        x, turns = _initial_guess(x, system, anchors)
+        self.vertices = x
+        seconds = time.perf_counter() - start_s
+        return InitializeResult(chi2_before, system.chi2(x), seconds, int(np.count_nonzero(turns)))
+
+    def _anchors(self, fixed: Sequence[int] | None) -> list[int]:
+        """The vertices held in place: ``fixed``, else the graph's ``fixed`` set, else vertex 0."""
+        anchors = sorted(self.fixed) if fixed is None else sorted({int(v) for v in fixed})
+        if not anchors and len(self):
+            anchors = [0]
+        return anchors
+
+
+# --------------------------------------------------------------------------- initialization
+
+
+def rotation_information(information: FloatArray) -> FloatArray:
+    """Information of each edge's rotation alone, shape (M,): ``1 / Σ_θθ = Ω_θθ - Ω_θtᵀ Ω_tt⁺ Ω_tθ``.
+
+    The Schur complement of the translation block: what the edge says about the heading
+    once its translation is left free. It is ``Ω_θθ`` when ``Ω`` is block diagonal (the
+    usual case); 0 for an edge that measures no rotation.
+    """
+    weight = information[:, 2, 2].copy()
+    cross = information[:, :2, 2]
+    coupled = np.flatnonzero(np.any(cross != 0.0, axis=1))
+    if len(coupled):
+        pinv = np.linalg.pinv(information[coupled][:, :2, :2])
+        weight[coupled] -= np.einsum("mi,mij,mj->m", cross[coupled], pinv, cross[coupled])
+    scale = np.max(np.abs(information), axis=(1, 2)) if len(information) else np.zeros(0)
+    weight[weight <= 1e-12 * scale] = 0.0  # round-off of an edge without rotation information
+    return weight
+
+
+def _roots(vertex_count: int, edge_i: IntArray, edge_j: IntArray, anchors: Sequence[int]) -> IntArray:
+    """The anchors plus the first vertex of every connected part (of these edges) without one, sorted."""
+    adjacency = csr_matrix((np.ones(len(edge_i)), (edge_i, edge_j)), shape=(vertex_count, vertex_count))
+    _, labels = csgraph.connected_components(adjacency, directed=False)
+    anchored = np.zeros(labels.max() + 1, dtype=bool)
+    anchored[labels[list(anchors)]] = True
+    _, first = np.unique(labels, return_index=True)
+    return np.union1d(np.asarray(anchors, dtype=np.intp), first[~anchored]).astype(np.intp)
+
+
+def _in_order(vertices: IntArray, order: IntArray | None) -> IntArray:
+    """``vertices`` sorted by their position in the elimination ``order`` (those not in it last); as given if None."""
+    if order is None:
+        return vertices
+    rank = np.full(int(max(vertices.max(initial=-1), order.max(initial=-1))) + 1, len(order), dtype=np.intp)
+    rank[order] = np.arange(len(order))
+    return vertices[np.argsort(rank[vertices], kind="stable")]
+
+
+def _solve_spd(matrix: csr_matrix, rhs: FloatArray, ordered: bool) -> FloatArray | None:
+    """Solve a sparse symmetric positive definite system with diagonal pivots; None if singular.
+
+    ``ordered``: the rows are already in a fill-reducing order; otherwise SuperLU's
+    minimum degree orders them.
+    """
+    try:
+        factor = splu(
+            csc_matrix(matrix),
+            permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+    except RuntimeError:  # "Factor is exactly singular"
+        return None
+    solution = factor.solve(rhs)
+    return solution if np.all(np.isfinite(solution)) else None
+
+
+def estimate_headings(
+    vertex_count: int,
+    edge_i: IntArray,
+    edge_j: IntArray,
+    rotations: FloatArray,
+    weights: FloatArray,
+    anchors: Sequence[int],
+    poses: FloatArray,
+    order: IntArray | None = None,
+) -> tuple[FloatArray, IntArray]:
+    """Headings from the relative rotations alone: ``(θ (N,) unwrapped, k (M,) turns per edge)``.
+
+    Step 1 of the initialization (module docstring). ``rotations`` are the edges'
+    measured ``z_θ`` (rad), ``weights`` their rotation information (1/rad², 0 = edge
+    ignored, see ``rotation_information``). The anchors keep their heading from
+    ``poses``; so does the first vertex of any part of the graph that the weighted
+    edges do not join to an anchor (it is the gauge of that part). Every other pose's
+    heading is the weighted least-squares solution of ``θ_j - θ_i = z_θ + 2π k_ij``,
+    where ``k_ij`` makes the edge agree, to within π, with the headings composed
+    along a breadth-first spanning tree from the anchors; the tree edges get ``k = 0``.
+    ``order`` is a fill-reducing elimination order of the vertices for the sparse
+    solve (default: minimum degree, computed here).
+    """
+    used = weights > 0.0
+    ui, uj, uz, uw = edge_i[used], edge_j[used], rotations[used], weights[used]
+    roots = _roots(vertex_count, ui, uj, anchors)
+
+    # breadth-first tree from a virtual vertex S joined to every root, so a forest of several anchors is one tree
+    s = vertex_count
+    rows = np.concatenate((ui, np.full(len(roots), s)))
+    cols = np.concatenate((uj, roots))
+    adjacency = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(s + 1, s + 1))
+    _, parent = csgraph.breadth_first_order(adjacency, s, directed=False, return_predecessors=True)
+    parent[s] = s
+    # the edge behind each tree link (parent, child): of parallel edges, the one with the most rotation information
+    key = np.minimum(ui, uj).astype(np.int64) * vertex_count + np.maximum(ui, uj)
+    by_key = np.lexsort((-uw, key))
+    child = np.flatnonzero(parent[:s] != s)
+    link = np.minimum(parent[child], child).astype(np.int64) * vertex_count + np.maximum(parent[child], child)
+    edge = by_key[np.searchsorted(key[by_key], link)]
+    # climb[v]: heading of v minus heading of up[v]; pointer jumping sums the tree path in log2(depth) passes
+    climb = np.zeros(s + 1)
+    climb[child] = np.where(ui[edge] == parent[child], uz[edge], -uz[edge])
+    climb[roots] = poses[roots, 2]
+    up = parent
+    while np.any(up != s):
+        climb = climb + climb[up]
+        up = up[up]
+    tree = climb[:s]
+
+    turns = np.zeros(len(edge_i), dtype=np.intp)
+    turns_used = np.round((tree[uj] - tree[ui] - uz) / TWO_PI).astype(np.intp)
+    turns[used] = turns_used
+    target = uz + TWO_PI * turns_used
+    free = np.ones(vertex_count, dtype=bool)
+    free[roots] = False
+    free_index = _in_order(np.flatnonzero(free), order)
+    headings = tree.copy()
+    if len(free_index) == 0:
+        return headings, turns
+    # weighted graph Laplacian Σ w (e_j - e_i)(e_j - e_i)ᵀ and right side Σ w target (e_j - e_i)
+    laplacian = csr_matrix(
+        (np.concatenate((uw, uw, -uw, -uw)), (np.concatenate((ui, uj, ui, uj)), np.concatenate((ui, uj, uj, ui)))),
+        shape=(vertex_count, vertex_count),
+    )
+    rhs = np.bincount(uj, uw * target, vertex_count) - np.bincount(ui, uw * target, vertex_count)
+    free_rows = laplacian[free_index]
+    solution = _solve_spd(
+        free_rows[:, free_index], rhs[free_index] - free_rows[:, roots] @ tree[roots], order is not None
+    )
+    if solution is None:  # cannot happen: every part holds a fixed root, so the reduced Laplacian is definite
+        raise PoseGraphError("the heading system is singular")
+    headings[free_index] = solution
+    return headings, turns
+
+
+def _positions_given_headings(
+    poses: FloatArray,
+    headings: FloatArray,
+    edge_i: IntArray,
+    edge_j: IntArray,
+    measurements: FloatArray,
+    information: FloatArray,
+    anchors: Sequence[int],
+    order: IntArray | None = None,
+) -> FloatArray:
+    """Step 2 of the initialization: the translations minimizing ``chi2`` for fixed headings; returns new poses.
+
+    With ``θ`` fixed, ``e_t = G (t_j - t_i) - g`` with ``G = R(θ_i + z_θ)ᵀ`` and
+    ``g = R(z_θ)ᵀ z_t``, and ``e_θ = c`` is a constant, so an edge's cost
+    ``e_tᵀ Ω_tt e_t + 2 c e_tᵀ Ω_tθ + const`` has the normal equations
+    ``K (t_j - t_i) = Gᵀ (Ω_tt g - c Ω_tθ)`` with ``K = Gᵀ Ω_tt G``, assembled into a
+    2N x 2N block Laplacian. The anchors (and the first vertex of any part that the
+    translation-measuring edges leave unanchored) keep their positions.
+    """
+    vertex_count = len(poses)
+    used = np.any(information[:, :2, :2] != 0.0, axis=(1, 2))
+    ei, ej, z, omega = edge_i[used], edge_j[used], measurements[used], information[used]
+    omega_tt = omega[:, :2, :2]
+    omega_tq = omega[:, :2, 2]
+    roots = _roots(vertex_count, ei, ej, anchors)
+    phi = headings[ei] + z[:, 2]
+    rot = np.empty((len(ei), 2, 2))  # Gᵀ = R(θ_i + z_θ)
+    rot[:, 0, 0] = rot[:, 1, 1] = np.cos(phi)
+    rot[:, 1, 0] = np.sin(phi)
+    rot[:, 0, 1] = -rot[:, 1, 0]
+    block = rot @ omega_tt @ rot.transpose(0, 2, 1)
+    cos_z = np.cos(z[:, 2])
+    sin_z = np.sin(z[:, 2])
+    g = np.column_stack((cos_z * z[:, 0] + sin_z * z[:, 1], -sin_z * z[:, 0] + cos_z * z[:, 1]))
+    angle_error = wrap_angle(headings[ej] - headings[ei] - z[:, 2])
+    pull = np.einsum("mij,mj->mi", rot, np.einsum("mij,mj->mi", omega_tt, g) - angle_error[:, None] * omega_tq)
+
+    two = np.arange(2)
+    first = np.stack((ei, ej, ei, ej))[:, :, None, None]
+    second = np.stack((ei, ej, ej, ei))[:, :, None, None]
+    rows = np.broadcast_to(2 * first + two[:, None], (4, len(ei), 2, 2))
+    cols = np.broadcast_to(2 * second + two, (4, len(ei), 2, 2))
+    values = np.array([1.0, 1.0, -1.0, -1.0])[:, None, None, None] * block
+    size = 2 * vertex_count
+    matrix = csr_matrix((values.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(size, size))
+    rhs = np.bincount((2 * ej[:, None] + two).reshape(-1), pull.reshape(-1), size) - np.bincount(
+        (2 * ei[:, None] + two).reshape(-1), pull.reshape(-1), size
+    )
+    fixed_vars = (2 * roots[:, None] + two).reshape(-1)
+    free = np.ones(vertex_count, dtype=bool)
+    free[roots] = False
+    free_vars = (2 * _in_order(np.flatnonzero(free), order)[:, None] + two).reshape(-1)
+    translations = poses[:, :2].reshape(-1).copy()
+    if len(free_vars):
+        free_rows = matrix[free_vars]
+        reduced_rhs = rhs[free_vars] - free_rows[:, fixed_vars] @ translations[fixed_vars]
+        solution = _solve_spd(free_rows[:, free_vars], reduced_rhs, order is not None)
+        if solution is None:
+            raise PoseGraphError(
+                "the edges' translation information does not determine every position; cannot initialize"
+            )
+        translations[free_vars] = solution
+    out = np.column_stack((translations.reshape(vertex_count, 2), wrap_angle(headings)))
+    out[list(anchors)] = poses[list(anchors)]
+    return out
+
+
+def _initial_guess(poses: FloatArray, system: _NormalEquations, anchors: Sequence[int]) -> tuple[FloatArray, IntArray]:
+    """Headings, then positions, from the measurements (module docstring): ``(new poses (N, 3), turns k (M,))``.
+
+    Both sparse solves reuse the optimizer's fill-reducing order of the free poses.
+    """
+    edge_i, edge_j, z, omega = system.edge_i, system.edge_j, system.measurements, system.information
+    weights = rotation_information(omega)
+    order = system.permuted_free
+    headings, turns = estimate_headings(len(poses), edge_i, edge_j, z[:, 2], weights, anchors, poses, order)
+    return _positions_given_headings(poses, headings, edge_i, edge_j, z, omega, anchors, order), turns
 
 
 # --------------------------------------------------------------------------- linear system

@@ -199,6 +199,22 @@ class WebConfig(Section):
 
     host: str = Field("0.0.0.0", description="interface to bind; 127.0.0.1 keeps it local")
     port: int = Field(8080, ge=1, le=65535, description="TCP port of the web page")
+    broadcast_hz: float = Field(5.0, gt=0, le=30, description="websocket packets per second at most (only on change)")
+    resync_every: int = Field(50, ge=2, le=10000, description="every this many packets is a full map (periodic resync)")
+    view_open: bool = Field(True, description="anyone on the network may watch; false: watching needs the token too")
+    control_token: str = Field(
+        "", description="PIN/token for start and stop; empty: generated on first start, kept in the state dir"
+    )
+    allowed_origins: list[str] = Field(
+        default_factory=list,
+        description="extra browser origins allowed besides the page's own, e.g. \"http://robot.local:8080\"",
+    )
+    send_queue_packets: int = Field(
+        8, ge=2, le=1000, description="packets queued per viewer; a viewer further behind gets a full map instead"
+    )
+    max_message_bytes: int = Field(4096, ge=256, le=1 << 20, description="largest message a viewer may send")
+    heartbeat_s: float = Field(10.0, gt=0.5, le=300, description="websocket ping and heartbeat period; dead ones close")
+    trail_points: int = Field(1000, ge=0, le=100000, description="trajectory points a new viewer gets (the tail)")
 
 
 class SimConfig(Section):
@@ -241,6 +257,123 @@ class SimConfig(Section):
     lidar_dropout: float = Field(0.02, ge=0, lt=1, description="probability that a sample has no return")
 
 
+class SlamConfig(Section):
+    """SLAM: scan preparation, odometry filter, ICP, keyframes, loop closure, occupancy grid."""
+
+    scan_queue_size: int = Field(2, ge=1, le=32, description="revolutions waiting for SLAM; the oldest is dropped")
+    odometry_history_s: float = Field(
+        3.0, ge=0.5, le=60, description="odometry kept for de-skew and the filter (time-stamped poses)"
+    )
+    # scan preparation
+    max_range_m: float = Field(
+        8.0, gt=0.2, le=40, description="farther returns only clear space (never matched, never a wall)"
+    )
+    median_window: int = Field(3, ge=1, le=15, description="samples in the running median of impulse rejection (odd)")
+    impulse_abs_m: float = Field(
+        0.05, ge=0, description="a sample this far plus impulse_rel from its median is a spike"
+    )
+    impulse_rel: float = Field(0.05, ge=0, description="relative part of the spike threshold")
+    voxel_m: float = Field(0.025, gt=0.001, le=0.5, description="point spacing of a scan for matching")
+    # odometry filter (EKF)
+    odom_var_xy_m2_per_m: float = Field(
+        4e-4, gt=0, description="odometry position variance growth per metre travelled (each axis)"
+    )
+    odom_var_theta_rad2_per_m: float = Field(1e-4, gt=0, description="odometry heading variance per metre travelled")
+    odom_var_theta_rad2_per_rad: float = Field(
+        2.5e-3, gt=0, description="odometry heading variance per radian turned"
+    )
+    odom_calibration: bool = Field(
+        True, description="learn the odometry's heading bias (unequal wheels, track width) from scan matches"
+    )
+    odom_calibration_memory_scans: float = Field(
+        1000.0, ge=10, description="scans the heading calibration remembers (exponential forgetting)"
+    )
+    lidar_time_offset_s: float = Field(
+        0.0, ge=-0.05, le=0.1, description="how late the lidar's time stamps are against the odometry's (start value)"
+    )
+    estimate_time_offset: bool = Field(
+        True, description="learn that offset online from how scan matches disagree with odometry when turns start"
+    )
+    filter_gate_chi2: float = Field(
+        16.27, gt=0, description="refuse a scan match this unlikely under the prediction (chi2, 3 dof)"
+    )
+    # scan matching (ICP)
+    icp_max_iterations: int = Field(150, ge=1, le=1000, description="ICP iterations at most")
+    icp_converged_m: float = Field(0.01, gt=0, description="ICP converged: last step below this ...")
+    icp_converged_rad: float = Field(0.01, gt=0, description="... and below this rotation")
+    icp_stop_m: float = Field(5e-4, gt=0, description="ICP refines until its step is below this ...")
+    icp_stop_rad: float = Field(5e-4, gt=0, description="... and this rotation")
+    icp_max_correspondence_m: float = Field(0.3, gt=0, description="first distance gate of ICP correspondences")
+    icp_min_correspondence_m: float = Field(0.05, gt=0, description="the adaptive gate never shrinks below this")
+    icp_degeneracy_ratio: float = Field(
+        0.02, ge=0, lt=1, description="eigenvalue ratio below which a direction counts as unobservable"
+    )
+    icp_min_fitness: float = Field(0.5, ge=0, le=1, description="share of points matched for the filter to use a match")
+    icp_information_scale: float = Field(
+        0.5, gt=0, le=1, description="scale of ICP's information matrix (ICP is optimistic about itself)"
+    )
+    normal_neighbours: int = Field(10, ge=3, le=50, description="neighbours for surface normals")
+    normal_radius_m: float = Field(0.1, gt=0, description="neighbours farther than this do not count for a normal")
+    # keyframes, local submap, pose graph
+    keyframe_distance_m: float = Field(0.10, gt=0, description="a scan becomes a keyframe after this much travel ...")
+    keyframe_angle_rad: float = Field(0.15, gt=0, description="... or this much turn")
+    submap_keyframes: int = Field(20, ge=1, le=500, description="recent keyframes in the local submap ICP matches")
+    submap_radius_m: float = Field(
+        0.5, ge=0, description="older keyframes this close to the robot join the local submap (0: only recent ones)"
+    )
+    submap_near_keyframes: int = Field(20, ge=0, le=500, description="at most this many older keyframes, nearest first")
+    submap_voxel_m: float = Field(0.01, gt=0.001, le=0.5, description="point spacing of the local submap")
+    submap_update_m: float = Field(
+        0.05, ge=0, description="rebuild the local submap at a keyframe this far from the last rebuild ..."
+    )
+    submap_update_keyframes: int = Field(4, ge=1, description="... or after this many keyframes")
+    optimize_iterations: int = Field(30, ge=1, le=500, description="Levenberg-Marquardt iterations per optimization")
+    # loop closure
+    loop_search_radius_m: float = Field(0.25, gt=0, description="look for loop closures at least this close ...")
+    loop_max_search_radius_m: float = Field(1.0, gt=0, description="... and never farther than this")
+    loop_sigma_scale: float = Field(3.0, ge=0, description="search radius grows by this many std of the drift")
+    loop_min_keyframe_gap: int = Field(40, ge=2, description="a candidate is at least this many keyframes old")
+    loop_submap_half_width: int = Field(6, ge=0, le=100, description="candidate submap: keyframes i-k .. i+k")
+    loop_attempt_every: int = Field(3, ge=1, description="look for loop closures every this many keyframes")
+    loop_min_fitness: float = Field(0.8, ge=0, le=1, description="accept: at least this share of points matched")
+    loop_max_rmse_m: float = Field(0.012, gt=0, description="accept: point-to-line RMS at most this")
+    loop_min_correspondences: int = Field(40, ge=3, description="accept: at least this many matched points")
+    loop_accept_degenerate: bool = Field(False, description="accept matches that leave a direction unconstrained")
+    loop_gate_chi2: float = Field(11.34, gt=0, description="accept: correction consistent with odometry (chi2, 3 dof)")
+    loop_max_correction_m: float = Field(0.10, gt=0, description="accept: the correction moves at most this far ...")
+    loop_max_correction_rad: float = Field(0.15, gt=0, description="... and turns at most this much")
+    loop_ambiguity_shift_m: float = Field(
+        0.3048, ge=0, description="retry ICP this far off (one cell); another good fit there rejects (0: off)"
+    )
+    loop_information_scale: float = Field(0.1, gt=0, le=1, description="scale of a loop closure's ICP information")
+    rebuild_threshold_m: float = Field(
+        0.005, ge=0, description="rebuild the map when optimization moved a keyframe farther than this ..."
+    )
+    rebuild_threshold_rad: float = Field(0.005, ge=0, description="... or turned one more than this")
+    # occupancy grid
+    grid_resolution_m: float = Field(0.02, gt=0.001, le=1, description="occupancy grid cell size")
+    grid_l_hit: float = Field(0.85, gt=0, description="log-odds added to a cell a beam ends in")
+    grid_l_miss: float = Field(-0.4, lt=0, description="log-odds added to a cell a beam crosses")
+    grid_l_min: float = Field(-5.0, lt=0, description="lowest log-odds of a cell")
+    grid_l_max: float = Field(5.0, gt=0, description="highest log-odds of a cell")
+    grid_occupied_prob: float = Field(0.65, ge=0.5, lt=1, description="a cell above this probability is a wall")
+    grid_free_prob: float = Field(0.25, gt=0, le=0.5, description="a cell below this probability is free")
+    map_max_range_m: float = Field(
+        2.5, ge=0, description="farther hits clear space but mark no wall (range noise grows with range; 0: no limit)"
+    )
+    grid_max_free_range_m: float = Field(4.0, gt=0, description="no-return beams clear space this far")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SlamConfig:
+        if self.median_window % 2 == 0:
+            raise ValueError(f"median_window must be odd, got {self.median_window}")
+        if self.icp_min_correspondence_m > self.icp_max_correspondence_m:
+            raise ValueError("icp_min_correspondence_m must not exceed icp_max_correspondence_m")
+        if self.loop_search_radius_m > self.loop_max_search_radius_m:
+            raise ValueError("loop_search_radius_m must not exceed loop_max_search_radius_m")
+        return self
+
+
 class Config(BaseModel):
     """The whole configuration file: one section per part of the robot."""
 
@@ -254,6 +387,7 @@ class Config(BaseModel):
     daemon: DaemonConfig = Field(default_factory=DaemonConfig)
     web: WebConfig = Field(default_factory=WebConfig)
     sim: SimConfig = Field(default_factory=SimConfig)
+    slam: SlamConfig = Field(default_factory=SlamConfig)
 
     @property
     def wheel_circumference_m(self) -> float:

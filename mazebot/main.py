@@ -15,13 +15,16 @@ import logging
 import signal
 import sys
 from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from typing import Any
 
+from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config, load_config
 from mazebot.errors import EXIT_OK, HardwareUnavailable, UsageError
+from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor, TaskFactory
 
@@ -102,7 +105,8 @@ async def run_daemon(
     ``on_started`` is called once every task runs (the benchmark adds its driver and
     recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs).
     """
-    from mazebot.tasks import command_task, control_task, lidar_task, odometry_task
+    from mazebot.slam.slam import SlamParams
+    from mazebot.tasks import command_task, control_task, lidar_task, odometry_task, slam_task
     from mazebot.web.server import start_web_server
 
     clock = clock or RealClock()
@@ -119,14 +123,27 @@ async def run_daemon(
                 stack.callback(loop.remove_signal_handler, sig)
         for name, factory in hardware.extra_tasks:
             supervisor.start(name, factory)
+        state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
+        # pose-graph optimization and map rebuilds run here, off the event loop
+        slam_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam")
+        stack.callback(slam_executor.shutdown, wait=False, cancel_futures=True)
         supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state))
         supervisor.start(
             "odometry",
-            lambda: odometry_task.run(hardware.encoders, state, clock, config.encoders, config.drive),
+            lambda: odometry_task.run(
+                hardware.encoders, state, clock, config.encoders, config.drive, config.slam.odometry_history_s
+            ),
         )
+        slam_params = SlamParams.from_config(config.slam, config.lidar)
+        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor))
+        heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         supervisor.start(
-            "control", lambda: control_task.run(motors, state, clock, config.daemon.control_period_s)
+            "control", lambda: control_task.run(motors, state, heartbeat, config.daemon.control_period_s)
         )
+        watchdog_s = sdnotify.watchdog_period_s()  # systemd's WatchdogSec, when it set one
+        if watchdog_s is not None:
+            silence_s = max(watchdog_s / 2, 10 * config.daemon.control_period_s)
+            supervisor.start("watchdog", lambda: sdnotify.feed_watchdog(heartbeat, watchdog_s / 4, silence_s))
         supervisor.start("commands", lambda: command_task.run(state, motors, clock))
         if serve_web:
             web = await start_web_server(state, config, hardware)
@@ -138,7 +155,12 @@ async def run_daemon(
             on_started(hardware, state, supervisor)
         if ready is not None:
             ready.set()
-        return await supervisor.wait()
+        # lidar, motors and web are up: tell systemd (Type=notify)
+        sdnotify.notify(f"READY=1\nSTATUS={hardware.description}")
+        try:
+            return await supervisor.wait()
+        finally:
+            sdnotify.notify("STOPPING=1")
     return EXIT_OK  # pragma: no cover - unreachable, keeps type checkers calm
 
 

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from mazebot.io.scan import Scan
+    from mazebot.slam.ekf import OdometryHistory
     from mazebot.slam.grid import OccupancyGrid
     from mazebot.slam.odometry import OdometryPose
 
@@ -64,12 +65,28 @@ class SensorStats:
 
 
 @dataclass
+class SlamStats:
+    """What SLAM has been doing, for the status page and the benchmark."""
+
+    scans: int = 0  # revolutions processed
+    scans_dropped: int = 0  # revolutions dropped because SLAM was behind
+    keyframes: int = 0
+    loop_closures: int = 0  # accepted
+    loop_closures_rejected: int = 0
+    map_rebuilds: int = 0
+    #: accepted loop closures: (old keyframe time_s, new keyframe time_s, measured pose of the new
+    #: keyframe in the old one's frame (x_m, y_m, theta_rad)), for checking against ground truth
+    closures: list[tuple[float, float, tuple[float, float, float]]] = field(default_factory=list)
+
+
+@dataclass
 class SharedState:
     """Everything the tasks share. Created once by ``main.py`` and handed to each task."""
 
     run_state: RunState = RunState.IDLE
     faults: list[Fault] = field(default_factory=list)
     pose: Pose2D = field(default_factory=Pose2D)
+    pose_time_s: float | None = None  # clock time ``pose`` describes (the odometry reading behind it)
     sensors: SensorStats = field(default_factory=SensorStats)
     commands: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=32))
     started_at_s: float | None = None
@@ -80,11 +97,26 @@ class SharedState:
     throttle_command: tuple[float, float, float] | None = None
     #: recent lateness of control ticks beyond their period, milliseconds
     control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+    #: lidar revolutions waiting for SLAM: the lidar task puts, the SLAM task gets; when SLAM is
+    #: behind the oldest is dropped (``mazebot.tasks.lidar_task``); replaced at start-up with the
+    #: configured ``[slam] scan_queue_size``
+    scans: asyncio.Queue[Scan] = field(default_factory=lambda: asyncio.Queue(maxsize=2))
+    #: time-stamped odometry poses of the last seconds (de-skew and SLAM's filter); written by
+    #: the odometry task, read by SLAM; None until the odometry task starts
+    odometry_history: OdometryHistory | None = None
     # --- written by SLAM ---------------------------------------------------------------
-    map: OccupancyGrid | None = None  # the live occupancy grid, in the map frame (the start pose)
+    #: the correction from the odometry frame to the map frame, (x_m, y_m, theta_rad) (ROS
+    #: ``map -> odom``); the odometry task publishes ``pose`` as this ⊕ odometry
+    map_from_odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    slam: SlamStats = field(default_factory=SlamStats)
+    #: the live occupancy grid, in the map frame (the start pose); a new object with a new
+    #: ``generation`` after a loop closure rebuilt it. Read it; never call ``take_dirty`` on it.
+    map: OccupancyGrid | None = None
     pose_covariance: np.ndarray | None = None  # 3x3 covariance of (x_m, y_m, theta_rad)
+    #: keyframe positions; replaced by a new deque when a loop closure moved them
     trajectory: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=2000))
-    scan_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))  # SLAM time per scan
+    #: CPU time of SLAM's update per scan, ms (filter + ICP + grid; loop closures run in an executor)
+    scan_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     # --- written by the planner --------------------------------------------------------
     path: list[tuple[float, float]] = field(default_factory=list)  # planned waypoints, map frame
     goal: tuple[float, float] | None = None  # the current exploration goal, map frame

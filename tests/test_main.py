@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import aiohttp
 import pytest
@@ -19,11 +20,14 @@ from mazebot.sim.backend import sim_hardware_builder
 from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
 
+CONTROL_TOKEN = "2468"
+
 
 def _config(port: int) -> Config:
     config = Config()
     config.web.host = "127.0.0.1"
     config.web.port = port
+    config.web.control_token = CONTROL_TOKEN
     return config
 
 
@@ -61,14 +65,18 @@ async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
 
     # start: the control task may now apply commands; stop: zero at once
     async with aiohttp.ClientSession() as session:
-        async with session.post(f"http://127.0.0.1:{port}/api/start") as resp:
+        async with session.post(f"http://127.0.0.1:{port}/api/start", headers={"X-Mazebot-Token": "0000"}) as resp:
+            assert resp.status == 403  # a wrong PIN moves nothing
+        async with session.post(f"http://127.0.0.1:{port}/api/start",
+                                headers={"X-Mazebot-Token": CONTROL_TOKEN}) as resp:
             assert resp.status == 200
         await asyncio.sleep(0.1)
         assert state.run_state is RunState.RUNNING
         state.throttle_command = (0.5, 0.5, asyncio.get_running_loop().time() + 10.0)
         await asyncio.sleep(0.3)
         assert state.sensors.encoder_ticks_left > 0  # the wheels turned and the encoders counted
-        async with session.post(f"http://127.0.0.1:{port}/api/stop") as resp:
+        async with session.post(f"http://127.0.0.1:{port}/api/stop",
+                                headers={"X-Mazebot-Token": CONTROL_TOKEN}) as resp:
             assert resp.status == 200
         await asyncio.sleep(0.1)
     assert state.run_state is RunState.STOPPED
@@ -93,7 +101,7 @@ async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -
 
         state.run_state = RunState.RUNNING
         hw.motors.set(0.4, 0.4)
-        sup.start("slam", broken)
+        sup.start("planner", broken)
 
     daemon = asyncio.create_task(
         run_daemon(_config(port), sim_hardware_builder(), ready=ready, install_signal_handlers=False,
@@ -103,7 +111,7 @@ async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -
     await asyncio.sleep(0.5)
     status = await _get_status(port)
     assert status["state"] == "fault"
-    assert status["fault"]["source"] == "slam"
+    assert status["fault"]["source"] == "planner"
     assert "ValueError: matrix not positive definite" in status["fault"]["message"]
     kit = started["hw"].sim.kit  # type: ignore[union-attr]
     assert kit.motor1.throttle == 0.0 and kit.motor2.throttle == 0.0
@@ -136,11 +144,12 @@ async def test_sigterm_zeroes_the_motors_within_100_ms_and_exits_0() -> None:
     assert stops[0].time_s - sent_s < 0.1
 
 
-def test_run_sim_serves_within_5_s_and_stops_cleanly_on_sigterm() -> None:
+def test_run_sim_serves_within_5_s_and_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
     port = unused_port()
     t0 = time.monotonic()
+    env = {**os.environ, "XDG_STATE_HOME": str(tmp_path)}  # the generated PIN goes here, not to ~
     proc = subprocess.Popen([sys.executable, "-m", "mazebot", "run", "--sim", "--host", "127.0.0.1",
-                             "--port", str(port)], stderr=subprocess.PIPE, text=True)
+                             "--port", str(port)], stderr=subprocess.PIPE, text=True, env=env)
     try:
         served = False
         while time.monotonic() - t0 < 5.0 and not served:
@@ -151,7 +160,10 @@ def test_run_sim_serves_within_5_s_and_stops_cleanly_on_sigterm() -> None:
         assert served, "nothing served on the port within 5 s"
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
-        assert "Traceback" not in proc.stderr.read()
+        stderr = proc.stderr.read()
+        assert "Traceback" not in stderr
+        token = (tmp_path / "mazebot" / "control_token").read_text().strip()
+        assert stderr.count(token) == 1  # the generated PIN is logged once, on first start
     finally:
         if proc.poll() is None:
             proc.kill()

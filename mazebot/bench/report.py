@@ -19,7 +19,7 @@ from mazebot.sim.raster import true_occupancy
 SUMMARY_KEYS = (
     "time_s", "wall_s", "realtime_factor", "path_m", "avg_speed_mps", "coverage", "collisions", "revisits",
     "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "scan_ms_p50", "scan_ms_p99",
-    "control_jitter_ms_p99", "cpu_percent", "rss_mb",
+    "control_jitter_ms_p99", "cpu_percent", "rss_mb", "loop_closures",
 )
 
 
@@ -30,6 +30,7 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
         values = [r[key] for r in runs if r.get(key) is not None]
         out[f"{key}_median"] = round(statistics.median(values), 4) if values else None
     out["collisions_total"] = sum(r["collisions"] for r in runs)
+    out["false_loop_closures_total"] = sum(r.get("false_loop_closures") or 0 for r in runs)
     return out
 
 
@@ -62,26 +63,64 @@ def trajectory_figure(record: RunRecord, path: Path) -> None:
     write_png(path, canvas.rgb)
 
 
+def map_figure(record: RunRecord, path: Path) -> bool:
+    """SLAM's map in the world frame over the true walls; False (no file) without a map.
+
+    True walls light red, cells the map knows free light blue-grey, its occupied cells
+    black; the estimated map is placed with the true start pose (the map frame).
+    """
+    assert record.hardware is not None and record.state is not None
+    grid = record.state.map
+    if grid is None or grid.shape[0] == 0:
+        return False
+    world = record.hardware.sim.world
+    truth = np.asarray(record.true_poses).reshape(-1, 3)
+    start = truth[0] if len(truth) else np.asarray(world.start_pose, dtype=float)
+    canvas = Canvas(world.bounds_m, pixels_per_m=200)
+    occ, origin = true_occupancy(world, 0.01)
+    canvas.paint_mask(occ, origin, 0.01, (250, 170, 170))
+    c, s = np.cos(start[2]), np.sin(start[2])
+
+    def paint(mask: np.ndarray, color: tuple[int, int, int]) -> None:
+        rows, cols = np.nonzero(mask)
+        xy = grid.to_world(rows, cols)
+        world_xy = np.column_stack((start[0] + c * xy[:, 0] - s * xy[:, 1], start[1] + s * xy[:, 0] + c * xy[:, 1]))
+        r, q = canvas.to_px(world_xy)
+        half = max(1, round(grid.resolution_m * canvas.scale / 2))
+        for dr in range(-half + 1, half + 1):
+            for dq in range(-half + 1, half + 1):
+                ok = (r + dr >= 0) & (r + dr < canvas.h) & (q + dq >= 0) & (q + dq < canvas.w)
+                canvas.rgb[r[ok] + dr, q[ok] + dq] = color
+
+    paint(grid.known_free_mask(), (215, 225, 240))
+    paint(grid.occupied_mask(), (0, 0, 0))
+    write_png(path, canvas.rgb)
+    return True
+
+
 def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], command: str) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     metrics = [m for m, _ in runs]
     lines = [
         "# mazebot benchmark", "", f"Command: `{command}`", "",
         "| maze | seed | done | sim s | wall s | x real time | path m | collisions | revisits | "
-        "ATE rms m | ATE max m | heading rms ° | coverage | map F1 | scan ms p50 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "ATE rms m | ATE max m | heading rms ° | coverage | map F1 | scan ms p50 | scan ms p99 | "
+        "loop closures | false closures |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for i, (m, record) in enumerate(runs):
         fig = f"run{i:02d}-{m['maze']}-seed{m['seed']}-trajectory.png"
         trajectory_figure(record, out_dir / fig)
-        m["figures"] = {"trajectory": fig, "map": None}
+        map_fig = f"run{i:02d}-{m['maze']}-seed{m['seed']}-map.png"
+        m["figures"] = {"trajectory": fig, "map": map_fig if map_figure(record, out_dir / map_fig) else None}
 
         def cell(v: Any) -> str:
             return "null" if v is None else str(v)
 
         lines.append("| " + " | ".join(cell(m[k]) for k in (
             "maze", "seed", "done", "time_s", "wall_s", "realtime_factor", "path_m", "collisions", "revisits",
-            "ate_rms_m", "ate_max_m", "heading_rms_deg", "coverage", "map_f1", "scan_ms_p50")) + " |")
+            "ate_rms_m", "ate_max_m", "heading_rms_deg", "coverage", "map_f1", "scan_ms_p50", "scan_ms_p99",
+            "loop_closures", "false_loop_closures")) + " |")
     summary = summarize(metrics)
     results = {"command": command, "runs": metrics, "summary": summary}
     write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
@@ -89,7 +128,11 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
     for m in metrics:
         lines.append(f"- {m['maze']} seed {m['seed']}: true trajectory (blue) and estimate (red) over the true "
                      f"walls: ![trajectory]({m['figures']['trajectory']})")
-    lines += ["", "`null` marks a metric whose part mazebot does not have yet (the map needs SLAM), "
-              "never a guess. The estimate is " + (metrics[0]["estimate"] if metrics else "") + "."]
+        if m["figures"]["map"]:
+            lines.append(f"- {m['maze']} seed {m['seed']}: SLAM's map (black walls, grey-blue free) over the true "
+                         f"walls (red): ![map]({m['figures']['map']})")
+    lines += ["", "`null` marks a metric whose part mazebot does not have yet, never a guess. "
+              "The estimate is " + (metrics[0]["estimate"] if metrics else "") + "; scan ms is SLAM's CPU time "
+              "per scan (filter + ICP + grid), not virtual time."]
     write_atomic(out_dir / "report.md", "\n".join(lines) + "\n")
     return results

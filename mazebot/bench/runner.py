@@ -3,8 +3,24 @@
 The run uses ``main.run_daemon`` with the simulator's hardware builder, exactly as
 ``mazebot run --sim`` does, minus the web server; the benchmark adds two tasks of its
 own: the driver (``--drive scripted`` follows a ground-truth tour) and a recorder that
-samples the true and the estimated pose ten times a second. Metrics that need a part
-the daemon does not have yet are ``None`` (``null`` in results.json), never guessed.
+samples the estimated pose (SLAM's, ``state.pose``) ten times a second with the true pose
+at the instant the estimate describes: the simulated time shown by the encoder reading
+behind it (``state.pose_time_s``; the simulator steps every ``[sim] step_period_s``, so
+that is up to one step before the reading).
+Metrics that need a part the daemon does not have yet are ``None`` (``null`` in
+results.json), never guessed.
+
+Map metrics compare SLAM's final grid with the world, after moving it into the world
+frame with the true start pose (the map frame is the robot's start pose):
+
+- ``coverage``: the share of the reachable free cells (:func:`mazebot.sim.raster.free_reachable`
+  at the map's resolution) whose map cell is known free (three-state);
+- ``map_f1``: F1 of the map's occupied cells against the true occupancy with a one-cell
+  tolerance: precision = share of occupied map cells within one cell of a true wall
+  cell, recall = share of true wall cells next to the reachable area (walls the lidar
+  can see) within one cell of an occupied map cell;
+- ``false_loop_closures``: accepted loop closures whose measured relative pose is more
+  than ``FALSE_CLOSURE_M`` or ``FALSE_CLOSURE_RAD`` off the true one.
 """
 
 from __future__ import annotations
@@ -14,6 +30,7 @@ import contextlib
 import math
 import resource
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,6 +47,9 @@ from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor
 
 RECORD_PERIOD_S = 0.1
+#: A loop closure this far from the true relative pose is counted as false (a maze cell is 0.3 m).
+FALSE_CLOSURE_M = 0.1
+FALSE_CLOSURE_RAD = 0.1
 
 
 @dataclass(frozen=True)
@@ -95,6 +115,80 @@ def _revisits(layout: Any, xy: np.ndarray) -> int:
     return count
 
 
+def _to_world(start: tuple[float, float, float], xy: np.ndarray) -> np.ndarray:
+    """Map-frame points (N, 2) in the world frame, the map frame being the start pose."""
+    c, s = math.cos(start[2]), math.sin(start[2])
+    return np.column_stack((start[0] + c * xy[:, 0] - s * xy[:, 1], start[1] + s * xy[:, 0] + c * xy[:, 1]))
+
+
+def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footprint_radius_m: float) -> dict[str, Any]:
+    """``coverage`` and ``map_f1`` (with precision and recall) of SLAM's grid against the world."""
+    from scipy import ndimage
+
+    from mazebot.sim.raster import free_reachable, true_occupancy
+
+    if grid is None or grid.shape[0] == 0:
+        return {"coverage": None, "map_f1": None, "map_precision": None, "map_recall": None}
+    res = grid.resolution_m
+    truth, origin = true_occupancy(world, res)
+    reach, _ = free_reachable(world, res, footprint_radius_m, origin, truth.shape)
+    rows, cols = truth.shape
+    # coverage: look every reachable cell centre up in the map
+    rr, cc = np.nonzero(reach)
+    centres = np.column_stack((origin[0] + (cc + 0.5) * res, origin[1] + (rr + 0.5) * res))
+    c, s = math.cos(start[2]), math.sin(start[2])
+    dx, dy = centres[:, 0] - start[0], centres[:, 1] - start[1]
+    in_map = np.column_stack((c * dx + s * dy, -s * dx + c * dy))
+    mr, mc = grid.to_cell(in_map)
+    inside = (mr >= 0) & (mr < grid.shape[0]) & (mc >= 0) & (mc < grid.shape[1])
+    free = grid.known_free_mask()
+    known = np.zeros(len(mr), dtype=bool)
+    known[inside] = free[mr[inside], mc[inside]]
+    coverage = float(known.sum() / max(1, len(known)))
+    # walls: the map's occupied cells rasterized into the world grid
+    er, ec = np.nonzero(grid.occupied_mask())
+    est_xy = _to_world(start, grid.to_world(er, ec))
+    wc = np.floor((est_xy[:, 0] - origin[0]) / res).astype(int)
+    wr = np.floor((est_xy[:, 1] - origin[1]) / res).astype(int)
+    on = (wr >= 0) & (wr < rows) & (wc >= 0) & (wc < cols)
+    est = np.zeros_like(truth)
+    est[wr[on], wc[on]] = True
+    near = ndimage.generate_binary_structure(2, 2)  # one cell, diagonals included
+    truth_near = ndimage.binary_dilation(truth, near)
+    precision = float(truth_near[wr[on], wc[on]].sum() / max(1, len(er)))  # off-grid cells are false
+    visible = truth & ndimage.binary_dilation(reach, near, iterations=2)
+    recall = float((visible & ndimage.binary_dilation(est, near)).sum() / max(1, visible.sum()))
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {
+        "coverage": round(coverage, 4),
+        "map_f1": round(f1, 4),
+        "map_precision": round(precision, 4),
+        "map_recall": round(recall, 4),
+    }
+
+
+def false_closures(closures: list, trajectory: list[tuple[float, float, float, float]]) -> int:
+    """Accepted loop closures whose relative pose disagrees with the true trajectory."""
+    if not closures or len(trajectory) < 2:
+        return 0
+    traj = np.asarray(trajectory, dtype=float)
+    t, th = traj[:, 0], np.unwrap(traj[:, 3])
+
+    def true_pose(time_s: float) -> np.ndarray:
+        return np.array([np.interp(time_s, t, traj[:, 1]), np.interp(time_s, t, traj[:, 2]), np.interp(time_s, t, th)])
+
+    count = 0
+    for old_s, new_s, z in closures:
+        a, b = true_pose(old_s), true_pose(new_s)
+        c, s = math.cos(a[2]), math.sin(a[2])
+        d = b[:2] - a[:2]
+        rel = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], math.remainder(b[2] - a[2], math.tau)])
+        err_t = math.hypot(rel[0] - z[0], rel[1] - z[1])
+        err_r = abs(math.remainder(rel[2] - z[2], math.tau))
+        count += err_t > FALSE_CLOSURE_M or err_r > FALSE_CLOSURE_RAD
+    return count
+
+
 def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     """Run one simulated mission and return its metrics and the raw record (for figures)."""
     if spec.drive != "scripted":
@@ -126,10 +220,34 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         record.hardware, record.state, record.driver = hardware, state, driver
         record.start_s = clock.now_s()
 
+        # Which simulated instant each encoder reading shows: the simulator steps every
+        # [sim] step_period_s, so a reading can be up to one step older than the clock.
+        readings: deque[tuple[float, float]] = deque(maxlen=64)  # (clock time, sim time)
+        read_encoders = hardware.encoders.read
+
+        def read_and_note() -> Any:
+            reading = read_encoders()
+            readings.append((clock.now_s(), robot.time_s if robot.time_s is not None else clock.now_s()))
+            return reading
+
+        hardware.encoders.read = read_and_note
+
+        def sim_time_of(pose_s: float) -> float:
+            for clock_s, sim_s in reversed(readings):
+                if clock_s <= pose_s:
+                    return sim_s - clock_s + pose_s
+            return pose_s
+
         async def recorder() -> None:
             while True:
-                record.times_s.append(clock.now_s() - record.start_s)
-                record.true_poses.append(robot.physics.pose)
+                # the estimate against the truth at the instant it describes: state.pose is
+                # SLAM's correction composed with the odometry reading of state.pose_time_s, and
+                # that reading shows the simulated world as it was at its last step
+                now_s = clock.now_s()
+                pose_s = state.pose_time_s if state.pose_time_s is not None else now_s
+                x, y, th = robot.poses.at(np.array([min(sim_time_of(pose_s), now_s)]))
+                record.times_s.append(pose_s - record.start_s)
+                record.true_poses.append((float(x[0]), float(y[0]), float(th[0])))
                 p = state.pose
                 record.est_poses.append((p.x_m, p.y_m, p.theta_rad))
                 await clock.sleep(RECORD_PERIOD_S)
@@ -170,6 +288,9 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
     path_m = robot.physics.odometer_m
     lateness = np.asarray(state.control_lateness_ms, dtype=float)
     fault = state.active_fault
+    scan_ms = np.asarray(state.scan_ms, dtype=float)
+    maps = map_metrics(state.map, robot.world, start, robot.config.robot.footprint_radius_m)
+    slam = state.slam
     return {
         "maze": spec.name,
         "seed": spec.seed,
@@ -184,19 +305,28 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "realtime_factor": round(time_s / wall_s, 1) if wall_s > 0 else None,
         "path_m": round(path_m, 3),
         "avg_speed_mps": round(path_m / time_s, 3) if time_s > 0 else None,
-        # the fraction of the reachable free area the map knows correctly: needs the map
-        "coverage": None,
+        # the fraction of the reachable free area the map knows as free
+        "coverage": maps["coverage"],
         "collisions": int(robot.physics.collisions),
         "revisits": _revisits(layout, truth[:, :2]) if layout is not None else None,
         "ate_rms_m": round(float(np.sqrt(np.mean(err_xy**2))), 4) if len(err_xy) else None,
         "ate_max_m": round(float(err_xy.max()), 4) if len(err_xy) else None,
         "heading_rms_deg": round(float(np.degrees(np.sqrt(np.mean(err_th**2)))), 3) if len(err_th) else None,
-        "estimate": "odometry",  # what produced the pose estimate the ATE measures
-        # walls of the estimated map against the true walls: needs the map
-        "map_f1": None,
-        # SLAM's per-scan time: needs SLAM
-        "scan_ms_p50": None,
-        "scan_ms_p99": None,
+        "estimate": "slam",  # what produced the pose estimate the ATE measures
+        # walls of the estimated map against the true walls (one-cell tolerance)
+        "map_f1": maps["map_f1"],
+        "map_precision": maps["map_precision"],
+        "map_recall": maps["map_recall"],
+        # SLAM's CPU time per scan (filter + ICP + grid; loop closure runs in an executor)
+        "scan_ms_p50": round(float(np.percentile(scan_ms, 50)), 3) if len(scan_ms) else None,
+        "scan_ms_p99": round(float(np.percentile(scan_ms, 99)), 3) if len(scan_ms) else None,
+        "slam_scans": slam.scans,
+        "slam_scans_dropped": slam.scans_dropped,
+        "keyframes": slam.keyframes,
+        "loop_closures": slam.loop_closures,
+        "loop_closures_rejected": slam.loop_closures_rejected,
+        "false_loop_closures": false_closures(slam.closures, robot.trajectory),
+        "map_rebuilds": slam.map_rebuilds,
         # lateness of control ticks is only meaningful on the real clock
         "control_jitter_ms_p99": round(float(np.percentile(lateness, 99)), 3)
         if spec.clock == "real" and len(lateness)

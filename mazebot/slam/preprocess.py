@@ -19,9 +19,13 @@ The steps, in the order :func:`prepare_scan` runs them:
    ``p_end = T(t_end)⁻¹ ∘ T(t_i) ∘ T_mount ∘ p_lidar`` (the motion compensation of
    KISS-ICP, Vizzo et al., RA-L 2023, section III.A, with odometry instead of a
    constant-velocity model).
-4. **Downsample for matching.** A voxel grid keeps the first point that falls in each
-   ``voxel_size_m`` square (KISS-ICP keeps an original point rather than a centroid, so
-   no phantom points appear at corners). The full point set stays for the map.
+4. **Downsample for matching.** A voxel grid keeps, in each ``voxel_size_m`` square,
+   the original point nearest the square's centre (KISS-ICP keeps an original point
+   rather than a centroid, so no phantom points appear at corners). Not the first point
+   in scan order: which sample of a wall comes first in a voxel depends on its range
+   noise and on the direction the head turns, and keeping it biased the matched
+   heading by ~0.04° per scan at 1 % range noise, which chains into degrees of drift.
+   The full point set stays for the map.
 
 Frames: the lidar frame is :class:`~mazebot.io.scan.Scan`'s (CCW, 0 = the lidar's front
 mark); the robot frame has x forward, y left, origin at the wheel axle centre; the
@@ -161,14 +165,30 @@ def impulse_mask(range_m: np.ndarray, window: int, abs_m: float, rel: float, cir
 
 
 def voxel_downsample(points_xy: np.ndarray, voxel_size_m: float) -> np.ndarray:
-    """Indices of the first point in each ``voxel_size_m`` square, in their original order."""
+    """Indices of the point nearest the centre of each ``voxel_size_m`` square, in their original order.
+
+    The choice depends only on where each point lies in its voxel, never on the order
+    of the samples (see step 4 of the module docstring).
+    """
     if points_xy.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
-    cells = np.floor(points_xy / voxel_size_m).astype(np.int64)
+    scaled = points_xy / voxel_size_m
+    floor = np.floor(scaled)
+    cells = floor.astype(np.int64)
     # one int64 key per cell: 32 bits per axis covers +-2^31 voxels, far beyond any map
     key = (cells[:, 0] << 32) ^ (cells[:, 1] & 0xFFFFFFFF)
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first)
+    off_centre = np.sum((scaled - floor - 0.5) ** 2, axis=1)
+    order = np.argsort(key)  # group the points by voxel ...
+    sorted_key = key[order]
+    starts = np.flatnonzero(np.concatenate(([True], sorted_key[1:] != sorted_key[:-1])))
+    is_start = np.zeros(order.size, dtype=np.int64)
+    is_start[starts] = 1
+    group = np.cumsum(is_start) - 1
+    sorted_off = off_centre[order]
+    nearest = sorted_off == np.minimum.reduceat(sorted_off, starts)[group]  # ... and find each one's nearest
+    candidates = np.flatnonzero(nearest)
+    first = np.concatenate(([True], group[candidates[1:]] != group[candidates[:-1]]))
+    return np.sort(order[candidates[first]])
 
 
 def prepare_scan(scan: Scan, pose_at_time: PoseAtTime | None, params: PrepareParams | None = None) -> PreparedScan:

@@ -1,31 +1,49 @@
-"""Dead reckoning at the configured rate from the wheel encoders."""
+"""Dead reckoning at the configured rate from the wheel encoders, and the robot's map pose."""
 
 from __future__ import annotations
 
 from mazebot.clock import Clock
 from mazebot.config import DriveConfig, EncodersConfig
+from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import DiffDriveOdometry
+from mazebot.slam.posegraph import compose
 from mazebot.state import SharedState
 
 
 async def run(
-    encoders, state: SharedState, clock: Clock, enc_cfg: EncodersConfig, drive: DriveConfig
+    encoders,
+    state: SharedState,
+    clock: Clock,
+    enc_cfg: EncodersConfig,
+    drive: DriveConfig,
+    history_s: float = 3.0,
 ) -> None:
     """Read the tick counters every ``1 / odometry_rate_hz`` s and integrate the pose.
 
-    Until SLAM corrects it, the dead-reckoned pose is the robot's pose estimate.
+    Every odometry pose goes, time-stamped, into ``state.odometry_history`` (SLAM de-skews
+    each lidar sample and predicts its filter from it). ``state.pose`` is published at the
+    odometry rate in the map frame: SLAM's latest correction ``state.map_from_odom``
+    composed with the odometry (the ROS ``map -> odom -> base_link`` chain); before SLAM's
+    first scan the correction is the identity and the pose is the dead-reckoned one.
     """
     odometry = DiffDriveOdometry(enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
+    history = OdometryHistory(history_s)
+    state.odometry_history = history
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     while True:
         reading = encoders.read()
         odometry.update(reading.left_ticks, reading.right_ticks)
+        odo = odometry.pose
+        now_s = clock.now_s()
+        history.append(now_s, odo.x_m, odo.y_m, odo.theta_rad)
         stats = state.sensors
         stats.encoder_ticks_left = reading.left_ticks
         stats.encoder_ticks_right = reading.right_ticks
         stats.encoder_invalid_transitions = reading.invalid_transitions
-        state.odometry = odometry.pose
-        state.pose.x_m = odometry.pose.x_m
-        state.pose.y_m = odometry.pose.y_m
-        state.pose.theta_rad = odometry.pose.theta_rad
+        state.odometry = odo
+        x, y, th = compose(state.map_from_odom, (odo.x_m, odo.y_m, odo.theta_rad))
+        state.pose.x_m = float(x)
+        state.pose.y_m = float(y)
+        state.pose.theta_rad = float(th)
+        state.pose_time_s = now_s
         await clock.sleep(period_s)

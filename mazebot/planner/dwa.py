@@ -1,0 +1,688 @@
+"""The local planner: Dynamic Window Approach, path following and recovery.
+
+The Dynamic Window Approach (Fox, Burgard & Thrun 1997, "The dynamic window approach to
+collision avoidance", IEEE RA Magazine 4(1)) searches velocities, not paths: it samples
+the body velocities ``(v, ω)`` the motors can reach within the next control interval
+(the *dynamic window*: the current velocity ± acceleration × interval, inside the speed
+limits), rolls each out as a circular arc, discards those on which the robot could not
+stop before an obstacle (*admissible* velocities: ``v ≤ sqrt(2 · dist(v, ω) · v̇_b)``,
+here with the actuation latency added to the stopping distance), and picks the best of
+the rest by a weighted sum of objectives. Fox et al. weigh heading, clearance and
+velocity; following a global path through a maze (seed 000_…, III.C: "distance of the
+resulting position to the local goal, and … normal distance from the simulated path to
+the desired global path") this planner scores
+
+- **progress** along the global path (arc length gained by the end of the rollout),
+- **path distance** (how far the end lies from the path polyline),
+- **heading** (the end heading against the direction to a carrot point ahead on the path),
+- **clearance** (the smallest obstacle distance along the rollout, capped),
+- **speed** (``v / v_max``),
+
+each on a fixed scale so the weights mean the same thing in every situation.
+
+Obstacles (:class:`LocalCostmap`) are the points of the latest scan and the occupied
+cells of the map near the robot, in the robot frame: the scan sees what moved, the map
+covers what the lidar cannot see (closer than its 0.15 m minimum range, and behind).
+Distances are exact nearest-point distances (a k-d tree), not a raster: in a 1 ft maze a
+0.09 m robot has 36 mm to spare on each side of a cell centre, which a raster's half-cell
+error would eat. The inflation is the footprint radius (hard: a rollout closer than that
+collides) plus a clearance band (soft: scored). Map cells count with half their diagonal
+added, since the wall may lie anywhere inside an occupied cell.
+
+:class:`LocalPlanner` wraps the DWA with what a maze needs around it: an in-place turn
+(:class:`~mazebot.planner.wheel_control.HeadingAligner`) when the path leaves behind the
+robot (dead ends), a goal stop, and recovery when stuck (rotate in place, back off,
+re-plan; seed 003_'s lesson that a robot must never stand still).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mazebot.planner.wheel_control import DriveMode, HeadingAligner
+from mazebot.slam.grid import OCCUPIED
+
+XY = tuple[float, float]
+
+
+# -- obstacles ---------------------------------------------------------------------------
+
+
+def scan_points_robot(
+    angle_rad: np.ndarray,
+    range_m: np.ndarray,
+    valid: np.ndarray | None = None,
+    min_range_m: float = 0.15,
+    max_range_m: float = 12.0,
+    mount_xy_m: XY = (0.0, 0.0),
+) -> np.ndarray:
+    """Valid scan returns as points (N, 2) in the robot frame (metres).
+
+    ``angle_rad`` counter-clockwise from the robot's heading (the :class:`~mazebot.io.scan.Scan`
+    convention), ``valid`` the driver's flags; returns outside ``[min_range_m,
+    max_range_m]`` are dropped too. ``mount_xy_m`` is the lidar's offset from the axle
+    centre.
+    """
+    a = np.asarray(angle_rad, dtype=np.float64).reshape(-1)
+    r = np.asarray(range_m, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(r) & (r >= min_range_m) & (r <= max_range_m)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool).reshape(-1)
+    return np.column_stack((mount_xy_m[0] + r[ok] * np.cos(a[ok]), mount_xy_m[1] + r[ok] * np.sin(a[ok])))
+
+
+def map_points_robot(
+    three_state: np.ndarray,
+    origin_m: XY,
+    resolution_m: float,
+    pose: tuple[float, float, float],
+    radius_m: float = 1.0,
+) -> np.ndarray:
+    """Centres of the occupied map cells within ``radius_m`` of the robot, in the robot frame (N, 2)."""
+    grid = np.asarray(three_state)
+    x, y, th = pose
+    c0 = max(math.floor((x - radius_m - origin_m[0]) / resolution_m), 0)
+    c1 = min(math.floor((x + radius_m - origin_m[0]) / resolution_m) + 1, grid.shape[1])
+    r0 = max(math.floor((y - radius_m - origin_m[1]) / resolution_m), 0)
+    r1 = min(math.floor((y + radius_m - origin_m[1]) / resolution_m) + 1, grid.shape[0])
+    if c0 >= c1 or r0 >= r1:
+        return np.zeros((0, 2))
+    rows, cols = np.nonzero(grid[r0:r1, c0:c1] == OCCUPIED)
+    wx = origin_m[0] + (cols + c0 + 0.5) * resolution_m - x
+    wy = origin_m[1] + (rows + r0 + 0.5) * resolution_m - y
+    keep = wx * wx + wy * wy <= radius_m * radius_m
+    c, s = math.cos(th), math.sin(th)
+    return np.column_stack((c * wx[keep] + s * wy[keep], -s * wx[keep] + c * wy[keep]))
+
+
+class LocalCostmap:
+    """Robot-centred obstacles with exact clearance queries, inflated by the robot.
+
+    Example::
+
+        costmap = LocalCostmap(scan_xy, map_xy, map_point_radius_m=0.014)
+        costmap.clearance_m(np.array([[0.1, 0.0]]))     # metres to the nearest obstacle surface
+
+    ``scan_points`` and ``map_points`` are (N, 2) robot-frame metres. A map point stands
+    for an occupied cell, so it counts as a disc of ``map_point_radius_m`` (half the
+    cell's diagonal). ``footprint_radius_m`` is the hard inflation (a centre closer than
+    that to an obstacle means contact), ``clearance_m`` the soft band beyond it.
+    """
+
+    def __init__(
+        self,
+        scan_points: np.ndarray,
+        map_points: np.ndarray | None = None,
+        map_point_radius_m: float = 0.0,
+        footprint_radius_m: float = 0.09,
+        clearance_m: float = 0.02,
+    ) -> None:
+        self.scan_points = np.asarray(scan_points, dtype=np.float64).reshape(-1, 2)
+        self.map_points = np.zeros((0, 2)) if map_points is None else np.asarray(map_points, np.float64).reshape(-1, 2)
+        self.map_point_radius_m = float(map_point_radius_m)
+        self.footprint_radius_m = float(footprint_radius_m)
+        self.inflation_m = float(footprint_radius_m + clearance_m)
+        self._scan_tree = cKDTree(self.scan_points) if len(self.scan_points) else None
+        self._map_tree = cKDTree(self.map_points) if len(self.map_points) else None
+
+    def clearance_m(self, xy: np.ndarray, upper_bound_m: float = np.inf) -> np.ndarray:
+        """Distance (M,) from robot-frame points (M, 2) to the nearest obstacle surface.
+
+        Values above ``upper_bound_m`` may be returned as inf (a faster query).
+        """
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        out = np.full(q.shape[0], np.inf)
+        if self._scan_tree is not None:
+            d, _ = self._scan_tree.query(q, distance_upper_bound=upper_bound_m)
+            out = np.minimum(out, d)
+        if self._map_tree is not None:
+            d, _ = self._map_tree.query(q, distance_upper_bound=upper_bound_m + self.map_point_radius_m)
+            out = np.minimum(out, d - self.map_point_radius_m)
+        return out
+
+    def cost(self, xy: np.ndarray) -> np.ndarray:
+        """Inflation cost (M,): inf in contact, 1 → 0 across the clearance band, 0 beyond."""
+        d = self.clearance_m(xy)
+        band = max(self.inflation_m - self.footprint_radius_m, 1e-9)
+        cost = np.clip((self.inflation_m - d) / band, 0.0, 1.0)
+        cost[d < self.footprint_radius_m] = np.inf
+        return cost
+
+
+# -- the path ----------------------------------------------------------------------------
+
+
+class PathTrack:
+    """A global path as a polyline with arc length, for progress and carrot lookups.
+
+    Points are map-frame metres. :meth:`project` finds the arc length of the path point
+    nearest to a position, searching only near the last projection so a path that runs
+    back past itself (a return along a parallel corridor) cannot make progress jump.
+    """
+
+    def __init__(self, waypoints_m: Sequence[XY]) -> None:
+        pts = np.asarray(waypoints_m, dtype=np.float64).reshape(-1, 2)
+        if pts.shape[0] == 0:
+            raise ValueError("a path needs at least one waypoint")
+        keep = np.concatenate(([True], np.hypot(*np.diff(pts, axis=0).T) > 1e-9))
+        self.points = pts[keep]
+        seg = np.diff(self.points, axis=0)
+        self.seg_len = np.hypot(seg[:, 0], seg[:, 1])
+        self.cum = np.concatenate(([0.0], np.cumsum(self.seg_len)))
+        self.length_m = float(self.cum[-1])
+        self.progress_m = 0.0
+
+    def point_at(self, s_m: float) -> XY:
+        """The path point at arc length ``s_m`` (clamped to the path)."""
+        if self.points.shape[0] == 1 or s_m <= 0:
+            return (float(self.points[0, 0]), float(self.points[0, 1]))
+        if s_m >= self.length_m:
+            return (float(self.points[-1, 0]), float(self.points[-1, 1]))
+        k = int(np.searchsorted(self.cum, s_m, side="right") - 1)
+        t = (s_m - self.cum[k]) / self.seg_len[k]
+        p = self.points[k] + t * (self.points[k + 1] - self.points[k])
+        return (float(p[0]), float(p[1]))
+
+    def project(self, xy: np.ndarray, s_min: float = -np.inf, s_max: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """``(s, d)``: arc length of the nearest path point and the distance to it, for points (M, 2).
+
+        Only the part of the path with arc length in ``[s_min, s_max]`` is considered.
+        """
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.points.shape[0] == 1:
+            d = np.hypot(q[:, 0] - self.points[0, 0], q[:, 1] - self.points[0, 1])
+            return np.zeros(q.shape[0]), d
+        a = self.points[:-1]
+        ab = self.points[1:] - a
+        t = ((q[:, None, 0] - a[None, :, 0]) * ab[None, :, 0] + (q[:, None, 1] - a[None, :, 1]) * ab[None, :, 1]) / (
+            self.seg_len[None, :] ** 2
+        )
+        s = self.cum[None, :-1] + np.clip(t, 0.0, 1.0) * self.seg_len[None, :]
+        s = np.clip(s, max(s_min, 0.0), min(s_max, self.length_m))
+        # the point at arc length s on each segment (clamped into the allowed window)
+        tt = np.clip((s - self.cum[None, :-1]) / self.seg_len[None, :], 0.0, 1.0)
+        px = a[None, :, 0] + tt * ab[None, :, 0]
+        py = a[None, :, 1] + tt * ab[None, :, 1]
+        d = np.hypot(q[:, None, 0] - px, q[:, None, 1] - py)
+        k = np.argmin(d, axis=1)
+        rows = np.arange(q.shape[0])
+        return s[rows, k], d[rows, k]
+
+
+# -- the dynamic window ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Rollouts:
+    """All sampled velocities of one DWA step and what became of them (for tests and display).
+
+    ``v_mps``/``w_radps`` (K,), ``admissible`` (K,) bool, ``score`` (K,) (−inf when not
+    admissible), ``free_m`` (K,) free arc length before contact, ``points`` (K, S, 2) the
+    rollout positions in the robot frame.
+    """
+
+    v_mps: np.ndarray
+    w_radps: np.ndarray
+    admissible: np.ndarray
+    score: np.ndarray
+    free_m: np.ndarray
+    points: np.ndarray
+
+
+@dataclass(frozen=True)
+class DwaChoice:
+    """The chosen velocity, or a stop when nothing is admissible (``blocked``)."""
+
+    v_mps: float
+    w_radps: float
+    blocked: bool
+    rollouts: Rollouts
+
+
+class DynamicWindowPlanner:
+    """One DWA step: sample the window, reject inadmissible arcs, score the rest.
+
+    Example::
+
+        dwa = DynamicWindowPlanner()
+        choice = dwa.plan(pose, (v_now, w_now), costmap, PathTrack(waypoints))
+        choice.v_mps, choice.w_radps
+
+    Limits: ``max_speed_mps`` / ``min_speed_mps`` (negative allows reversing; default
+    forward only), ``max_yaw_rate_radps``, ``max_accel_mps2``, ``max_yaw_accel_radps2``,
+    ``brake_decel_mps2`` (deceleration assumed for the stopping distance). Timing:
+    ``window_s`` the interval the dynamic window spans (the planner period),
+    ``latency_s`` the time a command takes to act (travelled at the chosen speed before
+    braking starts), ``horizon_s`` the rollout length, ``step_m`` the largest spacing
+    of rollout points. Safety: ``safety_margin_m`` added to the footprint for contact
+    (at least ``step_m / 2``: clearance changes no faster than position, so between two
+    rollout points it cannot dip more than half their spacing below theirs),
+    ``stop_margin_m`` extra free distance beyond the stopping distance. Sampling:
+    ``v_samples`` × ``w_samples`` velocities. Scoring weights ``w_progress``,
+    ``w_path``, ``w_heading``, ``w_clearance``, ``w_speed``; ``lookahead_m`` where the
+    heading carrot sits ahead on the path, ``clearance_cap_m`` the clearance beyond which
+    more is not better, ``path_scale_m`` the path distance that costs one unit.
+    """
+
+    def __init__(
+        self,
+        max_speed_mps: float = 0.3,
+        min_speed_mps: float = 0.0,
+        max_yaw_rate_radps: float = 1.2,
+        max_accel_mps2: float = 0.6,
+        max_yaw_accel_radps2: float = 3.0,
+        brake_decel_mps2: float = 0.6,
+        footprint_radius_m: float = 0.09,
+        clearance_m: float = 0.02,
+        window_s: float = 0.2,
+        latency_s: float = 0.1,
+        horizon_s: float = 1.2,
+        step_m: float = 0.01,
+        safety_margin_m: float = 0.005,
+        stop_margin_m: float = 0.03,
+        v_samples: int = 7,
+        w_samples: int = 15,
+        w_progress: float = 1.0,
+        w_path: float = 0.4,
+        w_heading: float = 0.4,
+        w_clearance: float = 0.3,
+        w_speed: float = 0.2,
+        lookahead_m: float = 0.25,
+        clearance_cap_m: float = 0.03,
+        path_scale_m: float = 0.15,
+    ) -> None:
+        if max_speed_mps <= 0 or max_yaw_rate_radps <= 0:
+            raise ValueError(f"speed limits must be positive, got {max_speed_mps} m/s, {max_yaw_rate_radps} rad/s")
+        if max_accel_mps2 <= 0 or max_yaw_accel_radps2 <= 0 or brake_decel_mps2 <= 0:
+            raise ValueError("acceleration and deceleration limits must be positive")
+        if safety_margin_m < 0.5 * step_m:
+            raise ValueError(
+                f"safety_margin_m ({safety_margin_m} m) must be at least half of step_m ({step_m} m), "
+                "or a rollout could pass an obstacle between two of its points"
+            )
+        if v_samples < 2 or w_samples < 3:
+            raise ValueError(f"need at least 2 speed and 3 turn-rate samples, got {v_samples}, {w_samples}")
+        self.max_speed_mps = float(max_speed_mps)
+        self.min_speed_mps = float(min_speed_mps)
+        self.max_yaw_rate_radps = float(max_yaw_rate_radps)
+        self.max_accel_mps2 = float(max_accel_mps2)
+        self.max_yaw_accel_radps2 = float(max_yaw_accel_radps2)
+        self.brake_decel_mps2 = float(brake_decel_mps2)
+        self.footprint_radius_m = float(footprint_radius_m)
+        self.clearance_m = float(clearance_m)
+        self.window_s = float(window_s)
+        self.latency_s = float(latency_s)
+        self.horizon_s = float(horizon_s)
+        self.step_m = float(step_m)
+        self.safety_margin_m = float(safety_margin_m)
+        self.stop_margin_m = float(stop_margin_m)
+        self.v_samples = int(v_samples)
+        self.w_samples = int(w_samples)
+        self.weights = (float(w_progress), float(w_path), float(w_heading), float(w_clearance), float(w_speed))
+        self.lookahead_m = float(lookahead_m)
+        self.clearance_cap_m = float(clearance_cap_m)
+        self.path_scale_m = float(path_scale_m)
+
+    @property
+    def contact_m(self) -> float:
+        """Centre-to-obstacle distance that counts as contact: footprint plus safety margin."""
+        return self.footprint_radius_m + self.safety_margin_m
+
+    def stopping_distance_m(self, v_mps: float | np.ndarray) -> float | np.ndarray:
+        """Distance covered after choosing ``v``: latency at ``v``, then braking, plus the margin."""
+        v = np.abs(v_mps)
+        return v * self.latency_s + v * v / (2.0 * self.brake_decel_mps2) + self.stop_margin_m * (v > 1e-6)
+
+    def window(
+        self, v_now_mps: float, w_now_radps: float, v_cap_mps: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Sampled ``(v, w)`` pairs (K,) of the dynamic window around the current velocity.
+
+        The window holds the velocities reachable within ``window_s`` and inside the
+        limits (and below ``v_cap_mps``, the goal-braking cap). Zero speed and zero turn
+        rate are always included when inside it, and so is the best stopping command.
+        """
+        v_hi = min(self.max_speed_mps, v_now_mps + self.max_accel_mps2 * self.window_s)
+        if v_cap_mps is not None:
+            v_hi = min(v_hi, max(v_cap_mps, 0.0))
+        v_lo = max(self.min_speed_mps, v_now_mps - self.brake_decel_mps2 * self.window_s)
+        v_lo = min(v_lo, v_hi)
+        w_hi = min(self.max_yaw_rate_radps, w_now_radps + self.max_yaw_accel_radps2 * self.window_s)
+        w_lo = max(-self.max_yaw_rate_radps, w_now_radps - self.max_yaw_accel_radps2 * self.window_s)
+        if w_lo > w_hi:  # only when the current rate exceeds the limit: come back towards it
+            w_lo = w_hi = max(-self.max_yaw_rate_radps, min(self.max_yaw_rate_radps, w_now_radps))
+        vs = np.linspace(v_lo, v_hi, self.v_samples)
+        ws = np.linspace(w_lo, w_hi, self.w_samples)
+        if v_lo < 0.0 < v_hi:
+            vs = np.union1d(vs, [0.0])
+        if w_lo < 0.0 < w_hi:
+            ws = np.union1d(ws, [0.0])
+        vv, ww = np.meshgrid(np.unique(vs), np.unique(ws), indexing="ij")
+        return vv.reshape(-1), ww.reshape(-1)
+
+    def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray) -> np.ndarray:
+        """Robot-frame positions (K, S, 2) along the arcs of constant ``(v, w)`` for ``horizon_s``.
+
+        ``S`` is chosen so consecutive points are at most ``step_m`` apart at the top speed.
+        Point 0 is the robot itself. Exact arcs: ``x = v/w sin(w t)``, ``y = v/w (1 − cos(w t))``.
+        """
+        reach = max(float(np.max(np.abs(v_mps), initial=0.0)), 1e-6) * self.horizon_s
+        steps = max(2, math.ceil(reach / self.step_m))
+        t = np.linspace(0.0, self.horizon_s, steps + 1)[None, :]
+        v = np.asarray(v_mps, dtype=np.float64)[:, None]
+        w = np.asarray(w_radps, dtype=np.float64)[:, None]
+        straight = np.abs(w) < 1e-6
+        w_safe = np.where(straight, 1.0, w)
+        x = np.where(straight, v * t, v / w_safe * np.sin(w_safe * t))
+        y = np.where(straight, 0.0, v / w_safe * (1.0 - np.cos(w_safe * t)))
+        return np.stack((x, y), axis=-1)
+
+    def plan(
+        self,
+        pose: tuple[float, float, float],
+        velocity: tuple[float, float],
+        costmap: LocalCostmap,
+        path: PathTrack,
+        v_cap_mps: float | None = None,
+    ) -> DwaChoice:
+        """The best admissible velocity for the robot at map ``pose`` moving at ``velocity``.
+
+        ``velocity`` is the measured ``(v_mps, w_radps)``; ``path`` the global path
+        (map frame), whose :attr:`PathTrack.progress_m` is where the robot is along it.
+        """
+        v, w = self.window(velocity[0], velocity[1], v_cap_mps)
+        pts = self.rollout(v, w)  # (K, S, 2)
+        k, s_count, _ = pts.shape
+        step_len = np.abs(v) * self.horizon_s / (s_count - 1)  # (K,)
+
+        # 1. Admissibility (Fox et al. 1997, section 4.2): free arc length before contact.
+        clear = costmap.clearance_m(pts.reshape(-1, 2), upper_bound_m=self.clearance_cap_m + self.contact_m)
+        clear = clear.reshape(k, s_count)
+        start_clear = float(clear[0, 0])
+        # already inside the contact distance (map noise, a bump): do not get any closer
+        limit = min(self.contact_m, start_clear - 1e-4)
+        hit = clear < limit
+        first_hit = np.where(hit.any(axis=1), np.argmax(hit, axis=1), s_count)
+        free_m = np.where(first_hit >= s_count, np.inf, np.maximum(first_hit - 1, 0) * step_len)
+        admissible = free_m >= self.stopping_distance_m(v)
+        turning_in_place = np.abs(v) < 1e-6
+        admissible |= turning_in_place & (start_clear >= limit)  # a round body turns freely
+
+        # 2. Objectives, evaluated up to the end of the rollout (or just before contact).
+        last = np.minimum(first_hit - 1, s_count - 1).clip(min=0)
+        end = pts[np.arange(k), last]  # (K, 2) robot frame
+        heading_end = w * last * (self.horizon_s / (s_count - 1))
+        c, s_ = math.cos(pose[2]), math.sin(pose[2])
+        end_map = np.column_stack((pose[0] + c * end[:, 0] - s_ * end[:, 1], pose[1] + s_ * end[:, 0] + c * end[:, 1]))
+        s0 = path.progress_m
+        s_end, d_end = path.project(end_map, s0 - 0.05, s0 + self.max_speed_mps * self.horizon_s + 0.1)
+        progress = (s_end - s0) / (self.max_speed_mps * self.horizon_s)
+        carrot = np.array([path.point_at(float(si) + self.lookahead_m) for si in s_end])
+        to_carrot = np.arctan2(carrot[:, 1] - end_map[:, 1], carrot[:, 0] - end_map[:, 0])
+        near_carrot = np.hypot(carrot[:, 0] - end_map[:, 0], carrot[:, 1] - end_map[:, 1]) < 0.02
+        heading_err = np.abs(np.remainder(to_carrot - (pose[2] + heading_end) + np.pi, 2 * np.pi) - np.pi) / np.pi
+        heading_err[near_carrot] = 0.0
+        valid = np.where(np.arange(s_count)[None, :] <= last[:, None], clear, np.inf)
+        min_clear = np.min(valid, axis=1) - self.contact_m
+        clearance = np.clip(min_clear / max(self.clearance_cap_m, 1e-6), 0.0, 1.0)
+        speed = v / self.max_speed_mps
+        wp, wd, wh, wc, wv = self.weights
+        score = wp * progress - wd * d_end / self.path_scale_m - wh * heading_err + wc * clearance + wv * speed
+        score = np.where(admissible, score, -np.inf)
+
+        rollouts = Rollouts(v, w, admissible, score, free_m, pts)
+        if not admissible.any():
+            return DwaChoice(0.0, 0.0, True, rollouts)
+        best = int(np.argmax(score))
+        return DwaChoice(float(v[best]), float(w[best]), False, rollouts)
+
+
+# -- the local planner ---------------------------------------------------------------------
+
+
+class LocalStatus(enum.StrEnum):
+    """What the local planner is doing."""
+
+    IDLE = "idle"  # no path
+    FOLLOWING = "following"  # DWA along the path
+    ALIGNING = "aligning"  # turning in place towards the path
+    RECOVERING = "recovering"  # rotate / back off after getting stuck
+    REACHED = "reached"  # at the goal, stopped
+
+
+@dataclass(frozen=True)
+class MotionCommand:
+    """A body velocity for the wheel controller, with the mode and planner status.
+
+    ``give_up`` is True once recovery has failed ``max_recoveries`` times on this path:
+    the caller should blacklist the goal (``Explorer.report_unreachable``) and re-plan.
+    """
+
+    v_mps: float
+    w_radps: float
+    mode: DriveMode
+    status: LocalStatus
+    give_up: bool = False
+    choice: DwaChoice | None = field(default=None, repr=False)
+
+
+class _Recovery(enum.Enum):
+    ROTATE = "rotate"
+    BACK_OFF = "back_off"
+
+
+class LocalPlanner:
+    """Follows a global path: DWA, in-place turns, goal stop, and recovery when stuck.
+
+    Example::
+
+        local = LocalPlanner(DynamicWindowPlanner())
+        local.set_path(goal.waypoints_m)
+        cmd = local.step(pose, (v_now, w_now), scan_xy, map_xy, map_point_radius_m, now_s)
+        wheels.update(cmd.v_mps, cmd.w_radps, cmd.mode, measured, dt)
+
+    ``goal_tolerance_m`` how close counts as arrived; ``align_enter_rad`` the heading error
+    beyond which the robot first turns in place, towards the path point
+    ``align_lookahead_m`` ahead (at a corner waypoint: the next corridor), until
+    :class:`HeadingAligner` reports the heading within its band;
+    ``stuck_timeout_s`` how long progress along the path may stay below
+    ``stuck_progress_m`` (or the window stay blocked for ``blocked_timeout_s``) before
+    recovery; recovery rotates by ``recovery_turn_rad`` towards the most open direction,
+    then backs off ``backoff_m`` at ``backoff_speed_mps`` if the way behind is clear;
+    ``max_recoveries`` failed recoveries on one path make it give up.
+    """
+
+    def __init__(
+        self,
+        dwa: DynamicWindowPlanner | None = None,
+        aligner: HeadingAligner | None = None,
+        goal_tolerance_m: float = 0.04,
+        align_enter_rad: float = math.radians(70.0),
+        align_lookahead_m: float = 0.1,
+        stuck_timeout_s: float = 4.0,
+        stuck_progress_m: float = 0.03,
+        blocked_timeout_s: float = 0.6,
+        recovery_turn_rad: float = math.radians(60.0),
+        backoff_m: float = 0.05,
+        backoff_speed_mps: float = 0.06,
+        max_recoveries: int = 3,
+    ) -> None:
+        self.dwa = dwa or DynamicWindowPlanner()
+        self.aligner = aligner or HeadingAligner(max_yaw_rate_radps=self.dwa.max_yaw_rate_radps)
+        self.goal_tolerance_m = float(goal_tolerance_m)
+        self.align_enter_rad = float(align_enter_rad)
+        self.align_lookahead_m = float(align_lookahead_m)
+        self.stuck_timeout_s = float(stuck_timeout_s)
+        self.stuck_progress_m = float(stuck_progress_m)
+        self.blocked_timeout_s = float(blocked_timeout_s)
+        self.recovery_turn_rad = float(recovery_turn_rad)
+        self.backoff_m = float(backoff_m)
+        self.backoff_speed_mps = float(backoff_speed_mps)
+        self.max_recoveries = int(max_recoveries)
+        self.path: PathTrack | None = None
+        self.status = LocalStatus.IDLE
+        self.recoveries = 0
+        self._align_target: float | None = None
+        self._progress_mark: tuple[float, float] | None = None  # (progress_m, time_s)
+        self._blocked_since: float | None = None
+        self._recovery: _Recovery | None = None
+        self._recovery_heading: float | None = None
+        self._backoff_start: XY | None = None
+        self._backoff_since = 0.0
+
+    def set_path(self, waypoints_m: Sequence[XY]) -> None:
+        """Follow a new path; the same path again (same waypoints) keeps the progress and timers."""
+        new = PathTrack(waypoints_m)
+        same = self.path is not None and new.points.shape == self.path.points.shape
+        if same and np.allclose(new.points, self.path.points, atol=1e-3):  # type: ignore[union-attr]
+            return
+        self.path = new
+        self.recoveries = 0
+        self._progress_mark = None
+        self._blocked_since = None
+        self._recovery = None
+        self._align_target = None
+        self.status = LocalStatus.FOLLOWING
+
+    def clear(self) -> None:
+        """No path: stop."""
+        self.path = None
+        self.status = LocalStatus.IDLE
+        self._recovery = None
+        self._align_target = None
+        self.aligner.reset()
+
+    def step(
+        self,
+        pose: tuple[float, float, float],
+        velocity: tuple[float, float],
+        scan_points: np.ndarray,
+        map_points: np.ndarray | None,
+        map_point_radius_m: float,
+        now_s: float,
+    ) -> MotionCommand:
+        """The command for this tick. ``scan_points``/``map_points`` are robot-frame (N, 2) metres."""
+        if self.path is None:
+            self.status = LocalStatus.IDLE
+            return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status)
+        path = self.path
+        xy = np.array([[pose[0], pose[1]]])
+        s, _ = path.project(xy, path.progress_m - 0.1, path.progress_m + 0.5)
+        path.progress_m = max(path.progress_m, float(s[0]))
+        goal = path.point_at(path.length_m)
+        to_goal = math.dist((pose[0], pose[1]), goal)
+        if to_goal <= self.goal_tolerance_m and (path.length_m - path.progress_m) <= self.goal_tolerance_m + 0.05:
+            self.status = LocalStatus.REACHED
+            self._recovery = None
+            return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status)
+
+        costmap = LocalCostmap(
+            scan_points, map_points, map_point_radius_m, self.dwa.footprint_radius_m, self.dwa.clearance_m
+        )
+        if self._recovery is not None:
+            return self._recover(pose, velocity, costmap, now_s)
+
+        carrot = path.point_at(path.progress_m + self.align_lookahead_m)
+        if math.dist(carrot, (pose[0], pose[1])) < 0.02:
+            carrot = goal
+        bearing = math.atan2(carrot[1] - pose[1], carrot[0] - pose[0])
+        error = math.remainder(bearing - pose[2], math.tau)
+        if self.status is LocalStatus.ALIGNING or abs(error) > self.align_enter_rad:
+            if self.status is not LocalStatus.ALIGNING or self._align_target is None:
+                self._align_target = bearing
+                self.aligner.reset()
+            w, done = self.aligner.command(pose[2], self._align_target, velocity[1])
+            if not done:
+                self.status = LocalStatus.ALIGNING
+                self._progress_mark = (path.progress_m, now_s)  # turning is progress
+                return MotionCommand(0.0, w, DriveMode.TURN, self.status)
+            self._align_target = None
+        self.status = LocalStatus.FOLLOWING
+
+        # goal braking: never faster than what stops at the end of the path
+        remaining = max(0.0, path.length_m - path.progress_m, to_goal) - 0.5 * self.goal_tolerance_m
+        v_cap = math.sqrt(2.0 * self.dwa.brake_decel_mps2 * max(remaining, 0.0))
+        v_cap = max(v_cap, 0.03)  # keep creeping: the last centimetres need some speed
+        choice = self.dwa.plan(pose, velocity, costmap, path, v_cap)
+        if self._stuck(choice, path, now_s):
+            return self._begin_recovery(pose, velocity, costmap, now_s, choice)
+        mode = DriveMode.DRIVE if not choice.blocked else DriveMode.STOP
+        return MotionCommand(choice.v_mps, choice.w_radps, mode, self.status, choice=choice)
+
+    # -- stuck detection and recovery ----------------------------------------------------
+
+    def _stuck(self, choice: DwaChoice, path: PathTrack, now_s: float) -> bool:
+        if choice.blocked:
+            self._blocked_since = now_s if self._blocked_since is None else self._blocked_since
+        else:
+            self._blocked_since = None
+        if self._progress_mark is None or path.progress_m >= self._progress_mark[0] + self.stuck_progress_m:
+            self._progress_mark = (path.progress_m, now_s)
+        blocked = self._blocked_since is not None and now_s - self._blocked_since >= self.blocked_timeout_s
+        stalled = now_s - self._progress_mark[1] >= self.stuck_timeout_s
+        return blocked or stalled
+
+    def _begin_recovery(
+        self,
+        pose: tuple[float, float, float],
+        velocity: tuple[float, float],
+        costmap: LocalCostmap,
+        now_s: float,
+        choice: DwaChoice,
+    ) -> MotionCommand:
+        self.recoveries += 1
+        self._blocked_since = None
+        self._progress_mark = None
+        self.status = LocalStatus.RECOVERING
+        if self.recoveries > self.max_recoveries:
+            self._recovery = None
+            return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status, give_up=True, choice=choice)
+        # 1. rotate towards the most open direction (within recovery_turn_rad of the path bearing)
+        angles = np.linspace(-math.pi, math.pi, 36, endpoint=False)
+        probe = 0.25 * np.column_stack((np.cos(angles), np.sin(angles)))
+        openness = costmap.clearance_m(probe)
+        assert self.path is not None
+        carrot = self.path.point_at(self.path.progress_m + self.dwa.lookahead_m)
+        bearing = math.atan2(carrot[1] - pose[1], carrot[0] - pose[0]) - pose[2]
+        off = np.abs(np.remainder(angles - bearing + np.pi, 2 * np.pi) - np.pi)
+        openness = np.where(off <= self.recovery_turn_rad + 1e-9, openness, -np.inf)
+        best = float(angles[int(np.argmax(openness))])
+        if abs(best) < math.radians(10):
+            best = math.copysign(self.recovery_turn_rad, bearing if bearing else 1.0)
+        self._recovery = _Recovery.ROTATE
+        self._recovery_heading = pose[2] + best
+        self.aligner.reset()
+        return self._recover(pose, velocity, costmap, now_s)
+
+    def _recover(
+        self, pose: tuple[float, float, float], velocity: tuple[float, float], costmap: LocalCostmap, now_s: float
+    ) -> MotionCommand:
+        self.status = LocalStatus.RECOVERING
+        if self._recovery is _Recovery.ROTATE:
+            assert self._recovery_heading is not None
+            w, done = self.aligner.command(pose[2], self._recovery_heading, velocity[1])
+            if not done:
+                return MotionCommand(0.0, w, DriveMode.RECOVER, self.status)
+            self._recovery = _Recovery.BACK_OFF
+            self._backoff_start = (pose[0], pose[1])
+            self._backoff_since = now_s
+        if self._recovery is _Recovery.BACK_OFF:
+            assert self._backoff_start is not None
+            moved = math.dist(self._backoff_start, (pose[0], pose[1]))
+            behind = np.column_stack((-np.linspace(0.0, self.backoff_m - moved + 0.02, 8), np.zeros(8)))
+            clear = costmap.clearance_m(behind)
+            # a slipping or blocked robot may never cover the distance: give it twice the time it needs
+            in_time = now_s - self._backoff_since <= 2.0 * self.backoff_m / self.backoff_speed_mps + 0.5
+            if moved < self.backoff_m and in_time and bool(np.all(clear >= self.dwa.contact_m)):
+                return MotionCommand(-self.backoff_speed_mps, 0.0, DriveMode.RECOVER, self.status)
+        # done: back to following; the caller re-plans from here
+        self._recovery = None
+        self._progress_mark = (self.path.progress_m if self.path else 0.0, now_s)
+        self.status = LocalStatus.FOLLOWING
+        return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status)

@@ -1,0 +1,588 @@
+"""Where to go next: exploration strategies over the maze graph, and grid frontiers.
+
+Exploring means driving to where something is still unknown until nothing reachable is.
+In a maze the unknowns are **frontier links**: a link of a reachable cell whose state
+(open or wall) is not known yet (seed 000_…, III.C: "this unknown link can be referred to
+as a frontier for autonomous mapping"). Going to the cell that owns the link lets the
+lidar resolve it. Two strategies choose among them:
+
+- :class:`DepthFirstStrategy`, the seed's choice: the most recently discovered frontier
+  first (a stack), so the robot follows one branch to its end before back-tracking.
+- :class:`NearestFrontierStrategy`, the default: the frontier with the cheapest route
+  from the robot (cells driven plus a cost per in-place turn). When several are about
+  equally near, it takes the one farthest from everything else still to do (the other
+  frontiers and the start cell, where the run ends): a two-step look-ahead that
+  finishes a side branch now rather than coming back for it later, which is what keeps
+  the total driving close to the depth-first tour's unavoidable back-tracking while
+  skipping the dead ends the lidar has already seen to the end.
+
+A cell maze is recognised by its walls (:attr:`MazeGraph.fit`, the share of wall cells
+on the lattice). Worlds that are not mazes (a room with cylinders) are explored with
+Yamauchi's frontier-based method (Yamauchi 1997, "A frontier-based approach for
+autonomous exploration"): frontier cells are known-free grid cells next to unknown ones,
+grouped into connected regions; the robot drives to the nearest reachable region
+(path cost on the inflated costmap).
+
+Targets that cannot be resolved (a region the robot cannot reach or see, a link the
+lidar never classifies) are blacklisted after a timeout without progress, so nothing
+traps the robot. When no reachable, non-blacklisted unknown remains the explorer turns
+to :attr:`Phase.RETURNING`, plans back to the start, and reports :attr:`Phase.DONE` on
+arrival.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+from scipy import ndimage
+
+from mazebot.planner.global_path import (
+    GridCostmap,
+    cell_costs,
+    cell_waypoints,
+    merge_straight,
+    shortcut,
+    shortest_cell_path,
+)
+from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
+from mazebot.slam.grid import FREE, UNKNOWN
+
+
+class Phase(enum.StrEnum):
+    """Where the run is: the planner's part of the run state."""
+
+    EXPLORING = "exploring"
+    RETURNING = "returning"
+    DONE = "done"
+
+
+@dataclass(frozen=True)
+class Goal:
+    """What the local planner should do now.
+
+    ``waypoints_m`` is the route in the map frame from near the robot to ``target_m``
+    (metres); ``cells`` the maze cells it passes through (merged: corners only), empty in
+    frontier mode; ``reason`` a short human description for logs and the web page.
+    """
+
+    phase: Phase
+    target_m: tuple[float, float]
+    waypoints_m: list[tuple[float, float]]
+    cells: list[Cell] = field(default_factory=list)
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A frontier the robot could resolve: ``cell``'s side ``side`` is unknown (or, with
+    ``side`` None, the inside of ``cell`` has not been seen yet).
+
+    ``cost`` is the route cost from the robot to ``cell`` (cells plus turn costs);
+    ``discovered`` the update counter when the frontier was first seen.
+    """
+
+    cell: Cell
+    side: Direction | None
+    cost: float
+    discovered: int
+
+    @property
+    def side_order(self) -> int:
+        """A sortable stand-in for ``side`` (None, the cell itself, last)."""
+        return 4 if self.side is None else int(self.side)
+
+
+class Strategy(Protocol):
+    """Picks the frontier link to resolve next."""
+
+    name: str
+
+    def choose(
+        self, candidates: Sequence[Candidate], distances_from: Callable[[Cell], dict[Cell, float]], start_cell: Cell
+    ) -> Candidate:
+        """One of ``candidates`` (never empty). ``distances_from(cell)`` gives route costs from a cell."""
+        ...
+
+
+class DepthFirstStrategy:
+    """The seed's depth-first search: the most recently discovered frontier first.
+
+    Frontier links form a stack in the order they appear; the newest one is resolved
+    next, nearer ones first among those discovered together. The robot thus follows a
+    branch to its end, then back-tracks to the newest open question.
+    """
+
+    name = "dfs"
+
+    def choose(
+        self, candidates: Sequence[Candidate], distances_from: Callable[[Cell], dict[Cell, float]], start_cell: Cell
+    ) -> Candidate:
+        return min(candidates, key=lambda c: (-c.discovered, c.cost, c.cell, c.side_order))
+
+
+class NearestFrontierStrategy:
+    """The cheapest frontier to reach, breaking near-ties by what leaving it would cost later.
+
+    ``tie_margin`` (in cell steps): candidates whose cost is within this of the cheapest
+    are tied. Among tied cells, the one whose distance to the rest (every other
+    frontier cell and the start cell) is largest wins: visiting it last would mean a
+    long detour back, visiting it now costs the same as the others.
+    """
+
+    name = "nearest"
+
+    def __init__(self, tie_margin: float = 0.5) -> None:
+        if tie_margin < 0:
+            raise ValueError(f"tie_margin must be >= 0 cells, got {tie_margin}")
+        self.tie_margin = float(tie_margin)
+
+    def choose(
+        self, candidates: Sequence[Candidate], distances_from: Callable[[Cell], dict[Cell, float]], start_cell: Cell
+    ) -> Candidate:
+        best = min(c.cost for c in candidates)
+        tied = [c for c in candidates if c.cost <= best + self.tie_margin]
+        tied_cells = sorted({c.cell for c in tied})
+        if len(tied_cells) == 1:
+            return min(tied, key=lambda c: (c.cost, c.side_order))
+        rest = {c.cell for c in candidates} - set(tied_cells) | {start_cell}
+        regret: dict[Cell, float] = {}
+        for cell in tied_cells:
+            costs = distances_from(cell)
+            others = [costs.get(r, math.inf) for r in rest if r != cell]
+            regret[cell] = min(others) if others else 0.0
+        return max(tied, key=lambda c: (regret[c.cell], -c.cost, -c.side_order, c.cell))
+
+
+def make_strategy(name: str, tie_margin: float = 0.5) -> Strategy:
+    """The strategy called ``name``: ``"nearest"`` (default) or ``"dfs"``."""
+    if name == "nearest":
+        return NearestFrontierStrategy(tie_margin)
+    if name == "dfs":
+        return DepthFirstStrategy()
+    raise ValueError(f"exploration strategy must be 'nearest' or 'dfs', got {name!r}")
+
+
+@dataclass(frozen=True)
+class _RegionKey:
+    """Identity of a frontier target: the centroid (metres) of its region when first chosen."""
+
+    centroid_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class _Region:
+    """A reachable frontier region: route cost (metres), goal, centroid, size in cells."""
+
+    cost_m: float
+    goal_m: tuple[float, float]
+    centroid_m: tuple[float, float]
+    size: int
+
+
+@dataclass
+class _Target:
+    """Bookkeeping of the current target, for switching hysteresis and blacklisting."""
+
+    key: object
+    position_m: tuple[float, float]
+    cost: float
+    chosen_s: float
+    best_cost: float
+    progress_s: float
+    arrived_s: float | None = None
+
+
+class Explorer:
+    """Decides the next goal each planner tick, in a maze or in any other world.
+
+    Example::
+
+        explorer = Explorer(start_xy_m=(0.0, 0.0))
+        goal = explorer.update(grid.three_state(), grid.origin_m, grid.resolution_m, pose, now_s)
+        goal.phase, goal.waypoints_m     # hand the waypoints to the local planner
+        explorer.report_unreachable(now_s)   # the local planner gave up on this goal
+
+    Parameters: ``graph`` the maze graph to keep updated (a default one is built);
+    ``strategy`` a :class:`Strategy` or its name; ``mode`` ``"auto"`` (a maze when the
+    walls fit the lattice), ``"maze"`` or ``"frontier"``; ``start_xy_m`` the start pose
+    (map frame, metres), where the run ends; ``maze_fit_min`` the share of wall cells on
+    lattice lines that makes a maze (with ``maze_fit_hysteresis`` before leaving maze
+    mode); ``turn_cost_cells`` the cost of a quarter turn in cell steps; ``switch_margin``
+    how much cheaper (cell steps, or metres in frontier mode) a new target must be to
+    replace the current one; ``goal_tolerance_m`` how close counts as arrived;
+    ``progress_timeout_s`` how long a target may go without its route cost dropping
+    before it is blacklisted, ``dwell_timeout_s`` how long it may stay unresolved once
+    the robot is there; ``footprint_radius_m``/``clearance_m`` the robot for the grid
+    costmap; ``min_frontier_cells`` the smallest frontier region worth a visit;
+    ``view_radius_m`` how close the robot must come to a frontier region to see into
+    it, ``view_candidates`` how many of the cheapest places within that radius are
+    checked for a line of sight to it; ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped.
+    """
+
+    def __init__(
+        self,
+        graph: MazeGraph | None = None,
+        strategy: Strategy | str = "nearest",
+        mode: Literal["auto", "maze", "frontier"] = "auto",
+        start_xy_m: tuple[float, float] = (0.0, 0.0),
+        maze_fit_min: float = 0.92,
+        maze_fit_hysteresis: float = 0.05,
+        turn_cost_cells: float = 0.5,
+        switch_margin: float = 1.0,
+        goal_tolerance_m: float = 0.05,
+        progress_timeout_s: float = 20.0,
+        dwell_timeout_s: float = 3.0,
+        footprint_radius_m: float = 0.09,
+        clearance_m: float = 0.02,
+        min_frontier_cells: int = 4,
+        view_radius_m: float = 0.3,
+        view_candidates: int = 40,
+        blacklist_radius_m: float = 0.15,
+    ) -> None:
+        if mode not in ("auto", "maze", "frontier"):
+            raise ValueError(f"mode must be 'auto', 'maze' or 'frontier', got {mode!r}")
+        self.graph = graph if graph is not None else MazeGraph(anchor_xy_m=start_xy_m)
+        self.strategy = make_strategy(strategy) if isinstance(strategy, str) else strategy
+        self.mode_setting = mode
+        self.start_xy_m = (float(start_xy_m[0]), float(start_xy_m[1]))
+        self.maze_fit_min = float(maze_fit_min)
+        self.maze_fit_hysteresis = float(maze_fit_hysteresis)
+        self.turn_cost_cells = float(turn_cost_cells)
+        self.switch_margin = float(switch_margin)
+        self.goal_tolerance_m = float(goal_tolerance_m)
+        self.progress_timeout_s = float(progress_timeout_s)
+        self.dwell_timeout_s = float(dwell_timeout_s)
+        self.footprint_radius_m = float(footprint_radius_m)
+        self.clearance_m = float(clearance_m)
+        self.min_frontier_cells = int(min_frontier_cells)
+        self.view_radius_m = float(view_radius_m)
+        self.view_candidates = int(view_candidates)
+        self.blacklist_radius_m = float(blacklist_radius_m)
+
+        self.phase = Phase.EXPLORING
+        self.mode: Literal["maze", "frontier"] = "frontier" if mode == "frontier" else "maze"
+        self.blacklisted_links: set[tuple[Cell, Direction | None]] = set()
+        self.blacklisted_points_m: list[tuple[float, float]] = []
+        self.updates = 0
+        self._discovered: dict[tuple[Cell, Direction | None], int] = {}
+        self._target: _Target | None = None
+        self._costmap: GridCostmap | None = None
+
+    # -- the tick ------------------------------------------------------------------------
+
+    def update(
+        self,
+        three_state: np.ndarray,
+        grid_origin_m: tuple[float, float],
+        resolution_m: float,
+        pose: tuple[float, float, float],
+        now_s: float,
+    ) -> Goal | None:
+        """Read the map, choose the next goal; None only when there is nothing to do yet.
+
+        ``pose`` is the robot's map-frame ``(x_m, y_m, theta_rad)``. Returns a goal in
+        every phase (in DONE: stay at the start); None before the map holds anything to
+        plan on.
+        """
+        self.updates += 1
+        grid = np.asarray(three_state)
+        self._costmap = None
+        if self.mode_setting != "frontier":
+            self.graph.update(grid, grid_origin_m, resolution_m)
+        self._choose_mode()
+        if self.phase is Phase.DONE:
+            return Goal(Phase.DONE, self.start_xy_m, [self.start_xy_m], reason="done: back at the start")
+        if self.mode == "maze":
+            goal = self._maze_goal(pose, now_s)
+        else:
+            goal = self._frontier_goal(grid, grid_origin_m, resolution_m, pose, now_s)
+        if goal is None:
+            goal = self._return_goal(grid, grid_origin_m, resolution_m, pose)
+        return goal
+
+    def report_unreachable(self, now_s: float) -> None:
+        """The local planner could not reach the current goal: blacklist it and choose again."""
+        target = self._target
+        if target is None or self.phase is not Phase.EXPLORING:
+            return
+        self._blacklist(target)
+
+    def reset(self) -> None:
+        """Start a new run: forget the phase, targets and blacklists (the graph follows the map)."""
+        self.phase = Phase.EXPLORING
+        self.blacklisted_links.clear()
+        self.blacklisted_points_m.clear()
+        self._discovered.clear()
+        self._target = None
+
+    def _choose_mode(self) -> None:
+        if self.mode_setting != "auto":
+            self.mode = self.mode_setting  # type: ignore[assignment]
+            return
+        if not self.graph.ready:
+            self.mode = "frontier"
+            return
+        threshold = self.maze_fit_min - (self.maze_fit_hysteresis if self.mode == "maze" else 0.0)
+        self.mode = "maze" if self.graph.fit >= threshold else "frontier"
+
+    # -- maze mode -----------------------------------------------------------------------
+
+    def _maze_goal(self, pose: tuple[float, float, float], now_s: float) -> Goal | None:
+        graph = self.graph
+        frame = graph.frame
+        if frame is None:
+            return None
+        robot = frame.cell_of(pose[0], pose[1])
+        heading = _heading_index(pose[2], frame.angle_rad)
+        costs = cell_costs(graph.open_neighbours, robot, heading, self.turn_cost_cells)
+        links: list[tuple[Cell, Direction | None]] = []
+        for cell in sorted(costs):
+            links.extend((cell, side) for side in graph.unknown_sides(cell))
+            if graph.needs_look(cell) and cell != robot:  # from inside, its walls are within the lidar's min range
+                links.append((cell, None))
+        for link in links:
+            self._discovered.setdefault(link, self.updates)
+        candidates = [
+            Candidate(cell, side, costs[cell], self._discovered[(cell, side)])
+            for cell, side in links
+            if (cell, side) not in self.blacklisted_links
+        ]
+        if not candidates:
+            self._target = None
+            return None
+        self.phase = Phase.EXPLORING
+
+        def distances_from(cell: Cell) -> dict[Cell, float]:
+            return cell_costs(graph.open_neighbours, cell, None, self.turn_cost_cells)
+
+        start_cell = frame.cell_of(*self.start_xy_m)
+        choice = self.strategy.choose(candidates, distances_from, start_cell)
+        current = self._target
+        keys = {(c.cell, c.side): c for c in candidates}
+        if current is not None and current.key in keys:
+            kept = keys[current.key]  # type: ignore[index]
+            if self.strategy.name == "dfs":  # stay on a branch until a newer frontier appears
+                keep = kept.discovered >= choice.discovered
+            else:  # switch only for a clearly cheaper target: no dithering between equals
+                keep = kept.cost <= choice.cost + self.switch_margin
+            if keep:
+                choice = kept
+        position = frame.cell_center_m(choice.cell)
+        target = self._track((choice.cell, choice.side), position, choice.cost, now_s, at_goal=choice.cell == robot)
+        if target is None:  # just blacklisted: choose again next tick
+            return self._maze_goal(pose, now_s) if candidates[1:] else None
+        route = shortest_cell_path(graph.open_neighbours, robot, choice.cell, heading, self.turn_cost_cells)
+        side = "its inside" if choice.side is None else f"its {choice.side.name} side"
+        what = f"look at {side} of cell {choice.cell}"
+        cells = merge_straight(route or [choice.cell])
+        return Goal(
+            Phase.EXPLORING,
+            position,
+            cell_waypoints(cells, frame.cell_center_m),
+            cells,
+            f"{what} ({self.strategy.name})",
+        )
+
+    # -- frontier mode -------------------------------------------------------------------
+
+    def _costmap_for(self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float) -> GridCostmap:
+        if self._costmap is None:
+            self._costmap = GridCostmap(grid, origin, resolution_m, self.footprint_radius_m, self.clearance_m)
+        return self._costmap
+
+    def _frontier_goal(
+        self,
+        grid: np.ndarray,
+        origin: tuple[float, float],
+        resolution_m: float,
+        pose: tuple[float, float, float],
+        now_s: float,
+    ) -> Goal | None:
+        costmap = self._costmap_for(grid, origin, resolution_m)
+        options = self._frontier_options(grid, costmap, resolution_m, (pose[0], pose[1]))
+        if not options:
+            self._target = None
+            return None
+        self.phase = Phase.EXPLORING
+        choice = options[0]
+        current = self._target
+        same: _Region | None = None
+        if current is not None and isinstance(current.key, _RegionKey):
+            anchor = current.key.centroid_m
+            same = next((o for o in options if math.dist(o.centroid_m, anchor) < self.view_radius_m), None)
+            if same is not None and same.cost_m <= choice.cost_m + self.switch_margin * self.graph.cell_size_m:
+                choice = same
+        key = current.key if current is not None and choice is same else _RegionKey(choice.centroid_m)
+        at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
+        if self._track(key, choice.goal_m, choice.cost_m, now_s, at_goal) is None:
+            return None
+        path = costmap.plan((pose[0], pose[1]), choice.goal_m)
+        waypoints = shortcut(path, costmap) if path else [choice.goal_m]
+        cx, cy = choice.centroid_m
+        return Goal(
+            Phase.EXPLORING, choice.goal_m, waypoints, [], f"frontier of {choice.size} cells at {cx:.2f}, {cy:.2f}"
+        )
+
+    def _frontier_options(
+        self, grid: np.ndarray, costmap: GridCostmap, resolution_m: float, robot_xy_m: tuple[float, float]
+    ) -> list[_Region]:
+        """Reachable, non-blacklisted frontier regions, cheapest first (then largest).
+
+        A region's goal is the cheapest-to-reach passable cell within ``view_radius_m``
+        of it that has a clear line of sight (through known free cells) to one of its
+        frontier cells: the inflated robot often cannot stand on the frontier itself
+        (next to a wall), and the nearest place within range may look at it through an
+        obstacle (the far side of a cylinder).
+        """
+        regions = frontier_regions(grid, self.min_frontier_cells)
+        if not regions:
+            return []
+        distances = costmap.distances_from(robot_xy_m)
+        reach = np.isfinite(distances) & costmap.passable
+        view_cells = max(1, round(self.view_radius_m / resolution_m))
+        disk = _disk(view_cells)
+        free = grid == FREE
+        options: list[_Region] = []
+        for region in regions:
+            centroid = costmap.to_world(*np.mean(region, axis=0))
+            if any(math.dist(centroid, b) < self.blacklist_radius_m for b in self.blacklisted_points_m):
+                continue
+            r0, c0 = np.maximum(region.min(axis=0) - view_cells, 0)
+            r1, c1 = np.minimum(region.max(axis=0) + view_cells + 1, grid.shape)
+            mask = np.zeros((r1 - r0, c1 - c0), dtype=bool)
+            mask[region[:, 0] - r0, region[:, 1] - c0] = True
+            near = ndimage.binary_dilation(mask, structure=disk) & reach[r0:r1, c0:c1]
+            if not near.any():
+                continue  # no passable place within view of it: unreachable for now
+            rows, cols = np.nonzero(near)
+            cost = distances[rows + r0, cols + c0]
+            for k in np.argsort(cost, kind="stable")[: self.view_candidates]:
+                cell = (int(rows[k] + r0), int(cols[k] + c0))
+                if _sees_region(free, cell, region, self.view_radius_m / resolution_m):
+                    goal = costmap.to_world(*cell)
+                    options.append(_Region(float(cost[k]) * resolution_m, goal, centroid, int(region.shape[0])))
+                    break
+        options.sort(key=lambda o: (o.cost_m, -o.size))
+        return options
+
+    # -- returning -----------------------------------------------------------------------
+
+    def _return_goal(
+        self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float, pose: tuple[float, float, float]
+    ) -> Goal:
+        self.phase = Phase.RETURNING
+        self._target = None
+        frame = self.graph.frame
+        if self.mode == "maze" and frame is not None:
+            start_cell = frame.cell_of(*self.start_xy_m)
+            target = frame.cell_center_m(start_cell)
+            if math.dist((pose[0], pose[1]), target) <= self.goal_tolerance_m:
+                self.phase = Phase.DONE
+                return Goal(Phase.DONE, target, [target], [start_cell], "done: back at the start cell")
+            robot = frame.cell_of(pose[0], pose[1])
+            heading = _heading_index(pose[2], frame.angle_rad)
+            route = shortest_cell_path(self.graph.open_neighbours, robot, start_cell, heading, self.turn_cost_cells)
+            cells = merge_straight(route or [start_cell])
+            return Goal(Phase.RETURNING, target, cell_waypoints(cells, frame.cell_center_m), cells, "return to start")
+        target = self.start_xy_m
+        if math.dist((pose[0], pose[1]), target) <= self.goal_tolerance_m:
+            self.phase = Phase.DONE
+            return Goal(Phase.DONE, target, [target], [], "done: back at the start")
+        costmap = self._costmap_for(grid, origin, resolution_m)
+        path = costmap.plan((pose[0], pose[1]), target)
+        waypoints = shortcut(path, costmap) if path else [target]
+        return Goal(Phase.RETURNING, target, waypoints, [], "return to start")
+
+    # -- target bookkeeping --------------------------------------------------------------
+
+    def _track(
+        self, key: object, position: tuple[float, float], cost: float, now_s: float, at_goal: bool
+    ) -> _Target | None:
+        """Keep timers for the target; blacklist it (returning None) when it stops progressing."""
+        target = self._target
+        if target is None or target.key != key:
+            target = _Target(key, position, cost, now_s, cost, now_s)
+            self._target = target
+        target.position_m, target.cost = position, cost
+        if cost < target.best_cost - 1e-6:
+            target.best_cost, target.progress_s = cost, now_s
+        if at_goal:
+            target.arrived_s = now_s if target.arrived_s is None else target.arrived_s
+        else:
+            target.arrived_s = None
+        stalled = now_s - target.progress_s > self.progress_timeout_s
+        dwelt = target.arrived_s is not None and now_s - target.arrived_s > self.dwell_timeout_s
+        if stalled or dwelt:
+            self._blacklist(target)
+            return None
+        return target
+
+    def _blacklist(self, target: _Target) -> None:
+        key = target.key
+        if isinstance(key, _RegionKey):
+            self.blacklisted_points_m.append(key.centroid_m)
+        else:
+            self.blacklisted_links.add(key)  # type: ignore[arg-type]
+        self._target = None
+
+
+def frontier_regions(three_state: np.ndarray, min_cells: int = 4) -> list[np.ndarray]:
+    """Yamauchi's frontier regions: 8-connected groups of free cells that touch unknown ones.
+
+    A free cell is a frontier cell when one of its four neighbours is unknown. Groups
+    smaller than ``min_cells`` (speckle, the pockets behind posts) are dropped. Returns a
+    list of (K, 2) int arrays of ``(row, col)``.
+    """
+    grid = np.asarray(three_state)
+    unknown = grid == UNKNOWN
+    touches = np.zeros_like(unknown)
+    touches[1:, :] |= unknown[:-1, :]
+    touches[:-1, :] |= unknown[1:, :]
+    touches[:, 1:] |= unknown[:, :-1]
+    touches[:, :-1] |= unknown[:, 1:]
+    frontier = (grid == FREE) & touches
+    labels, count = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
+    if count == 0:
+        return []
+    rows, cols = np.nonzero(labels)
+    order = np.argsort(labels[rows, cols], kind="stable")
+    rows, cols = rows[order], cols[order]
+    sizes = np.bincount(labels[rows, cols], minlength=count + 1)[1:]
+    splits = np.cumsum(sizes)[:-1]
+    groups = np.split(np.column_stack((rows, cols)), splits)
+    return [g for g in groups if g.shape[0] >= min_cells]
+
+
+def _sees_region(free: np.ndarray, cell: tuple[int, int], region: np.ndarray, max_cells: float) -> bool:
+    """True when a straight line of known free cells joins ``cell`` to a cell of ``region`` in range.
+
+    The lines to the region's cells nearest to ``cell`` (up to eight, within ``max_cells``)
+    are sampled every half cell; every sample must be free.
+    """
+    d = np.hypot(region[:, 0] - cell[0], region[:, 1] - cell[1])
+    order = np.argsort(d)[:8]
+    for k in order:
+        if d[k] > max_cells:
+            break
+        n = max(2, math.ceil(2.0 * d[k]) + 1)
+        t = np.linspace(0.0, 1.0, n)
+        rr = np.round(cell[0] + t * (region[k, 0] - cell[0])).astype(np.int64)
+        cc = np.round(cell[1] + t * (region[k, 1] - cell[1])).astype(np.int64)
+        if free[rr, cc].all():
+            return True
+    return False
+
+
+def _disk(radius_cells: int) -> np.ndarray:
+    r = np.arange(-radius_cells, radius_cells + 1)
+    return (r[:, None] ** 2 + r[None, :] ** 2) <= radius_cells**2
+
+
+def _heading_index(theta_rad: float, frame_angle_rad: float) -> int:
+    """The maze direction (0 E, 1 N, 2 W, 3 S) closest to a map-frame heading."""
+    return round(math.remainder(theta_rad - frame_angle_rad, math.tau) / (math.pi / 2)) % 4

@@ -1,0 +1,668 @@
+"""The maze as a graph: one node per cell centre, one link per pair of neighbouring cells.
+
+The planner does not search the occupancy grid cell by cell: a maze of 1 ft squares is a
+graph of a few hundred nodes, and the seed design (000_…, III.C "graph builder") puts a
+waypoint at every cell centre and links neighbouring waypoints whose boundary is open.
+This module builds that graph from the three-state grid SLAM publishes (−1 unknown,
+0 free, 100 occupied; row 0 south) in three steps:
+
+1. **Maze frame** (:func:`estimate_frame`). The robot is put down at an arbitrary angle,
+   so the map frame (the start pose) is not the maze's. The walls say where the maze
+   is: the dominant wall direction comes from the structure tensor of the occupied
+   mask (the local gradient orientation, folded modulo 90° so both wall families vote
+   for the same angle; Bigün & Granlund 1987); the cell phase along each axis is the
+   circular mean of the wall positions of that family modulo the cell size; then a few
+   least-squares steps fit angle and phases so the walls lie on the lattice lines
+   (point-to-line ICP against the lattice). Cell (0, 0) is the cell holding the start
+   pose.
+
+2. **Links** (:meth:`MazeGraph.update`). Each boundary between neighbouring cells is
+   sampled along its middle part (the posts at its ends are left out) and a little to
+   either side of the line; it is a **wall** when enough of it is occupied, **open**
+   when it is known free from end to end, and **unknown** otherwise.
+
+3. **Cell kinds** (:meth:`MazeGraph.kind`): dead ends (one open link), corridors (two),
+   junctions (three or four), open areas (part of a 2×2 block of mutually open cells)
+   and unexplored cells (a link still unknown).
+
+The graph is updated in place as the map grows: the frame is kept while the walls
+agree with it (re-estimated when the wall count has grown by a set fraction, and
+re-anchored so cell indices stay put), the cell range grows with the map, and every
+update reports the links whose state changed.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
+
+Cell = tuple[int, int]
+"""A maze cell ``(i, j)``: ``i`` counts cells along the maze's u axis, ``j`` along v."""
+
+
+class Direction(enum.IntEnum):
+    """The four sides of a cell, counter-clockwise from +u (the maze's "east")."""
+
+    E = 0
+    N = 1
+    W = 2
+    S = 3
+
+    @property
+    def step(self) -> Cell:
+        """``(di, dj)`` to the neighbour on this side."""
+        return _STEPS[self]
+
+    @property
+    def opposite(self) -> Direction:
+        return Direction((self + 2) % 4)
+
+    @classmethod
+    def between(cls, a: Cell, b: Cell) -> Direction:
+        """The side of ``a`` that faces its neighbour ``b``."""
+        step = (b[0] - a[0], b[1] - a[1])
+        for d, s in _STEPS.items():
+            if s == step:
+                return d
+        raise ValueError(f"cells {a} and {b} are not neighbours")
+
+
+_STEPS: dict[Direction, Cell] = {Direction.E: (1, 0), Direction.N: (0, 1), Direction.W: (-1, 0), Direction.S: (0, -1)}
+
+
+class LinkState(enum.IntEnum):
+    """What is known about the boundary between two neighbouring cells."""
+
+    UNKNOWN = 0
+    OPEN = 1
+    WALL = 2
+
+
+class CellKind(enum.StrEnum):
+    """The role of a cell in the maze, from its links."""
+
+    UNEXPLORED = "unexplored"  # at least one link still unknown
+    ENCLOSED = "enclosed"  # all four links walls (outside the maze, or a closed box)
+    DEAD_END = "dead_end"  # one open link
+    CORRIDOR = "corridor"  # two open links (straight or a corner)
+    JUNCTION = "junction"  # three or four open links
+    OPEN_AREA = "open_area"  # part of a 2x2 block of cells open to each other (no post between)
+
+
+# -- the maze frame --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MazeFrame:
+    """Where the maze lattice lies in the map frame.
+
+    The maze axes (u, v) are the map axes rotated by ``angle_rad``; ``origin_m`` is the
+    map position of the lattice corner (a post) south-west of cell (0, 0) in maze terms,
+    so cell (i, j) spans ``u in [i, i + 1) * cell_size_m``, ``v in [j, j + 1) * cell_size_m``
+    measured from the origin.
+
+    >>> frame = MazeFrame(0.0, (0.0, 0.0), 0.3)
+    >>> frame.cell_of(0.45, 0.1), frame.cell_center_m((1, 0))
+    ((1, 0), (0.45, 0.15))
+    """
+
+    angle_rad: float
+    origin_m: tuple[float, float]
+    cell_size_m: float
+
+    def to_maze(self, xy: np.ndarray) -> np.ndarray:
+        """Map points (N, 2) in metres to maze coordinates (N, 2): metres along u and v from the origin."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2) - np.asarray(self.origin_m)
+        c, s = math.cos(self.angle_rad), math.sin(self.angle_rad)
+        return np.column_stack((c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1]))
+
+    def to_map(self, uv: np.ndarray) -> np.ndarray:
+        """Maze coordinates (N, 2) back to map points (N, 2) in metres."""
+        q = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        c, s = math.cos(self.angle_rad), math.sin(self.angle_rad)
+        return np.column_stack((c * q[:, 0] - s * q[:, 1], s * q[:, 0] + c * q[:, 1])) + np.asarray(self.origin_m)
+
+    def cell_of(self, x_m: float, y_m: float) -> Cell:
+        """The cell holding map point ``(x_m, y_m)``."""
+        u, v = self.to_maze(np.array([x_m, y_m]))[0] / self.cell_size_m
+        return (math.floor(u), math.floor(v))
+
+    def cell_center_m(self, cell: Cell) -> tuple[float, float]:
+        """Map coordinates (metres) of the centre of ``cell``: the waypoint."""
+        x, y = self.to_map(np.array([(cell[0] + 0.5) * self.cell_size_m, (cell[1] + 0.5) * self.cell_size_m]))[0]
+        return (float(x), float(y))
+
+    def heading_rad(self, direction: Direction) -> float:
+        """Map-frame heading of a robot facing out of a cell through ``direction``."""
+        return math.remainder(self.angle_rad + direction * math.pi / 2, math.tau)
+
+
+@dataclass(frozen=True)
+class FrameEstimate:
+    """A maze frame with the evidence behind it.
+
+    ``fit`` is the fraction of wall cells lying on a lattice line (≈1 in a maze, clearly
+    less in a room with round obstacles: the explorer's maze-or-not test); ``support``
+    the number of wall cells used.
+    """
+
+    frame: MazeFrame
+    fit: float
+    support: int
+
+
+def estimate_frame(
+    three_state: np.ndarray,
+    grid_origin_m: tuple[float, float],
+    resolution_m: float,
+    cell_size_m: float = 0.3048,
+    anchor_xy_m: tuple[float, float] = (0.0, 0.0),
+    prior_angle_rad: float | None = None,
+    line_tolerance_m: float = 0.03,
+    min_support: int = 20,
+) -> FrameEstimate | None:
+    """The maze lattice that best explains the occupied cells, or None without enough walls.
+
+    ``three_state`` is the SLAM grid (int8, row 0 south) whose cell (0, 0) has its
+    south-west corner at ``grid_origin_m``. The cell holding ``anchor_xy_m`` (the start
+    pose) becomes cell (0, 0). Angles are ambiguous modulo 90°; the representative
+    closest to ``prior_angle_rad`` is returned (in (−45°, 45°] without a prior), so cell
+    indices do not swap axes between updates. ``line_tolerance_m`` is how far a wall
+    cell may lie from a lattice line and still count for ``fit``; fewer than
+    ``min_support`` wall cells give None.
+    """
+    occupied = np.asarray(three_state) == OCCUPIED
+    rows, cols = np.nonzero(occupied)
+    if rows.size < min_support:
+        return None
+    xy = np.column_stack(
+        (grid_origin_m[0] + (cols + 0.5) * resolution_m, grid_origin_m[1] + (rows + 0.5) * resolution_m)
+    )
+    normal_rad, weight = _wall_normals(occupied, rows, cols)
+
+    # 1. Dominant direction: histogram of the normals folded modulo 90 degrees (4 phi).
+    angle = _dominant_angle(normal_rad, weight)
+    if prior_angle_rad is not None:
+        angle += math.pi / 2 * round((prior_angle_rad - angle) / (math.pi / 2))
+    else:
+        angle = math.remainder(angle, math.pi / 2)
+        if angle <= -math.pi / 4 + 1e-12:
+            angle += math.pi / 2
+
+    # 2. Phase: circular mean, modulo the cell size, of the positions of each wall family.
+    across_u = np.abs(np.cos(normal_rad - angle))  # 1 for a wall whose normal is along u
+    w_u = weight * (across_u > math.cos(math.radians(25)))
+    w_v = weight * (across_u < math.sin(math.radians(25)))
+    c, s = math.cos(angle), math.sin(angle)
+    phase_u = _circular_phase(c * xy[:, 0] + s * xy[:, 1], w_u, cell_size_m)
+    phase_v = _circular_phase(-s * xy[:, 0] + c * xy[:, 1], w_v, cell_size_m)
+
+    # 3. Refinement: least-squares fit of the lattice lines to the walls.
+    angle, phase_u, phase_v = _refine_lattice(
+        xy, w_u, w_v, angle, phase_u, phase_v, cell_size_m, max(line_tolerance_m, 2.0 * resolution_m)
+    )
+    c, s = math.cos(angle), math.sin(angle)
+    u = c * xy[:, 0] + s * xy[:, 1]
+    v = -s * xy[:, 0] + c * xy[:, 1]
+
+    # 4. Anchor: the lattice corner south-west of the anchor's cell.
+    ua = c * anchor_xy_m[0] + s * anchor_xy_m[1]
+    va = -s * anchor_xy_m[0] + c * anchor_xy_m[1]
+    corner_u = phase_u + math.floor((ua - phase_u) / cell_size_m) * cell_size_m
+    corner_v = phase_v + math.floor((va - phase_v) / cell_size_m) * cell_size_m
+    origin = (c * corner_u - s * corner_v, s * corner_u + c * corner_v)
+
+    off_u = np.abs(np.remainder(u - phase_u + cell_size_m / 2, cell_size_m) - cell_size_m / 2)
+    off_v = np.abs(np.remainder(v - phase_v + cell_size_m / 2, cell_size_m) - cell_size_m / 2)
+    fit = float(np.mean(np.minimum(off_u, off_v) <= line_tolerance_m))
+    return FrameEstimate(
+        MazeFrame(float(angle), (float(origin[0]), float(origin[1])), cell_size_m), fit, int(rows.size)
+    )
+
+
+def _wall_normals(occupied: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normal direction (radians, modulo pi) and coherence weight at each occupied cell.
+
+    Structure tensor ``J = G * (grad I grad I^T)`` of the lightly smoothed occupied mask;
+    its main eigenvector is the wall normal, even on the centre line of a one-cell-thick
+    wall where the gradient itself vanishes. The coherence ``(l1 − l2) / (l1 + l2)``
+    is ~1 along straight walls and low at posts and corners, which then barely vote.
+    """
+    image = ndimage.gaussian_filter(occupied.astype(np.float64), 1.0)
+    gx = ndimage.sobel(image, axis=1)
+    gy = ndimage.sobel(image, axis=0)
+    jxx = ndimage.gaussian_filter(gx * gx, 2.0)[rows, cols]
+    jyy = ndimage.gaussian_filter(gy * gy, 2.0)[rows, cols]
+    jxy = ndimage.gaussian_filter(gx * gy, 2.0)[rows, cols]
+    normal = 0.5 * np.arctan2(2.0 * jxy, jxx - jyy)
+    trace = jxx + jyy
+    coherence = np.divide(np.hypot(jxx - jyy, 2.0 * jxy), trace, out=np.zeros_like(trace), where=trace > 1e-12)
+    return normal, coherence
+
+
+def _dominant_angle(normal_rad: np.ndarray, weight: np.ndarray, bins: int = 180) -> float:
+    """The wall direction modulo 90° with the most weight: histogram peak, then circular mean near it."""
+    folded = np.remainder(4.0 * normal_rad, math.tau)  # both wall families fold onto one angle
+    hist, edges = np.histogram(folded, bins=bins, range=(0.0, math.tau), weights=weight)
+    smooth = ndimage.uniform_filter1d(hist, 5, mode="wrap")
+    peak = 0.5 * (edges[np.argmax(smooth)] + edges[np.argmax(smooth) + 1])
+    near = np.abs(np.remainder(folded - peak + math.pi, math.tau) - math.pi) < math.radians(40)
+    z = np.sum(weight[near] * np.exp(1j * folded[near]))
+    return float(np.angle(z) / 4.0) if abs(z) > 0 else float(peak / 4.0)
+
+
+def _refine_lattice(
+    xy: np.ndarray,
+    weight_u: np.ndarray,
+    weight_v: np.ndarray,
+    angle_rad: float,
+    phase_u_m: float,
+    phase_v_m: float,
+    cell_size_m: float,
+    tolerance_m: float,
+    iterations: int = 3,
+) -> tuple[float, float, float]:
+    """Least-squares lattice fit: the angle and phases that put the walls on the lattice lines.
+
+    Each wall cell of the u family is assigned to its nearest line ``u = phase_u + k c``
+    (v family likewise) and the small rotation ``δ`` and phase shifts are solved from
+    the linearised residuals (``u(θ + δ) ≈ u + δ v``, ``v(θ + δ) ≈ v − δ u``), a few
+    Gauss-Newton steps of point-to-line ICP against the lattice. Cells farther than
+    ``tolerance_m`` from their line (posts, clutter) are left out of each step. Unlike a
+    projection-profile search this is not biased by the grid's own diagonals.
+    """
+    centre = xy.mean(axis=0)
+    p = xy - centre  # rotate about the centroid: angle and phase decouple better
+    c0, s0 = math.cos(angle_rad), math.sin(angle_rad)
+    # phases are given for the un-centred coordinates; move them to the centred ones
+    pu = phase_u_m - (c0 * centre[0] + s0 * centre[1])
+    pv = phase_v_m - (-s0 * centre[0] + c0 * centre[1])
+    angle = angle_rad
+    for _ in range(iterations):
+        c, s = math.cos(angle), math.sin(angle)
+        u = c * p[:, 0] + s * p[:, 1]
+        v = -s * p[:, 0] + c * p[:, 1]
+        ru = u - pu - np.round((u - pu) / cell_size_m) * cell_size_m
+        rv = v - pv - np.round((v - pv) / cell_size_m) * cell_size_m
+        use_u = (weight_u > 0) & (np.abs(ru) <= tolerance_m)
+        use_v = (weight_v > 0) & (np.abs(rv) <= tolerance_m)
+        if use_u.sum() < 3 or use_v.sum() < 3:
+            break
+        # unknowns (delta, d_pu, d_pv): ru + delta v - d_pu = 0, rv - delta u - d_pv = 0
+        a = np.zeros((int(use_u.sum() + use_v.sum()), 3))
+        b = np.concatenate((-ru[use_u], -rv[use_v]))
+        wts = np.sqrt(np.concatenate((weight_u[use_u], weight_v[use_v])))
+        nu = int(use_u.sum())
+        a[:nu, 0], a[:nu, 1] = v[use_u], -1.0
+        a[nu:, 0], a[nu:, 2] = -u[use_v], -1.0
+        sol, *_ = np.linalg.lstsq(a * wts[:, None], b * wts, rcond=None)
+        angle += float(sol[0])
+        pu += float(sol[1])
+        pv += float(sol[2])
+    c, s = math.cos(angle), math.sin(angle)
+    phase_u = pu + c * centre[0] + s * centre[1]
+    phase_v = pv - s * centre[0] + c * centre[1]
+    return angle, float(np.remainder(phase_u, cell_size_m)), float(np.remainder(phase_v, cell_size_m))
+
+
+def _circular_phase(position_m: np.ndarray, weight: np.ndarray, period_m: float) -> float:
+    """Weighted circular mean of positions modulo ``period_m``, in [0, period_m)."""
+    z = np.sum(weight * np.exp(2j * math.pi * position_m / period_m))
+    if abs(z) == 0:
+        return 0.0
+    return float(np.remainder(np.angle(z) / (2 * math.pi) * period_m, period_m))
+
+
+# -- the graph -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GraphUpdate:
+    """What one :meth:`MazeGraph.update` changed.
+
+    ``changed_links`` lists ``(cell, direction, new_state)`` for every link whose state
+    differs from the previous update (each link once, from its west or south cell);
+    ``frame_changed`` is True when the lattice was (re)estimated.
+    """
+
+    changed_links: list[tuple[Cell, Direction, LinkState]] = field(default_factory=list)
+    frame_changed: bool = False
+
+
+class MazeGraph:
+    """Cell-centre waypoints and classified links, kept up to date from the occupancy grid.
+
+    Example::
+
+        graph = MazeGraph(cell_size_m=0.3048)
+        graph.update(grid.three_state(), grid.origin_m, grid.resolution_m)
+        graph.link((0, 0), Direction.N)          # LinkState.OPEN / WALL / UNKNOWN
+        graph.open_neighbours((0, 0))           # [(0, 1)]
+        graph.kind((0, 0))                      # CellKind.DEAD_END
+        graph.frame.cell_center_m((0, 1))        # waypoint in the map frame
+
+    Parameters (metres unless named otherwise): ``cell_size_m`` the maze pitch;
+    ``wall_thickness_m`` the nominal wall thickness (widens the lattice-line tolerance);
+    ``anchor_xy_m`` the start pose, whose cell is (0, 0); ``post_margin`` the fraction of
+    a boundary left out at each end (posts, wall ends and blur live there);
+    ``samples_along`` / ``across_m`` how densely a boundary is sampled along and how far
+    either side of the lattice line; ``wall_fraction`` the share of along-samples that
+    must see an occupied cell for a wall; ``open_fraction`` the share that must be free
+    for an open link (with nothing occupied); ``refresh_growth`` the relative growth of
+    the wall count that triggers a new frame estimate; ``frame`` a fixed frame (then
+    never re-estimated), e.g. for tests or a maze whose placement is known.
+    """
+
+    def __init__(
+        self,
+        cell_size_m: float = 0.3048,
+        wall_thickness_m: float = 0.012,
+        anchor_xy_m: tuple[float, float] = (0.0, 0.0),
+        post_margin: float = 0.2,
+        samples_along: int = 9,
+        across_m: float = 0.02,
+        wall_fraction: float = 0.3,
+        open_fraction: float = 0.8,
+        refresh_growth: float = 0.15,
+        interior_samples: int = 5,
+        interior_seen_min: float = 0.9,
+        frame: MazeFrame | None = None,
+    ) -> None:
+        if cell_size_m <= 0:
+            raise ValueError(f"cell_size_m must be positive, got {cell_size_m}")
+        if not 0.0 <= post_margin < 0.5:
+            raise ValueError(f"post_margin is a fraction of a cell side in [0, 0.5), got {post_margin}")
+        if samples_along < 2:
+            raise ValueError(f"samples_along must be at least 2, got {samples_along}")
+        self.cell_size_m = float(cell_size_m)
+        self.wall_thickness_m = float(wall_thickness_m)
+        self.anchor_xy_m = (float(anchor_xy_m[0]), float(anchor_xy_m[1]))
+        self.post_margin = float(post_margin)
+        self.samples_along = int(samples_along)
+        self.across_m = float(across_m)
+        self.wall_fraction = float(wall_fraction)
+        self.open_fraction = float(open_fraction)
+        self.refresh_growth = float(refresh_growth)
+        self.interior_samples = int(interior_samples)
+        self.interior_seen_min = float(interior_seen_min)
+        self._fixed_frame = frame is not None
+        self.frame: MazeFrame | None = frame
+        self.fit = 1.0 if frame is not None else 0.0
+        self._support_at_estimate = 0
+        # link arrays over cells [i0, i0 + width) x [j0, j0 + height): east[j, i], north[j, i]
+        self._i0 = 0
+        self._j0 = 0
+        self._core: tuple[int, int, int, int] | None = None  # covered (i_lo, i_hi, j_lo, j_hi), inclusive
+        self._east = np.zeros((0, 0), dtype=np.int8)
+        self._north = np.zeros((0, 0), dtype=np.int8)
+        self._seen = np.zeros((0, 0), dtype=np.float32)  # known share of each cell's interior
+
+    # -- building ------------------------------------------------------------------------
+
+    def update(self, three_state: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> GraphUpdate:
+        """Re-read the grid: refresh the frame if due, grow the cell range, reclassify links.
+
+        Classification is a pure function of the grid and the frame, vectorised over all
+        links (a 16x16 maze is ~600 links, ~10^4 samples), so the whole range is
+        re-read each time and the links that changed are reported.
+        """
+        grid = np.asarray(three_state)
+        frame_changed = self._refresh_frame(grid, grid_origin_m, resolution_m)
+        if self.frame is None:
+            return GraphUpdate(frame_changed=frame_changed)
+        old_east, old_north, old_i0, old_j0 = self._east, self._north, self._i0, self._j0
+        self._resize(grid, grid_origin_m, resolution_m)
+        self._east = self._classify(grid, grid_origin_m, resolution_m, Direction.E)
+        self._north = self._classify(grid, grid_origin_m, resolution_m, Direction.N)
+        self._seen = self._interior_seen(grid, grid_origin_m, resolution_m)
+        changed: list[tuple[Cell, Direction, LinkState]] = []
+        for direction, new, old in ((Direction.E, self._east, old_east), (Direction.N, self._north, old_north)):
+            before = np.zeros_like(new)
+            h, w = old.shape
+            di, dj = old_i0 - self._i0, old_j0 - self._j0
+            if h and w:
+                before[dj : dj + h, di : di + w] = old
+            for j, i in zip(*np.nonzero(new != before), strict=True):
+                changed.append(((int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(new[j, i]))))
+        return GraphUpdate(changed, frame_changed)
+
+    def _refresh_frame(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> bool:
+        """Estimate the lattice when there is none yet or the walls have grown enough since."""
+        if self._fixed_frame:
+            return False
+        support = int(np.count_nonzero(grid == OCCUPIED))
+        if self.frame is not None and support < self._support_at_estimate * (1.0 + self.refresh_growth):
+            return False
+        prior = None if self.frame is None else self.frame.angle_rad
+        tolerance = max(1.5 * resolution_m, self.wall_thickness_m)
+        estimate = estimate_frame(
+            grid, grid_origin_m, resolution_m, self.cell_size_m, self.anchor_xy_m, prior, line_tolerance_m=tolerance
+        )
+        if estimate is None:
+            return False
+        self._support_at_estimate = support
+        self.fit = estimate.fit
+        old = self.frame
+        self.frame = estimate.frame
+        if old is None:
+            return True
+        moved = np.hypot(*np.subtract(old.origin_m, estimate.frame.origin_m))
+        return bool(abs(old.angle_rad - estimate.frame.angle_rad) > 1e-9 or moved > 1e-9)
+
+    def _resize(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> None:
+        """Cover every cell that overlaps the known part of the grid (and keep old cells)."""
+        assert self.frame is not None
+        known = grid != UNKNOWN
+        if not known.any():
+            lo_i = hi_i = lo_j = hi_j = 0
+        else:
+            rows = np.flatnonzero(known.any(axis=1))
+            cols = np.flatnonzero(known.any(axis=0))
+            x0 = grid_origin_m[0] + cols[0] * resolution_m
+            x1 = grid_origin_m[0] + (cols[-1] + 1) * resolution_m
+            y0 = grid_origin_m[1] + rows[0] * resolution_m
+            y1 = grid_origin_m[1] + (rows[-1] + 1) * resolution_m
+            corners = self.frame.to_maze(np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])) / self.cell_size_m
+            lo_i, lo_j = np.floor(corners.min(axis=0)).astype(int)
+            hi_i, hi_j = np.floor(corners.max(axis=0)).astype(int)
+        if self._core is not None:  # never shrink: cells once covered stay
+            lo_i, hi_i = min(lo_i, self._core[0]), max(hi_i, self._core[1])
+            lo_j, hi_j = min(lo_j, self._core[2]), max(hi_j, self._core[3])
+        self._core = (int(lo_i), int(hi_i), int(lo_j), int(hi_j))
+        self._i0, self._j0 = int(lo_i) - 1, int(lo_j) - 1  # one ring of cells beyond the known area
+        shape = (int(hi_j) - int(lo_j) + 3, int(hi_i) - int(lo_i) + 3)
+        self._east = np.zeros(shape, dtype=np.int8)
+        self._north = np.zeros(shape, dtype=np.int8)
+
+    def _classify(
+        self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float, direction: Direction
+    ) -> np.ndarray:
+        """Link states (int8 [j, i]) of the east or north boundary of every cell in range.
+
+        Samples: ``samples_along`` points on the middle of the boundary, each with three
+        points across it (on the line and ``across_m`` to either side). An along-position
+        is *occupied* when any of its three samples is, *free* when all three are.
+        """
+        assert self.frame is not None
+        c = self.cell_size_m
+        h, w = self._east.shape
+        ii, jj = np.meshgrid(np.arange(w) + self._i0, np.arange(h) + self._j0)
+        t = np.linspace(self.post_margin, 1.0 - self.post_margin, self.samples_along) * c
+        across = np.array([-self.across_m, 0.0, self.across_m])
+        # maze coordinates (h, w, along, across)
+        shape = (h, w, t.size, across.size)
+        # the boundary's start: its south end for an east link, its west end for a north link
+        line_u = (ii + 1) * c if direction is Direction.E else ii * c
+        line_v = jj * c if direction is Direction.E else (jj + 1) * c
+        along = np.broadcast_to(t[None, None, :, None], shape)
+        side = np.broadcast_to(across[None, None, None, :], shape)
+        if direction is Direction.E:  # the boundary runs along v at u = (i + 1) c
+            u = line_u[..., None, None] + side
+            v = line_v[..., None, None] + along
+        else:  # the boundary runs along u at v = (j + 1) c
+            u = line_u[..., None, None] + along
+            v = line_v[..., None, None] + side
+        xy = self.frame.to_map(np.column_stack((u.reshape(-1), v.reshape(-1))))
+        values = _lookup(grid, grid_origin_m, resolution_m, xy).reshape(u.shape)
+        occupied_along = (values == OCCUPIED).any(axis=-1)
+        free_along = (values == FREE).all(axis=-1)
+        occupied_share = occupied_along.mean(axis=-1)
+        free_share = free_along.mean(axis=-1)
+        out = np.full((h, w), LinkState.UNKNOWN, dtype=np.int8)
+        out[(free_share >= self.open_fraction) & ~occupied_along.any(axis=-1)] = LinkState.OPEN
+        out[occupied_share >= self.wall_fraction] = LinkState.WALL
+        return out
+
+    def _interior_seen(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> np.ndarray:
+        """Share (float32 [j, i]) of a grid of points inside each cell that the map knows.
+
+        Links say where the robot can go; this says whether the cell itself has been
+        looked into (a dead end seen only through its opening has unseen corners).
+        Points are spread over the cell inset by the wall's half thickness plus a grid cell.
+        """
+        assert self.frame is not None
+        c = self.cell_size_m
+        h, w = self._east.shape
+        inset = (0.5 * self.wall_thickness_m + resolution_m) / c
+        t = np.linspace(inset, 1.0 - inset, self.interior_samples) * c
+        ii, jj = np.meshgrid(np.arange(w) + self._i0, np.arange(h) + self._j0)
+        shape = (h, w, t.size, t.size)
+        u = (ii * c)[..., None, None] + np.broadcast_to(t[None, None, :, None], shape)
+        v = (jj * c)[..., None, None] + np.broadcast_to(t[None, None, None, :], shape)
+        xy = self.frame.to_map(np.column_stack((u.reshape(-1), v.reshape(-1))))
+        values = _lookup(grid, grid_origin_m, resolution_m, xy).reshape(shape)
+        return (values != UNKNOWN).mean(axis=(-1, -2)).astype(np.float32)
+
+    # -- reading -------------------------------------------------------------------------
+
+    @property
+    def ready(self) -> bool:
+        """True once a frame exists (enough walls seen), so cells and links mean something."""
+        return self.frame is not None
+
+    def cell_range(self) -> tuple[range, range]:
+        """The ``i`` and ``j`` ranges of the cells the graph currently covers."""
+        h, w = self._east.shape
+        return range(self._i0, self._i0 + w), range(self._j0, self._j0 + h)
+
+    def cells(self) -> Iterator[Cell]:
+        """Every covered cell, south to north, west to east."""
+        irange, jrange = self.cell_range()
+        for j in jrange:
+            for i in irange:
+                yield (i, j)
+
+    def link(self, cell: Cell, direction: Direction) -> LinkState:
+        """State of the boundary on side ``direction`` of ``cell`` (UNKNOWN outside the range)."""
+        i, j = cell
+        if direction is Direction.W:
+            i, direction = i - 1, Direction.E
+        elif direction is Direction.S:
+            j, direction = j - 1, Direction.N
+        array = self._east if direction is Direction.E else self._north
+        r, q = j - self._j0, i - self._i0
+        if 0 <= r < array.shape[0] and 0 <= q < array.shape[1]:
+            return LinkState(int(array[r, q]))
+        return LinkState.UNKNOWN
+
+    def link_between(self, a: Cell, b: Cell) -> LinkState:
+        """State of the boundary between neighbouring cells ``a`` and ``b``."""
+        return self.link(a, Direction.between(a, b))
+
+    def open_neighbours(self, cell: Cell) -> list[Cell]:
+        """Cells joined to ``cell`` by an open link, in the order E, N, W, S."""
+        return [(cell[0] + d.step[0], cell[1] + d.step[1]) for d in Direction if self.link(cell, d) is LinkState.OPEN]
+
+    def unknown_sides(self, cell: Cell) -> list[Direction]:
+        """Sides of ``cell`` whose link is still unknown."""
+        return [d for d in Direction if self.link(cell, d) is LinkState.UNKNOWN]
+
+    def interior_seen(self, cell: Cell) -> float:
+        """Share of the inside of ``cell`` the map knows, 0 to 1 (0 outside the range)."""
+        r, q = cell[1] - self._j0, cell[0] - self._i0
+        if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
+            return float(self._seen[r, q])
+        return 0.0
+
+    def needs_look(self, cell: Cell) -> bool:
+        """True when less than ``interior_seen_min`` of the cell's inside is known."""
+        return self.interior_seen(cell) < self.interior_seen_min
+
+    def is_explored(self, cell: Cell) -> bool:
+        """True when all four links of ``cell`` are known and its inside has been seen."""
+        return not self.unknown_sides(cell) and not self.needs_look(cell)
+
+    def kind(self, cell: Cell) -> CellKind:
+        """Dead end, corridor, junction, open area, enclosed or unexplored (see :class:`CellKind`)."""
+        if not self.is_explored(cell):
+            return CellKind.UNEXPLORED
+        if self.in_open_area(cell):
+            return CellKind.OPEN_AREA
+        degree = len(self.open_neighbours(cell))
+        if degree == 0:
+            return CellKind.ENCLOSED
+        if degree == 1:
+            return CellKind.DEAD_END
+        if degree == 2:
+            return CellKind.CORRIDOR
+        return CellKind.JUNCTION
+
+    def in_open_area(self, cell: Cell) -> bool:
+        """True when ``cell`` is a corner of a 2x2 block whose four inner links are all open."""
+        i, j = cell
+        for di, dj in ((0, 0), (-1, 0), (0, -1), (-1, -1)):
+            a = (i + di, j + dj)  # south-west cell of a candidate block
+            b, n, bn = (a[0] + 1, a[1]), (a[0], a[1] + 1), (a[0] + 1, a[1] + 1)
+            if all(self.link_between(p, q) is LinkState.OPEN for p, q in ((a, b), (a, n), (b, bn), (n, bn))):
+                return True
+        return False
+
+    def reachable(self, start: Cell) -> set[Cell]:
+        """Cells connected to ``start`` through open links (breadth-first)."""
+        seen = {start}
+        queue = deque([start])
+        while queue:
+            cell = queue.popleft()
+            for nxt in self.open_neighbours(cell):
+                if nxt not in seen:
+                    seen.add(nxt)
+                    queue.append(nxt)
+        return seen
+
+    def frontier_links(self, start: Cell) -> list[tuple[Cell, Direction | None]]:
+        """What is left to explore from ``start``: unknown links and unseen cells, all reachable.
+
+        Each is ``(cell, side)`` with ``cell`` reachable (the robot can go there to look):
+        ``side`` an unknown link, or None when the cell's own inside is still unseen.
+        """
+        out: list[tuple[Cell, Direction | None]] = []
+        for cell in sorted(self.reachable(start)):
+            out.extend((cell, d) for d in self.unknown_sides(cell))
+            if self.needs_look(cell):
+                out.append((cell, None))
+        return out
+
+    def links(self) -> Iterable[tuple[Cell, Direction, LinkState]]:
+        """Every covered east and north link as ``(cell, direction, state)``."""
+        for direction, array in ((Direction.E, self._east), (Direction.N, self._north)):
+            for j, i in zip(*np.nonzero(np.ones_like(array, dtype=bool)), strict=True):
+                yield (int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(array[j, i]))
+
+
+def _lookup(grid: np.ndarray, origin_m: tuple[float, float], resolution_m: float, xy: np.ndarray) -> np.ndarray:
+    """Three-state values at map points (N, 2); UNKNOWN off the grid."""
+    rows, cols = grid.shape
+    c = np.floor((xy[:, 0] - origin_m[0]) / resolution_m).astype(np.int64)
+    r = np.floor((xy[:, 1] - origin_m[1]) / resolution_m).astype(np.int64)
+    inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+    out = np.full(xy.shape[0], UNKNOWN, dtype=np.int8)
+    out[inside] = grid[r[inside], c[inside]]
+    return out

@@ -1,0 +1,267 @@
+"""The safety layer: stops the wheels whatever the planner says.
+
+The planner can be wrong (a map error, a bug, a stale pose); the safety layer uses only
+the raw lidar returns, the command about to be applied and the clock, and runs in the
+control loop so it acts within one control period. It is deliberately simple enough to
+check by hand:
+
+- :class:`CollisionGuard`: an **emergency stop** when any valid lidar return lies in the
+  region the robot will sweep before it can stop: within the footprint radius (plus a
+  side margin) of the arc it is about to drive, over the stopping distance
+  ``|v| · latency + v² / (2 a)`` plus a front margin, on the side it is moving towards.
+  The margin is kept ahead, not beside: driving along a wall a few centimetres away is
+  normal in a 1 ft maze, driving at one is not. Turning in place is always allowed (a
+  round body sweeps nothing new) and so is moving away, so the planner's recovery
+  (rotate, back off) can still get the robot out.
+- :class:`ControlWatchdog`: a **control deadline**: if the control loop has not ticked
+  within ``deadline_s`` (an event loop blocked by heavy work), the next tick stops.
+- :class:`CommandGate`: a **stale-command stop**: a planner command older than its
+  time-to-live is replaced by a stop.
+- :class:`SafetyLayer` chains the three (plus a lidar timeout) and says why it stopped.
+
+Note on the lidar's minimum range: the RPLidar A1 reports nothing closer than 0.15 m
+(``min_range_m``), which is more than the 0.09 m footprint; an obstacle can only be seen
+while it is still that far away, which is why the guarded zone reaches a stopping
+distance ahead and not only the footprint.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import numpy as np
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class SafetyVerdict:
+    """Whether to stop now, and why (one human sentence; empty when all is well)."""
+
+    stop: bool
+    reason: str = ""
+    nearest_m: float = math.inf  # distance of the closest offending return from the robot centre
+
+
+OK = SafetyVerdict(False)
+
+
+class CollisionGuard:
+    """Emergency stop on lidar returns in the robot's path.
+
+    Example::
+
+        guard = CollisionGuard(footprint_radius_m=0.09, margin_m=0.03)
+        verdict = guard.check(points_robot, v_mps=0.2, w_radps=0.0)
+        if verdict.stop: ...
+
+    ``footprint_radius_m`` the robot's radius; ``margin_m`` the distance kept beyond it in
+    the direction of motion; ``side_margin_m`` the distance kept beside the path;
+    ``brake_decel_mps2`` the deceleration the motors can be counted on for;
+    ``latency_s`` the time until a stop takes effect (control period plus actuation);
+    ``min_speed_mps`` below which the robot is treated as not translating.
+    """
+
+    def __init__(
+        self,
+        footprint_radius_m: float = 0.09,
+        margin_m: float = 0.03,
+        side_margin_m: float = 0.0,
+        brake_decel_mps2: float = 0.6,
+        latency_s: float = 0.1,
+        min_speed_mps: float = 0.005,
+    ) -> None:
+        if footprint_radius_m <= 0 or margin_m < 0 or brake_decel_mps2 <= 0 or latency_s < 0:
+            raise ValueError(
+                "need footprint_radius_m > 0, margin_m >= 0, brake_decel_mps2 > 0 and latency_s >= 0, got "
+                f"{footprint_radius_m}, {margin_m}, {brake_decel_mps2}, {latency_s}"
+            )
+        self.footprint_radius_m = float(footprint_radius_m)
+        self.margin_m = float(margin_m)
+        self.side_margin_m = float(side_margin_m)
+        self.brake_decel_mps2 = float(brake_decel_mps2)
+        self.latency_s = float(latency_s)
+        self.min_speed_mps = float(min_speed_mps)
+
+    @property
+    def radius_m(self) -> float:
+        """Footprint plus side margin: the protected distance around the swept arc."""
+        return self.footprint_radius_m + self.side_margin_m
+
+    def stopping_distance_m(self, v_mps: float) -> float:
+        """Distance travelled before a stop takes hold: latency at ``v``, then braking."""
+        v = abs(v_mps)
+        return v * self.latency_s + v * v / (2.0 * self.brake_decel_mps2)
+
+    def check(self, points_robot: np.ndarray, v_mps: float, w_radps: float) -> SafetyVerdict:
+        """Stop when a return lies within :attr:`radius_m` of the arc ahead (robot-frame points (N, 2)).
+
+        The arc is the one ``(v_mps, w_radps)`` drives, from the robot centre for the
+        stopping distance plus ``margin_m``; only returns on the side of motion count
+        (ahead when driving forward, behind when reversing), so the robot may always
+        move away.
+        """
+        if abs(v_mps) < self.min_speed_mps:
+            return OK
+        pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
+        if pts.shape[0] == 0:
+            return OK
+        direction = math.copysign(1.0, v_mps)
+        length = self.stopping_distance_m(v_mps) + self.margin_m
+        n = max(2, math.ceil(length / 0.01) + 1)
+        s = np.linspace(0.0, length, n)  # arc length
+        curvature = w_radps / v_mps
+        if abs(curvature) < 1e-6:
+            ax, ay = direction * s, np.zeros(n)
+        else:
+            phi = s * curvature
+            ax = direction * np.sin(phi) / curvature
+            ay = (1.0 - np.cos(phi)) / curvature
+        ahead = pts[:, 0] * direction > 0.0
+        cand = pts[ahead]
+        if cand.shape[0] == 0:
+            return OK
+        d = np.min(np.hypot(cand[:, None, 0] - ax[None, :], cand[:, None, 1] - ay[None, :]), axis=1)
+        inside = d < self.radius_m
+        if not inside.any():
+            return OK
+        hits = cand[inside]
+        ranges = np.hypot(hits[:, 0], hits[:, 1])
+        k = int(np.argmin(ranges))
+        bearing = math.degrees(math.atan2(hits[k, 1], hits[k, 0]))
+        side = "ahead" if direction > 0 else "behind"
+        return SafetyVerdict(
+            True,
+            f"emergency stop: obstacle {side} at {ranges[k]:.2f} m, bearing {bearing:.0f}°, inside the "
+            f"{self.radius_m:.2f} m guard of the next {length:.2f} m at {v_mps:.2f} m/s",
+            float(ranges[k]),
+        )
+
+
+class ControlWatchdog:
+    """Stops when the control loop misses its deadline.
+
+    Example::
+
+        watchdog = ControlWatchdog(deadline_s=0.1)
+        verdict = watchdog.tick(clock.now_s())     # at the top of every control tick
+
+    A tick that comes more than ``deadline_s`` after the previous one means the loop was
+    blocked: the motors ran unsupervised for that long, so this tick stops them (and
+    the planner starts again from rest on the next).
+    """
+
+    def __init__(self, deadline_s: float = 0.1) -> None:
+        if deadline_s <= 0:
+            raise ValueError(f"deadline_s must be positive, got {deadline_s}")
+        self.deadline_s = float(deadline_s)
+        self.last_tick_s: float | None = None
+        self.misses = 0
+
+    def tick(self, now_s: float) -> SafetyVerdict:
+        """Record a control tick; a stop verdict when it came later than the deadline."""
+        last, self.last_tick_s = self.last_tick_s, now_s
+        if last is not None and now_s - last > self.deadline_s:
+            self.misses += 1
+            return SafetyVerdict(
+                True,
+                f"control loop missed its deadline: {now_s - last:.3f} s since the last tick (> {self.deadline_s} s)",
+            )
+        return OK
+
+    def overdue(self, now_s: float) -> bool:
+        """True when no tick has come within the deadline (for a monitor outside the loop)."""
+        return self.last_tick_s is not None and now_s - self.last_tick_s > self.deadline_s
+
+
+class CommandGate(Generic[T]):
+    """Holds the latest planner command and hands it out only while it is fresh.
+
+    Example::
+
+        gate = CommandGate(ttl_s=0.5)
+        gate.put((0.2, 0.0), now_s)
+        gate.get(later_s)      # the command, or None once older than ttl_s
+    """
+
+    def __init__(self, ttl_s: float = 0.5) -> None:
+        if ttl_s <= 0:
+            raise ValueError(f"ttl_s must be positive, got {ttl_s}")
+        self.ttl_s = float(ttl_s)
+        self._command: T | None = None
+        self._stamp_s = -math.inf
+
+    def put(self, command: T, time_s: float) -> None:
+        """Store a command made at clock time ``time_s``."""
+        self._command, self._stamp_s = command, float(time_s)
+
+    def age_s(self, now_s: float) -> float:
+        """Seconds since the stored command was made (inf when none)."""
+        return now_s - self._stamp_s
+
+    def get(self, now_s: float) -> T | None:
+        """The stored command if it is at most ``ttl_s`` old, else None (stop)."""
+        if self._command is None or self.age_s(now_s) > self.ttl_s:
+            return None
+        return self._command
+
+    def clear(self) -> None:
+        self._command, self._stamp_s = None, -math.inf
+
+
+class SafetyLayer:
+    """All stop conditions of one control tick, in one call.
+
+    Example::
+
+        safety = SafetyLayer(CollisionGuard(), ControlWatchdog(0.1), command_ttl_s=0.5, scan_timeout_s=1.0)
+        verdict = safety.check(now_s, v_mps, w_radps, command_time_s, scan_points, scan_time_s)
+        if verdict.stop:
+            motors.stop()
+
+    Checks, in order: the control deadline, the command's age (``command_ttl_s``), the
+    lidar's age (``scan_timeout_s``: without fresh returns the guard is blind, so only
+    turning in place is allowed), then the collision guard on the latest returns.
+    ``stops`` counts verdicts that stopped, ``last`` is the latest verdict.
+    """
+
+    def __init__(
+        self,
+        guard: CollisionGuard | None = None,
+        watchdog: ControlWatchdog | None = None,
+        command_ttl_s: float = 0.5,
+        scan_timeout_s: float = 1.0,
+    ) -> None:
+        self.guard = guard or CollisionGuard()
+        self.watchdog = watchdog or ControlWatchdog()
+        self.command_ttl_s = float(command_ttl_s)
+        self.scan_timeout_s = float(scan_timeout_s)
+        self.stops = 0
+        self.last = OK
+
+    def check(
+        self,
+        now_s: float,
+        v_mps: float,
+        w_radps: float,
+        command_time_s: float | None,
+        scan_points_robot: np.ndarray | None,
+        scan_time_s: float | None,
+    ) -> SafetyVerdict:
+        """The verdict for applying ``(v_mps, w_radps)`` now."""
+        verdict = self.watchdog.tick(now_s)
+        if not verdict.stop and (command_time_s is None or now_s - command_time_s > self.command_ttl_s):
+            age = "no command" if command_time_s is None else f"command is {now_s - command_time_s:.2f} s old"
+            verdict = SafetyVerdict(True, f"stale command: {age} (ttl {self.command_ttl_s} s)")
+        translating = abs(v_mps) >= self.guard.min_speed_mps
+        if not verdict.stop and translating and (scan_time_s is None or now_s - scan_time_s > self.scan_timeout_s):
+            age = "no scan yet" if scan_time_s is None else f"last scan {now_s - scan_time_s:.2f} s old"
+            verdict = SafetyVerdict(True, f"lidar silent: {age} (timeout {self.scan_timeout_s} s)")
+        if not verdict.stop and translating and scan_points_robot is not None:
+            verdict = self.guard.check(scan_points_robot, v_mps, w_radps)
+        if verdict.stop:
+            self.stops += 1
+        self.last = verdict
+        return verdict

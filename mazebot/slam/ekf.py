@@ -1,0 +1,334 @@
+"""Pose filtering: the odometry history and an EKF fusing odometry with scan-match poses.
+
+**Odometry history.** The odometry task integrates the wheel encoders at 50 Hz or more
+and appends every pose, time-stamped, to an :class:`OdometryHistory`. SLAM asks it for
+the odometry pose at any time in the recent past: at each lidar sample's time (de-skew,
+:func:`mazebot.slam.preprocess.prepare_scan`) and at the end of each revolution (the
+filter's prediction). Headings are unwrapped before linear interpolation.
+
+**EKF.** The state is the robot pose ``μ = (x, y, θ)`` in the map frame with its 3×3
+covariance ``Σ``; the filter is the extended Kalman filter of seed ``002`` (Thrun,
+Burgard & Fox, *Probabilistic Robotics*, Table 3.3), step numbers as there:
+
+- *Prediction* (steps 2–3), the velocity motion model driven by the odometry increment
+  ``u = (dx, dy, dθ)`` travelled since the last update, in the robot frame at its start
+  (over one interval ``Δt`` this is ``v·Δt`` and ``ω·Δt`` integrated by the encoders)::
+
+      μ̄ = μ ⊕ u
+      Σ̄ = G Σ Gᵀ + V M Vᵀ,   G = ∂(μ ⊕ u)/∂μ,  V = ∂(μ ⊕ u)/∂u = R(θ) (block)
+
+  The motion noise ``M`` grows with the distance ``d`` and the turn ``|dθ|`` of the
+  increment (a random walk per metre and per radian, so it does not depend on the
+  odometry rate): ``σ²_x = σ²_y = a_xy·d``, ``σ²_θ = a_θd·d + a_θθ·|dθ|``.
+- *Correction* (steps 4–6) by a scan-match pose ``z`` (``C = I``) with its information
+  matrix ``Ω`` (inverse covariance) from ICP. ICP returns ``Ω`` with zero eigenvalues
+  along directions the scan does not constrain (a straight corridor), where ``Q = Ω⁻¹``
+  does not exist, so the update uses the equivalent information form (Thrun et al.,
+  Table 3.6; Kalman gain ``K = Σ_post Ω``)::
+
+      Σ = (Σ̄⁻¹ + Ω)⁻¹,    μ = μ̄ + Σ Ω (z ⊖ μ̄)
+
+  which leaves the prediction untouched along unobserved directions. A measurement
+  whose innovation fails a χ² gate (Mahalanobis distance under ``Σ̄ + Ω⁺``) is refused.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
+
+
+class OdometryHistory:
+    """Time-stamped odometry poses of the last ``horizon_s`` seconds, interpolated on demand.
+
+    Example::
+
+        history = OdometryHistory(horizon_s=3.0)
+        history.append(0.00, 0.0, 0.0, 0.0)
+        history.append(0.02, 0.005, 0.0, 0.01)
+        history.at(np.array([0.01]))      # ((0.0025,), (0.0,), (0.005,))
+
+    Times before the first or after the last entry are clamped to them (the robot is
+    assumed to hold its pose beyond what was measured).
+    """
+
+    def __init__(self, horizon_s: float = 3.0) -> None:
+        if horizon_s <= 0:
+            raise ValueError(f"horizon_s must be positive, got {horizon_s}")
+        self.horizon_s = float(horizon_s)
+        self._t: deque[float] = deque()
+        self._x: deque[float] = deque()
+        self._y: deque[float] = deque()
+        self._th: deque[float] = deque()  # unwrapped
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def append(self, time_s: float, x_m: float, y_m: float, theta_rad: float) -> None:
+        """Add the odometry pose at ``time_s`` (non-decreasing); drops entries older than the horizon."""
+        if self._t:
+            if time_s < self._t[-1]:
+                raise ValueError(f"odometry time went backwards: {time_s} after {self._t[-1]}")
+            last = self._th[-1]
+            theta_rad = last + math.remainder(theta_rad - last, math.tau)
+        self._t.append(float(time_s))
+        self._x.append(float(x_m))
+        self._y.append(float(y_m))
+        self._th.append(float(theta_rad))
+        while len(self._t) > 2 and self._t[1] < time_s - self.horizon_s:
+            for d in (self._t, self._x, self._y, self._th):
+                d.popleft()
+
+    @property
+    def latest(self) -> tuple[float, np.ndarray] | None:
+        """(time_s, pose (3,)) of the newest entry, or None."""
+        if not self._t:
+            return None
+        return self._t[-1], np.array([self._x[-1], self._y[-1], math.remainder(self._th[-1], math.tau)])
+
+    @property
+    def span_s(self) -> tuple[float, float] | None:
+        """(oldest, newest) time held, or None."""
+        return (self._t[0], self._t[-1]) if self._t else None
+
+    def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Odometry poses (x, y, unwrapped θ) at the given times; the shape of ``preprocess.PoseAtTime``."""
+        if not self._t:
+            raise RuntimeError("no odometry recorded yet")
+        t = np.fromiter(self._t, float, len(self._t))
+        times = np.asarray(times_s, dtype=np.float64)
+        return (
+            np.interp(times, t, np.fromiter(self._x, float, len(t))),
+            np.interp(times, t, np.fromiter(self._y, float, len(t))),
+            np.interp(times, t, np.fromiter(self._th, float, len(t))),
+        )
+
+    def pose_at(self, time_s: float) -> np.ndarray:
+        """The odometry pose (3,) at one time, heading wrapped to [-π, π)."""
+        x, y, th = self.at(np.array([time_s]))
+        return np.array([float(x[0]), float(y[0]), float(wrap_angle(th[0]))])
+
+
+@dataclass(frozen=True)
+class MotionNoise:
+    """Odometry noise of the motion model, as variance growth per metre and per radian."""
+
+    xy_m2_per_m: float = 4e-4  # (2 cm)² per metre travelled, each axis
+    theta_rad2_per_m: float = 1e-4  # (0.01 rad)² per metre travelled
+    theta_rad2_per_rad: float = 2.5e-3  # (0.05 rad)² per radian turned
+
+    def covariance(self, increment: np.ndarray) -> np.ndarray:
+        """``M`` (3×3) of an increment (dx, dy, dθ), in the robot frame at its start."""
+        d = math.hypot(float(increment[0]), float(increment[1]))
+        turn = abs(float(increment[2]))
+        var_xy = self.xy_m2_per_m * d
+        return np.diag([var_xy, var_xy, self.theta_rad2_per_m * d + self.theta_rad2_per_rad * turn])
+
+
+class PoseEkf:
+    """Extended Kalman filter of the robot pose in the map frame (see the module docstring).
+
+    Example::
+
+        ekf = PoseEkf(initial_pose=np.zeros(3), initial_std=(0.001, 0.001, 0.001))
+        ekf.predict(np.array([0.10, 0.0, 0.05]))             # odometry since the last update
+        ekf.correct(icp.pose, icp.information)               # a scan-match pose
+        ekf.mean, ekf.covariance
+    """
+
+    def __init__(
+        self,
+        initial_pose: np.ndarray | None = None,
+        initial_std: tuple[float, float, float] = (1e-3, 1e-3, 1e-3),
+        noise: MotionNoise | None = None,
+        gate_chi2: float = 16.27,
+    ) -> None:
+        self.mean = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64).reshape(3)
+        self.covariance = np.diag(np.square(np.asarray(initial_std, dtype=np.float64)))
+        self.noise = noise or MotionNoise()
+        self.gate_chi2 = float(gate_chi2)  # χ²(3) 99.9 % by default
+
+    def predict(self, increment: np.ndarray, noise_covariance: np.ndarray | None = None) -> None:
+        """Steps 2–3: move by the odometry ``increment`` (dx_m, dy_m, dθ_rad) in the robot frame."""
+        u = np.asarray(increment, dtype=np.float64).reshape(3)
+        th = float(self.mean[2])
+        c, s = math.cos(th), math.sin(th)
+        g = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]])
+        v = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        m = self.noise.covariance(u) if noise_covariance is None else np.asarray(noise_covariance, dtype=np.float64)
+        self.mean = compose(self.mean, u)
+        self.covariance = g @ self.covariance @ g.T + v @ m @ v.T
+
+    def innovation_chi2(self, z: np.ndarray, information: np.ndarray) -> float:
+        """Squared Mahalanobis distance of the measurement ``z`` from the prediction under ``Σ̄ + Ω⁺``."""
+        nu = self._innovation(z)
+        s = self.covariance + np.linalg.pinv(np.asarray(information, dtype=np.float64), hermitian=True)
+        return float(nu @ np.linalg.solve(s, nu))
+
+    def correct(self, z: np.ndarray, information: np.ndarray, gate: bool = True) -> bool:
+        """Steps 4–6 in information form; returns False (state unchanged) if the χ² gate refuses ``z``."""
+        omega = np.asarray(information, dtype=np.float64).reshape(3, 3)
+        if not np.any(omega):
+            return False
+        if gate and self.innovation_chi2(z, omega) > self.gate_chi2:
+            return False
+        posterior_info = np.linalg.inv(self.covariance) + omega
+        cov = np.linalg.inv(posterior_info)
+        cov = 0.5 * (cov + cov.T)
+        self.mean = self.mean + cov @ omega @ self._innovation(z)
+        self.mean[2] = float(wrap_angle(self.mean[2]))
+        self.covariance = cov
+        return True
+
+    def reset(self, pose: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        """Jump to ``pose`` (e.g. after a loop closure moved the map under the robot)."""
+        self.mean = np.array(pose, dtype=np.float64).reshape(3)
+        if covariance is not None:
+            self.covariance = np.array(covariance, dtype=np.float64).reshape(3, 3)
+
+    def _innovation(self, z: np.ndarray) -> np.ndarray:
+        nu = np.asarray(z, dtype=np.float64).reshape(3) - self.mean
+        nu[2] = float(wrap_angle(nu[2]))
+        return nu
+
+
+class HeadingCalibration:
+    """Online calibration of the odometry's heading: ``dθ_true = (1 + s)·dθ + k·dx``.
+
+    Unequal wheel diameters make the encoders see a turn where the robot drives straight
+    (``k``, rad per metre; 0.4 % on a 15 cm track is 1.5°/m) and a wrong track width
+    scales every turn (``s``). Both bend the de-skew of every scan the same way, and a
+    bias of a few hundredths of a degree per scan chains into degrees of drift through
+    the keyframes. After each scan the increments of the corrected pose (dominated by
+    ICP) and of the raw odometry give one equation ``Δθ_slam − dθ = s·dθ + k·dx``;
+    recursive least squares with exponential forgetting (Ljung & Söderström, *Theory and
+    Practice of Recursive Identification*, 1983; the self-calibration of Roy & Thrun,
+    ICRA 1999) estimates ``(s, k)``, clamped to ``±limit``.
+
+    Example::
+
+        cal = HeadingCalibration()
+        cal.observe(raw_increment, slam_increment)    # after each matched scan
+        cal.correct(raw_increment)                      # what the filter and de-skew use
+    """
+
+    def __init__(
+        self,
+        memory_scans: float = 1000.0,
+        prior_std: tuple[float, float] = (0.05, 0.05),
+        noise_std_rad: float = 0.003,
+        limit: float = 0.1,
+    ) -> None:
+        self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
+        self.estimate = np.zeros(2)  # (s, k)
+        self._p = np.diag(np.square(np.asarray(prior_std, dtype=np.float64)))
+        self._max_var = float(np.max(np.diag(self._p)))
+        self._noise_var = float(noise_std_rad) ** 2
+        self.limit = float(limit)
+        self.observations = 0
+
+    @property
+    def scale(self) -> float:
+        return float(self.estimate[0])
+
+    @property
+    def bias_rad_per_m(self) -> float:
+        return float(self.estimate[1])
+
+    def correct(self, increment: np.ndarray) -> np.ndarray:
+        """The increment (dx, dy, dθ) with its heading change corrected."""
+        out = np.array(increment, dtype=np.float64).reshape(3)
+        out[2] = (1.0 + self.estimate[0]) * out[2] + self.estimate[1] * out[0]
+        return out
+
+    def correct_many(self, dx: np.ndarray, dtheta: np.ndarray) -> np.ndarray:
+        """Corrected heading changes of many increments (forward travel ``dx``, raw ``dtheta``)."""
+        return (1.0 + self.estimate[0]) * dtheta + self.estimate[1] * dx
+
+    def observe(self, raw_increment: np.ndarray, true_increment: np.ndarray) -> None:
+        """One RLS step: the raw odometry increment and the increment SLAM found for the same interval."""
+        phi = np.array([float(raw_increment[2]), float(raw_increment[0])])
+        if not np.any(phi):
+            return
+        y = float(wrap_angle(float(true_increment[2]) - float(raw_increment[2])))
+        p = self._p / self.forgetting
+        gain = p @ phi / (self._noise_var + phi @ p @ phi)
+        self.estimate = np.clip(self.estimate + gain * (y - phi @ self.estimate), -self.limit, self.limit)
+        p = p - np.outer(gain, phi @ p)
+        # forgetting must not wind up the directions nothing excites (driving straight says
+        # nothing about s): clamp the covariance's eigenvalues to the prior's largest
+        w, v = np.linalg.eigh(0.5 * (p + p.T))
+        self._p = (v * np.minimum(w, self._max_var)) @ v.T
+        self.observations += 1
+
+
+class TimeOffsetCalibration:
+    """Online estimate of how late the lidar's time stamps are against the odometry's.
+
+    A scan stamped ``t`` whose samples were really taken at ``t − D`` makes SLAM de-skew
+    and predict with the odometry of the wrong moment. While the robot turns steadily the
+    filter cannot tell (every pose is off by the same ``ω·D``), but when the turn rate
+    changes between two scans by ``Δω`` the scan match disagrees with the odometry
+    prediction by ``ν_θ ≈ −(D − S)·Δω``, ``S`` the offset already applied. Recursive least
+    squares on that relation (the idea of online temporal calibration, Qin & Shen, IROS
+    2018) keeps ``S`` tracking ``D``; only scans with ``|Δω|`` above ``min_rate_change``
+    (turns starting or ending) are used.
+
+    Example::
+
+        offset = TimeOffsetCalibration()
+        offset.observe(innovation_theta_rad, rate_change_radps)   # after each matched scan
+        offset.offset_s                                             # subtract from the scan's stamps
+    """
+
+    def __init__(
+        self,
+        initial_s: float = 0.0,
+        memory_scans: float = 500.0,
+        prior_std_s: float = 0.02,
+        noise_std_rad: float = 0.003,
+        min_rate_change: float = 0.2,
+        limits_s: tuple[float, float] = (-0.05, 0.1),
+    ) -> None:
+        self.offset_s = float(initial_s)
+        self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
+        self._p = float(prior_std_s) ** 2
+        self._max_p = self._p
+        self._noise_var = float(noise_std_rad) ** 2
+        self.min_rate_change = float(min_rate_change)
+        self.limits_s = limits_s
+        self.observations = 0
+
+    def observe(self, innovation_theta_rad: float, rate_change_radps: float) -> None:
+        """One RLS step on ``ν_θ = φ·(D − S)`` with ``φ = −Δω``; folds the estimate into ``offset_s``."""
+        phi = -float(rate_change_radps)
+        if abs(phi) < self.min_rate_change:
+            return
+        p = min(self._p / self.forgetting, self._max_p)
+        gain = p * phi / (self._noise_var + phi * p * phi)
+        residual_s = gain * float(wrap_angle(innovation_theta_rad))
+        self.offset_s = float(np.clip(self.offset_s + residual_s, *self.limits_s))
+        self._p = (1.0 - gain * phi) * p
+        self.observations += 1
+
+
+def odometry_increment(odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarray:
+    """The motion (dx, dy, dθ) from one odometry pose to another, in the robot frame at the first."""
+    return relative_pose(odom_from, odom_to)
+
+
+def rotate_information(information: np.ndarray, theta_rad: float) -> np.ndarray:
+    """Re-express a pose information matrix given in a frame into one rotated by ``-theta_rad``.
+
+    A pose error ``δ`` in world axes is ``A δ`` in the axes of a frame at heading ``θ``
+    (``A = diag(R(θ)ᵀ, 1)``), so the information becomes ``A⁻ᵀ Ω A⁻¹``.
+    """
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    a_inv = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = a_inv.T @ np.asarray(information, dtype=np.float64) @ a_inv
+    return 0.5 * (out + out.T)

@@ -1,0 +1,230 @@
+"""Keyframes and the local submap ICP matches each new scan against.
+
+A **keyframe** is a scan SLAM keeps: a vertex of the pose graph, a source of the local
+submap and of loop closures, and what the occupancy grid is rebuilt from after a loop
+closure moved the poses. A scan becomes a keyframe when the robot has moved
+``distance_m`` (0.10 m) or turned ``angle_rad`` (0.15 rad) since the last one: the
+coarse defaults of ROS packages (0.5 m, 0.5 rad) are longer than a 1 ft maze cell.
+
+Each keyframe stores its points in its own robot frame (so moving its pose moves them),
+surface normals estimated once from its own scan (PCA of neighbours, as
+:func:`mazebot.slam.icp.estimate_normals`), and its rays for the grid in float32.
+
+The **local submap** is the union of the last ``size`` keyframes in the map frame,
+thinned to one point per ``voxel_m`` square (the one nearest its centre), with their normals: a
+:class:`mazebot.slam.icp.Target`. Normals come precomputed, so building the target is a
+transform, a voxel filter and a kd-tree (about a millisecond), done once per keyframe
+(KISS-ICP's local map, Vizzo et al., RA-L 2023, with keyframes instead of a sliding
+voxel map).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mazebot.slam.icp import Target, estimate_normals
+from mazebot.slam.preprocess import PreparedScan, voxel_downsample
+
+
+@dataclass(frozen=True)
+class NormalParams:
+    """Normal estimation of keyframe points (see :func:`mazebot.slam.icp.estimate_normals`)."""
+
+    neighbours: int = 10
+    radius_m: float = 0.1
+    max_line_spread: float = 0.2
+
+
+@dataclass
+class Keyframe:
+    """One kept scan, everything in its own robot frame; ``pose`` (3,) is its map-frame pose.
+
+    ``points`` (N, 2) and ``normals`` (N, 2) are the hits with a usable normal (for the
+    local submap), ``match_points`` (M, 2) the voxel-downsampled hits (source of loop
+    closure ICP), ``sensor_xy`` (2,) the lidar centre; ``ray_ends`` (K, 2) float32,
+    ``ray_hit`` (K,) and ``ray_origins`` (K, 2) float32 the beams for the grid.
+    ``integrated_pose`` is the pose its rays were last written into the grid with.
+    """
+
+    index: int
+    time_s: float
+    pose: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    match_points: np.ndarray
+    sensor_xy: np.ndarray
+    ray_ends: np.ndarray
+    ray_hit: np.ndarray
+    ray_origins: np.ndarray
+    integrated_pose: np.ndarray
+    _world: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+
+    def world(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Points (N, 2), normals (N, 2) and lidar position (2,) in the map frame, cached per pose."""
+        cached = self._world
+        if cached is None or not np.array_equal(cached[0], self.pose):
+            pose = self.pose.copy()
+            cached = (
+                pose,
+                transform(pose, self.points),
+                rotate(float(pose[2]), self.normals),
+                transform(pose, self.sensor_xy.reshape(1, 2))[0],
+            )
+            self._world = cached
+        return cached[1], cached[2], cached[3]
+
+    @classmethod
+    def from_scan(
+        cls,
+        index: int,
+        pose: np.ndarray,
+        prepared: PreparedScan,
+        normals: NormalParams | None = None,
+        map_max_range_m: float | None = None,
+    ) -> Keyframe:
+        """A keyframe from a prepared scan at ``pose``; estimates the normals of its hits.
+
+        ``map_max_range_m`` limits the rays kept for the grid (see :func:`map_rays`).
+        """
+        p = normals or NormalParams()
+        pts = prepared.points_full
+        view = np.broadcast_to(prepared.sensor_xy, pts.shape)
+        nrm, good = estimate_normals(pts, p.neighbours, p.radius_m, p.max_line_spread, view)
+        # orient towards the lidar: the side of the wall the scan saw
+        flip = np.einsum("ij,ij->i", nrm, view - pts) < 0
+        nrm = np.where(flip[:, None], -nrm, nrm)
+        ends, hit, origins = map_rays(prepared, map_max_range_m)
+        pose = np.array(pose, dtype=np.float64).reshape(3)
+        return cls(
+            index=index,
+            time_s=prepared.time_s,
+            pose=pose,
+            points=pts[good].copy(),
+            normals=nrm[good].copy(),
+            match_points=prepared.points_match.copy(),
+            sensor_xy=np.array(prepared.sensor_xy, dtype=np.float64),
+            ray_ends=ends.astype(np.float32),
+            ray_hit=hit,
+            ray_origins=origins.astype(np.float32),
+            integrated_pose=pose.copy(),
+        )
+
+    def rays(self, pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(pose, ends, hit, origins)`` for :meth:`mazebot.slam.grid.OccupancyGrid.rebuild` (robot frame)."""
+        return (
+            self.pose if pose is None else pose,
+            self.ray_ends.astype(np.float64),
+            self.ray_hit,
+            self.ray_origins.astype(np.float64),
+        )
+
+
+def map_rays(prepared: PreparedScan, max_range_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scan's rays for the occupancy grid, robot frame: ``(ends (K, 2), hit (K,), origins (K, 2))``.
+
+    Hits farther than ``max_range_m`` from their origin become no-return rays ending at
+    ``max_range_m``: they still clear the space in front of the wall, but do not mark it.
+    The A1's range noise is about 1 % of the range, so a far hit scatters over several
+    cells beside the wall (where no later ray clears it); the maze's walls are all seen
+    from close by at some point, so nothing is lost.
+    """
+    beams = prepared.beams()
+    ends, hit, origins = beams.endpoints, beams.hit.copy(), beams.origins
+    if max_range_m is None:
+        return ends, hit, origins
+    vec = ends - origins
+    length = np.hypot(vec[:, 0], vec[:, 1])
+    far = hit & (length > max_range_m)
+    if far.any():
+        ends = ends.copy()
+        ends[far] = origins[far] + vec[far] * (max_range_m / length[far])[:, None]
+        hit[far] = False
+    return ends, hit, origins
+
+
+class KeyframeSelector:
+    """Decides when a scan becomes a keyframe: moved ``distance_m`` or turned ``angle_rad``.
+
+    Example::
+
+        select = KeyframeSelector(distance_m=0.10, angle_rad=0.15)
+        select.is_keyframe(pose)     # True for the first pose, then after enough motion
+        select.accept(pose)          # remember the pose of the new keyframe
+    """
+
+    def __init__(self, distance_m: float = 0.10, angle_rad: float = 0.15) -> None:
+        if distance_m <= 0 or angle_rad <= 0:
+            raise ValueError(f"keyframe distance and angle must be positive, got {distance_m}, {angle_rad}")
+        self.distance_m = float(distance_m)
+        self.angle_rad = float(angle_rad)
+        self.last: np.ndarray | None = None
+
+    def is_keyframe(self, pose: np.ndarray) -> bool:
+        if self.last is None:
+            return True
+        moved = math.hypot(float(pose[0] - self.last[0]), float(pose[1] - self.last[1]))
+        turned = abs(math.remainder(float(pose[2] - self.last[2]), math.tau))
+        return moved >= self.distance_m or turned >= self.angle_rad
+
+    def accept(self, pose: np.ndarray) -> None:
+        self.last = np.array(pose, dtype=np.float64).reshape(3)
+
+
+def transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) from the frame at ``pose`` into its parent frame."""
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    return np.column_stack((c * p[:, 0] - s * p[:, 1] + pose[0], s * p[:, 0] + c * p[:, 1] + pose[1]))
+
+
+def rotate(theta_rad: float, vectors_xy: np.ndarray) -> np.ndarray:
+    """Directions (N, 2) rotated by ``theta_rad``."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    v = np.asarray(vectors_xy, dtype=np.float64).reshape(-1, 2)
+    return np.column_stack((c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]))
+
+
+def build_target(
+    keyframes: Sequence[Keyframe],
+    voxel_m: float,
+    frame: np.ndarray | None = None,
+    poses: Sequence[np.ndarray] | None = None,
+) -> Target | None:
+    """The union of the keyframes' points and normals as an ICP target, one point per voxel.
+
+    Points are expressed in the map frame, or in the frame of pose ``frame`` if given
+    (loop closure matches in the candidate keyframe's frame). ``poses`` overrides the
+    keyframes' own poses (a snapshot taken for a background job). None if empty.
+    """
+    pts, nrm, view = [], [], []
+    base_inv = None if frame is None else np.asarray(frame, dtype=np.float64)
+    for k, kf in enumerate(keyframes):
+        if kf.points.shape[0] == 0:
+            continue
+        if base_inv is None and poses is None:
+            world_pts, world_nrm, world_sensor = kf.world()
+            pts.append(world_pts)
+            nrm.append(world_nrm)
+            view.append(np.broadcast_to(world_sensor, world_pts.shape))
+            continue
+        pose = kf.pose if poses is None else np.asarray(poses[k], dtype=np.float64)
+        if base_inv is not None:
+            pose = _relative(base_inv, pose)
+        pts.append(transform(pose, kf.points))
+        nrm.append(rotate(float(pose[2]), kf.normals))
+        view.append(np.broadcast_to(transform(pose, kf.sensor_xy.reshape(1, 2)), (kf.points.shape[0], 2)))
+    if not pts:
+        return None
+    points = np.concatenate(pts)
+    first = voxel_downsample(points, voxel_m)
+    return Target(points[first], np.concatenate(view)[first], np.concatenate(nrm)[first])
+
+
+def _relative(base: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = math.cos(float(base[2])), math.sin(float(base[2]))
+    dx, dy = float(pose[0] - base[0]), float(pose[1] - base[1])
+    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(float(pose[2] - base[2]), math.tau)])

@@ -1,0 +1,242 @@
+"""Loop closure: find old keyframes the robot may be revisiting, and verify each strictly.
+
+A maze is the worst place for loop closure: its corridors are identical, so a scan
+taken in one cell can match another cell's walls perfectly. A false loop closure
+bends the whole map, so every candidate must pass every test below or it is dropped
+(the "strict acceptance" of issue 4; the approach of Olson, "Recognizing places using
+spectrally clustered local matches", RAS 2009, and of Cartographer's constraint
+builder: search only where the pose uncertainty allows, then demand a good and
+unambiguous match).
+
+**Candidates** (:func:`find_candidates`). For the newest keyframe ``n`` and every
+keyframe ``i`` at least ``min_keyframe_gap`` keyframes older (younger ones are in the
+local submap already), the uncertainty of the relative pose ``x_i⁻¹ x_n`` accumulated
+along the chain of sequential edges ``i → n`` is propagated to first order:
+
+    σ²_xy(i, n) = Σ_k σ²_xy,k + σ²_θ,k · |t_n − t_k|²,     σ²_θ(i, n) = Σ_k σ²_θ,k
+
+(a heading error at keyframe ``k`` swings everything after it by its lever arm). ``i``
+is a candidate when its distance to ``n`` is below ``search_radius_m + sigma_scale ·
+σ_xy`` (capped at ``max_search_radius_m``). The nearest candidates are tried first.
+
+**Verification** (:func:`verify`). ICP of the new keyframe's points against a submap of
+the keyframes around ``i`` (``i ± submap_half_width``), in ``i``'s frame, started at the
+prior relative pose. Accepted only if
+
+1. ICP converged with at least ``min_correspondences`` matches, an inlier ratio
+   (``fitness``) of at least ``min_fitness`` and a point-to-line RMS of at most
+   ``max_rmse_m`` (both scans see the same walls, closely);
+2. the match constrains every direction (not ``degenerate``: a straight corridor
+   cannot say where along it the robot is), unless ``accept_degenerate``;
+3. it is consistent with the odometry chain: the correction ``z ⊖ prior`` is within
+   ``max_correction_m`` / ``max_correction_rad`` and its Mahalanobis distance under
+   the chain covariance plus the ICP covariance is below ``gate_chi2``;
+4. it is unambiguous: ICP restarted from the prior shifted by ``±ambiguity_shift_m``
+   along both axes (one maze cell: where a repeated corridor would fit) never finds
+   another alignment as good (within ``min_fitness``/``max_rmse_m``) farther than
+   ``ambiguity_tolerance_m`` from the accepted one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mazebot.slam.ekf import rotate_information
+from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
+from mazebot.slam.posegraph import relative_pose, wrap_angle
+
+
+@dataclass(frozen=True)
+class LoopClosureParams:
+    """Search and acceptance thresholds; distances in metres, angles in radians."""
+
+    search_radius_m: float = 0.25  # always search this close, whatever the uncertainty
+    max_search_radius_m: float = 1.0  # never search farther than this
+    sigma_scale: float = 3.0  # search radius grows by this many chain standard deviations
+    min_keyframe_gap: int = 40  # candidates are at least this many keyframes older than the new one
+    submap_half_width: int = 6  # the candidate's submap: keyframes i - k .. i + k
+    attempt_every: int = 3  # look for loop closures every this many new keyframes
+    max_candidates: int = 1  # candidates verified per attempt (nearest first)
+    min_fitness: float = 0.8  # share of the scan's points matched
+    max_rmse_m: float = 0.012  # point-to-line RMS of the matched points
+    min_correspondences: int = 40
+    accept_degenerate: bool = False  # accept matches that leave a direction unconstrained
+    gate_chi2: float = 11.34  # χ²(3) 99 %: correction against chain + ICP covariance
+    max_correction_m: float = 0.10  # the correction may move the new keyframe at most this far ...
+    max_correction_rad: float = 0.15  # ... and turn it at most this much
+    ambiguity_shift_m: float = 0.3048  # restart ICP this far off the prior (one maze cell)
+    ambiguity_tolerance_m: float = 0.05  # a restart ending farther than this from the match is another fit
+    information_scale: float = 0.1  # ICP information is optimistic; scale it for the graph edge
+    min_std_m: float = 0.005  # floor of the chain's position std in the consistency test
+    min_std_rad: float = 0.005  # floor of the chain's heading std
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """Keyframe ``new`` may be seeing the place of keyframe ``old``.
+
+    ``prior`` (3,) is the pose of ``new`` in the frame of ``old`` from the current
+    estimates, ``prior_covariance`` (3×3) its chain uncertainty, ``distance_m`` their
+    distance.
+    """
+
+    old: int
+    new: int
+    prior: np.ndarray
+    prior_covariance: np.ndarray
+    distance_m: float
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The outcome of :func:`verify`: accepted or not, why (``reason``: a short category), and the edge.
+
+    ``measurement`` (3,) is the pose of ``new`` in the frame of ``old``; ``information``
+    (3×3) is in the frame of the pose graph's residual (``new``'s), ready for
+    :meth:`mazebot.slam.posegraph.PoseGraph.add_edge`.
+    """
+
+    candidate: Candidate
+    accepted: bool
+    reason: str
+    measurement: np.ndarray
+    information: np.ndarray
+    fitness: float = 0.0
+    rmse_m: float = float("nan")
+    chi2: float = float("nan")
+    detail: str = ""  # the numbers behind ``reason``
+
+
+def chain_uncertainty(
+    positions_xy: np.ndarray, edge_var_xy: np.ndarray, edge_var_theta: np.ndarray, new: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(σ²_xy, σ²_θ)`` (N,) of the pose of keyframe ``new`` relative to every keyframe ``i < new``.
+
+    ``edge_var_xy[k]`` / ``edge_var_theta[k]`` are the position (per axis) and heading
+    variances of the sequential edge ``k → k + 1``; ``positions_xy`` (N, 2) the
+    keyframes' positions. Prefix sums make this O(N) for all ``i`` at once (the lever
+    arm ``|t_n − t_k|²`` expands into sums of ``σ²_θ,k``, ``σ²_θ,k t_k`` and ``σ²_θ,k |t_k|²``).
+    Entries ``i >= new`` are 0.
+    """
+    n = int(new)
+    positions = np.asarray(positions_xy, dtype=np.float64)
+    var_xy = np.asarray(edge_var_xy, dtype=np.float64)[:n]
+    var_th = np.asarray(edge_var_theta, dtype=np.float64)[:n]
+    tn = positions[n]
+    # a heading error of edge k -> k+1 swings keyframes k+1 .. n about keyframe k+1
+    pivot = positions[1 : n + 1]
+
+    def suffix(values: np.ndarray) -> np.ndarray:  # sums over k = i .. n-1, for every i < n
+        return np.cumsum(values[::-1], axis=0)[::-1]
+
+    out_xy = np.zeros(len(positions))
+    out_th = np.zeros(len(positions))
+    if n == 0:
+        return out_xy, out_th
+    s_th = suffix(var_th)
+    lever = s_th * float(tn @ tn) - 2.0 * (suffix(var_th[:, None] * pivot) @ tn)
+    lever += suffix(var_th * np.einsum("ij,ij->i", pivot, pivot))
+    out_xy[:n] = suffix(var_xy) + np.maximum(lever, 0.0)
+    out_th[:n] = s_th
+    return out_xy, out_th
+
+
+def find_candidates(
+    poses: np.ndarray,
+    new: int,
+    edge_var_xy: np.ndarray,
+    edge_var_theta: np.ndarray,
+    params: LoopClosureParams,
+) -> list[Candidate]:
+    """Old keyframes within the uncertainty-scaled search radius of keyframe ``new``, nearest first."""
+    poses = np.asarray(poses, dtype=np.float64)
+    last_old = new - params.min_keyframe_gap
+    if last_old < 0:
+        return []
+    var_xy, var_th = chain_uncertainty(poses[:, :2], edge_var_xy, edge_var_theta, new)
+    old = np.arange(last_old + 1)
+    dist = np.hypot(poses[old, 0] - poses[new, 0], poses[old, 1] - poses[new, 1])
+    radius = np.minimum(params.max_search_radius_m, params.search_radius_m + params.sigma_scale * np.sqrt(var_xy[old]))
+    near = old[dist <= radius]
+    if near.size == 0:
+        return []
+    order = near[np.argsort(dist[near], kind="stable")]
+    out = []
+    for i in order[: params.max_candidates]:
+        sxy = max(params.min_std_m**2, float(var_xy[i]))
+        sth = max(params.min_std_rad**2, float(var_th[i]))
+        out.append(
+            Candidate(
+                old=int(i),
+                new=int(new),
+                prior=relative_pose(poses[i], poses[new]),
+                prior_covariance=np.diag([sxy, sxy, sth]),
+                distance_m=float(dist[i]),
+            )
+        )
+    return out
+
+
+def verify(
+    candidate: Candidate,
+    target: Target | None,
+    source_xy: np.ndarray,
+    sensor_xy: np.ndarray,
+    icp: IcpParams,
+    params: LoopClosureParams,
+) -> Verdict:
+    """Run the acceptance tests of the module docstring; ``target`` is in ``candidate.old``'s frame."""
+    if target is None or len(target) == 0:
+        return _reject(candidate, "empty submap", "no points around the candidate")
+    result = match_scan(target, source_xy, candidate.prior, icp, sensor_xy=sensor_xy)
+    fit = dict(fitness=result.fitness, rmse_m=result.rmse_m)
+    # 1. a good match
+    if not result.converged:
+        return _reject(candidate, "no convergence", "ICP did not converge", **fit)
+    if result.correspondences < params.min_correspondences:
+        return _reject(candidate, "few correspondences", f"{result.correspondences} correspondences", **fit)
+    if result.fitness < params.min_fitness:
+        return _reject(candidate, "low inlier ratio", f"inlier ratio {result.fitness:.2f}", **fit)
+    if not result.rmse_m <= params.max_rmse_m:
+        return _reject(candidate, "high residual", f"residual {result.rmse_m * 1e3:.1f} mm", **fit)
+    # 2. every direction observed
+    if result.degenerate and not params.accept_degenerate:
+        return _reject(candidate, "degenerate", "a direction is unconstrained", **fit)
+    # 3. consistent with the odometry chain
+    correction = result.pose - candidate.prior
+    correction[2] = float(wrap_angle(correction[2]))
+    if math.hypot(correction[0], correction[1]) > params.max_correction_m:
+        return _reject(candidate, "large correction", f"moves {math.hypot(correction[0], correction[1]):.3f} m", **fit)
+    if abs(correction[2]) > params.max_correction_rad:
+        return _reject(candidate, "large correction", f"turns {correction[2]:.3f} rad", **fit)
+    icp_cov = np.linalg.pinv(result.information * params.information_scale, hermitian=True)
+    chi2 = float(correction @ np.linalg.solve(candidate.prior_covariance + icp_cov, correction))
+    fit["chi2"] = chi2
+    if chi2 > params.gate_chi2:
+        return _reject(candidate, "inconsistent with odometry", f"chi2 {chi2:.1f}", **fit)
+    # 4. unambiguous: no other alignment one corridor away fits as well
+    if params.ambiguity_shift_m > 0:
+        for shift in ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)):
+            start = candidate.prior + np.array([shift[0], shift[1], 0.0]) * params.ambiguity_shift_m
+            other = match_scan(target, source_xy, start, icp, sensor_xy=sensor_xy)
+            elsewhere = math.hypot(*(other.pose[:2] - result.pose[:2])) > params.ambiguity_tolerance_m
+            if elsewhere and _as_good(other, params):
+                return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
+    information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
+    return Verdict(candidate, True, "accepted", result.pose.copy(), information, **fit)
+
+
+def _as_good(result: IcpResult, params: LoopClosureParams) -> bool:
+    return (
+        result.converged
+        and result.correspondences >= params.min_correspondences
+        and result.fitness >= params.min_fitness
+        and result.rmse_m <= params.max_rmse_m
+    )
+
+
+def _reject(candidate: Candidate, reason: str, detail: str, **fit: float) -> Verdict:
+    return Verdict(candidate, False, reason, candidate.prior.copy(), np.zeros((3, 3)), detail=detail, **fit)

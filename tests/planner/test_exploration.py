@@ -1,0 +1,248 @@
+"""Exploration: strategy choices on small graphs, the explorer's phases, blacklisting, frontiers."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from mazebot.planner.exploration import (
+    Candidate,
+    DepthFirstStrategy,
+    Explorer,
+    NearestFrontierStrategy,
+    Phase,
+    frontier_regions,
+    make_strategy,
+)
+from mazebot.planner.global_path import GridCostmap, cell_costs
+from mazebot.planner.maze_graph import Direction, MazeGraph
+from mazebot.sim.maze_file import parse_maze
+from mazebot.sim.raster import true_occupancy
+from mazebot.sim.room import make_room
+from mazebot.sim.world import World, world_from_layout
+
+RES = 0.02
+CELL = 0.3048
+Cell = tuple[int, int]
+
+# A T: the start (0,0) is a dead end under (0,1); from the junction (1,1) one branch goes
+# west to (0,1)... see the picture; row 0 is south.
+T_MAZE = """
+o---o---o---o---o
+|               |
+o   o---o   o---o
+| S |   |   |   |
+o---o---o---o---o
+"""
+
+
+def line_graph(n: int) -> dict[Cell, list[Cell]]:
+    """Cells (0, 0) ... (n-1, 0) in a row, each open to its neighbours."""
+    return {(i, 0): [(j, 0) for j in (i - 1, i + 1) if 0 <= j < n] for i in range(n)}
+
+
+def distances(adj: dict[Cell, list[Cell]]):
+    return lambda cell: cell_costs(adj.__getitem__, cell)
+
+
+def test_nearest_strategy_takes_the_cheapest_frontier() -> None:
+    adj = line_graph(6)
+    cands = [
+        Candidate((4, 0), Direction.N, 2.0, 1),
+        Candidate((3, 0), Direction.N, 1.0, 1),
+        Candidate((5, 0), Direction.N, 3.0, 1),
+    ]
+    assert NearestFrontierStrategy().choose(cands, distances(adj), (0, 0)).cell == (3, 0)
+
+
+def test_nearest_strategy_breaks_ties_towards_what_would_be_a_detour_later() -> None:
+    # robot at (2, 0) of a 5-cell corridor, start at (0, 0): two frontiers one step away on
+    # either side. Finishing the far side first means passing the near one on the way home.
+    adj = line_graph(5)
+    toward_start = Candidate((1, 0), Direction.N, 1.0, 1)
+    away = Candidate((3, 0), Direction.N, 1.0, 1)
+    choice = NearestFrontierStrategy().choose([toward_start, away], distances(adj), (0, 0))
+    assert choice is away
+    # with a margin of zero, a slightly cheaper frontier is no longer a tie
+    cheaper = Candidate((1, 0), Direction.N, 0.9, 1)
+    assert NearestFrontierStrategy(tie_margin=0.0).choose([cheaper, away], distances(adj), (0, 0)) is cheaper
+
+
+def test_depth_first_takes_the_newest_frontier_even_when_farther() -> None:
+    adj = line_graph(6)
+    old_near = Candidate((1, 0), Direction.N, 1.0, 3)
+    new_far = Candidate((5, 0), Direction.N, 4.0, 7)
+    new_near = Candidate((4, 0), Direction.S, 3.0, 7)
+    dfs = DepthFirstStrategy()
+    assert dfs.choose([old_near, new_far], distances(adj), (0, 0)) is new_far
+    assert dfs.choose([old_near, new_far, new_near], distances(adj), (0, 0)) is new_near  # newest, then nearest
+    assert make_strategy("dfs").name == "dfs" and make_strategy("nearest").name == "nearest"
+    with pytest.raises(ValueError, match="nearest"):
+        make_strategy("random")
+
+
+def known_map(world: World, margin_m: float = 0.3) -> tuple[np.ndarray, tuple[float, float]]:
+    """The perfect three-state map of ``world``: free space around the start known, outside unknown."""
+    xmin, ymin, xmax, ymax = world.bounds_m
+    origin = (math.floor((xmin - margin_m) / RES) * RES, math.floor((ymin - margin_m) / RES) * RES)
+    shape = (math.ceil((ymax + margin_m - origin[1]) / RES), math.ceil((xmax + margin_m - origin[0]) / RES))
+    occupied, _ = true_occupancy(world, RES, origin, shape)
+    labels, _ = ndimage.label(~occupied)
+    x0, y0, _ = world.start_pose
+    grid = np.full(shape, -1, dtype=np.int8)
+    grid[labels == labels[int((y0 - origin[1]) / RES), int((x0 - origin[0]) / RES)]] = 0
+    grid[occupied] = 100
+    return grid, origin
+
+
+def t_maze() -> tuple[World, np.ndarray, tuple[float, float]]:
+    world = world_from_layout(parse_maze(T_MAZE, CELL), 0.012)
+    grid, origin = known_map(world)
+    return world, grid, origin
+
+
+def centre(cell: Cell) -> tuple[float, float]:
+    return ((cell[0] + 0.5) * CELL, (cell[1] + 0.5) * CELL)
+
+
+def test_a_fully_known_maze_sends_the_robot_home_then_reports_done() -> None:
+    world, grid, origin = t_maze()
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    goal = explorer.update(grid, origin, RES, (*centre((3, 1)), 0.0), now_s=0.0)
+    assert explorer.mode == "maze"
+    assert goal is not None and goal.phase is Phase.RETURNING
+    assert goal.cells[0] == (3, 1) and goal.cells[-1] == (0, 0)
+    assert goal.waypoints_m[-1] == pytest.approx(centre((0, 0)), abs=0.01)
+    goal = explorer.update(grid, origin, RES, (*centre((0, 0)), math.pi / 2), now_s=1.0)
+    assert goal is not None and goal.phase is Phase.DONE
+    assert explorer.phase is Phase.DONE
+
+
+def hide_east_of(grid: np.ndarray, origin: tuple[float, float], x_m: float) -> np.ndarray:
+    out = grid.copy()
+    out[:, int((x_m - origin[0]) / RES) :] = -1
+    return out
+
+
+def test_goal_is_the_nearest_unknown_and_its_route_follows_open_links() -> None:
+    world, grid, origin = t_maze()
+    partial = hide_east_of(grid, origin, 2.5 * CELL)  # columns 3 (and half of 2) unseen
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    goal = explorer.update(partial, origin, RES, (*centre((0, 1)), 0.0), now_s=0.0)
+    assert goal is not None and goal.phase is Phase.EXPLORING
+    assert goal.cells[0] == (0, 1)
+    target = goal.cells[-1]
+    assert target in {(2, 1), (2, 0)}  # the column next to the unseen part
+    graph = explorer.graph
+    route = [(0, 1), (1, 1), (2, 1)]
+    for a, b in itertools.pairwise(route):
+        assert b in graph.open_neighbours(a)
+    assert goal.waypoints_m[0] == pytest.approx(centre((0, 1)), abs=0.01)
+
+
+def test_a_target_without_progress_is_blacklisted_and_the_next_one_chosen() -> None:
+    world, grid, origin = t_maze()
+    partial = hide_east_of(grid, origin, 2.5 * CELL)
+    explorer = Explorer(start_xy_m=world.start_pose[:2], progress_timeout_s=10.0)
+    pose = (*centre((0, 1)), 0.0)
+    first = explorer.update(partial, origin, RES, pose, now_s=0.0)
+    assert first is not None
+    for t in (2.0, 5.0, 9.0):  # the robot does not move: no progress, but not yet timed out
+        again = explorer.update(partial, origin, RES, pose, now_s=t)
+        assert again is not None and again.reason == first.reason
+    later = explorer.update(partial, origin, RES, pose, now_s=10.5)
+    assert explorer.blacklisted_links  # the stuck target is out
+    assert later is not None and later.reason != first.reason
+
+
+def test_report_unreachable_blacklists_the_current_target() -> None:
+    world, grid, origin = t_maze()
+    partial = hide_east_of(grid, origin, 2.5 * CELL)
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (*centre((0, 1)), 0.0)
+    first = explorer.update(partial, origin, RES, pose, now_s=0.0)
+    explorer.report_unreachable(now_s=1.0)
+    assert len(explorer.blacklisted_links) == 1
+    second = explorer.update(partial, origin, RES, pose, now_s=1.2)
+    assert first is not None and second is not None and second.reason != first.reason
+    # blacklisting everything ends the exploration: the robot goes home
+    for k in range(40):
+        explorer.report_unreachable(now_s=2.0 + k)
+        goal = explorer.update(partial, origin, RES, pose, now_s=2.1 + k)
+        assert goal is not None
+        if goal.phase is Phase.RETURNING:
+            break
+    assert explorer.phase is Phase.RETURNING
+
+
+def test_dfs_explorer_finishes_a_branch_before_an_older_frontier() -> None:
+    world, grid, origin = t_maze()
+    explorer = Explorer(strategy="dfs", start_xy_m=world.start_pose[:2])
+    pose = (*centre((1, 1)), 0.0)
+    partial = hide_east_of(grid, origin, 1.5 * CELL)  # only columns 0 and 1 seen
+    first = explorer.update(partial, origin, RES, pose, now_s=0.0)
+    assert first is not None and first.cells[-1] == (1, 1)  # the east side of (1, 1)
+    more = hide_east_of(grid, origin, 2.5 * CELL)  # column 2 appears: its frontiers are newer
+    second = explorer.update(more, origin, RES, pose, now_s=0.5)
+    assert second is not None and second.cells[-1][0] == 2
+
+
+def test_frontier_regions_group_free_cells_next_to_unknown_ones() -> None:
+    grid = np.full((20, 30), -1, dtype=np.int8)
+    grid[5:15, 5:20] = 0  # a known free rectangle in the unknown
+    grid[5:15, 12] = 100  # a wall splitting it; its cells are not free
+    grid[0:2, 25:27] = 0  # a 2x2 speck: too small to matter
+    regions = frontier_regions(grid, min_cells=5)
+    assert len(regions) == 2  # the border of each half; the wall cells between are not free
+    cells = {tuple(rc) for region in regions for rc in region}
+    assert (5, 5) in cells and (14, 19) in cells and (10, 8) not in cells and (10, 12) not in cells
+    assert all(grid[r, c] == 0 for r, c in cells)
+    assert len(frontier_regions(grid, min_cells=1)) == 3  # and the speck
+
+
+def test_a_room_is_explored_by_frontiers_with_a_visible_reachable_goal() -> None:
+    room = make_room(2.0, 1.2, cylinders=4, seed=0, footprint_radius_m=0.09)
+    grid, origin = known_map(room)
+    seen_whole = Explorer(start_xy_m=room.start_pose[:2])
+    seen_whole.update(grid, origin, RES, room.start_pose, now_s=0.0)
+    assert seen_whole.mode == "frontier"  # round obstacles and off-lattice walls: not a maze
+
+    partial = hide_east_of(grid, origin, 1.0)  # half a room: straight walls only, any lattice fits
+    explorer = Explorer(start_xy_m=room.start_pose[:2], mode="frontier")
+    goal = explorer.update(partial, origin, RES, room.start_pose, now_s=0.0)
+    assert goal is not None and goal.phase is Phase.EXPLORING
+    costmap = GridCostmap(partial, origin, RES)
+    r, c = costmap.to_cell(*goal.target_m)
+    assert costmap.passable[r, c]
+    assert goal.target_m[0] > 0.6  # near the unseen half
+    for a, b in zip(goal.waypoints_m, goal.waypoints_m[1:], strict=False):
+        assert costmap.segment_passable(a, b)
+    # everything seen: home, and done there
+    goal = explorer.update(grid, origin, RES, (1.0, 0.6, 0.0), now_s=1.0)
+    assert goal is not None and goal.phase is Phase.RETURNING
+    assert goal.waypoints_m[-1] == pytest.approx(room.start_pose[:2], abs=0.03)
+    goal = explorer.update(grid, origin, RES, room.start_pose, now_s=2.0)
+    assert goal is not None and goal.phase is Phase.DONE
+
+
+def test_mode_can_be_forced() -> None:
+    world, grid, origin = t_maze()
+    explorer = Explorer(MazeGraph(anchor_xy_m=world.start_pose[:2]), mode="frontier", start_xy_m=world.start_pose[:2])
+    explorer.update(grid, origin, RES, world.start_pose, now_s=0.0)
+    assert explorer.mode == "frontier"
+    with pytest.raises(ValueError, match="mode"):
+        Explorer(mode="spiral")  # type: ignore[arg-type]
+
+
+def test_auto_mode_leaves_the_maze_when_the_walls_stop_fitting() -> None:
+    room = make_room(2.0, 1.2, cylinders=4, seed=0, footprint_radius_m=0.09)
+    grid, origin = known_map(room)
+    explorer = Explorer(start_xy_m=room.start_pose[:2])
+    explorer.update(hide_east_of(grid, origin, 1.0), origin, RES, room.start_pose, now_s=0.0)
+    assert explorer.mode == "maze"  # two straight walls at a right angle fit any lattice
+    explorer.update(grid, origin, RES, room.start_pose, now_s=0.2)
+    assert explorer.mode == "frontier"

@@ -10,7 +10,7 @@ BIN = $(VENV)/bin
 MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data))
 export MAZEBOT_DATA
 
-.PHONY: run test lint clean
+.PHONY: run test lint system-deps clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,7 +24,10 @@ run: $(BIN)/.installed
 lint: $(BIN)/.installed
 	$(BIN)/ruff check .
 
-test: lint
+system-deps:
+	bash tools/system-deps.sh
+
+test: system-deps lint
 	$(BIN)/pytest
 
 clean:

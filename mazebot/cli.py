@@ -28,6 +28,7 @@ _COMMAND_MODULES = (
     "mazebot.io.motors_cli",
     "mazebot.sim.cli",
     "mazebot.slam.posegraph_cli",
+    "mazebot.slam.slam_cli",
     "mazebot.bench.cli",
 )
 

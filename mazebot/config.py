@@ -309,6 +309,10 @@ class SlamConfig(Section):
         0.02, ge=0, lt=1, description="eigenvalue ratio below which a direction counts as unobservable"
     )
     icp_min_fitness: float = Field(0.5, ge=0, le=1, description="share of points matched for the filter to use a match")
+    icp_max_rmse_m: float = Field(0.03, gt=0, description="... and at most this point-to-line residual")
+    icp_retry_headings_rad: list[float] = Field(
+        [0.05, -0.05, 0.1, -0.1], description="when a match fails, retry ICP from the prediction turned by these"
+    )
     icp_information_scale: float = Field(
         0.5, gt=0, le=1, description="scale of ICP's information matrix (ICP is optimistic about itself)"
     )
@@ -328,6 +332,16 @@ class SlamConfig(Section):
     )
     submap_update_keyframes: int = Field(4, ge=1, description="... or after this many keyframes")
     optimize_iterations: int = Field(30, ge=1, le=500, description="Levenberg-Marquardt iterations per optimization")
+    wall_prior: bool = Field(
+        True, description="walls meet at right angles (a maze): each keyframe's walls give a weak heading prior"
+    )
+    wall_prior_std_rad: float = Field(0.01, gt=0, description="trust in one keyframe's wall direction")
+    wall_min_strength: float = Field(
+        0.6, ge=0, le=1, description="use a keyframe only if its wall normals are this aligned to a right-angle grid"
+    )
+    optimize_every_keyframes: int = Field(
+        40, ge=1, description="optimize the pose graph this often even without a loop closure (wall priors)"
+    )
     # loop closure
     loop_search_radius_m: float = Field(0.25, gt=0, description="look for loop closures at least this close ...")
     loop_max_search_radius_m: float = Field(1.0, gt=0, description="... and never farther than this")
@@ -345,9 +359,16 @@ class SlamConfig(Section):
     loop_ambiguity_shift_m: float = Field(
         0.3048, ge=0, description="retry ICP this far off (one cell); another good fit there rejects (0: off)"
     )
+    loop_ambiguity_fitness_ratio: float = Field(
+        0.85, gt=0, le=1, description="that other fit counts if its inlier ratio is this share of the match's ..."
+    )
+    loop_ambiguity_rmse_ratio: float = Field(4.0, ge=1, description="... and its residual at most this many times")
+    loop_max_range_m: float = Field(
+        2.0, ge=0, description="verify a loop closure with the points this close to the lidar (0: all)"
+    )
     loop_information_scale: float = Field(0.1, gt=0, le=1, description="scale of a loop closure's ICP information")
     rebuild_threshold_m: float = Field(
-        0.005, ge=0, description="rebuild the map when optimization moved a keyframe farther than this ..."
+        0.01, ge=0, description="rebuild the map when optimization moved a keyframe farther than this ..."
     )
     rebuild_threshold_rad: float = Field(0.005, ge=0, description="... or turned one more than this")
     # occupancy grid
@@ -356,7 +377,9 @@ class SlamConfig(Section):
     grid_l_miss: float = Field(-0.4, lt=0, description="log-odds added to a cell a beam crosses")
     grid_l_min: float = Field(-5.0, lt=0, description="lowest log-odds of a cell")
     grid_l_max: float = Field(5.0, gt=0, description="highest log-odds of a cell")
-    grid_occupied_prob: float = Field(0.65, ge=0.5, lt=1, description="a cell above this probability is a wall")
+    grid_occupied_prob: float = Field(
+        0.75, ge=0.5, lt=1, description="a cell above this probability is a wall (0.75: two hits, not one stray)"
+    )
     grid_free_prob: float = Field(0.25, gt=0, le=0.5, description="a cell below this probability is free")
     map_max_range_m: float = Field(
         2.5, ge=0, description="farther hits clear space but mark no wall (range noise grows with range; 0: no limit)"

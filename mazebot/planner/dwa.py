@@ -20,19 +20,23 @@ the desired global path") this planner scores
 
 each on a fixed scale so the weights mean the same thing in every situation.
 
-Obstacles (:class:`LocalCostmap`) are the points of the latest scan and the occupied
-cells of the map near the robot, in the robot frame: the scan sees what moved, the map
-covers what the lidar cannot see (closer than its 0.15 m minimum range, and behind).
-Distances are exact nearest-point distances (a k-d tree), not a raster: in a 1 ft maze a
-0.09 m robot has 36 mm to spare on each side of a cell centre, which a raster's half-cell
-error would eat. The inflation is the footprint radius (hard: a rollout closer than that
-collides) plus a clearance band (soft: scored). Map cells count with half their diagonal
-added, since the wall may lie anywhere inside an occupied cell.
+Obstacles (:class:`LocalCostmap`) are the points of the latest scan, the occupied cells
+of the map near the robot and, in a maze, the wall outlines the maze graph knows
+(:meth:`~mazebot.planner.maze_graph.MazeGraph.wall_points_m`), all in the robot frame:
+the scan sees what moved, the map and the walls cover what the lidar cannot see (closer
+than its 0.15 m minimum range, and behind), the walls also the post ends a log-odds map
+loses. Distances are exact nearest-point distances (a k-d tree), not a raster: in a 1 ft
+maze a 0.09 m robot has 36 mm to spare on each side of a cell centre, which a raster's
+half-cell error would eat. The inflation is the footprint radius plus a safety margin
+(hard: a rollout closer than that is in contact) plus a clearance band (soft: scored).
+Map cells count with half their diagonal added, since the wall may lie anywhere inside
+an occupied cell.
 
 :class:`LocalPlanner` wraps the DWA with what a maze needs around it: an in-place turn
 (:class:`~mazebot.planner.wheel_control.HeadingAligner`) when the path leaves behind the
-robot (dead ends), a goal stop, and recovery when stuck (rotate in place, back off,
-re-plan; seed 003_'s lesson that a robot must never stand still).
+robot (dead ends), a goal stop, and recovery when stuck (turn in place, back off or
+drive out along the most open direction, re-plan; seed 003_'s lesson that a robot must
+never stand still).
 """
 
 from __future__ import annotations
@@ -75,6 +79,14 @@ def scan_points_robot(
     if valid is not None:
         ok &= np.asarray(valid, dtype=bool).reshape(-1)
     return np.column_stack((mount_xy_m[0] + r[ok] * np.cos(a[ok]), mount_xy_m[1] + r[ok] * np.sin(a[ok])))
+
+
+def to_robot_frame(points_map: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
+    """Map-frame points (N, 2) in the frame of a robot at map ``pose`` (x_m, y_m, theta_rad)."""
+    pts = np.asarray(points_map, dtype=np.float64).reshape(-1, 2)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    dx, dy = pts[:, 0] - pose[0], pts[:, 1] - pose[1]
+    return np.column_stack((c * dx + s * dy, -s * dx + c * dy))
 
 
 def map_points_robot(
@@ -258,9 +270,10 @@ class DynamicWindowPlanner:
     forward only), ``max_yaw_rate_radps``, ``max_accel_mps2``, ``max_yaw_accel_radps2``,
     ``brake_decel_mps2`` (deceleration assumed for the stopping distance). Timing:
     ``window_s`` the interval the dynamic window spans (the planner period),
-    ``latency_s`` the time a command takes to act (travelled at the chosen speed before
-    braking starts), ``horizon_s`` the rollout length, ``step_m`` the largest spacing
-    of rollout points. Safety: ``safety_margin_m`` added to the footprint for contact
+    ``latency_s`` the time travelled at the chosen speed before braking can start: the
+    planner period (the next chance to choose a stop) plus the actuation latency;
+    ``horizon_s`` the rollout length, ``step_m`` the largest spacing of rollout points.
+    Safety: ``safety_margin_m`` added to the footprint for contact
     (at least ``step_m / 2``: clearance changes no faster than position, so between two
     rollout points it cannot dip more than half their spacing below theirs),
     ``stop_margin_m`` extra free distance beyond the stopping distance. Sampling:
@@ -281,10 +294,10 @@ class DynamicWindowPlanner:
         footprint_radius_m: float = 0.09,
         clearance_m: float = 0.02,
         window_s: float = 0.2,
-        latency_s: float = 0.1,
+        latency_s: float = 0.25,
         horizon_s: float = 1.2,
         step_m: float = 0.01,
-        safety_margin_m: float = 0.005,
+        safety_margin_m: float = 0.01,
         stop_margin_m: float = 0.03,
         v_samples: int = 7,
         w_samples: int = 15,
@@ -490,12 +503,14 @@ class LocalPlanner:
     ``goal_tolerance_m`` how close counts as arrived; ``align_enter_rad`` the heading error
     beyond which the robot first turns in place, towards the path point
     ``align_lookahead_m`` ahead (at a corner waypoint: the next corridor), until
-    :class:`HeadingAligner` reports the heading within its band;
+    :class:`HeadingAligner` reports the heading within its band (a turn that takes longer
+    than ``align_timeout_s`` counts as stuck);
     ``stuck_timeout_s`` how long progress along the path may stay below
     ``stuck_progress_m`` (or the window stay blocked for ``blocked_timeout_s``) before
-    recovery; recovery rotates by ``recovery_turn_rad`` towards the most open direction,
-    then backs off ``backoff_m`` at ``backoff_speed_mps`` if the way behind is clear;
-    ``max_recoveries`` failed recoveries on one path make it give up.
+    recovery. Recovery turns in place, then drives ``escape_m`` straight (forwards or
+    backwards, at ``escape_speed_mps``) along the direction that opens up the most space
+    without closing in on anything (see :meth:`_escape_move`), then re-plans;
+    ``max_recoveries`` recoveries on one path make it give up.
     """
 
     def __init__(
@@ -505,36 +520,41 @@ class LocalPlanner:
         goal_tolerance_m: float = 0.04,
         align_enter_rad: float = math.radians(70.0),
         align_lookahead_m: float = 0.1,
+        align_timeout_s: float = 8.0,
         stuck_timeout_s: float = 4.0,
         stuck_progress_m: float = 0.03,
         blocked_timeout_s: float = 0.6,
-        recovery_turn_rad: float = math.radians(60.0),
-        backoff_m: float = 0.05,
-        backoff_speed_mps: float = 0.06,
+        escape_m: float = 0.06,
+        escape_speed_mps: float = 0.06,
         max_recoveries: int = 3,
     ) -> None:
         self.dwa = dwa or DynamicWindowPlanner()
-        self.aligner = aligner or HeadingAligner(max_yaw_rate_radps=self.dwa.max_yaw_rate_radps)
+        # the turn is re-decided once per planner period: predict the heading that far ahead
+        self.aligner = aligner or HeadingAligner(
+            max_yaw_rate_radps=self.dwa.max_yaw_rate_radps, latency_s=self.dwa.window_s
+        )
         self.goal_tolerance_m = float(goal_tolerance_m)
         self.align_enter_rad = float(align_enter_rad)
         self.align_lookahead_m = float(align_lookahead_m)
+        self.align_timeout_s = float(align_timeout_s)
         self.stuck_timeout_s = float(stuck_timeout_s)
         self.stuck_progress_m = float(stuck_progress_m)
         self.blocked_timeout_s = float(blocked_timeout_s)
-        self.recovery_turn_rad = float(recovery_turn_rad)
-        self.backoff_m = float(backoff_m)
-        self.backoff_speed_mps = float(backoff_speed_mps)
+        self.escape_m = float(escape_m)
+        self.escape_speed_mps = float(escape_speed_mps)
         self.max_recoveries = int(max_recoveries)
         self.path: PathTrack | None = None
         self.status = LocalStatus.IDLE
         self.recoveries = 0
         self._align_target: float | None = None
+        self._align_since = 0.0
         self._progress_mark: tuple[float, float] | None = None  # (progress_m, time_s)
         self._blocked_since: float | None = None
         self._recovery: _Recovery | None = None
         self._recovery_heading: float | None = None
         self._backoff_start: XY | None = None
         self._backoff_since = 0.0
+        self._escape_direction = -1.0
 
     def set_path(self, waypoints_m: Sequence[XY]) -> None:
         """Follow a new path; the same path again (same waypoints) keeps the progress and timers."""
@@ -566,8 +586,21 @@ class LocalPlanner:
         map_points: np.ndarray | None,
         map_point_radius_m: float,
         now_s: float,
+        wall_points: np.ndarray | None = None,
     ) -> MotionCommand:
-        """The command for this tick. ``scan_points``/``map_points`` are robot-frame (N, 2) metres."""
+        """The command for this tick.
+
+        All points are robot-frame (N, 2) metres: ``scan_points`` the latest returns,
+        ``map_points`` occupied map cells (each counted as a disc of
+        ``map_point_radius_m``), ``wall_points`` known wall surfaces, e.g.
+        :meth:`MazeGraph.wall_points_m <mazebot.planner.maze_graph.MazeGraph.wall_points_m>`
+        moved with :func:`to_robot_frame` (the posts a map misses, closer than the lidar
+        sees).
+        """
+        if wall_points is not None and len(wall_points):
+            scan_points = np.concatenate(
+                (np.asarray(scan_points).reshape(-1, 2), np.asarray(wall_points).reshape(-1, 2))
+            )
         if self.path is None:
             self.status = LocalStatus.IDLE
             return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status)
@@ -596,8 +629,13 @@ class LocalPlanner:
         if self.status is LocalStatus.ALIGNING or abs(error) > self.align_enter_rad:
             if self.status is not LocalStatus.ALIGNING or self._align_target is None:
                 self._align_target = bearing
+                self._align_since = now_s
                 self.aligner.reset()
             w, done = self.aligner.command(pose[2], self._align_target, velocity[1])
+            if not done and now_s - self._align_since > self.align_timeout_s:  # wedged: cannot even turn
+                self._align_target = None
+                self.status = LocalStatus.FOLLOWING
+                return self._begin_recovery(pose, velocity, costmap, now_s, None)
             if not done:
                 self.status = LocalStatus.ALIGNING
                 self._progress_mark = (path.progress_m, now_s)  # turning is progress
@@ -634,7 +672,7 @@ class LocalPlanner:
         velocity: tuple[float, float],
         costmap: LocalCostmap,
         now_s: float,
-        choice: DwaChoice,
+        choice: DwaChoice | None,
     ) -> MotionCommand:
         self.recoveries += 1
         self._blocked_since = None
@@ -643,22 +681,37 @@ class LocalPlanner:
         if self.recoveries > self.max_recoveries:
             self._recovery = None
             return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status, give_up=True, choice=choice)
-        # 1. rotate towards the most open direction (within recovery_turn_rad of the path bearing)
+        turn, direction = self._escape_move(pose, costmap)
+        self._recovery = _Recovery.ROTATE
+        self._recovery_heading = pose[2] + turn
+        self._escape_direction = direction
+        self.aligner.reset()
+        return self._recover(pose, velocity, costmap, now_s)
+
+    def _escape_move(self, pose: tuple[float, float, float], costmap: LocalCostmap) -> tuple[float, float]:
+        """The short straight move that best opens up space: ``(turn_rad, +1 forward or -1 back)``.
+
+        Every direction is probed for ``escape_m``; a move qualifies when the clearance
+        along it never drops below where it starts (or the contact distance, if lower),
+        and the one ending farthest from obstacles wins, nudged towards the path. It is
+        driven forwards or backwards, whichever needs the smaller turn, so a robot that
+        drifted too close to a post backs straight out instead of turning on the spot.
+        """
         angles = np.linspace(-math.pi, math.pi, 36, endpoint=False)
-        probe = 0.25 * np.column_stack((np.cos(angles), np.sin(angles)))
-        openness = costmap.clearance_m(probe)
+        steps = np.linspace(0.0, self.escape_m, max(2, math.ceil(self.escape_m / 0.01) + 1))
+        probe = steps[None, :, None] * np.stack((np.cos(angles), np.sin(angles)), axis=-1)[:, None, :]
+        clear = costmap.clearance_m(probe.reshape(-1, 2)).reshape(angles.size, steps.size)
+        floor = min(self.dwa.contact_m, float(clear[0, 0]) - 1e-3)
+        ok = clear.min(axis=1) >= floor
         assert self.path is not None
         carrot = self.path.point_at(self.path.progress_m + self.dwa.lookahead_m)
         bearing = math.atan2(carrot[1] - pose[1], carrot[0] - pose[0]) - pose[2]
-        off = np.abs(np.remainder(angles - bearing + np.pi, 2 * np.pi) - np.pi)
-        openness = np.where(off <= self.recovery_turn_rad + 1e-9, openness, -np.inf)
-        best = float(angles[int(np.argmax(openness))])
-        if abs(best) < math.radians(10):
-            best = math.copysign(self.recovery_turn_rad, bearing if bearing else 1.0)
-        self._recovery = _Recovery.ROTATE
-        self._recovery_heading = pose[2] + best
-        self.aligner.reset()
-        return self._recover(pose, velocity, costmap, now_s)
+        gain = np.minimum(clear[:, -1], self.dwa.contact_m + self.dwa.clearance_cap_m)
+        score = np.where(ok, gain + 0.01 * np.cos(angles - bearing), -np.inf)
+        best = float(angles[int(np.argmax(score))]) if ok.any() else bearing
+        if abs(best) <= math.pi / 2:
+            return best, 1.0
+        return math.remainder(best + math.pi, math.tau), -1.0
 
     def _recover(
         self, pose: tuple[float, float, float], velocity: tuple[float, float], costmap: LocalCostmap, now_s: float
@@ -675,12 +728,15 @@ class LocalPlanner:
         if self._recovery is _Recovery.BACK_OFF:
             assert self._backoff_start is not None
             moved = math.dist(self._backoff_start, (pose[0], pose[1]))
-            behind = np.column_stack((-np.linspace(0.0, self.backoff_m - moved + 0.02, 8), np.zeros(8)))
-            clear = costmap.clearance_m(behind)
+            ahead = self._escape_direction * np.linspace(0.0, max(self.escape_m - moved, 0.0) + 0.02, 8)
+            clear = costmap.clearance_m(np.column_stack((ahead, np.zeros(8))))
+            still_opening = bool(np.all(clear >= min(self.dwa.contact_m, float(clear[0]) - 1e-3)))
             # a slipping or blocked robot may never cover the distance: give it twice the time it needs
-            in_time = now_s - self._backoff_since <= 2.0 * self.backoff_m / self.backoff_speed_mps + 0.5
-            if moved < self.backoff_m and in_time and bool(np.all(clear >= self.dwa.contact_m)):
-                return MotionCommand(-self.backoff_speed_mps, 0.0, DriveMode.RECOVER, self.status)
+            in_time = now_s - self._backoff_since <= 2.0 * self.escape_m / self.escape_speed_mps + 0.5
+            if moved < self.escape_m and in_time and still_opening:
+                return MotionCommand(
+                    self._escape_direction * self.escape_speed_mps, 0.0, DriveMode.RECOVER, self.status
+                )
         # done: back to following; the caller re-plans from here
         self._recovery = None
         self._progress_mark = (self.path.progress_m if self.path else 0.0, now_s)

@@ -4,7 +4,9 @@ Exploring means driving to where something is still unknown until nothing reacha
 In a maze the unknowns are **frontier links**: a link of a reachable cell whose state
 (open or wall) is not known yet (seed 000_…, III.C: "this unknown link can be referred to
 as a frontier for autonomous mapping"). Going to the cell that owns the link lets the
-lidar resolve it. Two strategies choose among them:
+lidar resolve it. A reachable cell whose inside has not been seen (a dead end looked at
+only through its opening) is a frontier too, so every cell of the maze ends up mapped,
+not just its links. Two strategies choose among them:
 
 - :class:`DepthFirstStrategy`, the seed's choice: the most recently discovered frontier
   first (a stack), so the robot follows one branch to its end before back-tracking.
@@ -50,7 +52,7 @@ from mazebot.planner.global_path import (
     shortest_cell_path,
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
-from mazebot.slam.grid import FREE, UNKNOWN
+from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
 
 
 class Phase(enum.StrEnum):
@@ -213,15 +215,18 @@ class Explorer:
     (map frame, metres), where the run ends; ``maze_fit_min`` the share of wall cells on
     lattice lines that makes a maze (with ``maze_fit_hysteresis`` before leaving maze
     mode); ``turn_cost_cells`` the cost of a quarter turn in cell steps; ``switch_margin``
-    how much cheaper (cell steps, or metres in frontier mode) a new target must be to
-    replace the current one; ``goal_tolerance_m`` how close counts as arrived;
-    ``progress_timeout_s`` how long a target may go without its route cost dropping
-    before it is blacklisted, ``dwell_timeout_s`` how long it may stay unresolved once
-    the robot is there; ``footprint_radius_m``/``clearance_m`` the robot for the grid
-    costmap; ``min_frontier_cells`` the smallest frontier region worth a visit;
-    ``view_radius_m`` how close the robot must come to a frontier region to see into
-    it, ``view_candidates`` how many of the cheapest places within that radius are
-    checked for a line of sight to it; ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped.
+    how much cheaper (in cell steps; in frontier mode, in cell lengths of route) a new
+    target must be to replace the current one; ``goal_tolerance_m`` how close counts as
+    arrived (keep it above the local planner's own tolerance, or the robot stops short
+    of "arrived"); ``progress_timeout_s`` how long a target may go without its route
+    cost dropping before it is blacklisted, ``dwell_timeout_s`` how long it may stay
+    unresolved once the robot is there; ``footprint_radius_m``/``clearance_m`` the robot
+    for the grid costmap; ``min_frontier_cells`` the smallest frontier region worth a
+    visit, ``frontier_wall_margin_cells`` how close to a wall unknown cells are taken
+    for wall (see :func:`frontier_regions`); ``view_radius_m`` how close the robot must
+    come to a frontier region to see into it, ``view_candidates`` how many of the
+    cheapest places within that radius are checked for a line of sight to it;
+    ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped.
     """
 
     def __init__(
@@ -234,12 +239,13 @@ class Explorer:
         maze_fit_hysteresis: float = 0.05,
         turn_cost_cells: float = 0.5,
         switch_margin: float = 1.0,
-        goal_tolerance_m: float = 0.05,
+        goal_tolerance_m: float = 0.06,
         progress_timeout_s: float = 20.0,
         dwell_timeout_s: float = 3.0,
         footprint_radius_m: float = 0.09,
         clearance_m: float = 0.02,
         min_frontier_cells: int = 4,
+        frontier_wall_margin_cells: int = 2,
         view_radius_m: float = 0.3,
         view_candidates: int = 40,
         blacklist_radius_m: float = 0.15,
@@ -260,6 +266,7 @@ class Explorer:
         self.footprint_radius_m = float(footprint_radius_m)
         self.clearance_m = float(clearance_m)
         self.min_frontier_cells = int(min_frontier_cells)
+        self.frontier_wall_margin_cells = int(frontier_wall_margin_cells)
         self.view_radius_m = float(view_radius_m)
         self.view_candidates = int(view_candidates)
         self.blacklist_radius_m = float(blacklist_radius_m)
@@ -297,6 +304,10 @@ class Explorer:
         self._choose_mode()
         if self.phase is Phase.DONE:
             return Goal(Phase.DONE, self.start_xy_m, [self.start_xy_m], reason="done: back at the start")
+        if not _known_free_at(grid, grid_origin_m, resolution_m, pose) or (
+            self.mode == "maze" and self.graph.frame is None
+        ):
+            return None  # the map does not cover the robot yet (first scans): an empty map is not "done"
         if self.mode == "maze":
             goal = self._maze_goal(pose, now_s)
         else:
@@ -374,7 +385,7 @@ class Explorer:
                 choice = kept
         position = frame.cell_center_m(choice.cell)
         target = self._track((choice.cell, choice.side), position, choice.cost, now_s, at_goal=choice.cell == robot)
-        if target is None:  # just blacklisted: choose again next tick
+        if target is None:  # just blacklisted (timed out): choose again among the rest
             return self._maze_goal(pose, now_s) if candidates[1:] else None
         route = shortest_cell_path(graph.open_neighbours, robot, choice.cell, heading, self.turn_cost_cells)
         side = "its inside" if choice.side is None else f"its {choice.side.name} side"
@@ -420,7 +431,8 @@ class Explorer:
         key = current.key if current is not None and choice is same else _RegionKey(choice.centroid_m)
         at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
         if self._track(key, choice.goal_m, choice.cost_m, now_s, at_goal) is None:
-            return None
+            # just blacklisted (timed out): choose again among the rest
+            return self._frontier_goal(grid, origin, resolution_m, pose, now_s) if options[1:] else None
         path = costmap.plan((pose[0], pose[1]), choice.goal_m)
         waypoints = shortcut(path, costmap) if path else [choice.goal_m]
         cx, cy = choice.centroid_m
@@ -439,7 +451,7 @@ class Explorer:
         (next to a wall), and the nearest place within range may look at it through an
         obstacle (the far side of a cylinder).
         """
-        regions = frontier_regions(grid, self.min_frontier_cells)
+        regions = frontier_regions(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
         if not regions:
             return []
         distances = costmap.distances_from(robot_xy_m)
@@ -487,15 +499,22 @@ class Explorer:
             robot = frame.cell_of(pose[0], pose[1])
             heading = _heading_index(pose[2], frame.angle_rad)
             route = shortest_cell_path(self.graph.open_neighbours, robot, start_cell, heading, self.turn_cost_cells)
-            cells = merge_straight(route or [start_cell])
-            return Goal(Phase.RETURNING, target, cell_waypoints(cells, frame.cell_center_m), cells, "return to start")
+            if route is not None:
+                cells = merge_straight(route)
+                waypoints = cell_waypoints(cells, frame.cell_center_m)
+                return Goal(Phase.RETURNING, target, waypoints, cells, "return to start")
+            # no open-link route (a link misread as a wall): plan on the grid instead
+            costmap = self._costmap_for(grid, origin, resolution_m)
+            path = costmap.plan((pose[0], pose[1]), target)
+            waypoints = _ending_at(shortcut(path, costmap) if path else [], target)
+            return Goal(Phase.RETURNING, target, waypoints, [], "return to start (grid route)")
         target = self.start_xy_m
         if math.dist((pose[0], pose[1]), target) <= self.goal_tolerance_m:
             self.phase = Phase.DONE
             return Goal(Phase.DONE, target, [target], [], "done: back at the start")
         costmap = self._costmap_for(grid, origin, resolution_m)
         path = costmap.plan((pose[0], pose[1]), target)
-        waypoints = shortcut(path, costmap) if path else [target]
+        waypoints = _ending_at(shortcut(path, costmap) if path else [], target)
         return Goal(Phase.RETURNING, target, waypoints, [], "return to start")
 
     # -- target bookkeeping --------------------------------------------------------------
@@ -531,15 +550,22 @@ class Explorer:
         self._target = None
 
 
-def frontier_regions(three_state: np.ndarray, min_cells: int = 4) -> list[np.ndarray]:
+def frontier_regions(three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2) -> list[np.ndarray]:
     """Yamauchi's frontier regions: 8-connected groups of free cells that touch unknown ones.
 
-    A free cell is a frontier cell when one of its four neighbours is unknown. Groups
-    smaller than ``min_cells`` (speckle, the pockets behind posts) are dropped. Returns a
-    list of (K, 2) int arrays of ``(row, col)``.
+    A free cell is a frontier cell when one of its four neighbours is unknown. Unknown
+    cells within ``wall_margin_cells`` of an occupied cell do not count: in a log-odds
+    map a wall is a band of cells of which some never collect enough hits, and the free
+    cells along it are no gateway to unexplored space (a real opening is wider than the
+    margin, so its middle still counts). Groups smaller than ``min_cells`` (speckle, the
+    pockets behind posts) are dropped. Returns a list of (K, 2) int arrays of
+    ``(row, col)``.
     """
     grid = np.asarray(three_state)
     unknown = grid == UNKNOWN
+    if wall_margin_cells > 0:
+        near_wall = ndimage.binary_dilation(grid == OCCUPIED, iterations=wall_margin_cells)
+        unknown &= ~near_wall
     touches = np.zeros_like(unknown)
     touches[1:, :] |= unknown[:-1, :]
     touches[:-1, :] |= unknown[1:, :]
@@ -576,6 +602,23 @@ def _sees_region(free: np.ndarray, cell: tuple[int, int], region: np.ndarray, ma
         if free[rr, cc].all():
             return True
     return False
+
+
+def _ending_at(waypoints: list[tuple[float, float]], target: tuple[float, float]) -> list[tuple[float, float]]:
+    """The route with its last point replaced by the exact target (grid routes end on a cell centre)."""
+    if waypoints and math.dist(waypoints[-1], target) < 0.05:
+        return [*waypoints[:-1], target]
+    return [*waypoints, target]
+
+
+def _known_free_at(
+    grid: np.ndarray, origin_m: tuple[float, float], resolution_m: float, pose: tuple[float, float, float]
+) -> bool:
+    """True when the map holds the robot's position as known free space (3x3 cells around it)."""
+    r = math.floor((pose[1] - origin_m[1]) / resolution_m)
+    c = math.floor((pose[0] - origin_m[0]) / resolution_m)
+    window = grid[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2]
+    return bool(window.size) and bool((window == FREE).any())
 
 
 def _disk(radius_cells: int) -> np.ndarray:

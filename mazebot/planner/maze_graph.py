@@ -23,7 +23,8 @@ This module builds that graph from the three-state grid SLAM publishes (−1 unk
 
 3. **Cell kinds** (:meth:`MazeGraph.kind`): dead ends (one open link), corridors (two),
    junctions (three or four), open areas (part of a 2×2 block of mutually open cells)
-   and unexplored cells (a link still unknown).
+   and unexplored cells (a link still unknown, or the inside of the cell not yet seen:
+   a dead end looked at only through its opening has unmapped corners).
 
 The graph is updated in place as the map grows: the frame is kept while the walls
 agree with it (re-estimated when the wall count has grown by a set fraction, and
@@ -357,8 +358,10 @@ class MazeGraph:
     either side of the lattice line; ``wall_fraction`` the share of along-samples that
     must see an occupied cell for a wall; ``open_fraction`` the share that must be free
     for an open link (with nothing occupied); ``refresh_growth`` the relative growth of
-    the wall count that triggers a new frame estimate; ``frame`` a fixed frame (then
-    never re-estimated), e.g. for tests or a maze whose placement is known.
+    the wall count that triggers a new frame estimate; ``interior_samples`` the side of
+    the grid of points (``n x n``) probed inside each cell and ``interior_seen_min`` the
+    share of them the map must know for the cell to count as seen; ``frame`` a fixed
+    frame (then never re-estimated), e.g. for tests or a maze whose placement is known.
     """
 
     def __init__(
@@ -655,6 +658,57 @@ class MazeGraph:
         for direction, array in ((Direction.E, self._east), (Direction.N, self._north)):
             for j, i in zip(*np.nonzero(np.ones_like(array, dtype=bool)), strict=True):
                 yield (int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(array[j, i]))
+
+    def wall_points_m(self, center_xy_m: tuple[float, float], radius_m: float, spacing_m: float = 0.01) -> np.ndarray:
+        """Points (N, 2, map frame) on the surfaces of the WALL links within ``radius_m``.
+
+        A maze wall runs straight from post to post, so once a link is known to be a wall
+        its whole outline is known, including the post ends a log-odds map loses (a
+        12 mm wall end seen edge-on collects few hits, and the beams grazing it erase
+        them). Each wall is the ``wall_thickness_m`` rectangle around its boundary,
+        reaching half a thickness past both posts, sampled every ``spacing_m`` along
+        both faces and across both ends: exact surfaces for the local planner, which
+        cannot see them when they are closer than the lidar's minimum range.
+        """
+        if self.frame is None or not self._east.size:
+            return np.zeros((0, 2))
+        c = self.cell_size_m
+        h = 0.5 * self.wall_thickness_m
+        centre_uv = self.frame.to_maze(np.array(center_xy_m))[0]
+        reach = radius_m + c
+        n_along = max(2, math.ceil((c + 2 * h) / spacing_m) + 1)
+        along = np.linspace(-h, c + h, n_along)
+        across = np.linspace(-h, h, max(2, math.ceil(2 * h / spacing_m) + 1))
+        pieces: list[np.ndarray] = []
+        for direction, array in ((Direction.E, self._east), (Direction.N, self._north)):
+            jj, ii = np.nonzero(array == LinkState.WALL)
+            if jj.size == 0:
+                continue
+            i = ii + self._i0
+            j = jj + self._j0
+            # the boundary's start corner (its south end for an east link, west end for a north link)
+            u0 = (i + 1) * c if direction is Direction.E else i * c
+            v0 = j * c if direction is Direction.E else (j + 1) * c
+            near = np.hypot(u0 - centre_uv[0], v0 - centre_uv[1]) <= reach
+            u0, v0 = u0[near].astype(float), v0[near].astype(float)
+            if u0.size == 0:
+                continue
+            faces = [(side, along) for side in (-h, h)] + [(across, end) for end in (-h, c + h)]
+            for off, run in faces:
+                off_arr = np.broadcast_to(np.asarray(off, dtype=float), np.broadcast(off, run).shape)
+                run_arr = np.broadcast_to(np.asarray(run, dtype=float), off_arr.shape)
+                if direction is Direction.E:  # the wall runs along v at u = u0
+                    u = u0[:, None] + off_arr[None, :]
+                    v = v0[:, None] + run_arr[None, :]
+                else:  # the wall runs along u at v = v0
+                    u = u0[:, None] + run_arr[None, :]
+                    v = v0[:, None] + off_arr[None, :]
+                pieces.append(np.column_stack((u.reshape(-1), v.reshape(-1))))
+        if not pieces:
+            return np.zeros((0, 2))
+        xy = self.frame.to_map(np.concatenate(pieces))
+        keep = np.hypot(xy[:, 0] - center_xy_m[0], xy[:, 1] - center_xy_m[1]) <= radius_m
+        return xy[keep]
 
 
 def _lookup(grid: np.ndarray, origin_m: tuple[float, float], resolution_m: float, xy: np.ndarray) -> np.ndarray:

@@ -48,6 +48,25 @@ class SafetyVerdict:
 OK = SafetyVerdict(False)
 
 
+def reframe_points(
+    points_then: np.ndarray, pose_then: tuple[float, float, float], pose_now: tuple[float, float, float]
+) -> np.ndarray:
+    """Robot-frame points (N, 2) seen at ``pose_then``, expressed in the robot frame at ``pose_now``.
+
+    The lidar delivers a revolution every ~0.18 s and the guard runs at 20 Hz: between
+    scans the robot moves up to a few centimetres towards what it saw, so the guard
+    moves the last scan with the odometry (any frame works, as long as both poses are
+    in it) instead of trusting stale ranges.
+    """
+    pts = np.asarray(points_then, dtype=np.float64).reshape(-1, 2)
+    c0, s0 = math.cos(pose_then[2]), math.sin(pose_then[2])
+    wx = pose_then[0] + c0 * pts[:, 0] - s0 * pts[:, 1]
+    wy = pose_then[1] + s0 * pts[:, 0] + c0 * pts[:, 1]
+    dx, dy = wx - pose_now[0], wy - pose_now[1]
+    c1, s1 = math.cos(pose_now[2]), math.sin(pose_now[2])
+    return np.column_stack((c1 * dx + s1 * dy, -s1 * dx + c1 * dy))
+
+
 class CollisionGuard:
     """Emergency stop on lidar returns in the robot's path.
 

@@ -35,7 +35,6 @@ Burgard & Fox, *Probabilistic Robotics*, Table 3.3), step numbers as there:
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,59 +53,66 @@ class OdometryHistory:
         history.at(np.array([0.01]))      # ((0.0025,), (0.0,), (0.005,))
 
     Times before the first or after the last entry are clamped to them (the robot is
-    assumed to hold its pose beyond what was measured).
+    assumed to hold its pose beyond what was measured). Poses live in one numpy buffer
+    (rows ``[_start, _end)``), compacted when it fills, so a look-up is a single
+    ``np.interp`` per coordinate over a view.
     """
 
-    def __init__(self, horizon_s: float = 3.0) -> None:
+    def __init__(self, horizon_s: float = 3.0, capacity: int = 512) -> None:
         if horizon_s <= 0:
             raise ValueError(f"horizon_s must be positive, got {horizon_s}")
         self.horizon_s = float(horizon_s)
-        self._t: deque[float] = deque()
-        self._x: deque[float] = deque()
-        self._y: deque[float] = deque()
-        self._th: deque[float] = deque()  # unwrapped
+        self._buf = np.zeros((max(int(capacity), 4), 4))  # columns: t, x, y, unwrapped theta
+        self._start = 0
+        self._end = 0
 
     def __len__(self) -> int:
-        return len(self._t)
+        return self._end - self._start
 
     def append(self, time_s: float, x_m: float, y_m: float, theta_rad: float) -> None:
         """Add the odometry pose at ``time_s`` (non-decreasing); drops entries older than the horizon."""
-        if self._t:
-            if time_s < self._t[-1]:
-                raise ValueError(f"odometry time went backwards: {time_s} after {self._t[-1]}")
-            last = self._th[-1]
-            theta_rad = last + math.remainder(theta_rad - last, math.tau)
-        self._t.append(float(time_s))
-        self._x.append(float(x_m))
-        self._y.append(float(y_m))
-        self._th.append(float(theta_rad))
-        while len(self._t) > 2 and self._t[1] < time_s - self.horizon_s:
-            for d in (self._t, self._x, self._y, self._th):
-                d.popleft()
+        if self._end > self._start:
+            last_t, last_th = self._buf[self._end - 1, 0], self._buf[self._end - 1, 3]
+            if time_s < last_t:
+                raise ValueError(f"odometry time went backwards: {time_s} after {last_t}")
+            theta_rad = last_th + math.remainder(theta_rad - last_th, math.tau)
+        if self._end == self._buf.shape[0]:
+            live = self._buf[self._start : self._end].copy()
+            if live.shape[0] > self._buf.shape[0] // 2:  # mostly live: grow instead of compacting
+                self._buf = np.zeros((2 * self._buf.shape[0], 4))
+            self._buf[: live.shape[0]] = live
+            self._start, self._end = 0, live.shape[0]
+        self._buf[self._end] = (time_s, x_m, y_m, theta_rad)
+        self._end += 1
+        # keep one pose at or before the horizon, for interpolation
+        t = self._buf[self._start : self._end, 0]
+        drop = int(np.searchsorted(t, time_s - self.horizon_s, side="right")) - 1
+        if drop > 0:
+            self._start += min(drop, self._end - self._start - 2)
 
     @property
     def latest(self) -> tuple[float, np.ndarray] | None:
         """(time_s, pose (3,)) of the newest entry, or None."""
-        if not self._t:
+        if self._end == self._start:
             return None
-        return self._t[-1], np.array([self._x[-1], self._y[-1], math.remainder(self._th[-1], math.tau)])
+        t, x, y, th = self._buf[self._end - 1]
+        return float(t), np.array([x, y, math.remainder(th, math.tau)])
 
     @property
     def span_s(self) -> tuple[float, float] | None:
         """(oldest, newest) time held, or None."""
-        return (self._t[0], self._t[-1]) if self._t else None
+        if self._end == self._start:
+            return None
+        return float(self._buf[self._start, 0]), float(self._buf[self._end - 1, 0])
 
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Odometry poses (x, y, unwrapped θ) at the given times; the shape of ``preprocess.PoseAtTime``."""
-        if not self._t:
+        if self._end == self._start:
             raise RuntimeError("no odometry recorded yet")
-        t = np.fromiter(self._t, float, len(self._t))
+        live = self._buf[self._start : self._end]
         times = np.asarray(times_s, dtype=np.float64)
-        return (
-            np.interp(times, t, np.fromiter(self._x, float, len(t))),
-            np.interp(times, t, np.fromiter(self._y, float, len(t))),
-            np.interp(times, t, np.fromiter(self._th, float, len(t))),
-        )
+        t = live[:, 0]
+        return np.interp(times, t, live[:, 1]), np.interp(times, t, live[:, 2]), np.interp(times, t, live[:, 3])
 
     def pose_at(self, time_s: float) -> np.ndarray:
         """The odometry pose (3,) at one time, heading wrapped to [-π, π)."""
@@ -165,9 +171,18 @@ class PoseEkf:
         self.covariance = g @ self.covariance @ g.T + v @ m @ v.T
 
     def innovation_chi2(self, z: np.ndarray, information: np.ndarray) -> float:
-        """Squared Mahalanobis distance of the measurement ``z`` from the prediction under ``Σ̄ + Ω⁺``."""
-        nu = self._innovation(z)
-        s = self.covariance + np.linalg.pinv(np.asarray(information, dtype=np.float64), hermitian=True)
+        """Squared Mahalanobis distance of ``z`` from the prediction under ``Σ̄ + Ω⁺``, observed directions only.
+
+        Directions where ``Ω`` is zero (a corridor's axis) carry no measurement, so the
+        innovation is projected onto ``Ω``'s range first.
+        """
+        omega = np.asarray(information, dtype=np.float64)
+        eigval, eigvec = np.linalg.eigh(0.5 * (omega + omega.T))
+        strong = eigval > 1e-9 * max(float(eigval[-1]), 1e-300)
+        observed = eigvec[:, strong]
+        nu = observed.T @ self._innovation(z)
+        # in Ω's eigenbasis its pseudo-inverse is diagonal: S = Vᵀ Σ̄ V + diag(1/λ)
+        s = observed.T @ self.covariance @ observed + np.diag(1.0 / eigval[strong])
         return float(nu @ np.linalg.solve(s, nu))
 
     def correct(self, z: np.ndarray, information: np.ndarray, gate: bool = True) -> bool:
@@ -290,10 +305,11 @@ class TimeOffsetCalibration:
         self,
         initial_s: float = 0.0,
         memory_scans: float = 500.0,
-        prior_std_s: float = 0.02,
-        noise_std_rad: float = 0.003,
+        prior_std_s: float = 0.01,
+        noise_std_rad: float = 0.005,
         min_rate_change: float = 0.2,
         limits_s: tuple[float, float] = (-0.05, 0.1),
+        max_innovation_rad: float = 0.05,
     ) -> None:
         self.offset_s = float(initial_s)
         self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
@@ -302,16 +318,21 @@ class TimeOffsetCalibration:
         self._noise_var = float(noise_std_rad) ** 2
         self.min_rate_change = float(min_rate_change)
         self.limits_s = limits_s
+        self.max_innovation_rad = float(max_innovation_rad)
         self.observations = 0
 
     def observe(self, innovation_theta_rad: float, rate_change_radps: float) -> None:
-        """One RLS step on ``ν_θ = φ·(D − S)`` with ``φ = −Δω``; folds the estimate into ``offset_s``."""
+        """One RLS step on ``ν_θ = φ·(D − S)`` with ``φ = −Δω``; folds the estimate into ``offset_s``.
+
+        Innovations beyond ``max_innovation_rad`` (a bad match, a slip) are ignored.
+        """
         phi = -float(rate_change_radps)
-        if abs(phi) < self.min_rate_change:
+        innovation = float(wrap_angle(innovation_theta_rad))
+        if abs(phi) < self.min_rate_change or abs(innovation) > self.max_innovation_rad:
             return
         p = min(self._p / self.forgetting, self._max_p)
         gain = p * phi / (self._noise_var + phi * p * phi)
-        residual_s = gain * float(wrap_angle(innovation_theta_rad))
+        residual_s = gain * innovation
         self.offset_s = float(np.clip(self.offset_s + residual_s, *self.limits_s))
         self._p = (1.0 - gain * phi) * p
         self.observations += 1

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
@@ -37,31 +38,66 @@ class NormalParams:
     neighbours: int = 10
     radius_m: float = 0.1
     max_line_spread: float = 0.2
+    smooth: bool = True  # move each point onto the line fitted through its neighbours (see smooth_onto_lines)
 
 
 @dataclass
 class Keyframe:
     """One kept scan, everything in its own robot frame; ``pose`` (3,) is its map-frame pose.
 
-    ``points`` (N, 2) and ``normals`` (N, 2) are the hits with a usable normal (for the
-    local submap), ``match_points`` (M, 2) the voxel-downsampled hits (source of loop
-    closure ICP), ``sensor_xy`` (2,) the lidar centre; ``ray_ends`` (K, 2) float32,
-    ``ray_hit`` (K,) and ``ray_origins`` (K, 2) float32 the beams for the grid.
+    Arrays are float32 (a few thousand keyframes must fit a Raspberry Pi's memory; a
+    millimetre's precision is ample). ``hits`` (H, 2) are the scan's hits; ``points``
+    (N, 2) and ``normals`` (N, 2) the hits with a usable normal, smoothed onto their local
+    line (for the local submap), estimated the first time they are asked for: a keyframe
+    made during an in-place turn often waits for the next submap, and the scan that made
+    it stays cheap. ``match_points`` (M, 2) are the voxel-downsampled hits (source of loop
+    closure ICP), ``sensor_xy`` (2,) the lidar centre; ``ray_ends`` (K, 2) and
+    ``ray_hit`` (K,) the beams for the grid. A rebuilt map starts every beam at the
+    lidar's position at the end of the revolution (the live map used each sample's own,
+    de-skewed origin; the difference, the robot's motion during one turn of the head,
+    only touches cells under the robot).
     ``integrated_pose`` is the pose its rays were last written into the grid with.
     """
 
     index: int
     time_s: float
     pose: np.ndarray
-    points: np.ndarray
-    normals: np.ndarray
+    hits: np.ndarray
     match_points: np.ndarray
     sensor_xy: np.ndarray
     ray_ends: np.ndarray
     ray_hit: np.ndarray
-    ray_origins: np.ndarray
     integrated_pose: np.ndarray
+    normal_params: NormalParams = field(default_factory=NormalParams)
+    _surface: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     _world: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    _walls: tuple[float, float, int] | None = field(default=None, repr=False)
+
+    @property
+    def points(self) -> np.ndarray:
+        return self.surface()[0]
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self.surface()[1]
+
+    def surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(points, normals)``: hits with a usable normal (oriented to the lidar), smoothed; computed once."""
+        surface = self._surface
+        if surface is None:
+            p = self.normal_params
+            pts = self.hits.astype(np.float64)
+            view = np.broadcast_to(self.sensor_xy, pts.shape)
+            nrm, good = estimate_normals(pts, p.neighbours, p.radius_m, p.max_line_spread, view)
+            # orient towards the lidar: the side of the wall the scan saw
+            flip = np.einsum("ij,ij->i", nrm, view - pts) < 0
+            nrm = np.where(flip[:, None], -nrm, nrm)
+            pts, nrm = pts[good], nrm[good]
+            if p.smooth:
+                pts = smooth_onto_lines(pts, nrm, p.radius_m, p.neighbours)
+            surface = (pts.astype(np.float32), nrm.astype(np.float32))
+            self._surface = surface  # a race with another thread computes the same values
+        return surface
 
     def world(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points (N, 2), normals (N, 2) and lidar position (2,) in the map frame, cached per pose."""
@@ -77,6 +113,32 @@ class Keyframe:
             self._world = cached
         return cached[1], cached[2], cached[3]
 
+    def wall_direction(self) -> tuple[float, float, int]:
+        """Dominant wall direction in the robot frame, modulo 90°: ``(angle_rad, strength, count)``.
+
+        The circular mean of four times the normals' angles (Mardia & Jupp, *Directional
+        Statistics*, 2000: the mean of an axial variable of period π/2), divided by four:
+        in a maze whose walls all meet at right angles every normal points along one of
+        four directions ``δ + k·90°``, and four times its angle is ``4δ`` for all of them.
+        ``strength`` is the mean resultant length (1: every normal on the grid, 0: no
+        dominant grid); ``count`` the normals used. Cached, computed with the normals.
+        """
+        cached = self._walls
+        if cached is None:
+            nrm = self.normals.astype(np.float64)
+            if nrm.shape[0] == 0:
+                cached = (0.0, 0.0, 0)
+            else:
+                four = 4.0 * np.arctan2(nrm[:, 1], nrm[:, 0])
+                c, s = float(np.mean(np.cos(four))), float(np.mean(np.sin(four)))
+                cached = (0.25 * math.atan2(s, c), math.hypot(c, s), int(nrm.shape[0]))
+            self._walls = cached
+        return cached
+
+    def release_world(self) -> None:
+        """Forget the map-frame copies (a keyframe out of the local submap need not hold them)."""
+        self._world = None
+
     @classmethod
     def from_scan(
         cls,
@@ -86,41 +148,62 @@ class Keyframe:
         normals: NormalParams | None = None,
         map_max_range_m: float | None = None,
     ) -> Keyframe:
-        """A keyframe from a prepared scan at ``pose``; estimates the normals of its hits.
+        """A keyframe from a prepared scan at ``pose`` (normals are estimated when first needed).
 
         ``map_max_range_m`` limits the rays kept for the grid (see :func:`map_rays`).
         """
-        p = normals or NormalParams()
-        pts = prepared.points_full
-        view = np.broadcast_to(prepared.sensor_xy, pts.shape)
-        nrm, good = estimate_normals(pts, p.neighbours, p.radius_m, p.max_line_spread, view)
-        # orient towards the lidar: the side of the wall the scan saw
-        flip = np.einsum("ij,ij->i", nrm, view - pts) < 0
-        nrm = np.where(flip[:, None], -nrm, nrm)
-        ends, hit, origins = map_rays(prepared, map_max_range_m)
+        ends, hit, _ = map_rays(prepared, map_max_range_m)
         pose = np.array(pose, dtype=np.float64).reshape(3)
         return cls(
             index=index,
             time_s=prepared.time_s,
             pose=pose,
-            points=pts[good].copy(),
-            normals=nrm[good].copy(),
-            match_points=prepared.points_match.copy(),
+            hits=prepared.points_full.astype(np.float32),
+            match_points=prepared.points_match.astype(np.float32),
             sensor_xy=np.array(prepared.sensor_xy, dtype=np.float64),
             ray_ends=ends.astype(np.float32),
             ray_hit=hit,
-            ray_origins=origins.astype(np.float32),
             integrated_pose=pose.copy(),
+            normal_params=normals or NormalParams(),
         )
 
     def rays(self, pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(pose, ends, hit, origins)`` for :meth:`mazebot.slam.grid.OccupancyGrid.rebuild` (robot frame)."""
+        ends = self.ray_ends.astype(np.float64)
         return (
             self.pose if pose is None else pose,
-            self.ray_ends.astype(np.float64),
+            ends,
             self.ray_hit,
-            self.ray_origins.astype(np.float64),
+            np.broadcast_to(self.sensor_xy, ends.shape),
         )
+
+
+def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: float, neighbours: int) -> np.ndarray:
+    """Each point moved along its normal onto the line through the mean of its neighbours.
+
+    The A1's range noise (~1 % of the range) scatters a wall's points by centimetres
+    across the wall; the local line (the PCA of :func:`mazebot.slam.icp.estimate_normals`)
+    averages that scatter away, so the submap ICP matches against is a thin line rather
+    than a noisy band, whose nearest-neighbour bumps otherwise hold ICP short of the
+    optimum by a good fraction of its starting error (moving least squares, Alexa et al.,
+    "Computing and rendering point set surfaces", IEEE TVCG 2003, reduced to lines).
+    Points keep their position along the wall, so corners stay where they were.
+    """
+    m = points_xy.shape[0]
+    if m == 0:
+        return points_xy.copy()
+    k = min(neighbours, m)
+    dist, idx = cKDTree(points_xy).query(points_xy, k=k, distance_upper_bound=radius_m)
+    dist, idx = dist.reshape(m, k), idx.reshape(m, k)
+    ok = np.isfinite(dist)
+    # only neighbours on the same side of the wall (their normals agree)
+    nrm_pad = np.vstack((normals, np.zeros((1, 2))))
+    ok &= np.einsum("md,mkd->mk", normals, nrm_pad[idx]) > 0.7
+    pad = np.vstack((points_xy, np.zeros((1, 2))))
+    w = ok.astype(np.float64)
+    mean = np.einsum("mk,mkd->md", w, pad[idx]) / np.maximum(w.sum(axis=1), 1.0)[:, None]
+    offset = np.einsum("md,md->m", points_xy - mean, normals)
+    return points_xy - offset[:, None] * normals
 
 
 def map_rays(prepared: PreparedScan, max_range_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,12 +276,14 @@ def build_target(
     voxel_m: float,
     frame: np.ndarray | None = None,
     poses: Sequence[np.ndarray] | None = None,
+    clip: tuple[np.ndarray, float] | None = None,
 ) -> Target | None:
     """The union of the keyframes' points and normals as an ICP target, one point per voxel.
 
     Points are expressed in the map frame, or in the frame of pose ``frame`` if given
     (loop closure matches in the candidate keyframe's frame). ``poses`` overrides the
-    keyframes' own poses (a snapshot taken for a background job). None if empty.
+    keyframes' own poses (a snapshot taken for a background job). ``clip`` ``(centre (2,),
+    radius_m)`` keeps only points that close to a centre (in the output frame). None if empty.
     """
     pts, nrm, view = [], [], []
     base_inv = None if frame is None else np.asarray(frame, dtype=np.float64)
@@ -219,9 +304,14 @@ def build_target(
         view.append(np.broadcast_to(transform(pose, kf.sensor_xy.reshape(1, 2)), (kf.points.shape[0], 2)))
     if not pts:
         return None
-    points = np.concatenate(pts)
+    points, normals, views = np.concatenate(pts), np.concatenate(nrm), np.concatenate(view)
+    if clip is not None:
+        near = np.hypot(*(points - np.asarray(clip[0], dtype=np.float64).reshape(1, 2)).T) <= clip[1]
+        points, normals, views = points[near], normals[near], views[near]
+        if points.shape[0] == 0:
+            return None
     first = voxel_downsample(points, voxel_m)
-    return Target(points[first], np.concatenate(view)[first], np.concatenate(nrm)[first])
+    return Target(points[first], views[first], normals[first])
 
 
 def _relative(base: np.ndarray, pose: np.ndarray) -> np.ndarray:

@@ -32,9 +32,11 @@ prior relative pose. Accepted only if
    ``max_correction_m`` / ``max_correction_rad`` and its Mahalanobis distance under
    the chain covariance plus the ICP covariance is below ``gate_chi2``;
 4. it is unambiguous: ICP restarted from the prior shifted by ``±ambiguity_shift_m``
-   along both axes (one maze cell: where a repeated corridor would fit) never finds
-   another alignment as good (within ``min_fitness``/``max_rmse_m``) farther than
-   ``ambiguity_tolerance_m`` from the accepted one.
+   along both axes (one maze cell: where a repeated corridor would fit) never finds,
+   farther than ``ambiguity_tolerance_m`` from the match, another alignment nearly as
+   good: an inlier ratio of at least ``ambiguity_fitness_ratio`` of the match's and a
+   residual at most ``ambiguity_rmse_ratio`` times its (relative, because at the edge
+   of the lidar's range a shifted copy always loses a few points).
 """
 
 from __future__ import annotations
@@ -69,9 +71,12 @@ class LoopClosureParams:
     max_correction_rad: float = 0.15  # ... and turn it at most this much
     ambiguity_shift_m: float = 0.3048  # restart ICP this far off the prior (one maze cell)
     ambiguity_tolerance_m: float = 0.05  # a restart ending farther than this from the match is another fit
+    ambiguity_fitness_ratio: float = 0.85  # ... and it fits as well if its inlier ratio is this share of the match's
+    ambiguity_rmse_ratio: float = 4.0  # ... and its residual at most this many times the match's
     information_scale: float = 0.1  # ICP information is optimistic; scale it for the graph edge
     min_std_m: float = 0.005  # floor of the chain's position std in the consistency test
     min_std_rad: float = 0.005  # floor of the chain's heading std
+    max_range_m: float | None = 2.0  # verify with points this close to the new keyframe's lidar (None: all)
 
 
 @dataclass(frozen=True)
@@ -223,18 +228,19 @@ def verify(
             start = candidate.prior + np.array([shift[0], shift[1], 0.0]) * params.ambiguity_shift_m
             other = match_scan(target, source_xy, start, icp, sensor_xy=sensor_xy)
             elsewhere = math.hypot(*(other.pose[:2] - result.pose[:2])) > params.ambiguity_tolerance_m
-            if elsewhere and _as_good(other, params):
+            if elsewhere and _as_good(other, result, params):
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
     information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
     return Verdict(candidate, True, "accepted", result.pose.copy(), information, **fit)
 
 
-def _as_good(result: IcpResult, params: LoopClosureParams) -> bool:
+def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> bool:
+    """Does ``other`` explain the scan about as well as ``match``? (Relative, so range limits do not hide it.)"""
     return (
-        result.converged
-        and result.correspondences >= params.min_correspondences
-        and result.fitness >= params.min_fitness
-        and result.rmse_m <= params.max_rmse_m
+        other.converged
+        and other.correspondences >= params.min_correspondences
+        and other.fitness >= params.ambiguity_fitness_ratio * match.fitness
+        and other.rmse_m <= params.ambiguity_rmse_ratio * max(match.rmse_m, 1e-3)
     )
 
 

@@ -4,16 +4,18 @@
 with the EKF of seed ``002`` in front of it; every step lives in its own module:
 
 1. **predict** the pose at the end of the revolution with the odometry increment since
-   the last scan (:mod:`mazebot.slam.ekf`);
-2. **de-skew** and filter the scan with the odometry at each sample's time
-   (:mod:`mazebot.slam.preprocess`);
-3. **match** it against the local submap of recent keyframes, starting from the
-   prediction (:mod:`mazebot.slam.icp`, :mod:`mazebot.slam.keyframes`);
+   the last scan, its heading corrected by the online calibration
+   (:mod:`mazebot.slam.ekf`);
+2. **de-skew** and filter the scan with the odometry at each sample's time, shifted by
+   the learned lidar time offset (:mod:`mazebot.slam.preprocess`);
+3. **match** it against the local submap (the recent keyframes and older ones nearby),
+   starting from the prediction, retrying from turned guesses if the match is poor
+   (:mod:`mazebot.slam.icp`, :mod:`mazebot.slam.keyframes`);
 4. **correct** the filter with the match (information form: a corridor's unobserved
-   direction keeps the odometry);
+   direction keeps the odometry), and feed the calibrations;
 5. **keyframe**: after 0.10 m or 0.15 rad the scan is kept, added to the pose graph
    with an edge from the previous keyframe (odometry + ICP information), and the local
-   submap is rebuilt (:mod:`mazebot.slam.posegraph`);
+   submap is refreshed (:mod:`mazebot.slam.posegraph`);
 6. **update the grid** with the scan's rays at the corrected pose (:mod:`mazebot.slam.grid`);
 7. **close loops**: old keyframes within the drift-scaled radius are candidates,
    verified by strict ICP tests; accepted ones join the graph, which is optimized
@@ -31,6 +33,12 @@ Frames: the map frame is the robot's pose at the start (``initial_pose``, defaul
 origin: x forward, y left); the odometry frame is wherever the encoders started.
 ``SlamUpdate.map_from_odom`` is the correction between them (ROS' ``map → odom``): the
 robot's map pose at any later time is ``map_from_odom ⊕ odometry``.
+
+Example::
+
+    slam = Slam(SlamParams.from_config(config.slam, config.lidar))
+    update = slam.update(scan, odometry_history)     # one revolution
+    update.pose, update.covariance, slam.grid.three_state()
 """
 
 from __future__ import annotations
@@ -48,8 +56,11 @@ from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, map_rays
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
-from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose
+from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+
+#: Loop-closure candidates kept while a job runs (the newest).
+PENDING_CANDIDATES = 4
 
 
 class OdometrySource(Protocol):
@@ -67,7 +78,7 @@ class GridParams:
     l_miss: float = -0.4
     l_min: float = -5.0
     l_max: float = 5.0
-    occupied_prob: float = 0.65
+    occupied_prob: float = 0.75  # above l_hit's 0.70: a wall takes two hits, a stray noisy return stays unknown
     free_prob: float = 0.25
     max_free_range_m: float = 4.0
 
@@ -101,7 +112,9 @@ class SlamParams:
     lidar_time_offset_s: float = 0.0  # how late the lidar's stamps are against the odometry's (initial value)
     estimate_time_offset: bool = True  # learn that offset online (see ekf.TimeOffsetCalibration)
     initial_std: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)  # of the start pose: m, m, rad
-    min_match_fitness: float = 0.5  # the filter ignores matches with a lower inlier ratio
+    min_match_fitness: float = 0.5  # the filter ignores matches with a lower inlier ratio ...
+    max_match_rmse_m: float = 0.03  # ... or a larger point-to-line residual
+    retry_headings_rad: tuple[float, ...] = (0.05, -0.05, 0.1, -0.1)  # ICP restarts when a match fails
     match_information_scale: float = 0.5
     keyframe_distance_m: float = 0.10
     keyframe_angle_rad: float = 0.15
@@ -112,7 +125,13 @@ class SlamParams:
     submap_update_m: float = 0.05  # rebuild the submap for a keyframe this far from the last rebuild ...
     submap_update_keyframes: int = 4  # ... or after this many keyframes (in-place turns see the same walls)
     optimize_iterations: int = 30
-    rebuild_threshold_m: float = 0.005
+    wall_prior: bool = True  # the maze's walls meet at right angles: a heading prior for every keyframe
+    wall_prior_std_rad: float = 0.01  # how much one keyframe's wall direction is trusted
+    wall_min_strength: float = 0.6  # only keyframes whose normals mostly lie on a right-angle grid ...
+    wall_min_normals: int = 40  # ... with at least this many normals ...
+    wall_max_deviation_rad: float = 0.087  # ... and within this of the reference grid count
+    optimize_every_keyframes: int = 40  # optimize (wall priors) this often even without a loop closure
+    rebuild_threshold_m: float = 0.01
     rebuild_threshold_rad: float = 0.005
 
     @classmethod
@@ -161,7 +180,10 @@ class SlamParams:
                 max_correction_m=slam.loop_max_correction_m,
                 max_correction_rad=slam.loop_max_correction_rad,
                 ambiguity_shift_m=slam.loop_ambiguity_shift_m,
+                ambiguity_fitness_ratio=slam.loop_ambiguity_fitness_ratio,
+                ambiguity_rmse_ratio=slam.loop_ambiguity_rmse_ratio,
                 information_scale=slam.loop_information_scale,
+                max_range_m=slam.loop_max_range_m or None,
             ),
             grid=GridParams(
                 resolution_m=slam.grid_resolution_m,
@@ -180,6 +202,8 @@ class SlamParams:
             lidar_time_offset_s=slam.lidar_time_offset_s,
             estimate_time_offset=slam.estimate_time_offset,
             min_match_fitness=slam.icp_min_fitness,
+            max_match_rmse_m=slam.icp_max_rmse_m,
+            retry_headings_rad=tuple(slam.icp_retry_headings_rad),
             match_information_scale=slam.icp_information_scale,
             keyframe_distance_m=slam.keyframe_distance_m,
             keyframe_angle_rad=slam.keyframe_angle_rad,
@@ -190,6 +214,10 @@ class SlamParams:
             submap_update_m=slam.submap_update_m,
             submap_update_keyframes=slam.submap_update_keyframes,
             optimize_iterations=slam.optimize_iterations,
+            wall_prior=slam.wall_prior,
+            wall_prior_std_rad=slam.wall_prior_std_rad,
+            wall_min_strength=slam.wall_min_strength,
+            optimize_every_keyframes=slam.optimize_every_keyframes,
             rebuild_threshold_m=slam.rebuild_threshold_m,
             rebuild_threshold_rad=slam.rebuild_threshold_rad,
         )
@@ -227,24 +255,35 @@ class LoopClosureJob:
     integrated_poses: np.ndarray
     edges: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     params: SlamParams
+    wall_reference_rad: float | None = None  # the wall grid's direction in the map frame, if known
+    optimize_anyway: bool = False  # optimize even if no candidate is accepted (periodic wall priors)
 
     def run(self) -> LoopClosureResult:
         p = self.params
         verdicts = []
-        for cand in self.candidates:
+        for found in self.candidates:
+            # the prior from this snapshot: an optimization may have moved both ends since it was found
+            cand = replace(found, prior=relative_pose(self.poses[found.old], self.poses[found.new]))
             lo = max(0, cand.old - p.loop.submap_half_width)
             hi = min(cand.new - p.loop.min_keyframe_gap // 2, cand.old + p.loop.submap_half_width) + 1
             window = range(lo, max(hi, cand.old + 1))
+            # both sides within the same range of the new keyframe's lidar: the inlier ratio then
+            # measures agreement, not how much farther one scan happened to see than the other
+            new_kf = self.keyframes[cand.new]
+            source = new_kf.match_points.astype(np.float64)
+            lidar_in_old = compose(cand.prior, np.array([*new_kf.sensor_xy, 0.0]))[:2]
+            if p.loop.max_range_m is not None:
+                source = source[np.hypot(*(source - new_kf.sensor_xy).T) <= p.loop.max_range_m]
             target = build_target(
                 [self.keyframes[k] for k in window],
                 p.submap_voxel_m,
                 frame=self.poses[cand.old],
                 poses=[self.poses[k] for k in window],
+                clip=None if p.loop.max_range_m is None else (lidar_in_old, p.loop.max_range_m + 0.3),
             )
-            new_kf = self.keyframes[cand.new]
-            verdicts.append(verify(cand, target, new_kf.match_points, new_kf.sensor_xy, p.icp, p.loop))
+            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop))
         accepted = [v for v in verdicts if v.accepted]
-        if not accepted:
+        if not accepted and not self.optimize_anyway:
             return LoopClosureResult(verdicts)
         # optimize the graph with the new constraints (first keyframe fixed)
         graph = PoseGraph()
@@ -252,12 +291,16 @@ class LoopClosureJob:
         ei, ej, z, omega = self.edges
         if len(ei):
             graph.add_edges(ei, ej, z, omega)
-        graph.add_edges(
-            [v.candidate.old for v in accepted],
-            [v.candidate.new for v in accepted],
-            np.array([v.measurement for v in accepted]),
-            np.array([v.information for v in accepted]),
-        )
+        if accepted:
+            graph.add_edges(
+                [v.candidate.old for v in accepted],
+                [v.candidate.new for v in accepted],
+                np.array([v.measurement for v in accepted]),
+                np.array([v.information for v in accepted]),
+            )
+        priors = self._wall_priors()
+        if priors is not None:
+            graph.add_edges(*priors)
         optimization = graph.optimize(max_iterations=p.optimize_iterations, method="lm")
         poses = graph.vertices.copy()
         # rebuild the grid from the optimized keyframes if any moved noticeably
@@ -269,6 +312,36 @@ class LoopClosureJob:
             grid = p.grid.new_grid()
             grid.rebuild(kf.rays(poses[k]) for k, kf in enumerate(self.keyframes))
         return LoopClosureResult(verdicts, poses, grid, optimization, moved, turned)
+
+    def _wall_priors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Heading-only edges from keyframe 0 to every keyframe whose walls show the maze's grid.
+
+        A keyframe at heading ``θ`` whose walls lie ``d`` off the reference grid (modulo
+        90°) should be at ``θ − d``: an edge ``0 → k`` whose information is zero except on
+        the heading. The chain of scan matches keeps its local shape; these priors, each
+        weak, keep its heading from drifting over hundreds of metres.
+        """
+        p = self.params
+        if not p.wall_prior or self.wall_reference_rad is None or len(self.keyframes) < 2:
+            return None
+        rows = []
+        theta0 = float(self.poses[0, 2])
+        for k in range(1, len(self.keyframes)):
+            direction, strength, count = self.keyframes[k].wall_direction()
+            if strength < p.wall_min_strength or count < p.wall_min_normals:
+                continue
+            theta = float(self.poses[k, 2])
+            deviation = _wrap_quarter(direction + theta - self.wall_reference_rad)
+            if abs(deviation) <= p.wall_max_deviation_rad:
+                rows.append((k, theta - deviation - theta0))
+        if not rows:
+            return None
+        index = np.array([k for k, _ in rows])
+        z = relative_pose(self.poses[0], self.poses[index])
+        z[:, 2] = wrap_angle(np.array([t for _, t in rows]))
+        info = np.zeros((len(rows), 3, 3))
+        info[:, 2, 2] = 1.0 / p.wall_prior_std_rad**2
+        return np.zeros(len(rows), dtype=np.intp), index, z, info
 
 
 @dataclass(frozen=True)
@@ -319,10 +392,16 @@ class Slam:
     """
 
     def __init__(
-        self, params: SlamParams | None = None, initial_pose: np.ndarray | None = None, *, background: bool = False
+        self,
+        params: SlamParams | None = None,
+        initial_pose: np.ndarray | None = None,
+        *,
+        background: bool = False,
+        record_trajectory: bool = True,
     ) -> None:
         self.params = params or SlamParams()
         self.background = background
+        self.record_trajectory = record_trajectory  # keep every scan's pose for trajectory() (offline tools)
         self.initial_pose = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
         p = self.params
         self.ekf = PoseEkf(self.initial_pose, p.initial_std, p.motion, p.filter_gate_chi2)
@@ -347,7 +426,11 @@ class Slam:
         self._odom_at_keyframe: np.ndarray | None = None
         self._last_match: IcpResult | None = None
         self._keyframes_since_attempt = 0
+        self._keyframes_since_optimization = 0
+        self._pending_candidates: list[Candidate] = []
+        self.wall_reference_rad: float | None = None  # the maze's wall grid in the map frame (mod 90°)
         self._target_position: np.ndarray | None = None
+        self._in_submap: set[int] = set()
         self._keyframes_since_target = 0
         # every scan's pose relative to the keyframe before it: the trajectory follows optimizations
         self._scan_log: list[tuple[float, int, np.ndarray]] = []
@@ -375,10 +458,13 @@ class Slam:
         return np.array([kf.pose for kf in self.keyframes]).reshape(-1, 3)
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """Times (S,) and map-frame poses (S, 3) of every scan, following the optimized keyframes."""
+        """Times (S,) and map-frame poses (S, 3) of every scan, following the optimized keyframes.
+
+        Empty unless the Slam was made with ``record_trajectory=True`` (the default).
+        """
         times = np.array([t for t, _, _ in self._scan_log])
         poses = np.array(
-            [rel if k < 0 else compose(self.keyframes[k].pose, rel) for _, k, rel in self._scan_log]
+            [compose(self.keyframes[k].pose, rel) for _, k, rel in self._scan_log]
         ).reshape(-1, 3)
         return times, poses
 
@@ -408,17 +494,19 @@ class Slam:
         # 2. de-skew: every sample into the robot frame at the end of the revolution
         prepared = prepare_scan(scan, self._deskew_motion(odometry, odom), p.prepare)
 
-        # 3. match against the local submap, from the prediction
+        # 3. match against the local submap, from the prediction (and from turned guesses if that fails)
         match = None
         if self.target is not None and len(self.target) and prepared.points_match.shape[0]:
-            match = match_scan(self.target, prepared.points_match, self.ekf.mean, p.icp, sensor_xy=prepared.sensor_xy)
+            match = self._match(prepared)
 
         # 4. correct the filter (unobserved directions keep the odometry)
         matched = False
         predicted_theta = float(self.ekf.mean[2])
-        if match is not None and match.converged and match.fitness >= p.min_match_fitness:
+        good_match = match is not None and self._acceptable(match)
+        if good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
-        if matched and p.estimate_time_offset and self._last_rate is not None and match is not None:
+        if good_match and p.estimate_time_offset and self._last_rate is not None:
+            # a turn starting or stopping shows a stamp offset (even when the filter's gate refused the match)
             self.time_offset.observe(float(match.pose[2]) - predicted_theta, rate - self._last_rate)
         self._last_rate = rate
         self.matched_scans += matched
@@ -432,9 +520,8 @@ class Slam:
         keyframe = None
         if self.selector.is_keyframe(pose):
             keyframe = self._add_keyframe(pose, odom, prepared)
-        self._scan_log.append(
-            (time_s, len(self.keyframes) - 1, relative_pose(self.keyframes[-1].pose, pose))
-        )
+        if self.record_trajectory:
+            self._scan_log.append((time_s, len(self.keyframes) - 1, relative_pose(self.keyframes[-1].pose, pose)))
 
         # 6. update the grid with the scan's rays at the corrected pose
         ends, hit, origins = map_rays(prepared, p.map_max_range_m)
@@ -508,6 +595,16 @@ class Slam:
         self.grid = grid
         return True
 
+    def rebuild_map(self) -> OccupancyGrid:
+        """Rebuild the grid from every keyframe at its current pose (offline tools, at the end)."""
+        grid = self.params.grid.new_grid()
+        grid.rebuild(kf.rays() for kf in self.keyframes)
+        for kf in self.keyframes:
+            kf.integrated_pose = kf.pose.copy()
+        grid.generation = self.grid.generation + 1
+        self.grid = grid
+        return grid
+
     # -- steps ---------------------------------------------------------------------------
 
     def _add_keyframe(self, pose: np.ndarray, odom: np.ndarray, prepared: PreparedScan) -> int:
@@ -527,6 +624,11 @@ class Slam:
             self._edge_var_theta.append(float(cov[2, 2]))
         self._odom_at_keyframe = odom
         self._keyframes_since_target += 1
+        self._keyframes_since_optimization += 1
+        if p.wall_prior and self.wall_reference_rad is None:
+            direction, strength, count = kf.wall_direction()
+            if strength >= p.wall_min_strength and count >= p.wall_min_normals:
+                self.wall_reference_rad = _wrap_quarter(direction + float(pose[2]))
         moved = (
             math.inf
             if self._target_position is None
@@ -537,6 +639,40 @@ class Slam:
             self._rebuild_target()
         self._keyframes_since_attempt += 1
         return index
+
+    def _in_sight(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """No wall of the map between two positions (the line between them crosses no occupied cell)."""
+        rows, cols = _segment_cells(self.grid, a, b)
+        shape = self.grid.shape
+        inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+        return not bool((self.grid.log_odds[rows[inside], cols[inside]] > self.grid.occupied_logodds).any())
+
+    def _acceptable(self, match: IcpResult) -> bool:
+        p = self.params
+        return match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
+
+    def _match(self, prepared: PreparedScan) -> IcpResult:
+        """ICP from the prediction; if that match is not acceptable, from the prediction turned by each retry angle.
+
+        A poor odometry heading (a wheel slipping in a turn, a metre between the scans of a
+        laser log) can put ICP in the wrong basin; the best acceptable retry (lowest
+        residual) wins, else the first result stands.
+        """
+        p = self.params
+        assert self.target is not None
+        guess = self.ekf.mean
+        match = match_scan(self.target, prepared.points_match, guess, p.icp, sensor_xy=prepared.sensor_xy)
+        if self._acceptable(match) or not p.retry_headings_rad:
+            return match
+        best = None
+        for turn in p.retry_headings_rad:
+            start = guess + np.array([0.0, 0.0, turn])
+            retry = match_scan(
+                self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy, prior_pose=guess
+            )
+            if self._acceptable(retry) and (best is None or retry.rmse_m < best.rmse_m):
+                best = retry
+        return match if best is None else best
 
     def _sequential_information(self, z: np.ndarray, odom: np.ndarray) -> np.ndarray:
         """Information of the edge previous keyframe → this one: odometry plus, if matched, ICP.
@@ -578,21 +714,44 @@ class Slam:
             near = near[np.argsort(dist[near], kind="stable")[: p.submap_near_keyframes]]
             chosen = sorted(near.tolist()) + chosen
         self.target = build_target([self.keyframes[k] for k in chosen], p.submap_voxel_m)
+        for k in self._in_submap.difference(chosen):  # their map-frame copies are not needed any more
+            self.keyframes[k].release_world()
+        self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0
 
     def _loop_closure_job(self) -> LoopClosureJob | None:
+        """Look for candidates every ``attempt_every`` keyframes; a job for them (and for periodic optimization).
+
+        Candidates found while a job runs wait (the newest ``PENDING_CANDIDATES``) for the next one.
+        """
         p = self.params.loop
-        if self.job_running or self._keyframes_since_attempt < p.attempt_every:
+        poses = None
+        if self._keyframes_since_attempt >= p.attempt_every:
+            self._keyframes_since_attempt = 0
+            poses = self.keyframe_poses()
+            found = find_candidates(
+                poses,
+                len(self.keyframes) - 1,
+                np.asarray(self._edge_var_xy),
+                np.asarray(self._edge_var_theta),
+                replace(p, max_candidates=4 * p.max_candidates),
+            )
+            # a keyframe one cell away behind a wall is near, but sees another corridor
+            found = [c for c in found if self._in_sight(poses[c.old], poses[c.new])][: p.max_candidates]
+            self._pending_candidates = (self._pending_candidates + found)[-PENDING_CANDIDATES:]
+        if self.job_running:
             return None
-        self._keyframes_since_attempt = 0
-        poses = self.keyframe_poses()
-        new = len(self.keyframes) - 1
-        candidates = find_candidates(
-            poses, new, np.asarray(self._edge_var_xy), np.asarray(self._edge_var_theta), p
+        periodic = (
+            self.params.wall_prior
+            and self.wall_reference_rad is not None
+            and self._keyframes_since_optimization >= self.params.optimize_every_keyframes
         )
-        if not candidates:
+        candidates, self._pending_candidates = self._pending_candidates, []
+        if not candidates and not periodic:
             return None
+        poses = self.keyframe_poses() if poses is None else poses
+        self._keyframes_since_optimization = 0
         ei, ej, z, omega = self.graph.edge_arrays
         return LoopClosureJob(
             candidates=candidates,
@@ -601,7 +760,22 @@ class Slam:
             integrated_poses=np.array([kf.integrated_pose for kf in self.keyframes]).reshape(-1, 3),
             edges=(ei.copy(), ej.copy(), z.copy(), omega.copy()),
             params=self.params,
+            wall_reference_rad=self.wall_reference_rad,
+            optimize_anyway=periodic,
         )
+
+
+def _segment_cells(grid: OccupancyGrid, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the grid cells along the segment a -> b (sampled at half a cell)."""
+    length = float(np.hypot(*(b[:2] - a[:2])))
+    steps = max(2, math.ceil(2.0 * length / grid.resolution_m) + 1)
+    u = np.linspace(0.0, 1.0, steps)[:, None]
+    return grid.to_cell(a[:2] + u * (b[:2] - a[:2]))
+
+
+def _wrap_quarter(angle_rad: float) -> float:
+    """An angle modulo 90°, in [-45°, 45°)."""
+    return (angle_rad + math.pi / 4) % (math.pi / 2) - math.pi / 4
 
 
 def _turn_rate(odometry: OdometrySource, time_s: float, window_s: float = 0.02) -> float:

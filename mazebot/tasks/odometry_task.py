@@ -34,7 +34,7 @@ async def run(
         reading = encoders.read()
         odometry.update(reading.left_ticks, reading.right_ticks)
         odo = odometry.pose
-        now_s = clock.now_s()
+        now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
         history.append(now_s, odo.x_m, odo.y_m, odo.theta_rad)
         stats = state.sensors
         stats.encoder_ticks_left = reading.left_ticks

@@ -42,7 +42,7 @@ async def run(
     slam: Slam | None = None,
 ) -> None:
     """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default)."""
-    slam = slam or Slam(params, background=True)
+    slam = slam or Slam(params, background=True, record_trajectory=False)
     loop = asyncio.get_running_loop()
     next_scan: asyncio.Future[Scan] | None = None
     job: asyncio.Future[LoopClosureResult] | None = None
@@ -115,12 +115,11 @@ def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult) 
     state.map_from_odom = tuple(float(v) for v in slam.map_from_odom)  # type: ignore[assignment]
     trail = slam.keyframe_poses()[-(state.trajectory.maxlen or len(slam.keyframes)) :]
     state.trajectory = deque(((float(x), float(y)) for x, y, _ in trail), maxlen=state.trajectory.maxlen)
-    accepted = [v for v in result.verdicts if v.accepted]
+    accepted = [f"{v.candidate.new}->{v.candidate.old}" for v in result.verdicts if v.accepted]
     log.info(
-        "loop closure: keyframe %d sees keyframe %d; moved the map up to %.3f m / %.4f rad%s",
-        accepted[0].candidate.new,
-        accepted[0].candidate.old,
+        "loop closure %s: the map moved up to %.3f m / %.4f rad%s",
+        ", ".join(accepted),
         result.moved_m,
         result.turned_rad,
-        ", map rebuilt" if rebuilt else "",
+        ", rebuilt" if rebuilt else "",
     )

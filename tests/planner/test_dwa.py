@@ -23,6 +23,10 @@ from mazebot.planner.dwa import (
     scan_points_robot,
 )
 from mazebot.planner.wheel_control import DriveMode
+from mazebot.sim.maze_generator import generate_maze
+from mazebot.sim.raster import true_occupancy
+from mazebot.sim.raycast import RayCaster, distance_to_obstacles
+from mazebot.sim.world import world_from_layout
 
 FOOTPRINT = 0.09
 
@@ -253,3 +257,30 @@ def test_invalid_parameters_are_refused() -> None:
         DynamicWindowPlanner(max_speed_mps=0.0)
     with pytest.raises(ValueError, match="at least one waypoint"):
         PathTrack([])
+
+
+def test_a_robot_that_ended_up_too_close_backs_out_instead_of_freezing() -> None:
+    """A pose met in a closed-loop run: cutting a corner, 11 cm from a post, which the map's
+    pessimistic cell extent puts at 9 cm, inside the contact distance. Every forward arc
+    closes in on the post; the robot must back out and carry on, not stand there."""
+    world = world_from_layout(generate_maze(6, 6, 30, "braided"), 0.012)
+    occupied, origin = true_occupancy(world, 0.02)
+    grid = np.where(occupied, 100, 0).astype(np.int8)
+    caster = RayCaster.for_world(world)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    pose = [0.969, 1.114, math.radians(67.8)]
+    local = LocalPlanner()
+    local.set_path([(1.067, 1.066), (1.069, 1.371), (1.678, 1.368)])
+    start_clearance = float(distance_to_obstacles(np.array([pose[:2]]), world)[0])
+    for k in range(200):
+        scan = scan_points_robot(angles, caster.cast(np.array(pose[:2]), angles + pose[2], 12.0))
+        cells = map_points_robot(grid, origin, 0.02, (pose[0], pose[1], pose[2]), 0.8)
+        cmd = local.step((pose[0], pose[1], pose[2]), (0.0, 0.0), scan, cells, 0.02 * math.sqrt(0.5), 0.2 * k)
+        assert not cmd.give_up
+        if cmd.status is LocalStatus.REACHED:
+            break
+        pose[0] += cmd.v_mps * 0.2 * math.cos(pose[2])  # an ideal robot that does as it is told
+        pose[1] += cmd.v_mps * 0.2 * math.sin(pose[2])
+        pose[2] += cmd.w_radps * 0.2
+        assert float(distance_to_obstacles(np.array([pose[:2]]), world)[0]) >= min(start_clearance, 0.095) - 1e-3
+    assert local.status is LocalStatus.REACHED

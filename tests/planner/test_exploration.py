@@ -204,6 +204,19 @@ def test_frontier_regions_group_free_cells_next_to_unknown_ones() -> None:
     assert len(frontier_regions(grid, min_cells=1)) == 3  # and the speck
 
 
+def test_unknown_cells_in_a_wall_band_are_no_frontier_but_an_opening_is() -> None:
+    grid = np.full((30, 40), -1, dtype=np.int8)
+    grid[5:25, 5:35] = 0  # a known free room ...
+    grid[4, 4:36] = grid[25, 4:36] = 100  # ... walled north and south
+    grid[5:25, 4] = grid[5:25, 35] = 100  # ... and west and east
+    grid[25, 10:13] = -1  # three wall cells never hit often enough: still wall
+    grid[4, 20:30] = -1  # a 20 cm opening in the south wall: a real frontier
+    regions = frontier_regions(grid, min_cells=2, wall_margin_cells=2)
+    assert len(regions) == 1
+    assert set(regions[0][:, 1]) <= set(range(18, 32)) and set(regions[0][:, 0]) == {5}
+    assert len(frontier_regions(grid, min_cells=2, wall_margin_cells=0)) == 2  # without the margin: both
+
+
 def test_a_room_is_explored_by_frontiers_with_a_visible_reachable_goal() -> None:
     room = make_room(2.0, 1.2, cylinders=4, seed=0, footprint_radius_m=0.09)
     grid, origin = known_map(room)
@@ -246,3 +259,29 @@ def test_auto_mode_leaves_the_maze_when_the_walls_stop_fitting() -> None:
     assert explorer.mode == "maze"  # two straight walls at a right angle fit any lattice
     explorer.update(grid, origin, RES, room.start_pose, now_s=0.2)
     assert explorer.mode == "frontier"
+
+
+def test_an_empty_map_is_not_mistaken_for_a_finished_one() -> None:
+    explorer = Explorer()
+    assert explorer.update(np.zeros((0, 0), dtype=np.int8), (0.0, 0.0), RES, (0.0, 0.0, 0.0), 0.0) is None
+    assert explorer.update(np.full((50, 50), -1, dtype=np.int8), (-0.5, -0.5), RES, (0.0, 0.0, 0.0), 0.1) is None
+    assert explorer.phase is Phase.EXPLORING
+
+
+def test_a_frontier_given_up_near_the_start_does_not_end_the_run() -> None:
+    # a walled 2 x 1 m room, all known but two unseen patches: one near the start, one far
+    grid = np.zeros((60, 110), dtype=np.int8)
+    grid[[0, -1], :] = 100
+    grid[:, [0, -1]] = 100
+    grid[20:26, 20:26] = -1  # near: 0.4-0.5 m from the origin corner
+    grid[30:36, 90:96] = -1  # far: 1.8 m along the room
+    start = (0.2, 0.2)
+    explorer = Explorer(start_xy_m=start, mode="frontier", dwell_timeout_s=2.0)
+    first = explorer.update(grid, (0.0, 0.0), RES, (*start, 0.0), now_s=0.0)
+    assert first is not None and first.phase is Phase.EXPLORING and first.target_m[0] < 0.8
+    pose = (*first.target_m, 0.0)  # the robot is there, but the patch stays unseen
+    for now in (0.5, 1.0, 2.0, 2.6):
+        goal = explorer.update(grid, (0.0, 0.0), RES, pose, now_s=now)
+    assert explorer.blacklisted_points_m  # the near patch was given up ...
+    assert goal is not None and goal.phase is Phase.EXPLORING  # ... and the far one is next
+    assert goal.target_m[0] > 1.2

@@ -23,6 +23,7 @@ from mazebot.planner.maze_graph import (
 from mazebot.sim.maze_file import parse_maze
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raster import true_occupancy
+from mazebot.sim.raycast import distance_to_segments
 from mazebot.sim.room import make_room
 from mazebot.sim.world import MazeLayout, World, world_from_layout
 
@@ -257,3 +258,28 @@ def test_frame_round_trip_and_headings() -> None:
     assert Direction.between((2, 3), (2, 2)) is Direction.S
     with pytest.raises(ValueError, match="not neighbours"):
         Direction.between((0, 0), (1, 1))
+
+
+def test_wall_points_trace_the_known_walls_posts_included() -> None:
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    # a log-odds map loses wall ends seen edge-on: free the cells around every post
+    posts = [(i * CELL, j * CELL) for i in range(4) for j in range(3)]
+    for x, y in posts:
+        c, r = int((x - origin[0]) / RES), int((y - origin[1]) / RES)
+        window = grid[r - 1 : r + 2, c - 1 : c + 2]
+        window[window == 100] = 0
+    graph = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    graph.update(grid, origin, RES)
+    points = graph.wall_points_m((0.45, 0.3), radius_m=2.0)
+    # every point lies on (or inside) a real wall ...
+    assert distance_to_segments(points, world.segments).max() < 0.008
+    # ... and every real wall surface, post ends included, has a point within a centimetre
+    seg = world.segments
+    t = np.linspace(0.0, 1.0, 40)[:, None]
+    surface = np.concatenate([a + t * (b - a) for a, b in zip(seg[:, :2], seg[:, 2:], strict=True)])
+    nearest = np.min(
+        np.hypot(surface[:, None, 0] - points[None, :, 0], surface[:, None, 1] - points[None, :, 1]), axis=1
+    )
+    assert nearest.max() < 0.012
+    assert len(graph.wall_points_m((0.45, 0.3), radius_m=0.1)) < len(points)  # only walls near the robot

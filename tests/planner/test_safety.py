@@ -1,0 +1,135 @@
+"""The safety layer: emergency stop on lidar returns ahead, control deadline, stale commands."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mazebot.planner.dwa import scan_points_robot
+from mazebot.planner.safety import CollisionGuard, CommandGate, ControlWatchdog, SafetyLayer, reframe_points
+from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
+from mazebot.sim.physics import PhysicsParams, RobotPhysics
+from mazebot.sim.raycast import RayCaster
+from mazebot.sim.world import World, rectangles_outline
+
+
+def test_a_return_ahead_inside_the_guard_stops() -> None:
+    guard = CollisionGuard(footprint_radius_m=0.09, margin_m=0.03, brake_decel_mps2=0.6, latency_s=0.1)
+    v = 0.2
+    reach = 0.09 + 0.03 + guard.stopping_distance_m(v)  # 0.09 + 0.03 + 0.02 + 0.0333
+    inside = np.array([[reach - 0.01, 0.0]])
+    outside = np.array([[reach + 0.01, 0.0]])
+    verdict = guard.check(inside, v, 0.0)
+    assert verdict.stop and "ahead" in verdict.reason and verdict.nearest_m == pytest.approx(reach - 0.01)
+    assert not guard.check(outside, v, 0.0).stop
+    # the guard reaches further the faster the robot goes
+    assert guard.check(outside, 0.3, 0.0).stop
+
+
+def test_returns_beside_or_behind_do_not_stop_forward_motion() -> None:
+    guard = CollisionGuard()
+    wall_beside = np.column_stack((np.linspace(0.0, 0.5, 51), np.full(51, 0.12)))  # a corridor wall 12 cm away
+    assert not guard.check(wall_beside, 0.3, 0.0).stop
+    behind = np.array([[-0.16, 0.0]])
+    assert not guard.check(behind, 0.2, 0.0).stop
+    assert guard.check(behind, -0.2, 0.0).stop  # but reversing into it does
+    assert "behind" in guard.check(behind, -0.2, 0.0).reason
+
+
+def test_turning_in_place_and_standing_are_always_allowed() -> None:
+    guard = CollisionGuard()
+    close = np.array([[0.16, 0.0], [0.0, 0.16], [-0.16, 0.0]])
+    assert not guard.check(close, 0.0, 1.2).stop
+    assert not guard.check(close, 0.0, 0.0).stop
+    assert not guard.check(np.zeros((0, 2)), 0.3, 0.0).stop
+
+
+def test_the_guard_follows_the_arc() -> None:
+    guard = CollisionGuard()
+    # a return to the front-left: hit by a left turn, missed by a right turn
+    point = np.array([[0.13, 0.08]])
+    assert guard.check(point, 0.25, 2.0).stop
+    assert not guard.check(point, 0.25, -2.0).stop
+
+
+def test_watchdog_stops_after_a_missed_deadline() -> None:
+    watchdog = ControlWatchdog(deadline_s=0.1)
+    assert not watchdog.tick(0.0).stop
+    assert not watchdog.tick(0.05).stop
+    assert not watchdog.overdue(0.14)
+    assert watchdog.overdue(0.2)
+    verdict = watchdog.tick(0.3)
+    assert verdict.stop and "deadline" in verdict.reason
+    assert watchdog.misses == 1
+    assert not watchdog.tick(0.35).stop
+
+
+def test_stale_commands_become_stops() -> None:
+    gate: CommandGate[tuple[float, float]] = CommandGate(ttl_s=0.5)
+    assert gate.get(0.0) is None
+    gate.put((0.2, 0.1), 1.0)
+    assert gate.get(1.4) == (0.2, 0.1)
+    assert gate.get(1.51) is None
+    gate.clear()
+    assert gate.get(1.0) is None
+    with pytest.raises(ValueError, match="ttl_s"):
+        CommandGate(ttl_s=0.0)
+
+
+def test_safety_layer_says_why_it_stopped() -> None:
+    layer = SafetyLayer(command_ttl_s=0.5, scan_timeout_s=1.0)
+    clear = np.array([[2.0, 0.0]])
+    assert not layer.check(0.0, 0.2, 0.0, 0.0, clear, 0.0).stop
+    assert "stale command" in layer.check(0.05, 0.2, 0.0, None, clear, 0.0).reason
+    assert "stale command" in layer.check(0.10, 0.2, 0.0, -0.45, clear, 0.1).reason
+    assert "lidar silent" in layer.check(0.15, 0.2, 0.0, 0.15, clear, -0.9).reason
+    assert not layer.check(0.20, 0.0, 1.0, 0.2, clear, -0.9).stop  # turning in place needs no scan
+    assert "emergency stop" in layer.check(0.25, 0.2, 0.0, 0.25, np.array([[0.16, 0.0]]), 0.25).reason
+    assert "deadline" in layer.check(0.5, 0.2, 0.0, 0.5, clear, 0.5).reason
+    assert not layer.check(0.55, 0.2, 0.0, 0.55, clear, 0.55).stop
+    assert layer.stops == 5 and not layer.last.stop
+
+
+def test_the_safety_layer_stops_a_runaway_planner_before_the_wall() -> None:
+    """A broken planner commands full speed at a wall; the layer alone keeps the robot off it."""
+    wall = World(
+        "wall",
+        rectangles_outline(np.array([[1.0, -1.0, 1.012, 1.0]])),
+        np.zeros((0, 3)),
+        (0.0, 0.0, 0.0),
+        (-1.0, -1.0, 1.1, 1.0),
+    )
+    robot = RobotPhysics(PhysicsParams(), wall, wall.start_pose, np.random.default_rng(0))
+    caster = RayCaster.for_world(wall)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    ctl = WheelController()
+    est = WheelSpeedEstimator.for_wheel(840, 0.065)
+    layer = SafetyLayer()
+    dt, t, stopped_at = 0.05, 0.0, None
+    while t < 8.0:
+        ranges = caster.cast(np.array(robot.pose[:2]), angles + robot.theta_rad, 12.0)
+        scan = scan_points_robot(angles, ranges)  # returns under 0.15 m are invalid, as on the A1
+        left, right = robot.wheel_angle_rad
+        measured = est.update(math.floor(left / math.tau * 840), math.floor(right / math.tau * 840), t)
+        v, w, mode = 0.3, 0.0, DriveMode.DRIVE  # the runaway command, refreshed every tick
+        if layer.check(t, v, w, t, scan, t).stop:
+            v, w, mode = 0.0, 0.0, DriveMode.STOP
+            stopped_at = stopped_at if stopped_at is not None else robot.x_m
+        out = ctl.update(v, w, mode, measured, dt)
+        robot.set_throttle(out.left_throttle, out.right_throttle)
+        robot.step(dt)
+        t += dt
+    assert stopped_at is not None
+    assert robot.collisions == 0
+    assert 1.0 - robot.x_m >= 0.09  # stopped with the footprint clear of the wall face
+    assert robot.x_m > 0.6  # after driving most of the way: it stops late, as it should
+
+
+def test_reframe_points_moves_an_old_scan_with_the_robot() -> None:
+    seen = np.array([[0.5, 0.0], [0.0, 0.3]])
+    moved = reframe_points(seen, (1.0, 2.0, 0.0), (1.1, 2.0, math.pi / 2))
+    # 10 cm closer to the first point, and turned left by 90 degrees
+    assert moved == pytest.approx(np.array([[0.0, -0.4], [0.3, 0.1]]), abs=1e-12)
+    assert reframe_points(seen, (0.0, 0.0, 1.0), (0.0, 0.0, 1.0)) == pytest.approx(seen)

@@ -1,0 +1,153 @@
+"""Loop closure: candidate search by drift, and strict verification in repeated and unique places."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mazebot.io.scan import Scan
+from mazebot.sim.world import World, rectangles_outline
+from mazebot.slam.icp import IcpParams
+from mazebot.slam.keyframes import Keyframe, build_target
+from mazebot.slam.loop_closure import (
+    Candidate,
+    LoopClosureParams,
+    chain_uncertainty,
+    find_candidates,
+    verify,
+)
+from mazebot.slam.posegraph import compose, relative_pose
+from mazebot.slam.preprocess import PrepareParams, prepare_scan
+
+CELL_M = 0.3048
+WALL_M = 0.012
+
+
+@pytest.fixture(scope="module")
+def comb_world() -> World:
+    """A corridor along x with an identical side alcove in every cell: it repeats every cell."""
+    half = CELL_M / 2
+    rects = [
+        [-6.0, -half - WALL_M / 2, 6.0, -half + WALL_M / 2],  # solid wall on the right
+        [-6.0, half + CELL_M - WALL_M / 2, 6.0, half + CELL_M + WALL_M / 2],  # back of the alcoves
+    ]
+    for k in range(-20, 21):  # alcove walls across the left side, one per cell
+        x = k * CELL_M + half
+        rects.append([x - WALL_M / 2, half, x + WALL_M / 2, half + CELL_M])
+    return World(
+        name="comb",
+        segments=rectangles_outline(np.array(rects)),
+        circles=np.zeros((0, 3)),
+        start_pose=(0.0, 0.0, 0.0),
+        bounds_m=(-6.0, -half - WALL_M, 6.0, half + CELL_M + WALL_M),
+    )
+
+
+def _keyframe(world: World, pose: np.ndarray, cast_scan, index: int, max_range_m: float = 12.0) -> Keyframe:
+    """A keyframe from a static scan at ``pose`` (1 % range noise)."""
+    angles, ranges = cast_scan(world, pose, noise_rel=0.01, seed=index, max_range_m=max_range_m)
+    valid = np.isfinite(ranges)
+    scan = Scan(angles, np.where(valid, ranges, 0.0), np.full(angles.size, 47, np.uint8), np.zeros(angles.size), valid)
+    return Keyframe.from_scan(index, pose, prepare_scan(scan, None, PrepareParams(max_range_m=max_range_m)))
+
+
+def _candidate(old_pose: np.ndarray, new_pose_estimate: np.ndarray, std_m: float = 0.02) -> Candidate:
+    return Candidate(
+        old=0,
+        new=1,
+        prior=relative_pose(old_pose, new_pose_estimate),
+        prior_covariance=np.diag([std_m**2, std_m**2, 0.01**2]),
+        distance_m=float(np.hypot(*(new_pose_estimate[:2] - old_pose[:2]))),
+    )
+
+
+def _verify(world: World, cast_scan, old: np.ndarray, new_true: np.ndarray, new_est: np.ndarray, max_range_m=12.0):
+    """Keyframes around ``old`` (truth), the scan taken at ``new_true``, believed to be at ``new_est``."""
+    olds = [_keyframe(world, compose(old, d), cast_scan, k, max_range_m) for k, d in
+            enumerate(np.array([[-0.06, 0.0, 0.0], [0.0, 0.0, 0.0], [0.06, 0.01, 0.1]]))]
+    target = build_target(olds, 0.01, frame=old)
+    new = _keyframe(world, new_true, cast_scan, 99, max_range_m)
+    return verify(_candidate(old, new_est), target, new.match_points, new.sensor_xy, IcpParams(), LoopClosureParams())
+
+
+def test_rejects_a_false_candidate_in_a_repeated_corridor(comb_world: World, cast_scan) -> None:
+    # The robot is one cell further than it believes: within 1.2 m of range the two places
+    # look exactly alike, so the match fits its (wrong) prior perfectly. Only the
+    # ambiguity test can tell: shifted by one cell, another alignment fits as well.
+    old = np.array([0.0, 0.0, 0.0])
+    new_true = np.array([CELL_M + 0.02, 0.01, 0.02])
+    new_believed = np.array([0.02, 0.01, 0.02])
+    verdict = _verify(comb_world, cast_scan, old, new_true, new_believed, max_range_m=1.2)
+    assert not verdict.accepted
+    assert verdict.reason == "ambiguous"
+    assert verdict.fitness > 0.9  # it was a perfect-looking match: exactly the dangerous kind
+
+
+def test_rejects_even_a_true_candidate_where_the_place_repeats(comb_world: World, cast_scan) -> None:
+    # strict: in a repeating corridor a right match cannot be told from a wrong one
+    old = np.array([0.0, 0.0, 0.0])
+    new = np.array([0.03, -0.01, 0.05])
+    verdict = _verify(comb_world, cast_scan, old, new, new + np.array([0.01, 0.0, 0.005]), max_range_m=1.2)
+    assert not verdict.accepted
+
+
+def _maze_pose(world: World, col: int, row: int, theta: float) -> np.ndarray:
+    assert world.maze is not None
+    x, y = world.maze.cell_center_m((col, row))
+    return np.array([x, y, theta])
+
+
+@pytest.mark.parametrize("cell", [(1, 1), (3, 4), (5, 0)])
+def test_accepts_a_true_candidate_and_measures_it(maze_world: World, cast_scan, cell: tuple[int, int]) -> None:
+    old = _maze_pose(maze_world, *cell, 0.3)
+    new_true = compose(old, np.array([0.04, -0.03, 0.4]))
+    drift = np.array([0.02, -0.015, math.radians(1.0)])  # what the odometry chain got wrong
+    verdict = _verify(maze_world, cast_scan, old, new_true, compose(new_true, drift))
+    assert verdict.accepted, verdict.reason + " " + verdict.detail
+    truth = relative_pose(old, new_true)
+    assert np.hypot(*(verdict.measurement[:2] - truth[:2])) < 0.005
+    assert abs(math.degrees(math.remainder(verdict.measurement[2] - truth[2], math.tau))) < 0.5
+    assert np.all(np.linalg.eigvalsh(verdict.information) > 0)  # constrains x, y and heading
+
+
+def test_rejects_a_match_that_contradicts_the_odometry(maze_world: World, cast_scan) -> None:
+    # the scan matches, but 15 cm away from where the odometry chain says: not trusted
+    old = _maze_pose(maze_world, 2, 2, 0.0)
+    new_true = compose(old, np.array([0.05, 0.0, 0.2]))
+    verdict = _verify(maze_world, cast_scan, old, new_true, compose(new_true, np.array([0.15, 0.0, 0.0])))
+    assert not verdict.accepted
+    assert verdict.reason in ("large correction", "inconsistent with odometry")
+
+
+def test_chain_uncertainty_matches_propagation_by_hand() -> None:
+    rng = np.random.default_rng(1)
+    positions = np.cumsum(rng.uniform(-0.1, 0.1, (30, 2)), axis=0)
+    var_xy = rng.uniform(1e-6, 1e-5, 29)
+    var_th = rng.uniform(1e-6, 1e-5, 29)
+    new = 25
+    got_xy, got_th = chain_uncertainty(positions, var_xy, var_th, new)
+    for i in (0, 7, 24):
+        edges = range(i, new)
+        want_xy = sum(var_xy[k] + var_th[k] * float(np.sum((positions[new] - positions[k + 1]) ** 2)) for k in edges)
+        assert got_xy[i] == pytest.approx(want_xy, rel=1e-9)
+        assert got_th[i] == pytest.approx(sum(var_th[k] for k in edges), rel=1e-9)
+    assert got_xy[new] == 0.0 and got_th[new:].sum() == 0.0
+
+
+def test_candidates_are_old_and_within_the_drift_scaled_radius() -> None:
+    # an out-and-back path: keyframe 60 comes back past keyframes 0..20
+    out = np.column_stack((np.arange(31) * 0.1, np.zeros(31), np.zeros(31)))
+    back = np.column_stack((3.0 - np.arange(1, 31) * 0.1, np.full(30, 0.05), np.full(30, math.pi)))
+    poses = np.vstack((out, back))
+    params = LoopClosureParams(min_keyframe_gap=40, search_radius_m=0.12, max_search_radius_m=1.0, max_candidates=3)
+    var = np.full(len(poses) - 1, 1e-8)
+    found = find_candidates(poses, 60, var, var, params)
+    assert [c.old for c in found][:1] == [0]  # the nearest old keyframe first
+    assert [c.old for c in found] == [0, 1]  # 5 cm and 11 cm away (+ a tiny drift)
+    np.testing.assert_allclose(found[0].prior, relative_pose(poses[0], poses[60]))
+    # more drift, a wider search: now more old keyframes qualify
+    wide = find_candidates(poses, 60, np.full(len(poses) - 1, 1e-3), var, params)
+    assert len(wide) == 3 and max(c.distance_m for c in wide) > 0.12
+    assert find_candidates(poses, 30, var, var, params) == []  # nothing is old enough

@@ -1,0 +1,70 @@
+"""``mazebot slam run`` on the first 200 scans of the Intel Research Lab log."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mazebot.cli import main
+from mazebot.slam.carmen import read_carmen
+from mazebot.slam.map_export import read_ros_map
+from mazebot.slam.posegraph import wrap_angle
+from mazebot.slam.slam_cli import noisy_odometry
+
+
+def test_slam_run_on_the_intel_log(intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "intel"
+    code = main(["slam", "run", "--carmen", str(intel_log_path), "--odom-noise", "0.05,0.05", "--seed", "1",
+                 "--max-scans", "200", "--out", str(out)])
+    assert code == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats["scans"] == 200 and stats["loop_closures"] > 0
+    # against GMapping's corrected poses: decimetres, where the noisy odometry is off by metres
+    assert stats["error"]["rms_m"] < 0.3 and stats["error"]["heading_rms_deg"] < 3.0
+    assert stats["error"]["rms_m"] < 0.05 * stats["error_odometry"]["rms_m"]
+
+    lasers = read_carmen(intel_log_path).lasers[:200]
+    rows = np.loadtxt(out / "trajectory.txt")
+    assert rows.shape == (200, 4)
+    np.testing.assert_allclose(rows[:, 0], [r.timestamp_s for r in lasers], atol=1e-6)  # the log's stamps
+    reference = np.array([r.pose for r in lasers])
+    err = np.hypot(*(rows[:, 1:3] - reference[:, :2]).T)
+    assert np.sqrt(np.mean(err**2)) == pytest.approx(stats["error"]["rms_m"], abs=1e-3)
+    np.testing.assert_allclose(rows[0, 1:], reference[0], atol=1e-6)  # anchored at the log's first pose
+
+    ros = read_ros_map(out / "map.yaml")
+    assert ros.three_state.shape == (stats["map"]["rows"], stats["map"]["cols"])
+    assert ros.resolution_m == pytest.approx(0.05)
+    assert (ros.three_state == 100).sum() > 1000 and (ros.three_state == 0).sum() > 20000
+    assert (out / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_noisy_odometry_has_the_asked_noise() -> None:
+    # a straight 1 m per step drive: per step, std SX per metre on each axis, STH per (m + rad) on heading
+    reference = np.column_stack((np.arange(2001.0), np.zeros(2001), np.zeros(2001)))
+    odo = noisy_odometry(reference, 0.05, 0.02, np.random.default_rng(1))
+    from mazebot.slam.posegraph import relative_pose
+
+    steps = relative_pose(odo[:-1], odo[1:])
+    assert np.std(steps[:, 0]) == pytest.approx(0.05, rel=0.1)
+    assert np.std(steps[:, 1]) == pytest.approx(0.05, rel=0.1)
+    assert np.std(wrap_angle(steps[:, 2])) == pytest.approx(0.02, rel=0.1)
+    np.testing.assert_array_equal(odo[0], np.zeros(3))
+
+
+@pytest.mark.parametrize("noise", ["0.05", "a,b", "-1,0.1", "nan,0.1"])
+def test_bad_odometry_noise_is_a_usage_error(
+    noise: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], intel_log_path: Path
+) -> None:
+    code = main(["slam", "run", "--carmen", str(intel_log_path), f"--odom-noise={noise}", "--out", str(tmp_path)])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mazebot: --odom-noise") and "\n" not in err
+
+
+def test_missing_log_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["slam", "run", "--carmen", str(tmp_path / "nope.log"), "--out", str(tmp_path / "o")]) == 2
+    assert "nope.log not found" in capsys.readouterr().err

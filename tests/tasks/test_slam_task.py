@@ -1,0 +1,186 @@
+"""The SLAM task and its feeders: scans and odometry in, map, pose and timings out."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from mazebot.clock import RealClock
+from mazebot.config import Config
+from mazebot.io.encoders import EncoderReading
+from mazebot.io.scan import Scan
+from mazebot.sim.maze_generator import generate_maze
+from mazebot.sim.raycast import cast_rays
+from mazebot.sim.world import world_from_layout
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.grid import OccupancyGrid
+from mazebot.slam.posegraph import compose
+from mazebot.slam.slam import LoopClosureResult, SlamParams, SlamUpdate
+from mazebot.state import SharedState
+from mazebot.tasks import lidar_task, odometry_task, slam_task
+
+
+def _static_scan(end_s: float, pose: np.ndarray) -> Scan:
+    world = world_from_layout(generate_maze(3, 3, seed=1, kind="perfect"), 0.012)
+    origin = np.array(world.start_pose[:2]) + pose[:2]
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    ranges = cast_rays(origin, angles + world.start_pose[2] + pose[2], world.segments, world.circles, 12.0)
+    valid = np.isfinite(ranges)
+    times = np.linspace(end_s - 0.18, end_s, 360)
+    return Scan(angles, np.where(valid, ranges, 0.0), np.full(360, 47, np.uint8), times, valid)
+
+
+async def _until(condition, timeout_s: float = 5.0) -> None:
+    for _ in range(int(timeout_s / 0.005)):
+        if condition():
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError("condition not met in time")
+
+
+async def test_slam_task_publishes_the_map_the_pose_correction_and_its_timing() -> None:
+    config = Config()
+    state = SharedState()
+    history = OdometryHistory()
+    odom = np.array([0.02, -0.01, 0.1])  # the encoders' frame is not the map's
+    history.append(0.0, *odom)
+    history.append(100.0, *odom)  # covers every scan below: the task need not wait
+    state.odometry_history = history
+    for k in range(2):
+        state.scans.put_nowait(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
+    params = SlamParams.from_config(config.slam, config.lidar)
+    with ThreadPoolExecutor(max_workers=1) as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor))
+        await _until(lambda: state.slam.scans == 2)
+        await state.scans.put(_static_scan(1.4, np.zeros(3)))
+        await _until(lambda: state.slam.scans == 3)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    assert isinstance(state.map, OccupancyGrid) and state.map.occupied_mask().sum() > 100
+    assert len(state.scan_ms) == 3 and all(ms > 0 for ms in state.scan_ms)
+    assert state.pose_covariance is not None and state.pose_covariance.shape == (3, 3)
+    assert list(state.trajectory) == [(pytest.approx(odom[0]), pytest.approx(odom[1]))]  # one keyframe: it stood still
+    assert state.slam.keyframes == 1
+    # the map frame starts where the odometry was at the first scan: the correction undoes nothing else
+    np.testing.assert_allclose(compose(state.map_from_odom, odom), odom, atol=2e-3)
+
+
+@dataclass
+class FakeSlam:
+    """Stands in for ``Slam``: every second update hands out a job; records where things ran."""
+
+    grid: OccupancyGrid = field(default_factory=OccupancyGrid)
+    scans: int = 0
+    keyframes: list = field(default_factory=list)
+    closures: list = field(default_factory=list)
+    rejections: Counter = field(default_factory=Counter)
+    map_from_odom: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.0]))
+    job_threads: list[str] = field(default_factory=list)
+    applied_on: list[str] = field(default_factory=list)
+
+    def update(self, scan: Scan, odometry: OdometryHistory) -> SlamUpdate:
+        self.scans += 1
+        self.keyframes.append(self.scans)
+        job = None
+        if self.scans == 2:
+            job = self  # run() below
+        return SlamUpdate(
+            time_s=scan.end_time_s, pose=np.zeros(3), covariance=np.eye(3) * 1e-4, map_from_odom=np.zeros(3),
+            match=None, matched=False, keyframe=self.scans - 1, points=0, loop_job=job,  # type: ignore[arg-type]
+        )
+
+    def run(self) -> LoopClosureResult:  # the job
+        self.job_threads.append(threading.current_thread().name)
+        return LoopClosureResult(verdicts=[], poses=np.array([[0.1, 0.2, 0.0], [0.3, 0.4, 0.0]]))
+
+    def apply(self, result: LoopClosureResult) -> bool:
+        self.applied_on.append(threading.current_thread().name)
+        self.grid = OccupancyGrid()
+        self.grid.generation = 7
+        return True
+
+    def keyframe_poses(self) -> np.ndarray:
+        return np.array([[0.1, 0.2, 0.0], [0.3, 0.4, 0.0]])
+
+
+async def test_loop_closure_job_runs_in_the_executor_and_its_result_is_published() -> None:
+    state = SharedState()
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(100.0, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    fake = FakeSlam()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
+        for k in range(2):
+            await state.scans.put(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
+        await _until(lambda: fake.applied_on)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    assert fake.job_threads[0].startswith("test-slam")  # off the event loop ...
+    assert fake.applied_on == [threading.current_thread().name]  # ... merged back on it
+    assert state.map is fake.grid and state.map.generation == 7 and state.slam.map_rebuilds == 1
+    assert list(state.trajectory) == [(0.1, 0.2), (0.3, 0.4)]  # a new trail: the keyframes moved
+    assert state.map_from_odom == (0.5, 0.0, 0.0)
+
+
+class FakeLidar:
+    def __init__(self, scans: list[Scan]) -> None:
+        self._scans = scans
+        self.stats = type("Stats", (), {"bytes_dropped": 0, "reconnects": 0})()
+
+    async def scans(self):
+        for scan in self._scans:
+            yield scan
+
+
+async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind() -> None:
+    state = SharedState()
+    state.scans = asyncio.Queue(maxsize=2)
+    scans = [_static_scan(1.0 + 0.2 * k, np.zeros(3)) for k in range(5)]
+    await lidar_task.run(FakeLidar(scans), state)
+    assert state.sensors.lidar_revolutions == 5 and state.slam.scans_dropped == 3
+    assert [state.scans.get_nowait().end_time_s for _ in range(2)] == [s.end_time_s for s in scans[3:]]
+    assert state.latest_scan is scans[-1]
+
+
+class CountingEncoders:
+    """Both wheels forward at one tick per read."""
+
+    def __init__(self) -> None:
+        self.ticks = 0
+
+    def read(self) -> EncoderReading:
+        self.ticks += 10
+        return EncoderReading(self.ticks, self.ticks, 0)
+
+
+async def test_odometry_task_keeps_a_history_and_publishes_the_map_pose() -> None:
+    config = Config()
+    config.encoders.odometry_rate_hz = 200.0
+    state = SharedState()
+    state.map_from_odom = (1.0, 2.0, math.pi / 2)  # what SLAM found
+    task = asyncio.create_task(
+        odometry_task.run(CountingEncoders(), state, RealClock(), config.encoders, config.drive, history_s=1.0)
+    )
+    await _until(lambda: state.odometry_history is not None and len(state.odometry_history) >= 5)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    history = state.odometry_history
+    assert history is not None
+    t, odo = history.latest
+    assert odo[0] > 0 and odo[1] == pytest.approx(0.0) and odo[2] == pytest.approx(0.0)  # straight ahead
+    pose = compose(state.map_from_odom, odo)
+    assert (state.pose.x_m, state.pose.y_m, state.pose.theta_rad) == pytest.approx(tuple(pose))
+    assert state.pose.x_m == pytest.approx(1.0) and state.pose.y_m > 2.0  # map frame: x forward became +y
+    assert state.pose_time_s == t

@@ -176,6 +176,62 @@ class RobotConfig(Section):
     )
 
 
+class PlannerConfig(Section):
+    """Autonomous exploration: the maze graph, the strategy and the local planner (DWA)."""
+
+    rate_hz: float = Field(5.0, ge=1.0, le=20.0, description="planner ticks per second (graph, goal, DWA)")
+    strategy: Literal["nearest", "dfs"] = Field(
+        "nearest", description="next unknown link: nearest by route cost, or the seed's depth-first search"
+    )
+    mode: Literal["auto", "maze", "frontier"] = Field(
+        "auto", description="maze cells, grid frontiers (any world), or auto: maze when the walls fit a lattice"
+    )
+    cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
+    wall_thickness_m: float = Field(0.012, gt=0, lt=0.1, description="maze wall thickness")
+    goal_tolerance_m: float = Field(0.06, gt=0.01, lt=0.3, description="this close to a goal counts as arrived")
+    progress_timeout_s: float = Field(
+        20.0, gt=1, le=300, description="a goal whose route cost stops dropping this long is blacklisted"
+    )
+    dwell_timeout_s: float = Field(
+        3.0, gt=0, le=60, description="a goal still unresolved this long after arriving is blacklisted"
+    )
+    horizon_s: float = Field(1.2, gt=0.2, le=5.0, description="DWA rollout length")
+    stuck_timeout_s: float = Field(
+        4.0, gt=0.5, le=30, description="no progress along the path this long starts a recovery"
+    )
+    max_recoveries: int = Field(3, ge=1, le=20, description="recoveries on one path before its goal is given up")
+    map_window_m: float = Field(
+        0.8, gt=0.2, le=5.0, description="radius of map and wall points around the robot given to the DWA"
+    )
+
+
+class ControlConfig(Section):
+    """Wheel speed control and the safety layer in front of the motors."""
+
+    wheel_kp: float = Field(0.5, ge=0, le=10, description="wheel speed PI: throttle per m/s of error")
+    wheel_ki: float = Field(4.0, ge=0, le=100, description="wheel speed PI: throttle per m of accumulated error")
+    wheel_kd: float = Field(0.0, ge=0, le=10, description="wheel speed D (on the measurement): throttle per m/s²")
+    integral_limit: float = Field(0.3, ge=0, le=1, description="largest throttle the integral may contribute")
+    motor_deadband: float = Field(
+        0.08, ge=0, lt=0.8, description="throttle below which the motors do not turn (feed-forward)"
+    )
+    max_wheel_accel_mps2: float = Field(1.0, gt=0, le=10, description="ramp of each wheel's speed target")
+    actuation_latency_s: float = Field(
+        0.05, ge=0, le=0.5, description="time from a throttle write to the wheel reacting"
+    )
+    command_ttl_s: float = Field(0.5, gt=0, le=5, description="a planner command older than this is a stop")
+    scan_timeout_s: float = Field(
+        1.0, gt=0.2, le=10, description="no lidar revolution this long: only turning in place is allowed"
+    )
+    stop_margin_m: float = Field(
+        0.03, ge=0, le=0.5, description="emergency stop: free distance kept ahead beyond the stopping distance"
+    )
+    brake_decel_mps2: float = Field(0.6, gt=0, le=10, description="deceleration counted on for stopping distances")
+    deadline_s: float = Field(
+        0.15, gt=0, le=2, description="a control tick later than this after the previous one stops the wheels"
+    )
+
+
 class DaemonConfig(Section):
     """The ``mazebot run`` process."""
 
@@ -411,6 +467,8 @@ class Config(BaseModel):
     web: WebConfig = Field(default_factory=WebConfig)
     sim: SimConfig = Field(default_factory=SimConfig)
     slam: SlamConfig = Field(default_factory=SlamConfig)
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    control: ControlConfig = Field(default_factory=ControlConfig)
 
     @property
     def wheel_circumference_m(self) -> float:

@@ -99,14 +99,17 @@ async def run_daemon(
     serve_web: bool = True,
     state: SharedState | None = None,
     on_started: Callable[[Hardware, SharedState, Supervisor], None] | None = None,
+    autonomous: bool = True,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
 
     ``on_started`` is called once every task runs (the benchmark adds its driver and
-    recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs).
+    recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs);
+    ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     """
+    from mazebot.planner.pilot import Pilot, PilotParams
     from mazebot.slam.slam import SlamParams
-    from mazebot.tasks import command_task, control_task, lidar_task, odometry_task, slam_task
+    from mazebot.tasks import command_task, control_task, lidar_task, odometry_task, planner_task, slam_task
     from mazebot.web.server import start_web_server
 
     clock = clock or RealClock()
@@ -137,9 +140,11 @@ async def run_daemon(
         slam_params = SlamParams.from_config(config.slam, config.lidar)
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor))
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
-        supervisor.start(
-            "control", lambda: control_task.run(motors, state, heartbeat, config.daemon.control_period_s)
-        )
+        pilot = Pilot(PilotParams.from_config(config))
+        if autonomous:
+            supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms))
+        control = control_task.MotorControl(config)
+        supervisor.start("control", lambda: control_task.run(motors, hardware.encoders, state, heartbeat, control))
         watchdog_s = sdnotify.watchdog_period_s()  # systemd's WatchdogSec, when it set one
         if watchdog_s is not None:
             silence_s = max(watchdog_s / 2, 10 * config.daemon.control_period_s)

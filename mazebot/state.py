@@ -28,10 +28,31 @@ class RunState(enum.StrEnum):
     """What the robot is doing, as the user sees it."""
 
     IDLE = "idle"  # ready, waiting for start
-    RUNNING = "running"  # exploring
-    STOPPED = "stopped"  # the user pressed stop
+    EXPLORING = "exploring"  # mapping: driving to the next unknown part of the maze
+    RETURNING = "returning"  # nothing reachable is unknown: driving back to the start cell
+    STOPPED = "stopped"  # the user pressed stop; start resumes
     DONE = "done"  # exploration finished, back at the start
     FAULT = "fault"  # something failed; motors are at zero until the fault clears
+
+    @property
+    def moving(self) -> bool:
+        """The states in which the wheels may turn."""
+        return self in (RunState.EXPLORING, RunState.RETURNING)
+
+
+@dataclass(frozen=True)
+class MotionRequest:
+    """A body velocity the planner wants, for the control task's wheel controller.
+
+    ``mode`` is a :class:`mazebot.planner.wheel_control.DriveMode` value (a change resets
+    the wheel integrals); ``time_s`` the clock time it was decided, so the control task
+    can refuse a stale one.
+    """
+
+    v_mps: float
+    w_radps: float
+    mode: str
+    time_s: float
 
 
 @dataclass(frozen=True)
@@ -92,9 +113,21 @@ class SharedState:
     started_at_s: float | None = None
     latest_scan: Scan | None = None  # written by the lidar task
     odometry: OdometryPose | None = None  # written by the odometry task
-    #: (left, right) throttle the planner wants and the clock time it was set; the control
-    #: task applies it only while RUNNING and only while it is fresh.
+    #: (left, right) throttle and the clock time it was set: a direct drive that bypasses
+    #: the wheel controller (the benchmark's scripted tour, tests); the control task applies
+    #: it only while the run state is moving, only while it is fresh, and only when no
+    #: ``motion_command`` is set.
     throttle_command: tuple[float, float, float] | None = None
+    #: the planner's body-velocity command (written by the planner task, read by control)
+    motion_command: MotionRequest | None = None
+    #: measured wheel surface speeds (left, right), m/s, written by the control task
+    wheel_speeds_mps: tuple[float, float] = (0.0, 0.0)
+    #: why the safety layer last stopped the wheels (empty: it has not), for the status page
+    safety_stop: str = ""
+    safety_stops: int = 0
+    #: incremented by each start from idle or done: a new exploration (the planner resets)
+    run_number: int = 0
+    finished_at_s: float | None = None  # clock time the run reached DONE
     #: recent lateness of control ticks beyond their period, milliseconds
     control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
     #: lidar revolutions waiting for SLAM: the lidar task puts, the SLAM task gets; when SLAM is
@@ -121,6 +154,9 @@ class SharedState:
     path: list[tuple[float, float]] = field(default_factory=list)  # planned waypoints, map frame
     goal: tuple[float, float] | None = None  # the current exploration goal, map frame
     coverage: float | None = None  # fraction of the maze the map knows, when the planner can tell
+    planner_status: str = ""  # one human line: what the planner is doing and why
+    #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
+    planner_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
 
     def raise_fault(self, source: str, message: str, time_s: float) -> None:
         """Record a fault and move to FAULT. Motors are the supervisor's job, not this."""
@@ -133,6 +169,13 @@ class SharedState:
         self.faults = [f for f in self.faults if source is not None and f.source != source]
         if not self.faults and self.run_state is RunState.FAULT:
             self.run_state = RunState.IDLE
+
+    def elapsed_s(self, now_s: float) -> float | None:
+        """Time since the exploration started, frozen when it finished; None before any start."""
+        if self.started_at_s is None:
+            return None
+        end_s = self.finished_at_s if self.finished_at_s is not None else now_s
+        return max(0.0, end_s - self.started_at_s)
 
     @property
     def active_fault(self) -> Fault | None:

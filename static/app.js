@@ -271,7 +271,9 @@
   }
 
   $("go").addEventListener("click", () => command(isMoving() ? "stop" : "start"));
-  const isMoving = () => view.status.state === "running" || view.status.state === "fault";
+  // exploring and returning drive the wheels; in a fault the button offers stop, which always works
+  const MOVING = new Set(["exploring", "returning", "fault"]);
+  const isMoving = () => MOVING.has(view.status.state);
 
   function updateButton() {
     const go = $("go");
@@ -304,7 +306,8 @@
 
   function renderElapsed() {
     let t = view.elapsedS;
-    if (t != null && view.status.state === "running") t += (performance.now() - view.elapsedAt) / 1000;
+    const counting = view.status.state === "exploring" || view.status.state === "returning";
+    if (t != null && counting) t += (performance.now() - view.elapsedAt) / 1000;
     $("elapsed").textContent = t == null ? "–" : `${Math.floor(t / 60)}:${String(Math.floor(t % 60)).padStart(2, "0")}`;
   }
   setInterval(() => { renderElapsed(); if (bannerText && performance.now() > bannerUntil) { bannerText = null; renderStatus(); } }, 250);

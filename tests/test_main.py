@@ -47,7 +47,7 @@ async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
 
     daemon = asyncio.create_task(
         run_daemon(_config(port), sim_hardware_builder(), ready=ready, install_signal_handlers=False,
-                   on_started=on_started)
+                   on_started=on_started, autonomous=False)
     )
     await asyncio.wait_for(ready.wait(), 10)
     state: SharedState = started["state"]  # type: ignore[assignment]
@@ -71,7 +71,7 @@ async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
                                 headers={"X-Mazebot-Token": CONTROL_TOKEN}) as resp:
             assert resp.status == 200
         await asyncio.sleep(0.1)
-        assert state.run_state is RunState.RUNNING
+        assert state.run_state is RunState.EXPLORING
         state.throttle_command = (0.5, 0.5, asyncio.get_running_loop().time() + 10.0)
         await asyncio.sleep(0.3)
         assert state.sensors.encoder_ticks_left > 0  # the wheels turned and the encoders counted
@@ -99,13 +99,13 @@ async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -
             await asyncio.sleep(0.2)
             raise ValueError("matrix not positive definite")
 
-        state.run_state = RunState.RUNNING
+        state.run_state = RunState.EXPLORING
         hw.motors.set(0.4, 0.4)
         sup.start("planner", broken)
 
     daemon = asyncio.create_task(
         run_daemon(_config(port), sim_hardware_builder(), ready=ready, install_signal_handlers=False,
-                   on_started=on_started)
+                   on_started=on_started, autonomous=False)
     )
     await asyncio.wait_for(ready.wait(), 10)
     await asyncio.sleep(0.5)
@@ -127,10 +127,11 @@ async def test_sigterm_zeroes_the_motors_within_100_ms_and_exits_0() -> None:
 
     def on_started(hw: Hardware, state: SharedState, sup: Supervisor) -> None:
         started.update(hw=hw, state=state)
-        state.run_state = RunState.RUNNING
+        state.run_state = RunState.EXPLORING
         state.throttle_command = (0.6, 0.6, asyncio.get_running_loop().time() + 60.0)
 
-    daemon = asyncio.create_task(run_daemon(_config(port), sim_hardware_builder(), ready=ready, on_started=on_started))
+    daemon = asyncio.create_task(run_daemon(_config(port), sim_hardware_builder(), ready=ready, on_started=on_started,
+                                            autonomous=False))
     await asyncio.wait_for(ready.wait(), 10)
     await asyncio.sleep(0.2)
     kit = started["hw"].sim.kit  # type: ignore[union-attr]

@@ -43,7 +43,7 @@ from mazebot.errors import UsageError
 from mazebot.main import Hardware, run_daemon
 from mazebot.sim.backend import sim_hardware_builder
 from mazebot.sim.virtual_time import run_virtual
-from mazebot.state import SharedState
+from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
 
 RECORD_PERIOD_S = 0.1
@@ -83,6 +83,7 @@ class RunRecord:
     hardware: Hardware | None = None
     state: SharedState | None = None
     driver: ScriptedDriver | None = None
+    done: bool = False  # the tour ended (scripted) or the planner reached DONE (explore)
     start_s: float = 0.0
     end_s: float = 0.0
 
@@ -191,10 +192,8 @@ def false_closures(closures: list, trajectory: list[tuple[float, float, float, f
 
 def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     """Run one simulated mission and return its metrics and the raw record (for figures)."""
-    if spec.drive != "scripted":
-        raise UsageError(
-            "--drive explore needs the autonomous planner, which mazebot does not have yet; use --drive scripted"
-        )
+    if spec.drive not in ("scripted", "explore"):
+        raise UsageError(f"--drive must be scripted or explore, got {spec.drive!r}")
     config = config.model_copy(deep=True)
     config.sim.seed = spec.seed
     config.daemon.exit_on_fault = True
@@ -205,18 +204,20 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         robot = hardware.sim
         layout = robot.world.maze
-        if layout is None:
-            raise UsageError(f"--drive scripted needs a maze world, {robot.world.name} has no cells")
-        tour = straighten(dfs_tour(layout))
-        driver = ScriptedDriver(
-            [layout.cell_center_m(c) for c in tour[1:]],
-            robot.physics,
-            speed_mps=config.drive.max_speed_mps * 0.8,
-            yaw_rate_radps=config.drive.max_yaw_rate_radps * 0.8,
-            track_width_m=config.drive.track_width_m,
-            full_throttle_mps=config.drive.max_wheel_speed_mps,
-            deadband=config.sim.deadband,
-        )
+        driver: ScriptedDriver | None = None
+        if spec.drive == "scripted":
+            if layout is None:
+                raise UsageError(f"--drive scripted needs a maze world, {robot.world.name} has no cells")
+            tour = straighten(dfs_tour(layout))
+            driver = ScriptedDriver(
+                [layout.cell_center_m(c) for c in tour[1:]],
+                robot.physics,
+                speed_mps=config.drive.max_speed_mps * 0.8,
+                yaw_rate_radps=config.drive.max_yaw_rate_radps * 0.8,
+                track_width_m=config.drive.track_width_m,
+                full_throttle_mps=config.drive.max_wheel_speed_mps,
+                deadband=config.sim.deadband,
+            )
         record.hardware, record.state, record.driver = hardware, state, driver
         record.start_s = clock.now_s()
 
@@ -252,9 +253,20 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
                 record.est_poses.append((p.x_m, p.y_m, p.theta_rad))
                 await clock.sleep(RECORD_PERIOD_S)
 
+        async def explore() -> None:
+            """Press start as the user would, then wait for the planner to say done."""
+            await clock.sleep(1.0)  # the lidar spins up and SLAM publishes its first map
+            state.commands.put_nowait("start")
+            while state.run_state not in (RunState.DONE, RunState.FAULT):
+                await clock.sleep(0.2)
+            record.done = state.run_state is RunState.DONE
+
         async def drive_then_stop() -> None:
+            run = driver.run(state, clock, period_s) if driver is not None else explore()
             with contextlib.suppress(TimeoutError):  # out of time: done stays False
-                await asyncio.wait_for(driver.run(state, clock, period_s), spec.max_sim_s)
+                await asyncio.wait_for(run, spec.max_sim_s)
+            if driver is not None:
+                record.done = driver.done
             record.end_s = clock.now_s()
             supervisor.request_stop("benchmark run finished")
 
@@ -264,7 +276,8 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     builder = sim_hardware_builder(maze_path=spec.maze_path, seed=spec.seed if not spec.maze_path else None,
                                    size=spec.size if not spec.maze_path else None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    daemon = run_daemon(config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started)
+    daemon = run_daemon(config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started,
+                        autonomous=spec.drive == "explore")
     exit_code = run_virtual(daemon) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0
     cpu_s = time.process_time() - cpu0
@@ -274,8 +287,8 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
 
 def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s: float, cpu_s: float) -> dict[str, Any]:
     """The per-run keys of results.json."""
-    hw, state, driver = record.hardware, record.state, record.driver
-    assert hw is not None and state is not None and driver is not None
+    hw, state = record.hardware, record.state
+    assert hw is not None and state is not None
     robot = hw.sim
     layout = robot.world.maze
     truth = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
@@ -297,7 +310,7 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "drive": spec.drive,
         "clock": spec.clock,
         "cells": int(layout.width * layout.height) if layout is not None else None,
-        "done": bool(driver.done) and exit_code == 0,
+        "done": record.done and exit_code == 0,
         "exit_code": exit_code,
         "fault": None if fault is None else f"{fault.source}: {fault.message}",
         "time_s": round(time_s, 2),

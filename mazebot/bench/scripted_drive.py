@@ -115,10 +115,10 @@ class ScriptedDriver:
 
     async def run(self, state: SharedState, clock: Clock, period_s: float) -> None:
         """Drive until the tour ends, then leave the robot stopped and DONE."""
-        state.run_state = RunState.RUNNING
+        state.run_state = RunState.EXPLORING
         state.started_at_s = clock.now_s()
         while not self.done:
-            if state.run_state is not RunState.RUNNING:
+            if state.run_state is not RunState.EXPLORING:
                 return
             left, right = self.command()
             state.throttle_command = (left, right, clock.now_s())

@@ -11,20 +11,30 @@ log = logging.getLogger(__name__)
 
 
 def apply_command(command: str, state: SharedState, motors, clock: Clock) -> str:
-    """Apply one command; return a short human answer. Stop always wins and always stops."""
+    """Apply one command; return a short human answer. Stop always wins and always stops.
+
+    Start from ``idle`` or ``done`` begins a new exploration (``run_number`` grows, the
+    planner forgets its goals); start from ``stopped`` resumes the one under way (the
+    planner puts it back to ``returning`` if that is where it was).
+    """
     if command == "stop":
         motors.stop()
-        if state.run_state in (RunState.RUNNING, RunState.IDLE, RunState.DONE):
+        state.motion_command = None
+        if state.run_state.moving or state.run_state in (RunState.IDLE, RunState.DONE):
             state.run_state = RunState.STOPPED
         return "stopped"
     if command == "start":
         if state.run_state is RunState.FAULT:
             fault = state.active_fault
             return f"cannot start: {fault.message if fault else 'a fault is active'}"
-        if state.run_state is not RunState.RUNNING:
-            state.run_state = RunState.RUNNING
+        if state.run_state.moving:
+            return str(state.run_state)
+        if state.run_state in (RunState.IDLE, RunState.DONE) or state.started_at_s is None:
+            state.run_number += 1
             state.started_at_s = clock.now_s()
-        return "running"
+            state.finished_at_s = None
+        state.run_state = RunState.EXPLORING
+        return str(state.run_state)
     return f"unknown command {command!r}; expected start or stop"
 
 

@@ -1,31 +1,131 @@
 """The motor control loop: the only writer of motor commands.
 
-It runs at a fixed period (20 Hz by default) and applies the planner's latest
-command only while the robot is RUNNING and the command is fresh; in every other
-case it commands zero, so a stalled planner, a stop press or a fault stops the wheels
-within one period, independently of the motor driver's own time-to-live.
+It runs at a fixed period (20 Hz by default). Each tick it measures the wheel speeds
+from the encoders, takes the planner's latest body-velocity command, passes it through
+the safety layer (control deadline, command age, lidar age, lidar returns in the path)
+and turns it into throttles with the per-wheel PI controller. In every state other than
+``exploring``/``returning`` it commands zero, so a stalled planner, a stop press or a
+fault stops the wheels within one period, independently of the motor driver's own
+time-to-live.
+
+A direct throttle command (``state.throttle_command``: the benchmark's scripted tour,
+tests) bypasses the wheel controller when no planner command is set.
 """
 
 from __future__ import annotations
 
-from mazebot.clock import Clock
-from mazebot.state import RunState, SharedState
+import logging
 
-#: A planner command older than this many control periods is stale.
+import numpy as np
+
+from mazebot.clock import Clock
+from mazebot.config import Config
+from mazebot.planner.dwa import scan_points_robot
+from mazebot.planner.pilot import moved_since_scan
+from mazebot.planner.safety import CollisionGuard, ControlWatchdog, SafetyLayer
+from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
+from mazebot.state import SharedState
+
+log = logging.getLogger(__name__)
+
+#: A direct throttle command older than this many control periods is stale.
 STALE_PERIODS = 3
 
 
-async def run(motors, state: SharedState, clock: Clock, period_s: float) -> None:
+class MotorControl:
+    """One control tick's decisions, separate from the loop so tests can step it."""
+
+    def __init__(self, config: Config) -> None:
+        c, d = config.control, config.drive
+        self.period_s = config.daemon.control_period_s
+        self.wheels = WheelController(
+            track_width_m=d.track_width_m,
+            max_wheel_speed_mps=d.max_wheel_speed_mps,
+            deadband=c.motor_deadband,
+            kp=c.wheel_kp,
+            ki=c.wheel_ki,
+            kd=c.wheel_kd,
+            integral_limit=c.integral_limit,
+            max_wheel_accel_mps2=c.max_wheel_accel_mps2,
+        )
+        for pid in (self.wheels.left, self.wheels.right):
+            pid.latency_s = c.actuation_latency_s
+        self.estimator = WheelSpeedEstimator.for_wheel(config.encoders.ticks_per_rev, d.wheel_diameter_m)
+        guard = CollisionGuard(
+            footprint_radius_m=config.robot.footprint_radius_m,
+            margin_m=c.stop_margin_m,
+            brake_decel_mps2=c.brake_decel_mps2,
+            latency_s=self.period_s + c.actuation_latency_s,
+        )
+        self.safety = SafetyLayer(
+            guard, ControlWatchdog(c.deadline_s), command_ttl_s=c.command_ttl_s, scan_timeout_s=c.scan_timeout_s
+        )
+        self.lidar_range_m = (config.lidar.min_range_m, config.lidar.max_range_m)
+        self.lidar_mount_xy_m = (config.lidar.mount_x_m, config.lidar.mount_y_m)
+        self._scan_cache: tuple[int, np.ndarray] | None = None
+
+    def tick(self, state: SharedState, encoders, now_s: float) -> tuple[float, float]:
+        """The (left, right) throttles for this period; also updates the measured wheel speeds."""
+        reading = encoders.read()
+        stamp = reading.time_s if reading.time_s is not None else now_s
+        measured = self.estimator.update(reading.left_ticks, reading.right_ticks, stamp)
+        state.wheel_speeds_mps = measured
+        moving = state.run_state.moving
+        command = state.motion_command
+        if moving and command is not None:
+            return self._drive(state, command, measured, now_s)
+        self.safety.watchdog.tick(now_s)  # keep the deadline clock running while idle
+        self.wheels.reset()
+        direct = state.throttle_command
+        if moving and direct is not None and now_s - direct[2] <= STALE_PERIODS * self.period_s:
+            return direct[0], direct[1]
+        return 0.0, 0.0
+
+    def _drive(self, state: SharedState, command, measured: tuple[float, float], now_s: float) -> tuple[float, float]:
+        v, w, mode = command.v_mps, command.w_radps, DriveMode(command.mode)
+        scan = state.latest_scan
+        points, scan_time_s = None, None
+        if scan is not None:
+            scan_time_s = scan.end_time_s
+            if self._scan_cache is None or self._scan_cache[0] != id(scan):
+                self._scan_cache = (
+                    id(scan),
+                    scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, *self.lidar_range_m,
+                                      mount_xy_m=self.lidar_mount_xy_m),
+                )
+            points = moved_since_scan(self._scan_cache[1], scan_time_s, state)
+        verdict = self.safety.check(now_s, v, w, command.time_s, points, scan_time_s)
+        if verdict.stop:
+            if verdict.reason != state.safety_stop:
+                log.info("safety stop: %s", verdict.reason)
+            state.safety_stop = verdict.reason
+            state.safety_stops = self.safety.stops
+            v, w, mode = 0.0, 0.0, DriveMode.STOP
+        out = self.wheels.update(v, w, mode, measured, self.period_s)
+        return out.left_throttle, out.right_throttle
+
+
+async def run(motors, encoders, state: SharedState, clock: Clock, control: MotorControl) -> None:
+    """Tick ``control`` every period and write its throttles to the motors.
+
+    ``clock`` may be the systemd watchdog's :class:`~mazebot.sdnotify.ControlHeartbeat`,
+    which notes every tick's sleep; lateness of each tick beyond its period goes into
+    ``state.control_lateness_ms``.
+    """
+    period_s = control.period_s
     next_tick_s = clock.now_s()
     while True:
         now_s = clock.now_s()
         state.control_lateness_ms.append(max(0.0, (now_s - next_tick_s) * 1000.0))
-        command = state.throttle_command
-        fresh = command is not None and now_s - command[2] <= STALE_PERIODS * period_s
-        if state.run_state is RunState.RUNNING and fresh:
-            motors.set(command[0], command[1])
-        else:
+        try:
+            left, right = control.tick(state, encoders, now_s)
+        except Exception:
             motors.stop()
+            raise
+        if left == 0.0 and right == 0.0:
+            motors.stop()
+        else:
+            motors.set(left, right)
         next_tick_s += period_s
         if next_tick_s < now_s:  # we fell behind (a stalled loop): do not try to catch up
             next_tick_s = now_s + period_s

@@ -21,7 +21,6 @@ import logging
 import platform
 import secrets
 import sys
-import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 from aiohttp.typedefs import Handler
 
 from mazebot import __version__
+from mazebot.clock import RealClock
 from mazebot.state import SharedState
 from mazebot.web import map_images
 from mazebot.web.auth import ControlAuth, origin_allowed
@@ -101,9 +101,8 @@ DEFAULT_STATIC_DIR = find_static_dir()
 def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any]:
     """The run state as ``/api/status`` shows it."""
     fault = state.active_fault
-    elapsed_s = None
-    if state.started_at_s is not None:
-        elapsed_s = round(time.monotonic() - state.started_at_s, 1)
+    elapsed = state.elapsed_s(RealClock().now_s())  # the daemon's clock: the loop's time
+    elapsed_s = None if elapsed is None else round(elapsed, 1)
     grid = state.map
     return {
         "state": state.run_state.value,
@@ -114,6 +113,9 @@ def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any
         },
         "coverage": None if state.coverage is None else round(float(state.coverage), 4),
         "elapsed_s": elapsed_s,
+        "planner": state.planner_status,
+        "safety_stop": state.safety_stop or None,
+        "safety_stops": state.safety_stops,
         "fault": None if fault is None else {"source": fault.source, "message": fault.message},
         "faults": [{"source": f.source, "message": f.message} for f in state.faults[-10:]],
         "sensors": vars(state.sensors),

@@ -268,6 +268,7 @@ class Broadcaster:
             "path": [round(float(v), 3) for p in s.path for v in p[:2]],
             "goal": None if s.goal is None else [round(float(s.goal[0]), 3), round(float(s.goal[1]), 3)],
             "coverage": None if s.coverage is None else round(float(s.coverage), 3),
+            "planner": s.planner_status,
             "speed_mps": self._speed_mps(now_s),
             "fault": None if fault is None else {"source": fault.source, "message": fault.message},
         }
@@ -285,8 +286,9 @@ class Broadcaster:
     def _elapsed_s(self, now_s: float) -> float | None:
         """Time since start while running; frozen at its last value otherwise."""
         s = self.state
-        if s.run_state is RunState.RUNNING and s.started_at_s is not None:
-            self._elapsed_frozen = round(now_s - s.started_at_s, 1)
+        if (s.run_state.moving or s.run_state is RunState.DONE) and s.started_at_s is not None:
+            elapsed = s.elapsed_s(now_s)
+            self._elapsed_frozen = None if elapsed is None else round(elapsed, 1)
         return self._elapsed_frozen
 
     def _trail_update(self) -> tuple[bool, list[float]]:

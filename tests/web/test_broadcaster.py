@@ -205,7 +205,7 @@ def test_status_fields_pose_ellipse_trail_path_goal_coverage_speed_and_elapsed(s
     b = Broadcaster(state, now_s=clock, trail_points=3)
     viewer = b.add(None, "phone")  # type: ignore[arg-type]
     _drain(viewer)
-    state.run_state, state.started_at_s = RunState.RUNNING, clock.t
+    state.run_state, state.started_at_s = RunState.EXPLORING, clock.t
     state.odometry = OdometryPose(distance_m=0.0)
     state.pose_covariance = np.diag([0.04, 0.01, 0.0025])
     state.trajectory.extend([(0.0, 0.0), (0.1, 0.0)])
@@ -218,7 +218,7 @@ def test_status_fields_pose_ellipse_trail_path_goal_coverage_speed_and_elapsed(s
     state.trajectory.append((0.2, 0.01))
     b.tick()
     first, second = (decode_packet(p).status for p in _drain(viewer))
-    assert first["state"] == "running" and first["trail"] == [0.0, 0.0, 0.1, 0.0]
+    assert first["state"] == "exploring" and first["trail"] == [0.0, 0.0, 0.1, 0.0]
     assert first["path"] == [0.305, 0.0, 0.305, 0.305] and first["goal"] == [0.305, 0.305]
     assert first["coverage"] == 0.457
     a, b_, angle, theta_std = first["ellipse"]

@@ -29,7 +29,8 @@ from mazebot.web.protocol import (
 def test_full_packet_round_trips_map_and_status() -> None:
     rng = np.random.default_rng(4)
     codes = rng.integers(0, 3, size=(37, 53), dtype=np.uint8)
-    status = {"state": "running", "pose": [0.1, -0.25, 1.5], "fault": {"source": "lidar", "message": "no data – check"}}
+    status = {"state": "exploring", "pose": [0.1, -0.25, 1.5],
+              "fault": {"source": "lidar", "message": "no data – check"}}
     packet = Packet(KIND_FULL, 4_000_000_000, status, GridSection(7, 0.02, (-1.04, -0.98), codes))
     back = decode_packet(encode_packet(packet))
     assert back.kind == KIND_FULL and back.seq == 4_000_000_000

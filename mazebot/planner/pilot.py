@@ -1,0 +1,272 @@
+"""The planner tick: map and pose in, an exploration goal and a body velocity out.
+
+One :class:`Pilot` ties the parts of ``mazebot/planner`` together the way the daemon
+runs them, at the planner rate (5 Hz by default):
+
+1. the explorer reads SLAM's three-state grid, keeps the maze graph up to date and picks
+   the next goal (an unknown link, a grid frontier, or the start cell once nothing
+   reachable is unknown);
+2. the local planner (DWA with in-place turns and recovery) follows the goal's waypoints
+   on the latest lidar returns, the occupied map cells and the wall outlines the graph
+   knows (posts closer than the lidar's minimum range included);
+3. the result goes into ``state.motion_command`` for the control task, which owns the
+   wheels (PI control and the safety layer).
+
+It is plain synchronous code so that tests and the benchmark can step it directly; the
+asyncio loop around it is :mod:`mazebot.tasks.planner_task`. The run state it may write:
+``exploring → returning → done``; it never starts the robot (only the user does) and
+leaves ``stopped`` and ``fault`` alone.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mazebot.config import Config
+from mazebot.planner.dwa import DynamicWindowPlanner, LocalPlanner, map_points_robot, scan_points_robot, to_robot_frame
+from mazebot.planner.exploration import Explorer, Phase
+from mazebot.planner.maze_graph import MazeGraph
+from mazebot.planner.safety import reframe_points
+from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
+from mazebot.state import MotionRequest, RunState, SharedState
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PilotParams:
+    """The plain values the pilot needs, picked from the configuration."""
+
+    rate_hz: float
+    strategy: str
+    mode: str
+    cell_size_m: float
+    wall_thickness_m: float
+    goal_tolerance_m: float
+    progress_timeout_s: float
+    dwell_timeout_s: float
+    horizon_s: float
+    stuck_timeout_s: float
+    max_recoveries: int
+    map_window_m: float
+    footprint_radius_m: float
+    clearance_m: float
+    max_speed_mps: float
+    max_accel_mps2: float
+    max_yaw_rate_radps: float
+    max_yaw_accel_radps2: float
+    brake_decel_mps2: float
+    track_width_m: float
+    max_wheel_speed_mps: float
+    control_period_s: float
+    actuation_latency_s: float
+    lidar_min_range_m: float
+    lidar_max_range_m: float
+    lidar_mount_xy_m: tuple[float, float]
+
+    @classmethod
+    def from_config(cls, config: Config) -> PilotParams:
+        p, d = config.planner, config.drive
+        return cls(
+            rate_hz=p.rate_hz,
+            strategy=p.strategy,
+            mode=p.mode,
+            cell_size_m=p.cell_size_m,
+            wall_thickness_m=p.wall_thickness_m,
+            goal_tolerance_m=p.goal_tolerance_m,
+            progress_timeout_s=p.progress_timeout_s,
+            dwell_timeout_s=p.dwell_timeout_s,
+            horizon_s=p.horizon_s,
+            stuck_timeout_s=p.stuck_timeout_s,
+            max_recoveries=p.max_recoveries,
+            map_window_m=p.map_window_m,
+            footprint_radius_m=config.robot.footprint_radius_m,
+            clearance_m=config.robot.clearance_m,
+            max_speed_mps=d.max_speed_mps,
+            max_accel_mps2=d.max_accel_mps2,
+            max_yaw_rate_radps=d.max_yaw_rate_radps,
+            max_yaw_accel_radps2=d.max_yaw_accel_radps2,
+            brake_decel_mps2=config.control.brake_decel_mps2,
+            track_width_m=d.track_width_m,
+            max_wheel_speed_mps=d.max_wheel_speed_mps,
+            control_period_s=config.daemon.control_period_s,
+            actuation_latency_s=config.control.actuation_latency_s,
+            lidar_min_range_m=config.lidar.min_range_m,
+            lidar_max_range_m=config.lidar.max_range_m,
+            lidar_mount_xy_m=(config.lidar.mount_x_m, config.lidar.mount_y_m),
+        )
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+class Pilot:
+    """Explorer + local planner for one daemon; :meth:`tick` once per planner period."""
+
+    def __init__(self, params: PilotParams) -> None:
+        self.params = params
+        self.kinematics = DiffDriveKinematics(params.track_width_m, params.max_wheel_speed_mps)
+        self.run_number = -1  # the run the explorer was built for
+        self.explorer = self._new_explorer((0.0, 0.0))
+        self.local = self._new_local_planner()
+        self._was_moving = False
+        self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
+
+    # -- construction ------------------------------------------------------------------
+
+    def _new_explorer(self, start_xy_m: tuple[float, float]) -> Explorer:
+        p = self.params
+        graph = MazeGraph(cell_size_m=p.cell_size_m, wall_thickness_m=p.wall_thickness_m, anchor_xy_m=start_xy_m)
+        return Explorer(
+            graph,
+            strategy=p.strategy,
+            mode=p.mode,  # type: ignore[arg-type]
+            start_xy_m=start_xy_m,
+            goal_tolerance_m=p.goal_tolerance_m,
+            progress_timeout_s=p.progress_timeout_s,
+            dwell_timeout_s=p.dwell_timeout_s,
+            footprint_radius_m=p.footprint_radius_m,
+            clearance_m=p.clearance_m,
+        )
+
+    def _new_local_planner(self) -> LocalPlanner:
+        p = self.params
+        dwa = DynamicWindowPlanner(
+            max_speed_mps=p.max_speed_mps,
+            max_yaw_rate_radps=p.max_yaw_rate_radps,
+            max_accel_mps2=p.max_accel_mps2,
+            max_yaw_accel_radps2=p.max_yaw_accel_radps2,
+            brake_decel_mps2=p.brake_decel_mps2,
+            footprint_radius_m=p.footprint_radius_m,
+            clearance_m=p.clearance_m,
+            # the dynamic window spans one planner period; braking can start one period
+            # later at the earliest, plus a control period and the motors' reaction
+            window_s=p.period_s,
+            latency_s=p.period_s + p.control_period_s + p.actuation_latency_s,
+            horizon_s=p.horizon_s,
+        )
+        # arrive a little inside the explorer's tolerance, or it would never see "arrived"
+        return LocalPlanner(
+            dwa,
+            goal_tolerance_m=min(0.04, 0.7 * p.goal_tolerance_m),
+            stuck_timeout_s=p.stuck_timeout_s,
+            max_recoveries=p.max_recoveries,
+        )
+
+    # -- the tick ------------------------------------------------------------------------
+
+    def tick(self, state: SharedState, now_s: float) -> None:
+        """Decide this period's goal and command, writing them into ``state``."""
+        if not state.run_state.moving:
+            if self._was_moving:  # stopped, done or faulted since the last tick: forget the path
+                self.local.clear()
+                state.motion_command = None
+            self._was_moving = False
+            return
+        self._was_moving = True
+        pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
+        if state.run_number != self.run_number:  # a new exploration starts where the robot stands
+            self.run_number = state.run_number
+            self.explorer = self._new_explorer((pose[0], pose[1]))
+            self.local.clear()
+            log.info("exploration %d starts at (%.2f, %.2f) m", self.run_number, pose[0], pose[1])
+        grid = state.map
+        if grid is None:
+            self._hold(state, now_s, "waiting for the first map")
+            return
+        three = grid.three_state()
+        goal = self.explorer.update(three, grid.origin_m, grid.resolution_m, pose, now_s)
+        state.coverage = self._coverage()
+        if goal is None:
+            self._hold(state, now_s, "waiting for the map to cover the robot")
+            return
+        if goal.phase is Phase.DONE:
+            self._finish(state, now_s)
+            return
+        if goal.phase is Phase.RETURNING and state.run_state is RunState.EXPLORING:
+            state.run_state = RunState.RETURNING
+            log.info("nothing reachable is unknown: returning to the start")
+        self.local.set_path(goal.waypoints_m)
+        state.path = [(float(x), float(y)) for x, y in goal.waypoints_m]
+        state.goal = (float(goal.target_m[0]), float(goal.target_m[1]))
+        state.planner_status = f"{goal.phase.value}: {goal.reason}" if goal.reason else goal.phase.value
+
+        window_m = self.params.map_window_m
+        map_xy = map_points_robot(three, grid.origin_m, grid.resolution_m, pose, window_m)
+        walls_xy = None
+        if self.explorer.mode == "maze":
+            walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
+        velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
+        cmd = self.local.step(
+            pose, velocity, self._scan_points(state), map_xy, grid.resolution_m * math.sqrt(0.5), now_s, walls_xy
+        )
+        if cmd.give_up:
+            log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *goal.target_m)
+            self.explorer.report_unreachable(now_s)
+        state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
+
+    def _hold(self, state: SharedState, now_s: float, why: str) -> None:
+        state.motion_command = MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s)
+        state.planner_status = why
+
+    def _finish(self, state: SharedState, now_s: float) -> None:
+        self.local.clear()
+        state.motion_command = MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s)
+        state.run_state = RunState.DONE
+        state.finished_at_s = now_s
+        state.path = []
+        state.goal = None
+        elapsed = state.elapsed_s(now_s)
+        coverage = "unknown" if state.coverage is None else f"{100 * state.coverage:.0f} %"
+        state.planner_status = f"done: back at the start after {elapsed or 0.0:.0f} s, coverage {coverage}"
+        log.info("%s", state.planner_status)
+        self._was_moving = False
+
+    def _coverage(self) -> float | None:
+        """Explored cells over the cells known to be reachable (maze mode); None otherwise.
+
+        During the run the denominator grows as the graph discovers cells; once nothing
+        reachable is unknown it is the whole reachable maze.
+        """
+        if self.explorer.mode != "maze" or not self.explorer.graph.ready:
+            return None
+        graph = self.explorer.graph
+        start = graph.frame.cell_of(*self.explorer.start_xy_m)  # type: ignore[union-attr]  # ready: a frame exists
+        reachable = graph.reachable(start)
+        if not reachable:
+            return None
+        return sum(1 for cell in reachable if graph.is_explored(cell)) / len(reachable)
+
+    def _scan_points(self, state: SharedState) -> np.ndarray:
+        """The latest revolution's valid returns, robot frame, moved to where the robot is now."""
+        scan = state.latest_scan
+        if scan is None:
+            return np.zeros((0, 2))
+        if self._scan_cache is None or self._scan_cache[0] != id(scan):
+            p = self.params
+            points = scan_points_robot(
+                scan.angle_rad, scan.range_m, scan.valid, p.lidar_min_range_m, p.lidar_max_range_m, p.lidar_mount_xy_m
+            )
+            self._scan_cache = (id(scan), points)
+        points = self._scan_cache[1]
+        return moved_since_scan(points, scan.end_time_s, state)
+
+
+def moved_since_scan(points_robot: np.ndarray, scan_time_s: float, state: SharedState) -> np.ndarray:
+    """Robot-frame points seen at ``scan_time_s``, in the robot frame of the latest odometry.
+
+    The odometry history gives the pose at the scan's end; the motion since then (a
+    revolution takes 0.18 s, at 0.3 m/s that is 5 cm) is taken out so the points are
+    where the walls are now relative to the robot. Without odometry they are used as is.
+    """
+    history, odo = state.odometry_history, state.odometry
+    if history is None or odo is None or len(history) == 0:
+        return points_robot
+    then = history.pose_at(scan_time_s)
+    pose_then = (float(then[0]), float(then[1]), float(then[2]))
+    return reframe_points(points_robot, pose_then, (odo.x_m, odo.y_m, odo.theta_rad))

@@ -1,0 +1,32 @@
+"""The planner loop: one :class:`~mazebot.planner.pilot.Pilot` tick per planner period.
+
+The tick reads the map and pose SLAM published and writes the goal, the path and the
+body-velocity command; the wheels are the control task's. A tick costs a few
+milliseconds (graph update, route search, DWA); it runs on the event loop so it sees a
+consistent map (SLAM replaces it only between ticks) and never races the writers.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+from mazebot.clock import Clock
+from mazebot.planner.pilot import Pilot
+from mazebot.state import SharedState
+
+
+async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: deque[float] | None = None) -> None:
+    """Tick the pilot at its rate; ``tick_ms`` (if given) collects each tick's CPU time in ms."""
+    period_s = pilot.params.period_s
+    next_tick_s = clock.now_s()
+    while True:
+        cpu0 = time.process_time()
+        pilot.tick(state, clock.now_s())
+        if tick_ms is not None:
+            tick_ms.append((time.process_time() - cpu0) * 1000.0)
+        next_tick_s += period_s
+        now_s = clock.now_s()
+        if next_tick_s < now_s:  # fell behind: do not try to catch up
+            next_tick_s = now_s + period_s
+        await clock.sleep(next_tick_s - now_s)

@@ -1,0 +1,91 @@
+"""The benchmark harness end to end: the whole daemon on the simulated robot, virtual time.
+
+The smoke suite is what CI runs (issue 3: under two minutes); the exploration run is the
+autonomous stack (planner, DWA, wheel PI, safety layer) on SLAM's map and pose, measured
+against the simulator's ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from mazebot.bench.runner import RunSpec, run_one
+from mazebot.cli import main
+from mazebot.config import Config
+
+REQUIRED_KEYS = {
+    "maze", "seed", "cells", "done", "time_s", "wall_s", "path_m", "avg_speed_mps", "coverage", "collisions",
+    "revisits", "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "scan_ms_p50", "scan_ms_p99",
+    "control_jitter_ms_p99", "cpu_percent", "rss_mb",
+}
+
+
+def read_png(path: Path) -> tuple[int, int, bytes]:
+    """Width, height and raw scanlines of a PNG, every chunk's CRC checked (an independent reader)."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{path.name}: not a PNG signature"
+    pos, idat, width, height, bit_depth, colour = 8, b"", 0, 0, 0, 0
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind, body = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length : pos + 12 + length])
+        assert zlib.crc32(kind + body) == crc, f"{path.name}: bad CRC in {kind!r}"
+        if kind == b"IHDR":
+            width, height, bit_depth, colour = struct.unpack(">IIBB", body[:10])
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + length
+    assert bit_depth == 8 and colour == 2, f"{path.name}: expected 8-bit RGB"
+    raw = zlib.decompress(idat)
+    assert len(raw) == height * (1 + 3 * width)
+    return width, height, raw
+
+
+def test_smoke_suite_with_the_scripted_drive_writes_every_key_and_figures_that_open(tmp_path: Path) -> None:
+    assert main(["bench", "--suite", "smoke", "--drive", "scripted", "--out", str(tmp_path)]) == 0
+    results = json.loads((tmp_path / "results.json").read_text())
+    (run,) = results["runs"]
+    assert run.keys() >= REQUIRED_KEYS, f"missing keys: {REQUIRED_KEYS - run.keys()}"
+    assert run["done"] is True and run["collisions"] == 0
+    assert run["cells"] == 36
+    # SLAM against the ground truth: centimetre-level on the default 6x6 maze
+    assert run["ate_rms_m"] < 0.02 and run["heading_rms_deg"] < 2.0
+    assert run["map_f1"] > 0.9 and run["coverage"] > 0.9
+    assert run["false_loop_closures"] == 0
+    # virtual time has no control jitter to measure: null, never invented
+    assert run["control_jitter_ms_p99"] is None
+    assert "summary" in results
+    report = (tmp_path / "report.md").read_text()
+    figures = sorted(tmp_path.glob("*.png"))
+    assert len(figures) == 2
+    for png in figures:
+        assert png.name in report
+        width, height, raw = read_png(png)
+        assert width > 100 and height > 100
+        pixels = np.frombuffer(raw, np.uint8).reshape(height, 1 + 3 * width)[:, 1:]
+        assert len(np.unique(pixels.reshape(-1, 3), axis=0)) >= 3  # a picture, not a blank
+
+
+def test_the_robot_explores_a_maze_by_itself_and_comes_back_to_the_start() -> None:
+    """Start pressed once; the planner, DWA, wheel PI and safety layer drive on SLAM's estimate."""
+    spec = RunSpec(None, (4, 4), seed=3, drive="explore", max_sim_s=300.0)
+    metrics, record = run_one(Config(), spec)
+    assert metrics["done"] is True, metrics["fault"]
+    assert metrics["collisions"] == 0
+    assert metrics["coverage"] >= 0.95
+    assert metrics["map_f1"] >= 0.9
+    state = record.state
+    assert state is not None and state.run_state.value == "done"
+    assert state.coverage == 1.0  # every reachable cell of the graph explored
+    # back in the start cell, near its centre (the explorer's arrival tolerance is 6 cm)
+    world = record.hardware.sim.world  # type: ignore[union-attr]
+    x, y, _ = record.true_poses[-1]
+    assert world.maze.cell_at(x, y) == world.maze.start_cell
+    start_x, start_y, _ = world.start_pose
+    assert math.dist((x, y), (start_x, start_y)) < 0.1

@@ -280,6 +280,9 @@ class SimConfig(Section):
     channels, inversion), plus the imperfections below that a real robot has.
     """
 
+    world: Literal["maze", "room"] = Field(
+        "maze", description="maze: a maze file or a generated maze; room: the room with cylinders below"
+    )
     maze: str = Field("", description="maze file (micromouse text); empty: generate one")
     maze_kind: Literal["perfect", "braided", "rooms"] = Field(
         "braided", description="kind of generated maze: perfect (a tree), braided (loops), rooms (open 3x3 areas)"
@@ -289,6 +292,10 @@ class SimConfig(Section):
     seed: int = Field(1, ge=0, description="seed of the maze generator and of every noise source")
     cell_size_m: float = Field(0.3048, gt=0.1, le=2.0, description="maze cell size (1 ft)")
     wall_thickness_m: float = Field(0.012, gt=0.001, le=0.1, description="maze wall thickness")
+    room_width_m: float = Field(2.0, gt=0.5, le=20, description="room world: inside width")
+    room_height_m: float = Field(1.2, gt=0.5, le=20, description="room world: inside depth")
+    room_cylinders: int = Field(4, ge=0, le=50, description="room world: cylindrical posts placed at random")
+    room_cylinder_diameter_m: float = Field(0.08, gt=0.01, le=1, description="room world: post diameter")
     physics_rate_hz: float = Field(400.0, ge=200, le=5000, description="integration rate of the robot physics")
     step_period_s: float = Field(
         0.01, gt=0, le=0.05, description="period of the simulator task; physics sub-steps at physics_rate_hz"

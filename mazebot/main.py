@@ -199,14 +199,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.sim:
         from mazebot.sim.backend import sim_hardware_builder
 
+        if args.room:
+            config.sim.world = "room"
         builder = sim_hardware_builder(
             maze_path=args.maze,
             seed=args.seed,
             size=_parse_size(args.size) if args.size else None,
         )
     else:
-        if args.maze or args.seed is not None or args.size:
-            raise UsageError("--maze, --seed and --size only make sense with --sim")
+        if args.maze or args.seed is not None or args.size or args.room:
+            raise UsageError("--maze, --room, --seed and --size only make sense with --sim")
         builder = open_robot_hardware
     with contextlib.suppress(KeyboardInterrupt):
         return asyncio.run(run_daemon(config, builder))
@@ -218,6 +220,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--config", default=None, help="config file (default: $MAZEBOT_CONFIG or ./config.toml)")
     run.add_argument("--sim", action="store_true", help="drive a simulated robot instead of the hardware")
     run.add_argument("--maze", default=None, help="maze file in micromouse text format (with --sim)")
+    run.add_argument("--room", action="store_true", help="the room with cylinders instead of a maze (with --sim)")
     run.add_argument("--seed", type=int, default=None, help="generate a maze from this seed (with --sim)")
     run.add_argument("--size", default=None, help="size of a generated maze, WxH cells (with --sim)")
     run.add_argument("--host", default=None, help="web server interface (overrides [web] host)")

@@ -43,7 +43,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
-    if args.maze:
+    if args.room:
+        if args.maze:
+            raise UsageError("give either --room or --maze, not both")
+        specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in range(1, args.seeds + 1)]
+    elif args.maze:
         for path in args.maze:
             if not Path(path).is_file():
                 raise UsageError(f"maze file {path} not found")
@@ -70,6 +74,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="measure whole simulated runs against ground truth")
     bench.add_argument("--suite", choices=SUITES, default="smoke", help="which set of mazes (default smoke)")
     bench.add_argument("--maze", action="append", default=None, help="run these maze files instead of a suite")
+    bench.add_argument("--room", action="store_true",
+                       help="run the room with cylinders ([sim] room_*) instead of mazes, one run per seed")
     bench.add_argument("--seeds", type=int, default=3, help="seeds per generated maze (default 3)")
     bench.add_argument("--drive", choices=("explore", "scripted"), default="explore",
                        help="explore: the autonomous stack; scripted: a ground-truth tour of every cell")

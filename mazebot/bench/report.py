@@ -18,6 +18,7 @@ from mazebot.sim.raster import true_occupancy
 #: Keys aggregated in the summary (median over runs, ignoring nulls).
 SUMMARY_KEYS = (
     "time_s", "wall_s", "realtime_factor", "path_m", "avg_speed_mps", "coverage", "collisions", "revisits",
+    "revisits_dfs",
     "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "scan_ms_p50", "scan_ms_p99",
     "control_jitter_ms_p99", "cpu_percent", "rss_mb", "loop_closures",
 )

@@ -62,9 +62,12 @@ class RunSpec:
     drive: str = "scripted"  # "scripted" or "explore"
     max_sim_s: float = 900.0
     clock: str = "virtual"  # "virtual" or "real"
+    world: str = "maze"  # "maze" (a file or generated) or "room" (the room with cylinders)
 
     @property
     def name(self) -> str:
+        if self.world == "room":
+            return "room"
         if self.maze_path:
             from pathlib import Path
 
@@ -196,6 +199,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         raise UsageError(f"--drive must be scripted or explore, got {spec.drive!r}")
     config = config.model_copy(deep=True)
     config.sim.seed = spec.seed
+    config.sim.world = spec.world  # type: ignore[assignment]
     config.daemon.exit_on_fault = True
     record = RunRecord()
     clock = RealClock()
@@ -322,6 +326,9 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "coverage": maps["coverage"],
         "collisions": int(robot.physics.collisions),
         "revisits": _revisits(layout, truth[:, :2]) if layout is not None else None,
+        # the back-tracking a depth-first tour of every cell (and back to the start) cannot
+        # avoid: its cell entries beyond the first; ``revisits`` above it is the excess
+        "revisits_dfs": len(dfs_tour(layout)) - len(set(dfs_tour(layout))) if layout is not None else None,
         "ate_rms_m": round(float(np.sqrt(np.mean(err_xy**2))), 4) if len(err_xy) else None,
         "ate_max_m": round(float(err_xy.max()), 4) if len(err_xy) else None,
         "heading_rms_deg": round(float(np.degrees(np.sqrt(np.mean(err_th**2)))), 3) if len(err_th) else None,

@@ -1,4 +1,4 @@
-"""Which world a simulated run happens in: a maze file, or a maze generated from a seed."""
+"""Which world a simulated run happens in: a maze file, a maze generated from a seed, or a room."""
 
 from __future__ import annotations
 
@@ -8,12 +8,25 @@ from mazebot.config import Config
 from mazebot.errors import UsageError
 from mazebot.sim.maze_file import load_maze
 from mazebot.sim.maze_generator import generate_maze
+from mazebot.sim.room import make_room
 from mazebot.sim.world import World, world_from_layout
 
 
 def make_world(config: Config, maze_path: str | None, seed: int | None, size: tuple[int, int] | None) -> World:
-    """The world a sim run uses: a maze file, or a maze generated from a seed and size."""
+    """The world a sim run uses: a maze file, a maze generated from a seed and size, or the room."""
     sim = config.sim
+    if sim.world == "room":
+        if maze_path or size is not None:
+            raise UsageError("the room world takes no --maze or --size; its size is [sim] room_width_m/room_height_m")
+        return make_room(
+            sim.room_width_m,
+            sim.room_height_m,
+            cylinders=sim.room_cylinders,
+            cylinder_diameter_m=sim.room_cylinder_diameter_m,
+            seed=sim.seed if seed is None else seed,
+            wall_thickness_m=sim.wall_thickness_m,
+            footprint_radius_m=config.robot.footprint_radius_m,
+        )
     path = maze_path or (sim.maze or None)
     if path is not None:
         if seed is not None or size is not None:

@@ -299,6 +299,8 @@
     const message = fault || (performance.now() < bannerUntil ? bannerText : null);
     $("fault").hidden = !message;
     $("fault").textContent = message || "";
+    $("planner").hidden = !s.planner;
+    $("planner").textContent = s.planner || "";
     $("empty").hidden = !!view.grid;
     renderElapsed();
     updateButton();

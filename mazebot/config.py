@@ -248,6 +248,15 @@ class DaemonConfig(Section):
     control_period_s: float = Field(
         0.05, gt=0.001, le=0.5, description="period of the motor control loop (20 Hz)"
     )
+    auto_resume: bool = Field(
+        False, description="resume a run by itself when the fault that stopped it clears; default: press start"
+    )
+    lidar_silence_s: float = Field(
+        0.4, gt=0.1, le=10, description="no lidar revolution this long is a fault: the wheels stop"
+    )
+    startup_grace_s: float = Field(
+        5.0, ge=0, le=60, description="time the lidar gets at start-up before its silence is a fault"
+    )
 
 
 class WebConfig(Section):

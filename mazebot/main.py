@@ -108,8 +108,18 @@ async def run_daemon(
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     """
     from mazebot.planner.pilot import Pilot, PilotParams
-    from mazebot.slam.slam import SlamParams
-    from mazebot.tasks import command_task, control_task, lidar_task, odometry_task, planner_task, slam_task
+    from mazebot.slam.odometry import DiffDriveOdometry
+    from mazebot.slam.slam import Slam, SlamParams
+    from mazebot.tasks import (
+        command_task,
+        control_task,
+        health_task,
+        lidar_task,
+        odometry_task,
+        planner_task,
+        slam_task,
+    )
+    from mazebot.tasks.health_task import HealthMonitor
     from mazebot.web.server import start_web_server
 
     clock = clock or RealClock()
@@ -130,26 +140,39 @@ async def run_daemon(
         # pose-graph optimization and map rebuilds run here, off the event loop
         slam_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam")
         stack.callback(slam_executor.shutdown, wait=False, cancel_futures=True)
-        supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state))
+        state.auto_resume = config.daemon.auto_resume
+        # what must survive a task's restart is built here, outside the tasks: the odometry
+        # (the pose must not jump back to the origin), SLAM (the map), planner and control
+        odometry = DiffDriveOdometry(
+            config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m
+        )
+        slam_params = SlamParams.from_config(config.slam, config.lidar)
+        slam = Slam(slam_params, background=True, record_trajectory=False)
+        supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state), restart=True)
         supervisor.start(
             "odometry",
             lambda: odometry_task.run(
-                hardware.encoders, state, clock, config.encoders, config.drive, config.slam.odometry_history_s
+                hardware.encoders, state, clock, config.encoders, config.drive, config.slam.odometry_history_s,
+                odometry,
             ),
+            restart=True,
         )
-        slam_params = SlamParams.from_config(config.slam, config.lidar)
-        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor))
+        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
+        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s)
+        supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))
         if autonomous:
-            supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms))
+            supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms), restart=True)
         control = control_task.MotorControl(config)
-        supervisor.start("control", lambda: control_task.run(motors, hardware.encoders, state, heartbeat, control))
+        supervisor.start(
+            "control", lambda: control_task.run(motors, hardware.encoders, state, heartbeat, control), restart=True
+        )
         watchdog_s = sdnotify.watchdog_period_s()  # systemd's WatchdogSec, when it set one
         if watchdog_s is not None:
             silence_s = max(watchdog_s / 2, 10 * config.daemon.control_period_s)
             supervisor.start("watchdog", lambda: sdnotify.feed_watchdog(heartbeat, watchdog_s / 4, silence_s))
-        supervisor.start("commands", lambda: command_task.run(state, motors, clock))
+        supervisor.start("commands", lambda: command_task.run(state, motors, clock), restart=True)
         if serve_web:
             web = await start_web_server(state, config, hardware)
             stack.push_async_callback(web.cleanup)

@@ -57,11 +57,27 @@ class MotionRequest:
 
 @dataclass(frozen=True)
 class Fault:
-    """A problem the user must see: where it happened and a human sentence."""
+    """A problem the user must see: where it happened and a human sentence.
+
+    A fault clears itself when its source sees the cause gone (the lidar sends data
+    again, a restarted task keeps running); a ``latched`` one cannot be seen to go away
+    while the wheels are stopped (an encoder that counted nothing while its motor drove)
+    and is cleared by the user's next start, which checks it again.
+    """
 
     source: str  # task or device name, e.g. "lidar"
     message: str  # one human sentence
     time_s: float  # clock time when it was raised
+    latched: bool = False
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the user may want to know that stopped nothing for long (a loop stall, a reconnect)."""
+
+    source: str
+    message: str
+    time_s: float
 
 
 @dataclass
@@ -105,7 +121,13 @@ class SharedState:
     """Everything the tasks share. Created once by ``main.py`` and handed to each task."""
 
     run_state: RunState = RunState.IDLE
-    faults: list[Fault] = field(default_factory=list)
+    faults: list[Fault] = field(default_factory=list)  # the active faults, one per source
+    events: deque[Event] = field(default_factory=lambda: deque(maxlen=20))  # recent faults and notices
+    #: the moving state a fault interrupted (see ``clear_faults``)
+    interrupted: RunState | None = None
+    auto_resume: bool = False  # ``daemon.auto_resume``: a cleared fault resumes the run by itself
+    #: the throttles the control task last wrote (left, right)
+    throttles: tuple[float, float] = (0.0, 0.0)
     pose: Pose2D = field(default_factory=Pose2D)
     pose_time_s: float | None = None  # clock time ``pose`` describes (the odometry reading behind it)
     sensors: SensorStats = field(default_factory=SensorStats)
@@ -158,17 +180,46 @@ class SharedState:
     #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
     planner_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
 
-    def raise_fault(self, source: str, message: str, time_s: float) -> None:
-        """Record a fault and move to FAULT. Motors are the supervisor's job, not this."""
-        self.faults.append(Fault(source, message, time_s))
-        del self.faults[:-50]  # keep the recent history bounded
+    def raise_fault(self, source: str, message: str, time_s: float, *, latched: bool = False) -> None:
+        """Record a fault (one per source: the newest) and move to FAULT.
+
+        The control task stops the wheels in FAULT; the supervisor also stops them at
+        once when a task crashes. A run under way is remembered, so it can resume when
+        the fault clears.
+        """
+        self.faults = [f for f in self.faults if f.source != source]
+        self.faults.append(Fault(source, message, time_s, latched))
+        del self.faults[:-50]  # bounded, whatever happens
+        self.note(source, message, time_s)
+        if self.run_state.moving:
+            self.interrupted = self.run_state
         self.run_state = RunState.FAULT
 
-    def clear_faults(self, source: str | None = None) -> None:
-        """Forget faults (of one source, or all); FAULT falls back to IDLE when none remain."""
-        self.faults = [f for f in self.faults if source is not None and f.source != source]
-        if not self.faults and self.run_state is RunState.FAULT:
+    def clear_faults(self, source: str | None = None, *, latched_only: bool = False) -> None:
+        """Forget the faults of one source (or all, or all latched ones).
+
+        When none remain, FAULT gives way to ``stopped`` if a run was interrupted (start
+        resumes it) or, with ``auto_resume``, straight back to the interrupted state;
+        otherwise to ``idle``.
+        """
+        self.faults = [
+            f
+            for f in self.faults
+            if not ((source is None or f.source == source) and (f.latched or not latched_only))
+        ]
+        if self.faults or self.run_state is not RunState.FAULT:
+            return
+        if self.interrupted is None:
             self.run_state = RunState.IDLE
+        elif self.auto_resume:
+            self.run_state = self.interrupted
+        else:
+            self.run_state = RunState.STOPPED
+        self.interrupted = None
+
+    def note(self, source: str, message: str, time_s: float) -> None:
+        """Keep a human sentence about something that happened, for the status page."""
+        self.events.append(Event(source, message, time_s))
 
     def elapsed_s(self, now_s: float) -> float | None:
         """Time since the exploration started, frozen when it finished; None before any start."""

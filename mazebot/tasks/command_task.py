@@ -15,15 +15,20 @@ def apply_command(command: str, state: SharedState, motors, clock: Clock) -> str
 
     Start from ``idle`` or ``done`` begins a new exploration (``run_number`` grows, the
     planner forgets its goals); start from ``stopped`` resumes the one under way (the
-    planner puts it back to ``returning`` if that is where it was).
+    planner puts it back to ``returning`` if that is where it was). Start in ``fault``
+    clears latched faults and refuses while any other is active.
     """
     if command == "stop":
         motors.stop()
         state.motion_command = None
+        state.interrupted = None  # the user stopped: a fault clearing later must not resume
         if state.run_state.moving or state.run_state in (RunState.IDLE, RunState.DONE):
             state.run_state = RunState.STOPPED
         return "stopped"
     if command == "start":
+        if state.run_state is RunState.FAULT:
+            # latched faults (seen only while driving) get another chance; the rest must clear first
+            state.clear_faults(latched_only=True)
         if state.run_state is RunState.FAULT:
             fault = state.active_fault
             return f"cannot start: {fault.message if fault else 'a fault is active'}"

@@ -20,6 +20,7 @@ import numpy as np
 
 from mazebot.clock import Clock
 from mazebot.config import Config
+from mazebot.io.motors import MotorWriteError
 from mazebot.planner.dwa import scan_points_robot
 from mazebot.planner.pilot import moved_since_scan
 from mazebot.planner.safety import CollisionGuard, ControlWatchdog, SafetyLayer
@@ -110,23 +111,47 @@ async def run(motors, encoders, state: SharedState, clock: Clock, control: Motor
 
     ``clock`` may be the systemd watchdog's :class:`~mazebot.sdnotify.ControlHeartbeat`,
     which notes every tick's sleep; lateness of each tick beyond its period goes into
-    ``state.control_lateness_ms``.
+    ``state.control_lateness_ms``. A failed write to the motor HAT (I²C error: the
+    driver has already told both motors to brake) is a ``motors`` fault, not a crash:
+    the loop keeps ticking, writing zeros, and the fault clears once a write succeeds.
     """
     period_s = control.period_s
     next_tick_s = clock.now_s()
     while True:
         now_s = clock.now_s()
-        state.control_lateness_ms.append(max(0.0, (now_s - next_tick_s) * 1000.0))
+        late_s = now_s - next_tick_s
+        state.control_lateness_ms.append(max(0.0, late_s * 1000.0))
+        if late_s > control.safety.watchdog.deadline_s:
+            state.note("control", f"the control loop was blocked for {late_s + period_s:.2f} s; wheels stopped", now_s)
+            log.warning("control loop blocked for %.2f s; wheels stopped for a tick", late_s + period_s)
         try:
             left, right = control.tick(state, encoders, now_s)
         except Exception:
-            motors.stop()
+            _write(motors, state, 0.0, 0.0, now_s)
             raise
-        if left == 0.0 and right == 0.0:
-            motors.stop()
-        else:
-            motors.set(left, right)
+        _write(motors, state, left, right, now_s)
         next_tick_s += period_s
         if next_tick_s < now_s:  # we fell behind (a stalled loop): do not try to catch up
             next_tick_s = now_s + period_s
         await clock.sleep(next_tick_s - clock.now_s())
+
+
+def _write(motors, state: SharedState, left: float, right: float, now_s: float) -> None:
+    """Write the throttles; a HAT that fails is a fault that clears on the next good write."""
+    try:
+        if left == 0.0 and right == 0.0:
+            motors.stop()
+        else:
+            motors.set(left, right)
+    except (MotorWriteError, OSError) as exc:
+        state.throttles = (0.0, 0.0)
+        if not any(f.source == "motors" for f in state.faults):
+            message = f"cannot write to the motor HAT ({exc}); check its I²C connection and power"
+            log.error("%s", message)
+            state.raise_fault("motors", message, now_s)
+        return
+    state.throttles = (left, right)
+    if any(f.source == "motors" for f in state.faults):
+        state.clear_faults("motors")
+        state.note("motors", "the motor HAT answers again", now_s)
+        log.info("the motor HAT answers again")

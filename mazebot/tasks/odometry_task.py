@@ -17,6 +17,7 @@ async def run(
     enc_cfg: EncodersConfig,
     drive: DriveConfig,
     history_s: float = 3.0,
+    odometry: DiffDriveOdometry | None = None,
 ) -> None:
     """Read the tick counters every ``1 / odometry_rate_hz`` s and integrate the pose.
 
@@ -25,9 +26,11 @@ async def run(
     odometry rate in the map frame: SLAM's latest correction ``state.map_from_odom``
     composed with the odometry (the ROS ``map -> odom -> base_link`` chain); before SLAM's
     first scan the correction is the identity and the pose is the dead-reckoned one.
+    Pass ``odometry`` (and keep ``state.odometry_history``) so a restart continues them.
     """
-    odometry = DiffDriveOdometry(enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
-    history = OdometryHistory(history_s)
+    # a restarted task carries on from the same odometry and history: the pose never jumps
+    odometry = odometry or DiffDriveOdometry(enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
+    history = state.odometry_history or OdometryHistory(history_s)
     state.odometry_history = history
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     while True:

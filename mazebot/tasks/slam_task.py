@@ -63,8 +63,15 @@ async def run(
                 if history is None:
                     continue
                 start_s = time.thread_time()
-                update = slam.update(scan, history)
+                try:
+                    update = slam.update(scan, history)
+                except Exception as exc:  # one bad scan must not cost the map: skip it, stop the wheels
+                    _scan_failed(state, clock, exc)
+                    continue
                 state.scan_ms.append((time.thread_time() - start_s) * 1e3)
+                if any(f.source == "slam" for f in state.faults):
+                    state.clear_faults("slam")
+                    state.note("slam", "SLAM processes scans again", clock.now_s())
                 _publish_update(state, slam, update)
                 if update.loop_job is not None:
                     job = loop.run_in_executor(executor, update.loop_job.run)
@@ -75,6 +82,15 @@ async def run(
             next_scan.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await next_scan
+
+
+def _scan_failed(state: SharedState, clock: Clock, exc: Exception) -> None:
+    """A scan SLAM could not process: a ``slam`` fault (the wheels stop) until one succeeds."""
+    if any(f.source == "slam" for f in state.faults):
+        return
+    message = f"SLAM could not process a lidar scan ({type(exc).__name__}: {exc}); wheels stopped, map kept"
+    log.error("%s", message, exc_info=exc)
+    state.raise_fault("slam", message, clock.now_s())
 
 
 async def _odometry_covering(state: SharedState, clock: Clock, time_s: float) -> OdometryHistory | None:

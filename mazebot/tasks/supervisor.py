@@ -3,7 +3,10 @@
 A task that raises must never leave a motor turning: the supervisor zeroes the motors
 first, then records the fault in the shared state (the web page shows it), logs the
 traceback once, and keeps the other tasks (and the web server) running, unless the
-configuration asks the daemon to exit on faults. A stop request (SIGINT/SIGTERM)
+configuration asks the daemon to exit on faults. Tasks started with ``restart=True`` (the
+daemon's own) are started again after a back-off that doubles with each crash; once a
+restarted task has run for ``healthy_after_s`` its fault clears (and the back-off resets),
+so a device fault never ends the process. A stop request (SIGINT/SIGTERM)
 zeroes the motors synchronously, before anything is cancelled, so the wheels stop
 within the signal handler's own latency.
 """
@@ -23,6 +26,12 @@ log = logging.getLogger(__name__)
 
 TaskFactory = Callable[[], Coroutine[Any, Any, None]]
 
+#: First restart delay of a crashed task, doubled per crash up to ``RESTART_MAX_S``.
+RESTART_MIN_S = 0.5
+RESTART_MAX_S = 10.0
+#: A restarted task that has run this long is healthy again: its fault clears.
+HEALTHY_AFTER_S = 3.0
+
 
 class Stoppable(Protocol):
     """Anything that can bring the motors to zero immediately (the motor driver)."""
@@ -41,13 +50,25 @@ class Supervisor:
     """
 
     def __init__(
-        self, state: SharedState, motors: Stoppable, clock: Clock, *, exit_on_fault: bool
+        self,
+        state: SharedState,
+        motors: Stoppable,
+        clock: Clock,
+        *,
+        exit_on_fault: bool,
+        restart_min_s: float = RESTART_MIN_S,
+        healthy_after_s: float = HEALTHY_AFTER_S,
     ) -> None:
         self._state = state
         self._motors = motors
         self._clock = clock
         self._exit_on_fault = exit_on_fault
         self._tasks: dict[str, asyncio.Task[None]] = {}
+        self._factories: dict[str, tuple[TaskFactory, bool]] = {}
+        self._crashes: dict[str, int] = {}  # consecutive crashes per task (the back-off)
+        self.restart_min_s = restart_min_s
+        self.healthy_after_s = healthy_after_s
+        self.restarts = 0
         self._stopped = asyncio.Event()
         self._exit_code = EXIT_OK
 
@@ -55,13 +76,22 @@ class Supervisor:
     def tasks(self) -> dict[str, asyncio.Task[None]]:
         return dict(self._tasks)
 
-    def start(self, name: str, factory: TaskFactory) -> None:
-        """Start ``factory()`` as task ``name``; its crash becomes a fault, never silence."""
+    def start(self, name: str, factory: TaskFactory, *, restart: bool = False) -> None:
+        """Start ``factory()`` as task ``name``; its crash becomes a fault, never silence.
+
+        With ``restart`` a crashed task is started again (a new ``factory()``) after a
+        back-off; whatever must survive a restart (the map, the odometry) lives outside it.
+        """
         if name in self._tasks and not self._tasks[name].done():
             raise ValueError(f"task {name!r} is already running")
-        task = asyncio.create_task(factory(), name=name)
+        self._factories[name] = (factory, restart)
+        self._launch(name)
+
+    def _launch(self, name: str) -> asyncio.Task[None]:
+        task = asyncio.create_task(self._factories[name][0](), name=name)
         self._tasks[name] = task
         task.add_done_callback(self._on_done)
+        return task
 
     def stop_motors(self) -> None:
         """Zero the motors now; a failure to do so is logged loudly, never swallowed quietly."""
@@ -88,10 +118,38 @@ class Supervisor:
             return
         self.stop_motors()
         reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        self._state.raise_fault(name, f"task {name} crashed ({reason}); motors stopped", self._clock.now_s())
-        log.error("task %s crashed; motors stopped", name, exc_info=exc)
+        restart = self._factories[name][1] and not self._exit_on_fault
+        crashes = self._crashes.get(name, 0)
+        delay_s = min(RESTART_MAX_S, self.restart_min_s * 2**crashes)
+        then = f"restarting in {delay_s:g} s" if restart else "not restarted"
+        self._state.raise_fault(
+            name, f"task {name} crashed ({reason}); motors stopped, {then}", self._clock.now_s()
+        )
+        if crashes == 0:  # the traceback once per series of crashes, not every back-off
+            log.error("task %s crashed; motors stopped", name, exc_info=exc)
+        else:
+            log.error("task %s crashed again (%s)", name, reason)
         if self._exit_on_fault:
             self.request_stop(f"task {name} crashed and daemon.exit_on_fault is set", EXIT_SOFTWARE)
+        elif restart:
+            self._crashes[name] = crashes + 1
+            asyncio.get_running_loop().call_later(delay_s, self._restart, name)
+
+    def _restart(self, name: str) -> None:
+        if self._stopped.is_set():
+            return
+        self.restarts += 1
+        log.info("restarting task %s", name)
+        task = self._launch(name)
+        asyncio.get_running_loop().call_later(self.healthy_after_s, self._check_healthy, name, task)
+
+    def _check_healthy(self, name: str, task: asyncio.Task[None]) -> None:
+        if task.done() or self._stopped.is_set() or self._tasks.get(name) is not task:
+            return
+        self._crashes[name] = 0
+        self._state.clear_faults(name)
+        self._state.note(name, f"task {name} is running again", self._clock.now_s())
+        log.info("task %s is running again", name)
 
     async def wait(self) -> int:
         """Block until a stop is requested, then cancel every task; returns the exit code."""

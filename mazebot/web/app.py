@@ -101,7 +101,8 @@ DEFAULT_STATIC_DIR = find_static_dir()
 def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any]:
     """The run state as ``/api/status`` shows it."""
     fault = state.active_fault
-    elapsed = state.elapsed_s(RealClock().now_s())  # the daemon's clock: the loop's time
+    now_s = RealClock().now_s()  # the daemon's clock: the loop's time
+    elapsed = state.elapsed_s(now_s)
     elapsed_s = None if elapsed is None else round(elapsed, 1)
     grid = state.map
     return {
@@ -118,6 +119,10 @@ def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any
         "safety_stops": state.safety_stops,
         "fault": None if fault is None else {"source": fault.source, "message": fault.message},
         "faults": [{"source": f.source, "message": f.message} for f in state.faults[-10:]],
+        # recent faults and notices, newest last, with their age: what happened while nobody looked
+        "events": [
+            {"source": e.source, "message": e.message, "age_s": round(now_s - e.time_s, 1)} for e in state.events
+        ],
         "sensors": vars(state.sensors),
         "map": None if grid is None else {
             "rows": grid.shape[0], "cols": grid.shape[1], "resolution_m": grid.resolution_m,

@@ -1,0 +1,102 @@
+"""Watches the sensors for the faults a task cannot see from inside: silence and dead wires.
+
+- **Lidar silence**: no revolution for ``lidar_silence_s`` (a revolution takes 0.18 s) means
+  the robot no longer knows what is in front of it: a ``lidar`` fault, so the control task
+  stops the wheels within one control period. The driver reconnects by itself; the
+  fault clears with the first new revolution.
+- **Dead encoder**: a wheel whose motor has been driven well above the deadband for
+  ``encoder_dead_s`` while its tick count did not move, and the other wheel's did: a
+  cut encoder wire. Odometry is then wrong, so this is a fault too; it is latched (the
+  evidence only exists while driving) and the user's next start gives it another try.
+
+Both are plain checks on ``SharedState`` at 10 Hz; they never touch a device.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from mazebot.clock import Clock
+from mazebot.state import SharedState
+
+log = logging.getLogger(__name__)
+
+#: How often the checks run.
+PERIOD_S = 0.1
+#: Ticks the other wheel must have counted for a silent encoder to be suspicious.
+OTHER_WHEEL_TICKS = 40
+
+
+@dataclass
+class _Wheel:
+    since_s: float | None = None  # when the current stretch of "driven but silent" began
+    ticks: int = 0  # the tick count at its start
+    other_ticks: int = 0
+
+
+class HealthMonitor:
+    """The checks, one call per period (see the module docstring)."""
+
+    def __init__(
+        self,
+        lidar_silence_s: float = 0.4,
+        startup_grace_s: float = 5.0,
+        encoder_dead_s: float = 1.0,
+        driven_throttle: float = 0.25,
+    ) -> None:
+        self.lidar_silence_s = float(lidar_silence_s)
+        self.startup_grace_s = float(startup_grace_s)
+        self.encoder_dead_s = float(encoder_dead_s)
+        self.driven_throttle = float(driven_throttle)
+        self._started_s: float | None = None
+        self._wheels = (_Wheel(), _Wheel())
+
+    def check(self, state: SharedState, now_s: float) -> None:
+        if self._started_s is None:
+            self._started_s = now_s
+        self._check_lidar(state, now_s)
+        self._check_encoders(state, now_s)
+
+    def _check_lidar(self, state: SharedState, now_s: float) -> None:
+        scan = state.latest_scan
+        last_s = scan.end_time_s if scan is not None else self._started_s + self.startup_grace_s  # type: ignore[operator]
+        silent_s = now_s - last_s
+        active = any(f.source == "lidar" for f in state.faults)
+        if silent_s > self.lidar_silence_s:
+            if not active:
+                what = "no lidar data yet" if scan is None else f"no lidar data for {silent_s:.1f} s"
+                message = f"{what}: check the lidar's USB cable and power; reconnecting by itself"
+                log.warning("%s", message)
+                state.raise_fault("lidar", message, now_s)
+        elif active:
+            state.clear_faults("lidar")
+            state.note("lidar", "lidar data flows again", now_s)
+            log.info("lidar data flows again")
+
+    def _check_encoders(self, state: SharedState, now_s: float) -> None:
+        ticks = (state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
+        for side, (wheel, name) in enumerate(zip(self._wheels, ("left", "right"), strict=True)):
+            driven = abs(state.throttles[side]) >= self.driven_throttle
+            mine, other = ticks[side], ticks[1 - side]
+            if not driven or mine != wheel.ticks:
+                wheel.since_s = now_s if driven else None
+                wheel.ticks, wheel.other_ticks = mine, other
+                continue
+            if wheel.since_s is None:
+                wheel.since_s, wheel.other_ticks = now_s, other
+                continue
+            if now_s - wheel.since_s >= self.encoder_dead_s and abs(other - wheel.other_ticks) >= OTHER_WHEEL_TICKS:
+                message = (
+                    f"the {name} wheel's encoder counted nothing for {now_s - wheel.since_s:.1f} s while its motor "
+                    "drove: check the encoder's wires; press start to try again"
+                )
+                log.warning("%s", message)
+                state.raise_fault("encoders", message, now_s, latched=True)
+                wheel.since_s = None
+
+
+async def run(state: SharedState, clock: Clock, monitor: HealthMonitor) -> None:
+    while True:
+        monitor.check(state, clock.now_s())
+        await clock.sleep(PERIOD_S)

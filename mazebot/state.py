@@ -80,6 +80,20 @@ class SlamStats:
 
 
 @dataclass
+class RecordStats:
+    """The recorder's and the run saver's counters (``/api/status``): drops are never silent."""
+
+    path: str | None = None  # the MCAP file being written, when recording
+    messages: int = 0  # written to the file
+    dropped: int = 0  # not recorded because the writer's queue was full
+    files: int = 0  # files begun (rotation)
+    error: str | None = None  # the writer stopped (disk full ...); the robot carries on
+    run_dir: str | None = None  # where this run is saved
+    saves: int = 0
+    save_errors: int = 0
+
+
+@dataclass
 class SharedState:
     """Everything the tasks share. Created once by ``main.py`` and handed to each task."""
 
@@ -121,6 +135,8 @@ class SharedState:
     path: list[tuple[float, float]] = field(default_factory=list)  # planned waypoints, map frame
     goal: tuple[float, float] | None = None  # the current exploration goal, map frame
     coverage: float | None = None  # fraction of the maze the map knows, when the planner can tell
+    # --- written by the recorder and the run saver (mazebot.tasks.record_task, persist_task) ---
+    record: RecordStats = field(default_factory=RecordStats)
 
     def raise_fault(self, source: str, message: str, time_s: float) -> None:
         """Record a fault and move to FAULT. Motors are the supervisor's job, not this."""

@@ -117,6 +117,7 @@ def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any
         "fault": None if fault is None else {"source": fault.source, "message": fault.message},
         "faults": [{"source": f.source, "message": f.message} for f in state.faults[-10:]],
         "sensors": vars(state.sensors),
+        "record": vars(state.record),
         "map": None if grid is None else {
             "rows": grid.shape[0], "cols": grid.shape[1], "resolution_m": grid.resolution_m,
             "origin_m": list(grid.origin_m), "generation": grid.generation,

@@ -99,11 +99,13 @@ async def run_daemon(
     serve_web: bool = True,
     state: SharedState | None = None,
     on_started: Callable[[Hardware, SharedState, Supervisor], None] | None = None,
+    session: Any = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
 
     ``on_started`` is called once every task runs (the benchmark adds its driver and
     recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs).
+    ``session`` (a :class:`mazebot.persist.session.RunSession`) records, saves or resumes the run.
     """
     from mazebot.slam.slam import SlamParams
     from mazebot.tasks import command_task, control_task, lidar_task, odometry_task, slam_task
@@ -114,6 +116,8 @@ async def run_daemon(
     state = state if state is not None else SharedState()
     async with AsyncExitStack() as stack:
         hardware = await build_hardware(config, clock, stack)
+        if session is not None:  # the recording taps go in front of the devices
+            hardware = session.open(config, clock, state, hardware, stack)
         motors = hardware.motors
         stack.callback(motors.stop)  # runs on every exit path, after the tasks are gone
         supervisor = Supervisor(state, motors, clock, exit_on_fault=config.daemon.exit_on_fault)
@@ -135,7 +139,8 @@ async def run_daemon(
             ),
         )
         slam_params = SlamParams.from_config(config.slam, config.lidar)
-        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor))
+        slam = session.make_slam(slam_params) if session is not None else None
+        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam))
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         supervisor.start(
             "control", lambda: control_task.run(motors, state, heartbeat, config.daemon.control_period_s)
@@ -145,6 +150,8 @@ async def run_daemon(
             silence_s = max(watchdog_s / 2, 10 * config.daemon.control_period_s)
             supervisor.start("watchdog", lambda: sdnotify.feed_watchdog(heartbeat, watchdog_s / 4, silence_s))
         supervisor.start("commands", lambda: command_task.run(state, motors, clock))
+        if session is not None:
+            session.start_tasks(config, clock, state, supervisor, slam)
         if serve_web:
             web = await start_web_server(state, config, hardware)
             stack.push_async_callback(web.cleanup)
@@ -203,8 +210,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if args.maze or args.seed is not None or args.size:
             raise UsageError("--maze, --seed and --size only make sense with --sim")
         builder = open_robot_hardware
+    from mazebot.persist.session import RunSession
+
+    session = RunSession.from_options(config, record=args.record, resume=args.resume)
     with contextlib.suppress(KeyboardInterrupt):
-        return asyncio.run(run_daemon(config, builder))
+        return asyncio.run(run_daemon(config, builder, session=session))
     return EXIT_OK
 
 
@@ -218,4 +228,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--host", default=None, help="web server interface (overrides [web] host)")
     run.add_argument("--port", type=int, default=None, help="web server port (overrides [web] port)")
     run.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"])
+    run.add_argument("--record", default=None, metavar="FILE.mcap", help="record every sensor stream to MCAP")
+    run.add_argument("--resume", default=None, metavar="RUN", help="continue a saved run (a name from `mazebot runs`)")
     run.set_defaults(func=_cmd_run)

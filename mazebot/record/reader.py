@@ -21,7 +21,7 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from mazebot.errors import UsageError
-from mazebot.record.writer import METADATA_NAME
+from mazebot.record.writer import METADATA_NAME, STATS_NAME
 
 
 class RecordingError(UsageError):
@@ -54,6 +54,7 @@ class Recording:
         self.metadata = metadata
         self.message_counts = counts  # by topic, from the summary
         self.schemas = schemas  # schema name by topic
+        self.recorder_stats: dict[str, str] = {}  # the recorder's final counters ("written", "dropped")
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> Recording:
@@ -63,10 +64,13 @@ class Recording:
                 reader = make_reader(stream)
                 reader.get_header()
                 summary = reader.get_summary()
-                metadata = {}
+                metadata: dict[str, str] = {}
+                recorder_stats: dict[str, str] = {}
                 for record in reader.iter_metadata():
                     if record.name == METADATA_NAME:
                         metadata = dict(record.metadata)
+                    elif record.name == STATS_NAME:
+                        recorder_stats = dict(record.metadata)
         except FileNotFoundError:
             raise RecordingError(f"recording {path} not found") from None
         except IsADirectoryError:
@@ -86,7 +90,9 @@ class Recording:
             counts[channel.topic] = stats.channel_message_counts.get(channel_id, 0) if stats else 0
             schema = summary.schemas.get(channel.schema_id)
             schemas[channel.topic] = schema.name if schema else ""
-        return cls(path, metadata, counts, schemas)
+        recording = cls(path, metadata, counts, schemas)
+        recording.recorder_stats = recorder_stats
+        return recording
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RecordedMessage]:
         """The messages (of ``topics``) in the order they were written, JSON decoded."""

@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 
 PROFILE = ""  # no ROS profile: JSON channels with JSON schemas
 METADATA_NAME = "mazebot"
+STATS_NAME = "mazebot_stats"
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 _STOP = object()
 
@@ -189,6 +190,8 @@ class McapRecorder:
             return
         writer, stream = self._writer, self._stream
         self._writer = self._stream = None
+        # the drops so far, so a replay can say whether its input is complete
+        writer.add_metadata(STATS_NAME, {"written": str(self.stats.written), "dropped": str(self.stats.dropped)})
         writer.finish()
         stream.flush()
         self.stats.bytes_written += stream.tell()

@@ -7,7 +7,8 @@ the first revolution (de-skewed like any other) is matched with ICP
 (:func:`mazebot.slam.icp.match_scan`) against a submap of the saved keyframes around the
 guess, from every start of a small pose grid (±``search_xy_m`` in x and y,
 ±``search_theta_rad`` in heading). Among the acceptable matches (SLAM's own fitness and
-residual limits) the one with the smallest residual wins, and its pose becomes the map
+residual limits) the one that puts most of the revolution's hits on the saved map's
+walls wins (ICP alone slides along a corridor; the far walls decide), and its pose becomes the map
 pose of the odometry frame's origin, so everything that follows is in the saved map's
 frame. If no start gives an acceptable match the guess stands and a warning says so.
 
@@ -22,12 +23,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from mazebot.errors import UsageError
 from mazebot.io.scan import Scan
 from mazebot.persist.snapshot import SavedRun, saved_grid
 from mazebot.slam.icp import IcpResult, match_scan
-from mazebot.slam.keyframes import build_target
+from mazebot.slam.keyframes import build_target, transform
 from mazebot.slam.observed import ObservedSlam
 from mazebot.slam.posegraph import compose, inverse
 from mazebot.slam.preprocess import prepare_scan
@@ -124,7 +126,18 @@ class ResumedSlam(ObservedSlam):
         target = build_target([self.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
         steps_xy = (-self.search_xy_m, 0.0, self.search_xy_m)
         steps_th = np.linspace(-self.search_theta_rad, self.search_theta_rad, 7)
+        # a corridor leaves ICP free along it: among the acceptable matches the one whose
+        # hits (far walls included) fall on the saved map's walls wins
+        walls = ndimage.binary_dilation(self.grid.log_odds > self.grid.occupied_logodds, iterations=1)
+        hits = prepared.points_full
+
+        def on_walls(pose: np.ndarray) -> float:
+            rows, cols = self.grid.to_cell(transform(pose, hits))
+            inside = (rows >= 0) & (rows < walls.shape[0]) & (cols >= 0) & (cols < walls.shape[1])
+            return float(walls[rows[inside], cols[inside]].sum()) / max(1, hits.shape[0])
+
         best: IcpResult | None = None
+        best_score = -1.0
         best_any: IcpResult | None = None
         tried = 0
         for dth in steps_th:
@@ -135,8 +148,11 @@ class ResumedSlam(ObservedSlam):
                     tried += 1
                     if best_any is None or match.fitness > best_any.fitness:
                         best_any = match
-                    if self._acceptable(match) and (best is None or match.rmse_m < best.rmse_m):
-                        best = match
+                    if self._acceptable(match):
+                        score = on_walls(match.pose)
+                        tie = abs(score - best_score) <= 1e-9
+                        if score > best_score + 1e-9 or (tie and best is not None and match.rmse_m < best.rmse_m):
+                            best, best_score = match, score
         chosen = best if best is not None else best_any
         assert chosen is not None
         pose = chosen.pose.copy() if best is not None else self.guess.copy()

@@ -30,6 +30,8 @@ _COMMAND_MODULES = (
     "mazebot.slam.posegraph_cli",
     "mazebot.slam.slam_cli",
     "mazebot.bench.cli",
+    "mazebot.record.cli",
+    "mazebot.persist.cli",
 )
 
 

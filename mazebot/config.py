@@ -469,6 +469,30 @@ class SlamConfig(Section):
         return self
 
 
+class RecordConfig(Section):
+    """Recording every sensor stream, command, pose and fault to MCAP (``mazebot run --record``)."""
+
+    enabled: bool = Field(False, description="record every run (as if --record were given)")
+    path: str = Field("", description="recording file; empty: recording.mcap in the run's folder")
+    max_file_mb: float = Field(512.0, gt=0.1, le=1e6, description="at this size a file is closed and a new one begun")
+    keep_files: int = Field(
+        4, ge=1, le=1000, description="rotated files kept (FILE.mcap, FILE.001.mcap, ...); the oldest is deleted"
+    )
+    queue_messages: int = Field(
+        2000, ge=10, le=1000000, description="messages waiting for the writer thread; more are dropped and counted"
+    )
+    pose_hz: float = Field(10.0, gt=0, le=100, description="pose estimates recorded per second")
+    map_period_s: float = Field(2.0, gt=0.05, le=600, description="the map (foxglove.Grid) is recorded this often")
+    compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="MCAP chunk compression")
+
+
+class PersistConfig(Section):
+    """Saving the map, pose graph and keyframes of each run under the state directory."""
+
+    enabled: bool = Field(True, description="save each `mazebot run` under STATE_DIR/runs/<timestamp>/")
+    save_period_s: float = Field(10.0, gt=0.5, le=3600, description="save this often while running (and at the end)")
+
+
 class Config(BaseModel):
     """The whole configuration file: one section per part of the robot."""
 
@@ -485,6 +509,8 @@ class Config(BaseModel):
     slam: SlamConfig = Field(default_factory=SlamConfig)
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     control: ControlConfig = Field(default_factory=ControlConfig)
+    record: RecordConfig = Field(default_factory=RecordConfig)
+    persist: PersistConfig = Field(default_factory=PersistConfig)
 
     @property
     def wheel_circumference_m(self) -> float:

@@ -100,12 +100,14 @@ async def run_daemon(
     state: SharedState | None = None,
     on_started: Callable[[Hardware, SharedState, Supervisor], None] | None = None,
     autonomous: bool = True,
+    session: Any = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
 
     ``on_started`` is called once every task runs (the benchmark adds its driver and
     recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs);
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
+    ``session`` (a :class:`mazebot.persist.session.RunSession`) records, saves or resumes the run.
     """
     from mazebot.planner.pilot import Pilot, PilotParams
     from mazebot.slam.odometry import DiffDriveOdometry
@@ -127,6 +129,8 @@ async def run_daemon(
     state = state if state is not None else SharedState()
     async with AsyncExitStack() as stack:
         hardware = await build_hardware(config, clock, stack)
+        if session is not None:  # the recording taps go in front of the devices
+            hardware = session.open(config, clock, state, hardware, stack)
         motors = hardware.motors
         stack.callback(motors.stop)  # runs on every exit path, after the tasks are gone
         supervisor = Supervisor(state, motors, clock, exit_on_fault=config.daemon.exit_on_fault)
@@ -147,7 +151,10 @@ async def run_daemon(
             config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m
         )
         slam_params = SlamParams.from_config(config.slam, config.lidar)
-        slam = Slam(slam_params, background=True, record_trajectory=False)
+        if session is not None:  # recorded, saved or resumed
+            slam = session.make_slam(slam_params)
+        else:
+            slam = Slam(slam_params, background=True, record_trajectory=False)
         supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state), restart=True)
         supervisor.start(
             "odometry",
@@ -166,13 +173,15 @@ async def run_daemon(
             supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms), restart=True)
         control = control_task.MotorControl(config)
         supervisor.start(
-            "control", lambda: control_task.run(motors, hardware.encoders, state, heartbeat, control), restart=True
+            "control", lambda: control_task.run(motors, state, heartbeat, control), restart=True
         )
         watchdog_s = sdnotify.watchdog_period_s()  # systemd's WatchdogSec, when it set one
         if watchdog_s is not None:
             silence_s = max(watchdog_s / 2, 10 * config.daemon.control_period_s)
             supervisor.start("watchdog", lambda: sdnotify.feed_watchdog(heartbeat, watchdog_s / 4, silence_s))
         supervisor.start("commands", lambda: command_task.run(state, motors, clock), restart=True)
+        if session is not None:
+            session.start_tasks(config, clock, state, supervisor, slam)
         if serve_web:
             web = await start_web_server(state, config, hardware)
             stack.push_async_callback(web.cleanup)
@@ -233,8 +242,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if args.maze or args.seed is not None or args.size or args.room:
             raise UsageError("--maze, --room, --seed and --size only make sense with --sim")
         builder = open_robot_hardware
+    from mazebot.persist.session import RunSession
+
+    session = RunSession.from_options(config, record=args.record, resume=args.resume)
     with contextlib.suppress(KeyboardInterrupt):
-        return asyncio.run(run_daemon(config, builder))
+        return asyncio.run(run_daemon(config, builder, session=session))
     return EXIT_OK
 
 
@@ -249,4 +261,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--host", default=None, help="web server interface (overrides [web] host)")
     run.add_argument("--port", type=int, default=None, help="web server port (overrides [web] port)")
     run.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"])
+    run.add_argument("--record", default=None, metavar="FILE.mcap", help="record every sensor stream to MCAP")
+    run.add_argument("--resume", default=None, metavar="RUN", help="continue a saved run (a name from `mazebot runs`)")
     run.set_defaults(func=_cmd_run)

@@ -61,7 +61,7 @@ class ControlHeartbeat:
     Example::
 
         heartbeat = ControlHeartbeat(clock)
-        control_task.run(motors, encoders, state, heartbeat, control)   # each tick sleeps once
+        control_task.run(motors, state, heartbeat, control)   # each tick sleeps once
         heartbeat.last_tick_s                                  # clock time of the last tick
     """
 

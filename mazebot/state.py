@@ -117,6 +117,20 @@ class SlamStats:
 
 
 @dataclass
+class RecordStats:
+    """The recorder's and the run saver's counters (``/api/status``): drops are never silent."""
+
+    path: str | None = None  # the MCAP file being written, when recording
+    messages: int = 0  # written to the file
+    dropped: int = 0  # not recorded because the writer's queue was full
+    files: int = 0  # files begun (rotation)
+    error: str | None = None  # the writer stopped (disk full ...); the robot carries on
+    run_dir: str | None = None  # where this run is saved
+    saves: int = 0
+    save_errors: int = 0
+
+
+@dataclass
 class SharedState:
     """Everything the tasks share. Created once by ``main.py`` and handed to each task."""
 
@@ -179,6 +193,8 @@ class SharedState:
     planner_status: str = ""  # one human line: what the planner is doing and why
     #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
     planner_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    # --- written by the recorder and the run saver (mazebot.tasks.record_task, persist_task) ---
+    record: RecordStats = field(default_factory=RecordStats)
 
     def raise_fault(self, source: str, message: str, time_s: float, *, latched: bool = False) -> None:
         """Record a fault (one per source: the newest) and move to FAULT.

@@ -63,6 +63,7 @@ class RunSpec:
     max_sim_s: float = 900.0
     clock: str = "virtual"  # "virtual" or "real"
     world: str = "maze"  # "maze" (a file or generated) or "room" (the room with cylinders)
+    record_path: str | None = None  # record the run to this MCAP file (mazebot.record)
 
     @property
     def name(self) -> str:
@@ -280,8 +281,17 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     builder = sim_hardware_builder(maze_path=spec.maze_path, seed=spec.seed if not spec.maze_path else None,
                                    size=spec.size if not spec.maze_path else None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    daemon = run_daemon(config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started,
-                        autonomous=spec.drive == "explore")
+    session = None
+    if spec.record_path:
+        from pathlib import Path
+
+        from mazebot.persist.session import RunSession
+
+        session = RunSession(record_path=Path(spec.record_path))
+    daemon = run_daemon(
+        config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started, session=session,
+        autonomous=spec.drive == "explore",
+    )
     exit_code = run_virtual(daemon) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0
     cpu_s = time.process_time() - cpu0

@@ -65,11 +65,16 @@ class MotorControl:
         self.lidar_mount_xy_m = (config.lidar.mount_x_m, config.lidar.mount_y_m)
         self._scan_cache: tuple[int, np.ndarray] | None = None
 
-    def tick(self, state: SharedState, encoders, now_s: float) -> tuple[float, float]:
-        """The (left, right) throttles for this period; also updates the measured wheel speeds."""
-        reading = encoders.read()
-        stamp = reading.time_s if reading.time_s is not None else now_s
-        measured = self.estimator.update(reading.left_ticks, reading.right_ticks, stamp)
+    def tick(self, state: SharedState, now_s: float) -> tuple[float, float]:
+        """The (left, right) throttles for this period; also updates the measured wheel speeds.
+
+        The wheel speeds come from the odometry task's latest encoder reading (50 Hz, time-
+        stamped), not from a reading of our own: the encoders have one reader, so a
+        recording of their readings is exactly what the odometry integrated.
+        """
+        stamp = state.pose_time_s if state.pose_time_s is not None else now_s
+        sensors = state.sensors
+        measured = self.estimator.update(sensors.encoder_ticks_left, sensors.encoder_ticks_right, stamp)
         state.wheel_speeds_mps = measured
         moving = state.run_state.moving
         command = state.motion_command
@@ -106,7 +111,7 @@ class MotorControl:
         return out.left_throttle, out.right_throttle
 
 
-async def run(motors, encoders, state: SharedState, clock: Clock, control: MotorControl) -> None:
+async def run(motors, state: SharedState, clock: Clock, control: MotorControl) -> None:
     """Tick ``control`` every period and write its throttles to the motors.
 
     ``clock`` may be the systemd watchdog's :class:`~mazebot.sdnotify.ControlHeartbeat`,
@@ -125,7 +130,7 @@ async def run(motors, encoders, state: SharedState, clock: Clock, control: Motor
             state.note("control", f"the control loop was blocked for {late_s + period_s:.2f} s; wheels stopped", now_s)
             log.warning("control loop blocked for %.2f s; wheels stopped for a tick", late_s + period_s)
         try:
-            left, right = control.tick(state, encoders, now_s)
+            left, right = control.tick(state, now_s)
         except Exception:
             _write(motors, state, 0.0, 0.0, now_s)
             raise

@@ -124,6 +124,7 @@ def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any
             {"source": e.source, "message": e.message, "age_s": round(now_s - e.time_s, 1)} for e in state.events
         ],
         "sensors": vars(state.sensors),
+        "record": vars(state.record),
         "map": None if grid is None else {
             "rows": grid.shape[0], "cols": grid.shape[1], "resolution_m": grid.resolution_m,
             "origin_m": list(grid.origin_m), "generation": grid.generation,

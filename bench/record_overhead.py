@@ -1,0 +1,43 @@
+"""CPU cost of recording: the same virtual-time simulated run with and without ``--record``.
+
+    .venv/bin/python bench/record_overhead.py [--runs 3] [--maze mazebot/sim/mazes/minimaze.txt]
+
+Runs alternate (without, with, without, ...) so both see the same machine load; prints
+the median process CPU seconds (all threads, the writer thread included) of each and the
+overhead in percent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from mazebot.bench.runner import RunSpec, run_one
+from mazebot.config import Config
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--maze", default="mazebot/sim/mazes/minimaze.txt")
+    args = parser.parse_args()
+    cpu: dict[str, list[float]] = {"plain": [], "record": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(args.runs):
+            for mode in ("plain", "record"):
+                path = str(Path(tmp) / f"run{i}.mcap") if mode == "record" else None
+                spec = RunSpec(maze_path=args.maze, size=None, seed=1, record_path=path)
+                start = time.process_time()
+                metrics, record = run_one(Config(), spec)
+                cpu[mode].append(time.process_time() - start)
+                extra = f" dropped {record.state.record.dropped}" if path else ""
+                print(f"{mode}: {cpu[mode][-1]:.2f} s CPU, {metrics['time_s']} s simulated{extra}", flush=True)
+    plain, rec = statistics.median(cpu["plain"]), statistics.median(cpu["record"])
+    print(f"median CPU without {plain:.2f} s, with --record {rec:.2f} s: overhead {100 * (rec / plain - 1):.1f} %")
+
+
+if __name__ == "__main__":
+    main()

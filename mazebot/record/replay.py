@@ -1,0 +1,179 @@
+"""Replay: a recording's sensor streams through the same SLAM, step for step.
+
+The recorded revolutions (``/mazebot/scan_raw``, bit-exact) and encoder readings
+(``/mazebot/encoders``) go through the daemon's own code: the readings through
+:class:`~mazebot.slam.odometry.DiffDriveOdometry` into an
+:class:`~mazebot.slam.ekf.OdometryHistory`, exactly as the odometry task does, and the
+revolutions into :class:`mazebot.slam.slam.Slam`, built from the configuration stored
+in the recording.
+
+When the recording has SLAM's steps (``/mazebot/slam``), replay takes the very same
+steps: the revolutions the live SLAM processed (not those it dropped), each when the
+odometry had reached the same reading, and each loop-closure result merged after the
+same number of scans as live (the job itself is computed at once, in this thread,
+from the same snapshot). The replayed map is then the live map. Without steps (a
+recording of sensors only) every revolution is processed as soon as the odometry
+covers it and loop closures are merged at once.
+
+Nothing depends on the wall clock or on thread timing, so replaying a file twice gives
+identical output files.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mazebot.config import Config
+from mazebot.io.scan import Scan
+from mazebot.record.reader import Recording, RecordingError
+from mazebot.record.schemas import scan_from_json
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.g2o import format_g2o
+from mazebot.slam.map_export import write_map_png, write_ros_map
+from mazebot.slam.odometry import DiffDriveOdometry
+from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams
+
+TOPICS = ("/mazebot/scan_raw", "/mazebot/encoders", "/mazebot/slam")
+
+
+@dataclass
+class ReplayResult:
+    """The SLAM after the replay, and what happened on the way."""
+
+    slam: Slam
+    config: Config
+    mode: str  # "steps" (the live SLAM's own steps) or "sensors" (every revolution)
+    updates: int = 0
+    applied: int = 0
+    missing_scans: int = 0  # steps whose revolution is not in the file (recorder drops)
+    odometry_mismatches: int = 0  # steps whose odometry did not reach the recorded reading
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def recorded_config(recording: Recording) -> Config:
+    try:
+        return Config.model_validate_json(recording.metadata["config"])
+    except (KeyError, ValueError) as exc:
+        raise RecordingError(f"{recording.path}: the recorded configuration cannot be read ({exc})") from None
+
+
+def replay(
+    recording: Recording,
+    *,
+    speed: float | None = None,
+    on_update: Callable[[Slam], None] | None = None,
+    sleep: Callable[[float], None] = time.sleep,
+) -> ReplayResult:
+    """Run the recording through SLAM; ``speed`` paces it (1.0 = as recorded), None = as fast as possible."""
+    config = recorded_config(recording)
+    params = SlamParams.from_config(config.slam, config.lidar)
+    slam = Slam(params, background=True, record_trajectory=True)
+    drive = config.drive
+    odometry = DiffDriveOdometry(config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
+    history = OdometryHistory(config.slam.odometry_history_s)
+    steps = recording.message_counts.get("/mazebot/slam", 0) > 0
+    result = ReplayResult(slam, config, "steps" if steps else "sensors")
+    pending: dict[float, Scan] = {}  # revolutions waiting for SLAM, by end time
+    held: list[LoopClosureResult] = []  # finished jobs waiting for the step that merged them live
+    first_log_ns: int | None = None
+    started = time.monotonic()
+
+    def process(scan: Scan) -> None:
+        update = slam.update(scan, history)
+        result.updates += 1
+        if update.loop_job is not None:
+            job_result = update.loop_job.run()
+            if steps:
+                held.append(job_result)
+            else:
+                slam.apply(job_result)
+                result.applied += 1
+        if on_update is not None:
+            on_update(slam)
+
+    for msg in recording.messages(TOPICS):
+        if speed is not None:
+            first_log_ns = msg.log_time_ns if first_log_ns is None else first_log_ns
+            due_s = (msg.log_time_ns - first_log_ns) / 1e9 / speed - (time.monotonic() - started)
+            if due_s > 0:
+                sleep(due_s)
+        data = msg.data
+        if msg.topic == "/mazebot/encoders":
+            odometry.update(int(data["left_ticks"]), int(data["right_ticks"]))
+            pose = odometry.pose
+            history.append(float(data["time_s"]), pose.x_m, pose.y_m, pose.theta_rad)
+            if not steps:
+                latest = history.latest
+                for end_s in sorted(pending):
+                    if latest is not None and latest[0] >= end_s:
+                        process(pending.pop(end_s))
+        elif msg.topic == "/mazebot/scan_raw":
+            scan = scan_from_json(data)
+            pending[scan.end_time_s] = scan
+        elif data.get("kind") == "update":
+            end_s = float(data["scan_end_time_s"])
+            scan = pending.pop(end_s, None)
+            for older in [t for t in pending if t < end_s]:  # dropped by the live SLAM
+                del pending[older]
+            if scan is None:
+                result.missing_scans += 1
+                continue
+            latest = history.latest
+            expected = data.get("odometry_latest_s")
+            if expected is not None and (latest is None or latest[0] != expected):
+                result.odometry_mismatches += 1
+            process(scan)
+        elif data.get("kind") == "apply" and held:
+            slam.apply(held.pop(0))
+            result.applied += 1
+    result.stats = {
+        "mode": result.mode,
+        "updates": result.updates,
+        "loop_closure_results_applied": result.applied,
+        "keyframes": len(slam.keyframes),
+        "loop_closures": len(slam.closures),
+        "missing_scans": result.missing_scans,
+        "odometry_mismatches": result.odometry_mismatches,
+        "recorded_dropped": int(recording.recorder_stats.get("dropped", 0) or 0),
+    }
+    return result
+
+
+def write_outputs(result: ReplayResult, out_dir: Path) -> dict[str, Path]:
+    """``map.pgm``/``map.yaml``/``map.png``, ``trajectory.txt``, ``graph.g2o``, ``summary.json``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    slam = result.slam
+    pgm, yaml = write_ros_map(slam.grid, out_dir / "map")
+    png = write_map_png(slam.grid.three_state(), out_dir / "map.png")
+    times, poses = slam.trajectory()
+    lines = [f"{t!r} {p[0]!r} {p[1]!r} {p[2]!r}\n" for t, p in zip(times.tolist(), poses.tolist(), strict=True)]
+    trajectory = out_dir / "trajectory.txt"
+    trajectory.write_text("".join(lines), encoding="utf-8")
+    graph = out_dir / "graph.g2o"
+    graph.write_text("".join(format_g2o(slam.graph)), encoding="utf-8")
+    summary = out_dir / "summary.json"
+    occupied = int(np.count_nonzero(slam.grid.occupied_mask()))
+    summary.write_text(json.dumps({**result.stats, "occupied_cells": occupied}, indent=2) + "\n", encoding="utf-8")
+    return {"pgm": pgm, "yaml": yaml, "png": png, "trajectory": trajectory, "graph": graph, "summary": summary}
+
+
+def occupied_iou(a: Any, b: Any) -> float:
+    """IoU of the occupied cells of two grids, compared at the same world coordinates."""
+    res = a.resolution_m
+    if abs(res - b.resolution_m) > 1e-12:
+        raise ValueError("grids of different resolutions")
+    ra, ca = np.nonzero(a.occupied_mask())
+    rb, cb = np.nonzero(b.occupied_mask())
+    oa = np.round(np.array(a.origin_m) / res).astype(int)
+    ob = np.round(np.array(b.origin_m) / res).astype(int)
+    sa = {(int(r + oa[1]), int(c + oa[0])) for r, c in zip(ra, ca, strict=True)}
+    sb = {(int(r + ob[1]), int(c + ob[0])) for r, c in zip(rb, cb, strict=True)}
+    union = sa | sb
+    return 1.0 if not union else len(sa & sb) / len(union)

@@ -1,0 +1,45 @@
+"""A :class:`~mazebot.slam.slam.Slam` that tells observers what it consumed, and when.
+
+A recording must let replay take exactly the steps the live SLAM took: which revolutions
+it processed (some are dropped when SLAM is behind), with odometry up to which reading,
+and after how many scans each loop-closure result (computed in a thread) was merged.
+The method itself is untouched; this subclass only reports after each step.
+
+Example::
+
+    slam = ObservedSlam(params, background=True, record_trajectory=False)
+    slam.observers.append(my_observer)   # slam_updated(...) and slam_applied(...)
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from mazebot.io.scan import Scan
+from mazebot.slam.slam import LoopClosureResult, OdometrySource, Slam, SlamUpdate
+
+
+class SlamObserver(Protocol):
+    def slam_updated(self, slam: Slam, scan: Scan, odometry: OdometrySource, update: SlamUpdate) -> None: ...
+
+    def slam_applied(self, slam: Slam, result: LoopClosureResult, rebuilt: bool) -> None: ...
+
+
+class ObservedSlam(Slam):
+    """Slam plus a list of observers called after ``update`` and ``apply``."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.observers: list[SlamObserver] = []
+
+    def update(self, scan: Scan, odometry: OdometrySource) -> SlamUpdate:
+        update = super().update(scan, odometry)
+        for observer in self.observers:
+            observer.slam_updated(self, scan, odometry, update)
+        return update
+
+    def apply(self, result: LoopClosureResult) -> bool:
+        rebuilt = super().apply(result)
+        for observer in self.observers:
+            observer.slam_applied(self, result, rebuilt)
+        return rebuilt

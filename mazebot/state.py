@@ -137,7 +137,8 @@ class SharedState:
     run_state: RunState = RunState.IDLE
     faults: list[Fault] = field(default_factory=list)  # the active faults, one per source
     events: deque[Event] = field(default_factory=lambda: deque(maxlen=20))  # recent faults and notices
-    #: the moving state a fault interrupted (see ``clear_faults``)
+    #: the moving state a fault interrupted, or ``stopped`` if the user stopped during the fault
+    #: (see ``clear_faults``)
     interrupted: RunState | None = None
     auto_resume: bool = False  # ``daemon.auto_resume``: a cleared fault resumes the run by itself
     #: the throttles the control task last wrote (left, right)

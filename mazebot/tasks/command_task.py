@@ -21,7 +21,8 @@ def apply_command(command: str, state: SharedState, motors, clock: Clock) -> str
     if command == "stop":
         motors.stop()
         state.motion_command = None
-        state.interrupted = None  # the user stopped: a fault clearing later must not resume
+        if state.interrupted is not None:  # stopped during a fault: once it clears, stay stopped
+            state.interrupted = RunState.STOPPED
         if state.run_state.moving or state.run_state in (RunState.IDLE, RunState.DONE):
             state.run_state = RunState.STOPPED
         return "stopped"

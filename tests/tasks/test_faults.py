@@ -1,0 +1,266 @@
+"""Faults: raised where they are seen, wheels stopped, cleared when the cause is gone, run resumed."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from mazebot.clock import RealClock
+from mazebot.config import Config
+from mazebot.io.motors import MotorWriteError
+from mazebot.io.scan import Scan
+from mazebot.sim.maze_generator import generate_maze
+from mazebot.sim.raycast import cast_rays
+from mazebot.sim.world import world_from_layout
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.slam import Slam, SlamParams
+from mazebot.state import MotionRequest, RunState, SharedState
+from mazebot.tasks import control_task, slam_task
+from mazebot.tasks.command_task import apply_command
+from mazebot.tasks.health_task import HealthMonitor
+from mazebot.tasks.supervisor import Supervisor
+
+
+class Motors:
+    """Counts stops; ``fail`` makes every write raise like a HAT gone from the I²C bus."""
+
+    def __init__(self) -> None:
+        self.stops = 0
+        self.sets: list[tuple[float, float]] = []
+        self.fail = False
+
+    def _check(self) -> None:
+        if self.fail:
+            raise MotorWriteError("I2C write to channel 1 failed: [Errno 121] Remote I/O error",
+                                  channel=1, side="left", stopped=False)
+
+    def stop(self) -> None:
+        self.stops += 1
+        self._check()
+
+    def set(self, left: float, right: float) -> None:
+        self._check()
+        self.sets.append((left, right))
+
+
+async def _until(condition, timeout_s: float = 5.0) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while not condition():
+        assert asyncio.get_running_loop().time() < deadline, "condition not met in time"
+        await asyncio.sleep(0.005)
+
+
+def _maze_scan(end_s: float) -> Scan:
+    """A revolution from the start cell of a small maze, the robot standing still."""
+    world = world_from_layout(generate_maze(3, 3, seed=1, kind="perfect"), 0.012)
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    origin = np.array(world.start_pose[:2])
+    ranges = cast_rays(origin, angles + world.start_pose[2], world.segments, world.circles, 12.0)
+    valid = np.isfinite(ranges)
+    return Scan(angles, np.where(valid, ranges, 0.0), np.full(360, 47, np.uint8),
+                np.linspace(end_s - 0.18, end_s, 360), valid)
+
+
+def _scan_ending(end_s: float) -> Scan:
+    return Scan(np.zeros(1), np.ones(1), np.ones(1, np.uint8), np.array([end_s]), np.ones(1, bool))
+
+
+# -- the state's fault model -------------------------------------------------------------
+
+
+def test_a_cleared_fault_leaves_the_interrupted_run_stopped_and_start_resumes_it() -> None:
+    state = SharedState(run_state=RunState.RETURNING, started_at_s=0.0)
+    state.raise_fault("lidar", "no lidar data for 0.5 s", 10.0)
+    assert state.run_state is RunState.FAULT and state.interrupted is RunState.RETURNING
+    state.raise_fault("lidar", "no lidar data for 1.5 s", 11.0)  # one fault per source: the newest
+    assert [f.message for f in state.faults] == ["no lidar data for 1.5 s"]
+    state.clear_faults("lidar")
+    assert state.run_state is RunState.STOPPED  # not moving by itself
+    run_number = state.run_number
+    assert apply_command("start", state, Motors(), RealClock()) == "exploring"
+    assert state.run_number == run_number  # resumed, not a new exploration
+    assert [e.source for e in state.events] == ["lidar", "lidar"]
+
+
+def test_with_auto_resume_a_cleared_fault_resumes_the_run_by_itself() -> None:
+    state = SharedState(run_state=RunState.EXPLORING, auto_resume=True)
+    state.raise_fault("motors", "cannot write to the motor HAT", 1.0)
+    state.raise_fault("slam", "SLAM could not process a scan", 1.1)
+    state.clear_faults("motors")
+    assert state.run_state is RunState.FAULT  # another fault remains
+    state.clear_faults("slam")
+    assert state.run_state is RunState.EXPLORING
+
+
+def test_a_fault_while_idle_clears_back_to_idle_and_stop_forgets_the_interrupted_run() -> None:
+    state = SharedState()
+    state.raise_fault("lidar", "no lidar data yet", 5.0)
+    state.clear_faults("lidar")
+    assert state.run_state is RunState.IDLE
+    state.run_state = RunState.EXPLORING
+    state.auto_resume = True
+    state.raise_fault("lidar", "no lidar data", 6.0)
+    apply_command("stop", state, Motors(), RealClock())  # the user stopped it during the fault
+    state.clear_faults("lidar")
+    assert state.run_state is RunState.STOPPED  # not resumed behind the user's back
+
+
+# -- the supervisor restarts crashed tasks -----------------------------------------------
+
+
+async def test_a_crashed_task_is_restarted_and_its_fault_clears_once_it_keeps_running() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    motors = Motors()
+    sup = Supervisor(state, motors, RealClock(), exit_on_fault=False, restart_min_s=0.05, healthy_after_s=0.2)
+    starts: list[int] = []
+
+    async def flaky() -> None:
+        starts.append(1)
+        if len(starts) == 1:
+            raise OSError("device vanished")
+        await asyncio.sleep(3600)
+
+    sup.start("lidar", flaky, restart=True)
+    await _until(lambda: state.run_state is RunState.FAULT, 2.0)
+    assert motors.stops >= 1
+    assert "restarting in 0.05 s" in state.faults[0].message
+    await _until(lambda: len(starts) == 2, 2.0)
+    assert state.run_state is RunState.FAULT  # not yet proven healthy
+    await _until(lambda: not state.faults, 2.0)
+    assert state.run_state is RunState.STOPPED and sup.restarts == 1
+    await sup.cancel_all()
+
+
+async def test_a_task_that_keeps_crashing_backs_off_and_stays_faulted() -> None:
+    state = SharedState()
+    sup = Supervisor(state, Motors(), RealClock(), exit_on_fault=False, restart_min_s=0.02, healthy_after_s=0.1)
+    starts: list[float] = []
+
+    async def broken() -> None:
+        starts.append(asyncio.get_running_loop().time())
+        raise ValueError("matrix not positive definite")
+
+    sup.start("slam", broken, restart=True)
+    await _until(lambda: len(starts) >= 4, 3.0)
+    gaps = np.diff(starts)
+    assert all(later > 1.5 * earlier for earlier, later in itertools.pairwise(gaps))  # doubling back-off
+    assert state.run_state is RunState.FAULT and state.faults[0].source == "slam"
+    await sup.cancel_all()
+
+
+# -- the health monitor ------------------------------------------------------------------
+
+
+def test_lidar_silence_is_a_fault_that_clears_with_the_next_revolution() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=2.0)
+    monitor.check(state, 0.0)
+    monitor.check(state, 1.9)  # no scan yet, but within the start-up grace
+    assert state.run_state is RunState.EXPLORING
+    state.latest_scan = _scan_ending(2.0)
+    monitor.check(state, 2.3)
+    assert not state.faults
+    monitor.check(state, 2.5)  # 0.5 s after the last revolution ended
+    assert state.run_state is RunState.FAULT
+    assert "no lidar data for 0.5 s" in state.faults[0].message and "USB" in state.faults[0].message
+    state.latest_scan = _scan_ending(2.9)
+    monitor.check(state, 3.0)
+    assert not state.faults and state.run_state is RunState.STOPPED
+
+
+def test_an_encoder_that_counts_nothing_while_its_motor_drives_is_a_latched_fault() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(encoder_dead_s=1.0)
+    state.latest_scan = _scan_ending(1000.0)  # the lidar is fine throughout
+    state.throttles = (0.5, 0.5)
+    for k in range(16):  # the right wheel counts, the left one does not
+        state.sensors.encoder_ticks_right = 30 * k
+        monitor.check(state, 99.0 + 0.1 * k)
+    assert state.run_state is RunState.FAULT
+    fault = state.faults[0]
+    assert fault.source == "encoders" and fault.latched and "left wheel" in fault.message
+    # only a start clears it (the wheels are stopped, nothing could show it gone)
+    state.throttles = (0.0, 0.0)
+    monitor.check(state, 100.7)
+    assert state.run_state is RunState.FAULT
+    assert apply_command("start", state, Motors(), RealClock()) == "exploring"
+
+
+def test_a_wheel_that_stalls_with_the_other_one_is_not_an_encoder_fault() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(encoder_dead_s=1.0)
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.5, 0.5)
+    for k in range(20):  # pushed against a wall: neither wheel turns
+        monitor.check(state, 99.0 + 0.1 * k)
+    assert not state.faults
+
+
+# -- the control task and the motor HAT --------------------------------------------------
+
+
+async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_the_hat_answers() -> None:
+    config = Config()
+    state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
+    motors = Motors()
+    control = control_task.MotorControl(config)
+    loop = asyncio.get_running_loop()
+    state.motion_command = MotionRequest(0.0, 0.5, "turn", loop.time() + 3600)  # turning in place: always allowed
+    task = asyncio.create_task(control_task.run(motors, state, RealClock(), control))
+    await _until(lambda: len(motors.sets) > 2, 2.0)
+    motors.fail = True
+    await _until(lambda: state.run_state is RunState.FAULT, 2.0)
+    assert state.faults[0].source == "motors" and "I²C" in state.faults[0].message
+    stops = motors.stops
+    await asyncio.sleep(0.2)
+    assert not task.done() and motors.stops > stops  # still ticking, still trying to brake
+    motors.fail = False
+    await _until(lambda: not state.faults, 2.0)
+    assert state.run_state is RunState.STOPPED  # the user restarts the run
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+
+
+# -- SLAM: a scan that cannot be processed -----------------------------------------------
+
+
+async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -> None:
+    config = Config()
+    state = SharedState(run_state=RunState.EXPLORING)
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(100.0, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    params = SlamParams.from_config(config.slam, config.lidar)
+    slam = Slam(params, background=True, record_trajectory=False)
+    real_update = slam.update
+    calls: list[int] = []
+
+    def update_failing_once(scan, hist):
+        calls.append(1)
+        if len(calls) == 2:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real_update(scan, hist)
+
+    slam.update = update_failing_once  # type: ignore[method-assign]
+    with ThreadPoolExecutor(max_workers=1) as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor, slam))
+        state.scans.put_nowait(_maze_scan(1.0))
+        await _until(lambda: state.slam.scans == 1)
+        grid = state.map
+        known = int((grid.three_state() != -1).sum())
+        state.scans.put_nowait(_maze_scan(1.2))
+        await _until(lambda: state.run_state is RunState.FAULT)
+        assert "LinAlgError: Singular matrix" in state.faults[0].message and "map kept" in state.faults[0].message
+        assert state.map is grid and int((grid.three_state() != -1).sum()) == known
+        state.scans.put_nowait(_maze_scan(1.4))
+        await _until(lambda: not state.faults)
+        assert state.slam.scans == 2 and not task.done()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task

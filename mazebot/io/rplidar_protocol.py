@@ -470,6 +470,12 @@ class StandardScanDecoder:
         """End of stream: decide on the kept bytes; an incomplete sample counts as dropped."""
         return self._decode(self._tail, final=True)
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes fed but not decided yet (kept for the next call); the driver's time stamps
+        need where in the stream the last decoded sample ended."""
+        return len(self._tail)
+
     # -- the rhythm of the head ------------------------------------------------------
 
     def _forget_rhythm(self) -> None:
@@ -1079,6 +1085,15 @@ class ExpressScanDecoder:
         out = self._decode(self._tail, final=True)
         self._break()
         return out
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes fed but not decoded yet: a partial capsule, or the start of a resync.
+
+        The capsule waiting for its successor (its samples need the next start angle)
+        is not counted: its bytes were decided, its samples come out with the next one.
+        """
+        return len(self._tail)
 
     def _decode(self, buf: bytes, final: bool) -> DecodedSamples:
         arr = np.frombuffer(buf, dtype=np.uint8)

@@ -29,7 +29,7 @@ import math
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Literal, TypeVar
+from typing import Literal
 
 import numpy as np
 
@@ -45,7 +45,6 @@ log = logging.getLogger(__name__)
 
 ScanMode = Literal["standard", "express"]
 LinkFactory = Callable[[], Awaitable[ByteLink]]
-T = TypeVar("T")
 
 #: Nominal time per sample (A1M8 datasheet: ~2000 samples/s standard, ~4000 express).
 NOMINAL_SAMPLE_PERIOD_S = {"standard": 1 / 2000, "express": 1 / 4000}
@@ -148,6 +147,7 @@ class RPLidar:
         self.stats = LidarStats()
         self._link: ByteLink | None = None
         self._rx = bytearray()  # received, not yet consumed by a response
+        self._reader: asyncio.Future[bytes] | None = None  # the pending read of the link
         self._motor_on = False
         self._scanning = False
         self._closed = False
@@ -207,6 +207,7 @@ class RPLidar:
     async def _drop_link(self, *, stop: bool) -> None:
         link, self._link = self._link, None
         self.stats.connected = False
+        self._cancel_read()
         self._rx.clear()
         if link is None:
             return
@@ -222,28 +223,41 @@ class RPLidar:
             self._motor_on = False
             await link.close()
 
-    async def _with_timeout(self, aw: Awaitable[T], timeout_s: float) -> T:
-        """``aw`` within ``timeout_s`` of this driver's clock, else TimeoutError."""
-        task = asyncio.ensure_future(aw)
-        timer = asyncio.ensure_future(self._clock.sleep(max(0.0, timeout_s)))
-        try:
-            await asyncio.wait({task, timer}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            timer.cancel()
-            if not task.done():
-                task.cancel()
-            await asyncio.gather(task, timer, return_exceptions=True)
-        if task.cancelled():
-            raise TimeoutError(f"{self.name}: no answer within {timeout_s:.3g} s")
-        return task.result()
-
     async def _read(self, timeout_s: float) -> bytes:
-        """Some bytes within ``timeout_s`` (TimeoutError), or _LinkLost at end of file."""
+        """Some bytes within ``timeout_s`` (TimeoutError), or _LinkLost at end of file.
+
+        The read of the link outlives a timeout: the next call waits on the same read
+        instead of cancelling it and starting another. The scan loop times out about
+        as often as it receives (it wakes up to decode), and a task per read was a
+        visible share of a simulated run's event-loop work.
+        """
         link = await self.open()
-        data = await self._with_timeout(link.read(), timeout_s)
+        reader = self._reader
+        if reader is None:
+            reader = self._reader = asyncio.ensure_future(link.read())
+        if not reader.done():
+            timer = asyncio.ensure_future(self._clock.sleep(max(0.0, timeout_s)))
+            try:
+                await asyncio.wait({reader, timer}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                timer.cancel()
+            if not reader.done():
+                raise TimeoutError(f"{self.name}: no answer within {timeout_s:.3g} s")
+        self._reader = None
+        data = reader.result()
         if not data:
             raise _LinkLost(f"{self.name}: the port closed (end of file)")
         return data
+
+    def _cancel_read(self) -> None:
+        """Forget the pending read (the input is flushed or the link dropped)."""
+        reader, self._reader = self._reader, None
+        if reader is None:
+            return
+        if not reader.done():
+            reader.cancel()
+        elif not reader.cancelled():
+            reader.exception()  # its bytes (or failure) go with the rest; mark it retrieved
 
     async def _send(self, cmd: int, payload: bytes = b"") -> None:
         link = await self.open()
@@ -251,6 +265,7 @@ class RPLidar:
 
     async def _flush(self) -> None:
         link = await self.open()
+        self._cancel_read()
         link.reset_input_buffer()
         self._rx.clear()
 

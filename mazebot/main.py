@@ -107,7 +107,6 @@ async def run_daemon(
     """
     from mazebot.slam.slam import SlamParams
     from mazebot.tasks import command_task, control_task, lidar_task, odometry_task, slam_task
-    from mazebot.web.server import start_web_server
 
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
@@ -146,6 +145,8 @@ async def run_daemon(
             supervisor.start("watchdog", lambda: sdnotify.feed_watchdog(heartbeat, watchdog_s / 4, silence_s))
         supervisor.start("commands", lambda: command_task.run(state, motors, clock))
         if serve_web:
+            from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
+
             web = await start_web_server(state, config, hardware)
             stack.push_async_callback(web.cleanup)
             log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)

@@ -33,15 +33,13 @@ class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc, valid-t
         if timeout is None:  # no timer pending: only I/O (an executor job) can wake us
             return super().select(None)
         self._passes += 1
-        if len(self.get_map()) <= 1 and self._passes % DRAIN_EVERY_PASSES:
-            # Nothing but the loop's self-pipe is registered: a poll could only drain
-            # that pipe, and the callbacks it announces (executor results) are queued
-            # in the loop already, so they run on time without it. Skipping the
-            # system call matters at ~1000 passes per simulated second; the pipe is
-            # drained every DRAIN_EVERY_PASSES passes so it never fills.
-            events = []
-        else:
-            events = super().select(0)
+        # With nothing but the loop's self-pipe registered, a poll could only drain that
+        # pipe, and the callbacks it announces (executor results) are queued in the
+        # loop already, so they run on time without it. Skipping the system call
+        # matters at ~1000 passes per simulated second; the pipe is drained every
+        # DRAIN_EVERY_PASSES passes so it never fills.
+        only_self_pipe = len(self.get_map()) <= 1
+        events = [] if only_self_pipe and self._passes % DRAIN_EVERY_PASSES else super().select(0)
         # Every pass of the loop costs a little time, as on a real clock; without it a
         # task that polls with waits shorter than float resolution would never see the
         # clock move, and the run would spin for ever at one instant.

@@ -122,7 +122,6 @@ async def run_daemon(
         slam_task,
     )
     from mazebot.tasks.health_task import HealthMonitor
-    from mazebot.web.server import start_web_server
 
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
@@ -183,6 +182,8 @@ async def run_daemon(
         if session is not None:
             session.start_tasks(config, clock, state, supervisor, slam)
         if serve_web:
+            from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
+
             web = await start_web_server(state, config, hardware)
             stack.push_async_callback(web.cleanup)
             log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)

@@ -5,7 +5,8 @@ The driver only buffers bytes and hands them to the pure decoders of
 
 * start: motor on (DTR cleared), STOP, wait, flush, GET_HEALTH (on an error: RESET
   and ask again), let the motor spin up, SCAN or EXPRESS_SCAN;
-* run: decode, stamp each sample with a clock time, cut the stream into revolutions
+* run: decode, stamp each sample with a clock time (from the arrival time of the bytes
+  that completed it, not the later decode time), cut the stream into revolutions
   (``mazebot.io.scan.Scan``, one per turn, in the robot's angle convention);
 * trouble: no sample for ``no_data_timeout_s`` -> STOP and restart the scan; the port
   vanishes (EOF, OSError) or the device stays unhealthy -> close it and reopen with an
@@ -25,9 +26,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Literal, TypeVar
+from typing import Literal
 
 import numpy as np
 
@@ -43,7 +45,6 @@ log = logging.getLogger(__name__)
 
 ScanMode = Literal["standard", "express"]
 LinkFactory = Callable[[], Awaitable[ByteLink]]
-T = TypeVar("T")
 
 #: Nominal time per sample (A1M8 datasheet: ~2000 samples/s standard, ~4000 express).
 NOMINAL_SAMPLE_PERIOD_S = {"standard": 1 / 2000, "express": 1 / 4000}
@@ -146,6 +147,7 @@ class RPLidar:
         self.stats = LidarStats()
         self._link: ByteLink | None = None
         self._rx = bytearray()  # received, not yet consumed by a response
+        self._reader: asyncio.Future[bytes] | None = None  # the pending read of the link
         self._motor_on = False
         self._scanning = False
         self._closed = False
@@ -205,6 +207,7 @@ class RPLidar:
     async def _drop_link(self, *, stop: bool) -> None:
         link, self._link = self._link, None
         self.stats.connected = False
+        self._cancel_read()
         self._rx.clear()
         if link is None:
             return
@@ -220,28 +223,41 @@ class RPLidar:
             self._motor_on = False
             await link.close()
 
-    async def _with_timeout(self, aw: Awaitable[T], timeout_s: float) -> T:
-        """``aw`` within ``timeout_s`` of this driver's clock, else TimeoutError."""
-        task = asyncio.ensure_future(aw)
-        timer = asyncio.ensure_future(self._clock.sleep(max(0.0, timeout_s)))
-        try:
-            await asyncio.wait({task, timer}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            timer.cancel()
-            if not task.done():
-                task.cancel()
-            await asyncio.gather(task, timer, return_exceptions=True)
-        if task.cancelled():
-            raise TimeoutError(f"{self.name}: no answer within {timeout_s:.3g} s")
-        return task.result()
-
     async def _read(self, timeout_s: float) -> bytes:
-        """Some bytes within ``timeout_s`` (TimeoutError), or _LinkLost at end of file."""
+        """Some bytes within ``timeout_s`` (TimeoutError), or _LinkLost at end of file.
+
+        The read of the link outlives a timeout: the next call waits on the same read
+        instead of cancelling it and starting another. The scan loop times out about
+        as often as it receives (it wakes up to decode), and a task per read was a
+        visible share of a simulated run's event-loop work.
+        """
         link = await self.open()
-        data = await self._with_timeout(link.read(), timeout_s)
+        reader = self._reader
+        if reader is None:
+            reader = self._reader = asyncio.ensure_future(link.read())
+        if not reader.done():
+            timer = asyncio.ensure_future(self._clock.sleep(max(0.0, timeout_s)))
+            try:
+                await asyncio.wait({reader, timer}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                timer.cancel()
+            if not reader.done():
+                raise TimeoutError(f"{self.name}: no answer within {timeout_s:.3g} s")
+        self._reader = None
+        data = reader.result()
         if not data:
             raise _LinkLost(f"{self.name}: the port closed (end of file)")
         return data
+
+    def _cancel_read(self) -> None:
+        """Forget the pending read (the input is flushed or the link dropped)."""
+        reader, self._reader = self._reader, None
+        if reader is None:
+            return
+        if not reader.done():
+            reader.cancel()
+        elif not reader.cancelled():
+            reader.exception()  # its bytes (or failure) go with the rest; mark it retrieved
 
     async def _send(self, cmd: int, payload: bytes = b"") -> None:
         link = await self.open()
@@ -249,6 +265,7 @@ class RPLidar:
 
     async def _flush(self) -> None:
         link = await self.open()
+        self._cancel_read()
         link.reset_input_buffer()
         self._rx.clear()
 
@@ -421,6 +438,8 @@ class RPLidar:
         restarts_without_data = 0
         last_data_s = batch_since_s = stamped_until_s = self._clock.now_s()
         batch = bytearray(leftover)
+        arrivals = _ArrivalLog()
+        arrivals.add(len(batch), last_data_s)
         while True:
             now_s = self._clock.now_s()
             stalled = now_s - last_data_s >= self._no_data_timeout_s
@@ -433,8 +452,9 @@ class RPLidar:
                     stalled = False
                     restarts_without_data = 0
                     self.stats.samples += len(samples)
-                    times = self._stamp(len(samples), now_s, stamped_until_s)
-                    stamped_until_s = now_s
+                    latest_s = self._latest_sample_s(arrivals, arrivals.received - decoder.pending_bytes)
+                    times = self._stamp(len(samples), latest_s, stamped_until_s)
+                    stamped_until_s = max(stamped_until_s, latest_s)
                     for scan in revolution.add(samples, times):
                         self.stats.revolutions += 1
                         yield scan
@@ -450,14 +470,35 @@ class RPLidar:
                 decoder = self._new_decoder()
                 revolution = _RevolutionBuilder(self)
                 last_data_s = batch_since_s = stamped_until_s = self._clock.now_s()
+                arrivals = _ArrivalLog()
+                arrivals.add(len(batch), last_data_s)
                 continue
             wait_s = last_data_s + self._no_data_timeout_s - now_s
             if batch:  # come back when the batch is due
                 wait_s = min(wait_s, DECODE_INTERVAL_S - (now_s - batch_since_s))
             try:
-                batch += await self._read(max(wait_s, 0.0))
+                data = await self._read(max(wait_s, 0.0))
             except TimeoutError:
                 continue
+            batch += data
+            arrivals.add(len(data), self._clock.now_s())
+
+    def _latest_sample_s(self, arrivals: _ArrivalLog, decided_end: int) -> float:
+        """Clock time at which the last sample decoded so far was taken.
+
+        Not the time of decoding (up to ``DECODE_INTERVAL_S`` after the bytes came, so
+        ~10-20 ms late on average), but the arrival of the byte that completed it
+        (``decided_end`` is the stream offset just after the bytes the decoder has
+        decided). In express mode a capsule's samples come out only when the next
+        capsule has arrived, and the device sends a capsule once it has measured it, so
+        the last sample of the capsule decoded was taken one capsule (32 samples)
+        before the byte that released it.
+        """
+        arrived_s = arrivals.time_of(decided_end - 1)
+        if self.scan_mode == "express":
+            period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S["express"]
+            arrived_s -= proto.CAPSULE_SAMPLES * period_s
+        return arrived_s
 
     def _new_decoder(self) -> proto.StandardScanDecoder | proto.ExpressScanDecoder:
         """A decoder for a scan that just started (its bytes follow the descriptor)."""
@@ -471,9 +512,9 @@ class RPLidar:
         return decoder
 
     def _stamp(self, count: int, received_s: float, since_s: float) -> np.ndarray:
-        """Clock times of ``count`` samples that arrived in (``since_s``, ``received_s``].
+        """Clock times of ``count`` samples taken in (``since_s``, ``received_s``].
 
-        The last one is taken as received at ``received_s`` and the others one sample
+        The last one is taken at ``received_s`` (see ``_latest_sample_s``) and the others one sample
         period apart before it; when more samples came than fit in that interval at
         that period (a backlog, a device faster than nominal), they are spread evenly
         over it instead. Stamps are strictly increasing across calls.
@@ -481,7 +522,8 @@ class RPLidar:
         if count <= 0:
             return np.empty(0)
         period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S[self.scan_mode]
-        period_s = min(period_s, max(received_s - since_s, 0.0) / count)
+        if received_s > since_s:  # no interval (the first capsules of a scan): nominal spacing
+            period_s = min(period_s, (received_s - since_s) / count)
         i = np.arange(count)
         ideal = received_s - period_s * (count - 1 - i)
         floor = self._last_time_s + 1e-6 * (i + 1)
@@ -508,6 +550,30 @@ class RPLidar:
             valid=valid,
             revolution=revolution,
         )
+
+
+class _ArrivalLog:
+    """When the bytes of a scan stream arrived: the clock time of every chunk read.
+
+    ``add`` records a chunk as it is read; ``time_of(offset)`` is the arrival time of
+    the chunk holding the byte at that stream offset (chunks wholly before it are
+    forgotten: offsets asked for only grow).
+    """
+
+    def __init__(self) -> None:
+        self._chunks: deque[tuple[int, float]] = deque()  # (stream offset after the chunk, time)
+        self.received = 0  # bytes recorded so far
+
+    def add(self, count: int, time_s: float) -> None:
+        if count > 0:
+            self.received += count
+            self._chunks.append((self.received, time_s))
+
+    def time_of(self, offset: int) -> float:
+        chunks = self._chunks
+        while len(chunks) > 1 and chunks[0][0] <= offset:
+            chunks.popleft()
+        return chunks[0][1]
 
 
 class _RevolutionBuilder:

@@ -13,7 +13,6 @@ valid return" (too close, below 0.15 m; too far, beyond 12 m; or no echo).
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -59,36 +58,47 @@ class PoseHistory:
 
     The simulator appends a pose after every physics step; the lidar asks for the pose
     at each sample's time. Heading is unwrapped before interpolation.
+
+    The poses live in one preallocated (capacity, 4) array rather than in deques: the
+    lidar asks 50 times a second, and turning deques into arrays on every question was
+    a measurable part of a benchmark run. Old rows are dropped by moving the recent
+    ones to the front when the array is full.
     """
 
-    def __init__(self, horizon_s: float = 1.0) -> None:
+    def __init__(self, horizon_s: float = 1.0, capacity: int = 1024) -> None:
         self._horizon_s = horizon_s
-        self._t: deque[float] = deque()
-        self._x: deque[float] = deque()
-        self._y: deque[float] = deque()
-        self._th: deque[float] = deque()
+        self._rows = np.empty((max(capacity, 4), 4))  # t, x, y, theta (unwrapped)
+        self._begin = 0  # first row still within the horizon
+        self._end = 0  # one past the last row
 
     def append(self, time_s: float, x_m: float, y_m: float, theta_rad: float) -> None:
-        if self._th:
-            last = self._th[-1]
+        rows = self._rows
+        if self._end > 0:
+            last = rows[self._end - 1, 3]
             theta_rad = last + math.remainder(theta_rad - last, math.tau)
-        self._t.append(time_s)
-        self._x.append(x_m)
-        self._y.append(y_m)
-        self._th.append(theta_rad)
-        while len(self._t) > 2 and self._t[0] < time_s - self._horizon_s:
-            for d in (self._t, self._x, self._y, self._th):
-                d.popleft()
+        if self._end == rows.shape[0]:
+            count = self._end - self._begin
+            if count * 2 > rows.shape[0]:  # mostly recent rows: grow instead
+                rows = self._rows = np.concatenate([rows, np.empty_like(rows)])
+            rows[:count] = rows[self._begin : self._end]
+            self._begin, self._end = 0, count
+        rows[self._end] = (time_s, x_m, y_m, theta_rad)
+        self._end += 1
+        # forget rows older than the horizon (keeping two, so there is always a span)
+        oldest_s = time_s - self._horizon_s
+        while self._end - self._begin > 2 and rows[self._begin, 0] < oldest_s:
+            self._begin += 1
 
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Poses at the given times (clamped to the known span)."""
-        if not self._t:
+        if self._end == self._begin:
             raise RuntimeError("no pose recorded yet")
-        t = np.fromiter(self._t, float, len(self._t))
+        rows = self._rows[self._begin : self._end]
+        t = rows[:, 0]
         return (
-            np.interp(times_s, t, np.fromiter(self._x, float, len(t))),
-            np.interp(times_s, t, np.fromiter(self._y, float, len(t))),
-            np.interp(times_s, t, np.fromiter(self._th, float, len(t))),
+            np.interp(times_s, t, rows[:, 1]),
+            np.interp(times_s, t, rows[:, 2]),
+            np.interp(times_s, t, rows[:, 3]),
         )
 
 
@@ -124,21 +134,35 @@ class SpinningLidar:
         """All samples whose time falls in (last call, now]."""
         if self._time_s is None:
             self.restart(now_s)
-        times: list[float] = []
-        indices: list[int] = []
         t = self._time_s
         assert t is not None
         n = self.params.samples_per_rev
+        times: list[np.ndarray] = []
+        indices: list[np.ndarray] = []
+        # One revolution's worth at a time (the period is drawn anew per revolution).
+        # Sample times are t + p, (t + p) + p, ...: a cumulative sum adds one period at
+        # a time, exactly like stepping sample by sample, so the times are bit for bit
+        # the same as they would be one at a time.
         while t + self._period_s <= now_s:
-            t += self._period_s
-            times.append(t)
-            indices.append(self._index_in_rev)
-            self._index_in_rev += 1
+            left_in_rev = n - self._index_in_rev
+            count = min(left_in_rev, int((now_s - t) / self._period_s) + 2)
+            steps = np.full(count + 1, self._period_s)
+            steps[0] = t
+            run = np.cumsum(steps)[1:]
+            run = run[run <= now_s]
+            times.append(run)
+            indices.append(np.arange(self._index_in_rev, self._index_in_rev + run.size, dtype=np.int64))
+            t = float(run[-1])
+            self._index_in_rev += run.size
             if self._index_in_rev == n:
                 self._index_in_rev = 0
                 self._period_s = self._draw_period_s()
         self._time_s = t
-        return self.measure(np.asarray(times), np.asarray(indices, dtype=np.int64), poses)
+        if not times:
+            return self.measure(np.zeros(0), np.zeros(0, dtype=np.int64), poses)
+        if len(times) == 1:
+            return self.measure(times[0], indices[0], poses)
+        return self.measure(np.concatenate(times), np.concatenate(indices), poses)
 
     def measure(self, times_s: np.ndarray, indices: np.ndarray, poses: PoseHistory) -> DeviceSamples:
         """Range samples at the given times and within-revolution indices."""

@@ -22,6 +22,7 @@ from mazebot.io.motors import FakeMotorKit
 from mazebot.sim.encoder_signals import QuadratureSignal
 from mazebot.sim.lidar_samples import LidarParams, PoseHistory, SpinningLidar
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
+from mazebot.sim.sim_pins import BoundedHistoryPin
 from mazebot.sim.world import World
 
 
@@ -80,7 +81,8 @@ class SimulatedRobot:
         rngs = np.random.default_rng(seed).spawn(2)
         self.physics = RobotPhysics(physics_params(config), world, world.start_pose, rngs[0])
         self.kit = FakeMotorKit(clock)
-        self.pin_factory = MockFactory()
+        # bounded edge history: gpiozero's MockPin keeps every edge (a leak over long runs)
+        self.pin_factory = MockFactory(pin_class=BoundedHistoryPin)
         enc = config.encoders
         self.left_signal = QuadratureSignal(
             self.pin_factory, enc.left_a_pin, enc.left_b_pin, enc.counts_per_rev, idle_high=enc.pull_up

@@ -95,3 +95,26 @@ def test_pose_history_feeds_the_lidar_at_sample_times() -> None:
         assert samples.start.sum() in (2, 3)  # revolutions begin at 0 deg
     finally:
         robot.close()
+
+
+def test_encoder_pins_keep_a_bounded_edge_history() -> None:
+    # gpiozero's MockPin appends every edge to pin.states; over a long simulation that
+    # list was hundreds of megabytes. The simulator's pins keep only the recent edges.
+    config = Config()
+    robot = SimulatedRobot(_open_world(), config, seed=1)
+    encoders = WheelEncoders.from_config(config.encoders, robot.pin_factory)
+    try:
+        robot.step(0.0)
+        robot.kit.motor1.throttle = robot.kit.motor2.throttle = 0.6
+        t = 0.0
+        for _ in range(200):
+            t += 0.01
+            robot.step(t)
+        assert robot.left_signal.edges > 1000
+        pin = robot.pin_factory.pin(config.encoders.left_a_pin)
+        assert len(pin.states) <= 64
+        assert pin.states[-1].state == pin.state  # the history still ends at the current level
+        assert encoders.read().invalid_transitions == 0
+    finally:
+        encoders.close()
+        robot.close()

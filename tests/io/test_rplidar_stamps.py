@@ -1,0 +1,81 @@
+"""Sample time stamps of the RPLidar driver against the emulator's true sample times.
+
+The emulator knows when it took each sample; the driver only sees bytes arrive. The
+driver decodes every ``DECODE_INTERVAL_S`` (40 ms), so stamping a sample with its decode
+time put it up to 40 ms late. Stamps now come from the arrival time of the bytes that
+completed each sample, which on the emulator's 20 ms packets is within about one
+sample period of the truth.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+import numpy as np
+import pytest
+
+from mazebot.clock import RealClock
+from mazebot.io.rplidar import RPLidar
+from mazebot.sim.backend import SimLidarLine
+from mazebot.sim.lidar_emulator import RPLidarEmulator
+from mazebot.sim.lidar_samples import DeviceSamples, LidarParams, PoseHistory, SpinningLidar
+from mazebot.sim.maze_file import load_maze, packaged_maze_path
+from mazebot.sim.virtual_time import run_virtual
+
+
+def _stamps_and_truth(mode: str, revolutions: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Driver stamps of ``revolutions`` scans and the emulator's times of the same samples."""
+    world = load_maze(packaged_maze_path("default_6x6.txt"))
+    per_rev = 360 if mode == "standard" else 720
+    head = SpinningLidar(world, LidarParams(samples_per_rev=per_rev, range_noise=0.0, dropout=0.0),
+                         np.random.default_rng(3))
+    emitted: list[DeviceSamples] = []
+    advance = head.advance
+
+    def recording_advance(now_s: float, poses: PoseHistory) -> DeviceSamples:
+        samples = advance(now_s, poses)
+        emitted.append(samples)
+        return samples
+
+    head.advance = recording_advance  # type: ignore[method-assign]
+    poses = PoseHistory()
+    poses.append(0.0, *world.start_pose)  # a robot standing still
+    clock = RealClock()
+
+    async def run() -> np.ndarray:
+        line = SimLidarLine(RPLidarEmulator(head, poses, clock))
+        stamps = []
+        try:
+            async with RPLidar(line.connect, clock, scan_mode=mode, spin_up_s=0.1) as lidar:
+                scans = lidar.scans()
+                async with contextlib.aclosing(scans):  # type: ignore[type-var]
+                    async for scan in scans:
+                        stamps.append(scan.time_s)
+                        if len(stamps) == revolutions:
+                            break
+        finally:
+            await line.close()
+        return np.concatenate(stamps)
+
+    stamps = run_virtual(asyncio.wait_for(run(), 60.0))
+    true_s = np.concatenate([s.time_s for s in emitted])
+    starts = np.flatnonzero(np.concatenate([s.start for s in emitted]))
+    # the driver drops the partial revolution before the first start flag, then every
+    # sample comes through in order (no noise, no dropped bytes)
+    first = starts[1] if mode == "express" else starts[0]
+    return stamps, true_s[first : first + len(stamps)]
+
+
+@pytest.mark.parametrize(("mode", "median_s", "max_s"), [("standard", 2e-3, 5e-3), ("express", 5e-3, 10e-3)])
+def test_samples_are_stamped_from_byte_arrival_not_decode_time(mode: str, median_s: float, max_s: float) -> None:
+    stamps, true_s = _stamps_and_truth(mode)
+    assert len(stamps) == len(true_s)
+    err_s = np.abs(stamps - true_s)
+    # Decode-time stamps were late by a median of 11 ms (standard) and 21 ms (express).
+    # From byte arrival: standard within the 20 ms packets' own spread and the nominal
+    # vs true sample period (measured median 0.9 ms); express also carries the samples
+    # the emulator holds back until they fill a capsule (measured median 2.9 ms).
+    assert np.median(err_s) < median_s
+    assert np.max(err_s) < max_s
+    assert np.all(np.diff(stamps) > 0)

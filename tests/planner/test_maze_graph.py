@@ -288,7 +288,7 @@ def test_wall_points_trace_the_known_walls_posts_included() -> None:
 def test_a_cell_once_seen_stays_seen_when_the_map_forgets_part_of_it() -> None:
     # A log-odds map lets cells next to a wall drift back to unknown; the cell must not
     # turn into a frontier again (the robot dithered between two such cells on noloop2).
-    layout, world = layout_world(SMALL)
+    _, world = layout_world(SMALL)
     grid, origin = perfect_map(world)
     graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
     graph.update(grid, origin, RES)

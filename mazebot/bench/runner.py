@@ -104,15 +104,30 @@ def _relative(base: tuple[float, float, float], poses: np.ndarray) -> np.ndarray
     return out
 
 
-def _revisits(layout: Any, xy: np.ndarray) -> int:
-    """Cell entries beyond the first visit of each cell, from the true trajectory."""
+#: How far (metres) the robot must be inside a cell before :func:`_revisits` counts an entry.
+REVISIT_DEPTH_M = 0.03
+
+
+def _revisits(layout: Any, xy: np.ndarray, depth_m: float = REVISIT_DEPTH_M) -> int:
+    """Cell entries beyond the first visit of each cell, from the true trajectory.
+
+    An entry counts once the robot's centre is more than ``depth_m`` inside the new cell
+    (hysteresis): a robot following a corridor's centre line sways a centimetre or two,
+    and where it passes close to a cell border (turning a corner, braking at a cell
+    centre) every sway across the border would otherwise count as leaving and
+    re-entering a cell, which is no back-tracking at all.
+    """
     seen: set[tuple[int, int]] = set()
     last = None
     count = 0
+    half_m = 0.5 * layout.cell_size_m
     for x, y in xy:
         cell = layout.cell_at(float(x), float(y))
         if cell is None or cell == last:
             continue
+        cx, cy = layout.cell_center_m(cell)
+        if half_m - max(abs(float(x) - cx), abs(float(y) - cy)) <= depth_m:
+            continue  # at the border: not in the new cell yet
         if cell in seen:
             count += 1
         seen.add(cell)

@@ -188,15 +188,24 @@ class _Region:
 
 @dataclass
 class _Target:
-    """Bookkeeping of the current target, for switching hysteresis and blacklisting."""
+    """Bookkeeping of one target, for switching hysteresis and blacklisting.
+
+    The clocks only run while it is the current target, and they are kept when it stops
+    being one: a frontier that flickers in and out of a noisy map (or that the robot
+    dithers to and from) adds up its time over all its turns as the target instead of
+    starting afresh each time, so it is blacklisted after ``progress_timeout_s`` of
+    being chosen without getting cheaper, or ``dwell_timeout_s`` of the robot standing
+    on it, in total.
+    """
 
     key: object
     position_m: tuple[float, float]
     cost: float
-    chosen_s: float
     best_cost: float
-    progress_s: float
-    arrived_s: float | None = None
+    stalled_s: float = 0.0  # time as the target without the route cost reaching a new low
+    dwelt_s: float = 0.0  # time as the target with the robot at it
+    last_s: float | None = None  # the last tick it was the target
+    at_goal: bool = False  # the robot was at it on that tick
 
 
 class Explorer:
@@ -278,6 +287,7 @@ class Explorer:
         self.updates = 0
         self._discovered: dict[tuple[Cell, Direction | None], int] = {}
         self._target: _Target | None = None
+        self._history: dict[object, _Target] = {}  # every target so far, by key: clocks survive a switch
         self._costmap: GridCostmap | None = None
 
     # -- the tick ------------------------------------------------------------------------
@@ -329,6 +339,7 @@ class Explorer:
         self.blacklisted_links.clear()
         self.blacklisted_points_m.clear()
         self._discovered.clear()
+        self._history.clear()
         self._target = None
 
     def _choose_mode(self) -> None:
@@ -522,20 +533,28 @@ class Explorer:
     def _track(
         self, key: object, position: tuple[float, float], cost: float, now_s: float, at_goal: bool
     ) -> _Target | None:
-        """Keep timers for the target; blacklist it (returning None) when it stops progressing."""
-        target = self._target
-        if target is None or target.key != key:
-            target = _Target(key, position, cost, now_s, cost, now_s)
-            self._target = target
+        """Keep timers for the target; blacklist it (returning None) when it stops progressing.
+
+        Time counts only between consecutive ticks on the same target, so a target
+        picked up again later continues its clocks where it left them (see :class:`_Target`).
+        """
+        target = self._history.get(key)
+        if target is None:
+            target = _Target(key, position, cost, best_cost=cost)
+            self._history[key] = target
+        continued = self._target is target and target.last_s is not None
+        dt_s = now_s - target.last_s if continued and target.last_s is not None else 0.0
+        self._target = target
         target.position_m, target.cost = position, cost
         if cost < target.best_cost - 1e-6:
-            target.best_cost, target.progress_s = cost, now_s
-        if at_goal:
-            target.arrived_s = now_s if target.arrived_s is None else target.arrived_s
+            target.best_cost, target.stalled_s = cost, 0.0
         else:
-            target.arrived_s = None
-        stalled = now_s - target.progress_s > self.progress_timeout_s
-        dwelt = target.arrived_s is not None and now_s - target.arrived_s > self.dwell_timeout_s
+            target.stalled_s += dt_s
+        if at_goal and continued and target.at_goal:
+            target.dwelt_s += dt_s
+        target.last_s, target.at_goal = now_s, at_goal
+        stalled = target.stalled_s > self.progress_timeout_s
+        dwelt = target.dwelt_s > self.dwell_timeout_s
         if stalled or dwelt:
             self._blacklist(target)
             return None

@@ -422,10 +422,18 @@ class MazeGraph:
         if self.frame is None:
             return GraphUpdate(frame_changed=frame_changed)
         old_east, old_north, old_i0, old_j0 = self._east, self._north, self._i0, self._j0
+        old_seen = self._seen
         self._resize(grid, grid_origin_m, resolution_m)
         self._east = self._classify(grid, grid_origin_m, resolution_m, Direction.E)
         self._north = self._classify(grid, grid_origin_m, resolution_m, Direction.N)
         self._seen = self._interior_seen(grid, grid_origin_m, resolution_m)
+        if not frame_changed:
+            # A cell once looked into stays looked into: in a log-odds map the samples next
+            # to a wall band flip between known and unknown as hits and misses add up, and a
+            # cell whose seen share wobbles around ``interior_seen_min`` would come back as
+            # a frontier again and again (the robot dithered between two such cells for
+            # minutes). A new frame moves the cells, so the latch starts over then.
+            self._seen = np.maximum(self._seen, _shifted(old_seen, old_i0 - self._i0, old_j0 - self._j0, self._seen))
         changed: list[tuple[Cell, Direction, LinkState]] = []
         for direction, new, old in ((Direction.E, self._east, old_east), (Direction.N, self._north, old_north)):
             before = np.zeros_like(new)
@@ -709,6 +717,16 @@ class MazeGraph:
         xy = self.frame.to_map(np.concatenate(pieces))
         keep = np.hypot(xy[:, 0] - center_xy_m[0], xy[:, 1] - center_xy_m[1]) <= radius_m
         return xy[keep]
+
+
+def _shifted(old: np.ndarray, di: int, dj: int, like: np.ndarray) -> np.ndarray:
+    """``old`` (indexed [j - j0_old, i - i0_old]) placed in an array shaped like ``like`` whose
+    origin is ``di``/``dj`` cells before old's; zeros where old did not reach (never shrinks, so it fits)."""
+    out = np.zeros_like(like)
+    h, w = old.shape
+    if h and w:
+        out[dj : dj + h, di : di + w] = old
+    return out
 
 
 def _lookup(grid: np.ndarray, origin_m: tuple[float, float], resolution_m: float, xy: np.ndarray) -> np.ndarray:

@@ -285,3 +285,23 @@ def test_a_frontier_given_up_near_the_start_does_not_end_the_run() -> None:
     assert explorer.blacklisted_points_m  # the near patch was given up ...
     assert goal is not None and goal.phase is Phase.EXPLORING  # ... and the far one is next
     assert goal.target_m[0] > 1.2
+
+
+def test_a_frontier_that_keeps_vanishing_is_still_blacklisted_in_the_end() -> None:
+    # In a noisy map a frontier can vanish for a tick and come back; its clock must not
+    # start afresh each time, or an unresolvable frontier holds the robot forever (noloop2).
+    world, grid, origin = t_maze()
+    partial = hide_east_of(grid, origin, 2.5 * CELL)
+    explorer = Explorer(start_xy_m=world.start_pose[:2], progress_timeout_s=10.0)
+    pose = (*centre((0, 1)), 0.0)
+    first = explorer.update(partial, origin, RES, pose, now_s=0.0)
+    assert first is not None and first.phase is Phase.EXPLORING
+    t_s = 0.0
+    for k in range(60):
+        t_s += 1.0
+        shown = grid if k % 4 == 3 else partial  # known for one tick in four
+        explorer.update(shown, origin, RES, pose, now_s=t_s)
+        if explorer.blacklisted_links:
+            break
+    assert explorer.blacklisted_links, "the flickering target was never given up"
+    assert t_s <= 20.0  # ~10 s of being the target, spread over several turns

@@ -283,3 +283,24 @@ def test_wall_points_trace_the_known_walls_posts_included() -> None:
     )
     assert nearest.max() < 0.012
     assert len(graph.wall_points_m((0.45, 0.3), radius_m=0.1)) < len(points)  # only walls near the robot
+
+
+def test_a_cell_once_seen_stays_seen_when_the_map_forgets_part_of_it() -> None:
+    # A log-odds map lets cells next to a wall drift back to unknown; the cell must not
+    # turn into a frontier again (the robot dithered between two such cells on noloop2).
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    graph.update(grid, origin, RES)
+    assert not graph.needs_look((2, 1))
+    forgetful = grid.copy()
+    c0, c1 = int((2 * CELL - origin[0]) / RES), int((3 * CELL - origin[0]) / RES)
+    r0, r1 = int((1 * CELL - origin[1]) / RES), int((2 * CELL - origin[1]) / RES)
+    forgetful[r0 + 2 : r1 - 2, c0 + 2 : c1 - 2] = -1  # the inside of (2, 1) unknown again
+    graph.update(forgetful, origin, RES)
+    assert graph.interior_seen((2, 1)) == pytest.approx(1.0)
+    assert not graph.needs_look((2, 1))
+    # a cell never seen is still unseen: the latch only keeps what was known
+    fresh = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    fresh.update(forgetful, origin, RES)
+    assert fresh.needs_look((2, 1))

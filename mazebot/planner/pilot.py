@@ -116,6 +116,8 @@ class Pilot:
         self.local = self._new_local_planner()
         self._was_moving = False
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
+        #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
+        self._drive_inputs: tuple[np.ndarray, tuple[float, float], float, tuple[float, float]] | None = None
 
     # -- construction ------------------------------------------------------------------
 
@@ -162,12 +164,22 @@ class Pilot:
 
     def tick(self, state: SharedState, now_s: float) -> None:
         """Decide this period's goal and command, writing them into ``state``."""
+        if self.plan(state, now_s):
+            self.drive(state, now_s)
+
+    def plan(self, state: SharedState, now_s: float) -> bool:
+        """The goal half of a tick: map → maze graph → goal → path. True when :meth:`drive` should follow.
+
+        The two halves are separate so the planner task can let the event loop run in
+        between (the control loop's ticks must not wait for a whole planner tick).
+        """
+        self._drive_inputs = None
         if not state.run_state.moving:
             if self._was_moving:  # stopped, done or faulted since the last tick: forget the path
                 self.local.clear()
                 state.motion_command = None
             self._was_moving = False
-            return
+            return False
         self._was_moving = True
         pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
         if state.run_number != self.run_number:  # a new exploration starts where the robot stands
@@ -178,16 +190,16 @@ class Pilot:
         grid = state.map
         if grid is None:
             self._hold(state, now_s, "waiting for the first map")
-            return
+            return False
         three = grid.three_state()
         goal = self.explorer.update(three, grid.origin_m, grid.resolution_m, pose, now_s)
         state.coverage = self._coverage()
         if goal is None:
             self._hold(state, now_s, "waiting for the map to cover the robot")
-            return
+            return False
         if goal.phase is Phase.DONE:
             self._finish(state, now_s)
-            return
+            return False
         if goal.phase is Phase.RETURNING and state.run_state is RunState.EXPLORING:
             state.run_state = RunState.RETURNING
             log.info("nothing reachable is unknown: returning to the start")
@@ -195,18 +207,27 @@ class Pilot:
         state.path = [(float(x), float(y)) for x, y in goal.waypoints_m]
         state.goal = (float(goal.target_m[0]), float(goal.target_m[1]))
         state.planner_status = f"{goal.phase.value}: {goal.reason}" if goal.reason else goal.phase.value
+        self._drive_inputs = (three, grid.origin_m, grid.resolution_m, goal.target_m)
+        return True
 
+    def drive(self, state: SharedState, now_s: float) -> None:
+        """The motion half of a tick: the DWA along the path on the latest scan, map and pose."""
+        if self._drive_inputs is None or not state.run_state.moving:  # stopped since plan(): nothing to drive
+            return
+        three, origin_m, resolution_m, target_m = self._drive_inputs
+        self._drive_inputs = None
+        pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
         window_m = self.params.map_window_m
-        map_xy = map_points_robot(three, grid.origin_m, grid.resolution_m, pose, window_m)
+        map_xy = map_points_robot(three, origin_m, resolution_m, pose, window_m)
         walls_xy = None
         if self.explorer.mode == "maze":
             walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
         cmd = self.local.step(
-            pose, velocity, self._scan_points(state), map_xy, grid.resolution_m * math.sqrt(0.5), now_s, walls_xy
+            pose, velocity, self._scan_points(state), map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy
         )
         if cmd.give_up:
-            log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *goal.target_m)
+            log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
             self.explorer.report_unreachable(now_s)
         state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
 

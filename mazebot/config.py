@@ -380,9 +380,6 @@ class SlamConfig(Section):
     icp_degeneracy_ratio: float = Field(
         0.02, ge=0, lt=1, description="eigenvalue ratio below which a direction counts as unobservable"
     )
-    icp_range_noise_rel: float = Field(
-        0.01, ge=0, lt=1, description="lidar range noise per metre of range: far points weigh less in ICP (0: equal)"
-    )
     icp_min_fitness: float = Field(0.5, ge=0, le=1, description="share of points matched for the filter to use a match")
     icp_max_rmse_m: float = Field(0.03, gt=0, description="... and at most this point-to-line residual")
     icp_retry_headings_rad: list[float] = Field(

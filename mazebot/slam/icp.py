@@ -16,15 +16,7 @@ most 150 iterations or a step below 1 cm / 0.01 rad. Each iteration:
 4. **Weight** the point-to-line residuals ``r_i = n_iᵀ(R p_i + t − q_i)`` (Chen &
    Medioni 1992; Censi, "An ICP variant using a point-to-line metric", ICRA 2008) with
    the Cauchy kernel ``w = 1 / (1 + (r/c)²)``, ``c`` from the residuals' median
-   absolute deviation. With ``range_noise_rel`` the weights also follow each point's own
-   noise: a lidar's range noise grows with range (the A1's datasheet: about 1 % of the
-   distance), so a point at range ``ρ`` whose beam meets the wall at cosine ``c`` with
-   the normal has a residual variance ``(k ρ c)²`` on top of the floor ``σ_min²``, and
-   is weighted by ``σ_min² / (σ_min² + (k ρ c)²)`` (heteroscedastic least squares, as
-   in the per-point covariances of Segal, Haehnel & Thrun, "Generalized-ICP", RSS 2009).
-   Why it matters: in a long corridor only the end walls, metres away, say where along
-   it the robot is; with one noise level for all points ICP claimed ~2 mm there and
-   jumped by a centimetre from one scan to the next, which the map kept.
+   absolute deviation.
 5. **Solve** the linearized least squares ``(JᵀWJ) δ = −JᵀWr`` (3×3) in the eigenbasis
    of ``JᵀWJ``: directions whose eigenvalue is below ``degeneracy_ratio`` times the
    largest are not observable (a straight corridor does not say where along it the
@@ -68,7 +60,6 @@ class IcpParams:
     degeneracy_ratio: float = 0.02  # eigenvalue / largest eigenvalue below this: unobservable
     sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix
     min_correspondences: int = 10  # fewer matches than this: give up, keep the prior
-    range_noise_rel: float = 0.01  # range noise std per metre of range (A1: ~1 %); 0: one noise level for all points
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -282,16 +273,9 @@ def match_scan(
         abs_r = np.abs(r)
         scale = max(p.robust_scale_min_m, 1.4826 * float(np.partition(abs_r, m // 2)[m // 2]))  # MAD
         w = 1.0 / (1.0 + (r / scale) ** 2)
+
         # 5. linearized least squares; the rotation column scaled by the lever arm to metres
         arm = rp[rows]
-        if p.range_noise_rel > 0:
-            # heteroscedastic weights (step 4 of the docstring): range noise seen along the normal
-            beam = arm - rot @ sensor
-            beam_range = np.hypot(beam[:, 0], beam[:, 1])
-            along_normal = np.abs(np.einsum("ij,ij->i", n, beam)) / np.maximum(beam_range, 1e-6)
-            ref_var = p.sigma_min_m**2
-            w = w * ref_var / (ref_var + (p.range_noise_rel * beam_range * along_normal) ** 2)
-
         lever_m = max(0.1, math.sqrt(float(np.einsum("ij,ij->", arm, arm)) / m))
         unit = np.array([1.0, 1.0, lever_m])
         jac = np.empty((m, 3))

@@ -366,6 +366,8 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
             elif verdict == "close":
                 stats.note("flood_closes", f"{remote} kept sending too fast and was disconnected (1008)")
                 log.warning("viewer %s kept sending too fast: closed (1008)", remote)
+                viewer.drop_packets()
+                await viewer.drained(1.0)  # the warning goes out before the close
                 await ws.close(code=WSCloseCode.POLICY_VIOLATION,
                                message=f"too many messages (over {settings.message_rate_per_s:g}/s)".encode())
                 break
@@ -382,6 +384,9 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
         writer.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await writer
+        if not ws.closed:  # the client vanished: closing cancels aiohttp's heartbeat, which holds the socket
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=WSCloseCode.GOING_AWAY), 1.0)
         log.info("viewer %s left (%d dropped packets)", remote, viewer.dropped)
     return ws
 

@@ -278,6 +278,12 @@ class WebConfig(Section):
         8, ge=2, le=1000, description="packets queued per viewer; a viewer further behind gets a full map instead"
     )
     max_message_bytes: int = Field(4096, ge=256, le=1 << 20, description="largest message a viewer may send")
+    message_rate_per_s: float = Field(
+        20.0, gt=0, le=10000, description="messages a second one websocket client may send; excess is dropped"
+    )
+    message_burst: int = Field(
+        40, ge=1, le=100000, description="messages a client may send at once; another burst over the rate closes it"
+    )
     heartbeat_s: float = Field(10.0, gt=0.5, le=300, description="websocket ping and heartbeat period; dead ones close")
     trail_points: int = Field(1000, ge=0, le=100000, description="trajectory points a new viewer gets (the tail)")
 

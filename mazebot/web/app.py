@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import platform
 import secrets
 import sys
@@ -37,6 +38,7 @@ from mazebot.state import SharedState
 from mazebot.web import map_images
 from mazebot.web.auth import ControlAuth, origin_allowed
 from mazebot.web.broadcaster import Broadcaster, Viewer
+from mazebot.web.limits import MessageLimiter
 from mazebot.web.protocol import PROTOCOL_VERSION, ProtocolError, parse_client_message, server_message
 
 log = logging.getLogger(__name__)
@@ -63,6 +65,8 @@ class WebSettings:
     max_message_bytes: int = 4096
     heartbeat_s: float = 10.0
     trail_points: int = 1000
+    message_rate_per_s: float = 20.0
+    message_burst: int = 40
 
     @classmethod
     def from_config(cls, web_config: Any, control_token: str) -> WebSettings:
@@ -76,6 +80,8 @@ class WebSettings:
             max_message_bytes=web_config.max_message_bytes,
             heartbeat_s=web_config.heartbeat_s,
             trail_points=web_config.trail_points,
+            message_rate_per_s=web_config.message_rate_per_s,
+            message_burst=web_config.message_burst,
         )
 
 
@@ -84,6 +90,24 @@ STATIC_DIR_KEY = web.AppKey("static_dir", Path)
 SETTINGS_KEY = web.AppKey("settings", WebSettings)
 AUTH_KEY = web.AppKey("auth", ControlAuth)
 BROADCASTER_KEY = web.AppKey("broadcaster", Broadcaster)
+
+
+@dataclass
+class NetworkStats:
+    """What the network did wrong, for ``/api/status`` (counts since start, and the last one in words)."""
+
+    bad_messages: int = 0  # malformed JSON, unknown type, binary frames: answered with an error
+    flood_warnings: int = 0  # clients told they send too fast
+    flood_closes: int = 0  # ... and closed (1008) because they kept on
+    broken_frames: int = 0  # oversized or invalid websocket frames: answered, closed (1009/1002/1007)
+    last_problem: str | None = None
+
+    def note(self, counter: str, sentence: str) -> None:
+        setattr(self, counter, getattr(self, counter) + 1)
+        self.last_problem = sentence
+
+
+STATS_KEY = web.AppKey("network_stats", NetworkStats)
 
 
 def find_static_dir() -> Path:
@@ -98,8 +122,10 @@ def find_static_dir() -> Path:
 DEFAULT_STATIC_DIR = find_static_dir()
 
 
-def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any]:
-    """The run state as ``/api/status`` shows it."""
+def status_json(
+    state: SharedState, viewers: int | None = None, network: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The run state as ``/api/status`` shows it; ``network``: what clients did wrong (web layer)."""
     fault = state.active_fault
     now_s = RealClock().now_s()  # the daemon's clock: the loop's time
     elapsed = state.elapsed_s(now_s)
@@ -130,6 +156,7 @@ def status_json(state: SharedState, viewers: int | None = None) -> dict[str, Any
             "origin_m": list(grid.origin_m), "generation": grid.generation,
         },
         "viewers": viewers,
+        "network": network,
         "version": __version__,
         "versions": {
             "mazebot": __version__,
@@ -158,13 +185,23 @@ def _presented_token(request: web.Request) -> str | None:
 _AUTH_MESSAGES = {
     401: "a PIN is needed: send it in the X-Mazebot-Token header",
     403: "wrong PIN",
-    429: "too many wrong PINs; wait a minute",
+    429: "too many wrong PINs from this address; try again in {retry_s} s",
 }
 
 
-def _auth_error(status: int) -> web.Response:
-    headers = {"WWW-Authenticate": 'Bearer realm="mazebot"'} if status == 401 else None
-    return web.json_response({"error": _AUTH_MESSAGES[status]}, status=status, headers=headers)
+def _auth_message(status: int, retry_after_s: float = 0.0) -> str:
+    return _AUTH_MESSAGES[status].format(retry_s=math.ceil(retry_after_s))
+
+
+def _auth_error(request: web.Request, status: int) -> web.Response:
+    headers = None
+    retry_s = 0.0
+    if status == 401:
+        headers = {"WWW-Authenticate": 'Bearer realm="mazebot"'}
+    elif status == 429:
+        retry_s = request.app[AUTH_KEY].retry_after_s(request.remote or "?")
+        headers = {"Retry-After": str(math.ceil(retry_s))}
+    return web.json_response({"error": _auth_message(status, retry_s)}, status=status, headers=headers)
 
 
 def _check_origin(request: web.Request) -> None:
@@ -180,7 +217,40 @@ def _check_view(request: web.Request) -> web.Response | None:
     if request.app[SETTINGS_KEY].view_open:
         return None
     status = request.app[AUTH_KEY].check(_presented_token(request), request.remote or "?")
-    return None if status == 200 else _auth_error(status)
+    return None if status == 200 else _auth_error(request, status)
+
+
+#: Why aiohttp closes a socket on a bad frame, in words for the client.
+_FRAME_CLOSE_REASONS: dict[int, str] = {
+    WSCloseCode.MESSAGE_TOO_BIG: "message larger than {limit} bytes",
+    WSCloseCode.PROTOCOL_ERROR: "broken websocket frame",
+    WSCloseCode.INVALID_TEXT: "text frame is not valid UTF-8",
+}
+
+
+class GuardedWebSocket(web.WebSocketResponse):
+    """A websocket that tells its client, in words, why a broken frame closes it.
+
+    aiohttp refuses a frame over ``max_msg_size`` (1009) or one that breaks RFC 6455 (1002,
+    1007 bad UTF-8) by closing the socket itself, with no reason. Here the client first
+    gets a one-line ``error`` message, and the close frame carries the same words.
+    """
+
+    def __init__(self, *, stats: NetworkStats, max_message_bytes: int, **kwargs: Any) -> None:
+        super().__init__(max_msg_size=max_message_bytes, **kwargs)
+        self.stats = stats
+        self.max_message_bytes = max_message_bytes
+        self.remote = "?"
+
+    async def close(self, *, code: int = WSCloseCode.OK, message: bytes = b"", drain: bool = True) -> bool:
+        reason = _FRAME_CLOSE_REASONS.get(int(code))
+        if reason is not None and not message and not self.closed:
+            text = reason.format(limit=self.max_message_bytes)
+            self.stats.note("broken_frames", f"{self.remote}: {text}; closed ({int(code)})")
+            with contextlib.suppress(Exception):  # the socket may be gone already: the close says it anyway
+                await asyncio.wait_for(self.send_str(server_message("error", status=int(code), message=text)), 1.0)
+            message = text.encode()[:120]  # a close reason fits in 123 bytes
+        return await super().close(code=code, message=message, drain=drain)
 
 
 # -- handlers -----------------------------------------------------------------------------
@@ -194,7 +264,12 @@ async def get_status(request: web.Request) -> web.Response:
     if (denied := _check_view(request)) is not None:
         return denied
     viewers = len(request.app[BROADCASTER_KEY].viewers)
-    return web.json_response(status_json(request.app[STATE_KEY], viewers))
+    return web.json_response(status_json(request.app[STATE_KEY], viewers, _network_json(request.app)))
+
+
+def _network_json(app: web.Application) -> dict[str, Any]:
+    auth = app[AUTH_KEY]
+    return {**vars(app[STATS_KEY]), "pin_lockouts": auth.lockouts, "locked_out_now": auth.locked_out}
 
 
 def _queue_command(state: SharedState, command: str) -> bool:
@@ -210,7 +285,7 @@ async def _post_command(request: web.Request, command: str) -> web.Response:
     status = request.app[AUTH_KEY].check(_presented_token(request), request.remote or "?")
     if status != 200:
         log.warning("refused %s from %s (%d)", command, request.remote, status)
-        return _auth_error(status)
+        return _auth_error(request, status)
     if not _queue_command(request.app[STATE_KEY], command):
         return web.json_response({"error": "too many commands queued; try again"}, status=503)
     return web.json_response({"accepted": command})
@@ -260,36 +335,64 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
     _check_origin(request)
     app = request.app
     settings = app[SETTINGS_KEY]
-    ws = web.WebSocketResponse(
+    remote = request.remote or "?"
+    ws = GuardedWebSocket(
+        stats=app[STATS_KEY],
+        max_message_bytes=settings.max_message_bytes,
         heartbeat=settings.heartbeat_s,
-        max_msg_size=settings.max_message_bytes,
         compress=False,  # packets are deflated already
         writer_limit=64 * 1024,  # a slow viewer's writer waits early, so its own queue fills, not memory
         timeout=2.0,
     )
     await ws.prepare(request)
-    remote = request.remote or "?"
+    ws.remote = remote
     if not settings.view_open:
         status = app[AUTH_KEY].check(request.query.get("token"), remote)
         if status != 200:
-            await ws.send_str(server_message("error", status=status, message=_AUTH_MESSAGES[status]))
-            await ws.close(code=4000 + status, message=_AUTH_MESSAGES[status].encode())
+            text = _auth_message(status, app[AUTH_KEY].retry_after_s(remote))
+            await ws.send_str(server_message("error", status=status, message=text))
+            await ws.close(code=4000 + status, message=text.encode())
             return ws
     broadcaster = app[BROADCASTER_KEY]
     viewer = broadcaster.add(ws, remote)
     writer = asyncio.create_task(viewer.pump(), name=f"ws-writer {remote}")
     log.info("viewer %s connected (%d watching)", remote, len(broadcaster.viewers))
+    limiter = MessageLimiter(settings.message_rate_per_s, settings.message_burst)
+    stats = app[STATS_KEY]
     try:
         async for msg in ws:
+            if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
+                continue
+            verdict = limiter.verdict()
+            if verdict == "warn":
+                text = (f"too many messages: at most {settings.message_rate_per_s:g} a second "
+                        f"(bursts of {settings.message_burst}); slow down or be disconnected")
+                stats.note("flood_warnings", f"{remote} sent messages too fast and was told to slow down")
+                broadcaster.reply(viewer, server_message("error", status=429, message=text))
+            elif verdict == "close":
+                stats.note("flood_closes", f"{remote} kept sending too fast and was disconnected (1008)")
+                log.warning("viewer %s kept sending too fast: closed (1008)", remote)
+                viewer.drop_packets()
+                await viewer.drained(1.0)  # the warning goes out before the close
+                await ws.close(code=WSCloseCode.POLICY_VIOLATION,
+                               message=f"too many messages (over {settings.message_rate_per_s:g}/s)".encode())
+                break
+            if verdict != "ok":
+                continue
             if msg.type == WSMsgType.TEXT:
                 _on_client_text(app, viewer, msg.data)
-            elif msg.type == WSMsgType.BINARY:
-                await ws.close(code=WSCloseCode.UNSUPPORTED_DATA, message=b"send JSON text messages")
+            else:
+                stats.note("bad_messages", f"{remote} sent a binary frame")
+                broadcaster.reply(viewer, server_message(
+                    "error", status=400, message="binary frames are not part of the protocol; send JSON text"))
     finally:
         broadcaster.remove(viewer)
         writer.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await writer
+        if not ws.closed:  # the client vanished: closing cancels aiohttp's heartbeat, which holds the socket
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=WSCloseCode.GOING_AWAY), 1.0)
         log.info("viewer %s left (%d dropped packets)", remote, viewer.dropped)
     return ws
 
@@ -299,6 +402,7 @@ def _on_client_text(app: web.Application, viewer: Viewer, text: str) -> None:
     try:
         msg = parse_client_message(text)
     except ProtocolError as exc:
+        app[STATS_KEY].note("bad_messages", f"{viewer.remote} sent a bad message: {exc}")
         broadcaster.reply(viewer, server_message("error", status=400, message=str(exc)))
         return
     if msg.type == "resync":
@@ -307,8 +411,8 @@ def _on_client_text(app: web.Application, viewer: Viewer, text: str) -> None:
     status = app[AUTH_KEY].check(msg.token, viewer.remote)
     if status != 200:
         log.warning("refused %s from %s over the websocket (%d)", msg.type, viewer.remote, status)
-        broadcaster.reply(viewer, server_message("reply", command=msg.type, ok=False, status=status,
-                                                 message=_AUTH_MESSAGES[status]))
+        text = _auth_message(status, app[AUTH_KEY].retry_after_s(viewer.remote))
+        broadcaster.reply(viewer, server_message("reply", command=msg.type, ok=False, status=status, message=text))
         return
     if not _queue_command(app[STATE_KEY], msg.type):
         broadcaster.reply(viewer, server_message("reply", command=msg.type, ok=False, status=503,
@@ -361,6 +465,7 @@ def create_app(
     app[STATIC_DIR_KEY] = static_dir
     app[SETTINGS_KEY] = settings
     app[AUTH_KEY] = ControlAuth(settings.control_token)
+    app[STATS_KEY] = NetworkStats()
     app[BROADCASTER_KEY] = Broadcaster(
         state,
         rate_hz=settings.broadcast_hz or 5.0,

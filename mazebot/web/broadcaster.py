@@ -133,6 +133,9 @@ class Viewer:
         self.sent_packets = 0
         self._items: deque[bytes | str] = deque()
         self._wakeup = asyncio.Event()
+        self._sending = False
+        self._idle = asyncio.Event()  # set while nothing is queued or being sent
+        self._idle.set()
 
     @property
     def queued(self) -> int:
@@ -154,19 +157,40 @@ class Viewer:
         self._items.append(item)
         self._wakeup.set()
 
+    def drop_packets(self) -> None:
+        """Forget the queued packets but keep the text messages: a client about to be closed
+        still gets its last words, not a backlog of maps."""
+        kept = [item for item in self._items if isinstance(item, str)]
+        self.dropped += len(self._items) - len(kept)
+        self._items = deque(kept)
+
+    async def drained(self, timeout_s: float) -> bool:
+        """Wait until everything queued went out (or ``timeout_s`` passed); whether it did."""
+        if not (self._items or self._sending):
+            return True
+        self._idle.clear()
+        try:
+            await asyncio.wait_for(self._idle.wait(), timeout_s)
+        except TimeoutError:
+            return False
+        return True
+
     async def pump(self) -> None:
         """Send queued items in order until the socket fails; run as the viewer's writer task."""
         try:
             while True:
                 while not self._items:
+                    self._idle.set()
                     self._wakeup.clear()
                     await self._wakeup.wait()
                 item = self._items.popleft()
+                self._sending = True
                 if isinstance(item, bytes):
                     await self.ws.send_bytes(item)
                     self.sent_packets += 1
                 else:
                     await self.ws.send_str(item)
+                self._sending = False
                 self.sent_bytes += len(item)
         except (ConnectionError, RuntimeError) as exc:  # closing transport: the reader ends too
             log.debug("viewer %s: send failed (%s)", self.remote, exc)

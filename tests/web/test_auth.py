@@ -47,16 +47,53 @@ def test_token_comparison_uses_hmac_compare_digest(monkeypatch: pytest.MonkeyPat
 
 def test_missing_wrong_right_and_lockout_after_repeated_guesses() -> None:
     now = [0.0]
-    guard = ControlAuth("2468", max_failures=3, window_s=60, lockout_s=30, now_s=lambda: now[0])
+    guard = ControlAuth("2468", free_failures=3, first_delay_s=1, max_delay_s=8, now_s=lambda: now[0])
     assert guard.check(None, "a") == 401 and guard.check("", "a") == 401
     assert guard.check("1111", "a") == 403
-    assert guard.check("2468", "a") == 200
+    assert guard.check("2468", "a") == 200  # a right PIN forgives the typo
     for _ in range(3):
         assert guard.check("0000", "a") == 403
     assert guard.check("2468", "a") == 429  # locked out, even with the right PIN
+    assert guard.retry_after_s("a") == 1.0 and guard.locked_out == 1
     assert guard.check("2468", "b") == 200  # others are not
-    now[0] = 31.0
+    now[0] = 1.0
     assert guard.check("2468", "a") == 200
+
+
+def test_the_lockout_doubles_with_every_further_wrong_pin_up_to_the_cap() -> None:
+    now = [0.0]
+    guard = ControlAuth("246810", now_s=lambda: now[0])  # the defaults: 5 free, 1 s doubling to 60 s
+    delays = []
+    for _ in range(13):
+        assert guard.check("000000", "10.0.0.7") == 403
+        delays.append(guard.retry_after_s("10.0.0.7"))
+        if delays[-1]:
+            assert guard.check("246810", "10.0.0.7") == 429  # refused unseen: a guess now teaches nothing
+        now[0] += delays[-1]  # a patient attacker waits exactly as long as it must
+    assert delays == [0, 0, 0, 0, 1, 2, 4, 8, 16, 32, 60, 60, 60]
+    assert guard.lockouts == 9
+    # from here on one guess a minute: a year of guessing covers about half of the 10**6 six-digit PINs
+    # an hour of quiet and the address starts afresh; a right PIN clears it at once
+    now[0] += 3601
+    assert guard.check("000000", "10.0.0.7") == 403 and guard.retry_after_s("10.0.0.7") == 0
+
+
+def test_ipv6_guesses_count_against_the_whole_slash_64() -> None:
+    now = [0.0]
+    guard = ControlAuth("246810", now_s=lambda: now[0])
+    for i in range(5):  # five privacy addresses of one phone
+        assert guard.check("000000", f"2001:db8:1:2::{i + 1}") == 403
+    assert guard.check("246810", "2001:db8:1:2:abcd::9") == 429
+    assert guard.check("246810", "2001:db8:1:3::1") == 200  # another network
+    assert auth.client_key("::ffff:10.0.0.7") == "10.0.0.7"
+    assert auth.client_key("?") == "?"
+
+
+def test_the_table_of_addresses_stays_bounded() -> None:
+    guard = ControlAuth("246810", max_clients=100, now_s=lambda: 0.0)
+    for i in range(1000):
+        guard.check("000000", f"10.0.{i // 256}.{i % 256}")
+    assert len(guard._clients) == 100
 
 
 @pytest.mark.parametrize(

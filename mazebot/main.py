@@ -15,7 +15,7 @@ import logging
 import signal
 import sys
 from collections.abc import Awaitable, Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from typing import Any
@@ -101,6 +101,7 @@ async def run_daemon(
     on_started: Callable[[Hardware, SharedState, Supervisor], None] | None = None,
     autonomous: bool = True,
     session: Any = None,
+    instrument: Callable[[Any, Executor], Executor] | None = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
 
@@ -108,6 +109,8 @@ async def run_daemon(
     recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs);
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     ``session`` (a :class:`mazebot.persist.session.RunSession`) records, saves or resumes the run.
+    ``instrument(slam, executor)`` returns the executor SLAM is to use (the fault injector's
+    way to reach the compute: :mod:`mazebot.sim.faults`).
     """
     from mazebot.planner.pilot import Pilot, PilotParams
     from mazebot.slam.odometry import DiffDriveOdometry
@@ -154,6 +157,8 @@ async def run_daemon(
             slam = session.make_slam(slam_params)
         else:
             slam = Slam(slam_params, background=True, record_trajectory=False)
+        if instrument is not None:
+            slam_executor = instrument(slam, slam_executor)
         supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state), restart=True)
         supervisor.start(
             "odometry",
@@ -164,7 +169,9 @@ async def run_daemon(
             restart=True,
         )
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
-        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s)
+        monitor = HealthMonitor(
+            config.daemon.lidar_silence_s, config.daemon.startup_grace_s, motor_deadband=config.control.motor_deadband
+        )
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))

@@ -6,20 +6,25 @@ import argparse
 import shlex
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from mazebot.bench.report import write_report
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
+from mazebot.sim.faults import DEFAULT_AT_S, FAULTS, FaultSpec, parse_fault
 from mazebot.sim.maze_file import packaged_maze_path
 
-SUITES = ("smoke", "standard", "full")
+SUITES = ("smoke", "standard", "full", "faults")
 
 
 def suite_specs(suite: str, seeds: int, drive: str, clock: str) -> list[RunSpec]:
     """The runs of a suite. smoke: one 6x6 maze; standard: seeds x 6x6 + an 8x8 training maze;
-    full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze."""
+    full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze;
+    faults: every fault of :data:`mazebot.sim.faults.FAULTS` in its own run of the 6x6 maze."""
+    if suite == "faults":
+        return [RunSpec(None, (6, 6), 1, drive, clock=clock, faults=(FaultSpec(name),)) for name in FAULTS]
     n_seeds = 1 if suite == "smoke" else seeds
     specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(1, n_seeds + 1)]
     if suite in ("standard", "full"):
@@ -54,6 +59,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in range(1, args.seeds + 1)]
     else:
         specs = suite_specs(args.suite, args.seeds, args.drive, args.clock)
+    if args.faults:
+        extra = tuple(parse_fault(text) for text in args.faults)
+        specs = [replace(spec, faults=spec.faults + extra) for spec in specs]
     out_dir = Path(args.out)
     runs = []
     t0 = time.perf_counter()
@@ -61,12 +69,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     for i, spec in enumerate(specs, 1):
         metrics, record = run_one(config, spec)
         runs.append((metrics, record))
-        _progress(i, len(specs), f"{spec.name} seed {spec.seed}: {metrics['time_s']} s simulated "
-                  f"in {metrics['wall_s']} s, done={metrics['done']}")
+        faults = metrics.get("faults") or []
+        outcome = (f"faults passed {sum(r['passed'] for r in faults)}/{len(faults)}" if faults
+                   else f"done={metrics['done']}")
+        injected = " " + ",".join(str(f) for f in spec.faults) if spec.faults else ""
+        _progress(i, len(specs), f"{spec.name} seed {spec.seed}{injected}: "
+                  f"{metrics['time_s']} s simulated in {metrics['wall_s']} s, {outcome}")
     command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
     results = write_report(out_dir, runs, command)
     print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} "
           f"({len(specs)} runs, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+    if any(spec.faults for spec in specs):  # a fault run passes on its fault's numbers, not on finishing
+        return EXIT_OK if all(row["passed"] for r in results["runs"] for row in (r["faults"] or [])) else 1
     return EXIT_OK if all(r["done"] for r in results["runs"]) else 1
 
 
@@ -81,6 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="explore: the autonomous stack; scripted: a ground-truth tour of every cell")
     bench.add_argument("--clock", choices=("virtual", "real"), default="virtual",
                        help="virtual: as fast as the CPU allows (default); real: wall-clock time")
+    bench.add_argument("--faults", nargs="+", default=None, metavar="NAME[@T]",
+                       help="inject these faults into every run, T simulated seconds after the start "
+                       f"(default {DEFAULT_AT_S:g}); names: {', '.join(FAULTS)}")
     bench.add_argument("--out", default="bench-out", help="output directory (default bench-out)")
     bench.add_argument("--config", default=None, help="config file")
     bench.set_defaults(func=_cmd_bench)

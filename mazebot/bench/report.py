@@ -99,6 +99,34 @@ def map_figure(record: RunRecord, path: Path) -> bool:
     return True
 
 
+def fault_table(rows: list[dict[str, Any]]) -> list[str]:
+    """The markdown table of injected faults (see :mod:`mazebot.bench.fault_metrics`)."""
+
+    def num(v: Any, unit: str = "") -> str:
+        return "—" if v is None else f"{v:g}{unit}"
+
+    def yes(v: Any) -> str:
+        return "—" if v is None else ("yes" if v else "**no**")
+
+    out = [
+        "| fault | detected ms | motors zero ms | recovered | map intact | alive | re-localized s | "
+        "scanning again s | passed | detected by |",
+        "|---|---:|---:|---|---|---|---:|---:|---|---|",
+    ]
+    for r in rows:
+        if not r.get("injected_s") and r.get("injected") is False:
+            out.append(f"| {r['fault']} | not injected | | | | | | | **no** | |")
+            continue
+        zero = num(r.get("motors_zero_ms")) if r.get("must_stop") else "— (drives on)"
+        by = (r.get("detected_by") or "").replace("|", "/")
+        out.append(
+            f"| {r['fault']} | {num(r.get('detected_ms'))} | {zero} | {yes(r.get('recovered'))} | "
+            f"{yes(r.get('map_intact'))} | {yes(r.get('alive'))} | {num(r.get('relocalized_s'))} | "
+            f"{num(r.get('scanning_again_s'))} | {yes(r.get('passed'))} | {by[:110]} |"
+        )
+    return out
+
+
 def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], command: str) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     metrics = [m for m, _ in runs]
@@ -123,6 +151,10 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
             "ate_rms_m", "ate_max_m", "heading_rms_deg", "coverage", "map_f1", "scan_ms_p50", "scan_ms_p99",
             "loop_closures", "false_loop_closures")) + " |")
     summary = summarize(metrics)
+    fault_rows = [row for m in metrics for row in (m.get("faults") or [])]
+    if fault_rows:
+        summary["faults"] = {"injected": len(fault_rows), "passed": sum(r["passed"] for r in fault_rows)}
+        lines += ["", "## Faults", "", *fault_table(fault_rows)]
     results = {"command": command, "runs": metrics, "summary": summary}
     write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
     lines += ["", "## Summary (medians)", "", "```json", json.dumps(summary, indent=2), "```", "", "## Figures", ""]

@@ -36,12 +36,14 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.bench.fault_metrics import FaultRecord, fault_metrics
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
 from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.errors import UsageError
 from mazebot.main import Hardware, run_daemon
 from mazebot.sim.backend import sim_hardware_builder
+from mazebot.sim.faults import FaultInjector, FaultSpec
 from mazebot.sim.virtual_time import run_virtual
 from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
@@ -64,6 +66,7 @@ class RunSpec:
     clock: str = "virtual"  # "virtual" or "real"
     world: str = "maze"  # "maze" (a file or generated) or "room" (the room with cylinders)
     record_path: str | None = None  # record the run to this MCAP file (mazebot.record)
+    faults: tuple[FaultSpec, ...] = ()  # injected into the simulated world (mazebot.sim.faults)
 
     @property
     def name(self) -> str:
@@ -90,6 +93,7 @@ class RunRecord:
     done: bool = False  # the tour ended (scripted) or the planner reached DONE (explore)
     start_s: float = 0.0
     end_s: float = 0.0
+    faults: FaultRecord | None = None  # what was injected and what happened (fault runs)
 
 
 def _relative(base: tuple[float, float, float], poses: np.ndarray) -> np.ndarray:
@@ -216,10 +220,15 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     config = config.model_copy(deep=True)
     config.sim.seed = spec.seed
     config.sim.world = spec.world  # type: ignore[assignment]
-    config.daemon.exit_on_fault = True
+    config.daemon.exit_on_fault = not spec.faults
+    if spec.faults:  # the run must survive them and go on by itself once they clear
+        config.daemon.auto_resume = True
     record = RunRecord()
     clock = RealClock()
     period_s = config.daemon.control_period_s
+    injector = FaultInjector(list(spec.faults), None, clock, seed=spec.seed) if spec.faults else None
+    if injector is not None:
+        record.faults = FaultRecord(injector)
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         robot = hardware.sim
@@ -252,6 +261,11 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
             return reading
 
         hardware.encoders.read = read_and_note
+        if injector is not None:
+            injector.ctx.robot = robot
+            assert record.faults is not None
+            record.faults.watch(robot, state, supervisor, clock)
+            supervisor.start("bench-faults", injector.run)
 
         def sim_time_of(pose_s: float) -> float:
             for clock_s, sim_s in reversed(readings):
@@ -277,6 +291,10 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
             """Press start as the user would, then wait for the planner to say done."""
             await clock.sleep(1.0)  # the lidar spins up and SLAM publishes its first map
             state.commands.put_nowait("start")
+            if record.faults is not None:
+                await record.faults.user(state, clock)
+                record.done = state.run_state is RunState.DONE
+                return
             while state.run_state not in (RunState.DONE, RunState.FAULT):
                 await clock.sleep(0.2)
             record.done = state.run_state is RunState.DONE
@@ -288,6 +306,8 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
             if driver is not None:
                 record.done = driver.done
             record.end_s = clock.now_s()
+            if record.faults is not None:
+                record.faults.finish(state, supervisor, clock)
             supervisor.request_stop("benchmark run finished")
 
         supervisor.start("bench-recorder", recorder)
@@ -305,7 +325,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         session = RunSession(record_path=Path(spec.record_path))
     daemon = run_daemon(
         config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started, session=session,
-        autonomous=spec.drive == "explore",
+        autonomous=spec.drive == "explore", instrument=injector.instrument if injector is not None else None,
     )
     exit_code = run_virtual(daemon) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0
@@ -381,4 +401,6 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "lidar_revolutions": state.sensors.lidar_revolutions,
         "lidar_bytes_dropped": state.sensors.lidar_bytes_dropped,
         "encoder_invalid_transitions": state.sensors.encoder_invalid_transitions,
+        # injected faults, measured from the simulation's ground truth (mazebot.bench.fault_metrics)
+        "faults": fault_metrics(record, exit_code) if record.faults is not None else None,
     }

@@ -31,6 +31,7 @@ import asyncio
 import errno
 import logging
 import math
+import random
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -45,6 +46,9 @@ logger = logging.getLogger(__name__)
 CHANNELS: Final = (1, 2, 3, 4)
 #: Throttle writes the fake remembers (the newest ones).
 COMMAND_LOG_LENGTH: Final = 10_000
+
+#: Tries of each brake write after a failed write (transient I²C errors).
+BRAKE_ATTEMPTS: Final = 3
 
 #: Slack when comparing clock times, so a check exactly one TTL later (virtual time,
 #: float sums of periods) counts as expired rather than one tick late.
@@ -171,6 +175,8 @@ class FakeMotorKit:
         self.failed_writes = 0
         self._failing: frozenset[int] = frozenset()
         self._failures_left: int | None = None
+        self._fail_probability = 1.0
+        self._rng: random.Random | None = None
         self._motors = {channel: FakeMotor(self, channel) for channel in CHANNELS}
 
     @property
@@ -193,20 +199,40 @@ class FakeMotorKit:
         """The current throttle of every channel."""
         return {channel: motor.throttle for channel, motor in self._motors.items()}
 
-    def fail_writes(self, channels: Iterable[int] = CHANNELS, times: int | None = None) -> None:
-        """Make writes to ``channels`` raise ``OSError``: the next ``times`` writes, or all."""
+    def fail_writes(
+        self,
+        channels: Iterable[int] = CHANNELS,
+        times: int | None = None,
+        *,
+        probability: float = 1.0,
+        rng: random.Random | None = None,
+    ) -> None:
+        """Make writes to ``channels`` raise ``OSError``: the next ``times`` writes, or all.
+
+        With ``probability`` < 1 each write fails only with that chance (drawn from
+        ``rng``): a noisy bus rather than a HAT gone for good.
+        """
+        if not 0.0 < probability <= 1.0:
+            raise ValueError(f"probability must be in (0, 1], got {probability!r}")
         self._failing = frozenset(channels)
         self._failures_left = times
+        self._fail_probability = probability
+        self._rng = rng or random.Random(0)
 
     def heal(self) -> None:
         """Stop failing writes."""
         self._failing = frozenset()
         self._failures_left = None
+        self._fail_probability = 1.0
 
     def _write(self, channel: int, throttle: float | None) -> None:
         if throttle is not None and not -1.0 <= throttle <= 1.0:
             raise ValueError(f"throttle must be None or between -1.0 and +1.0, got {throttle}")
-        if channel in self._failing and self._failures_left != 0:
+        failing = channel in self._failing and self._failures_left != 0
+        if failing and self._fail_probability < 1.0:
+            assert self._rng is not None
+            failing = self._rng.random() < self._fail_probability
+        if failing:
             if self._failures_left is not None:
                 self._failures_left -= 1
             self.failed_writes += 1
@@ -423,15 +449,23 @@ class DifferentialMotors:
         self.last_command = MotorCommand(left, right, self._clock.now_s(), kind)
 
     def _brake_all_best_effort(self) -> bool:
-        """Throttle 0 on both motors, each tried even if the other fails."""
+        """Throttle 0 on both motors, each tried even if the other fails.
+
+        Each brake write is tried up to ``BRAKE_ATTEMPTS`` times: I²C errors on a noisy bus
+        (EIO, EREMOTEIO) are mostly transient, and a brake that is not written leaves the
+        PCA9685 driving the wheel at its last duty cycle.
+        """
         stopped = True
         for side, channel, motor, _ in self._sides:
-            try:
-                motor.throttle = 0.0
-            except Exception:
-                stopped = False
-                self.write_errors += 1
-                logger.exception("could not brake motor%d (%s)", channel, side)
+            for attempt in range(1, BRAKE_ATTEMPTS + 1):
+                try:
+                    motor.throttle = 0.0
+                    break
+                except Exception:
+                    self.write_errors += 1
+                    if attempt == BRAKE_ATTEMPTS:
+                        stopped = False
+                        logger.exception("could not brake motor%d (%s)", channel, side)
         self.last_command = MotorCommand(0.0, 0.0, self._clock.now_s(), "stop")
         return stopped
 

@@ -10,7 +10,8 @@ The driver only buffers bytes and hands them to the pure decoders of
   (``mazebot.io.scan.Scan``, one per turn, in the robot's angle convention);
 * trouble: no sample for ``no_data_timeout_s`` -> STOP and restart the scan; the port
   vanishes (EOF, OSError) or the device stays unhealthy -> close it and reopen with an
-  exponential backoff. ``scans()`` never ends for a device fault, only when cancelled;
+  exponential backoff; while the port cannot even be opened (the cable is out) it is
+  looked for every ``backoff_min_s``. ``scans()`` never ends for a device fault, only when cancelled;
   ``stats`` tells what happened.
 
 Example::
@@ -424,8 +425,19 @@ class RPLidar:
             except (OSError, TimeoutError, MazebotError) as exc:
                 if self._closed:
                     return
-                self.stats.last_error = _one_line(exc)
-                log.warning("%s: %s; reconnecting in %.3g s", self.name, self.stats.last_error, backoff_s)
+                error = _one_line(exc)
+                absent = self._link is None  # the port itself could not be opened: the cable is out
+                if absent and recovering:
+                    # Opening a missing port costs nothing, so look for the replugged adapter
+                    # every backoff_min_s rather than backing off: scanning again within
+                    # about a second of the cable going back in. Said once per outage.
+                    if error != self.stats.last_error:
+                        log.warning("%s: %s; trying again every %.3g s", self.name, error, self._backoff_min_s)
+                    self.stats.last_error = error
+                    await self._clock.sleep(self._backoff_min_s)
+                    continue
+                self.stats.last_error = error
+                log.warning("%s: %s; reconnecting in %.3g s", self.name, error, backoff_s)
                 await self._drop_link(stop=False)
                 recovering = True
                 await self._clock.sleep(backoff_s)

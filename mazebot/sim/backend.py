@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 from contextlib import AsyncExitStack
 
@@ -36,10 +37,31 @@ class SimLidarLine:
     def __init__(self, emulator: RPLidarEmulator) -> None:
         self.emulator = emulator
         self._served: set[asyncio.Task[None]] = set()
+        self._device_writers: list[asyncio.StreamWriter] = []
+        self.plugged = True
+        self.connects = 0  # lines opened (the first one and every reconnect)
+
+    def unplug(self) -> None:
+        """Pull the USB cable: the open line ends (the driver reads end of file) and the port is gone."""
+        self.plugged = False
+        for writer in self._device_writers:
+            writer.close()
+        self._device_writers.clear()
+
+    def replug(self) -> None:
+        """Put the cable back: the port can be opened again (the device powers up, motor stopped)."""
+        self.plugged = True
+        self.emulator.motor_on = False
+        self.emulator.mode = None
 
     async def connect(self) -> ByteLink:
+        if not self.plugged:
+            # what opening /dev/ttyUSB0 gives once the adapter is gone
+            raise FileNotFoundError(errno.ENOENT, "No such file or directory: the lidar's USB adapter is unplugged")
+        self.connects += 1
         # The driver turns the motor on by clearing DTR, as on the A1's USB adapter.
         link, (device_reader, device_writer) = memory_link_pair(on_motor=lambda on: self.emulator.set_dtr(not on))
+        self._device_writers = [w for w in self._device_writers if not w.is_closing()] + [device_writer]
         task = asyncio.create_task(self.emulator.serve(device_reader, device_writer), name="sim-lidar-device")
         self._served.add(task)
         task.add_done_callback(self._served.discard)
@@ -73,6 +95,7 @@ def sim_hardware_builder(
         stack.push_async_callback(line.close)
         lidar = RPLidar.from_config(config.lidar, clock, link_factory=line.connect)
         await stack.enter_async_context(lidar)
+        robot.lidar_line = line  # the fault injector pulls its cable (mazebot.sim.faults)
         return Hardware(
             lidar=lidar,
             encoders=encoders,

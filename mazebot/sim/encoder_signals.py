@@ -15,6 +15,7 @@ Forward rotation is channel A leading channel B (the usual convention)::
 from __future__ import annotations
 
 import math
+import random
 
 from gpiozero.pins.mock import MockFactory
 
@@ -44,6 +45,13 @@ class QuadratureSignal:
         self._offset = 2 if idle_high else 0
         self._step = 0
         self.edges = 0  # edges driven so far, for tests and stats
+        #: the cable is cut: the pins keep their level whatever the wheel does
+        self.dead = False
+        #: per edge, the chance of contact bounce (the edge is followed by a quick back-and-forth)
+        #: and of a lost edge (the pin changes while nobody is told: the next edge is impossible)
+        self.bounce_probability = 0.0
+        self.lost_edge_probability = 0.0
+        self.rng: random.Random | None = None
         self._drive(_GRAY[self._offset])
 
     def _drive(self, levels: tuple[int, int]) -> None:
@@ -57,6 +65,11 @@ class QuadratureSignal:
     def update(self, wheel_angle_rad: float) -> int:
         """Emit every edge between the last angle and this one; returns how many."""
         target = math.floor(wheel_angle_rad * self._steps_per_rad)
+        if self.dead:
+            self._step = target  # the wheel turns; the pins do not follow
+            return 0
+        if self.rng is not None and (self.bounce_probability or self.lost_edge_probability):
+            return self._update_glitching(target)
         n = target - self._step
         direction = 1 if n > 0 else -1
         for _ in range(abs(n)):
@@ -70,3 +83,30 @@ class QuadratureSignal:
                 pin.drive_low()
         self.edges += abs(n)
         return n
+
+    def _update_glitching(self, target: int) -> int:
+        """``update`` with bouncing contacts and lost edges (fault injection)."""
+        assert self.rng is not None
+        n = target - self._step
+        direction = 1 if n > 0 else -1
+        for _ in range(abs(n)):
+            self._step += direction
+            a, b = _GRAY[(self._step + self._offset) % 4]
+            pin, level = (self._a, a) if self._a.state != a else (self._b, b)
+            if self.rng.random() < self.lost_edge_probability:
+                # the level changes without an interrupt: the reader never hears of this edge
+                pin._change_state(bool(level))
+                continue
+            self._set(pin, level)
+            if self.rng.random() < self.bounce_probability:
+                self._set(pin, 1 - level)  # the contact bounces back ...
+                self._set(pin, level)  # ... and settles
+        self.edges += abs(n)
+        return n
+
+    @staticmethod
+    def _set(pin, level: int) -> None:
+        if level:
+            pin.drive_high()
+        else:
+            pin.drive_low()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,6 +78,15 @@ class RPLidarEmulator:
         self._pending: list[DeviceSamples] = []  # express samples waiting to fill a capsule
         self._capsule_start = True
         self._writer: asyncio.StreamWriter | None = None
+        # --- fault injection (mazebot.sim.faults): what a sick A1 does on its serial line ---
+        #: the device core hangs: it neither answers nor streams (a brown-out, a stuck firmware)
+        self.frozen = False
+        #: the motor does not turn whatever DTR says (a jammed or unpowered motor): no samples
+        self.motor_jammed = False
+        #: every byte the device sends goes through this (noise on the line, flipped bits)
+        self.line_filter: Callable[[bytes], bytes] | None = None
+        #: the next descriptor is cut after this many bytes (then the line carries on)
+        self.truncate_next_descriptor: int | None = None
 
     # --- lines the host controls ----------------------------------------------------
 
@@ -99,6 +109,8 @@ class RPLidarEmulator:
                 chunk = await reader.read(256)
                 if not chunk:
                     return
+                if self.frozen:
+                    continue  # a hung core hears nothing
                 buf += chunk
                 self._handle_requests(buf, writer)
                 await writer.drain()
@@ -130,6 +142,8 @@ class RPLidarEmulator:
             self._answer(cmd, payload, writer)
 
     def _send(self, writer: asyncio.StreamWriter, data: bytes) -> None:
+        if self.line_filter is not None:
+            data = self.line_filter(data)
         writer.write(data)
         self.stats.bytes_sent += len(data)
 
@@ -143,15 +157,15 @@ class RPLidarEmulator:
             self.health = proto.DeviceHealth(status=0, error_code=0)
             asyncio.get_running_loop().call_later(0.002, self._send_banner)
         elif cmd == proto.CMD_GET_INFO:
-            self._send(writer, proto.INFO_DESCRIPTOR.encode())
+            self._send_descriptor(writer, proto.INFO_DESCRIPTOR)
             self._send(writer, proto.encode_info(self.info))
         elif cmd == proto.CMD_GET_HEALTH:
-            self._send(writer, proto.HEALTH_DESCRIPTOR.encode())
+            self._send_descriptor(writer, proto.HEALTH_DESCRIPTOR)
             self._send(writer, proto.encode_health(self.health))
         elif cmd == proto.CMD_GET_SAMPLERATE:
             per_rev = self.head.params.samples_per_rev * self.head.params.rev_per_s
             us = max(1, round(1e6 / per_rev))
-            self._send(writer, proto.SAMPLERATE_DESCRIPTOR.encode())
+            self._send_descriptor(writer, proto.SAMPLERATE_DESCRIPTOR)
             self._send(writer, proto.encode_samplerate(proto.SampleRate(standard_us=us, express_us=max(1, us // 2))))
         elif cmd in (proto.CMD_SCAN, proto.CMD_FORCE_SCAN):
             self._start_scan(writer, "standard")
@@ -162,6 +176,17 @@ class RPLidarEmulator:
         else:
             self.stats.bad_requests += 1
 
+    def _send_descriptor(self, writer: asyncio.StreamWriter, descriptor: proto.Descriptor) -> None:
+        data = descriptor.encode()
+        if self.truncate_next_descriptor is not None:
+            data, self.truncate_next_descriptor = data[: self.truncate_next_descriptor], None
+        self._send(writer, data)
+
+    def protection_stop(self, error_code: int = 0x8001) -> None:
+        """The device detects a fault of its own: health "error", scanning stops until RESET."""
+        self.health = proto.DeviceHealth(status=proto.HEALTH_ERROR, error_code=error_code)
+        self.mode = None
+
     def _send_banner(self) -> None:
         if self._writer is not None and not self._writer.is_closing():
             self._send(self._writer, BOOT_BANNER)
@@ -170,9 +195,9 @@ class RPLidarEmulator:
         if self.health.status == proto.HEALTH_ERROR:
             return  # protection stop: the device refuses to scan until RESET
         if mode == "standard":
-            self._send(writer, proto.SCAN_DESCRIPTOR.encode())
+            self._send_descriptor(writer, proto.SCAN_DESCRIPTOR)
         else:
-            self._send(writer, proto.EXPRESS_DESCRIPTOR.encode())
+            self._send_descriptor(writer, proto.EXPRESS_DESCRIPTOR)
         self.mode = mode
         self._pending.clear()
         self._capsule_start = True
@@ -181,7 +206,10 @@ class RPLidarEmulator:
     async def _stream(self, writer: asyncio.StreamWriter) -> None:
         while True:
             await self.clock.sleep(self.SEND_PERIOD_S)
-            if self.mode is None or not self.motor_on or writer.is_closing():
+            if self.mode is None or not self.motor_on or writer.is_closing() or self.frozen:
+                continue
+            if self.motor_jammed:
+                self.head.restart(self.clock.now_s())  # the head stands still: nothing measured
                 continue
             samples = self.head.advance(self.clock.now_s(), self.poses)
             data = self.encode(samples)

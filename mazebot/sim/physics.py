@@ -296,6 +296,9 @@ class RobotPhysics:
         self._in_contact = False
         self._odometer_m = 0.0
         self._time_s = 0.0
+        #: share of each wheel's surface travel that reaches the ground, (left, right): 1 grips,
+        #: below 1 the tyre spins on the floor (a wet patch, dust): the encoder counts, the body lags
+        self.grip = (1.0, 1.0)
 
     # -- state ---------------------------------------------------------------------------
 
@@ -436,7 +439,7 @@ class RobotPhysics:
         else:
             slip = np.ones((n_steps, 2))
 
-        radius_l, radius_r = self._radius_left_m, self._radius_right_m
+        radius_l, radius_r = self._radius_left_m * self.grip[0], self._radius_right_m * self.grip[1]
         inv_track_per_m = 1.0 / p.track_width_m
         rate_l, rate_r = self._rate_left_rad_s, self._rate_right_rad_s
         fraction = ds = dtheta = 0.0
@@ -470,6 +473,28 @@ class RobotPhysics:
         self._rate_left_rad_s, self._rate_right_rad_s = rate_l, rate_r
         self._body_speed_mps = fraction * ds / h_s
         self._body_rate_rad_s = dtheta / h_s
+
+    def teleport(self, x_m: float, y_m: float, theta_rad: float) -> None:
+        """Put the robot somewhere else at once (someone picked it up): the wheels never turned.
+
+        Raises ValueError if the footprint would overlap an obstacle there.
+        """
+        clearance_m = self._clearance_m(x_m, y_m)
+        if clearance_m < self.params.footprint_radius_m:
+            raise ValueError(
+                f"cannot put the robot at ({x_m:.3f}, {y_m:.3f}): clearance {clearance_m:.3f} m "
+                f"< footprint radius {self.params.footprint_radius_m:.3f} m"
+            )
+        self._x_m, self._y_m = float(x_m), float(y_m)
+        self._theta_rad = math.remainder(float(theta_rad), math.tau)
+        self._free_m = clearance_m - self.params.footprint_radius_m
+        self._in_contact = False
+        if len(self._obstacles):
+            self._refresh_neighbourhood(self._x_m, self._y_m, 0.0)
+
+    def clearance_m(self, x_m: float, y_m: float) -> float:
+        """Distance from a point to the nearest wall or post surface (inf in an empty world)."""
+        return self._clearance_m(x_m, y_m)
 
     # -- internals -----------------------------------------------------------------------
 

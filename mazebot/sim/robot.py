@@ -13,6 +13,8 @@ imperfections of ``[sim]``: motor lag and mismatch, unequal wheels, slip, lidar 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from gpiozero.pins.mock import MockFactory
 
@@ -91,6 +93,7 @@ class SimulatedRobot:
             self.pin_factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev, idle_high=enc.pull_up
         )
         self.poses = PoseHistory()
+        self.lidar_line: Any = None  # mazebot.sim.backend.SimLidarLine, set by the backend
         self.lidar_head = SpinningLidar(world, lidar_params(config), rngs[1])
         self.time_s: float | None = None
         self.trajectory: list[tuple[float, float, float, float]] = []  # (t, x, y, theta), ground truth

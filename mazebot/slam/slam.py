@@ -620,6 +620,20 @@ class Slam:
         self.grid = grid
         return True
 
+    def relocalized(self, pose: np.ndarray, odom: np.ndarray) -> None:
+        """The robot was found at map ``pose`` when the odometry read ``odom`` (:mod:`mazebot.slam.relocalize`).
+
+        The filter restarts there and the submap is taken around it; the map and the
+        graph stay as they are (the next keyframe links to the last one by its true pose).
+        """
+        pose = np.asarray(pose, dtype=np.float64)
+        self.ekf.reset(pose, self.ekf.covariance)
+        self._last_odom = np.asarray(odom, dtype=np.float64).copy()
+        self._last_matched_pose = None
+        self._last_match = None
+        self._target_position = None
+        self._rebuild_target()
+
     def rebuild_map(self) -> OccupancyGrid:
         """Rebuild the grid from every keyframe at its current pose (offline tools, at the end)."""
         grid = self.params.grid.new_grid()

@@ -9,7 +9,15 @@
   cut encoder wire. Odometry is then wrong, so this is a fault too; it is latched (the
   evidence only exists while driving) and the user's next start gives it another try.
 
-Both are plain checks on ``SharedState`` at 10 Hz; they never touch a device.
+- **Bouncing encoders**: impossible transitions (a contact bouncing, an edge lost) are
+  counted by the decoders; new ones are said in ``/api/status`` (an ``encoders``
+  event, at most every ``NOTE_EVERY_S``). The wheels go on: SLAM corrects the odometry.
+- **Weak motor**: per wheel, the measured speed for the throttle given; a wheel that
+  runs at less than ``weak_ratio`` of the other's for the same throttle, for
+  ``weak_checks`` checks in a row, is said (a ``motors`` event): the wheel controller
+  makes up for it, but a gearbox or a motor is failing.
+
+All are plain checks on ``SharedState`` at 10 Hz; they never touch a device.
 """
 
 from __future__ import annotations
@@ -26,6 +34,10 @@ log = logging.getLogger(__name__)
 PERIOD_S = 0.1
 #: Ticks the other wheel must have counted for a silent encoder to be suspicious.
 OTHER_WHEEL_TICKS = 40
+#: Wheels slower than this tell nothing about their motor's strength (starting, stopping).
+MIN_WHEEL_SPEED_MPS = 0.03
+#: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
+NOTE_EVERY_S = 5.0
 
 
 @dataclass
@@ -42,21 +54,68 @@ class HealthMonitor:
         self,
         lidar_silence_s: float = 0.4,
         startup_grace_s: float = 5.0,
-        encoder_dead_s: float = 1.0,
-        driven_throttle: float = 0.25,
+        encoder_dead_s: float = 0.3,
+        driven_throttle: float = 0.2,
+        motor_deadband: float = 0.08,
+        weak_ratio: float = 0.5,
+        weak_checks: int = 4,
     ) -> None:
         self.lidar_silence_s = float(lidar_silence_s)
         self.startup_grace_s = float(startup_grace_s)
         self.encoder_dead_s = float(encoder_dead_s)
         self.driven_throttle = float(driven_throttle)
+        self.motor_deadband = float(motor_deadband)
+        self.weak_ratio = float(weak_ratio)
+        self.weak_checks = int(weak_checks)
         self._started_s: float | None = None
         self._wheels = (_Wheel(), _Wheel())
+        self._invalid_seen = 0
+        self._weak_streak = [0, 0]
+        self._last_note_s: dict[str, float] = {}
 
     def check(self, state: SharedState, now_s: float) -> None:
         if self._started_s is None:
             self._started_s = now_s
         self._check_lidar(state, now_s)
         self._check_encoders(state, now_s)
+        self._check_bounce(state, now_s)
+        self._check_motor_strength(state, now_s)
+
+    def _note(self, state: SharedState, source: str, message: str, now_s: float) -> None:
+        last_s = self._last_note_s.get(source)
+        if last_s is not None and now_s - last_s < NOTE_EVERY_S:
+            return
+        self._last_note_s[source] = now_s
+        log.warning("%s", message)
+        state.note(source, message, now_s)
+
+    def _check_bounce(self, state: SharedState, now_s: float) -> None:
+        invalid = state.sensors.encoder_invalid_transitions
+        new, self._invalid_seen = invalid - self._invalid_seen, invalid
+        if new > 0:
+            self._note(state, "encoders", f"the wheel encoders reported {new} impossible transitions in "
+                       f"{PERIOD_S:g} s (bouncing contacts or lost edges, {invalid} so far): the odometry may "
+                       "drift, SLAM corrects it; check the encoder wiring", now_s)
+
+    def _check_motor_strength(self, state: SharedState, now_s: float) -> None:
+        """Speed per effective throttle of each wheel; one far below the other is a weak motor."""
+        gains = []
+        for throttle, speed in zip(state.throttles, state.wheel_speeds_mps, strict=True):
+            effective = abs(throttle) - self.motor_deadband
+            driven = abs(throttle) >= self.driven_throttle and abs(speed) >= MIN_WHEEL_SPEED_MPS
+            gains.append(abs(speed) / effective if driven else None)
+        if gains[0] is None or gains[1] is None or max(gains) <= 0:
+            self._weak_streak = [0, 0]
+            return
+        for side in (0, 1):
+            weak = gains[side] < self.weak_ratio * gains[1 - side]
+            self._weak_streak[side] = self._weak_streak[side] + 1 if weak else 0
+            if self._weak_streak[side] >= self.weak_checks:
+                name = ("left", "right")[side]
+                share = 100 * gains[side] / gains[1 - side]
+                self._note(state, "motors", f"the {name} motor gives only {share:.0f} % of the other's speed for "
+                           "the same throttle: the wheel control makes up for it; check that motor, its gearbox "
+                           "and its wires", now_s)
 
     def _check_lidar(self, state: SharedState, now_s: float) -> None:
         scan = state.latest_scan

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections import deque
 from concurrent.futures import Executor
@@ -25,11 +26,16 @@ from concurrent.futures import Executor
 from mazebot.clock import Clock
 from mazebot.io.scan import Scan
 from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
 from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams, SlamUpdate
 from mazebot.state import SharedState
 
 log = logging.getLogger(__name__)
 
+#: A loop-closure job running longer than this is said in ``/api/status``.
+SLOW_JOB_S = 0.45
+#: At most one wheel-slip note this often.
+SLIP_NOTE_EVERY_S = 5.0
 #: Longest wait for the odometry to reach a scan's last sample (it runs at >= 50 Hz).
 ODOMETRY_WAIT_S = 0.1
 
@@ -40,28 +46,65 @@ async def run(
     params: SlamParams,
     executor: Executor | None = None,
     slam: Slam | None = None,
+    guard: LocalizationGuard | None = None,
 ) -> None:
-    """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default)."""
+    """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default).
+
+    ``guard`` (:mod:`mazebot.slam.relocalize`; a default one if None) holds back revolutions
+    that do not fit the map; when the robot is lost it raises a ``localization`` fault and
+    searches for it in the executor, and clears the fault once found.
+    """
     slam = slam or Slam(params, background=True, record_trajectory=False)
+    guard = guard or LocalizationGuard()
     loop = asyncio.get_running_loop()
+    if slam.keyframes:  # a resumed run: its map is served before the first revolution
+        state.map = slam.grid
+        state.slam.keyframes = len(slam.keyframes)
     next_scan: asyncio.Future[Scan] | None = None
     job: asyncio.Future[LoopClosureResult] | None = None
+    job_since_s = 0.0
+    job_noted = False
+    search: asyncio.Future[SearchResult] | None = None
     try:
         while True:
             if next_scan is None:
                 next_scan = asyncio.ensure_future(state.scans.get())
-            waiting: set[asyncio.Future] = {next_scan} if job is None else {next_scan, job}
-            done, _ = await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+            waiting: set[asyncio.Future] = {f for f in (next_scan, job, search) if f is not None}
+            timeout_s = None
+            if job is not None and not job_noted:  # wake up to say so when a job runs long
+                timeout_s = max(0.0, job_since_s + SLOW_JOB_S - clock.now_s())
+            done, _ = await asyncio.wait(waiting, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
+            if job is not None and not job_noted and job not in done and clock.now_s() - job_since_s >= SLOW_JOB_S:
+                job_noted = True
+                message = (f"a loop-closure job has been running for {clock.now_s() - job_since_s:.1f} s; "
+                           "scans go on, its result is merged when it is done")
+                log.info("%s", message)
+                state.note("slam", message, clock.now_s())
             if job is not None and job in done:
                 result = job.result()  # a crashed job is a SLAM fault, not silence
                 job = None
                 _publish_closure(state, slam, result)
+            if search is not None and search in done:
+                found = search.result()
+                search = None
+                if guard.accept(slam, found):
+                    _publish_relocalized(state, slam, found, clock)
             if next_scan in done:
                 scan = next_scan.result()
                 next_scan = None
                 history = await _odometry_covering(state, clock, scan.end_time_s)
-                if history is None:
+                if history is None or search is not None:
+                    continue  # no odometry yet, or a search for the robot is under way
+                verdict = guard.check(slam, scan, history)
+                if verdict == "lost":
+                    _lost(state, guard, clock)
+                    search = loop.run_in_executor(
+                        executor, search_pose, slam, scan, history, guard.guess, guard.params
+                    )
                     continue
+                if verdict == "skip":
+                    continue  # does not fit the map: SLAM must not paint it in
+                predicted = guard.guess
                 start_s = time.thread_time()
                 try:
                     update = slam.update(scan, history)
@@ -73,15 +116,56 @@ async def run(
                     state.clear_faults("slam")
                     state.note("slam", "SLAM processes scans again", clock.now_s())
                 _publish_update(state, slam, update)
+                _note_slip(state, guard, predicted, update, clock)
                 if update.loop_job is not None:
                     job = loop.run_in_executor(executor, update.loop_job.run)
+                    job_since_s, job_noted = clock.now_s(), False
     finally:
         if job is not None:
             job.cancel()  # a job already running in its thread finishes unseen
+        if search is not None:
+            search.cancel()
         if next_scan is not None:
             next_scan.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await next_scan
+
+
+def _lost(state: SharedState, guard: LocalizationGuard, clock: Clock) -> None:
+    """The robot does not know where it is: a ``localization`` fault (the wheels stop) while it searches."""
+    if any(f.source == "localization" for f in state.faults):
+        return
+    fit = guard.last_fit
+    share = f"{100 * fit.contradiction:.0f} % of the lidar's hits" if fit is not None else "the lidar's hits"
+    message = (f"the robot does not know where it is ({share} fall where the map is free: pushed, lifted "
+               "or slipping?); wheels stopped, searching for it in the map")
+    log.warning("%s", message)
+    state.raise_fault("localization", message, clock.now_s())
+
+
+def _publish_relocalized(state: SharedState, slam: Slam, found: SearchResult, clock: Clock) -> None:
+    state.map_from_odom = tuple(float(v) for v in slam.map_from_odom)  # type: ignore[assignment]
+    moved_m = math.hypot(*(found.pose[:2] - found.guess[:2]))  # type: ignore[index]
+    message = f"found the robot in the map again, {100 * moved_m:.0f} cm from where the odometry had it"
+    state.clear_faults("localization")
+    state.note("localization", message, clock.now_s())
+
+
+def _note_slip(state: SharedState, guard: LocalizationGuard, predicted, update: SlamUpdate, clock: Clock) -> None:
+    """A revolution that ICP had to move far from the odometry's prediction: say so (rate-limited)."""
+    if predicted is None or not update.matched:
+        return
+    slip = guard.slipped(predicted, update.pose)
+    if slip is None:
+        return
+    now_s = clock.now_s()
+    last = next((e for e in reversed(state.events) if e.source == "odometry"), None)
+    if last is not None and now_s - last.time_s < SLIP_NOTE_EVERY_S:
+        return
+    message = (f"lidar and wheel odometry disagree by {100 * slip[0]:.0f} cm / {math.degrees(slip[1]):.0f}° "
+               "in one revolution: a wheel slips (or the robot was pushed); SLAM follows the lidar")
+    log.info("%s", message)
+    state.note("odometry", message, now_s)
 
 
 def _scan_failed(state: SharedState, clock: Clock, exc: Exception) -> None:

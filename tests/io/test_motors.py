@@ -18,6 +18,7 @@ from mazebot.clock import RealClock
 from mazebot.config import MotorsConfig
 from mazebot.errors import EXIT_UNAVAILABLE, HardwareUnavailable
 from mazebot.io.motors import (
+    BRAKE_ATTEMPTS,
     DifferentialMotors,
     FakeMotorKit,
     MotorCommand,
@@ -317,7 +318,19 @@ def test_dead_left_channel_still_brakes_the_right(
     assert kit.motor2.throttle == 0.0  # the motor we can still reach is stopped
     assert not caught.value.stopped
     assert "BRAKE FAILED" in str(caught.value)
-    assert motors.write_errors == 2  # the set and the brake of motor1
+    assert motors.write_errors == 1 + BRAKE_ATTEMPTS  # the set and every brake try of motor1
+
+
+def test_a_brake_write_that_fails_once_is_tried_again(
+    kit: FakeMotorKit, clock: FakeClock, loop: FakeLoop
+) -> None:
+    motors = make(kit, clock, loop)
+    motors.set(0.6, 0.6)
+    kit.fail_writes(channels=[1], times=2)  # the set's write, then the first brake try
+    with pytest.raises(MotorWriteError) as caught:
+        motors.set(0.8, 0.8)
+    assert caught.value.stopped and "both motors braked" in str(caught.value)
+    assert kit.motor1.throttle == 0.0 and kit.motor2.throttle == 0.0
 
 
 def test_unexpected_write_exception_is_handled_the_same(

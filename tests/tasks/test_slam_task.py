@@ -8,6 +8,7 @@ import threading
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from mazebot.sim.world import world_from_layout
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.posegraph import compose
+from mazebot.slam.preprocess import PrepareParams
 from mazebot.slam.slam import LoopClosureResult, SlamParams, SlamUpdate
 from mazebot.state import SharedState
 from mazebot.tasks import lidar_task, odometry_task, slam_task
@@ -85,6 +87,9 @@ class FakeSlam:
     map_from_odom: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.0]))
     job_threads: list[str] = field(default_factory=list)
     applied_on: list[str] = field(default_factory=list)
+    # what the localization guard reads (an empty grid: every revolution is "ok")
+    time_offset: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(offset_s=0.0))
+    params: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(prepare=PrepareParams()))
 
     def update(self, scan: Scan, odometry: OdometryHistory) -> SlamUpdate:
         self.scans += 1

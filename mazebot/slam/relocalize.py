@@ -1,0 +1,317 @@
+"""Noticing that the robot is lost, and finding it again in the map it has built.
+
+A robot that is picked up and put down elsewhere (kidnapped), or whose wheel slipped
+badly, or that was blind for a while, has an odometry that no longer says where it is.
+SLAM would then match each new revolution from the wrong guess and, worse, paint it
+into the map at the wrong place: the map would be spoiled for good. So before SLAM
+sees a revolution, :class:`LocalizationGuard` checks it against the map at the pose the
+odometry predicts:
+
+- **fit**: each hit is looked up in the grid (de-skewed with the odometry at its own
+  sample time). A hit deep inside space the map knows to be free (every cell within
+  ``free_margin_cells`` free) contradicts the map; a hit next to a wall agrees. The
+  contradiction ratio is ``contradicting / known`` (hits in unknown space say nothing,
+  so exploring new corridors does not look like being lost).
+- **lost**: ``lost_after`` revolutions in a row contradicting the map more than
+  ``max_contradiction`` mean the robot does not know where it is. Those revolutions
+  never reach SLAM (the map stays as it was), the daemon raises a ``localization``
+  fault (the wheels stop) and a search starts.
+- **search** (:func:`search_pose`): correlative scan matching (Olson, "Real-time
+  correlative scan matching", ICRA 2009): every pose of a grid around the predicted
+  one (±``search_xy_m``, ±``search_theta_rad``) is scored by how close the hits fall
+  to the map's walls (a Gaussian of the distance to the nearest occupied cell), in one
+  vectorised pass per heading; the best few are refined with ICP against the keyframes
+  nearby, and among the acceptable matches the one with most hits on the walls wins,
+  as in re-localizing a resumed run (:mod:`mazebot.persist.resume`). A found pose that
+  also fits the map (low contradiction) becomes SLAM's pose (:meth:`Slam.relocalized`),
+  the fault clears and the run goes on in the same map.
+
+The guard also notes revolutions where ICP had to move the odometry's prediction far
+(a wheel slipping): the robot still knows where it is, but the user should know why.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from mazebot.io.scan import Scan
+from mazebot.slam.icp import IcpResult, match_scan
+from mazebot.slam.keyframes import build_target, transform
+from mazebot.slam.posegraph import compose, inverse, wrap_angle
+from mazebot.slam.preprocess import prepare_scan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GuardParams:
+    """Thresholds of the lost-robot check and the search (units in the names)."""
+
+    min_keyframes: int = 3  # before that the map is too young to contradict anything
+    min_known_hits: int = 30  # hits in known cells needed for a verdict
+    free_margin_cells: int = 2  # a hit contradicts only this deep inside known free space
+    max_contradiction: float = 0.25  # share of known hits in free space above which a revolution does not fit
+    lost_after: int = 2  # revolutions in a row that do not fit
+    stride: int = 2  # every n-th sample is checked (a cheap check: ~180 lookups)
+    search_xy_m: float = 0.32
+    search_step_m: float = 0.04
+    search_theta_rad: float = 0.7
+    search_theta_step_rad: float = 0.035
+    wall_sigma_m: float = 0.04  # spread of the wall likelihood (half the xy step of the grid, and then some)
+    refine: int = 6  # best grid poses refined with ICP
+    submap_radius_m: float = 1.2  # keyframes this close to the guess form the ICP target
+    slip_m: float = 0.05  # ICP moved the prediction this far in one revolution: a wheel slipped
+    slip_rad: float = math.radians(5.0)
+
+
+@dataclass(frozen=True)
+class ScanFit:
+    """How one revolution at one pose agrees with the map."""
+
+    known: int  # hits in known cells
+    contradicting: int  # hits deep in known free space
+    on_walls: int  # hits within one cell of an occupied cell
+
+    @property
+    def contradiction(self) -> float:
+        return self.contradicting / max(1, self.known)
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """What a search found: the map pose at the revolution's end, or None."""
+
+    pose: np.ndarray | None
+    odom: np.ndarray  # odometry pose at the revolution's end
+    fit: ScanFit | None
+    match: IcpResult | None
+    tried: int
+    guess: np.ndarray
+
+
+def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
+    """Look hits (N, 2, map frame) up in the grid: see :class:`ScanFit`."""
+    rows, cols = grid.to_cell(hits_map)
+    shape = grid.shape
+    lo = grid.log_odds
+    m = free_margin_cells
+    inside = (rows >= m) & (rows < shape[0] - m) & (cols >= m) & (cols < shape[1] - m)
+    rows, cols = rows[inside], cols[inside]
+    if rows.size == 0:
+        return ScanFit(0, 0, 0)
+    here = lo[rows, cols]
+    free_all = np.ones(rows.size, dtype=bool)
+    wall_near = np.zeros(rows.size, dtype=bool)
+    for dr in range(-m, m + 1):
+        for dc in range(-m, m + 1):
+            cell = lo[rows + dr, cols + dc]
+            free_all &= cell < grid.free_logodds
+            if abs(dr) <= 1 and abs(dc) <= 1:
+                wall_near |= cell > grid.occupied_logodds
+    known = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near
+    return ScanFit(int(known.sum()), int((free_all & known).sum()), int(wall_near.sum()))
+
+
+def hits_in_map(
+    scan: Scan,
+    map_from_odom: np.ndarray,
+    odometry: Any,
+    *,
+    time_offset_s: float = 0.0,
+    mount_xy_m: tuple[float, float] = (0.0, 0.0),
+    stride: int = 1,
+) -> np.ndarray:
+    """The revolution's valid hits (N, 2) in the map frame, each from the odometry pose at its own time."""
+    index = np.flatnonzero(scan.valid)[::stride]
+    if index.size == 0:
+        return np.zeros((0, 2))
+    x, y, th = odometry.at(scan.time_s[index] - time_offset_s)
+    poses = compose(np.asarray(map_from_odom, dtype=np.float64), np.column_stack((x, y, th)))
+    px, py, pth = poses[:, 0], poses[:, 1], poses[:, 2]
+    r, a = scan.range_m[index], scan.angle_rad[index]
+    lx, ly = mount_xy_m[0] + r * np.cos(a), mount_xy_m[1] + r * np.sin(a)
+    c, s = np.cos(pth), np.sin(pth)
+    return np.column_stack((px + c * lx - s * ly, py + s * lx + c * ly))
+
+
+def wall_likelihood(grid: Any, sigma_m: float) -> np.ndarray:
+    """exp(-d² / 2σ²) of the distance d to the nearest occupied cell, per cell (Olson 2009)."""
+    occupied = grid.occupied_mask()
+    if not occupied.any():
+        return np.zeros(grid.shape, dtype=np.float32)
+    dist_m = ndimage.distance_transform_edt(~occupied) * grid.resolution_m
+    return np.exp(-0.5 * (dist_m / sigma_m) ** 2).astype(np.float32)
+
+
+def correlative_candidates(
+    likelihood: np.ndarray,
+    grid: Any,
+    points_robot: np.ndarray,
+    guess: np.ndarray,
+    params: GuardParams,
+) -> list[tuple[float, np.ndarray]]:
+    """The best ``params.refine`` poses of the search grid around ``guess``, (score, pose), best first.
+
+    The xy steps are whole cells, so for each heading the hits are rotated and put in
+    cells once, and every translation is an index shift of the same cells.
+    """
+    res = grid.resolution_m
+    step_cells = max(1, round(params.search_step_m / res))
+    n = int(params.search_xy_m / (step_cells * res))
+    shifts = np.arange(-n, n + 1) * step_cells  # cells
+    thetas = np.arange(-params.search_theta_rad, params.search_theta_rad + 1e-9, params.search_theta_step_rad)
+    rows_max, cols_max = likelihood.shape
+    scored: list[tuple[float, float, int, int]] = []
+    for dth in thetas:
+        theta = guess[2] + dth
+        c, s = math.cos(theta), math.sin(theta)
+        xy = np.column_stack((guess[0] + c * points_robot[:, 0] - s * points_robot[:, 1],
+                              guess[1] + s * points_robot[:, 0] + c * points_robot[:, 1]))
+        rows, cols = grid.to_cell(xy)
+        r = rows[None, None, :] + shifts[:, None, None]  # (dy, 1, N)
+        q = cols[None, None, :] + shifts[None, :, None]  # (1, dx, N)
+        r, q = np.broadcast_arrays(r, q)
+        ok = (r >= 0) & (r < rows_max) & (q >= 0) & (q < cols_max)
+        values = np.where(ok, likelihood[np.clip(r, 0, rows_max - 1), np.clip(q, 0, cols_max - 1)], 0.0)
+        score = values.mean(axis=2)  # (dy, dx)
+        flat = np.argsort(score, axis=None)[::-1][: params.refine]
+        for k in flat.tolist():
+            iy, ix = divmod(k, score.shape[1])
+            scored.append((float(score[iy, ix]), float(dth), int(shifts[ix]), int(shifts[iy])))
+    scored.sort(key=lambda t: -t[0])
+    out: list[tuple[float, np.ndarray]] = []
+    for value, dth, sx, sy in scored:
+        pose = np.array([guess[0] + sx * res, guess[1] + sy * res, wrap_angle(guess[2] + dth)])
+        # distinct candidates: not within two steps and 0.1 rad of one already kept
+        if any(math.hypot(*(pose[:2] - p[:2])) < 2 * params.search_step_m
+               and abs(wrap_angle(pose[2] - p[2])) < 0.1 for _, p in out):
+            continue
+        out.append((value, pose))
+        if len(out) >= params.refine:
+            break
+    return out
+
+
+def search_pose(
+    slam: Any,
+    scan: Scan,
+    odometry: Any,
+    guess: np.ndarray,
+    params: GuardParams,
+) -> SearchResult:
+    """Find the revolution in ``slam``'s map near ``guess`` (see the module docstring).
+
+    Reads the Slam (grid, keyframes) without changing it: run it while SLAM is held.
+    """
+    p = slam.params
+    odom = _odom_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
+    prepared = prepare_scan(scan, slam._deskew_motion(odometry, odom), p.prepare)
+    guess = np.asarray(guess, dtype=np.float64)
+    if prepared.points_full.shape[0] < params.min_known_hits or not slam.keyframes:
+        return SearchResult(None, odom, None, None, 0, guess)
+    likelihood = wall_likelihood(slam.grid, params.wall_sigma_m)
+    candidates = correlative_candidates(likelihood, slam.grid, prepared.points_full, guess, params)
+    poses = slam.keyframe_poses()
+    dist = np.hypot(poses[:, 0] - guess[0], poses[:, 1] - guess[1])
+    near = np.flatnonzero(dist <= params.submap_radius_m + params.search_xy_m)
+    near = near[np.argsort(dist[near], kind="stable")[: max(p.submap_keyframes, 40)]]
+    if near.size == 0:
+        return SearchResult(None, odom, None, None, 0, guess)
+    target = build_target([slam.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
+    best: tuple[float, IcpResult, ScanFit] | None = None
+    for _, start in candidates:
+        match = match_scan(target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy)
+        if not slam._acceptable(match):
+            continue
+        fit = scan_fit(slam.grid, transform(match.pose, prepared.points_full), params.free_margin_cells)
+        if fit.contradiction > params.max_contradiction / 2:
+            continue
+        score = fit.on_walls / max(1, prepared.points_full.shape[0])
+        if best is None or score > best[0] + 1e-9 or (abs(score - best[0]) <= 1e-9 and match.rmse_m < best[1].rmse_m):
+            best = (score, match, fit)
+    if best is None:
+        return SearchResult(None, odom, None, None, len(candidates), guess)
+    _, match, fit = best
+    return SearchResult(match.pose.copy(), odom, fit, match, len(candidates), guess)
+
+
+def _odom_at(odometry: Any, time_s: float) -> np.ndarray:
+    x, y, th = odometry.at(np.array([time_s]))
+    return np.array([float(x[0]), float(y[0]), float(th[0])])
+
+
+class LocalizationGuard:
+    """Holds revolutions that do not fit the map back from SLAM and says when the robot is lost.
+
+    Example (what the SLAM task does with each revolution)::
+
+        verdict = guard.check(slam, scan, odometry)   # "ok", "skip" or "lost"
+        if verdict == "lost":
+            result = search_pose(slam, scan, odometry, guard.guess, guard.params)   # in an executor
+            guard.accept(slam, result)
+    """
+
+    def __init__(self, params: GuardParams | None = None) -> None:
+        self.params = params or GuardParams()
+        self.lost = False
+        self._misfits = 0
+        self.guess: np.ndarray | None = None  # the predicted map pose of the last checked revolution
+        self.last_fit: ScanFit | None = None
+        self.relocalizations = 0
+
+    def predicted_pose(self, slam: Any, scan: Scan, odometry: Any) -> np.ndarray:
+        """Where the odometry says the robot is at the revolution's end, in the map frame."""
+        odom = _odom_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
+        return compose(slam.map_from_odom, odom)
+
+    def check(self, slam: Any, scan: Scan, odometry: Any) -> str:
+        """``ok``: give it to SLAM; ``skip``: it does not fit (hold it back); ``lost``: search now."""
+        p = self.params
+        self.guess = self.predicted_pose(slam, scan, odometry)
+        if len(slam.keyframes) < p.min_keyframes:
+            return "ok"
+        mount = (slam.params.prepare.mount_x_m, slam.params.prepare.mount_y_m)
+        hits = hits_in_map(scan, slam.map_from_odom, odometry, time_offset_s=slam.time_offset.offset_s,
+                           mount_xy_m=mount, stride=p.stride)
+        fit = scan_fit(slam.grid, hits, p.free_margin_cells)
+        self.last_fit = fit
+        if fit.known < p.min_known_hits // p.stride:
+            return "skip" if self.lost else "ok"
+        if fit.contradiction <= p.max_contradiction and not self.lost:
+            self._misfits = 0
+            return "ok"
+        self._misfits += 1
+        if self.lost or self._misfits >= p.lost_after:
+            self.lost = True
+            return "lost"
+        return "skip"
+
+    def accept(self, slam: Any, result: SearchResult) -> bool:
+        """Put SLAM at the found pose (True), or stay lost (False: search again on the next revolution)."""
+        if result.pose is None:
+            return False
+        slam.relocalized(result.pose, result.odom)
+        self.lost = False
+        self._misfits = 0
+        self.relocalizations += 1
+        log.info(
+            "re-localized at (%.3f m, %.3f m, %.1f°), %.3f m / %.1f° from where the odometry thought",
+            result.pose[0], result.pose[1], math.degrees(result.pose[2]),
+            math.hypot(*(result.pose[:2] - result.guess[:2])),
+            math.degrees(wrap_angle(result.pose[2] - result.guess[2])),
+        )
+        return True
+
+    def slipped(self, predicted: np.ndarray, corrected: np.ndarray) -> tuple[float, float] | None:
+        """(metres, radians) ICP moved the prediction, if that is more than a slip; else None."""
+        d = compose(inverse(predicted), corrected)
+        moved_m, turned_rad = math.hypot(d[0], d[1]), abs(wrap_angle(d[2]))
+        if moved_m > self.params.slip_m or turned_rad > self.params.slip_rad:
+            return moved_m, turned_rad
+        return None

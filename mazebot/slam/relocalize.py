@@ -65,6 +65,7 @@ class GuardParams:
     search_theta_step_rad: float = 0.035
     wall_sigma_m: float = 0.04  # spread of the wall likelihood (half the xy step of the grid, and then some)
     refine: int = 6  # best grid poses refined with ICP
+    min_known_share: float = 0.6  # a found pose must put this share of the hits where the map knows
     submap_radius_m: float = 1.2  # keyframes this close to the guess form the ICP target
     slip_m: float = 0.05  # ICP moved the prediction this far in one revolution: a wheel slipped
     slip_rad: float = math.radians(5.0)
@@ -229,10 +230,16 @@ def search_pose(
         match = match_scan(target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy)
         if not slam._acceptable(match):
             continue
+        offset = match.pose - guess
+        if math.hypot(offset[0], offset[1]) > params.search_xy_m + 0.05 or (
+            abs(wrap_angle(offset[2])) > params.search_theta_rad + 0.1
+        ):
+            continue  # ICP slid out of the searched window: not what was searched for
+        hits = prepared.points_full.shape[0]
         fit = scan_fit(slam.grid, transform(match.pose, prepared.points_full), params.free_margin_cells)
-        if fit.contradiction > params.max_contradiction / 2:
-            continue
-        score = fit.on_walls / max(1, prepared.points_full.shape[0])
+        if fit.contradiction > params.max_contradiction / 2 or fit.known < params.min_known_share * hits:
+            continue  # contradicts the map, or mostly falls where the map cannot confirm it
+        score = fit.on_walls / max(1, hits)
         if best is None or score > best[0] + 1e-9 or (abs(score - best[0]) <= 1e-9 and match.rmse_m < best[1].rmse_m):
             best = (score, match, fit)
     if best is None:

@@ -1,0 +1,79 @@
+"""The lost-robot guard and the search, against the true pose of a kidnapped robot."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
+from mazebot.slam.relocalize import LocalizationGuard, search_pose
+from mazebot.slam.slam import Slam, SlamParams
+
+PERIOD_S = 1 / 5.5
+
+
+def _still(pose):
+    """pose_at_time for a robot standing at a world pose."""
+    return lambda t: (np.full(t.shape, pose[0]), np.full(t.shape, pose[1]), np.full(t.shape, pose[2]))
+
+
+def _mapped_start(maze_world, moving_scan):
+    """SLAM after the robot turned 1 rad on the spot in the start cell: (slam, odometry, scan maker, t, start)."""
+    start = np.asarray(maze_world.start_pose)
+    slam = Slam(SlamParams(), background=False, record_trajectory=False)
+    history = OdometryHistory(horizon_s=30.0)
+    t = 0.0
+    history.append(t, 0.0, 0.0, 0.0)
+    guard = LocalizationGuard()
+    for k in range(22):
+        heading = 0.05 * k
+        true = compose(start, np.array([0.0, 0.0, heading]))
+        scan = moving_scan(maze_world, _still(true), t0_s=t, noise_rel=0.005, seed=k)
+        t += PERIOD_S
+        history.append(t, 0.0, 0.0, heading)  # a perfect odometry, in the start frame (= the map frame)
+        assert guard.check(slam, scan, history) == "ok"  # no false alarm while all is well
+        slam.update(scan, history)
+    assert len(slam.keyframes) >= 5
+    return slam, history, guard, t, start
+
+
+def test_a_kidnapped_robot_is_held_back_from_the_map_and_found_again(maze_world, moving_scan) -> None:
+    slam, history, guard, t, start = _mapped_start(maze_world, moving_scan)
+    odom_heading = 0.05 * 21
+    before = slam.grid.log_odds.copy()
+    here = compose(start, np.array([0.0, 0.0, odom_heading]))
+    # picked up: 0.2 m along the open side the robot faced at the start, turned by 20°
+    kidnapped = compose(here, np.array([0.2 * math.cos(-odom_heading), 0.2 * math.sin(-odom_heading),
+                                        math.radians(20)]))
+    verdicts = []
+    for k in range(2):
+        scan = moving_scan(maze_world, _still(kidnapped), t0_s=t, noise_rel=0.005, seed=100 + k)
+        t += PERIOD_S
+        history.append(t, 0.0, 0.0, odom_heading)  # the wheels never turned
+        verdicts.append(guard.check(slam, scan, history))
+    assert verdicts == ["skip", "lost"]
+    assert guard.last_fit is not None and guard.last_fit.contradiction > 0.25
+    found = search_pose(slam, scan, history, guard.guess, guard.params)
+    assert np.array_equal(slam.grid.log_odds, before)  # nothing of the lost revolutions went into the map
+    truth = relative_pose(start, kidnapped)  # in the map frame (the start pose)
+    assert found.pose is not None
+    assert math.hypot(*(found.pose[:2] - truth[:2])) < 0.03
+    assert abs(math.degrees(wrap_angle(found.pose[2] - truth[2]))) < 2.0
+    assert guard.accept(slam, found) and not guard.lost
+    # the next revolution fits again and SLAM tracks from the found pose
+    scan = moving_scan(maze_world, _still(kidnapped), t0_s=t, noise_rel=0.005, seed=200)
+    t += PERIOD_S
+    history.append(t, 0.0, 0.0, odom_heading)
+    assert guard.check(slam, scan, history) == "ok"
+    update = slam.update(scan, history)
+    assert update.matched
+    assert math.hypot(*(update.pose[:2] - truth[:2])) < 0.02
+
+
+def test_a_match_far_from_the_prediction_is_a_slip() -> None:
+    guard = LocalizationGuard()
+    assert guard.slipped(np.array([1.0, 0.0, 0.0]), np.array([1.01, 0.0, 0.01])) is None
+    moved_m, turned_rad = guard.slipped(np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, math.radians(8)]))
+    assert moved_m < 1e-9 and math.isclose(turned_rad, math.radians(8))

@@ -97,14 +97,14 @@ def test_a_lidar_that_goes_silent_is_silent_long_enough_to_be_seen_and_scans_aga
 
 @pytest.mark.parametrize("fault", ["lidar-noise", "lidar-bitflip"])
 def test_a_noisy_lidar_line_costs_bytes_not_revolutions(fault: str) -> None:
-    ends, stats, injection, _ = run_virtual(_lidar_under(fault))
+    ends, stats, _, _ = run_virtual(_lidar_under(fault))
     assert stats.bytes_dropped > 0  # the decoder saw the junk and resynchronised
     assert _gap_around(ends, AT_S) < 0.4  # never silent long enough to stop the robot
     assert stats.reconnects == 0
 
 
 def test_unplugged_port_is_looked_for_every_backoff_min_not_with_a_growing_backoff() -> None:
-    ends, stats, injection, line = run_virtual(_lidar_under("lidar-unplug"))
+    _, _, injection, line = run_virtual(_lidar_under("lidar-unplug"))
     # 2 s unplugged at 0.5 s per try: a handful of attempts, each a failed open
     assert line.connects == 2
     assert injection.end_s - injection.begin_s == pytest.approx(2.0)

@@ -11,8 +11,10 @@ For every injection (:mod:`mazebot.sim.faults`):
   or a start pressed by the bench's user for a latched fault): no fault left, the run
   state moving again (or done), and the true robot drove on at least ``DROVE_ON_M``;
 - **map intact**: the map as it was just before the fault against the final one: at
-  least ``KEPT_SHARE`` of the walls it had are still walls (within ``KEPT_CELLS``), and
-  its wall precision against the true walls did not drop by more than ``PRECISION_DROP``;
+  least ``KEPT_SHARE`` of the walls it had are still walls (within ``KEPT_CELLS``: nothing
+  lost), at least ``FREE_KEPT_SHARE`` of the space it knew free (``KEPT_CELLS`` away from
+  any wall) has no wall in it now (nothing painted in at a wrong pose), and at least
+  ``MIN_PRECISION`` of the final map's walls lie on true walls;
 - **alive**: the daemon's exit code is 0 and none of its tasks has ended;
 - **re-localized in s** (kidnap): until the estimated pose is within ``RELOC_M`` /
   ``RELOC_DEG`` of the true one and stays there for ``RELOC_HOLD_S``;
@@ -41,7 +43,8 @@ MONITOR_PERIOD_S = 0.02
 DROVE_ON_M = 0.05
 KEPT_SHARE = 0.95
 KEPT_CELLS = 2
-PRECISION_DROP = 0.03
+FREE_KEPT_SHARE = 0.99
+MIN_PRECISION = 0.9
 RELOC_M = 0.05
 RELOC_DEG = 5.0
 RELOC_HOLD_S = 1.0
@@ -57,6 +60,7 @@ class FaultRecord:
     """The ground truth a fault run collects: injections, events, HAT writes, a state trace."""
 
     injector: Any  # mazebot.sim.faults.FaultInjector
+    recovery_window_s: float = RECOVERY_WINDOW_S
     events: list[tuple[float, str, str]] = field(default_factory=list)  # (time, source, message)
     writes: list[tuple[float, int, float | None]] = field(default_factory=list)  # at the HAT
     trace: list[tuple[float, str, tuple[str, ...], float | None, float]] = field(default_factory=list)
@@ -114,13 +118,14 @@ class FaultRecord:
             await clock.sleep(0.2)
             now_s = clock.now_s()
             ends = [i.end_s for i in injections]
-            if all(e is not None for e in ends) and now_s >= max(ends) + RECOVERY_WINDOW_S:  # type: ignore[type-var]
+            if all(e is not None for e in ends) and now_s >= max(ends) + self.recovery_window_s:  # type: ignore[type-var]
                 return
             if now_s >= last_due_s + MAX_AFTER_FAULT_S:
                 return
             ended = [e for e in ends if e is not None]
+            active = any(i.begin_s is not None and i.end_s is None for i in injections)
             latched_only = state.run_state is RunState.FAULT and all(f.latched for f in state.faults)
-            if ended and now_s >= max(ended) + 1.0 and now_s - pressed_s >= 2.0 and (
+            if ended and not active and now_s >= max(ended) + 1.0 and now_s - pressed_s >= 2.0 and (
                 state.run_state is RunState.STOPPED or latched_only
             ):
                 state.commands.put_nowait("start")  # as the user would, once the cause is gone
@@ -170,6 +175,23 @@ def walls_kept(before: Any, after: Any, cells: int = KEPT_CELLS) -> float | None
     found = np.zeros(rows.size, dtype=bool)
     found[inside] = walls[r[inside], c[inside]]
     return float(found.mean())
+
+
+def free_kept(before: Any, after: Any, cells: int = KEPT_CELLS) -> float | None:
+    """Share of the space ``before`` knew free, ``cells`` away from its walls, that ``after`` has no wall in."""
+    if before is None or after is None:
+        return None
+    free = ndimage.binary_erosion(before.known_free_mask(), iterations=cells)
+    free &= ~ndimage.binary_dilation(before.occupied_mask(), iterations=cells)
+    rows, cols = np.nonzero(free)
+    if rows.size == 0:
+        return 1.0
+    r, c = after.to_cell(before.to_world(rows, cols))
+    walls = after.occupied_mask()
+    inside = (r >= 0) & (r < walls.shape[0]) & (c >= 0) & (c < walls.shape[1])
+    wall = np.zeros(rows.size, dtype=bool)
+    wall[inside] = walls[r[inside], c[inside]]
+    return float(1.0 - wall.mean())
 
 
 def _first_relocalized(record: Any, begin_rel_s: float) -> float | None:
@@ -236,12 +258,14 @@ def fault_metrics(record: Any, exit_code: int) -> list[dict[str, Any]]:
         before = faults.maps_before.get(k)
         kept = walls_kept(before, final)
         prior = map_metrics(before, robot.world, start_true, footprint_m) if before is not None else None
+        clean = free_kept(before, final)
         row["walls_kept"] = None if kept is None else round(kept, 4)
+        row["free_kept"] = None if clean is None else round(clean, 4)
         row["map_precision_before"] = None if prior is None else prior["map_precision"]
         row["map_precision_after"] = after["map_precision"]
         row["map_intact"] = (
-            kept is not None and kept >= KEPT_SHARE and prior is not None and after["map_precision"] is not None
-            and after["map_precision"] >= prior["map_precision"] - PRECISION_DROP
+            kept is not None and kept >= KEPT_SHARE and clean is not None and clean >= FREE_KEPT_SHARE
+            and after["map_precision"] is not None and after["map_precision"] >= MIN_PRECISION
         )
         row["alive"] = exit_code == 0 and faults.alive
         if kind.name == "kidnap":

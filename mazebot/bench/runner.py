@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from mazebot.bench.fault_metrics import FaultRecord, fault_metrics
+from mazebot.bench.fault_metrics import RECOVERY_WINDOW_S, FaultRecord, fault_metrics
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
 from mazebot.clock import RealClock
 from mazebot.config import Config
@@ -67,6 +67,7 @@ class RunSpec:
     world: str = "maze"  # "maze" (a file or generated) or "room" (the room with cylinders)
     record_path: str | None = None  # record the run to this MCAP file (mazebot.record)
     faults: tuple[FaultSpec, ...] = ()  # injected into the simulated world (mazebot.sim.faults)
+    recovery_window_s: float = RECOVERY_WINDOW_S  # a fault run goes on this long after its last fault
 
     @property
     def name(self) -> str:
@@ -228,7 +229,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     period_s = config.daemon.control_period_s
     injector = FaultInjector(list(spec.faults), None, clock, seed=spec.seed) if spec.faults else None
     if injector is not None:
-        record.faults = FaultRecord(injector)
+        record.faults = FaultRecord(injector, recovery_window_s=spec.recovery_window_s)
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         robot = hardware.sim

@@ -16,8 +16,9 @@ odometry predicts:
   ``max_contradiction`` mean the robot does not know where it is. Those revolutions
   never reach SLAM (the map stays as it was), the daemon raises a ``localization``
   fault (the wheels stop) and a search starts.
-- **search** (:func:`search_pose`): correlative scan matching (Olson, "Real-time
-  correlative scan matching", ICRA 2009): every pose of a grid around the predicted
+- **search** (:func:`search_pose`), widened after each one that found nothing:
+  correlative scan matching (Olson, "Real-time correlative scan matching", ICRA
+  2009): every pose of a grid around the predicted
   one (±``search_xy_m``, ±``search_theta_rad``) is scored by how close the hits fall
   to the map's walls (a Gaussian of the distance to the nearest occupied cell), in one
   vectorised pass per heading; the best few are refined with ICP against the keyframes
@@ -34,7 +35,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -47,6 +48,9 @@ from mazebot.slam.posegraph import compose, inverse, wrap_angle
 from mazebot.slam.preprocess import prepare_scan
 
 log = logging.getLogger(__name__)
+
+#: Widest search, as a multiple of the first one's window (after searches that found nothing).
+MAX_SEARCH_SCALE = 3.0
 
 
 @dataclass(frozen=True)
@@ -205,11 +209,25 @@ def search_pose(
     odometry: Any,
     guess: np.ndarray,
     params: GuardParams,
+    scale: float = 1.0,
 ) -> SearchResult:
     """Find the revolution in ``slam``'s map near ``guess`` (see the module docstring).
 
-    Reads the Slam (grid, keyframes) without changing it: run it while SLAM is held.
+    ``scale`` widens the searched window (and coarsens its steps and the wall likelihood
+    alike, so a search costs the same): the guard widens it after each search that found
+    nothing, up to :data:`MAX_SEARCH_SCALE`. Reads the Slam (grid, keyframes) without
+    changing it: run it while SLAM is held.
     """
+    if scale != 1.0:
+        params = replace(
+            params,
+            search_xy_m=params.search_xy_m * scale,
+            search_step_m=params.search_step_m * scale,
+            search_theta_rad=min(math.pi, params.search_theta_rad * scale),
+            search_theta_step_rad=params.search_theta_step_rad * scale,
+            wall_sigma_m=params.wall_sigma_m * scale,
+            refine=round(params.refine * scale),
+        )
     p = slam.params
     odom = _odom_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
     prepared = prepare_scan(scan, slam._deskew_motion(odometry, odom), p.prepare)
@@ -271,6 +289,7 @@ class LocalizationGuard:
         self.guess: np.ndarray | None = None  # the predicted map pose of the last checked revolution
         self.last_fit: ScanFit | None = None
         self.relocalizations = 0
+        self.failed_searches = 0  # since the robot got lost: each one widens the next search
 
     def predicted_pose(self, slam: Any, scan: Scan, odometry: Any) -> np.ndarray:
         """Where the odometry says the robot is at the revolution's end, in the map frame."""
@@ -302,10 +321,12 @@ class LocalizationGuard:
     def accept(self, slam: Any, result: SearchResult) -> bool:
         """Put SLAM at the found pose (True), or stay lost (False: search again on the next revolution)."""
         if result.pose is None:
+            self.failed_searches += 1
             return False
         slam.relocalized(result.pose, result.odom)
         self.lost = False
         self._misfits = 0
+        self.failed_searches = 0
         self.relocalizations += 1
         log.info(
             "re-localized at (%.3f m, %.3f m, %.1f°), %.3f m / %.1f° from where the odometry thought",
@@ -314,6 +335,11 @@ class LocalizationGuard:
             math.degrees(wrap_angle(result.pose[2] - result.guess[2])),
         )
         return True
+
+    @property
+    def search_scale(self) -> float:
+        """How much wider than the first the next search is."""
+        return min(MAX_SEARCH_SCALE, 1.0 + 0.5 * self.failed_searches)
 
     def slipped(self, predicted: np.ndarray, corrected: np.ndarray) -> tuple[float, float] | None:
         """(metres, radians) ICP moved the prediction, if that is more than a slip; else None."""

@@ -89,6 +89,9 @@ async def run(
                 search = None
                 if guard.accept(slam, found):
                     _publish_relocalized(state, slam, found, clock)
+                else:
+                    log.info("the robot is not found near where the odometry has it (%d poses tried); "
+                             "searching again with the next revolution", found.tried)
             if next_scan in done:
                 scan = next_scan.result()
                 next_scan = None
@@ -99,7 +102,7 @@ async def run(
                 if verdict == "lost":
                     _lost(state, guard, clock)
                     search = loop.run_in_executor(
-                        executor, search_pose, slam, scan, history, guard.guess, guard.params
+                        executor, search_pose, slam, scan, history, guard.guess, guard.params, guard.search_scale
                     )
                     continue
                 if verdict == "skip":

@@ -119,7 +119,7 @@ async def run(
                     state.clear_faults("slam")
                     state.note("slam", "SLAM processes scans again", clock.now_s())
                 _publish_update(state, slam, update)
-                _note_slip(state, guard, predicted, update, clock)
+                _note_slip(state, slam, guard, predicted, update, clock)
                 if update.loop_job is not None:
                     job = loop.run_in_executor(executor, update.loop_job.run)
                     job_since_s, job_noted = clock.now_s(), False
@@ -154,11 +154,20 @@ def _publish_relocalized(state: SharedState, slam: Slam, found: SearchResult, cl
     state.note("localization", message, clock.now_s())
 
 
-def _note_slip(state: SharedState, guard: LocalizationGuard, predicted, update: SlamUpdate, clock: Clock) -> None:
+def slam_accepts(slam: Slam, match) -> bool:
+    """A match SLAM's own limits call good (the filter may still gate it out as too far from the odometry)."""
+    p = slam.params
+    return bool(match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m)
+
+
+def _note_slip(
+    state: SharedState, slam: Slam, guard: LocalizationGuard, predicted, update: SlamUpdate, clock: Clock
+) -> None:
     """A revolution that ICP had to move far from the odometry's prediction: say so (rate-limited)."""
-    if predicted is None or not update.matched:
+    match = update.match
+    if predicted is None or match is None or not slam_accepts(slam, match):
         return
-    slip = guard.slipped(predicted, update.pose)
+    slip = guard.slipped(predicted, match.pose)  # the lidar's pose, before the filter blends (or gates) it
     if slip is None:
         return
     now_s = clock.now_s()
@@ -166,7 +175,7 @@ def _note_slip(state: SharedState, guard: LocalizationGuard, predicted, update: 
     if last is not None and now_s - last.time_s < SLIP_NOTE_EVERY_S:
         return
     message = (f"lidar and wheel odometry disagree by {100 * slip[0]:.0f} cm / {math.degrees(slip[1]):.0f}° "
-               "in one revolution: a wheel slips (or the robot was pushed); SLAM follows the lidar")
+               "within a few revolutions: a wheel slips (or the robot was pushed); the lidar corrects the pose")
     log.info("%s", message)
     state.note("odometry", message, now_s)
 

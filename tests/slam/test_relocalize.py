@@ -74,6 +74,12 @@ def test_a_kidnapped_robot_is_held_back_from_the_map_and_found_again(maze_world,
 
 def test_a_match_far_from_the_prediction_is_a_slip() -> None:
     guard = LocalizationGuard()
-    assert guard.slipped(np.array([1.0, 0.0, 0.0]), np.array([1.01, 0.0, 0.01])) is None
+    for _ in range(5):  # odometry noise: small corrections of either sign
+        assert guard.slipped(np.array([1.0, 0.0, 0.0]), np.array([1.003, 0.0, math.radians(0.4)])) is None
+        assert guard.slipped(np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.002, math.radians(-0.4)])) is None
     moved_m, turned_rad = guard.slipped(np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, math.radians(8)]))
     assert moved_m < 1e-9 and math.isclose(turned_rad, math.radians(8))
+    # a tyre slipping the same way revolution after revolution adds up
+    guard = LocalizationGuard()
+    turns = [guard.slipped(np.zeros(3), np.array([0.0, 0.0, math.radians(0.9)])) for _ in range(3)]
+    assert turns[:2] == [None, None] and turns[2] is not None

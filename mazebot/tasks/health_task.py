@@ -54,11 +54,11 @@ class HealthMonitor:
         self,
         lidar_silence_s: float = 0.4,
         startup_grace_s: float = 5.0,
-        encoder_dead_s: float = 0.3,
-        driven_throttle: float = 0.2,
+        encoder_dead_s: float = 0.2,
+        driven_throttle: float = 0.15,
         motor_deadband: float = 0.08,
         weak_ratio: float = 0.5,
-        weak_checks: int = 4,
+        weak_checks: int = 3,
     ) -> None:
         self.lidar_silence_s = float(lidar_silence_s)
         self.startup_grace_s = float(startup_grace_s)

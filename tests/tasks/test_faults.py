@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -261,6 +262,77 @@ async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -
         state.scans.put_nowait(_maze_scan(1.4))
         await _until(lambda: not state.faults)
         assert state.slam.scans == 2 and not task.done()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+
+# -- what the daemon says about faults that do not stop the wheels --------------------------
+
+
+def test_bouncing_encoders_are_said_once_in_a_while_not_every_check() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    for k in range(30):
+        state.sensors.encoder_invalid_transitions = 2 * k
+        monitor.check(state, 100.0 + 0.1 * k)
+    notes = [e for e in state.events if e.source == "encoders"]
+    assert len(notes) == 1 and "impossible transitions" in notes[0].message
+    assert state.run_state is RunState.EXPLORING  # the wheels go on: SLAM corrects the odometry
+
+
+def test_a_motor_giving_much_less_speed_for_its_throttle_is_said() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(motor_deadband=0.08)
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.5, 0.5)
+    state.wheel_speeds_mps = (0.25, 0.24)  # matched motors
+    for k in range(10):
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert not [e for e in state.events if e.source == "motors"]
+    state.throttles = (0.8, 0.4)  # the wheel control pushes the weak one harder ...
+    state.wheel_speeds_mps = (0.2, 0.2)  # ... for the same speed
+    for k in range(3):
+        monitor.check(state, 101.0 + 0.1 * k)
+    notes = [e for e in state.events if e.source == "motors"]
+    assert len(notes) == 1 and "left motor gives only 44 %" in notes[0].message
+    assert state.run_state is RunState.EXPLORING
+
+
+async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> None:
+    import threading
+
+    config = Config()
+    state = SharedState(run_state=RunState.EXPLORING)
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(1e6, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    params = SlamParams.from_config(config.slam, config.lidar)
+    slam = Slam(params, background=True, record_trajectory=False)
+    real_update = slam.update
+    release = threading.Event()
+
+    class SlowJob:
+        def run(self):
+            release.wait(5.0)
+            return slam_task.LoopClosureResult(verdicts=[], poses=None)
+
+    def update_with_a_slow_job(scan, hist):
+        update = real_update(scan, hist)
+        if slam.scans == 1:
+            return replace(update, loop_job=SlowJob())
+        return update
+
+    slam.update = update_with_a_slow_job  # type: ignore[method-assign]
+    with ThreadPoolExecutor(max_workers=1) as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor, slam))
+        state.scans.put_nowait(_maze_scan(1.0))
+        await _until(lambda: any("loop-closure job has been running" in e.message for e in state.events), 3.0)
+        state.scans.put_nowait(_maze_scan(1.2))
+        await _until(lambda: state.slam.scans == 2)  # scans go on while the job runs
+        release.set()
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task

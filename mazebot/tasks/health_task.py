@@ -34,8 +34,10 @@ log = logging.getLogger(__name__)
 PERIOD_S = 0.1
 #: Ticks the other wheel must have counted for a silent encoder to be suspicious.
 OTHER_WHEEL_TICKS = 40
-#: Wheels slower than this tell nothing about their motor's strength (starting, stopping).
-MIN_WHEEL_SPEED_MPS = 0.03
+#: Wheels slower than this, or driven below this throttle (close to the deadband, where its
+#: estimate decides), tell nothing about their motor's strength.
+MIN_WHEEL_SPEED_MPS = 0.015
+WEAK_CHECK_THROTTLE = 0.14
 #: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
 NOTE_EVERY_S = 5.0
 
@@ -58,7 +60,7 @@ class HealthMonitor:
         driven_throttle: float = 0.15,
         motor_deadband: float = 0.08,
         weak_ratio: float = 0.5,
-        weak_checks: int = 3,
+        weak_checks: int = 2,
     ) -> None:
         self.lidar_silence_s = float(lidar_silence_s)
         self.startup_grace_s = float(startup_grace_s)
@@ -102,7 +104,7 @@ class HealthMonitor:
         gains = []
         for throttle, speed in zip(state.throttles, state.wheel_speeds_mps, strict=True):
             effective = abs(throttle) - self.motor_deadband
-            driven = abs(throttle) >= self.driven_throttle and abs(speed) >= MIN_WHEEL_SPEED_MPS
+            driven = abs(throttle) >= WEAK_CHECK_THROTTLE and abs(speed) >= MIN_WHEEL_SPEED_MPS
             gains.append(abs(speed) / effective if driven else None)
         if gains[0] is None or gains[1] is None or max(gains) <= 0:
             self._weak_streak = [0, 0]

@@ -115,17 +115,20 @@ def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> Sca
     rows, cols = rows[inside], cols[inside]
     if rows.size == 0:
         return ScanFit(0, 0, 0)
-    here = lo[rows, cols]
-    free_all = np.ones(rows.size, dtype=bool)
-    wall_near = np.zeros(rows.size, dtype=bool)
-    for dr in range(-m, m + 1):
-        for dc in range(-m, m + 1):
-            cell = lo[rows + dr, cols + dc]
-            free_all &= cell < grid.free_logodds
-            if abs(dr) <= 1 and abs(dc) <= 1:
-                wall_near |= cell > grid.occupied_logodds
+    dr, dc = _offsets(m)
+    around = lo[rows[:, None] + dr, cols[:, None] + dc]  # (N, (2m+1)²): each hit's neighbourhood, one gather
+    here = around[:, dr.size // 2]
+    free_all = (around < grid.free_logodds).all(axis=1)
+    near = (np.abs(dr) <= 1) & (np.abs(dc) <= 1)
+    wall_near = (around[:, near] > grid.occupied_logodds).any(axis=1)
     known = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near
     return ScanFit(int(known.sum()), int((free_all & known).sum()), int(wall_near.sum()))
+
+
+def _offsets(margin: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets of the (2m+1)² cells around a cell, the cell itself in the middle."""
+    dr, dc = np.meshgrid(np.arange(-margin, margin + 1), np.arange(-margin, margin + 1), indexing="ij")
+    return dr.reshape(-1), dc.reshape(-1)
 
 
 def hits_in_map(

@@ -98,6 +98,7 @@ def test_kill_9_mid_run_then_restart_serves_the_last_saved_map(tmp_path: Path) -
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.wait(timeout=10)
         proc.stderr.close()
 
     # what is on disk is a complete run: every file reads, the graph matches the keyframes
@@ -123,4 +124,5 @@ def test_kill_9_mid_run_then_restart_serves_the_last_saved_map(tmp_path: Path) -
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.wait(timeout=10)
         proc.stderr.close()

@@ -160,7 +160,11 @@ def impulse_mask(range_m: np.ndarray, window: int, abs_m: float, rel: float, cir
         return np.ones(n, dtype=bool)
     half = window // 2
     padded = np.pad(range_m, half, mode="wrap" if circular else "edge")
-    median = np.median(sliding_window_view(padded, window), axis=1)
+    if window == 3:  # the default: the median of three in min/max form (exactly np.median's, ~10x faster)
+        a, b, c = padded[:-2], padded[1:-1], padded[2:]
+        median = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    else:
+        median = np.median(sliding_window_view(padded, window), axis=1)
     return np.abs(range_m - median) <= abs_m + rel * median
 
 

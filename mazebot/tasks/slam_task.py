@@ -3,8 +3,9 @@
 Each revolution from ``state.scans`` goes through :meth:`mazebot.slam.slam.Slam.update`
 (filter, de-skew, ICP, keyframe, grid: a few milliseconds on the loop). When an update
 hands back a loop-closure job (verification, pose-graph optimization, grid rebuild:
-tens to hundreds of milliseconds), it runs in ``executor`` while scans keep being
-processed; its result is merged with :meth:`Slam.apply` as soon as it is done.
+tens to hundreds of milliseconds), it runs in ``executor`` (by default a worker process,
+:mod:`mazebot.slam.loop_worker`) while scans keep being processed; its result is merged
+with :meth:`Slam.apply` as soon as it is done.
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
@@ -25,6 +26,7 @@ from concurrent.futures import Executor
 from mazebot.clock import Clock
 from mazebot.io.scan import Scan
 from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.loop_worker import LoopClosureExecutor
 from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams, SlamUpdate
 from mazebot.state import SharedState
 
@@ -38,10 +40,14 @@ async def run(
     state: SharedState,
     clock: Clock,
     params: SlamParams,
-    executor: Executor | None = None,
+    executor: LoopClosureExecutor | Executor | None = None,
     slam: Slam | None = None,
 ) -> None:
-    """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default)."""
+    """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default).
+
+    A :class:`LoopClosureExecutor` may run them in a worker process; any other executor
+    runs ``job.run`` in one of its threads.
+    """
     slam = slam or Slam(params, background=True, record_trajectory=False)
     loop = asyncio.get_running_loop()
     next_scan: asyncio.Future[Scan] | None = None
@@ -73,7 +79,9 @@ async def run(
                     state.clear_faults("slam")
                     state.note("slam", "SLAM processes scans again", clock.now_s())
                 _publish_update(state, slam, update)
-                if update.loop_job is not None:
+                if update.loop_job is not None and isinstance(executor, LoopClosureExecutor):
+                    job = asyncio.wrap_future(executor.submit(update.loop_job))
+                elif update.loop_job is not None:
                     job = loop.run_in_executor(executor, update.loop_job.run)
     finally:
         if job is not None:
@@ -118,6 +126,7 @@ def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
 
 
 def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult) -> None:
+    state.loop_job_ms.append(result.cpu_s * 1e3)
     rebuilt = slam.apply(result)
     stats = state.slam
     stats.loop_closures = len(slam.closures)

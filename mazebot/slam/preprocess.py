@@ -182,17 +182,10 @@ def voxel_downsample(points_xy: np.ndarray, voxel_size_m: float) -> np.ndarray:
     # one int64 key per cell: 32 bits per axis covers +-2^31 voxels, far beyond any map
     key = (cells[:, 0] << 32) ^ (cells[:, 1] & 0xFFFFFFFF)
     off_centre = np.sum((scaled - floor - 0.5) ** 2, axis=1)
-    order = np.argsort(key)  # group the points by voxel ...
+    order = np.lexsort((off_centre, key))  # by voxel, nearest the centre first in each ...
     sorted_key = key[order]
-    starts = np.flatnonzero(np.concatenate(([True], sorted_key[1:] != sorted_key[:-1])))
-    is_start = np.zeros(order.size, dtype=np.int64)
-    is_start[starts] = 1
-    group = np.cumsum(is_start) - 1
-    sorted_off = off_centre[order]
-    nearest = sorted_off == np.minimum.reduceat(sorted_off, starts)[group]  # ... and find each one's nearest
-    candidates = np.flatnonzero(nearest)
-    first = np.concatenate(([True], group[candidates[1:]] != group[candidates[:-1]]))
-    return np.sort(order[candidates[first]])
+    first = np.concatenate(([True], sorted_key[1:] != sorted_key[:-1]))  # ... so the first of a voxel wins
+    return np.sort(order[first])
 
 
 def prepare_scan(scan: Scan, pose_at_time: PoseAtTime | None, params: PrepareParams | None = None) -> PreparedScan:

@@ -112,8 +112,13 @@ class LoopClosureExecutor:
     """Runs loop-closure jobs in a worker process (``"process"``) or a thread (``"thread"``).
 
     One job at a time (SLAM never has two in flight). A worker missing keyframes gets all
-    of them and the job is retried once. A process pool that broke (its worker was
-    killed) fails the job in progress (a SLAM fault) and is replaced at the next job.
+    of them and the job is retried once. A worker that dies (killed, out of memory) fails
+    the job in progress, if any (a SLAM fault: the wheels stop until SLAM runs again); the
+    next job starts a new worker.
+
+    The worker is forked from multiprocessing's fork server, which imports the main
+    module of the program as ``__mp_main__``: a script that starts the daemon needs the
+    usual ``if __name__ == "__main__":`` guard (``mazebot`` and ``python -m mazebot`` have it).
     """
 
     def __init__(self, kind: str = "process") -> None:
@@ -149,7 +154,12 @@ class LoopClosureExecutor:
     def _send(self, job: LoopClosureJob, outer: Future[LoopClosureResult], retry: bool) -> None:
         if self._broken:
             self._replace_pool()
-        inner = self._pool.submit(run_shipped, self._shipper.pack(job))  # type: ignore[union-attr]
+        try:
+            inner = self._pool.submit(run_shipped, self._shipper.pack(job))  # type: ignore[union-attr]
+        except BrokenProcessPool:  # the worker died between jobs: a new one gets every keyframe
+            log.warning("loop-closure worker died; starting another")
+            self._replace_pool()
+            inner = self._pool.submit(run_shipped, self._shipper.pack(job))  # type: ignore[union-attr]
 
         def done(f: Future[LoopClosureResult]) -> None:
             if outer.cancelled():

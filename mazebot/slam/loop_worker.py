@@ -25,6 +25,9 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
+import threading
+import time
 import uuid
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -91,6 +94,24 @@ def _warm_up() -> None:
     """Nothing: the first task makes the pool start its worker while the daemon starts."""
 
 
+def _watch_daemon(daemon_pid: int, period_s: float = 1.0) -> None:
+    """Worker initializer: exit when the daemon is gone.
+
+    A pool's worker waits on a pipe whose both ends it inherited, so a daemon killed
+    without its clean-up (SIGKILL, a crash) would leave it waiting for ever.
+    """
+
+    def watch() -> None:
+        while True:
+            time.sleep(period_s)
+            try:
+                os.kill(daemon_pid, 0)
+            except ProcessLookupError:
+                os._exit(0)
+
+    threading.Thread(target=watch, name="mazebot-daemon-watch", daemon=True).start()
+
+
 class JobShipper:
     """The main process's side of the replica: which keyframes the worker has been sent."""
 
@@ -138,7 +159,9 @@ class LoopClosureExecutor:
         # this one (whose threads a fork could catch holding a lock)
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(["mazebot.slam.loop_worker"])
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=context)
+        self._pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=context, initializer=_watch_daemon, initargs=(os.getpid(),)
+        )
         self._pool.submit(_warm_up)
         self._shipper.reset()
 

@@ -162,7 +162,10 @@ class LoopClosureExecutor:
         self._pool = ProcessPoolExecutor(
             max_workers=1, mp_context=context, initializer=_watch_daemon, initargs=(os.getpid(),)
         )
-        self._pool.submit(_warm_up)
+        # starting the worker waits for the fork server to import numpy and scipy (a second
+        # or more on a Pi): a thread of its own does it, so the daemon's start never waits
+        pool = self._pool
+        threading.Thread(target=pool.submit, args=(_warm_up,), name="mazebot-slam-start", daemon=True).start()
         self._shipper.reset()
 
     def submit(self, job: LoopClosureJob) -> Future[LoopClosureResult]:

@@ -8,9 +8,12 @@ For each seed, one scripted tour of a generated 6×6 maze (as ``mazebot bench --
 standard``) with SLAM, then (unless ``--no-baseline``) the same tour with SLAM replaced
 by a task that only drains the scan queue, so that the simulator, the drivers and the
 other tasks are measured alone. Printed per run: simulated and wall seconds, the
-realtime factor, and SLAM's thread CPU split into per-scan updates (on the event loop)
-and loop-closure jobs (in the executor). Both are in the wall time of a virtual-time
-run: the clock does not wait for them, the CPU does.
+realtime factor, the daemon process's CPU time (and simulated seconds per CPU second,
+steadier than wall time on a shared machine), and SLAM's thread CPU split into per-scan
+updates (on the event loop) and loop-closure jobs (in the executor: a worker process by
+default, whose CPU is not in the process figure; ``--executor thread`` puts it back).
+All are in the wall time of a virtual-time run: the clock does not wait for them, the
+CPU does.
 """
 
 from __future__ import annotations
@@ -53,9 +56,11 @@ async def _drain_scans(state: Any, clock: Any, params: Any, executor: Any = None
         await state.scans.get()
 
 
-def _one(seed: int, with_slam: bool) -> dict[str, float]:
+def _one(seed: int, with_slam: bool, executor: str | None) -> dict[str, float]:
     config = load_config(None)
-    jobs = _JobTimer()
+    if executor is not None:
+        config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": executor})})
+    jobs = _JobTimer()  # loop-closure jobs in this process (older code has no state.loop_job_ms)
     real_slam = slam_task.run
     if not with_slam:
         slam_task.run = _drain_scans  # type: ignore[assignment]
@@ -64,13 +69,18 @@ def _one(seed: int, with_slam: bool) -> dict[str, float]:
     finally:
         slam_task.run = real_slam  # type: ignore[assignment]
         jobs.close()
+    job_ms = getattr(record.state, "loop_job_ms", None)
+    job_cpu_s = [ms / 1e3 for ms in job_ms] if job_ms is not None else jobs.cpu_s
+    cpu_s = metrics["cpu_percent"] * metrics["wall_s"] / 100.0
     return {
         "time_s": metrics["time_s"],
         "wall_s": metrics["wall_s"],
         "realtime_factor": metrics["realtime_factor"],
+        "process_cpu_s": cpu_s,
+        "sim_s_per_cpu_s": metrics["time_s"] / cpu_s,
         "slam_update_cpu_s": sum(record.state.scan_ms) / 1e3,
-        "loop_job_cpu_s": sum(jobs.cpu_s),
-        "loop_jobs": len(jobs.cpu_s),
+        "loop_job_cpu_s": sum(job_cpu_s),
+        "loop_jobs": len(job_cpu_s),
     }
 
 
@@ -78,23 +88,32 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5, help="seeds 1..N (default 5)")
     parser.add_argument("--no-baseline", action="store_true", help="skip the runs without SLAM")
+    parser.add_argument(
+        "--executor", choices=("process", "thread"), help="where loop-closure jobs run (default: config.toml's)"
+    )
     args = parser.parse_args()
     modes = [True] if args.no_baseline else [True, False]
     factors: dict[bool, list[float]] = {True: [], False: []}
+    per_cpu: dict[bool, list[float]] = {True: [], False: []}
     for seed in range(1, args.seeds + 1):
         for with_slam in modes:
-            r = _one(seed, with_slam)
+            r = _one(seed, with_slam, args.executor)
             factors[with_slam].append(r["realtime_factor"])
+            per_cpu[with_slam].append(r["sim_s_per_cpu_s"])
             label = "SLAM   " if with_slam else "no SLAM"
             print(
                 f"seed {seed} {label}: {r['time_s']:.1f} s simulated in {r['wall_s']:.2f} s "
-                f"({r['realtime_factor']}x); SLAM updates {r['slam_update_cpu_s']:.2f} s CPU, "
+                f"({r['realtime_factor']}x), process CPU {r['process_cpu_s']:.2f} s "
+                f"({r['sim_s_per_cpu_s']:.1f} simulated s per CPU s); SLAM updates {r['slam_update_cpu_s']:.2f} s CPU, "
                 f"loop-closure jobs {r['loop_jobs']} x, {r['loop_job_cpu_s']:.2f} s CPU",
                 flush=True,
             )
     for with_slam in modes:
         label = "with SLAM" if with_slam else "without SLAM"
-        print(f"median realtime factor {label}: {statistics.median(factors[with_slam])}")
+        print(
+            f"median realtime factor {label}: {statistics.median(factors[with_slam])}, "
+            f"simulated s per process CPU s: {statistics.median(per_cpu[with_slam]):.2f}"
+        )
 
 
 if __name__ == "__main__":

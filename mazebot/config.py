@@ -449,6 +449,10 @@ class SlamConfig(Section):
         0.01, ge=0, description="rebuild the map when optimization moved a keyframe farther than this ..."
     )
     rebuild_threshold_rad: float = Field(0.005, ge=0, description="... or turned one more than this")
+    loop_closure_executor: Literal["process", "thread"] = Field(
+        "process",
+        description="run loop-closure jobs in a worker process (a core of its own) or a thread of the daemon",
+    )
     # occupancy grid
     grid_resolution_m: float = Field(0.02, gt=0.001, le=1, description="occupancy grid cell size")
     grid_l_hit: float = Field(0.85, gt=0, description="log-odds added to a cell a beam ends in")

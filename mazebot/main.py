@@ -15,7 +15,7 @@ import logging
 import signal
 import sys
 from collections.abc import Awaitable, Callable
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from typing import Any
@@ -113,6 +113,7 @@ async def run_daemon(
     way to reach the compute: :mod:`mazebot.sim.faults`).
     """
     from mazebot.planner.pilot import Pilot, PilotParams
+    from mazebot.slam.loop_worker import LoopClosureExecutor
     from mazebot.slam.odometry import DiffDriveOdometry
     from mazebot.slam.slam import Slam, SlamParams
     from mazebot.tasks import (
@@ -143,9 +144,9 @@ async def run_daemon(
         for name, factory in hardware.extra_tasks:
             supervisor.start(name, factory)
         state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
-        # pose-graph optimization and map rebuilds run here, off the event loop
-        slam_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam")
-        stack.callback(slam_executor.shutdown, wait=False, cancel_futures=True)
+        # loop closures (verification, pose-graph optimization, map rebuilds) run here, off the event loop
+        slam_executor = LoopClosureExecutor(config.slam.loop_closure_executor)
+        stack.callback(slam_executor.shutdown)
         state.auto_resume = config.daemon.auto_resume
         # what must survive a task's restart is built here, outside the tasks: the odometry
         # (the pose must not jump back to the origin), SLAM (the map), planner and control

@@ -187,6 +187,8 @@ class SharedState:
     trajectory: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=2000))
     #: CPU time of SLAM's update per scan, ms (filter + ICP + grid; loop closures run in an executor)
     scan_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    #: CPU time of each loop-closure job, ms, in the thread or worker process that ran it
+    loop_job_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     # --- written by the planner --------------------------------------------------------
     path: list[tuple[float, float]] = field(default_factory=list)  # planned waypoints, map frame
     goal: tuple[float, float] | None = None  # the current exploration goal, map frame

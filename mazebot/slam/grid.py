@@ -192,7 +192,7 @@ class OccupancyGrid:
         start_c = starts / self.resolution_m - origin
         end_c = ends / self.resolution_m - origin
         end_cell = np.floor(end_c).astype(np.int64)
-        free_c, free_r = self._trace_free(start_c, end_c, end_cell, hit)
+        free_c, free_r = self._trace_free(start_c, end_c, end_cell, hit, drop_hit_cells=False)
         hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
 
         # one update per cell per scan, a hit winning over a miss: mark a window, then update
@@ -201,7 +201,7 @@ class OccupancyGrid:
         shape = (int(hi[1] - lo[1]) + 1, int(hi[0] - lo[0]) + 1)
         is_free = np.zeros(shape, dtype=bool)
         is_hit = np.zeros(shape, dtype=bool)
-        is_free[free_r - lo[1], free_c - lo[0]] = True
+        is_free.reshape(-1)[(free_r - lo[1]) * shape[1] + (free_c - lo[0])] = True  # flat: one index array
         is_hit[hit_r - lo[1], hit_c - lo[0]] = True
         is_free &= ~is_hit
         cols = self.shape[1]
@@ -241,14 +241,20 @@ class OccupancyGrid:
         return starts, starts + vec * scale[:, None], hit
 
     def _trace_free(
-        self, start_c: np.ndarray, end_c: np.ndarray, end_cell: np.ndarray, hit: np.ndarray
+        self,
+        start_c: np.ndarray,
+        end_c: np.ndarray,
+        end_cell: np.ndarray,
+        hit: np.ndarray,
+        drop_hit_cells: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Cells (cols, rows) crossed by the beams before their endpoint's cell.
 
         Beams are given in continuous cell units. Samples every ``trace_step`` cell along
         each beam, all beams at once (``np.repeat`` builds the flat sample list). A beam's
         samples inside its own endpoint cell are dropped for hits (that cell is the wall);
-        no-return beams keep theirs.
+        no-return beams keep theirs. ``drop_hit_cells=False`` keeps them too, for a caller
+        that lets hits win over misses anyway (:meth:`integrate`): the same cells result.
         """
         step = self.trace_step
         vec = end_c - start_c
@@ -257,12 +263,18 @@ class OccupancyGrid:
         total = int(count.sum())
         if total == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        beam = np.repeat(np.arange(count.size), count)
+        # per-beam values repeated per sample (np.repeat of a column is cheaper than a gather)
         k = np.arange(total, dtype=np.float64) - np.repeat(np.cumsum(count) - count, count)
-        frac = np.divide(step, length, out=np.zeros_like(length), where=length > 0)[beam] * k  # in [0, 1)
-        col = np.floor(start_c[beam, 0] + vec[beam, 0] * frac).astype(np.int64)
-        row = np.floor(start_c[beam, 1] + vec[beam, 1] * frac).astype(np.int64)
-        keep = ~((col == end_cell[beam, 0]) & (row == end_cell[beam, 1]) & hit[beam])
+        frac = np.repeat(np.divide(step, length, out=np.zeros_like(length), where=length > 0), count) * k  # in [0, 1)
+        col = np.floor(np.repeat(start_c[:, 0], count) + np.repeat(vec[:, 0], count) * frac).astype(np.int64)
+        row = np.floor(np.repeat(start_c[:, 1], count) + np.repeat(vec[:, 1], count) * frac).astype(np.int64)
+        if not drop_hit_cells:
+            return col, row
+        keep = ~(
+            (col == np.repeat(end_cell[:, 0], count))
+            & (row == np.repeat(end_cell[:, 1], count))
+            & np.repeat(hit, count)
+        )
         return col[keep], row[keep]
 
     def _ensure_contains(self, xy: np.ndarray) -> None:

@@ -70,7 +70,6 @@ class Keyframe:
     integrated_pose: np.ndarray
     normal_params: NormalParams = field(default_factory=NormalParams)
     _surface: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
-    _world: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     _walls: tuple[float, float, int] | None = field(default=None, repr=False)
 
     @property
@@ -99,20 +98,6 @@ class Keyframe:
             self._surface = surface  # a race with another thread computes the same values
         return surface
 
-    def world(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Points (N, 2), normals (N, 2) and lidar position (2,) in the map frame, cached per pose."""
-        cached = self._world
-        if cached is None or not np.array_equal(cached[0], self.pose):
-            pose = self.pose.copy()
-            cached = (
-                pose,
-                transform(pose, self.points),
-                rotate(float(pose[2]), self.normals),
-                transform(pose, self.sensor_xy.reshape(1, 2))[0],
-            )
-            self._world = cached
-        return cached[1], cached[2], cached[3]
-
     def wall_direction(self) -> tuple[float, float, int]:
         """Dominant wall direction in the robot frame, modulo 90°: ``(angle_rad, strength, count)``.
 
@@ -134,10 +119,6 @@ class Keyframe:
                 cached = (0.25 * math.atan2(s, c), math.hypot(c, s), int(nrm.shape[0]))
             self._walls = cached
         return cached
-
-    def release_world(self) -> None:
-        """Forget the map-frame copies (a keyframe out of the local submap need not hold them)."""
-        self._world = None
 
     @classmethod
     def from_scan(
@@ -284,27 +265,41 @@ def build_target(
     (loop closure matches in the candidate keyframe's frame). ``poses`` overrides the
     keyframes' own poses (a snapshot taken for a background job). ``clip`` ``(centre (2,),
     radius_m)`` keeps only points that close to a centre (in the output frame). None if empty.
+
+    All keyframes are moved in one vectorized pass (each point with its keyframe's cosine,
+    sine and translation), the same arithmetic as :func:`transform` point by point.
     """
-    pts, nrm, view = [], [], []
-    base_inv = None if frame is None else np.asarray(frame, dtype=np.float64)
-    for k, kf in enumerate(keyframes):
-        if kf.points.shape[0] == 0:
-            continue
-        if base_inv is None and poses is None:
-            world_pts, world_nrm, world_sensor = kf.world()
-            pts.append(world_pts)
-            nrm.append(world_nrm)
-            view.append(np.broadcast_to(world_sensor, world_pts.shape))
-            continue
-        pose = kf.pose if poses is None else np.asarray(poses[k], dtype=np.float64)
-        if base_inv is not None:
-            pose = _relative(base_inv, pose)
-        pts.append(transform(pose, kf.points))
-        nrm.append(rotate(float(pose[2]), kf.normals))
-        view.append(np.broadcast_to(transform(pose, kf.sensor_xy.reshape(1, 2)), (kf.points.shape[0], 2)))
-    if not pts:
+    kept = [k for k, kf in enumerate(keyframes) if kf.points.shape[0]]
+    if not kept:
         return None
-    points, normals, views = np.concatenate(pts), np.concatenate(nrm), np.concatenate(view)
+    base = None if frame is None else np.asarray(frame, dtype=np.float64)
+    pose_rows = []
+    for k in kept:
+        pose = keyframes[k].pose if poses is None else np.asarray(poses[k], dtype=np.float64)
+        pose_rows.append(pose if base is None else _relative(base, pose))
+    pose_arr = np.array(pose_rows, dtype=np.float64).reshape(-1, 3)
+    # math.cos/sin, as transform() and rotate() use, so the result is the same to the bit
+    cos = np.array([math.cos(float(t)) for t in pose_arr[:, 2]])
+    sin = np.array([math.sin(float(t)) for t in pose_arr[:, 2]])
+    sensors = np.array([keyframes[k].sensor_xy for k in kept], dtype=np.float64).reshape(-1, 2)
+    views_kf = np.column_stack(
+        (
+            cos * sensors[:, 0] - sin * sensors[:, 1] + pose_arr[:, 0],
+            sin * sensors[:, 0] + cos * sensors[:, 1] + pose_arr[:, 1],
+        )
+    )
+    counts = np.array([keyframes[k].points.shape[0] for k in kept])
+    local = np.concatenate([keyframes[k].points for k in kept]).astype(np.float64)
+    local_nrm = np.concatenate([keyframes[k].normals for k in kept]).astype(np.float64)
+    c, sn = np.repeat(cos, counts), np.repeat(sin, counts)
+    points = np.column_stack(
+        (
+            c * local[:, 0] - sn * local[:, 1] + np.repeat(pose_arr[:, 0], counts),
+            sn * local[:, 0] + c * local[:, 1] + np.repeat(pose_arr[:, 1], counts),
+        )
+    )
+    normals = np.column_stack((c * local_nrm[:, 0] - sn * local_nrm[:, 1], sn * local_nrm[:, 0] + c * local_nrm[:, 1]))
+    views = np.repeat(views_kf, counts, axis=0)
     if clip is not None:
         near = np.hypot(*(points - np.asarray(clip[0], dtype=np.float64).reshape(1, 2)).T) <= clip[1]
         points, normals, views = points[near], normals[near], views[near]

@@ -160,7 +160,11 @@ def impulse_mask(range_m: np.ndarray, window: int, abs_m: float, rel: float, cir
         return np.ones(n, dtype=bool)
     half = window // 2
     padded = np.pad(range_m, half, mode="wrap" if circular else "edge")
-    median = np.median(sliding_window_view(padded, window), axis=1)
+    if window == 3:  # the default: the median of three in min/max form (exactly np.median's, ~10x faster)
+        a, b, c = padded[:-2], padded[1:-1], padded[2:]
+        median = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    else:
+        median = np.median(sliding_window_view(padded, window), axis=1)
     return np.abs(range_m - median) <= abs_m + rel * median
 
 
@@ -178,17 +182,10 @@ def voxel_downsample(points_xy: np.ndarray, voxel_size_m: float) -> np.ndarray:
     # one int64 key per cell: 32 bits per axis covers +-2^31 voxels, far beyond any map
     key = (cells[:, 0] << 32) ^ (cells[:, 1] & 0xFFFFFFFF)
     off_centre = np.sum((scaled - floor - 0.5) ** 2, axis=1)
-    order = np.argsort(key)  # group the points by voxel ...
+    order = np.lexsort((off_centre, key))  # by voxel, nearest the centre first in each ...
     sorted_key = key[order]
-    starts = np.flatnonzero(np.concatenate(([True], sorted_key[1:] != sorted_key[:-1])))
-    is_start = np.zeros(order.size, dtype=np.int64)
-    is_start[starts] = 1
-    group = np.cumsum(is_start) - 1
-    sorted_off = off_centre[order]
-    nearest = sorted_off == np.minimum.reduceat(sorted_off, starts)[group]  # ... and find each one's nearest
-    candidates = np.flatnonzero(nearest)
-    first = np.concatenate(([True], group[candidates[1:]] != group[candidates[:-1]]))
-    return np.sort(order[candidates[first]])
+    first = np.concatenate(([True], sorted_key[1:] != sorted_key[:-1]))  # ... so the first of a voxel wins
+    return np.sort(order[first])
 
 
 def prepare_scan(scan: Scan, pose_at_time: PoseAtTime | None, params: PrepareParams | None = None) -> PreparedScan:

@@ -44,6 +44,7 @@ Example::
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -240,6 +241,7 @@ class LoopClosureResult:
     moved_m: float = 0.0
     turned_rad: float = 0.0
     wall_reference_rad: float | None = None  # the wall grid's direction estimated with the poses
+    cpu_s: float = 0.0  # thread CPU time the job took (where it ran: a thread or a worker process)
 
 
 @dataclass
@@ -260,7 +262,16 @@ class LoopClosureJob:
     wall_reference_rad: float | None = None  # the wall grid's direction in the map frame, if known
     optimize_anyway: bool = False  # optimize even if no candidate is accepted (periodic wall priors)
 
+    def __call__(self) -> LoopClosureResult:
+        """The job as a callable, so any executor runs it (``loop.run_in_executor(executor, job)``)."""
+        return self.run()
+
     def run(self) -> LoopClosureResult:
+        start_s = time.thread_time()
+        result = self._run()
+        return replace(result, cpu_s=time.thread_time() - start_s)
+
+    def _run(self) -> LoopClosureResult:
         p = self.params
         verdicts = []
         for found in self.candidates:
@@ -753,8 +764,6 @@ class Slam:
             near = near[np.argsort(dist[near], kind="stable")[: p.submap_near_keyframes]]
             chosen = sorted(near.tolist()) + chosen
         self.target = build_target([self.keyframes[k] for k in chosen], p.submap_voxel_m)
-        for k in self._in_submap.difference(chosen):  # their map-frame copies are not needed any more
-            self.keyframes[k].release_world()
         self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0

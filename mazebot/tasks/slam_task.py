@@ -3,8 +3,9 @@
 Each revolution from ``state.scans`` goes through :meth:`mazebot.slam.slam.Slam.update`
 (filter, de-skew, ICP, keyframe, grid: a few milliseconds on the loop). When an update
 hands back a loop-closure job (verification, pose-graph optimization, grid rebuild:
-tens to hundreds of milliseconds), it runs in ``executor`` while scans keep being
-processed; its result is merged with :meth:`Slam.apply` as soon as it is done.
+tens to hundreds of milliseconds), it runs in ``executor`` (by default a worker process,
+:mod:`mazebot.slam.loop_worker`) while scans keep being processed; its result is merged
+with :meth:`Slam.apply` as soon as it is done.
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
@@ -50,9 +51,13 @@ async def run(
 ) -> None:
     """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default).
 
+    A :class:`LoopClosureExecutor` may run them in a worker process; any other executor
+    runs ``job.run`` in one of its threads.
+
     ``guard`` (:mod:`mazebot.slam.relocalize`; a default one if None) holds back revolutions
     that do not fit the map; when the robot is lost it raises a ``localization`` fault and
-    searches for it in the executor, and clears the fault once found.
+    searches for it in the executor (in this process: it reads the live SLAM), and clears
+    the fault once found.
     """
     slam = slam or Slam(params, background=True, record_trajectory=False)
     guard = guard or LocalizationGuard()
@@ -120,8 +125,8 @@ async def run(
                     state.note("slam", "SLAM processes scans again", clock.now_s())
                 _publish_update(state, slam, update)
                 _note_slip(state, slam, guard, predicted, update, clock)
-                if update.loop_job is not None:
-                    job = loop.run_in_executor(executor, update.loop_job.run)
+                if update.loop_job is not None:  # the job itself, so a LoopClosureExecutor can ship it
+                    job = loop.run_in_executor(executor, update.loop_job)
                     job_since_s, job_noted = clock.now_s(), False
     finally:
         if job is not None:
@@ -214,6 +219,7 @@ def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
 
 
 def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult) -> None:
+    state.loop_job_ms.append(result.cpu_s * 1e3)
     rebuilt = slam.apply(result)
     stats = state.slam
     stats.loop_closures = len(slam.closures)

@@ -1,0 +1,239 @@
+"""Loop-closure jobs on a core of their own: a worker process that keeps the keyframes.
+
+A loop-closure job (:class:`mazebot.slam.slam.LoopClosureJob`: verification ICP,
+pose-graph optimization, grid rebuild) is tens of milliseconds of mostly small numpy
+operations. In a thread it holds the GIL for most of that time, so the event loop, and
+with it the control loop and the per-scan SLAM update, waits behind it. In a worker
+process it runs beside them (the Pi 4 has four cores).
+
+Shipping a job to another process means pickling it, and a job refers to every keyframe
+(a few kilobytes each, thousands in a big maze). A keyframe's scan data never change once
+it is made (only its pose does, and a job carries its own copy of the poses), so the
+worker keeps a replica of the keyframe list and each job carries only the keyframes
+added since the previous one (:class:`JobShipper`). A worker that lacks keyframes (a
+fresh process, a job that was cancelled before it ran) says so, and gets them all.
+
+Example::
+
+    executor = LoopClosureExecutor("process")
+    future = executor.submit(update.loop_job)    # concurrent.futures.Future
+    slam.apply(future.result())
+    executor.shutdown()
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, replace
+from typing import Any
+
+from mazebot.slam.keyframes import Keyframe
+from mazebot.slam.slam import LoopClosureJob, LoopClosureResult
+
+log = logging.getLogger(__name__)
+
+#: Where loop-closure jobs can run (``[slam] loop_closure_executor``).
+EXECUTOR_KINDS = ("process", "thread")
+
+
+class MissingKeyframes(RuntimeError):
+    """The worker's replica is shorter than the job assumes: ship every keyframe again."""
+
+
+@dataclass(frozen=True)
+class ShippedJob:
+    """A job as sent to the worker: ``job`` without its keyframes, plus the ones the worker lacks.
+
+    ``owner`` names the :class:`JobShipper` (one per SLAM instance and worker); ``fresh``
+    are the keyframes from index ``first`` on.
+    """
+
+    owner: str
+    first: int
+    fresh: list[Keyframe]
+    count: int
+    job: LoopClosureJob
+
+
+class _Replica:
+    """The worker process's copy of one owner's keyframes (only the newest owner is kept)."""
+
+    def __init__(self) -> None:
+        self.owner: str | None = None
+        self.keyframes: list[Keyframe] = []
+
+    def run(self, shipped: ShippedJob) -> LoopClosureResult:
+        if self.owner != shipped.owner:
+            if shipped.first > 0:
+                raise MissingKeyframes(f"the worker holds no keyframes of this SLAM, the job starts at {shipped.first}")
+            self.owner, self.keyframes = shipped.owner, []
+        store = self.keyframes
+        if len(store) < shipped.first:
+            raise MissingKeyframes(f"the worker holds {len(store)} keyframes, the job starts at {shipped.first}")
+        del store[shipped.first :]
+        store.extend(shipped.fresh)
+        return replace(shipped.job, keyframes=store[: shipped.count]).run()
+
+
+#: In a worker process: the keyframes it was sent (the state a worker exists to keep).
+_REPLICA = _Replica()
+
+
+def run_shipped(shipped: ShippedJob) -> LoopClosureResult:
+    """Run a shipped job in the worker process against its keyframe replica."""
+    return _REPLICA.run(shipped)
+
+
+def _warm_up() -> None:
+    """Nothing: the first task makes the pool start its worker while the daemon starts."""
+
+
+def _watch_daemon(daemon_pid: int, period_s: float = 1.0) -> None:
+    """Worker initializer: exit when the daemon is gone.
+
+    A pool's worker waits on a pipe whose both ends it inherited, so a daemon killed
+    without its clean-up (SIGKILL, a crash) would leave it waiting for ever.
+    """
+
+    def watch() -> None:
+        while True:
+            time.sleep(period_s)
+            try:
+                os.kill(daemon_pid, 0)
+            except ProcessLookupError:
+                os._exit(0)
+
+    threading.Thread(target=watch, name="mazebot-daemon-watch", daemon=True).start()
+
+
+class JobShipper:
+    """The main process's side of the replica: which keyframes the worker has been sent."""
+
+    def __init__(self) -> None:
+        self.owner = uuid.uuid4().hex
+        self.shipped = 0
+
+    def pack(self, job: LoopClosureJob) -> ShippedJob:
+        count = len(job.keyframes)
+        first = min(self.shipped, count)
+        self.shipped = count
+        return ShippedJob(self.owner, first, job.keyframes[first:], count, replace(job, keyframes=[]))
+
+    def reset(self) -> None:
+        self.shipped = 0
+
+
+class LoopClosureExecutor(Executor):
+    """Runs loop-closure jobs in a worker process (``"process"``) or a thread (``"thread"``).
+
+    It is a :class:`concurrent.futures.Executor`: a :class:`LoopClosureJob` submitted
+    alone goes to the worker; any other callable (the search for a lost robot, which
+    reads the live SLAM object) runs in this process, in one thread of its own.
+
+    One job at a time (SLAM never has two in flight). A worker missing keyframes gets all
+    of them and the job is retried once. A worker that dies (killed, out of memory) fails
+    the job in progress, if any (a SLAM fault: the wheels stop until SLAM runs again); the
+    next job starts a new worker.
+
+    The worker is forked from multiprocessing's fork server, which imports the main
+    module of the program as ``__mp_main__``: a script that starts the daemon needs the
+    usual ``if __name__ == "__main__":`` guard (``mazebot`` and ``python -m mazebot`` have it).
+    """
+
+    def __init__(self, kind: str = "process") -> None:
+        if kind not in EXECUTOR_KINDS:
+            raise ValueError(f"loop-closure executor must be one of {', '.join(EXECUTOR_KINDS)}, got {kind!r}")
+        self.kind = kind
+        self._shipper = JobShipper()
+        self._pool: ProcessPoolExecutor | ThreadPoolExecutor | None = None
+        self._local = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam-local")
+        self._broken = False
+        self._start()
+
+    def _start(self) -> None:
+        if self.kind == "thread":
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam")
+            return
+        # forkserver: workers fork from a clean process that imported SLAM once, never from
+        # this one (whose threads a fork could catch holding a lock)
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(["mazebot.slam.loop_worker"])
+        self._pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=context, initializer=_watch_daemon, initargs=(os.getpid(),)
+        )
+        # starting the worker waits for the fork server to import numpy and scipy (a second
+        # or more on a Pi): a thread of its own does it, so the daemon's start never waits
+        pool = self._pool
+        threading.Thread(target=pool.submit, args=(_warm_up,), name="mazebot-slam-start", daemon=True).start()
+        self._shipper.reset()
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        """Start ``fn(*args, **kwargs)``; the future holds its result (or the exception it raised).
+
+        A lone :class:`LoopClosureJob` runs where ``kind`` says; anything else runs in
+        this process's local thread.
+        """
+        assert self._pool is not None, "submit after shutdown"
+        if not isinstance(fn, LoopClosureJob) or args or kwargs:
+            return self._local.submit(fn, *args, **kwargs)
+        if self.kind == "thread":
+            return self._pool.submit(fn.run)
+        outer: Future[LoopClosureResult] = Future()
+        self._send(fn, outer, retry=True)
+        return outer
+
+    def _send(self, job: LoopClosureJob, outer: Future[LoopClosureResult], retry: bool) -> None:
+        if self._broken:
+            self._replace_pool()
+        try:
+            inner = self._pool.submit(run_shipped, self._shipper.pack(job))  # type: ignore[union-attr]
+        except BrokenProcessPool:  # the worker died between jobs: a new one gets every keyframe
+            log.warning("loop-closure worker died; starting another")
+            self._replace_pool()
+            inner = self._pool.submit(run_shipped, self._shipper.pack(job))  # type: ignore[union-attr]
+
+        def done(f: Future[LoopClosureResult]) -> None:
+            if outer.cancelled():
+                return
+            if f.cancelled():
+                outer.cancel()
+                return
+            exc = f.exception()
+            if retry and isinstance(exc, MissingKeyframes):
+                log.warning("loop-closure worker: %s; sending every keyframe again", exc)
+                self._shipper.reset()
+                self._send(job, outer, retry=False)
+                return
+            if isinstance(exc, BrokenProcessPool):
+                self._broken = True  # replaced at the next job; this one is lost (and reported)
+            if exc is not None:
+                outer.set_exception(exc)
+            else:
+                outer.set_result(f.result())
+
+        inner.add_done_callback(done)
+
+    def _replace_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        self._broken = False
+        self._start()
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = True) -> None:
+        """Stop the worker after the job in progress, if any (its result goes unseen); idempotent.
+
+        Waiting (tens of milliseconds) lets the pool close its pipes before the interpreter
+        exits; without it Python's exit hook writes to a closed one.
+        """
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=cancel_futures)
+            self._pool = None
+        self._local.shutdown(wait=wait, cancel_futures=cancel_futures)

@@ -6,6 +6,9 @@ and compares maps with the truth raster the ``coverage`` metric uses
 
 - the final live map (what ``coverage`` scores);
 - the keyframes rebuilt at SLAM's own final poses (the map after a loop closure);
+- the same after the rotation and translation that fit SLAM's keyframe positions best
+  to the truth: what is lost between this and the previous line is the map's global
+  placement (a rotation of the whole map about the start), not its sharpness;
 - the keyframes rebuilt at the *true* poses: whatever is still missed there is the
   grid's inverse sensor model (range noise, hit/miss balance), not pose error.
 
@@ -36,7 +39,7 @@ from mazebot.slam import slam as slam_module
 from mazebot.slam.slam import GridParams
 
 
-def run_and_capture(seed: int, drive: str, size: int) -> dict[str, Any]:
+def run_and_capture(seed: int, drive: str, size: int, config_path: str | None = None) -> dict[str, Any]:
     """One mission; returns the keyframes, the true trajectory, the world and the final grid."""
     captured: list[Any] = []
     base = slam_module.Slam
@@ -62,7 +65,7 @@ def run_and_capture(seed: int, drive: str, size: int) -> dict[str, Any]:
 
     slam_module.Slam = CapturingSlam
     try:
-        config = load_config(None)
+        config = load_config(config_path)
         metrics, record = run_one(config, RunSpec(None, (size, size), seed, drive))
     finally:
         slam_module.Slam = base
@@ -91,16 +94,45 @@ def run_and_capture(seed: int, drive: str, size: int) -> dict[str, Any]:
     }
 
 
-def true_keyframe_poses(run: dict[str, Any]) -> np.ndarray:
-    """Each keyframe's true pose in the map frame (the robot's start pose)."""
+def true_keyframe_poses(run: dict[str, Any], shift_s: float = 0.0) -> np.ndarray:
+    """Each keyframe's true pose in the map frame (the robot's start pose), ``shift_s`` after its stamp."""
     traj = run["trajectory"]
     t, th = traj[:, 0], np.unwrap(traj[:, 3])
-    times = np.array([kf["time_s"] for kf in run["keyframes"]])
+    times = np.array([kf["time_s"] for kf in run["keyframes"]]) + shift_s
     x, y, a = np.interp(times, t, traj[:, 1]), np.interp(times, t, traj[:, 2]), np.interp(times, t, th)
     bx, by, bt = run["start"]
     c, s = math.cos(bt), math.sin(bt)
     dx, dy = x - bx, y - by
     return np.column_stack((c * dx + s * dy, -s * dx + c * dy, np.remainder(a - bt + np.pi, 2 * np.pi) - np.pi))
+
+
+def stamp_shift_s(run: dict[str, Any]) -> float:
+    """The time shift of the truth that best explains the keyframes' headings (least heading variance).
+
+    A keyframe's pose belongs to the instant its de-skewed points show, which differs from
+    its stamp by the lidar/odometry time offsets (the simulated encoders lag the world by
+    up to one simulator step); in turns that shows as a heading error proportional to the
+    turn rate, which says nothing about the map.
+    """
+    est = np.array([kf["pose"] for kf in run["keyframes"]])
+    best = (math.inf, 0.0)
+    for shift in np.arange(-0.03, 0.03, 0.0005):
+        err = np.remainder(est[:, 2] - true_keyframe_poses(run, shift)[:, 2] + np.pi, 2 * np.pi) - np.pi
+        best = min(best, (float(np.var(err)), float(shift)))
+    return best[1]
+
+
+def rigid_fit(est: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, float]:
+    """``est`` moved by the rotation and translation that fit its positions best to ``truth`` (Kabsch)."""
+    a, b = est[:, :2], truth[:, :2]
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ma).T @ (b - mb))
+    rot = vt.T @ u.T
+    angle = math.atan2(rot[1, 0], rot[0, 0])
+    out = est.copy()
+    out[:, :2] = (rot @ (a - ma).T).T + mb
+    out[:, 2] += angle
+    return out, angle
 
 
 def rebuild(run: dict[str, Any], poses: np.ndarray, grid_params: GridParams) -> Any:
@@ -151,6 +183,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=20)
     ap.add_argument("--size", type=int, default=6)
     ap.add_argument("--drive", choices=("explore", "scripted"), default="explore")
+    ap.add_argument("--config", help="config file (default: the usual search)")
     ap.add_argument("--dump", help="keep the run in this pickle")
     ap.add_argument("--load", help="analyse a kept run instead of running one")
     args = ap.parse_args()
@@ -158,7 +191,7 @@ def main() -> None:
         with open(args.load, "rb") as f:
             run = pickle.load(f)
     else:
-        run = run_and_capture(args.seed, args.drive, args.size)
+        run = run_and_capture(args.seed, args.drive, args.size, args.config)
         if args.dump:
             with open(args.dump, "wb") as f:
                 pickle.dump(run, f)
@@ -168,12 +201,17 @@ def main() -> None:
     params = GridParams()
     report(run, "final live map", run["grid"])
     slam_poses = np.array([kf["pose"] for kf in run["keyframes"]])
-    true_poses = true_keyframe_poses(run)
-    err = np.hypot(*(slam_poses[:, :2] - true_poses[:, :2]).T)
-    print(f"keyframe pose error: rms {np.sqrt(np.mean(err**2)):.4f} m, max {err.max():.4f} m")
+    shift = stamp_shift_s(run)
+    true_poses = true_keyframe_poses(run, shift)
+    fitted, angle = rigid_fit(slam_poses, true_poses)
+    for name, poses in (("as estimated", slam_poses), (f"after a rigid fit ({math.degrees(angle):.3f} deg)", fitted)):
+        err = np.hypot(*(poses[:, :2] - true_poses[:, :2]).T)
+        head = np.degrees(np.remainder(poses[:, 2] - true_poses[:, 2] + np.pi, 2 * np.pi) - np.pi)
+        print(f"keyframe poses {name}: rms {np.sqrt(np.mean(err**2)):.4f} m, max {err.max():.4f} m, "
+              f"heading rms {np.sqrt(np.mean(head**2)):.3f} deg (truth {shift * 1e3:.1f} ms after the stamps)")
     report(run, "keyframes at SLAM poses", rebuild(run, slam_poses, params))
+    report(run, "keyframes at SLAM poses after the rigid fit", rebuild(run, fitted, params))
     report(run, "keyframes at true poses", rebuild(run, true_poses, params))
-
 
 if __name__ == "__main__":
     main()

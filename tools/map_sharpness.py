@@ -163,6 +163,14 @@ def missed_cells(run: dict[str, Any], grid: Any) -> None:
     miss = state != 0
     print(f"  reachable {len(state)}, missed {int(miss.sum())} "
           f"(occupied {int((state == 100).sum())}, unknown {int((state == -1).sum())})")
+    # the cells touching a wall, by the gap between the cell's edge and the face (centre distance - half a cell)
+    band = dist < res
+    gaps_mm = np.round((dist[band] - res / 2) * 1000).astype(int)
+    for gap in np.unique(gaps_mm):
+        at = gaps_mm == gap
+        if at.sum() >= 20:
+            missed = int(miss[band][at].sum())
+            print(f"  face {gap} mm behind the cell edge: {int(at.sum()):4d} cells, missed {missed:4d}")
     edges = [0.0, 0.01, 0.02, 0.03, 0.04, 0.06, 1.0]
     for lo, hi in itertools.pairwise(edges):
         band = (dist >= lo) & (dist < hi)

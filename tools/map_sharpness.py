@@ -186,6 +186,33 @@ def report(run: dict[str, Any], name: str, grid: Any) -> None:
     missed_cells(run, grid)
 
 
+def perfect_map(run: dict[str, Any], resolution_m: float = 0.02) -> Any:
+    """The truth raster drawn in the map's own lattice: what a flawless SLAM would hand the metric.
+
+    The map frame is the start pose, whose heading is a multiple of 90° in these worlds,
+    so the map's cells are squares of the world lattice through the start position.
+    """
+    from mazebot.slam.grid import OccupancyGrid
+
+    world, (sx, sy, st) = run["world"], run["start"]
+    xmin, ymin, xmax, ymax = world.bounds_m
+    ox = sx + math.floor((xmin - sx) / resolution_m) * resolution_m
+    oy = sy + math.floor((ymin - sy) / resolution_m) * resolution_m
+    shape = (math.ceil((ymax - oy) / resolution_m) + 1, math.ceil((xmax - ox) / resolution_m) + 1)
+    truth, _ = true_occupancy(world, resolution_m, (ox, oy), shape)
+    rows, cols = np.indices(shape)
+    centres = np.column_stack((ox + (cols.ravel() + 0.5) * resolution_m, oy + (rows.ravel() + 0.5) * resolution_m))
+    c, s = math.cos(st), math.sin(st)
+    d = centres - np.array([sx, sy])
+    in_map = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
+    grid = OccupancyGrid(resolution_m=resolution_m)
+    grid._ensure_contains(in_map)  # sized to the whole world
+    r, q = grid.to_cell(in_map)
+    grid.log_odds[...] = grid.l_min
+    grid.log_odds[r, q] = np.where(truth.ravel(), grid.l_max, grid.l_min)
+    return grid
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=20)
@@ -207,6 +234,7 @@ def main() -> None:
     print(f"run: coverage {m['coverage']}, F1 {m['map_f1']}, ATE rms {m['ate_rms_m']} max {m['ate_max_m']}, "
           f"keyframes {len(run['keyframes'])}")
     params = GridParams()
+    report(run, "perfect map (the truth in the map's lattice)", perfect_map(run))
     report(run, "final live map", run["grid"])
     slam_poses = np.array([kf["pose"] for kf in run["keyframes"]])
     shift = stamp_shift_s(run)

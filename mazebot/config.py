@@ -464,7 +464,13 @@ class SlamConfig(Section):
     )
     grid_free_prob: float = Field(0.25, gt=0, le=0.5, description="a cell below this probability is free")
     map_max_range_m: float = Field(
-        2.5, ge=0, description="farther hits clear space but mark no wall (range noise grows with range; 0: no limit)"
+        1.2, ge=0, description="farther hits clear space but mark no wall (range noise grows with range; 0: no limit)"
+    )
+    map_smooth_endpoints: bool = Field(
+        True, description="move each hit along its beam onto the line through its neighbours before mapping it"
+    )
+    range_noise_rel: float = Field(
+        0.01, ge=0, lt=0.3, description="the lidar's range noise, std as a fraction of the range (A1: about 1 %)"
     )
     grid_max_free_range_m: float = Field(4.0, gt=0, description="no-return beams clear space this far")
 

@@ -19,18 +19,20 @@ from mazebot.sim.maze_file import packaged_maze_path
 SUITES = ("smoke", "standard", "full", "faults")
 
 
-def suite_specs(suite: str, seeds: int, drive: str, clock: str) -> list[RunSpec]:
+def suite_specs(suite: str, seeds: int, drive: str, clock: str, first_seed: int = 1) -> list[RunSpec]:
     """The runs of a suite. smoke: one 6x6 maze; standard: seeds x 6x6 + an 8x8 training maze;
     full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze;
-    faults: every fault of :data:`mazebot.sim.faults.FAULTS` in its own run of the 6x6 maze."""
+    faults: every fault of :data:`mazebot.sim.faults.FAULTS` in its own run of the 6x6 maze.
+    Generated mazes take the seeds ``first_seed .. first_seed + seeds - 1``."""
     if suite == "faults":
         return [RunSpec(None, (6, 6), 1, drive, clock=clock, faults=(FaultSpec(name),)) for name in FAULTS]
     n_seeds = 1 if suite == "smoke" else seeds
-    specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(1, n_seeds + 1)]
-    if suite in ("standard", "full"):
+    specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(first_seed, first_seed + n_seeds)]
+    if suite in ("standard", "full") and first_seed == 1:
         specs.append(RunSpec(str(packaged_maze_path("training-8x8-test1.txt")), None, 1, drive, clock=clock))
     if suite == "full":
-        specs += [RunSpec(None, (8, 8), seed, drive, clock=clock, max_sim_s=1800) for seed in range(1, seeds + 1)]
+        specs += [RunSpec(None, (8, 8), seed, drive, clock=clock, max_sim_s=1800)
+                  for seed in range(first_seed, first_seed + seeds)]
         specs.append(RunSpec(str(packaged_maze_path("minimaze.txt")), None, 1, drive, clock=clock))
         specs.append(RunSpec(str(packaged_maze_path("japan2013ef.txt")), None, 1, drive, clock=clock, max_sim_s=3600))
     return specs
@@ -48,6 +50,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
+    if args.first_seed < 1:
+        raise UsageError("--first-seed must be at least 1")
     if args.room:
         if args.maze:
             raise UsageError("give either --room or --maze, not both")
@@ -58,7 +62,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 raise UsageError(f"maze file {path} not found")
         specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in range(1, args.seeds + 1)]
     else:
-        specs = suite_specs(args.suite, args.seeds, args.drive, args.clock)
+        specs = suite_specs(args.suite, args.seeds, args.drive, args.clock, args.first_seed)
     if args.faults:
         extra = tuple(parse_fault(text) for text in args.faults)
         specs = [replace(spec, faults=spec.faults + extra) for spec in specs]
@@ -91,6 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench.add_argument("--room", action="store_true",
                        help="run the room with cylinders ([sim] room_*) instead of mazes, one run per seed")
     bench.add_argument("--seeds", type=int, default=3, help="seeds per generated maze (default 3)")
+    bench.add_argument("--first-seed", type=int, default=1,
+                       help="first seed of the generated mazes (default 1; above 1 the suite's fixed mazes are "
+                            "left out, so a suite can be split over several processes)")
     bench.add_argument("--drive", choices=("explore", "scripted"), default="explore",
                        help="explore: the autonomous stack; scripted: a ground-truth tour of every cell")
     bench.add_argument("--clock", choices=("virtual", "real"), default="virtual",

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
 
@@ -128,12 +129,14 @@ class Keyframe:
         prepared: PreparedScan,
         normals: NormalParams | None = None,
         map_max_range_m: float | None = None,
+        rays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> Keyframe:
         """A keyframe from a prepared scan at ``pose`` (normals are estimated when first needed).
 
-        ``map_max_range_m`` limits the rays kept for the grid (see :func:`map_rays`).
+        ``rays`` are the scan's grid rays if already made by :func:`map_rays` (SLAM makes
+        them once per scan); otherwise they are made here, limited to ``map_max_range_m``.
         """
-        ends, hit, _ = map_rays(prepared, map_max_range_m)
+        ends, hit, _ = map_rays(prepared, map_max_range_m) if rays is None else rays
         pose = np.array(pose, dtype=np.float64).reshape(3)
         return cls(
             index=index,
@@ -187,17 +190,32 @@ def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: floa
     return points_xy - offset[:, None] * normals
 
 
-def map_rays(prepared: PreparedScan, max_range_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def map_rays(
+    prepared: PreparedScan,
+    max_range_m: float | None = None,
+    smoothing: EndpointSmoothing | None = None,
+    range_noise_rel: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The scan's rays for the occupancy grid, robot frame: ``(ends (K, 2), hit (K,), origins (K, 2))``.
 
-    Hits farther than ``max_range_m`` from their origin become no-return rays ending at
-    ``max_range_m``: they still clear the space in front of the wall, but do not mark it.
-    The A1's range noise is about 1 % of the range, so a far hit scatters over several
-    cells beside the wall (where no later ray clears it); the maze's walls are all seen
-    from close by at some point, so nothing is lost.
+    With ``smoothing``, every hit is first moved along its beam onto the line through
+    its neighbours (:mod:`mazebot.slam.endpoint_smoothing`): the range noise no longer
+    spills a wall into the free cell in front of it.
+
+    Hits farther than ``max_range_m`` from their origin become no-return rays: they
+    still clear the space in front of the wall, but do not mark it. The A1's range noise
+    is about 1 % of the range, so a far hit scatters over several cells beside the wall
+    (where no later ray clears it); the maze's walls are all seen from close by at some
+    point, so nothing is lost. Such a ray ends three noise standard deviations short
+    of its hit (``range · (1 − 3 · range_noise_rel)``), so it never clears the wall it
+    hit; with ``range_noise_rel`` 0 it ends at ``max_range_m``.
     """
     beams = prepared.beams()
     ends, hit, origins = beams.endpoints, beams.hit.copy(), beams.origins
+    if smoothing is not None:
+        n = prepared.points_full.shape[0]  # the hits come first, in scan order
+        ends = ends.copy()
+        ends[:n] = smooth_endpoints(ends[:n], origins[:n], smoothing)
     if max_range_m is None:
         return ends, hit, origins
     vec = ends - origins
@@ -205,7 +223,8 @@ def map_rays(prepared: PreparedScan, max_range_m: float | None = None) -> tuple[
     far = hit & (length > max_range_m)
     if far.any():
         ends = ends.copy()
-        ends[far] = origins[far] + vec[far] * (max_range_m / length[far])[:, None]
+        clear_m = length[far] * (1.0 - 3.0 * range_noise_rel) if range_noise_rel > 0 else max_range_m
+        ends[far] = origins[far] + vec[far] * (clear_m / length[far])[:, None]
         hit[far] = False
     return ends, hit, origins
 

@@ -53,6 +53,7 @@ import numpy as np
 
 from mazebot.io.scan import Scan
 from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffsetCalibration, rotate_information
+from mazebot.slam.endpoint_smoothing import EndpointSmoothing
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, map_rays
@@ -106,7 +107,10 @@ class SlamParams:
     motion: MotionNoise = field(default_factory=MotionNoise)
     loop: LoopClosureParams = field(default_factory=LoopClosureParams)
     grid: GridParams = field(default_factory=GridParams)
-    map_max_range_m: float | None = 2.5  # farther hits only clear space in the grid (None: no limit)
+    map_max_range_m: float | None = 1.2  # farther hits only clear space in the grid (None: no limit)
+    # hits moved along their beams onto their local wall line before mapping (None: as measured)
+    map_smoothing: EndpointSmoothing | None = field(default_factory=EndpointSmoothing)
+    range_noise_rel: float = 0.01  # the lidar's range noise (std / range): far hits clear up to 3 std short
     filter_gate_chi2: float = 16.27
     calibrate_heading: bool = True  # learn the odometry's heading bias online (see ekf.HeadingCalibration)
     calibration_memory_scans: float = 1000.0
@@ -197,6 +201,8 @@ class SlamParams:
                 max_free_range_m=slam.grid_max_free_range_m,
             ),
             map_max_range_m=slam.map_max_range_m or None,
+            map_smoothing=EndpointSmoothing() if slam.map_smooth_endpoints else None,
+            range_noise_rel=slam.range_noise_rel,
             filter_gate_chi2=slam.filter_gate_chi2,
             calibrate_heading=slam.odom_calibration,
             calibration_memory_scans=slam.odom_calibration_memory_scans,
@@ -551,14 +557,15 @@ class Slam:
         self._last_matched_pose = pose if matched else None
 
         # 5. keyframe: into the pose graph, and a new local submap
+        rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel)
         keyframe = None
         if self.selector.is_keyframe(pose):
-            keyframe = self._add_keyframe(pose, odom, prepared)
+            keyframe = self._add_keyframe(pose, odom, prepared, rays)
         if self.record_trajectory:
             self._scan_log.append((time_s, len(self.keyframes) - 1, relative_pose(self.keyframes[-1].pose, pose)))
 
         # 6. update the grid with the scan's rays at the corrected pose
-        ends, hit, origins = map_rays(prepared, p.map_max_range_m)
+        ends, hit, origins = rays
         self.grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
 
         # 7. close loops: candidates by distance and drift, strict verification, optimization, rebuilt map
@@ -657,10 +664,16 @@ class Slam:
 
     # -- steps ---------------------------------------------------------------------------
 
-    def _add_keyframe(self, pose: np.ndarray, odom: np.ndarray, prepared: PreparedScan) -> int:
+    def _add_keyframe(
+        self,
+        pose: np.ndarray,
+        odom: np.ndarray,
+        prepared: PreparedScan,
+        rays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> int:
         p = self.params
         index = len(self.keyframes)
-        kf = Keyframe.from_scan(index, pose, prepared, p.normals, p.map_max_range_m)
+        kf = Keyframe.from_scan(index, pose, prepared, p.normals, p.map_max_range_m, rays=rays)
         self.keyframes.append(kf)
         self.graph.add_vertex(pose)
         self.selector.accept(pose)

@@ -315,7 +315,7 @@ async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> No
     release = threading.Event()
 
     class SlowJob:
-        def run(self):
+        def __call__(self):
             release.wait(5.0)
             return slam_task.LoopClosureResult(verdicts=[], poses=None)
 

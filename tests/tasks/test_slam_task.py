@@ -96,7 +96,7 @@ class FakeSlam:
         self.keyframes.append(self.scans)
         job = None
         if self.scans == 2:
-            job = self  # run() below
+            job = self.run  # below: a job is a callable returning a LoopClosureResult
         return SlamUpdate(
             time_s=scan.end_time_s, pose=np.zeros(3), covariance=np.eye(3) * 1e-4, map_from_odom=np.zeros(3),
             match=None, matched=False, keyframe=self.scans - 1, points=0, loop_job=job,  # type: ignore[arg-type]

@@ -101,8 +101,10 @@ async def test_web_host_binds_a_single_interface_or_all(tmp_path: Path, bind: st
     config.web.host, config.web.port, config.web.control_token = bind, unused_port(), TOKEN
     runner = await start_web_server(SharedState(), config)
     try:
+        async with aiohttp.ClientSession() as session, \
+                session.get(f"http://{reachable}:{config.web.port}/api/status") as resp:
+            assert resp.status == 200
         loop = asyncio.get_running_loop()
-        assert await loop.run_in_executor(None, _connects, reachable, config.web.port)
         if unreachable is not None:
             assert not await loop.run_in_executor(None, _connects, unreachable, config.web.port)
     finally:

@@ -22,12 +22,13 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from mazebot.errors import ProtocolError
+from mazebot.clock import RealClock
+from mazebot.errors import MazebotError, ProtocolError
 from mazebot.io import rplidar_protocol as proto
 from mazebot.io.rplidar import RPLidar, _RevolutionBuilder
 
 #: Examples per property: moderate in the suite, the issue's scale under bench/fuzz.py.
-EXAMPLES = int(os.environ.get("MAZEBOT_FUZZ_LIDAR_EXAMPLES", "120"))
+EXAMPLES = int(os.environ.get("MAZEBOT_FUZZ_LIDAR_EXAMPLES", "80"))
 FUZZ = settings(
     max_examples=EXAMPLES,
     deadline=None,
@@ -293,6 +294,29 @@ def test_revolutions_built_from_any_stream_hold_only_valid_ranges(data: bytes, e
             r = scan.range_m[scan.valid]
             assert np.all((r >= 0.15) & (r <= 12.0))
             assert np.all(np.diff(scan.time_s) > 0)
+
+
+@settings(FUZZ, max_examples=max(10, EXAMPLES // 4),
+          suppress_health_check=[*FUZZ.suppress_health_check, HealthCheck.function_scoped_fixture])
+@given(junk=st.one_of(st.binary(max_size=300), st.lists(st.sampled_from(
+    [b"\xa5", b"\x5a", b"\xa5\x5a", proto.SCAN_DESCRIPTOR.encode()[:5], b"RP LIDAR System.\r\n"]),
+    max_size=20).map(b"".join)))
+async def test_the_driver_finds_its_answers_behind_any_junk(lidar_line, junk: bytes) -> None:
+    """The real driver on an in-memory line whose device sends ``junk`` before every answer
+    (a boot message, stale scan bytes): the right answer, or one line saying what was wrong."""
+    BUFFERS["driver"] += 1
+    lidar_line.device_options["junk_before_answers"] = junk  # the next device plugged in sends it
+    lidar = RPLidar(lidar_line, RealClock(), response_timeout_s=0.5, spin_up_s=0.0)
+    try:
+        try:
+            info = await lidar.get_info()
+            health = await lidar.get_health()
+        except MazebotError as exc:  # a5 5a + a known descriptor inside the junk: the device "answered" wrong
+            assert "\n" not in str(exc) and b"\xa5\x5a" in junk, (junk, exc)
+            return
+        assert info.model == proto.MODEL_A1M8 and health.status == proto.HEALTH_GOOD
+    finally:
+        await lidar.close()
 
 
 # -- regressions the fuzzing found --------------------------------------------------------------

@@ -6,12 +6,14 @@ seeded, so repeatable) search instead of the suite's fixed one, and counts what 
 property was really run on (the tests append their counts to ``$MAZEBOT_FUZZ_REPORT``).
 A failing property is shrunk by hypothesis to a minimal input, printed by pytest.
 
-    nice -n 5 .venv/bin/python bench/fuzz.py [--lidar-buffers 100000] [--ws-frames 10000] [--seed 1] [--out fuzz.json]
+    nice -n 5 .venv/bin/python bench/fuzz.py [--lidar-buffers 100000] [--ws-frames 10000] [--seed 1]
+        [--jobs 3] [--out fuzz.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import math
 import os
@@ -19,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,17 +33,36 @@ LIDAR_PROPERTIES = 7.25
 WS_FRAMES_PER_EXAMPLE = 4.2
 
 
-def _run(tests: str, env: dict[str, str], seed: int) -> tuple[int, float, str]:
-    t0 = time.monotonic()
-    cpu0 = os.times()
-    proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--hypothesis-seed={seed}", tests],
-        cwd=ROOT, env=env, capture_output=True, text=True, check=False,
-    )
-    cpu1 = os.times()
-    cpu_s = (cpu1.children_user - cpu0.children_user) + (cpu1.children_system - cpu0.children_system)
-    tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-40:])
-    return proc.returncode, time.monotonic() - t0, f"cpu {cpu_s:.1f} s\n{tail}" if proc.returncode else f"{cpu_s:.1f}"
+#: The regression tests in those files take a fixed input: nothing to run at scale.
+REGRESSIONS = ("test_a_sample_just_before_", "test_deep_nesting_")
+
+
+def _collect(tests: str) -> list[str]:
+    """The node ids of the fuzzing properties in ``tests``."""
+    proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", tests],
+                          cwd=ROOT, capture_output=True, text=True, check=True)
+    nodes = [line for line in proc.stdout.splitlines() if "::" in line]
+    return [n for n in nodes if not n.split("::")[1].startswith(REGRESSIONS)]
+
+
+async def _pytest(node: str, env: dict[str, str], seed: int, jobs: asyncio.Semaphore) -> dict[str, object]:
+    """One test (node id) in its own process; its outcome, wall and CPU time."""
+    async with jobs:
+        t0 = time.monotonic()
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--hypothesis-seed={seed}", node,
+            cwd=ROOT, env=env, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
+        out, _ = await proc.communicate()
+        wall_s = time.monotonic() - t0
+    entry: dict[str, object] = {"test": node.split("::")[1], "passed": proc.returncode == 0, "wall_s": round(wall_s, 1)}
+    if proc.returncode:
+        entry["failure"] = "\n".join(out.decode(errors="replace").strip().splitlines()[-40:])
+    return entry
+
+
+async def _run_all(nodes: list[str], env: dict[str, str], seed: int, jobs: int) -> list[dict[str, object]]:
+    gate = asyncio.Semaphore(jobs)
+    return list(await asyncio.gather(*(_pytest(n, env, seed, gate) for n in nodes)))
 
 
 def main() -> int:
@@ -48,6 +70,7 @@ def main() -> int:
     ap.add_argument("--lidar-buffers", type=int, default=100_000)
     ap.add_argument("--ws-frames", type=int, default=10_000)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--jobs", type=int, default=3, help="tests run at once, each in its own process")
     ap.add_argument("--out", default="fuzz.json")
     args = ap.parse_args()
 
@@ -56,23 +79,30 @@ def main() -> int:
         env = {**os.environ, "MAZEBOT_FUZZ_RANDOM": "1", "MAZEBOT_FUZZ_REPORT": str(report),
                "MAZEBOT_FUZZ_LIDAR_EXAMPLES": str(math.ceil(args.lidar_buffers / LIDAR_PROPERTIES)),
                "MAZEBOT_FUZZ_WS_EXAMPLES": str(math.ceil(args.ws_frames / WS_FRAMES_PER_EXAMPLE))}
-        result: dict[str, object] = {"seed": args.seed}
-        for name, tests in (("lidar", LIDAR_TESTS), ("websocket", WS_TESTS)):
-            code, wall_s, detail = _run(tests, env, args.seed)
-            result[name] = {"passed": code == 0, "wall_s": round(wall_s, 1),
-                            **({"cpu_s": float(detail)} if code == 0 else {"failure": detail})}
+        nodes = _collect(LIDAR_TESTS) + _collect(WS_TESTS)
+        cpu0 = os.times()
+        t0 = time.monotonic()
+        tests = asyncio.run(_run_all(nodes, env, args.seed, args.jobs))
+        cpu1 = os.times()
+        totals: dict[str, Counter[str]] = {"lidar": Counter(), "websocket": Counter()}
         for line in report.read_text().splitlines() if report.exists() else []:
             entry = json.loads(line)
-            counts = entry.get("buffers") or entry.get("frames")
-            key = "buffers" if "buffers" in entry else "frames"
-            suite = result[entry["suite"]]
-            assert isinstance(suite, dict)
-            suite[key] = counts
-            suite[f"{key}_total"] = sum(counts.values())
+            totals[entry["suite"]].update(entry.get("buffers") or entry.get("frames") or {})
+    result = {
+        "seed": args.seed,
+        "passed": all(t["passed"] for t in tests),
+        "lidar_buffers": dict(totals["lidar"]), "lidar_buffers_total": sum(totals["lidar"].values()),
+        "websocket_frames": dict(totals["websocket"]), "websocket_frames_total": sum(totals["websocket"].values()),
+        "wall_s": round(time.monotonic() - t0, 1),
+        "cpu_s": round(cpu1.children_user - cpu0.children_user + cpu1.children_system - cpu0.children_system, 1),
+        "tests": tests,
+    }
     Path(args.out).write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
-    ok = all(isinstance(result[s], dict) and result[s]["passed"] for s in ("lidar", "websocket"))  # type: ignore[index]
-    return 0 if ok else 1
+    print(json.dumps({k: v for k, v in result.items() if k != "tests"}, indent=2))
+    for t in tests:
+        if not t["passed"]:
+            print(f"FAILED {t['test']}:\n{t['failure']}", file=sys.stderr)
+    return 0 if result["passed"] else 1
 
 
 if __name__ == "__main__":

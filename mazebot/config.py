@@ -302,6 +302,10 @@ class WebConfig(Section):
     message_burst: int = Field(
         40, ge=1, le=100000, description="messages a client may send at once; another burst over the rate closes it"
     )
+    connect_rate_per_s: float = Field(
+        5.0, gt=0, le=10000, description="new websocket connections a second from one address; excess: HTTP 429"
+    )
+    connect_burst: int = Field(20, ge=1, le=100000, description="connections one address may open at once")
     heartbeat_s: float = Field(10.0, gt=0.5, le=300, description="websocket ping and heartbeat period; dead ones close")
     trail_points: int = Field(1000, ge=0, le=100000, description="trajectory points a new viewer gets (the tail)")
 

@@ -94,9 +94,10 @@ async def served(aiohttp_client, caplog) -> dict[str, Any]:
     """One server for every example of a test, with a bystander that never misbehaves."""
     caplog.set_level(logging.WARNING)
     state = SharedState()
-    # no rate limit here (tests/web/test_netsec.py covers flooding): every frame must be answered
+    # no rate limits here (tests/web/test_netsec.py covers flooding): every frame must be answered
     settings = WebSettings(control_token=TOKEN, broadcast_hz=0, max_message_bytes=MAX_MESSAGE_BYTES,
-                           message_rate_per_s=10000, message_burst=100000)
+                           message_rate_per_s=10000, message_burst=100000, connect_rate_per_s=10000,
+                           connect_burst=100000)
     app = create_app(state, settings=settings)
     client = await aiohttp_client(app)
     bystander = await client.ws_connect("/ws")

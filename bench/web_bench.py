@@ -262,7 +262,8 @@ def _compare_abuse(args: argparse.Namespace) -> int:
         abused = i % 2 == 1
         out = out_path.with_suffix(f".run{i}.json")
         cmd = [sys.executable, __file__, "--viewers", str(args.viewers), "--seconds", str(args.seconds),
-               "--seed", str(args.seed), "--out", str(out)] + (["--abuse"] if abused else [])
+               "--seed", str(args.seed), "--out", str(out), "--abuser-nice", str(args.abuser_nice)]
+        cmd += ["--abuse"] if abused else []
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         r = json.loads(out.read_text())
         out.unlink()
@@ -293,13 +294,16 @@ def main() -> int:
     ap.add_argument("--abuse", action="store_true", help="also run the network abuse set (issue 7)")
     ap.add_argument("--compare-abuse", type=int, default=0, metavar="N",
                     help="N quiet and N abused runs, alternating, each in a fresh process")
+    ap.add_argument("--abuser-nice", type=int, default=0, metavar="N",
+                    help="run the abusers N nice levels lower (on a robot their CPU is another machine's)")
     ap.add_argument("--viewer-child", nargs=4, metavar=("URL", "N", "SECONDS", "OUT"), help=argparse.SUPPRESS)
-    ap.add_argument("--abuse-child", nargs=3, metavar=("URL", "SECONDS", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--abuse-child", nargs=4, metavar=("URL", "SECONDS", "OUT", "NICE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.compare_abuse:
         return _compare_abuse(args)
     if args.abuse_child:
-        url, seconds, out = args.abuse_child
+        url, seconds, out, nice = args.abuse_child
+        os.nice(int(nice))
         Path(out).write_text(json.dumps(asyncio.run(_abusers(url, float(seconds)))))
         return 0
     if args.viewer_child:
@@ -342,7 +346,7 @@ def main() -> int:
             if args.abuse:
                 abusers = await asyncio.create_subprocess_exec(
                     sys.executable, __file__, "--abuse-child", base.replace("http", "ws") + "/ws",
-                    str(args.seconds), str(abuse_out))
+                    str(args.seconds), str(abuse_out), str(args.abuser_nice))
             browser = None
             if args.browser:
                 browser = asyncio.get_running_loop().run_in_executor(None, _browser, base + "/", args.seconds, result)

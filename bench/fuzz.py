@@ -4,7 +4,9 @@ Runs the suite's own hypothesis properties (``tests/io/test_rplidar_fuzz.py``,
 ``tests/web/test_websocket_fuzz.py``) with many more examples and a random (but
 seeded, so repeatable) search instead of the suite's fixed one, and counts what each
 property was really run on (the tests append their counts to ``$MAZEBOT_FUZZ_REPORT``).
-A failing property is shrunk by hypothesis to a minimal input, printed by pytest.
+A failing property is shrunk by hypothesis to a minimal input, printed by pytest. Each
+property runs in its own process (``--jobs`` at once); ``--max-minutes`` stops what is still
+running then, and the counts say how far each got.
 
     nice -n 5 .venv/bin/python bench/fuzz.py [--lidar-buffers 100000] [--ws-frames 10000] [--seed 1]
         [--jobs 3] [--out fuzz.json]
@@ -19,7 +21,6 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -45,14 +46,21 @@ def _collect(tests: str) -> list[str]:
     return [n for n in nodes if not n.split("::")[1].startswith(REGRESSIONS)]
 
 
-async def _pytest(node: str, env: dict[str, str], seed: int, jobs: asyncio.Semaphore) -> dict[str, object]:
-    """One test (node id) in its own process; its outcome, wall and CPU time."""
+async def _pytest(node: str, env: dict[str, str], seed: int, jobs: asyncio.Semaphore,
+                  deadline: float) -> dict[str, object]:
+    """One test (node id) in its own process; its outcome and wall time. Stopped at ``deadline``."""
     async with jobs:
         t0 = time.monotonic()
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--hypothesis-seed={seed}", node,
             cwd=ROOT, env=env, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
-        out, _ = await proc.communicate()
+        try:
+            out, _ = await asyncio.wait_for(proc.communicate(), max(1.0, deadline - time.monotonic()))
+        except TimeoutError:
+            proc.kill()
+            await proc.wait()
+            return {"test": node.split("::")[1], "passed": None, "wall_s": round(time.monotonic() - t0, 1),
+                    "failure": "stopped at the time limit (the counts say how far it got)"}
         wall_s = time.monotonic() - t0
     entry: dict[str, object] = {"test": node.split("::")[1], "passed": proc.returncode == 0, "wall_s": round(wall_s, 1)}
     if proc.returncode:
@@ -60,9 +68,23 @@ async def _pytest(node: str, env: dict[str, str], seed: int, jobs: asyncio.Semap
     return entry
 
 
-async def _run_all(nodes: list[str], env: dict[str, str], seed: int, jobs: int) -> list[dict[str, object]]:
+async def _run_all(nodes: list[str], env: dict[str, str], seed: int, jobs: int,
+                   limit_s: float) -> list[dict[str, object]]:
     gate = asyncio.Semaphore(jobs)
-    return list(await asyncio.gather(*(_pytest(n, env, seed, gate) for n in nodes)))
+    deadline = time.monotonic() + limit_s
+    return list(await asyncio.gather(*(_pytest(n, env, seed, gate, deadline) for n in nodes)))
+
+
+def _counts(report: Path) -> dict[str, Counter[str]]:
+    """Per suite, the sum over processes of each process's last counts line."""
+    last: dict[tuple[str, int], dict[str, int]] = {}
+    for line in report.read_text().splitlines() if report.exists() else []:
+        entry = json.loads(line)
+        last[(entry["suite"], entry["pid"])] = entry.get("buffers") or entry.get("frames") or {}
+    totals: dict[str, Counter[str]] = {"lidar": Counter(), "websocket": Counter()}
+    for (suite, _), counts in last.items():
+        totals[suite].update(counts)
+    return totals
 
 
 def main() -> int:
@@ -71,26 +93,26 @@ def main() -> int:
     ap.add_argument("--ws-frames", type=int, default=10_000)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=3, help="tests run at once, each in its own process")
+    ap.add_argument("--max-minutes", type=float, default=120.0, help="stop what still runs after this long")
     ap.add_argument("--out", default="fuzz.json")
     args = ap.parse_args()
 
-    with tempfile.TemporaryDirectory() as tmp:
-        report = Path(tmp) / "counts.jsonl"
-        env = {**os.environ, "MAZEBOT_FUZZ_RANDOM": "1", "MAZEBOT_FUZZ_REPORT": str(report),
-               "MAZEBOT_FUZZ_LIDAR_EXAMPLES": str(math.ceil(args.lidar_buffers / LIDAR_PROPERTIES)),
-               "MAZEBOT_FUZZ_WS_EXAMPLES": str(math.ceil(args.ws_frames / WS_FRAMES_PER_EXAMPLE))}
-        nodes = _collect(LIDAR_TESTS) + _collect(WS_TESTS)
-        cpu0 = os.times()
-        t0 = time.monotonic()
-        tests = asyncio.run(_run_all(nodes, env, args.seed, args.jobs))
-        cpu1 = os.times()
-        totals: dict[str, Counter[str]] = {"lidar": Counter(), "websocket": Counter()}
-        for line in report.read_text().splitlines() if report.exists() else []:
-            entry = json.loads(line)
-            totals[entry["suite"]].update(entry.get("buffers") or entry.get("frames") or {})
+    report = Path(args.out).with_suffix(".counts.jsonl")
+    report.unlink(missing_ok=True)
+    env = {**os.environ, "MAZEBOT_FUZZ_RANDOM": "1", "MAZEBOT_FUZZ_REPORT": str(report),
+           "MAZEBOT_FUZZ_LIDAR_EXAMPLES": str(math.ceil(args.lidar_buffers / LIDAR_PROPERTIES)),
+           "MAZEBOT_FUZZ_WS_EXAMPLES": str(math.ceil(args.ws_frames / WS_FRAMES_PER_EXAMPLE))}
+    nodes = _collect(LIDAR_TESTS) + _collect(WS_TESTS)
+    cpu0 = os.times()
+    t0 = time.monotonic()
+    tests = asyncio.run(_run_all(nodes, env, args.seed, args.jobs, 60.0 * args.max_minutes))
+    cpu1 = os.times()
+    totals = _counts(report)
     result = {
         "seed": args.seed,
-        "passed": all(t["passed"] for t in tests),
+        "passed": all(t["passed"] is True for t in tests),
+        "failed": [t["test"] for t in tests if t["passed"] is False],
+        "stopped": [t["test"] for t in tests if t["passed"] is None],
         "lidar_buffers": dict(totals["lidar"]), "lidar_buffers_total": sum(totals["lidar"].values()),
         "websocket_frames": dict(totals["websocket"]), "websocket_frames_total": sum(totals["websocket"].values()),
         "wall_s": round(time.monotonic() - t0, 1),
@@ -100,7 +122,7 @@ def main() -> int:
     Path(args.out).write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k != "tests"}, indent=2))
     for t in tests:
-        if not t["passed"]:
+        if t["passed"] is False:
             print(f"FAILED {t['test']}:\n{t['failure']}", file=sys.stderr)
     return 0 if result["passed"] else 1
 

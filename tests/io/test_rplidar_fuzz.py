@@ -45,13 +45,19 @@ MAX_STANDARD_DIST_MM = 0xFFFF / 4.0
 MAX_EXPRESS_DIST_MM = (1 << 14) - 1
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _report_counts():
-    yield
+def report_counts() -> None:
+    """Append the counts so far to ``$MAZEBOT_FUZZ_REPORT`` (one line per call; the last one of
+    each process is its total, so an interrupted run still says how far it got)."""
     path = os.environ.get("MAZEBOT_FUZZ_REPORT")
     if path:
         with open(path, "a", encoding="utf-8") as f:
-            f.write(json.dumps({"suite": "lidar", "buffers": dict(BUFFERS)}) + "\n")
+            f.write(json.dumps({"suite": "lidar", "pid": os.getpid(), "buffers": dict(BUFFERS)}) + "\n")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _report_counts():
+    yield
+    report_counts()
 
 
 def assert_physical(samples: proto.DecodedSamples, express: bool) -> None:
@@ -164,6 +170,8 @@ def cut_points(data: bytes, draw_cuts: list[int]) -> list[int]:
 @example(data=bytes(range(256)) * 4, cuts=[1, 2, 3, 4, 5])
 def test_standard_decoder_survives_any_stream_and_cutting_it_changes_nothing(data: bytes, cuts: list[int]) -> None:
     BUFFERS["standard"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     whole = proto.StandardScanDecoder()
     one = decode_in_pieces(whole, data, [])
     pieces = proto.StandardScanDecoder()
@@ -180,6 +188,8 @@ def test_standard_decoder_survives_any_stream_and_cutting_it_changes_nothing(dat
 @example(data=b"\xa5\x5a\x54\x00\x00\x40\x82" + b"\xa5" * 200, cuts=[3])
 def test_express_decoder_survives_any_stream_and_cutting_it_changes_nothing(data: bytes, cuts: list[int]) -> None:
     BUFFERS["express"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     whole = proto.ExpressScanDecoder()
     one = decode_in_pieces(whole, data, [])
     pieces = proto.ExpressScanDecoder()
@@ -196,6 +206,8 @@ def test_express_decoder_survives_any_stream_and_cutting_it_changes_nothing(data
 def test_a_decoder_reset_mid_stream_still_only_returns_physical_samples(data: bytes, synced: bool) -> None:
     """The driver resets a decoder when it restarts a scan (``synced``: right after a descriptor)."""
     BUFFERS["reset"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     for dec, express in ((proto.StandardScanDecoder(), False), (proto.ExpressScanDecoder(), True)):
         assert_physical(dec.feed(data[: len(data) // 2]), express)
         dec.reset(synced=synced)
@@ -218,6 +230,8 @@ def _descriptor_like() -> st.SearchStrategy[bytes]:
                                                           proto.INFO_DESCRIPTOR, proto.EXPRESS_DESCRIPTOR]))
 def test_descriptor_parsing_only_ever_raises_protocol_error(data: bytes, expected: proto.Descriptor | None) -> None:
     BUFFERS["descriptor"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     try:
         found = proto.parse_descriptor(data, expected)
     except ProtocolError as exc:
@@ -234,6 +248,8 @@ def test_descriptor_parsing_only_ever_raises_protocol_error(data: bytes, expecte
                       st.binary(min_size=4, max_size=4)))
 def test_info_health_and_samplerate_answers_parse_or_raise_protocol_error(data: bytes) -> None:
     BUFFERS["responses"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     for parse in (proto.parse_info, proto.parse_health, proto.parse_samplerate):
         try:
             answer = parse(data)
@@ -255,6 +271,8 @@ def test_info_health_and_samplerate_answers_parse_or_raise_protocol_error(data: 
 def test_request_parsing_resyncs_over_any_bytes(data: bytes) -> None:
     """The emulator's side: parse, and on ProtocolError drop a byte, until the buffer is used up."""
     BUFFERS["requests"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     buf = data
     while buf:
         try:
@@ -284,6 +302,8 @@ class _Clock:
 def test_revolutions_built_from_any_stream_hold_only_valid_ranges(data: bytes, express_data: bytes) -> None:
     """What reaches SLAM: angles in [-pi, pi), ranges finite, valid ones inside the configured limits."""
     BUFFERS["revolutions"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     lidar = RPLidar(lambda: None, _Clock(), min_range_m=0.15, max_range_m=12.0)  # type: ignore[arg-type,return-value]
     for dec, stream in ((proto.StandardScanDecoder(), data), (proto.ExpressScanDecoder(), express_data)):
         builder = _RevolutionBuilder(lidar)
@@ -305,6 +325,8 @@ async def test_the_driver_finds_its_answers_behind_any_junk(lidar_line, junk: by
     """The real driver on an in-memory line whose device sends ``junk`` before every answer
     (a boot message, stale scan bytes): the right answer, or one line saying what was wrong."""
     BUFFERS["driver"] += 1
+    if sum(BUFFERS.values()) % 1000 == 0:
+        report_counts()
     lidar_line.device_options["junk_before_answers"] = junk  # the next device plugged in sends it
     lidar = RPLidar(lidar_line, RealClock(), response_timeout_s=0.5, spin_up_s=0.0)
     try:

@@ -46,13 +46,19 @@ FUZZ = settings(
 FRAMES: Counter[str] = Counter()
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _report_counts():
-    yield
+def report_counts() -> None:
+    """Append the counts so far to ``$MAZEBOT_FUZZ_REPORT`` (one line per call; the last one of
+    each process is its total, so an interrupted run still says how far it got)."""
     path = os.environ.get("MAZEBOT_FUZZ_REPORT")
     if path:
         with open(path, "a", encoding="utf-8") as f:
-            f.write(json.dumps({"suite": "websocket", "frames": dict(FRAMES)}) + "\n")
+            f.write(json.dumps({"suite": "websocket", "pid": os.getpid(), "frames": dict(FRAMES)}) + "\n")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _report_counts():
+    yield
+    report_counts()
 
 
 # -- frames ---------------------------------------------------------------------------------------
@@ -160,6 +166,8 @@ async def test_every_random_frame_gets_one_clear_answer_and_the_others_are_serve
     await _next_of(ws, WSMsgType.BINARY)  # hello, then the full map
     for kind, payload in batch:
         FRAMES[kind] += 1
+        if sum(FRAMES.values()) % 1000 == 0:
+            report_counts()
         if ws.closed:
             ws = await client.ws_connect("/ws", max_msg_size=0)
             await _next_of(ws, WSMsgType.BINARY)

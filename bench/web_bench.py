@@ -189,7 +189,7 @@ async def _abusers(url: str, seconds: float) -> dict[str, Any]:
                          _churn(url, host, int(port), end, counts), _sleeper(host, int(port), end))
     async with aiohttp.ClientSession() as session, session.get(url.replace("ws", "http", 1)[:-3] + "/api/status") as r:
         network = (await r.json())["network"]  # what the server saw: bad messages, flood closes, ...
-    return {**counts, "seconds": seconds, "server_network": network}
+    return {**counts, "seconds": seconds, "server_network": network, "abusers_cpu_s": time.process_time()}
 
 
 # -- the daemon's side ---------------------------------------------------------------------

@@ -146,7 +146,7 @@ def _daemon_log(state_home: Path, poke: bool) -> str:
     proc = subprocess.Popen([sys.executable, "-m", "mazebot", "run", "--sim", "--host", "127.0.0.1", "--port",
                              str(port), "--log-level", "debug"], stderr=subprocess.PIPE, text=True, env=env)
     try:
-        deadline = time.monotonic() + 60  # a loaded machine: start-up takes its time
+        deadline = time.monotonic() + 180  # a loaded machine: start-up takes its time
         while not _connects("127.0.0.1", port):
             assert proc.poll() is None and time.monotonic() < deadline, "the daemon did not start"
             time.sleep(0.2)
@@ -159,6 +159,7 @@ def _daemon_log(state_home: Path, poke: bool) -> str:
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.wait()
         proc.stderr.close()  # type: ignore[union-attr]
 
 

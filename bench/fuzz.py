@@ -93,6 +93,7 @@ def main() -> int:
     ap.add_argument("--ws-frames", type=int, default=10_000)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=3, help="tests run at once, each in its own process")
+    ap.add_argument("--only", choices=["lidar", "websocket"], default=None, help="fuzz only this side")
     ap.add_argument("--max-minutes", type=float, default=120.0, help="stop what still runs after this long")
     ap.add_argument("--out", default="fuzz.json")
     args = ap.parse_args()
@@ -102,7 +103,8 @@ def main() -> int:
     env = {**os.environ, "MAZEBOT_FUZZ_RANDOM": "1", "MAZEBOT_FUZZ_REPORT": str(report),
            "MAZEBOT_FUZZ_LIDAR_EXAMPLES": str(math.ceil(args.lidar_buffers / LIDAR_PROPERTIES)),
            "MAZEBOT_FUZZ_WS_EXAMPLES": str(math.ceil(args.ws_frames / WS_FRAMES_PER_EXAMPLE))}
-    nodes = _collect(LIDAR_TESTS) + _collect(WS_TESTS)
+    nodes = (_collect(LIDAR_TESTS) if args.only != "websocket" else []) + (
+        _collect(WS_TESTS) if args.only != "lidar" else [])
     cpu0 = os.times()
     t0 = time.monotonic()
     tests = asyncio.run(_run_all(nodes, env, args.seed, args.jobs, 60.0 * args.max_minutes))

@@ -64,7 +64,10 @@ async def _pytest(node: str, env: dict[str, str], seed: int, jobs: asyncio.Semap
         wall_s = time.monotonic() - t0
     entry: dict[str, object] = {"test": node.split("::")[1], "passed": proc.returncode == 0, "wall_s": round(wall_s, 1)}
     if proc.returncode:
-        entry["failure"] = "\n".join(out.decode(errors="replace").strip().splitlines()[-40:])
+        lines = out.decode(errors="replace").strip().splitlines()
+        # the assertion and hypothesis' falsifying example, not the captured log lines after them
+        keep = [x for x in lines if not x.startswith(("DEBUG ", "INFO ", "WARNING ", "ERROR "))]
+        entry["failure"] = "\n".join(keep[-80:])
     return entry
 
 

@@ -103,7 +103,7 @@ async def served(aiohttp_client, caplog) -> dict[str, Any]:
     # no rate limits here (tests/web/test_netsec.py covers flooding): every frame must be answered
     settings = WebSettings(control_token=TOKEN, broadcast_hz=0, max_message_bytes=MAX_MESSAGE_BYTES,
                            message_rate_per_s=10000, message_burst=100000, connect_rate_per_s=10000,
-                           connect_burst=100000)
+                           connect_burst=100000, heartbeat_s=300)  # the bystander reads only between examples
     app = create_app(state, settings=settings)
     client = await aiohttp_client(app)
     bystander = await client.ws_connect("/ws")

@@ -7,6 +7,15 @@ loop). Optionally a headless Chromium (Debian's, through Playwright) opens the p
 one more viewer.
 
     .venv/bin/python bench/web_bench.py --viewers 20 --seconds 120 [--browser] [--out web.json]
+    .venv/bin/python bench/web_bench.py --viewers 1 --seconds 60 --abuse [--out abused.json]
+    .venv/bin/python bench/web_bench.py --compare-abuse 3 --seconds 60 --out abuse.json
+
+``--abuse`` adds the network abuse set of issue 7 from another process: a client flooding
+resync requests as fast as it can (reconnecting whenever it is closed for it), 50 clients
+connecting and dropping in a loop (polite closes, vanished TCP connections, half-sent
+handshakes), a client that never reads, and a client sending junk frames (bad JSON, binary,
+oversized, deep nesting). ``--compare-abuse N`` runs N quiet and N abused runs alternately,
+each in a fresh process, and reports the control loop's p99 lateness of each and the medians.
 
 Latency of a map change = time the viewer received the first packet built after it minus
 the time a 100 Hz poll of the live grid saw the cell change (wall clock, one machine;
@@ -17,7 +26,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import base64
 import json
+import os
+import socket
+import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -68,6 +82,114 @@ async def _viewers(url: str, count: int, seconds: float) -> dict[str, Any]:
     totals = [0] * count
     await asyncio.gather(*(_viewer(url, seconds, log if i == 0 else None, totals, i) for i in range(count)))
     return {"log": log, "totals": totals, "seconds": seconds}
+
+
+# -- the abusers' process ------------------------------------------------------------------
+
+
+_JUNK = [
+    "hello robot", '{"type": "start", "token": ', "[1, 2, 3]", '{"type": "launch"}', '{"type": ["start"]}',
+    '{"type": "start", "token": "000000"}', "[" * 1500 + "]" * 1500, "x" * 5000,
+]
+
+
+async def _drain(ws: aiohttp.ClientWebSocketResponse) -> None:
+    async for _ in ws:
+        pass
+
+
+async def _flooder(url: str, end: float, counts: dict[str, int]) -> None:
+    """Resync requests as fast as the socket takes them; reconnects when closed for it (1008)."""
+    async with aiohttp.ClientSession() as session:
+        while time.monotonic() < end:
+            try:
+                async with session.ws_connect(url, max_msg_size=0) as ws:
+                    counts["flood_connections"] += 1
+                    reader = asyncio.ensure_future(_drain(ws))
+                    while time.monotonic() < end and not ws.closed and not reader.done():
+                        await ws.send_str('{"type":"resync"}')
+                        counts["flood_messages"] += 1
+                        if counts["flood_messages"] % 50 == 0:
+                            await asyncio.sleep(0)
+                    reader.cancel()
+            except (aiohttp.ClientError, ConnectionError, RuntimeError):
+                pass
+            await asyncio.sleep(0.05)
+
+
+async def _junk(url: str, end: float, counts: dict[str, int], rng: np.random.Generator) -> None:
+    """Junk frames, 100 a second, reconnecting after each close (oversized: 1009, too fast: 1008)."""
+    async with aiohttp.ClientSession() as session:
+        while time.monotonic() < end:
+            try:
+                async with session.ws_connect(url, max_msg_size=0) as ws:
+                    reader = asyncio.ensure_future(_drain(ws))
+                    while time.monotonic() < end and not reader.done():
+                        if rng.random() < 0.3:
+                            await ws.send_bytes(rng.bytes(int(rng.integers(1, 6000))))
+                        else:
+                            await ws.send_str(_JUNK[int(rng.integers(len(_JUNK)))])
+                        counts["junk_frames"] += 1
+                        await asyncio.sleep(0.01)
+                    reader.cancel()
+            except (aiohttp.ClientError, ConnectionError, RuntimeError):
+                pass
+            await asyncio.sleep(0.05)
+
+
+def _handshake(host: str, port: int) -> bytes:
+    key = base64.b64encode(os.urandom(16)).decode()
+    return (f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode()
+
+
+async def _churn(url: str, host: str, port: int, end: float, counts: dict[str, int]) -> None:
+    """Rounds of 50 clients at once: a third close politely, a third vanish after the handshake,
+    a third send half a request and go."""
+
+    async def one(i: int, session: aiohttp.ClientSession) -> None:
+        try:
+            if i % 3 == 0:
+                async with session.ws_connect(url, max_msg_size=0) as ws:
+                    await ws.receive()
+            else:
+                reader, writer = await asyncio.open_connection(host, port)
+                writer.write(_handshake(host, port) if i % 3 == 1 else b"GET /ws HTTP/1.1\r\nHost: x\r\n")
+                if i % 3 == 1:
+                    await reader.readuntil(b"\r\n\r\n")
+                writer.transport.abort()
+            counts["churn_connections"] += 1
+        except (aiohttp.ClientError, OSError, asyncio.IncompleteReadError):
+            counts["churn_failures"] += 1
+
+    async with aiohttp.ClientSession() as session:
+        while time.monotonic() < end:
+            await asyncio.gather(*(one(i, session) for i in range(50)))
+            await asyncio.sleep(0.1)
+
+
+async def _sleeper(host: str, port: int, end: float) -> None:
+    """Handshakes with a tiny receive window and never reads again."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    loop = asyncio.get_running_loop()
+    await loop.sock_connect(sock, (host, port))
+    await loop.sock_sendall(sock, _handshake(host, port))
+    await asyncio.sleep(end - time.monotonic())
+    sock.close()
+
+
+async def _abusers(url: str, seconds: float) -> dict[str, Any]:
+    host, port = url.split("//")[1].split("/")[0].split(":")
+    end = time.monotonic() + seconds
+    counts: dict[str, int] = {k: 0 for k in ("flood_connections", "flood_messages", "junk_frames",
+                                             "churn_connections", "churn_failures")}
+    await asyncio.gather(_flooder(url, end, counts), _junk(url, end, counts, np.random.default_rng(7)),
+                         _churn(url, host, int(port), end, counts), _sleeper(host, int(port), end))
+    async with aiohttp.ClientSession() as session, session.get(url.replace("ws", "http", 1)[:-3] + "/api/status") as r:
+        network = (await r.json())["network"]  # what the server saw: bad messages, flood closes, ...
+    return {**counts, "seconds": seconds, "server_network": network, "abusers_cpu_s": time.process_time()}
 
 
 # -- the daemon's side ---------------------------------------------------------------------
@@ -132,6 +254,35 @@ def _browser(url: str, seconds: float, out: dict[str, Any]) -> None:
         browser.close()
 
 
+def _compare_abuse(args: argparse.Namespace) -> int:
+    """Quiet and abused runs alternately, each in its own process; p99 control lateness of each."""
+    runs: list[dict[str, Any]] = []
+    out_path = Path(args.out)
+    for i in range(2 * args.compare_abuse):
+        abused = i % 2 == 1
+        out = out_path.with_suffix(f".run{i}.json")
+        cmd = [sys.executable, __file__, "--viewers", str(args.viewers), "--seconds", str(args.seconds),
+               "--seed", str(args.seed), "--out", str(out), "--abuser-nice", str(args.abuser_nice)]
+        cmd += ["--abuse"] if abused else []
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        r = json.loads(out.read_text())
+        out.unlink()
+        runs.append({"abused": abused, **r["control_lateness_ms"], "load_average": r["load_average"],
+                     "daemon_cpu_s": r["daemon_cpu_s"], "abuse": r.get("abuse")})
+        print(json.dumps(runs[-1]), flush=True)
+    summary = {}
+    for name, abused in (("quiet", False), ("abused", True)):
+        p99 = [r["p99"] for r in runs if r["abused"] == abused]
+        mine = [r for r in runs if r["abused"] == abused]
+        summary[name] = {"p99_ms": p99, "median_p99_ms": statistics.median(p99),
+                         "median_p50_ms": statistics.median(r["p50"] for r in mine),
+                         "median_daemon_cpu_s": statistics.median(r["daemon_cpu_s"] for r in mine)}
+    summary["abused_minus_quiet_median_p99_ms"] = summary["abused"]["median_p99_ms"] - summary["quiet"]["median_p99_ms"]
+    out_path.write_text(json.dumps({"runs": runs, "summary": summary}, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--viewers", type=int, default=1)
@@ -140,8 +291,21 @@ def main() -> int:
     ap.add_argument("--maze", default=None)
     ap.add_argument("--browser", action="store_true", help="also open the page in headless Chromium")
     ap.add_argument("--out", default="web_bench.json")
+    ap.add_argument("--abuse", action="store_true", help="also run the network abuse set (issue 7)")
+    ap.add_argument("--compare-abuse", type=int, default=0, metavar="N",
+                    help="N quiet and N abused runs, alternating, each in a fresh process")
+    ap.add_argument("--abuser-nice", type=int, default=0, metavar="N",
+                    help="run the abusers N nice levels lower (on a robot their CPU is another machine's)")
     ap.add_argument("--viewer-child", nargs=4, metavar=("URL", "N", "SECONDS", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--abuse-child", nargs=4, metavar=("URL", "SECONDS", "OUT", "NICE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.compare_abuse:
+        return _compare_abuse(args)
+    if args.abuse_child:
+        url, seconds, out, nice = args.abuse_child
+        os.nice(int(nice))
+        Path(out).write_text(json.dumps(asyncio.run(_abusers(url, float(seconds)))))
+        return 0
     if args.viewer_child:
         url, n, seconds, out = args.viewer_child
         Path(out).write_text(json.dumps(asyncio.run(_viewers(url, int(n), float(seconds)))))
@@ -152,6 +316,7 @@ def main() -> int:
     base = f"http://127.0.0.1:{config.web.port}"
     out_path = Path(args.out)
     child_out = out_path.with_suffix(".viewers.json")
+    abuse_out = out_path.with_suffix(".abuse.json")
     result: dict[str, Any] = {"viewers": args.viewers, "seconds": args.seconds, "out_dir": str(out_path.parent)}
     started: dict[str, Any] = {}
 
@@ -171,11 +336,17 @@ def main() -> int:
         async def session() -> None:
             await asyncio.sleep(0.5)
             state.control_lateness_ms.clear()
+            cpu0 = time.process_time()  # the daemon's own CPU (every thread), not the clients'
             proc = None
             if args.viewers:
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, __file__, "--viewer-child", base.replace("http", "ws") + "/ws",
                     str(args.viewers), str(args.seconds), str(child_out))
+            abusers = None
+            if args.abuse:
+                abusers = await asyncio.create_subprocess_exec(
+                    sys.executable, __file__, "--abuse-child", base.replace("http", "ws") + "/ws",
+                    str(args.seconds), str(abuse_out), str(args.abuser_nice))
             browser = None
             if args.browser:
                 browser = asyncio.get_running_loop().run_in_executor(None, _browser, base + "/", args.seconds, result)
@@ -185,11 +356,16 @@ def main() -> int:
             drive.cancel()
             if proc is not None:
                 await proc.wait()
+            if abusers is not None:
+                await abusers.wait()
             if browser is not None:
                 await browser
             lateness = np.array(state.control_lateness_ms)
             result["control_lateness_ms"] = {"p50": float(np.percentile(lateness, 50)),
-                                             "p99": float(np.percentile(lateness, 99)), "n": int(lateness.size)}
+                                             "p99": float(np.percentile(lateness, 99)),
+                                             "max": float(lateness.max()), "n": int(lateness.size)}
+            result["load_average"] = os.getloadavg()
+            result["daemon_cpu_s"] = time.process_time() - cpu0
             result["tour_done"] = driver.done
             result["tour_index"] = [driver.index, len(driver.waypoints_m)]
             supervisor.request_stop("web bench over")
@@ -217,6 +393,9 @@ def main() -> int:
                                                  "max": float(lat.max()), "cells": int(lat.size)}
         child_out.unlink()
     result["map_cells"] = list(started["watcher"].shape)
+    if args.abuse:
+        result["abuse"] = json.loads(abuse_out.read_text())
+        abuse_out.unlink()
     if "browser_stats" in result:
         lat = np.array(result["browser_stats"].pop("lat"))
         result["tick_to_page_ms"] = {"p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95))}

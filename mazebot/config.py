@@ -16,8 +16,9 @@ import os
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
+from urllib.parse import urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mazebot.errors import ConfigError
 
@@ -274,6 +275,23 @@ class WebConfig(Section):
         default_factory=list,
         description="extra browser origins allowed besides the page's own, e.g. \"http://robot.local:8080\"",
     )
+    @field_validator("allowed_origins")
+    @classmethod
+    def _origins_are_origins(cls, origins: list[str]) -> list[str]:
+        """A browser's ``Origin`` is ``scheme://host[:port]``, nothing more: anything else never matches."""
+        for origin in origins:
+            if origin == "*":
+                continue
+            parts = urlsplit(origin)
+            try:
+                parts.port  # noqa: B018 - raises on a port that is not a number
+            except ValueError:
+                parts = parts._replace(scheme="")
+            if parts.scheme not in ("http", "https") or not parts.hostname or parts.path or parts.query:
+                raise ValueError(f"{origin!r} is not an origin like \"http://robot.local:8080\" "
+                                 "(http or https, a host, an optional port, no path)")
+        return origins
+
     send_queue_packets: int = Field(
         8, ge=2, le=1000, description="packets queued per viewer; a viewer further behind gets a full map instead"
     )
@@ -284,6 +302,10 @@ class WebConfig(Section):
     message_burst: int = Field(
         40, ge=1, le=100000, description="messages a client may send at once; another burst over the rate closes it"
     )
+    connect_rate_per_s: float = Field(
+        5.0, gt=0, le=10000, description="new websocket connections a second from one address; excess: HTTP 429"
+    )
+    connect_burst: int = Field(20, ge=1, le=100000, description="connections one address may open at once")
     heartbeat_s: float = Field(10.0, gt=0.5, le=300, description="websocket ping and heartbeat period; dead ones close")
     trail_points: int = Field(1000, ge=0, le=100000, description="trajectory points a new viewer gets (the tail)")
 
@@ -559,10 +581,13 @@ def _describe_error(err: dict[str, Any]) -> str:
 def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
     """Validate a parsed TOML document; raise ConfigError with one line per problem."""
     try:
-        return Config.model_validate(data)
+        # strict: TOML has real types, so "8080" or true for a port is a mistake, not a port
+        return Config.model_validate(data, strict=True)
     except ValidationError as exc:
         problems = [f"{source}: {_describe_error(e)}" for e in exc.errors()]
-        raise ConfigError(problems[0], problems) from None
+        more = len(problems) - 1
+        first = problems[0] + (f" (and {more} more: `mazebot config check` lists them)" if more else "")
+        raise ConfigError(first, problems) from None
 
 
 def load_config(path: str | os.PathLike[str] | None = None) -> Config:
@@ -573,13 +598,13 @@ def load_config(path: str | os.PathLike[str] | None = None) -> Config:
             return Config()
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        raw = p.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{p}: config file not found") from None
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read config file ({exc.strerror or exc})") from None
     try:
-        data = tomllib.loads(text)
+        data = tomllib.loads(raw.decode("utf-8"))  # decoding here: a UnicodeDecodeError is no OSError
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     except UnicodeDecodeError:

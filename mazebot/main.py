@@ -20,6 +20,8 @@ from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from typing import Any
 
+from pydantic import ValidationError
+
 from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config, load_config
@@ -50,43 +52,87 @@ class Hardware:
 HardwareBuilder = Callable[[Config, Clock, AsyncExitStack], Awaitable[Hardware]]
 
 
+def _lgpio_factory() -> Any:
+    from gpiozero.pins.lgpio import LGPIOFactory
+
+    return LGPIOFactory()
+
+
+def robot_hardware_builder(
+    open_kit: Callable[[int, float], Any] | None = None,
+    make_pin_factory: Callable[[], Any] = _lgpio_factory,
+) -> HardwareBuilder:
+    """The real robot's devices, opened in the order that keeps the wheels stoppable.
+
+    Motor HAT first, and zeroed at once (a PCA9685 keeps its last PWM after the process
+    that set it died), then GPIO for the encoders, then the lidar, which must answer
+    GET_HEALTH. Any missing device raises HardwareUnavailable naming it (exit 69); the
+    devices already open are closed, the motors braked, before the error leaves.
+    ``open_kit`` and ``make_pin_factory`` stand in for ``MotorKit`` and lgpio in tests.
+    """
+
+    async def build(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
+        from mazebot.io.encoders import WheelEncoders
+        from mazebot.io.motors import DifferentialMotors, open_motorkit
+        from mazebot.io.rplidar import RPLidar
+        from mazebot.io.serial_link import SerialLink
+
+        kit = (open_kit or open_motorkit)(config.motors.i2c_address, config.motors.pwm_frequency_hz)
+        motors = DifferentialMotors.from_config(config.motors, kit, clock)
+        stack.callback(motors.close)
+        motors.stop()
+
+        try:
+            pin_factory = make_pin_factory()
+        except Exception as exc:  # ImportError off a Pi, lgpio.error without /dev/gpiochip*, ...
+            raise HardwareUnavailable(
+                f"GPIO for the wheel encoders is not available ({type(exc).__name__}: {exc}); "
+                "`mazebot run` needs a Raspberry Pi with lgpio, use `mazebot run --sim` elsewhere"
+            ) from None
+        stack.callback(pin_factory.close)
+        enc = config.encoders
+        try:
+            encoders = WheelEncoders.from_config(enc, pin_factory)
+        except Exception as exc:  # a pin in use by another program, or not on this board
+            pins = "/".join(f"GPIO{p}" for p in (enc.left_a_pin, enc.left_b_pin, enc.right_a_pin, enc.right_b_pin))
+            raise HardwareUnavailable(
+                f"wheel encoder pins {pins} cannot be used ({type(exc).__name__}: {exc}); "
+                "check [encoders] pins and that no other program holds them"
+            ) from None
+        stack.callback(encoders.close)
+
+        # Open the port and ask for the health now, so a missing or silent lidar is
+        # reported at start-up (exit 69), not as an endless reconnect loop.
+        probe = await SerialLink.open(config.lidar.port, config.lidar.baudrate)
+        lidar = RPLidar.from_config(config.lidar, clock, link_factory=_once(probe, config))
+        await stack.enter_async_context(lidar)
+        await lidar.stop()  # a lidar left scanning by a killed daemon answers nothing else
+        await lidar.get_health()  # HardwareUnavailable, naming the port, when it stays silent
+        return Hardware(
+            lidar=lidar,
+            encoders=encoders,
+            motors=motors,
+            description=f"robot: lidar on {config.lidar.port}, motor HAT at {config.motors.i2c_address:#04x}",
+        )
+
+    return build
+
+
+def _once(link: Any, config: Config) -> Callable[[], Awaitable[Any]]:
+    """A link factory that hands out ``link`` first, then opens the port anew (reconnects)."""
+    first = [link]
+
+    async def factory() -> Any:
+        from mazebot.io.serial_link import SerialLink
+
+        return first.pop() if first else await SerialLink.open(config.lidar.port, config.lidar.baudrate)
+
+    return factory
+
+
 async def open_robot_hardware(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
-    """Open the real robot's devices; a missing one raises HardwareUnavailable (exit 69)."""
-    from mazebot.io.encoders import WheelEncoders
-    from mazebot.io.motors import DifferentialMotors, open_motorkit
-    from mazebot.io.rplidar import RPLidar
-    from mazebot.io.serial_link import SerialLink
-
-    kit = open_motorkit(config.motors.i2c_address, config.motors.pwm_frequency_hz)
-    motors = DifferentialMotors.from_config(config.motors, kit, clock)
-    stack.callback(motors.close)
-    motors.stop()
-
-    try:
-        from gpiozero.pins.lgpio import LGPIOFactory
-
-        pin_factory = LGPIOFactory()
-    except Exception as exc:
-        raise HardwareUnavailable(
-            f"GPIO for the wheel encoders is not available ({type(exc).__name__}: {exc}); "
-            "`mazebot run` needs a Raspberry Pi with lgpio, use `mazebot run --sim` elsewhere"
-        ) from None
-    stack.callback(pin_factory.close)
-    encoders = WheelEncoders.from_config(config.encoders, pin_factory)
-    stack.callback(encoders.close)
-
-    # Open the port once now so a missing lidar is reported at start-up (exit 69),
-    # not as an endless reconnect loop.
-    probe = await SerialLink.open(config.lidar.port, config.lidar.baudrate)
-    await probe.close()
-    lidar = RPLidar.from_config(config.lidar, clock)
-    await stack.enter_async_context(lidar)
-    return Hardware(
-        lidar=lidar,
-        encoders=encoders,
-        motors=motors,
-        description=f"robot: lidar on {config.lidar.port}, motor HAT at {config.motors.i2c_address:#04x}",
-    )
+    """Open the real robot's devices (see :func:`robot_hardware_builder`)."""
+    return await robot_hardware_builder()(config, clock, stack)
 
 
 async def run_daemon(
@@ -232,10 +278,13 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    if args.host is not None:
-        config.web.host = args.host
-    if args.port is not None:
-        config.web.port = args.port
+    for flag, key, value in (("--host", "host", args.host), ("--port", "port", args.port)):
+        if value is None:
+            continue
+        try:
+            setattr(config.web, key, value)  # validated like the [web] key it overrides
+        except ValidationError as exc:
+            raise UsageError(f"{flag} {value}: {exc.errors()[0]['msg']}") from None
     setup_logging(args.log_level or config.daemon.log_level)
     if args.sim:
         from mazebot.sim.backend import sim_hardware_builder

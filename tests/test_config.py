@@ -96,3 +96,71 @@ def test_config_check_subprocess_has_no_traceback(tmp_path: Path) -> None:
 def test_config_defaults_cli(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["config", "defaults"]) == 0
     assert capsys.readouterr().out == render_toml()
+
+
+# -- every invalid file: exit 78 and one line naming the key, from `config check` and from `run` ---------
+
+BAD_FILES = [
+    ("bad-type", '[lidar]\nbaudrate = "fast"\n', "lidar.baudrate: 'fast' is not allowed: Input should be a valid int"),
+    ("bool-for-int", "[web]\nport = true\n", "web.port: True is not allowed: Input should be a valid integer"),
+    ("string-for-int", '[web]\nport = "8080"\n', "web.port: '8080' is not allowed: Input should be a valid integer"),
+    ("int-for-bool", "[encoders]\npull_up = 1\n", "encoders.pull_up: 1 is not allowed: Input should be a valid bool"),
+    ("unknown-key", "[motors]\nleft_chanel = 3\n", "motors.left_chanel: unknown key (value 3)"),
+    ("unknown-section", "[wheels]\nsize = 1\n", "wheels: unknown key"),
+    ("out-of-range", "[drive]\nmax_speed_mps = 0.9\n", "drive.max_speed_mps: 0.9 is not allowed"),
+    ("cross-field", "[encoders]\nleft_a_pin = 22\n", "encoders: "),
+    ("not-an-origin", '[web]\nallowed_origins = ["robot.local:8080"]\n',
+     "web.allowed_origins: ['robot.local:8080'] is not allowed: 'robot.local:8080' is not an origin"),
+    ("malformed-toml", "[lidar\nport = ", "not valid TOML"),
+    ("not-utf8", b"[lidar]\nport = '\xff\xfe'\n", "not valid TOML: the file is not UTF-8 text"),
+]
+
+
+@pytest.mark.parametrize(("text", "expected"), [c[1:] for c in BAD_FILES], ids=[c[0] for c in BAD_FILES])
+@pytest.mark.parametrize("command", ["check", "run", "run --sim"])
+def test_every_invalid_config_exits_78_with_one_line_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str, text: str | bytes, expected: str
+) -> None:
+    bad = tmp_path / "bad.toml"
+    if isinstance(text, bytes):
+        bad.write_bytes(text)
+    else:
+        bad.write_text(text)
+    argv = ["config", "check", str(bad)] if command == "check" else [*command.split(), "--config", str(bad)]
+    assert main(argv) == 78
+    out, err = capsys.readouterr()
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert str(bad) in lines[0] and expected in lines[0], lines[0]
+    if command != "check":
+        assert lines[0].startswith(f"mazebot: {bad}: ")
+
+
+def test_run_names_the_first_problem_and_points_at_config_check_for_the_rest(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[web]\nport = 0\nheartbeat_s = -1\n[nope]\n")
+    assert main(["run", "--sim", "--config", str(bad)]) == 78
+    assert capsys.readouterr().err == (
+        f"mazebot: {bad}: web.port: 0 is not allowed: Input should be greater than or equal to 1 "
+        "(and 2 more: `mazebot config check` lists them)\n"
+    )
+    assert main(["config", "check", str(bad)]) == 78
+    assert len(capsys.readouterr().err.splitlines()) == 3
+
+
+def test_a_missing_config_file_exits_78(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for argv in (["config", "check", str(tmp_path / "nope.toml")], ["run", "--config", str(tmp_path / "nope.toml")]):
+        assert main(argv) == 78
+        assert "nope.toml: config file not found" in capsys.readouterr().err
+
+
+def test_run_with_a_bad_config_has_no_traceback(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[web]\nport = true\n")
+    proc = subprocess.run([sys.executable, "-m", "mazebot", "run", "--config", str(bad)],
+                          capture_output=True, text=True, check=False, timeout=60)
+    assert proc.returncode == 78
+    assert proc.stderr == f"mazebot: {bad}: web.port: True is not allowed: Input should be a valid integer\n"

@@ -13,9 +13,14 @@ from pathlib import Path
 import aiohttp
 import pytest
 from aiohttp.test_utils import unused_port
+from gpiozero import InputDevice
+from gpiozero.pins.mock import MockFactory
 
+from mazebot.cli import main
 from mazebot.config import Config
-from mazebot.main import Hardware, run_daemon
+from mazebot.errors import HardwareUnavailable, MazebotError
+from mazebot.io.motors import FakeMotorKit
+from mazebot.main import Hardware, robot_hardware_builder, run_daemon
 from mazebot.sim.backend import sim_hardware_builder
 from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
@@ -186,3 +191,134 @@ def test_bad_run_arguments_exit_2(argv: list[str]) -> None:
                           check=False)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
+
+
+# -- a real run with a device missing: exit 69 naming it, and no motor left commanded ---------------------
+
+
+def _hat_left_driving() -> FakeMotorKit:
+    """A HAT as a crashed daemon leaves it: the PCA9685 keeps driving at its last PWM."""
+    kit = FakeMotorKit()
+    kit.motor1.throttle = 0.7
+    kit.motor2.throttle = -0.7
+    return kit
+
+
+def _assert_braked(kit: FakeMotorKit) -> None:
+    assert kit.motor1.throttle == 0.0 and kit.motor2.throttle == 0.0
+    assert kit.command_log[-1].throttle == 0.0 and kit.command_log[-2].throttle == 0.0
+
+
+async def _real_run(config: Config, **devices: object) -> str:
+    """Start a real (non-sim) run on the given device stand-ins; the error (exit 69) it ends with."""
+    with pytest.raises(MazebotError) as info:
+        await asyncio.wait_for(run_daemon(config, robot_hardware_builder(**devices), install_signal_handlers=False,
+                                          serve_web=False), 30)
+    assert info.value.exit_code == 69
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def _no_gpio() -> object:
+    raise ImportError("No module named 'lgpio'")
+
+
+async def test_a_missing_hat_exits_69_before_any_other_device_is_touched() -> None:
+    touched = []
+
+    def no_hat(address: int, frequency_hz: float) -> FakeMotorKit:
+        raise HardwareUnavailable(f"motor HAT not found at I2C address {address:#04x} (ValueError: No I2C device)")
+
+    message = await _real_run(_config(unused_port()), open_kit=no_hat,
+                              make_pin_factory=lambda: touched.append("gpio") or MockFactory())
+    assert message.startswith("motor HAT not found at I2C address 0x60")
+    assert touched == []
+
+
+async def test_a_hat_that_refuses_writes_exits_69_naming_the_motor() -> None:
+    kit = FakeMotorKit()
+    kit.fail_writes()
+    message = await _real_run(_config(unused_port()), open_kit=lambda a, f: kit, make_pin_factory=MockFactory)
+    assert message.startswith("motor HAT write failed on motor1 (left)"), message
+
+
+async def test_no_gpio_exits_69_naming_it_and_the_wheels_are_braked() -> None:
+    kit = _hat_left_driving()
+    message = await _real_run(_config(unused_port()), open_kit=lambda a, f: kit, make_pin_factory=_no_gpio)
+    assert message.startswith("GPIO for the wheel encoders is not available (ImportError: No module named 'lgpio')")
+    _assert_braked(kit)
+
+
+async def test_encoder_pins_held_by_another_program_exit_69_naming_the_pins() -> None:
+    kit = _hat_left_driving()
+    factory = MockFactory()
+    squatter = InputDevice(17, pin_factory=factory)  # another program holds the left A pin
+    message = await _real_run(_config(unused_port()), open_kit=lambda a, f: kit, make_pin_factory=lambda: factory)
+    assert message.startswith("wheel encoder pins GPIO17/GPIO18/GPIO22/GPIO23 cannot be used (GPIOPinInUse")
+    _assert_braked(kit)
+    squatter.close()
+
+
+async def test_a_missing_lidar_port_exits_69_naming_the_port_and_releases_the_rest(tmp_path: Path) -> None:
+    kit = _hat_left_driving()
+    factory = MockFactory()
+    config = _config(unused_port())
+    config.lidar.port = str(tmp_path / "ttyUSB9")
+    message = await _real_run(config, open_kit=lambda a, f: kit, make_pin_factory=lambda: factory)
+    assert message.startswith(f"lidar serial port {config.lidar.port} cannot be opened (No such file or directory)")
+    _assert_braked(kit)
+    InputDevice(17, pin_factory=MockFactory()).close()  # the encoders let their pins go
+    assert factory.pins == {} or all(p.function == "input" for p in factory.pins.values())
+
+
+async def test_a_lidar_that_never_answers_exits_69_naming_its_port() -> None:
+    kit = _hat_left_driving()
+    device, port = os.openpty()  # a serial port with nothing behind it
+    config = _config(unused_port())
+    config.lidar.port = os.ttyname(port)
+    try:
+        message = await _real_run(config, open_kit=lambda a, f: kit, make_pin_factory=MockFactory)
+        received = os.read(device, 64)
+    finally:
+        os.close(device)
+        os.close(port)
+    assert message == (f"lidar on {config.lidar.port} did not answer GET_HEALTH within 1 s; "
+                       "check that the lidar is powered and that this is its port")
+    assert received.startswith(b"\xa5\x25\xa5\x52")  # STOP (a scan left running), then GET_HEALTH
+    _assert_braked(kit)
+
+
+async def test_run_sim_needs_no_hat_no_gpio_and_no_serial_port(monkeypatch: pytest.MonkeyPatch) -> None:
+    def forbidden(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the simulated run touched a real device")
+
+    monkeypatch.setattr("mazebot.io.motors.open_motorkit", forbidden)
+    monkeypatch.setattr("mazebot.io.serial_link.SerialLink.open", forbidden)
+    monkeypatch.setitem(sys.modules, "adafruit_motorkit", None)  # importing them raises ImportError
+    monkeypatch.setitem(sys.modules, "gpiozero.pins.lgpio", None)
+    config = _config(unused_port())
+    config.lidar.port = "/nonexistent/ttyUSB0"
+    ready = asyncio.Event()
+    started: dict[str, object] = {}
+    daemon = asyncio.create_task(run_daemon(config, sim_hardware_builder(), ready=ready, install_signal_handlers=False,
+                                            on_started=lambda hw, st, sup: started.update(state=st, sup=sup),
+                                            autonomous=False))
+    await asyncio.wait_for(ready.wait(), 10)
+    for _ in range(100):
+        if started["state"].sensors.lidar_revolutions >= 2:  # type: ignore[attr-defined]
+            break
+        await asyncio.sleep(0.1)
+    assert started["state"].sensors.lidar_revolutions >= 2  # type: ignore[attr-defined]
+    started["sup"].request_stop("test over")  # type: ignore[attr-defined]
+    assert await asyncio.wait_for(daemon, 10) == 0
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--port", "0"], "--port 0: Input should be greater than or equal to 1"),
+    (["--port", "70000"], "--port 70000: Input should be less than or equal to 65535"),
+])
+def test_bad_host_or_port_overrides_are_usage_errors(capsys: pytest.CaptureFixture[str], argv: list[str],
+                                                      message: str) -> None:
+    assert main(["run", "--sim", *argv]) == 2
+    assert capsys.readouterr().err == f"mazebot: {message}\n"

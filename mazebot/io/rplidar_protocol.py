@@ -752,8 +752,11 @@ class StandardScanDecoder:
                     self._forget_rhythm()
                     return q + DESCRIPTOR_LEN, self._AFTER_DESCRIPTOR
                 if len(head) < DESCRIPTOR_LEN and desc.startswith(head) and not final:
-                    self.bytes_dropped += q - pos
-                    return q, self._WAIT  # maybe a descriptor: wait for the rest
+                    # maybe a descriptor: wait for the rest, keeping the bytes before it
+                    # that are too few yet to tell whether a sample starts there
+                    keep_from = min(q, max(pos, n - (STANDARD_SAMPLE_LEN - 1)))
+                    self.bytes_dropped += keep_from - pos
+                    return keep_from, self._WAIT
             if fields.ok[q]:
                 verdict = self._judge(fields, q, n, final)
                 if verdict == self._REJECT:

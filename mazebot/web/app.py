@@ -36,9 +36,9 @@ from mazebot import __version__
 from mazebot.clock import RealClock
 from mazebot.state import SharedState
 from mazebot.web import map_images
-from mazebot.web.auth import ControlAuth, origin_allowed
+from mazebot.web.auth import ControlAuth, client_key, origin_allowed
 from mazebot.web.broadcaster import Broadcaster, Viewer
-from mazebot.web.limits import MessageLimiter
+from mazebot.web.limits import ConnectionLimiter, MessageLimiter
 from mazebot.web.protocol import PROTOCOL_VERSION, ProtocolError, parse_client_message, server_message
 
 log = logging.getLogger(__name__)
@@ -67,6 +67,8 @@ class WebSettings:
     trail_points: int = 1000
     message_rate_per_s: float = 20.0
     message_burst: int = 40
+    connect_rate_per_s: float = 5.0
+    connect_burst: int = 20
 
     @classmethod
     def from_config(cls, web_config: Any, control_token: str) -> WebSettings:
@@ -82,6 +84,8 @@ class WebSettings:
             trail_points=web_config.trail_points,
             message_rate_per_s=web_config.message_rate_per_s,
             message_burst=web_config.message_burst,
+            connect_rate_per_s=web_config.connect_rate_per_s,
+            connect_burst=web_config.connect_burst,
         )
 
 
@@ -90,6 +94,7 @@ STATIC_DIR_KEY = web.AppKey("static_dir", Path)
 SETTINGS_KEY = web.AppKey("settings", WebSettings)
 AUTH_KEY = web.AppKey("auth", ControlAuth)
 BROADCASTER_KEY = web.AppKey("broadcaster", Broadcaster)
+CONNECTIONS_KEY = web.AppKey("connections", ConnectionLimiter)
 
 
 @dataclass
@@ -269,7 +274,8 @@ async def get_status(request: web.Request) -> web.Response:
 
 def _network_json(app: web.Application) -> dict[str, Any]:
     auth = app[AUTH_KEY]
-    return {**vars(app[STATS_KEY]), "pin_lockouts": auth.lockouts, "locked_out_now": auth.locked_out}
+    return {**vars(app[STATS_KEY]), "pin_lockouts": auth.lockouts, "locked_out_now": auth.locked_out,
+            "connections_refused": app[CONNECTIONS_KEY].refused}
 
 
 def _queue_command(state: SharedState, command: str) -> bool:
@@ -336,6 +342,13 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
     app = request.app
     settings = app[SETTINGS_KEY]
     remote = request.remote or "?"
+    if not app[CONNECTIONS_KEY].allow(client_key(remote)):  # refused before any work: no hello, no map
+        retry_s = math.ceil(1.0 / settings.connect_rate_per_s)
+        raise web.HTTPTooManyRequests(
+            text=f"too many connections from {remote}: at most {settings.connect_rate_per_s:g} a second "
+            f"(bursts of {settings.connect_burst}); try again in {retry_s} s",
+            headers={"Retry-After": str(retry_s)},
+        )
     ws = GuardedWebSocket(
         stats=app[STATS_KEY],
         max_message_bytes=settings.max_message_bytes,
@@ -356,7 +369,7 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
     broadcaster = app[BROADCASTER_KEY]
     viewer = broadcaster.add(ws, remote)
     writer = asyncio.create_task(viewer.pump(), name=f"ws-writer {remote}")
-    log.info("viewer %s connected (%d watching)", remote, len(broadcaster.viewers))
+    log.debug("viewer %s connected (%d watching)", remote, len(broadcaster.viewers))
     limiter = MessageLimiter(settings.message_rate_per_s, settings.message_burst)
     stats = app[STATS_KEY]
     try:
@@ -378,6 +391,9 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
                                message=f"too many messages (over {settings.message_rate_per_s:g}/s)".encode())
                 break
             if verdict != "ok":
+                # read no further for a token's time: aiohttp stops reading the socket once its
+                # queue is full, so TCP holds the flooder back instead of our loop parsing its frames
+                await asyncio.sleep(1.0 / settings.message_rate_per_s)
                 continue
             if msg.type == WSMsgType.TEXT:
                 _on_client_text(app, viewer, msg.data)
@@ -393,7 +409,7 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
         if not ws.closed:  # the client vanished: closing cancels aiohttp's heartbeat, which holds the socket
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(ws.close(code=WSCloseCode.GOING_AWAY), 1.0)
-        log.info("viewer %s left (%d dropped packets)", remote, viewer.dropped)
+        log.debug("viewer %s left (%d dropped packets)", remote, viewer.dropped)
     return ws
 
 
@@ -466,6 +482,7 @@ def create_app(
     app[SETTINGS_KEY] = settings
     app[AUTH_KEY] = ControlAuth(settings.control_token)
     app[STATS_KEY] = NetworkStats()
+    app[CONNECTIONS_KEY] = ConnectionLimiter(settings.connect_rate_per_s, settings.connect_burst)
     app[BROADCASTER_KEY] = Broadcaster(
         state,
         rate_hz=settings.broadcast_hz or 5.0,

@@ -72,3 +72,45 @@ class MessageLimiter:
         if self.excess == 1:
             return "warn"
         return "close" if self.excess > self.burst else "drop"
+
+
+class ConnectionLimiter:
+    """New websocket connections per client address: a token bucket for each.
+
+    A page opens one socket and reconnects at most every second or so; a client opening
+    dozens a second (or reconnecting as soon as it is closed for flooding) costs the
+    server a handshake, a hello and a full map each time, on the loop the control task
+    shares. Its excess connections are refused before the upgrade (HTTP 429). At most
+    ``max_clients`` addresses are remembered; the ones whose bucket is full again go first.
+
+    Example::
+
+        limiter = ConnectionLimiter(rate_per_s=5, burst=20)
+        limiter.allow("10.0.0.7")   # True while that address has tokens left
+    """
+
+    def __init__(self, rate_per_s: float, burst: int, max_clients: int = 4096,
+                 now_s: Callable[[], float] = time.monotonic) -> None:
+        self.rate_per_s = rate_per_s
+        self.burst = burst
+        self.max_clients = max_clients
+        self.refused = 0
+        self._now_s = now_s
+        self._buckets: dict[str, TokenBucket] = {}
+
+    def allow(self, key: str) -> bool:
+        bucket = self._buckets.get(key)
+        if bucket is None:
+            if len(self._buckets) >= self.max_clients:
+                self._forget()
+            bucket = self._buckets[key] = TokenBucket(self.rate_per_s, self.burst, self._now_s)
+        if bucket.take():
+            return True
+        self.refused += 1
+        return False
+
+    def _forget(self) -> None:
+        for key in [k for k, b in self._buckets.items() if b.full]:
+            del self._buckets[key]
+        while len(self._buckets) >= self.max_clients:
+            del self._buckets[next(iter(self._buckets))]

@@ -204,11 +204,16 @@ def parse_client_message(text: str) -> ClientMessage:
         obj = json.loads(text)
     except ValueError:
         raise ProtocolError("message is not JSON; expected {\"type\": \"start\"|\"stop\"|\"resync\", …}") from None
+    except RecursionError:  # "[[[[…" nested deeper than Python's recursion limit
+        raise ProtocolError("message is nested too deeply; expected a flat JSON object") from None
     if not isinstance(obj, dict):
         raise ProtocolError(f"message must be a JSON object, got {type(obj).__name__}")
     kind = obj.get("type")
+    if kind is not None and not isinstance(kind, str):  # a list or object there is not even hashable
+        raise ProtocolError(f"message type must be a string, got {type(kind).__name__}")
     if kind not in CLIENT_TYPES:
-        raise ProtocolError(f"unknown message type {kind!r}; expected start, stop or resync")
+        shown = kind if kind is None or len(kind) <= 40 else kind[:40] + "…"  # the client's own words, kept short
+        raise ProtocolError(f"unknown message type {shown!r}; expected start, stop or resync")
     token = obj.get("token")
     if token is not None and not isinstance(token, str):
         raise ProtocolError("token must be a string")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import socket
 from typing import Any
 
 from aiohttp import web
@@ -40,6 +41,12 @@ async def start_web_server(state: SharedState, config: Config, hardware: Any = N
     site = web.TCPSite(runner, config.web.host, config.web.port)
     try:
         await site.start()
+    except socket.gaierror as exc:  # not an address, nor a name this machine can resolve
+        await runner.cleanup()
+        raise ConfigError(
+            f"web.host: {config.web.host!r} is not an address of this machine ({exc.strerror or exc}); "
+            "use an interface's address, 127.0.0.1 (this machine only) or 0.0.0.0 (every interface)"
+        ) from None
     except OSError as exc:
         await runner.cleanup()
         raise HardwareUnavailable(

@@ -409,7 +409,7 @@ async def test_fifty_clients_connecting_and_dropping_in_a_loop_leak_nothing(aioh
     logging.getLogger().addHandler(problems)
     grid = fake_grid()
     state.map = grid
-    app = _app(state)
+    app = _app(state, connect_rate_per_s=10000, connect_burst=100000)  # 50 clients, one address: let all in
     broadcaster = app[BROADCASTER_KEY]
     client = await aiohttp_client(app)
     host, port = client.server.host, client.server.port
@@ -446,6 +446,40 @@ async def test_fifty_clients_connecting_and_dropping_in_a_loop_leak_nothing(aioh
     await _until(lambda: not broadcaster.viewers)
     logging.getLogger().removeHandler(problems)
     assert_no_exception_logged(problems)  # type: ignore[arg-type]
+
+
+async def test_an_address_opening_connections_too_fast_is_refused_with_429_before_any_work(
+    aiohttp_client, state, server_log
+) -> None:
+    """Reconnecting as soon as it is closed, a flooder would cost a handshake, a hello and a full
+    map each time; past its burst an address is refused before the upgrade, the open sockets
+    are served on, and a token later it may connect again."""
+    app = _app(state, connect_rate_per_s=2, connect_burst=5)
+    broadcaster = app[BROADCASTER_KEY]
+    client = await aiohttp_client(app)
+    sockets = [await client.ws_connect("/ws") for _ in range(5)]
+    for ws in sockets:
+        assert (await _packet(ws)).kind == KIND_FULL  # what every viewer gets on connecting
+    with pytest.raises(aiohttp.WSServerHandshakeError) as err:
+        await client.ws_connect("/ws")
+    assert err.value.status == 429 and err.value.headers["Retry-After"] == "1"
+    resp = await client.get("/ws")
+    assert resp.status == 429
+    assert await resp.text() == ("too many connections from 127.0.0.1: at most 2 a second (bursts of 5); "
+                                 "try again in 1 s")
+    assert len(broadcaster.viewers) == 5 and broadcaster.packets_built == 2  # the refused cost no packet
+    state.pose.x_m = 0.3
+    broadcaster.tick()
+    for ws in sockets:
+        assert (await _packet(ws)).status["pose"][0] == 0.3
+    await asyncio.sleep(0.6)  # one token back at 2/s
+    late = await client.ws_connect("/ws")
+    assert (await _packet(late)).kind == KIND_FULL
+    network = (await (await client.get("/api/status")).json())["network"]
+    assert network["connections_refused"] == 2
+    for ws in [*sockets, late]:
+        await ws.close()
+    assert_no_exception_logged(server_log)
 
 
 # -- a client that never reads --------------------------------------------------------------------------

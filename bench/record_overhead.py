@@ -33,7 +33,8 @@ def main() -> None:
                 start = time.process_time()
                 metrics, record = run_one(Config(), spec)
                 cpu[mode].append(time.process_time() - start)
-                extra = f" dropped {record.state.record.dropped}" if path else ""
+                stats = record.state.record
+                extra = f" (writer thread {stats.writer_cpu_s:.2f} s), dropped {stats.dropped}" if path else ""
                 print(f"{mode}: {cpu[mode][-1]:.2f} s CPU, {metrics['time_s']} s simulated{extra}", flush=True)
     plain, rec = statistics.median(cpu["plain"]), statistics.median(cpu["record"])
     print(f"median CPU without {plain:.2f} s, with --record {rec:.2f} s: overhead {100 * (rec / plain - 1):.1f} %")

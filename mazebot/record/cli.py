@@ -76,8 +76,8 @@ async def _serve(args: argparse.Namespace, recording: Recording, speed: float | 
         loop.add_signal_handler(sig, stop.set)
     runner = await replay_server.start_server(state, progress, replay_server.replay_settings(config.web), host, port)
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-replay")
-    log.info("replaying %s %s on http://%s:%d/ (Ctrl-C stops)", progress.file,
-                replay_server.speed_text(speed), host, port)
+    log.info("replaying %s %s on http://%s:%d/ (Ctrl-C stops)", progress.file, replay_server.speed_text(speed),
+             host, port)
     feeding = asyncio.create_task(replay_server.feed(recording, state, progress, executor))
     stopping = asyncio.create_task(stop.wait())
     try:
@@ -88,6 +88,9 @@ async def _serve(args: argparse.Namespace, recording: Recording, speed: float | 
             print(json.dumps({**result.stats, "out": str(out)}), flush=True)
             log.info("replay finished; the page shows the final map until Ctrl-C")
             await stopping
+        else:
+            share = progress.fed / max(progress.messages, 1)
+            log.info("replay stopped at %.0f %% of %s; no outputs written", 100 * share, progress.file)
     finally:
         for task in (feeding, stopping):
             task.cancel()

@@ -25,6 +25,7 @@ import logging
 import secrets
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -73,7 +74,7 @@ class ReplayProgress:
 class StatePublisher:
     """Writes SLAM's and the odometry's results into the shared state, as the daemon's tasks do."""
 
-    def __init__(self, state: SharedState, replayer: Replayer, now_s: Any = time.monotonic) -> None:
+    def __init__(self, state: SharedState, replayer: Replayer, now_s: Callable[[], float] = time.monotonic) -> None:
         self.state = state
         self.replayer = replayer
         self._now_s = now_s

@@ -260,8 +260,9 @@ def test_exported_pgm_reads_back_by_map_server_rules(live: LiveRun, tmp_path: Pa
     origin = [float(v) for v in meta["origin"].strip("[]").split(",")]
     assert origin == pytest.approx([*live.state.map.origin_m, 0.0], abs=1e-9)  # the bottom-left pixel's corner
     raw = pgm.read_bytes()
-    magic, cols, rows, maxval = raw.split(maxsplit=4)[:4]
-    assert (magic, int(cols), int(rows), int(maxval)) == (b"P5", expected.shape[1], expected.shape[0], 255)
+    header = raw[: -expected.size].splitlines()
+    tokens = b" ".join(line.split(b"#")[0] for line in header).split()  # netpbm: '#' starts a comment
+    assert tokens == [b"P5", str(expected.shape[1]).encode(), str(expected.shape[0]).encode(), b"255"]
     image = np.frombuffer(raw[-expected.size :], dtype=np.uint8).reshape(expected.shape)  # row 0 north
     p = (255.0 - image[::-1]) / 255.0  # negate: 0
     occupied = p > float(meta["occupied_thresh"])

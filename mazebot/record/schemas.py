@@ -257,12 +257,13 @@ def laser_scan_bytes(scan: Scan, log_time_ns: int) -> bytes:
     order = np.argsort(angle, kind="stable")
     step = 2 * math.pi / n
     # NaN is not JSON: no return is written as 0 (below any lidar's minimum range)
-    bins = np.zeros(n)
+    bins, strength = np.zeros(n), np.zeros(n)  # range and intensity of each bearing's sample
     index = np.minimum((angle[order] / step).astype(int), n - 1)
     bins[index] = np.where(scan.valid, scan.range_m, 0.0)[order]
+    strength[index] = np.asarray(scan.quality, dtype=float)[order]
     head["end_angle"] = step * (n - 1)
     ranges = _json_numbers(bins, SCAN_DISPLAY_STEP_M, _TABLE_MM)
-    intensities = _json_numbers(np.asarray(scan.quality)[order], 1.0, 256)
+    intensities = _json_numbers(strength, 1.0, 256)
     text = f'{json.dumps(head, separators=(",", ":"))[:-1]},"ranges":[{ranges}],"intensities":[{intensities}]}}'
     return text.encode()
 

@@ -250,7 +250,7 @@ def _flat_yaml(text: str) -> dict[str, str]:
 
 def test_exported_pgm_reads_back_by_map_server_rules(live: LiveRun, tmp_path: Path) -> None:
     """Not with our own reader: the YAML's keys and map_server's formula (wiki.ros.org/map_server)."""
-    saved = load_run(find_run(live.run_dir.parent, "latest"))
+    saved = load_run(live.run_dir)  # not "latest": the resume test above saved a newer run
     expected = live.state.map.three_state()  # row 0 south
     pgm, yaml = export_pgm(saved, tmp_path / "maze")
     meta = _flat_yaml(yaml.read_text())

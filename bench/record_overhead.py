@@ -12,6 +12,7 @@ daemon, not a cost of recording.
 from __future__ import annotations
 
 import argparse
+import importlib
 import statistics
 import tempfile
 import time
@@ -26,9 +27,8 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--maze", default="mazebot/sim/mazes/minimaze.txt")
     args = parser.parse_args()
-    import mazebot.persist.session  # noqa: F401 - see the docstring
-    import mazebot.record.writer  # noqa: F401
-    import mazebot.tasks.record_task  # noqa: F401
+    for module in ("mazebot.persist.session", "mazebot.record.writer", "mazebot.tasks.record_task"):
+        importlib.import_module(module)  # before timing: see the docstring
     cpu: dict[str, list[float]] = {"plain": [], "record": []}
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(args.runs):

@@ -248,6 +248,7 @@ def test_the_cli_serves_the_replay_refuses_control_and_writes_the_outputs(served
     with pytest.raises(urllib.error.HTTPError) as refused:
         urllib.request.urlopen(request, timeout=2)
     assert refused.value.code == 409
+    refused.value.close()  # the error holds the response's socket
     deadline = time.monotonic() + 60
     while not served.status()["replay"]["finished"]:
         assert time.monotonic() < deadline, "the replay did not finish within 60 s"

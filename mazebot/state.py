@@ -125,6 +125,7 @@ class RecordStats:
     dropped: int = 0  # not recorded because the writer's queue was full
     files: int = 0  # files begun (rotation)
     error: str | None = None  # the writer stopped (disk full ...); the robot carries on
+    writer_cpu_s: float = 0.0  # CPU time the recorder's writer thread used so far
     run_dir: str | None = None  # where this run is saved
     saves: int = 0
     save_errors: int = 0

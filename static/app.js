@@ -205,6 +205,7 @@
   function onText(msg) {
     if (msg.type === "hello") {
       heartbeatS = msg.heartbeat_s || heartbeatS;
+      setReplay(msg.replay || null);
     } else if (msg.type === "heartbeat") {
       if (view.seq !== null && msg.seq !== view.seq && !view.awaitingFull) { stats.gaps++; requestResync(); }
     } else if (msg.type === "reply") {
@@ -214,9 +215,19 @@
     }
   }
 
+  // a recording played back (mazebot replay --serve): no robot to start or stop
+  let replay = null;
+  function setReplay(info) {
+    replay = info;
+    document.body.dataset.replay = info ? "1" : "";
+    $("replay").hidden = !info;
+    if (info) $("replay").textContent = `Replay of ${info.file}` + (info.speed ? ` at ${info.speed}×` : ", fast");
+    setConn(document.body.dataset.conn);
+  }
+
   function setConn(state, detail) {
     document.body.dataset.conn = state;
-    const text = { open: "live", connecting: "connecting…", closed: "offline, retrying" }[state];
+    const text = { open: replay ? "replay" : "live", connecting: "connecting…", closed: "offline, retrying" }[state];
     $("conn-text").textContent = detail ? `${text} (${detail})` : text;
     updateButton();
   }
@@ -283,6 +294,7 @@
     go.classList.toggle("stop", moving || pendingCommand === "stop");
     go.disabled = !known || (!moving && view.status.state === "fault");
     if (view.status.state === "fault") go.disabled = false; // stop stays possible
+    if (replay) { go.disabled = true; go.textContent = "Replay"; go.classList.remove("stop"); }
   }
 
   // ---- the status bar ----------------------------------------------------------------------

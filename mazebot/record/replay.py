@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,13 +33,13 @@ import numpy as np
 
 from mazebot.config import Config
 from mazebot.io.scan import Scan
-from mazebot.record.reader import Recording, RecordingError
+from mazebot.record.reader import RecordedMessage, Recording, RecordingError
 from mazebot.record.schemas import scan_from_json
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.g2o import format_g2o
 from mazebot.slam.map_export import write_map_png, write_ros_map
 from mazebot.slam.odometry import DiffDriveOdometry
-from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams
+from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, Slam, SlamParams
 
 TOPICS = ("/mazebot/scan_raw", "/mazebot/encoders", "/mazebot/slam")
 
@@ -64,6 +65,120 @@ def recorded_config(recording: Recording) -> Config:
         raise RecordingError(f"{recording.path}: the recorded configuration cannot be read ({exc})") from None
 
 
+def _run_now(job: LoopClosureJob) -> Future[LoopClosureResult]:
+    """A loop-closure job computed at once, in this thread (offline replay)."""
+    done: Future[LoopClosureResult] = Future()
+    done.set_result(job.run())
+    return done
+
+
+class Replayer:
+    """Replay's steps, one recorded message at a time: offline, and behind the web page.
+
+    ``submit`` starts a loop-closure job and returns its future (default: computed at once;
+    the served replay hands it to an executor, as the daemon does). A step that merges a
+    job's result waits for it: :meth:`waits_for` says which future a message needs first.
+
+    Example::
+
+        replayer = Replayer(Recording.open("run.mcap"))
+        for msg in replayer.recording.messages(TOPICS):
+            replayer.feed(msg)
+        replayer.slam.grid            # the map, as live
+    """
+
+    def __init__(
+        self,
+        recording: Recording,
+        *,
+        submit: Callable[[LoopClosureJob], Future[LoopClosureResult]] = _run_now,
+    ) -> None:
+        self.recording = recording
+        self.config = config = recorded_config(recording)
+        params = SlamParams.from_config(config.slam, config.lidar)
+        self.slam = Slam(params, background=True, record_trajectory=True)
+        drive = config.drive
+        self.odometry = DiffDriveOdometry(config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
+        self.history = OdometryHistory(config.slam.odometry_history_s)
+        self.steps = recording.message_counts.get("/mazebot/slam", 0) > 0
+        self.result = ReplayResult(self.slam, config, "steps" if self.steps else "sensors")
+        self._submit = submit
+        self._pending: dict[float, Scan] = {}  # revolutions waiting for SLAM, by end time
+        self._held: list[Future[LoopClosureResult]] = []  # jobs waiting for the step that merged them live
+
+    def waits_for(self, msg: RecordedMessage) -> Future[LoopClosureResult] | None:
+        """The job whose result ``msg`` merges, if it is a merge step and one is held."""
+        if self._held and msg.topic == "/mazebot/slam" and msg.data.get("kind") == "apply":
+            return self._held[0]
+        return None
+
+    def feed(self, msg: RecordedMessage) -> list[tuple[str, Any]]:
+        """Take one message; what SLAM did: ``("update", SlamUpdate)`` / ``("apply", rebuilt)``."""
+        done: list[tuple[str, Any]] = []
+        data = msg.data
+        if msg.topic == "/mazebot/encoders":
+            self.odometry.update(int(data["left_ticks"]), int(data["right_ticks"]))
+            pose = self.odometry.pose
+            self.history.append(float(data["time_s"]), pose.x_m, pose.y_m, pose.theta_rad)
+            if not self.steps:
+                latest = self.history.latest
+                for end_s in sorted(self._pending):
+                    if latest is not None and latest[0] >= end_s:
+                        self._process(self._pending.pop(end_s), done)
+        elif msg.topic == "/mazebot/scan_raw":
+            scan = scan_from_json(data)
+            self._pending[scan.end_time_s] = scan
+        elif msg.topic != "/mazebot/slam":
+            pass
+        elif data.get("kind") == "update":
+            end_s = float(data["scan_end_time_s"])
+            scan = self._pending.pop(end_s, None)
+            for older in [t for t in self._pending if t < end_s]:  # dropped by the live SLAM
+                del self._pending[older]
+            if scan is None:
+                self.result.missing_scans += 1
+                return done
+            latest = self.history.latest
+            expected = data.get("odometry_latest_s")
+            if expected is not None and (latest is None or latest[0] != expected):
+                self.result.odometry_mismatches += 1
+            self._process(scan, done)
+        elif data.get("kind") == "apply" and self._held:
+            self._apply(self._held.pop(0).result(), done)
+        return done
+
+    def _process(self, scan: Scan, done: list[tuple[str, Any]]) -> None:
+        update = self.slam.update(scan, self.history)
+        self.result.updates += 1
+        done.append(("update", update))
+        if update.loop_job is not None:
+            job = self._submit(update.loop_job)
+            if self.steps:
+                self._held.append(job)
+            else:
+                self._apply(job.result(), done)
+
+    def _apply(self, job_result: LoopClosureResult, done: list[tuple[str, Any]]) -> None:
+        rebuilt = self.slam.apply(job_result)
+        self.result.applied += 1
+        done.append(("apply", rebuilt))
+
+    def finish(self) -> ReplayResult:
+        """The result, with its summary."""
+        result, slam = self.result, self.slam
+        result.stats = {
+            "mode": result.mode,
+            "updates": result.updates,
+            "loop_closure_results_applied": result.applied,
+            "keyframes": len(slam.keyframes),
+            "loop_closures": len(slam.closures),
+            "missing_scans": result.missing_scans,
+            "odometry_mismatches": result.odometry_mismatches,
+            "recorded_dropped": int(self.recording.recorder_stats.get("dropped", 0) or 0),
+        }
+        return result
+
+
 def replay(
     recording: Recording,
     *,
@@ -72,78 +187,18 @@ def replay(
     sleep: Callable[[float], None] = time.sleep,
 ) -> ReplayResult:
     """Run the recording through SLAM; ``speed`` paces it (1.0 = as recorded), None = as fast as possible."""
-    config = recorded_config(recording)
-    params = SlamParams.from_config(config.slam, config.lidar)
-    slam = Slam(params, background=True, record_trajectory=True)
-    drive = config.drive
-    odometry = DiffDriveOdometry(config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
-    history = OdometryHistory(config.slam.odometry_history_s)
-    steps = recording.message_counts.get("/mazebot/slam", 0) > 0
-    result = ReplayResult(slam, config, "steps" if steps else "sensors")
-    pending: dict[float, Scan] = {}  # revolutions waiting for SLAM, by end time
-    held: list[LoopClosureResult] = []  # finished jobs waiting for the step that merged them live
+    replayer = Replayer(recording)
     first_log_ns: int | None = None
     started = time.monotonic()
-
-    def process(scan: Scan) -> None:
-        update = slam.update(scan, history)
-        result.updates += 1
-        if update.loop_job is not None:
-            job_result = update.loop_job.run()
-            if steps:
-                held.append(job_result)
-            else:
-                slam.apply(job_result)
-                result.applied += 1
-        if on_update is not None:
-            on_update(slam)
-
     for msg in recording.messages(TOPICS):
         if speed is not None:
             first_log_ns = msg.log_time_ns if first_log_ns is None else first_log_ns
             due_s = (msg.log_time_ns - first_log_ns) / 1e9 / speed - (time.monotonic() - started)
             if due_s > 0:
                 sleep(due_s)
-        data = msg.data
-        if msg.topic == "/mazebot/encoders":
-            odometry.update(int(data["left_ticks"]), int(data["right_ticks"]))
-            pose = odometry.pose
-            history.append(float(data["time_s"]), pose.x_m, pose.y_m, pose.theta_rad)
-            if not steps:
-                latest = history.latest
-                for end_s in sorted(pending):
-                    if latest is not None and latest[0] >= end_s:
-                        process(pending.pop(end_s))
-        elif msg.topic == "/mazebot/scan_raw":
-            scan = scan_from_json(data)
-            pending[scan.end_time_s] = scan
-        elif data.get("kind") == "update":
-            end_s = float(data["scan_end_time_s"])
-            scan = pending.pop(end_s, None)
-            for older in [t for t in pending if t < end_s]:  # dropped by the live SLAM
-                del pending[older]
-            if scan is None:
-                result.missing_scans += 1
-                continue
-            latest = history.latest
-            expected = data.get("odometry_latest_s")
-            if expected is not None and (latest is None or latest[0] != expected):
-                result.odometry_mismatches += 1
-            process(scan)
-        elif data.get("kind") == "apply" and held:
-            slam.apply(held.pop(0))
-            result.applied += 1
-    result.stats = {
-        "mode": result.mode,
-        "updates": result.updates,
-        "loop_closure_results_applied": result.applied,
-        "keyframes": len(slam.keyframes),
-        "loop_closures": len(slam.closures),
-        "missing_scans": result.missing_scans,
-        "odometry_mismatches": result.odometry_mismatches,
-        "recorded_dropped": int(recording.recorder_stats.get("dropped", 0) or 0),
-    }
-    return result
+        if replayer.feed(msg) and on_update is not None:
+            on_update(replayer.slam)
+    return replayer.finish()
 
 
 def write_outputs(result: ReplayResult, out_dir: Path) -> dict[str, Path]:

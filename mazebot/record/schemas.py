@@ -20,6 +20,7 @@ only enqueues the (immutable) objects.
 from __future__ import annotations
 
 import base64
+import functools
 import json
 import math
 from collections.abc import Callable
@@ -191,7 +192,8 @@ class Channel:
 
     topic: str
     schema: str
-    to_json: Callable[[Any, int], dict[str, Any]]  # (message, log_time_ns) -> JSON object
+    to_json: Callable[[Any, int], dict[str, Any]] | None  # (message, log_time_ns) -> JSON object
+    to_bytes: Callable[[Any, int], bytes] | None = None  # ... or straight to JSON text
 
 
 def stamp(log_time_ns: int) -> dict[str, int]:
@@ -212,29 +214,58 @@ def _pose(x_m: float, y_m: float, theta_rad: float) -> dict[str, Any]:
     return {"position": {"x": x_m, "y": y_m, "z": 0.0}, "orientation": yaw_quaternion(theta_rad)}
 
 
-def laser_scan_json(scan: Scan, log_time_ns: int) -> dict[str, Any]:
-    """The revolution resampled onto equal bearings (one per sample, sorted), for display only."""
+#: ``/scan`` is for display; ranges go in whole millimetres. The RPLidar A1 resolves 0.5 mm
+#: below 1.5 m and 1 % of the range beyond (Slamtec A1M8 datasheet, "Distance resolution"),
+#: so a millimetre keeps what a viewer can see; the exact samples are on ``/mazebot/scan_raw``.
+SCAN_DISPLAY_STEP_M = 0.001
+#: Ranges up to this many millimetres are written from a table of texts (the A1 reaches 12 m).
+_TABLE_MM = 20_000
+
+
+@functools.cache
+def _number_texts(count: int, step: float) -> tuple[str, ...]:
+    """JSON texts of ``i * step`` for i < count: formatting a float is the slow part of JSON."""
+    return tuple(repr(round(i * step, 6)) for i in range(count))
+
+
+def _json_numbers(values: np.ndarray, step: float, table_size: int) -> str:
+    """``values`` rounded to ``step`` as a JSON array body ("0.5,1.25,..."), fast for small ones."""
+    units = np.rint(values / step).astype(np.int64)
+    texts = _number_texts(table_size, step)
+    if units.size and (units.min() < 0 or units.max() >= table_size):
+        return ",".join(texts[u] if 0 <= u < table_size else repr(round(u * step, 6)) for u in units.tolist())
+    return ",".join([texts[u] for u in units.tolist()])
+
+
+def laser_scan_bytes(scan: Scan, log_time_ns: int) -> bytes:
+    """The revolution resampled onto equal bearings (one per sample, sorted), for display only.
+
+    Written straight to JSON text: the ranges and intensities are ~700 numbers a revolution,
+    and ``json.dumps`` of floats was most of the recorder's encoding time.
+    """
     n = len(scan)
-    if n == 0:
-        return {"timestamp": stamp(log_time_ns), "frame_id": ROBOT_FRAME, "pose": _pose(0, 0, 0),
-                "start_angle": 0.0, "end_angle": 0.0, "ranges": [], "intensities": []}
-    angle = np.remainder(scan.angle_rad, 2 * math.pi)
-    order = np.argsort(angle, kind="stable")
-    ranges = np.where(scan.valid, scan.range_m, np.nan)[order]
-    step = 2 * math.pi / n
-    bins = np.full(n, np.nan)
-    index = np.minimum((angle[order] / step).astype(int), n - 1)
-    bins[index] = ranges
-    return {
+    head = {
         "timestamp": stamp(log_time_ns),
         "frame_id": ROBOT_FRAME,
         "pose": _pose(0.0, 0.0, 0.0),
         "start_angle": 0.0,
-        "end_angle": step * (n - 1),
-        # NaN is not JSON: no return is written as 0 (below any lidar's minimum range)
-        "ranges": np.nan_to_num(bins, nan=0.0).round(4).tolist(),
-        "intensities": np.asarray(scan.quality, dtype=float)[order].tolist(),
+        "end_angle": 0.0,
     }
+    if n == 0:
+        return (json.dumps(head, separators=(",", ":"))[:-1] + ',"ranges":[],"intensities":[]}').encode()
+    angle = np.remainder(scan.angle_rad, 2 * math.pi)
+    order = np.argsort(angle, kind="stable")
+    step = 2 * math.pi / n
+    # NaN is not JSON: no return is written as 0 (below any lidar's minimum range)
+    bins, strength = np.zeros(n), np.zeros(n)  # range and intensity of each bearing's sample
+    index = np.minimum((angle[order] / step).astype(int), n - 1)
+    bins[index] = np.where(scan.valid, scan.range_m, 0.0)[order]
+    strength[index] = np.asarray(scan.quality, dtype=float)[order]
+    head["end_angle"] = step * (n - 1)
+    ranges = _json_numbers(bins, SCAN_DISPLAY_STEP_M, _TABLE_MM)
+    intensities = _json_numbers(strength, 1.0, 256)
+    text = f'{json.dumps(head, separators=(",", ":"))[:-1]},"ranges":[{ranges}],"intensities":[{intensities}]}}'
+    return text.encode()
 
 
 def raw_scan_json(scan: Scan, _log_time_ns: int) -> dict[str, Any]:
@@ -306,7 +337,7 @@ def plain_json(obj: dict[str, Any], _log_time_ns: int) -> dict[str, Any]:
 CHANNELS: dict[str, Channel] = {
     c.topic: c
     for c in (
-        Channel("/scan", "foxglove.LaserScan", laser_scan_json),
+        Channel("/scan", "foxglove.LaserScan", None, laser_scan_bytes),
         Channel("/mazebot/scan_raw", "mazebot.Scan", raw_scan_json),
         Channel("/mazebot/encoders", "mazebot.EncoderTicks", plain_json),
         Channel("/mazebot/motors", "mazebot.MotorCommand", plain_json),
@@ -321,4 +352,8 @@ CHANNELS: dict[str, Channel] = {
 
 def encode(topic: str, message: Any, log_time_ns: int) -> bytes:
     """JSON bytes of ``message`` on ``topic`` (compact, keys in a fixed order)."""
-    return json.dumps(CHANNELS[topic].to_json(message, log_time_ns), separators=(",", ":"), allow_nan=False).encode()
+    channel = CHANNELS[topic]
+    if channel.to_bytes is not None:
+        return channel.to_bytes(message, log_time_ns)
+    assert channel.to_json is not None
+    return json.dumps(channel.to_json(message, log_time_ns), separators=(",", ":"), allow_nan=False).encode()

@@ -2,10 +2,16 @@
 
 The daemon's event loop must never wait for a disk (an SD card can stall for hundreds
 of milliseconds), so :meth:`McapRecorder.put` only appends ``(topic, time, object)`` to a
-bounded ``queue.Queue`` and returns; a writer thread turns each object into JSON
+bounded queue and returns; a writer thread turns each object into JSON
 (:mod:`mazebot.record.schemas`) and hands it to the ``mcap`` library's ``Writer``. When
 the queue is full the new message is dropped and counted (``dropped``, shown in
 ``/api/status`` through the shared state), never silently lost and never waited for.
+
+The queue is a ``collections.deque`` that nobody is woken for: the writer thread drains
+it in batches, every ``flush_period_s`` or as soon as it is half full. A
+``queue.Queue`` woke the thread for every one of the ~100 messages a second, and each
+wake-up took the interpreter lock from the event loop (a forced switch); that alone cost
+more CPU than encoding the messages (BENCHMARKS.md, "Recording overhead").
 
 Size cap and rotation: when the current file reaches ``max_bytes`` it is finished (its
 summary and index written, so it is a complete MCAP file on its own) and the next one
@@ -26,8 +32,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import queue
 import threading
+import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -42,8 +49,9 @@ log = logging.getLogger(__name__)
 PROFILE = ""  # no ROS profile: JSON channels with JSON schemas
 METADATA_NAME = "mazebot"
 STATS_NAME = "mazebot_stats"
+#: Message bytes between two looks at the file's size (the size cap is met to within a chunk).
+SIZE_CHECK_BYTES = 64 * 1024
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-_STOP = object()
 
 
 @dataclass
@@ -52,10 +60,12 @@ class RecorderStats:
 
     queued: int = 0
     written: int = 0
+    batches: int = 0  # times the writer thread woke up and drained the queue
     dropped: int = 0  # the queue was full: the message was not recorded
     files: int = 0
     bytes_written: int = 0  # in finished files plus the current one's flushed part
     error: str | None = None  # the writer thread failed (disk full ...): nothing more is recorded
+    writer_cpu_s: float = 0.0  # CPU time of the writer thread so far (encoding, compression, writes)
 
 
 def rotated_path(path: Path, index: int) -> Path:
@@ -77,6 +87,7 @@ class McapRecorder:
         keep_files: int = 4,
         queue_messages: int = 2000,
         compression: str = "zstd",
+        flush_period_s: float = 0.25,
     ) -> None:
         self.path = Path(path)
         self.metadata = {"version": __version__, **(metadata or {})}
@@ -84,12 +95,18 @@ class McapRecorder:
         self.keep_files = int(keep_files)
         self.compression = _COMPRESSION[compression]
         self.stats = RecorderStats()
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_messages)
+        self.queue_messages = int(queue_messages)
+        self.flush_period_s = float(flush_period_s)
+        # appended by the caller, popped by the writer thread: both atomic under the GIL
+        self._queue: deque[tuple[str, int, Any]] = deque()
+        self._wake = threading.Event()  # set when the queue is half full, and to stop
+        self._stopping = False
         self._thread: threading.Thread | None = None
         self._stream: BinaryIO | None = None
         self._writer: Writer | None = None
         self._channel_ids: dict[str, int] = {}
         self._sequence = 0
+        self._unchecked_bytes = 0  # message bytes since the file size was last looked at
         self._index = 0
         self._closed = False
 
@@ -107,12 +124,14 @@ class McapRecorder:
         if self._closed or self.stats.error is not None:
             self.stats.dropped += 1
             return False
-        try:
-            self._queue.put_nowait((topic, max(0, int(log_time_ns)), message))
-        except queue.Full:
+        waiting = len(self._queue)
+        if waiting >= self.queue_messages:
             self.stats.dropped += 1
             return False
+        self._queue.append((topic, max(0, int(log_time_ns)), message))
         self.stats.queued += 1
+        if waiting == self.queue_messages // 2:  # a burst: drain now rather than at the next period
+            self._wake.set()
         return True
 
     def close(self) -> None:
@@ -121,8 +140,8 @@ class McapRecorder:
             return
         self._closed = True
         if self._thread is not None:
-            if self._thread.is_alive():
-                self._queue.put(_STOP)  # blocks only while full, and the thread is draining it
+            self._stopping = True
+            self._wake.set()
             self._thread.join()
         else:
             self._finish_file()
@@ -139,17 +158,31 @@ class McapRecorder:
     def _run(self) -> None:
         try:
             while True:
-                item = self._queue.get()
-                if item is _STOP:
+                self._wake.wait(self.flush_period_s)
+                self._wake.clear()
+                stopping = self._stopping  # read before draining: nothing queued before close is lost
+                self._drain()
+                if stopping:
                     break
-                topic, log_time_ns, message = item
-                self._write(topic, log_time_ns, message)
         except Exception as exc:  # disk full, unwritable: stop recording, never the robot
             self.stats.error = f"{type(exc).__name__}: {exc}"
             log.error("recording to %s stopped: %s", self.path, self.stats.error)
         finally:
+            self.stats.dropped += len(self._queue)  # left behind by a failure: counted, not silent
+            self._queue.clear()
             with contextlib.suppress(Exception):
                 self._finish_file()
+            self.stats.writer_cpu_s = time.thread_time()
+
+    def _drain(self) -> None:
+        """Write everything queued, oldest first."""
+        pending = self._queue
+        if pending:
+            self.stats.batches += 1
+        while pending:
+            topic, log_time_ns, message = pending.popleft()
+            self._write(topic, log_time_ns, message)
+        self.stats.writer_cpu_s = time.thread_time()
 
     def _write(self, topic: str, log_time_ns: int, message: Any) -> None:
         assert self._writer is not None and self._stream is not None
@@ -163,6 +196,12 @@ class McapRecorder:
         )
         self._sequence += 1
         self.stats.written += 1
+        # the file grows a chunk at a time (the mcap writer buffers ~1 MB), so asking its size
+        # (a system call) after every message is wasted; every SIZE_CHECK_BYTES is enough
+        self._unchecked_bytes += len(data)
+        if self._unchecked_bytes < SIZE_CHECK_BYTES:
+            return
+        self._unchecked_bytes = 0
         if self._stream.tell() >= self.max_bytes:
             self._finish_file()
             self._index += 1

@@ -162,6 +162,7 @@ def publish_stats(state: SharedState, recorder: McapRecorder) -> None:
     out.dropped = stats.dropped
     out.files = stats.files
     out.error = stats.error
+    out.writer_cpu_s = round(stats.writer_cpu_s, 3)
 
 
 async def run(state: SharedState, tap: RecordingTap, pose_hz: float, map_period_s: float) -> None:

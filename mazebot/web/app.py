@@ -22,7 +22,7 @@ import math
 import platform
 import secrets
 import sys
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -95,6 +95,10 @@ SETTINGS_KEY = web.AppKey("settings", WebSettings)
 AUTH_KEY = web.AppKey("auth", ControlAuth)
 BROADCASTER_KEY = web.AppKey("broadcaster", Broadcaster)
 CONNECTIONS_KEY = web.AppKey("connections", ConnectionLimiter)
+#: A replay (``mazebot replay --serve``): what to tell clients about it; absent for a robot.
+REPLAY_KEY = web.AppKey("replay", Callable[[], dict[str, Any]])
+#: The answer to start/stop during a replay: 409 Conflict (there is no robot behind the page).
+REPLAY_COMMAND_STATUS = 409
 
 
 @dataclass
@@ -269,7 +273,18 @@ async def get_status(request: web.Request) -> web.Response:
     if (denied := _check_view(request)) is not None:
         return denied
     viewers = len(request.app[BROADCASTER_KEY].viewers)
-    return web.json_response(status_json(request.app[STATE_KEY], viewers, _network_json(request.app)))
+    body = status_json(request.app[STATE_KEY], viewers, _network_json(request.app))
+    if (replay := request.app.get(REPLAY_KEY)) is not None:
+        body["replay"] = replay()
+    return web.json_response(body)
+
+
+def _replay_refusal(app: web.Application, command: str) -> str | None:
+    """Why ``command`` cannot be done when the page shows a replay; None for a robot."""
+    replay = app.get(REPLAY_KEY)
+    if replay is None:
+        return None
+    return f"this page shows a replay of {replay()['file']}: there is no robot to {command}"
 
 
 def _network_json(app: web.Application) -> dict[str, Any]:
@@ -288,6 +303,8 @@ def _queue_command(state: SharedState, command: str) -> bool:
 
 async def _post_command(request: web.Request, command: str) -> web.Response:
     _check_origin(request)
+    if (refusal := _replay_refusal(request.app, command)) is not None:
+        return web.json_response({"error": refusal}, status=REPLAY_COMMAND_STATUS)
     status = request.app[AUTH_KEY].check(_presented_token(request), request.remote or "?")
     if status != 200:
         log.warning("refused %s from %s (%d)", command, request.remote, status)
@@ -424,6 +441,10 @@ def _on_client_text(app: web.Application, viewer: Viewer, text: str) -> None:
     if msg.type == "resync":
         broadcaster.resync(viewer)
         return
+    if (refusal := _replay_refusal(app, msg.type)) is not None:
+        broadcaster.reply(viewer, server_message("reply", command=msg.type, ok=False,
+                                                 status=REPLAY_COMMAND_STATUS, message=refusal))
+        return
     status = app[AUTH_KEY].check(msg.token, viewer.remote)
     if status != 200:
         log.warning("refused %s from %s over the websocket (%d)", msg.type, viewer.remote, status)
@@ -470,10 +491,14 @@ def create_app(
     state: SharedState,
     static_dir: Path = DEFAULT_STATIC_DIR,
     settings: WebSettings | None = None,
+    replay: Callable[[], dict[str, Any]] | None = None,
 ) -> web.Application:
     """Build the web application for one daemon's shared state.
 
     Without ``settings`` control needs a random token nobody knows (control is locked).
+    ``replay`` marks the state as a recording played back (``mazebot replay --serve``): it
+    returns what clients are told (``replay`` in ``hello`` and ``/api/status``), and start
+    and stop are refused with 409.
     """
     settings = settings if settings is not None else WebSettings(control_token=secrets.token_hex(16))
     app = web.Application(client_max_size=64 * 1024, middlewares=[compress_assets])
@@ -491,6 +516,9 @@ def create_app(
         heartbeat_s=settings.heartbeat_s,
         trail_points=settings.trail_points,
     )
+    if replay is not None:
+        app[REPLAY_KEY] = replay
+        app[BROADCASTER_KEY].hello_fields = lambda: {"replay": replay()}
     app.router.add_get("/", get_index)
     app.router.add_get("/ws", get_ws)
     app.router.add_get("/api/status", get_status)

@@ -239,6 +239,8 @@ class Broadcaster:
         self.packets_built = 0
         self.bytes_built = 0
         self._errors_logged: set[str] = set()
+        #: extra fields of the ``hello`` message (a replay says so there)
+        self.hello_fields: Callable[[], dict[str, Any]] = dict
 
     # -- viewers -------------------------------------------------------------------------
 
@@ -250,7 +252,7 @@ class Broadcaster:
         self.viewers.add(viewer)
         viewer.offer(
             server_message("hello", protocol=1, seq=self.seq, rate_hz=self.rate_hz,
-                           heartbeat_s=self.heartbeat_s, resync_every=self.resync_every),
+                           heartbeat_s=self.heartbeat_s, resync_every=self.resync_every, **self.hello_fields()),
             self.full_packet,
         )
         viewer.offer(self.full_packet(), self.full_packet)

@@ -21,6 +21,7 @@ from mcap.reader import make_reader
 from mazebot.bench import runner
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
+from mazebot.errors import UsageError
 from mazebot.persist.export import export_json, export_pgm, export_png, export_svg, three_state
 from mazebot.persist.resume import ResumedSlam
 from mazebot.persist.runs import find_run
@@ -239,3 +240,46 @@ def test_replay_cli_writes_map_and_trajectory(live: LiveRun, tmp_path: Path) -> 
     assert done.returncode == 0, done.stderr
     ros = read_ros_map(tmp_path / "out" / "map.yaml")
     np.testing.assert_array_equal(ros.three_state, live.state.map.three_state())
+
+
+def _flat_yaml(text: str) -> dict[str, str]:
+    """The map_server YAML is flat ``key: value`` lines (no PyYAML here)."""
+    pairs = (line.split(":", 1) for line in text.splitlines() if line.strip())
+    return {key.strip(): value.strip() for key, value in pairs}
+
+
+def test_exported_pgm_reads_back_by_map_server_rules(live: LiveRun, tmp_path: Path) -> None:
+    """Not with our own reader: the YAML's keys and map_server's formula (wiki.ros.org/map_server)."""
+    saved = load_run(live.run_dir)  # not "latest": the resume test above saved a newer run
+    expected = live.state.map.three_state()  # row 0 south
+    pgm, yaml = export_pgm(saved, tmp_path / "maze")
+    meta = _flat_yaml(yaml.read_text())
+    assert set(meta) >= {"image", "resolution", "origin", "negate", "occupied_thresh", "free_thresh"}
+    assert meta["image"] == pgm.name and meta["negate"] == "0"
+    assert float(meta["resolution"]) == pytest.approx(live.state.map.resolution_m, rel=1e-9)
+    origin = [float(v) for v in meta["origin"].strip("[]").split(",")]
+    assert origin == pytest.approx([*live.state.map.origin_m, 0.0], abs=1e-9)  # the bottom-left pixel's corner
+    raw = pgm.read_bytes()
+    header = raw[: -expected.size].splitlines()
+    tokens = b" ".join(line.split(b"#")[0] for line in header).split()  # netpbm: '#' starts a comment
+    assert tokens == [b"P5", str(expected.shape[1]).encode(), str(expected.shape[0]).encode(), b"255"]
+    image = np.frombuffer(raw[-expected.size :], dtype=np.uint8).reshape(expected.shape)  # row 0 north
+    p = (255.0 - image[::-1]) / 255.0  # negate: 0
+    occupied = p > float(meta["occupied_thresh"])
+    free = p < float(meta["free_thresh"])
+    np.testing.assert_array_equal(occupied, expected == 100)
+    np.testing.assert_array_equal(free, expected == 0)
+    np.testing.assert_array_equal(~(occupied | free), expected == -1)
+
+
+def test_the_record_switch_records_into_the_run_folder(tmp_path: Path) -> None:
+    config = Config()
+    config.daemon.state_dir = str(tmp_path)
+    config.record.enabled = True
+    session = RunSession.from_options(config)
+    assert session.run_dir is not None and session.record_path == session.run_dir / "recording.mcap"
+    config.persist.enabled = False
+    with pytest.raises(UsageError, match=r"\[record\] path"):
+        RunSession.from_options(config)
+    config.record.path = str(tmp_path / "elsewhere.mcap")
+    assert RunSession.from_options(config).record_path == tmp_path / "elsewhere.mcap"

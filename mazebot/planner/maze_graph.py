@@ -360,7 +360,9 @@ class MazeGraph:
     for an open link (with nothing occupied); ``refresh_growth`` the relative growth of
     the wall count that triggers a new frame estimate; ``interior_samples`` the side of
     the grid of points (``n x n``) probed inside each cell and ``interior_seen_min`` the
-    share of them the map must know for the cell to count as seen; ``frame`` a fixed
+    share of them the map must know for the cell to count as seen; ``cell_kept_m`` how
+    far a re-estimated frame may move the cells and still keep what was learnt about
+    them (the seen shares); ``frame`` a fixed
     frame (then never re-estimated), e.g. for tests or a maze whose placement is known.
     """
 
@@ -377,6 +379,7 @@ class MazeGraph:
         refresh_growth: float = 0.15,
         interior_samples: int = 5,
         interior_seen_min: float = 0.9,
+        cell_kept_m: float = 0.05,
         frame: MazeFrame | None = None,
     ) -> None:
         if cell_size_m <= 0:
@@ -396,6 +399,7 @@ class MazeGraph:
         self.refresh_growth = float(refresh_growth)
         self.interior_samples = int(interior_samples)
         self.interior_seen_min = float(interior_seen_min)
+        self.cell_kept_m = float(cell_kept_m)
         self._fixed_frame = frame is not None
         self.frame: MazeFrame | None = frame
         self.fit = 1.0 if frame is not None else 0.0
@@ -418,21 +422,24 @@ class MazeGraph:
         re-read each time and the links that changed are reported.
         """
         grid = np.asarray(three_state)
+        old_frame = self.frame
         frame_changed = self._refresh_frame(grid, grid_origin_m, resolution_m)
         if self.frame is None:
             return GraphUpdate(frame_changed=frame_changed)
+        same_cells = not frame_changed or (old_frame is not None and self._cells_kept(old_frame, self.frame))
         old_east, old_north, old_i0, old_j0 = self._east, self._north, self._i0, self._j0
         old_seen = self._seen
         self._resize(grid, grid_origin_m, resolution_m)
         self._east = self._classify(grid, grid_origin_m, resolution_m, Direction.E)
         self._north = self._classify(grid, grid_origin_m, resolution_m, Direction.N)
         self._seen = self._interior_seen(grid, grid_origin_m, resolution_m)
-        if not frame_changed:
+        if same_cells:
             # A cell once looked into stays looked into: in a log-odds map the samples next
             # to a wall band flip between known and unknown as hits and misses add up, and a
             # cell whose seen share wobbles around ``interior_seen_min`` would come back as
             # a frontier again and again (the robot dithered between two such cells for
-            # minutes). A new frame moves the cells, so the latch starts over then.
+            # minutes). A refined frame (the walls grew: a few millimetres, a fraction of a
+            # degree) leaves the cells where they were; only one that moves them starts over.
             self._seen = np.maximum(self._seen, _shifted(old_seen, old_i0 - self._i0, old_j0 - self._j0, self._seen))
         changed: list[tuple[Cell, Direction, LinkState]] = []
         for direction, new, old in ((Direction.E, self._east, old_east), (Direction.N, self._north, old_north)):
@@ -467,6 +474,21 @@ class MazeGraph:
             return True
         moved = np.hypot(*np.subtract(old.origin_m, estimate.frame.origin_m))
         return bool(abs(old.angle_rad - estimate.frame.angle_rad) > 1e-9 or moved > 1e-9)
+
+    def _cells_kept(self, old: MazeFrame, new: MazeFrame) -> bool:
+        """True when every covered cell lies within ``cell_kept_m`` of where ``old`` put it.
+
+        The frame is re-estimated each time the walls grow by ``refresh_growth``; the
+        estimate wanders by millimetres, which leaves every cell (and what was learnt about
+        it) in place. The covered cells' corners are compared, where a turn moves most.
+        """
+        if self._core is None:
+            return False
+        lo_i, hi_i, lo_j, hi_j = self._core
+        c = self.cell_size_m
+        corners_uv = np.array([[lo_i, lo_j], [hi_i + 1, lo_j], [lo_i, hi_j + 1], [hi_i + 1, hi_j + 1]], dtype=float) * c
+        moved = np.hypot(*(old.to_map(corners_uv) - new.to_map(corners_uv)).T)
+        return bool(moved.max() < self.cell_kept_m)
 
     def _resize(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> None:
         """Cover every cell that overlaps the known part of the grid (and keep old cells)."""
@@ -602,6 +624,17 @@ class MazeGraph:
         if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
             return float(self._seen[r, q])
         return 0.0
+
+    def mark_looked_into(self, cell: Cell) -> None:
+        """Count ``cell``'s inside as seen from now on (until a new frame moves the cells).
+
+        For a cell the robot has driven into: the lidar saw it on the approach, and from
+        inside it the cell's own walls are closer than the lidar's minimum range, so what
+        the map still lacks there (the cells along its walls) no more looking will fill.
+        """
+        r, q = cell[1] - self._j0, cell[0] - self._i0
+        if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
+            self._seen[r, q] = 1.0
 
     def needs_look(self, cell: Cell) -> bool:
         """True when less than ``interior_seen_min`` of the cell's inside is known."""

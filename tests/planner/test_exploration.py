@@ -305,3 +305,27 @@ def test_a_frontier_that_keeps_vanishing_is_still_blacklisted_in_the_end() -> No
             break
     assert explorer.blacklisted_links, "the flickering target was never given up"
     assert t_s <= 20.0  # ~10 s of being the target, spread over several turns
+
+
+def test_a_cell_the_robot_drove_into_is_no_look_inside_target_afterwards() -> None:
+    # A strip along the north wall of (2, 1) stays unknown (a wall band the map smears):
+    # the cell is a "look inside" frontier until the robot has been in it. From inside,
+    # its walls are closer than the lidar's minimum range: coming back to look again
+    # (across the whole maze, once it is the last frontier) would see nothing new.
+    world, grid, origin = t_maze()
+    blurred = grid.copy()
+    rows = slice(int((2 * CELL - 0.04 - origin[1]) / RES), int((2 * CELL - origin[1]) / RES))
+    blurred[rows, int((2 * CELL - origin[0]) / RES) : int((3 * CELL - origin[0]) / RES)] = -1
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    goal = explorer.update(blurred, origin, RES, (*centre((0, 1)), 0.0), now_s=0.0)
+    assert goal is not None and goal.phase is Phase.EXPLORING and goal.cells[-1] == (2, 1)
+    assert "inside" in goal.reason
+    goal = explorer.update(blurred, origin, RES, (centre((2, 1))[0] + 0.03, centre((2, 1))[1], 0.0), now_s=2.0)
+    goal = explorer.update(blurred, origin, RES, (*centre((1, 1)), math.pi), now_s=3.0)
+    assert goal is not None and goal.phase is Phase.RETURNING
+    # passing the cell's border is no visit: the cell next door stays a frontier
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    near_border = (2 * CELL + 0.01, centre((2, 1))[1], 0.0)
+    explorer.update(blurred, origin, RES, near_border, now_s=0.0)
+    goal = explorer.update(blurred, origin, RES, (*centre((1, 1)), math.pi), now_s=1.0)
+    assert goal is not None and goal.phase is Phase.EXPLORING and goal.cells[-1] == (2, 1)

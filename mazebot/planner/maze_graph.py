@@ -411,6 +411,7 @@ class MazeGraph:
         self._east = np.zeros((0, 0), dtype=np.int8)
         self._north = np.zeros((0, 0), dtype=np.int8)
         self._seen = np.zeros((0, 0), dtype=np.float32)  # known share of each cell's interior
+        self._adjacency: dict[Cell, list[Cell]] | None = None  # open_neighbours of every cell, until the next update
 
     # -- building ------------------------------------------------------------------------
 
@@ -450,6 +451,7 @@ class MazeGraph:
                 before[dj : dj + h, di : di + w] = old
             for j, i in zip(*np.nonzero(new != before), strict=True):
                 changed.append(((int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(new[j, i]))))
+        self._adjacency = None
         return GraphUpdate(changed, frame_changed)
 
     def _refresh_frame(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> bool:
@@ -611,8 +613,42 @@ class MazeGraph:
         return self.link(a, Direction.between(a, b))
 
     def open_neighbours(self, cell: Cell) -> list[Cell]:
-        """Cells joined to ``cell`` by an open link, in the order E, N, W, S."""
-        return [(cell[0] + d.step[0], cell[1] + d.step[1]) for d in Direction if self.link(cell, d) is LinkState.OPEN]
+        """Cells joined to ``cell`` by an open link, in the order E, N, W, S.
+
+        Route searches call this for every cell they expand, several searches a planner
+        tick: the answers for all cells are read off the link arrays once per update.
+        """
+        if self._adjacency is None:
+            self._adjacency = self._open_adjacency()
+        return self._adjacency.get(cell, [])
+
+    def _open_adjacency(self) -> dict[Cell, list[Cell]]:
+        east = self._east == LinkState.OPEN  # [j, i]: (i, j) -> (i + 1, j)
+        north = self._north == LinkState.OPEN  # [j, i]: (i, j) -> (i, j + 1)
+        # the four directions as boolean masks over the cells in range (W and S read the neighbour's link)
+        west = np.zeros_like(east)
+        west[:, 1:] = east[:, :-1]
+        south = np.zeros_like(north)
+        south[1:, :] = north[:-1, :]
+        adjacency: dict[Cell, list[Cell]] = {}
+        any_open = east | north | west | south
+        for j, i in zip(*np.nonzero(any_open), strict=True):
+            cell = (int(i) + self._i0, int(j) + self._j0)
+            out = []
+            for mask, d in ((east, Direction.E), (north, Direction.N), (west, Direction.W), (south, Direction.S)):
+                if mask[j, i]:
+                    out.append((cell[0] + d.step[0], cell[1] + d.step[1]))
+            adjacency[cell] = out
+        # cells just outside the range reached by an open link of the edge cells
+        for outs in list(adjacency.values()):
+            for nxt in outs:
+                if nxt not in adjacency:
+                    adjacency[nxt] = [
+                        (nxt[0] + d.step[0], nxt[1] + d.step[1])
+                        for d in Direction
+                        if self.link(nxt, d) is LinkState.OPEN
+                    ]
+        return adjacency
 
     def unknown_sides(self, cell: Cell) -> list[Direction]:
         """Sides of ``cell`` whose link is still unknown."""

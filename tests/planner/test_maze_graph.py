@@ -345,3 +345,20 @@ def test_a_cell_marked_as_looked_into_stays_seen() -> None:
     graph.update(blurred, origin, RES)
     assert not graph.needs_look((2, 0)) and graph.is_explored((2, 0))
     assert graph.needs_look((1, 0))  # the closed cell next to it is untouched
+
+
+def test_open_neighbours_agree_with_the_links_everywhere() -> None:
+    # open_neighbours answers from a table built once per update: it must say what the
+    # links say, for every cell in range and the ring just outside it
+    layout = generate_maze(6, 5, seed=3, cell_size_m=CELL)
+    world = world_from_layout(layout, 0.012)
+    grid, origin = perfect_map(world)
+    grid[:, int((3.5 * CELL - origin[0]) / RES) :] = -1  # a partly seen maze: unknown links too
+    graph = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    graph.update(grid, origin, RES)
+    irange, jrange = graph.cell_range()
+    for i in range(irange.start - 1, irange.stop + 1):
+        for j in range(jrange.start - 1, jrange.stop + 1):
+            want = [(i + d.step[0], j + d.step[1]) for d in Direction if graph.link((i, j), d) is LinkState.OPEN]
+            assert graph.open_neighbours((i, j)) == want, (i, j)
+    assert sum(len(graph.open_neighbours(c)) for c in graph.cells()) > 10

@@ -17,15 +17,19 @@ from mazebot.sim.maze_file import packaged_maze_path
 SUITES = ("smoke", "standard", "full")
 
 
-def suite_specs(suite: str, seeds: int, drive: str, clock: str) -> list[RunSpec]:
+def suite_specs(suite: str, seeds: int, drive: str, clock: str, first_seed: int = 1) -> list[RunSpec]:
     """The runs of a suite. smoke: one 6x6 maze; standard: seeds x 6x6 + an 8x8 training maze;
-    full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze."""
+    full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze.
+    Generated mazes use seeds ``first_seed`` ... ``first_seed + seeds - 1``."""
     n_seeds = 1 if suite == "smoke" else seeds
-    specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(1, n_seeds + 1)]
+    specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(first_seed, first_seed + n_seeds)]
     if suite in ("standard", "full"):
         specs.append(RunSpec(str(packaged_maze_path("training-8x8-test1.txt")), None, 1, drive, clock=clock))
     if suite == "full":
-        specs += [RunSpec(None, (8, 8), seed, drive, clock=clock, max_sim_s=1800) for seed in range(1, seeds + 1)]
+        specs += [
+            RunSpec(None, (8, 8), seed, drive, clock=clock, max_sim_s=1800)
+            for seed in range(first_seed, first_seed + seeds)
+        ]
         specs.append(RunSpec(str(packaged_maze_path("minimaze.txt")), None, 1, drive, clock=clock))
         specs.append(RunSpec(str(packaged_maze_path("japan2013ef.txt")), None, 1, drive, clock=clock, max_sim_s=3600))
     return specs
@@ -43,17 +47,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
+    if args.first_seed < 1:
+        raise UsageError(f"--first-seed must be at least 1, got {args.first_seed}")
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
     if args.room:
         if args.maze:
             raise UsageError("give either --room or --maze, not both")
-        specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in range(1, args.seeds + 1)]
+        specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in seeds]
     elif args.maze:
         for path in args.maze:
             if not Path(path).is_file():
                 raise UsageError(f"maze file {path} not found")
-        specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in range(1, args.seeds + 1)]
+        specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in seeds]
     else:
-        specs = suite_specs(args.suite, args.seeds, args.drive, args.clock)
+        specs = suite_specs(args.suite, args.seeds, args.drive, args.clock, args.first_seed)
     out_dir = Path(args.out)
     runs = []
     t0 = time.perf_counter()
@@ -77,6 +84,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench.add_argument("--room", action="store_true",
                        help="run the room with cylinders ([sim] room_*) instead of mazes, one run per seed")
     bench.add_argument("--seeds", type=int, default=3, help="seeds per generated maze (default 3)")
+    bench.add_argument("--first-seed", type=int, default=1,
+                       help="the first seed of the generated mazes (default 1): split a suite over processes")
     bench.add_argument("--drive", choices=("explore", "scripted"), default="explore",
                        help="explore: the autonomous stack; scripted: a ground-truth tour of every cell")
     bench.add_argument("--clock", choices=("virtual", "real"), default="virtual",

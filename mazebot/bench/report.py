@@ -114,6 +114,11 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
         trajectory_figure(record, out_dir / fig)
         map_fig = f"run{i:02d}-{m['maze']}-seed{m['seed']}-map.png"
         m["figures"] = {"trajectory": fig, "map": map_fig if map_figure(record, out_dir / map_fig) else None}
+        events = list(record.state.planner_events) if record.state is not None else []
+        if events:  # the planner's decisions, to read a run's detours against its trajectory figure
+            log_name = f"run{i:02d}-{m['maze']}-seed{m['seed']}-planner.txt"
+            write_atomic(out_dir / log_name, "".join(f"{t_s:8.2f}  {text}\n" for t_s, text in events))
+            m["figures"]["planner_log"] = log_name
 
         def cell(v: Any) -> str:
             return "null" if v is None else str(v)

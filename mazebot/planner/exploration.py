@@ -294,6 +294,8 @@ class Explorer:
         self._target: _Target | None = None
         self._history: dict[object, _Target] = {}  # every target so far, by key: clocks survive a switch
         self._costmap: GridCostmap | None = None
+        #: what happened to targets since the caller last emptied it (blacklists, with why)
+        self.events: list[str] = []
 
     # -- the tick ------------------------------------------------------------------------
 
@@ -570,6 +572,10 @@ class Explorer:
 
     def _blacklist(self, target: _Target) -> None:
         key = target.key
+        what = f"frontier at {key.centroid_m[0]:.2f}, {key.centroid_m[1]:.2f}" if isinstance(key, _RegionKey) else key
+        self.events.append(
+            f"blacklisted {what} (chosen {target.stalled_s:.1f} s without progress, {target.dwelt_s:.1f} s there)"
+        )
         if isinstance(key, _RegionKey):
             self.blacklisted_points_m.append(key.centroid_m)
         else:

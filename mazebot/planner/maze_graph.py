@@ -444,11 +444,15 @@ class MazeGraph:
             self._seen = np.maximum(self._seen, _shifted(old_seen, old_i0 - self._i0, old_j0 - self._j0, self._seen))
         changed: list[tuple[Cell, Direction, LinkState]] = []
         for direction, new, old in ((Direction.E, self._east, old_east), (Direction.N, self._north, old_north)):
-            before = np.zeros_like(new)
-            h, w = old.shape
-            di, dj = old_i0 - self._i0, old_j0 - self._j0
-            if h and w:
-                before[dj : dj + h, di : di + w] = old
+            before = _shifted(old, old_i0 - self._i0, old_j0 - self._j0, new)
+            if same_cells:
+                # A link once known stays known until the map shows the other state: a thin
+                # wall between two corridors loses hits to the beams grazing it from either
+                # side, and each time it fell back to unknown it became a frontier again (the
+                # robot shuttled along a 10-cell wall on test-zigzag-a for minutes). A wall
+                # can still turn open and an opening a wall; only "unknown" is not believed.
+                forgotten = (new == LinkState.UNKNOWN) & (before != LinkState.UNKNOWN)
+                new[forgotten] = before[forgotten]
             for j, i in zip(*np.nonzero(new != before), strict=True):
                 changed.append(((int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(new[j, i]))))
         self._adjacency = None

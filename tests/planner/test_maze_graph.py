@@ -362,3 +362,27 @@ def test_open_neighbours_agree_with_the_links_everywhere() -> None:
             want = [(i + d.step[0], j + d.step[1]) for d in Direction if graph.link((i, j), d) is LinkState.OPEN]
             assert graph.open_neighbours((i, j)) == want, (i, j)
     assert sum(len(graph.open_neighbours(c)) for c in graph.cells()) > 10
+
+
+def test_a_known_link_is_not_forgotten_when_its_wall_fades_but_changes_when_the_map_disagrees() -> None:
+    # A thin wall between two corridors loses hits to the beams grazing it; each time it
+    # fell back to unknown it was a frontier again (test-zigzag-a: minutes of shuttling).
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    graph.update(grid, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.WALL
+    faded = grid.copy()
+    r = int((1 * CELL - origin[1]) / RES)
+    c0, c1 = int((1 * CELL - origin[0]) / RES), int((2 * CELL - origin[0]) / RES)
+    faded[r - 2 : r + 2, c0 + 1 : c1 - 1] = -1  # the wall south of (1, 1) unknown again
+    fresh = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    fresh.update(faded, origin, RES)
+    assert fresh.link((1, 1), Direction.S) is LinkState.UNKNOWN  # what the faded map alone says
+    graph.update(faded, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.WALL
+    assert (1, 1) not in [cell for cell, _ in graph.frontier_links((0, 0))]
+    opened = grid.copy()
+    opened[r - 2 : r + 2, c0 + 1 : c1 - 1] = 0  # the map now sees through it: believe that
+    graph.update(opened, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.OPEN

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from mazebot.bench.report import write_report
+from mazebot.bench.report import write_partial, write_report
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
@@ -65,12 +65,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     runs = []
     t0 = time.perf_counter()
     _progress(0, len(specs), "starting")
+    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
+    out_dir.mkdir(parents=True, exist_ok=True)
     for i, spec in enumerate(specs, 1):
         metrics, record = run_one(config, spec)
         runs.append((metrics, record))
         _progress(i, len(specs), f"{spec.name} seed {spec.seed}: {metrics['time_s']} s simulated "
                   f"in {metrics['wall_s']} s, done={metrics['done']}")
-    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
+        if i < len(specs):  # a long suite keeps what it has measured if it is stopped early
+            write_partial(out_dir, [m for m, _ in runs], command, len(specs))
     results = write_report(out_dir, runs, command)
     print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} "
           f"({len(specs)} runs, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)

@@ -46,6 +46,13 @@ def write_atomic(path: Path, text: str) -> None:
         raise
 
 
+def write_partial(out_dir: Path, metrics: list[dict[str, Any]], command: str, planned: int) -> None:
+    """results.json of the runs finished so far (``"partial": true``); the full report replaces it."""
+    results = {"command": command, "partial": True, "planned_runs": planned, "runs": metrics,
+               "summary": summarize(metrics)}
+    write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
+
+
 def trajectory_figure(record: RunRecord, path: Path) -> None:
     """True walls (grey), true trajectory (blue), estimated trajectory (red), in world frame."""
     assert record.hardware is not None

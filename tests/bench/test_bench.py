@@ -119,3 +119,13 @@ def test_a_suite_can_be_split_over_processes_by_its_first_seed() -> None:
     second = suite_specs("standard", 15, "explore", "virtual", first_seed=16)
     generated = [s.seed for s in first + second if s.size == (6, 6)]
     assert generated == list(range(1, 31))
+
+
+def test_a_long_suite_writes_what_it_has_measured_as_it_goes(tmp_path: Path) -> None:
+    from mazebot.bench.report import write_partial
+
+    runs = [{"maze": "m", "seed": 1, "done": True, "time_s": 10.0, "collisions": 0}]
+    write_partial(tmp_path, runs, "mazebot bench ...", planned=3)
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["partial"] is True and results["planned_runs"] == 3
+    assert results["runs"] == runs and results["summary"]["done"] == 1

@@ -14,11 +14,11 @@ from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.sim.maze_file import packaged_maze_path
 
-SUITES = ("smoke", "standard", "full")
+SUITES = ("smoke", "6x6", "standard", "full")
 
 
 def suite_specs(suite: str, seeds: int, drive: str, clock: str, first_seed: int = 1) -> list[RunSpec]:
-    """The runs of a suite. smoke: one 6x6 maze; standard: seeds x 6x6 + an 8x8 training maze;
+    """The runs of a suite. smoke: one 6x6 maze; 6x6: seeds x 6x6; standard: 6x6 + an 8x8 training maze;
     full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze.
     Generated mazes use seeds ``first_seed`` ... ``first_seed + seeds - 1``."""
     n_seeds = 1 if suite == "smoke" else seeds

@@ -119,6 +119,7 @@ def test_a_suite_can_be_split_over_processes_by_its_first_seed() -> None:
     second = suite_specs("standard", 15, "explore", "virtual", first_seed=16)
     generated = [s.seed for s in first + second if s.size == (6, 6)]
     assert generated == list(range(1, 31))
+    assert [s.seed for s in suite_specs("6x6", 5, "explore", "virtual", first_seed=6)] == [6, 7, 8, 9, 10]
 
 
 def test_a_long_suite_writes_what_it_has_measured_as_it_goes(tmp_path: Path) -> None:

@@ -197,6 +197,8 @@ class SharedState:
     planner_status: str = ""  # one human line: what the planner is doing and why
     #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
     planner_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    #: what the planner decided and when, ``(time_s, text)``: new targets, blacklists, recoveries
+    planner_events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=5000))
     # --- written by the recorder and the run saver (mazebot.tasks.record_task, persist_task) ---
     record: RecordStats = field(default_factory=RecordStats)
 

@@ -9,21 +9,22 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from mazebot.bench.report import write_report
+from mazebot.bench.report import write_partial, write_report
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.sim.faults import DEFAULT_AT_S, FAULTS, FaultSpec, parse_fault
 from mazebot.sim.maze_file import packaged_maze_path
 
-SUITES = ("smoke", "standard", "full", "faults")
+SUITES = ("smoke", "6x6", "standard", "full", "faults")
 
 
 def suite_specs(suite: str, seeds: int, drive: str, clock: str, first_seed: int = 1) -> list[RunSpec]:
-    """The runs of a suite. smoke: one 6x6 maze; standard: seeds x 6x6 + an 8x8 training maze;
+    """The runs of a suite. smoke: one 6x6 maze; 6x6: seeds x 6x6; standard: 6x6 + an 8x8 training maze;
     full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze;
     faults: every fault of :data:`mazebot.sim.faults.FAULTS` in its own run of the 6x6 maze.
-    Generated mazes take the seeds ``first_seed .. first_seed + seeds - 1``."""
+    Generated mazes take the seeds ``first_seed .. first_seed + seeds - 1``; above 1 the
+    suite's fixed mazes are left out, so a suite can be split over several processes."""
     if suite == "faults":
         return [RunSpec(None, (6, 6), 1, drive, clock=clock, faults=(FaultSpec(name),)) for name in FAULTS]
     n_seeds = 1 if suite == "smoke" else seeds
@@ -51,16 +52,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
     if args.first_seed < 1:
-        raise UsageError("--first-seed must be at least 1")
+        raise UsageError(f"--first-seed must be at least 1, got {args.first_seed}")
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
     if args.room:
         if args.maze:
             raise UsageError("give either --room or --maze, not both")
-        specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in range(1, args.seeds + 1)]
+        specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in seeds]
     elif args.maze:
         for path in args.maze:
             if not Path(path).is_file():
                 raise UsageError(f"maze file {path} not found")
-        specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in range(1, args.seeds + 1)]
+        specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in seeds]
     else:
         specs = suite_specs(args.suite, args.seeds, args.drive, args.clock, args.first_seed)
     if args.faults:
@@ -70,6 +72,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     runs = []
     t0 = time.perf_counter()
     _progress(0, len(specs), "starting")
+    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
+    out_dir.mkdir(parents=True, exist_ok=True)
     for i, spec in enumerate(specs, 1):
         metrics, record = run_one(config, spec)
         runs.append((metrics, record))
@@ -79,7 +83,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         injected = " " + ",".join(str(f) for f in spec.faults) if spec.faults else ""
         _progress(i, len(specs), f"{spec.name} seed {spec.seed}{injected}: "
                   f"{metrics['time_s']} s simulated in {metrics['wall_s']} s, {outcome}")
-    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
+        if i < len(specs):  # a long suite keeps what it has measured if it is stopped early
+            write_partial(out_dir, [m for m, _ in runs], command, len(specs))
     results = write_report(out_dir, runs, command)
     print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} "
           f"({len(specs)} runs, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)

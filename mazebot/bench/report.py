@@ -46,6 +46,13 @@ def write_atomic(path: Path, text: str) -> None:
         raise
 
 
+def write_partial(out_dir: Path, metrics: list[dict[str, Any]], command: str, planned: int) -> None:
+    """results.json of the runs finished so far (``"partial": true``); the full report replaces it."""
+    results = {"command": command, "partial": True, "planned_runs": planned, "runs": metrics,
+               "summary": summarize(metrics)}
+    write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
+
+
 def trajectory_figure(record: RunRecord, path: Path) -> None:
     """True walls (grey), true trajectory (blue), estimated trajectory (red), in world frame."""
     assert record.hardware is not None
@@ -142,6 +149,11 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
         trajectory_figure(record, out_dir / fig)
         map_fig = f"run{i:02d}-{m['maze']}-seed{m['seed']}-map.png"
         m["figures"] = {"trajectory": fig, "map": map_fig if map_figure(record, out_dir / map_fig) else None}
+        events = list(record.state.planner_events) if record.state is not None else []
+        if events:  # the planner's decisions, to read a run's detours against its trajectory figure
+            log_name = f"run{i:02d}-{m['maze']}-seed{m['seed']}-planner.txt"
+            write_atomic(out_dir / log_name, "".join(f"{t_s:8.2f}  {text}\n" for t_s, text in events))
+            m["figures"]["planner_log"] = log_name
 
         def cell(v: Any) -> str:
             return "null" if v is None else str(v)

@@ -235,7 +235,10 @@ class Explorer:
     for wall (see :func:`frontier_regions`); ``view_radius_m`` how close the robot must
     come to a frontier region to see into it, ``view_candidates`` how many of the
     cheapest places within that radius are checked for a line of sight to it;
-    ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped.
+    ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped;
+    ``inside_half_m`` how close (along either maze axis) the robot must come to a cell's
+    centre for the cell to count as visited, its inside seen (see
+    :meth:`MazeGraph.mark_looked_into`).
     """
 
     def __init__(
@@ -258,6 +261,7 @@ class Explorer:
         view_radius_m: float = 0.3,
         view_candidates: int = 40,
         blacklist_radius_m: float = 0.15,
+        inside_half_m: float = 0.075,
     ) -> None:
         if mode not in ("auto", "maze", "frontier"):
             raise ValueError(f"mode must be 'auto', 'maze' or 'frontier', got {mode!r}")
@@ -279,6 +283,7 @@ class Explorer:
         self.view_radius_m = float(view_radius_m)
         self.view_candidates = int(view_candidates)
         self.blacklist_radius_m = float(blacklist_radius_m)
+        self.inside_half_m = float(inside_half_m)
 
         self.phase = Phase.EXPLORING
         self.mode: Literal["maze", "frontier"] = "frontier" if mode == "frontier" else "maze"
@@ -289,6 +294,8 @@ class Explorer:
         self._target: _Target | None = None
         self._history: dict[object, _Target] = {}  # every target so far, by key: clocks survive a switch
         self._costmap: GridCostmap | None = None
+        #: what happened to targets since the caller last emptied it (blacklists, with why)
+        self.events: list[str] = []
 
     # -- the tick ------------------------------------------------------------------------
 
@@ -360,6 +367,9 @@ class Explorer:
         if frame is None:
             return None
         robot = frame.cell_of(pose[0], pose[1])
+        uv_m = frame.to_maze(np.array(pose[:2]))[0] - (np.array(robot) + 0.5) * frame.cell_size_m
+        if float(np.abs(uv_m).max()) <= self.inside_half_m:  # well inside, not just across the border
+            graph.mark_looked_into(robot)  # been there: nothing more to see inside it
         heading = _heading_index(pose[2], frame.angle_rad)
         costs = cell_costs(graph.open_neighbours, robot, heading, self.turn_cost_cells)
         links: list[tuple[Cell, Direction | None]] = []
@@ -562,6 +572,10 @@ class Explorer:
 
     def _blacklist(self, target: _Target) -> None:
         key = target.key
+        what = f"frontier at {key.centroid_m[0]:.2f}, {key.centroid_m[1]:.2f}" if isinstance(key, _RegionKey) else key
+        self.events.append(
+            f"blacklisted {what} (chosen {target.stalled_s:.1f} s without progress, {target.dwelt_s:.1f} s there)"
+        )
         if isinstance(key, _RegionKey):
             self.blacklisted_points_m.append(key.centroid_m)
         else:

@@ -360,7 +360,9 @@ class MazeGraph:
     for an open link (with nothing occupied); ``refresh_growth`` the relative growth of
     the wall count that triggers a new frame estimate; ``interior_samples`` the side of
     the grid of points (``n x n``) probed inside each cell and ``interior_seen_min`` the
-    share of them the map must know for the cell to count as seen; ``frame`` a fixed
+    share of them the map must know for the cell to count as seen; ``cell_kept_m`` how
+    far a re-estimated frame may move the cells and still keep what was learnt about
+    them (the seen shares); ``frame`` a fixed
     frame (then never re-estimated), e.g. for tests or a maze whose placement is known.
     """
 
@@ -377,6 +379,7 @@ class MazeGraph:
         refresh_growth: float = 0.15,
         interior_samples: int = 5,
         interior_seen_min: float = 0.9,
+        cell_kept_m: float = 0.05,
         frame: MazeFrame | None = None,
     ) -> None:
         if cell_size_m <= 0:
@@ -396,6 +399,7 @@ class MazeGraph:
         self.refresh_growth = float(refresh_growth)
         self.interior_samples = int(interior_samples)
         self.interior_seen_min = float(interior_seen_min)
+        self.cell_kept_m = float(cell_kept_m)
         self._fixed_frame = frame is not None
         self.frame: MazeFrame | None = frame
         self.fit = 1.0 if frame is not None else 0.0
@@ -407,6 +411,7 @@ class MazeGraph:
         self._east = np.zeros((0, 0), dtype=np.int8)
         self._north = np.zeros((0, 0), dtype=np.int8)
         self._seen = np.zeros((0, 0), dtype=np.float32)  # known share of each cell's interior
+        self._adjacency: dict[Cell, list[Cell]] | None = None  # open_neighbours of every cell, until the next update
 
     # -- building ------------------------------------------------------------------------
 
@@ -418,31 +423,39 @@ class MazeGraph:
         re-read each time and the links that changed are reported.
         """
         grid = np.asarray(three_state)
+        old_frame = self.frame
         frame_changed = self._refresh_frame(grid, grid_origin_m, resolution_m)
         if self.frame is None:
             return GraphUpdate(frame_changed=frame_changed)
+        same_cells = not frame_changed or (old_frame is not None and self._cells_kept(old_frame, self.frame))
         old_east, old_north, old_i0, old_j0 = self._east, self._north, self._i0, self._j0
         old_seen = self._seen
         self._resize(grid, grid_origin_m, resolution_m)
         self._east = self._classify(grid, grid_origin_m, resolution_m, Direction.E)
         self._north = self._classify(grid, grid_origin_m, resolution_m, Direction.N)
         self._seen = self._interior_seen(grid, grid_origin_m, resolution_m)
-        if not frame_changed:
+        if same_cells:
             # A cell once looked into stays looked into: in a log-odds map the samples next
             # to a wall band flip between known and unknown as hits and misses add up, and a
             # cell whose seen share wobbles around ``interior_seen_min`` would come back as
             # a frontier again and again (the robot dithered between two such cells for
-            # minutes). A new frame moves the cells, so the latch starts over then.
+            # minutes). A refined frame (the walls grew: a few millimetres, a fraction of a
+            # degree) leaves the cells where they were; only one that moves them starts over.
             self._seen = np.maximum(self._seen, _shifted(old_seen, old_i0 - self._i0, old_j0 - self._j0, self._seen))
         changed: list[tuple[Cell, Direction, LinkState]] = []
         for direction, new, old in ((Direction.E, self._east, old_east), (Direction.N, self._north, old_north)):
-            before = np.zeros_like(new)
-            h, w = old.shape
-            di, dj = old_i0 - self._i0, old_j0 - self._j0
-            if h and w:
-                before[dj : dj + h, di : di + w] = old
+            before = _shifted(old, old_i0 - self._i0, old_j0 - self._j0, new)
+            if same_cells:
+                # A link once known stays known until the map shows the other state: a thin
+                # wall between two corridors loses hits to the beams grazing it from either
+                # side, and each time it fell back to unknown it became a frontier again (the
+                # robot shuttled along a 10-cell wall on test-zigzag-a for minutes). A wall
+                # can still turn open and an opening a wall; only "unknown" is not believed.
+                forgotten = (new == LinkState.UNKNOWN) & (before != LinkState.UNKNOWN)
+                new[forgotten] = before[forgotten]
             for j, i in zip(*np.nonzero(new != before), strict=True):
                 changed.append(((int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(new[j, i]))))
+        self._adjacency = None
         return GraphUpdate(changed, frame_changed)
 
     def _refresh_frame(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> bool:
@@ -467,6 +480,21 @@ class MazeGraph:
             return True
         moved = np.hypot(*np.subtract(old.origin_m, estimate.frame.origin_m))
         return bool(abs(old.angle_rad - estimate.frame.angle_rad) > 1e-9 or moved > 1e-9)
+
+    def _cells_kept(self, old: MazeFrame, new: MazeFrame) -> bool:
+        """True when every covered cell lies within ``cell_kept_m`` of where ``old`` put it.
+
+        The frame is re-estimated each time the walls grow by ``refresh_growth``; the
+        estimate wanders by millimetres, which leaves every cell (and what was learnt about
+        it) in place. The covered cells' corners are compared, where a turn moves most.
+        """
+        if self._core is None:
+            return False
+        lo_i, hi_i, lo_j, hi_j = self._core
+        c = self.cell_size_m
+        corners_uv = np.array([[lo_i, lo_j], [hi_i + 1, lo_j], [lo_i, hi_j + 1], [hi_i + 1, hi_j + 1]], dtype=float) * c
+        moved = np.hypot(*(old.to_map(corners_uv) - new.to_map(corners_uv)).T)
+        return bool(moved.max() < self.cell_kept_m)
 
     def _resize(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> None:
         """Cover every cell that overlaps the known part of the grid (and keep old cells)."""
@@ -589,8 +617,42 @@ class MazeGraph:
         return self.link(a, Direction.between(a, b))
 
     def open_neighbours(self, cell: Cell) -> list[Cell]:
-        """Cells joined to ``cell`` by an open link, in the order E, N, W, S."""
-        return [(cell[0] + d.step[0], cell[1] + d.step[1]) for d in Direction if self.link(cell, d) is LinkState.OPEN]
+        """Cells joined to ``cell`` by an open link, in the order E, N, W, S.
+
+        Route searches call this for every cell they expand, several searches a planner
+        tick: the answers for all cells are read off the link arrays once per update.
+        """
+        if self._adjacency is None:
+            self._adjacency = self._open_adjacency()
+        return self._adjacency.get(cell, [])
+
+    def _open_adjacency(self) -> dict[Cell, list[Cell]]:
+        east = self._east == LinkState.OPEN  # [j, i]: (i, j) -> (i + 1, j)
+        north = self._north == LinkState.OPEN  # [j, i]: (i, j) -> (i, j + 1)
+        # the four directions as boolean masks over the cells in range (W and S read the neighbour's link)
+        west = np.zeros_like(east)
+        west[:, 1:] = east[:, :-1]
+        south = np.zeros_like(north)
+        south[1:, :] = north[:-1, :]
+        adjacency: dict[Cell, list[Cell]] = {}
+        any_open = east | north | west | south
+        for j, i in zip(*np.nonzero(any_open), strict=True):
+            cell = (int(i) + self._i0, int(j) + self._j0)
+            out = []
+            for mask, d in ((east, Direction.E), (north, Direction.N), (west, Direction.W), (south, Direction.S)):
+                if mask[j, i]:
+                    out.append((cell[0] + d.step[0], cell[1] + d.step[1]))
+            adjacency[cell] = out
+        # cells just outside the range reached by an open link of the edge cells
+        for outs in list(adjacency.values()):
+            for nxt in outs:
+                if nxt not in adjacency:
+                    adjacency[nxt] = [
+                        (nxt[0] + d.step[0], nxt[1] + d.step[1])
+                        for d in Direction
+                        if self.link(nxt, d) is LinkState.OPEN
+                    ]
+        return adjacency
 
     def unknown_sides(self, cell: Cell) -> list[Direction]:
         """Sides of ``cell`` whose link is still unknown."""
@@ -602,6 +664,17 @@ class MazeGraph:
         if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
             return float(self._seen[r, q])
         return 0.0
+
+    def mark_looked_into(self, cell: Cell) -> None:
+        """Count ``cell``'s inside as seen from now on (until a new frame moves the cells).
+
+        For a cell the robot has driven into: the lidar saw it on the approach, and from
+        inside it the cell's own walls are closer than the lidar's minimum range, so what
+        the map still lacks there (the cells along its walls) no more looking will fill.
+        """
+        r, q = cell[1] - self._j0, cell[0] - self._i0
+        if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
+            self._seen[r, q] = 1.0
 
     def needs_look(self, cell: Cell) -> bool:
         """True when less than ``interior_seen_min`` of the cell's inside is known."""

@@ -27,7 +27,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from mazebot.config import Config
-from mazebot.planner.dwa import DynamicWindowPlanner, LocalPlanner, map_points_robot, scan_points_robot, to_robot_frame
+from mazebot.planner.dwa import (
+    DynamicWindowPlanner,
+    LocalPlanner,
+    LocalStatus,
+    map_points_robot,
+    scan_points_robot,
+    to_robot_frame,
+)
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import MazeGraph
 from mazebot.planner.safety import reframe_points
@@ -115,6 +122,8 @@ class Pilot:
         self.explorer = self._new_explorer((0.0, 0.0))
         self.local = self._new_local_planner()
         self._was_moving = False
+        self._recovering = False
+        self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
         self._drive_inputs: tuple[np.ndarray, tuple[float, float], float, tuple[float, float]] | None = None
@@ -193,6 +202,7 @@ class Pilot:
             return False
         three = grid.three_state()
         goal = self.explorer.update(three, grid.origin_m, grid.resolution_m, pose, now_s)
+        self._note_events(state, now_s, goal.reason if goal is not None else None, pose)
         state.coverage = self._coverage()
         if goal is None:
             self._hold(state, now_s, "waiting for the map to cover the robot")
@@ -226,10 +236,28 @@ class Pilot:
         cmd = self.local.step(
             pose, velocity, self._scan_points(state), map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy
         )
+        if cmd.status is LocalStatus.RECOVERING and not self._recovering:
+            where = f"{pose[0]:.2f}, {pose[1]:.2f}"
+            state.planner_events.append((now_s, f"stuck: recovery {self.local.recoveries} at {where}"))
+        self._recovering = cmd.status is LocalStatus.RECOVERING
         if cmd.give_up:
             log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
+            state.planner_events.append((now_s, "the local planner gave up on the goal"))
             self.explorer.report_unreachable(now_s)
+            self._note_events(state, now_s, None, pose)
         state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
+
+    def _note_events(
+        self, state: SharedState, now_s: float, reason: str | None, pose: tuple[float, float, float]
+    ) -> None:
+        """Log the explorer's blacklists and each new target into ``state.planner_events``."""
+        for text in self.explorer.events:
+            log.info("%s", text)
+            state.planner_events.append((now_s, text))
+        self.explorer.events.clear()
+        if reason is not None and reason != self._last_reason:
+            state.planner_events.append((now_s, f"{reason}; robot at {pose[0]:.2f}, {pose[1]:.2f}"))
+            self._last_reason = reason
 
     def _hold(self, state: SharedState, now_s: float, why: str) -> None:
         state.motion_command = MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s)

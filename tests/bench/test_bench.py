@@ -7,6 +7,7 @@ against the simulator's ground truth.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import struct
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mazebot.bench.cli import suite_specs
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.cli import main
 from mazebot.config import Config
@@ -89,6 +91,11 @@ def test_the_robot_explores_a_maze_by_itself_and_comes_back_to_the_start() -> No
     assert world.maze.cell_at(x, y) == world.maze.start_cell
     start_x, start_y, _ = world.start_pose
     assert math.dist((x, y), (start_x, start_y)) < 0.1
+    # the planner's decisions are logged with their times: targets in order, the return last
+    events = list(state.planner_events)
+    assert events and all(a[0] <= b[0] for a, b in itertools.pairwise(events))
+    assert any("look at" in text for _, text in events)
+    assert any(text.startswith("return to start") for _, text in events)
 
 
 def test_revisits_count_real_back_tracking_not_swaying_across_a_cell_border() -> None:
@@ -105,3 +112,21 @@ def test_revisits_count_real_back_tracking_not_swaying_across_a_cell_border() ->
     # back-tracking from (2,0) to (0,0) is two revisits: (1,0) and (0,0)
     back = [(x, cy) for x, _ in reversed(ahead)]
     assert _revisits(layout, np.array([*ahead, *back])) == 2
+
+
+def test_a_suite_can_be_split_over_processes_by_its_first_seed() -> None:
+    first = suite_specs("standard", 15, "explore", "virtual")
+    second = suite_specs("standard", 15, "explore", "virtual", first_seed=16)
+    generated = [s.seed for s in first + second if s.size == (6, 6)]
+    assert generated == list(range(1, 31))
+    assert [s.seed for s in suite_specs("6x6", 5, "explore", "virtual", first_seed=6)] == [6, 7, 8, 9, 10]
+
+
+def test_a_long_suite_writes_what_it_has_measured_as_it_goes(tmp_path: Path) -> None:
+    from mazebot.bench.report import write_partial
+
+    runs = [{"maze": "m", "seed": 1, "done": True, "time_s": 10.0, "collisions": 0}]
+    write_partial(tmp_path, runs, "mazebot bench ...", planned=3)
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["partial"] is True and results["planned_runs"] == 3
+    assert results["runs"] == runs and results["summary"]["done"] == 1

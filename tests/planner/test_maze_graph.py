@@ -304,3 +304,85 @@ def test_a_cell_once_seen_stays_seen_when_the_map_forgets_part_of_it() -> None:
     fresh = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
     fresh.update(forgetful, origin, RES)
     assert fresh.needs_look((2, 1))
+
+
+def test_a_refined_frame_keeps_what_was_seen_of_the_cells() -> None:
+    # The frame is re-estimated whenever the walls grow; the estimate wanders by
+    # millimetres. The cells stay where they were, and so must their seen shares: a reset
+    # brought back cells seen long ago as "look inside" targets across the maze.
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    graph = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    west = grid.copy()
+    west[:, int((1.5 * CELL - origin[0]) / RES) :] = -1  # the east cells not seen yet
+    graph.update(west, origin, RES)
+    assert graph.frame is not None and not graph.needs_look((0, 1))
+    first = graph.frame
+    forgetful = grid.copy()
+    c0, c1 = int((0 * CELL - origin[0]) / RES), int((1 * CELL - origin[0]) / RES)
+    r0, r1 = int((1 * CELL - origin[1]) / RES), int((2 * CELL - origin[1]) / RES)
+    forgetful[r0 + 2 : r1 - 2, c0 + 2 : c1 - 2] = -1  # the inside of (0, 1) unknown again
+    shifted = (origin[0] + 0.004, origin[1] - 0.003)  # the whole map a few millimetres off
+    update = graph.update(forgetful, shifted, RES)
+    assert update.frame_changed
+    moved_m = math.dist(first.origin_m, graph.frame.origin_m)
+    assert 0.001 < moved_m < 0.02
+    assert not graph.needs_look((0, 1))
+    assert not graph.needs_look((2, 0))  # seen for the first time: the new map counts
+
+
+def test_a_cell_marked_as_looked_into_stays_seen() -> None:
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    c0 = int((2 * CELL - origin[0]) / RES)
+    r0, r1 = int((0 * CELL - origin[1]) / RES), int((1 * CELL - origin[1]) / RES)
+    blurred = grid.copy()
+    blurred[r0 + 1 : r1 - 1, c0 + 1 : c0 + 4] = -1  # a strip along its west wall never filled in
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    graph.update(blurred, origin, RES)
+    assert graph.needs_look((2, 0))
+    graph.mark_looked_into((2, 0))
+    graph.update(blurred, origin, RES)
+    assert not graph.needs_look((2, 0)) and graph.is_explored((2, 0))
+    assert graph.needs_look((1, 0))  # the closed cell next to it is untouched
+
+
+def test_open_neighbours_agree_with_the_links_everywhere() -> None:
+    # open_neighbours answers from a table built once per update: it must say what the
+    # links say, for every cell in range and the ring just outside it
+    layout = generate_maze(6, 5, seed=3, cell_size_m=CELL)
+    world = world_from_layout(layout, 0.012)
+    grid, origin = perfect_map(world)
+    grid[:, int((3.5 * CELL - origin[0]) / RES) :] = -1  # a partly seen maze: unknown links too
+    graph = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    graph.update(grid, origin, RES)
+    irange, jrange = graph.cell_range()
+    for i in range(irange.start - 1, irange.stop + 1):
+        for j in range(jrange.start - 1, jrange.stop + 1):
+            want = [(i + d.step[0], j + d.step[1]) for d in Direction if graph.link((i, j), d) is LinkState.OPEN]
+            assert graph.open_neighbours((i, j)) == want, (i, j)
+    assert sum(len(graph.open_neighbours(c)) for c in graph.cells()) > 10
+
+
+def test_a_known_link_is_not_forgotten_when_its_wall_fades_but_changes_when_the_map_disagrees() -> None:
+    # A thin wall between two corridors loses hits to the beams grazing it; each time it
+    # fell back to unknown it was a frontier again (test-zigzag-a: minutes of shuttling).
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    graph.update(grid, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.WALL
+    faded = grid.copy()
+    r = int((1 * CELL - origin[1]) / RES)
+    c0, c1 = int((1 * CELL - origin[0]) / RES), int((2 * CELL - origin[0]) / RES)
+    faded[r - 2 : r + 2, c0 + 1 : c1 - 1] = -1  # the wall south of (1, 1) unknown again
+    fresh = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    fresh.update(faded, origin, RES)
+    assert fresh.link((1, 1), Direction.S) is LinkState.UNKNOWN  # what the faded map alone says
+    graph.update(faded, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.WALL
+    assert (1, 1) not in [cell for cell, _ in graph.frontier_links((0, 0))]
+    opened = grid.copy()
+    opened[r - 2 : r + 2, c0 + 1 : c1 - 1] = 0  # the map now sees through it: believe that
+    graph.update(opened, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.OPEN

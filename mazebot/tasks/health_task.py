@@ -34,10 +34,11 @@ log = logging.getLogger(__name__)
 PERIOD_S = 0.1
 #: Ticks the other wheel must have counted for a silent encoder to be suspicious.
 OTHER_WHEEL_TICKS = 40
-#: Wheels slower than this, or driven below this throttle (close to the deadband, where its
-#: estimate decides), tell nothing about their motor's strength.
+#: Wheels slower than this, or driven less than this throttle above the deadband (where the
+#: deadband's estimate and the motor's lag decide the speed: an open-loop arc's inner wheel
+#: at 0.14 looked like a motor at 35 %), tell nothing about their motor's strength.
 MIN_WHEEL_SPEED_MPS = 0.015
-WEAK_CHECK_THROTTLE = 0.14
+WEAK_CHECK_EFFECTIVE_THROTTLE = 0.12
 #: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
 NOTE_EVERY_S = 5.0
 
@@ -104,7 +105,7 @@ class HealthMonitor:
         gains = []
         for throttle, speed in zip(state.throttles, state.wheel_speeds_mps, strict=True):
             effective = abs(throttle) - self.motor_deadband
-            driven = abs(throttle) >= WEAK_CHECK_THROTTLE and abs(speed) >= MIN_WHEEL_SPEED_MPS
+            driven = effective >= WEAK_CHECK_EFFECTIVE_THROTTLE and abs(speed) >= MIN_WHEEL_SPEED_MPS
             gains.append(abs(speed) / effective if driven else None)
         if gains[0] is None or gains[1] is None or max(gains) <= 0:
             self._weak_streak = [0, 0]

@@ -300,6 +300,19 @@ def test_a_motor_giving_much_less_speed_for_its_throttle_is_said() -> None:
     assert state.run_state is RunState.EXPLORING
 
 
+def test_an_arcs_inner_wheel_just_above_the_deadband_is_no_weak_motor() -> None:
+    # an open-loop arc: the inner wheel at 0.14 (0.06 above the deadband) barely turns,
+    # which says more about the deadband and the motor's lag than about its strength
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(motor_deadband=0.08)
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.14, 0.5)
+    state.wheel_speeds_mps = (0.016, 0.25)
+    for k in range(10):
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert not [e for e in state.events if e.source == "motors"]
+
+
 async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> None:
     import threading
 

@@ -151,6 +151,8 @@ class LogTap(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         if record.name.startswith("mazebot.record"):
             return  # the recorder's own complaints must not feed it
+        if getattr(record, "secret", False):
+            return  # a line carrying a secret (the first-start PIN) never goes into a file
         entry = (record.levelname, record.name, record.getMessage(), record.pathname, record.lineno)
         self._tap.recorder.put("/log", int(record.created * 1e9), entry)
 

@@ -28,7 +28,9 @@ def control_token(config: Config) -> str:
             "set [daemon] state_dir to a writable folder or [web] control_token"
         ) from None
     if created:
-        log.warning("control PIN for start/stop: %s (generated once, kept in %s)", token, state_dir / "control_token")
+        # shown once on the console; ``secret`` keeps it out of recordings (record_task.LogTap)
+        log.warning("control PIN for start/stop: %s (generated once, kept in %s)", token, state_dir / "control_token",
+                    extra={"secret": True})
     return token
 
 

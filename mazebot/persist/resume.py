@@ -148,7 +148,7 @@ class ResumedSlam(ObservedSlam):
                     tried += 1
                     if best_any is None or match.fitness > best_any.fitness:
                         best_any = match
-                    if self._acceptable(match):
+                    if self.acceptable(match):
                         score = on_walls(match.pose)
                         tie = abs(score - best_score) <= 1e-9
                         if score > best_score + 1e-9 or (tie and best is not None and match.rmse_m < best.rmse_m):

@@ -254,7 +254,7 @@ def search_pose(
     best: tuple[float, IcpResult, ScanFit] | None = None
     for _, start in candidates:
         match = match_scan(target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy)
-        if not slam._acceptable(match):
+        if not slam.acceptable(match):
             continue
         offset = match.pose - guess
         if math.hypot(offset[0], offset[1]) > params.search_xy_m + 0.05 or (

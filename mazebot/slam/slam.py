@@ -542,7 +542,7 @@ class Slam:
         # 4. correct the filter (unobserved directions keep the odometry)
         matched = False
         predicted_theta = float(self.ekf.mean[2])
-        good_match = match is not None and self._acceptable(match)
+        good_match = match is not None and self.acceptable(match)
         if good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if good_match and p.estimate_time_offset and self._last_rate is not None:
@@ -710,7 +710,8 @@ class Slam:
         inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
         return not bool((self.grid.log_odds[rows[inside], cols[inside]] > self.grid.occupied_logodds).any())
 
-    def _acceptable(self, match: IcpResult) -> bool:
+    def acceptable(self, match: IcpResult) -> bool:
+        """A match good enough by SLAM's own limits (converged, inlier ratio, residual)."""
         p = self.params
         return match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
 
@@ -725,7 +726,7 @@ class Slam:
         assert self.target is not None
         guess = self.ekf.mean
         match = match_scan(self.target, prepared.points_match, guess, p.icp, sensor_xy=prepared.sensor_xy)
-        if self._acceptable(match) or not p.retry_headings_rad:
+        if self.acceptable(match) or not p.retry_headings_rad:
             return match
         best = None
         for turn in p.retry_headings_rad:
@@ -733,7 +734,7 @@ class Slam:
             retry = match_scan(
                 self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy, prior_pose=guess
             )
-            if self._acceptable(retry) and (best is None or retry.rmse_m < best.rmse_m):
+            if self.acceptable(retry) and (best is None or retry.rmse_m < best.rmse_m):
                 best = retry
         return match if best is None else best
 

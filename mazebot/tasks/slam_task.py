@@ -52,7 +52,7 @@ async def run(
     """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default).
 
     A :class:`LoopClosureExecutor` may run them in a worker process; any other executor
-    runs ``job.run`` in one of its threads.
+    runs the job (a callable) in one of its threads.
 
     ``guard`` (:mod:`mazebot.slam.relocalize`; a default one if None) holds back revolutions
     that do not fit the map; when the robot is lost it raises a ``localization`` fault and
@@ -159,18 +159,12 @@ def _publish_relocalized(state: SharedState, slam: Slam, found: SearchResult, cl
     state.note("localization", message, clock.now_s())
 
 
-def slam_accepts(slam: Slam, match) -> bool:
-    """A match SLAM's own limits call good (the filter may still gate it out as too far from the odometry)."""
-    p = slam.params
-    return bool(match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m)
-
-
 def _note_slip(
     state: SharedState, slam: Slam, guard: LocalizationGuard, predicted, update: SlamUpdate, clock: Clock
 ) -> None:
     """A revolution that ICP had to move far from the odometry's prediction: say so (rate-limited)."""
     match = update.match
-    if predicted is None or match is None or not slam_accepts(slam, match):
+    if predicted is None or match is None or not slam.acceptable(match):
         return
     slip = guard.slipped(predicted, match.pose)  # the lidar's pose, before the filter blends (or gates) it
     if slip is None:

@@ -265,6 +265,10 @@ class WebConfig(Section):
 
     host: str = Field("0.0.0.0", description="interface to bind; 127.0.0.1 keeps it local")
     port: int = Field(8080, ge=1, le=65535, description="TCP port of the web page")
+    bind_wait_s: float = Field(
+        60.0, ge=0, le=600,
+        description="how long to wait for host's address to come up (Wi-Fi joining after boot); 0: fail at once",
+    )
     broadcast_hz: float = Field(5.0, gt=0, le=30, description="websocket packets per second at most (only on change)")
     resync_every: int = Field(50, ge=2, le=10000, description="every this many packets is a full map (periodic resync)")
     view_open: bool = Field(True, description="anyone on the network may watch; false: watching needs the token too")

@@ -18,8 +18,9 @@ import pytest
 from aiohttp.test_utils import unused_port
 
 from mazebot.config import Config
-from mazebot.errors import ConfigError
+from mazebot.errors import ConfigError, HardwareUnavailable
 from mazebot.state import SharedState
+from mazebot.web import server as server_module
 from mazebot.web.app import WebSettings, create_app
 from mazebot.web.server import start_web_server
 
@@ -116,6 +117,56 @@ async def test_a_web_host_that_is_no_address_is_a_config_error_naming_the_key() 
     config.web.host, config.web.port, config.web.control_token = "no-such-host.invalid", unused_port(), TOKEN
     with pytest.raises(ConfigError, match=r"^web.host: 'no-such-host.invalid' is not an address of this machine"):
         await start_web_server(SharedState(), config)
+
+
+async def test_an_address_not_up_yet_is_waited_for_then_named_with_exit_69(caplog) -> None:
+    """192.0.2.1 (TEST-NET-1, RFC 5737) is on no interface: the bind fails with EADDRNOTAVAIL."""
+    config = Config()
+    config.web.host, config.web.port, config.web.control_token = "192.0.2.1", unused_port(), TOKEN
+    config.web.bind_wait_s = 1.0
+    with pytest.raises(HardwareUnavailable, match=r"no interface of this machine has that address \(waited 1 s"):
+        await start_web_server(SharedState(), config)
+    assert any("not an address of this machine yet; waiting up to 1 s" in r.getMessage() for r in caplog.records)
+
+
+async def test_the_page_is_served_once_its_address_comes_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Wi-Fi joining after boot: the first probes find no such address, then it exists."""
+    answers = [False, False]
+    real_is_up = server_module._address_is_up
+
+    def up_on_the_third_look(host: str) -> bool:
+        return answers.pop(0) if answers else real_is_up(host)
+
+    monkeypatch.setattr(server_module, "_address_is_up", up_on_the_third_look)
+    monkeypatch.setattr(server_module, "BIND_RETRY_S", 0.05)
+    config = Config()
+    config.web.host, config.web.port, config.web.control_token = "127.0.0.1", unused_port(), TOKEN
+    runner = await start_web_server(SharedState(), config)
+    try:
+        assert answers == []
+        async with aiohttp.ClientSession() as session, \
+                session.get(f"http://127.0.0.1:{config.web.port}/api/status") as resp:
+            assert resp.status == 200
+    finally:
+        await runner.cleanup()
+
+
+def test_the_address_probe_tells_a_missing_address_from_a_present_one() -> None:
+    assert server_module._address_is_up("127.0.0.1")
+    assert server_module._address_is_up("0.0.0.0")
+    assert not server_module._address_is_up("192.0.2.1")
+
+
+async def test_a_port_in_use_is_not_waited_for() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        config = Config()
+        config.web.host, config.web.port, config.web.control_token = "127.0.0.1", taken.getsockname()[1], TOKEN
+        started_s = time.monotonic()
+        with pytest.raises(HardwareUnavailable, match=r"choose another \[web\] port"):
+            await start_web_server(SharedState(), config)
+        assert time.monotonic() - started_s < config.web.bind_wait_s  # raised, not retried for a minute
 
 
 # -- no secret in the log ---------------------------------------------------------------------------------

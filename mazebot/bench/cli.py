@@ -14,7 +14,7 @@ from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.sim.faults import DEFAULT_AT_S, FAULTS, FaultSpec, parse_fault
-from mazebot.sim.maze_file import packaged_maze_path
+from mazebot.sim.maze_file import packaged_maze_path, read_maze_layout
 
 SUITES = ("smoke", "6x6", "standard", "full", "faults")
 
@@ -37,6 +37,19 @@ def suite_specs(suite: str, seeds: int, drive: str, clock: str, first_seed: int 
         specs.append(RunSpec(str(packaged_maze_path("minimaze.txt")), None, 1, drive, clock=clock))
         specs.append(RunSpec(str(packaged_maze_path("japan2013ef.txt")), None, 1, drive, clock=clock, max_sim_s=3600))
     return specs
+
+
+SIM_S_PER_CELL = 14.0  # a 16x16 contest maze: 3584 s, the suite's own limit for japan2013ef
+
+
+def time_limit_s(maze_path: str) -> float:
+    """Simulated seconds a run of this maze file may take: 900 s, or 14 s a cell on large mazes.
+
+    A 6x6 maze is mapped in ~80 s and a 16x16 one needs ~10 min, so one fixed limit would
+    either cut the large mazes short (and call them not done) or let a stuck small run go on.
+    """
+    layout = read_maze_layout(maze_path)
+    return max(900.0, SIM_S_PER_CELL * layout.width * layout.height)
 
 
 def _progress(i: int, n: int, text: str) -> None:
@@ -62,7 +75,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         for path in args.maze:
             if not Path(path).is_file():
                 raise UsageError(f"maze file {path} not found")
-        specs = [RunSpec(p, None, s, args.drive, clock=args.clock) for p in args.maze for s in seeds]
+        specs = [RunSpec(p, None, s, args.drive, clock=args.clock, max_sim_s=time_limit_s(p))
+                 for p in args.maze for s in seeds]
     else:
         specs = suite_specs(args.suite, args.seeds, args.drive, args.clock, args.first_seed)
     if args.faults:

@@ -130,3 +130,12 @@ def test_a_long_suite_writes_what_it_has_measured_as_it_goes(tmp_path: Path) -> 
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["partial"] is True and results["planned_runs"] == 3
     assert results["runs"] == runs and results["summary"]["done"] == 1
+
+
+def test_large_maze_files_get_a_time_limit_that_fits_their_size() -> None:
+    """A 16x16 contest maze needs ~10 simulated minutes: 900 s would call it not done."""
+    from mazebot.bench.cli import time_limit_s
+    from mazebot.sim.maze_file import packaged_maze_path
+
+    assert time_limit_s(str(packaged_maze_path("minimaze.txt"))) == 900.0
+    assert time_limit_s(str(packaged_maze_path("japan2013ef.txt"))) == 14.0 * 256

@@ -137,5 +137,5 @@ def test_large_maze_files_get_a_time_limit_that_fits_their_size() -> None:
     from mazebot.bench.cli import time_limit_s
     from mazebot.sim.maze_file import packaged_maze_path
 
-    assert time_limit_s(str(packaged_maze_path("training-8x8-test1.txt"))) == 900.0
+    assert time_limit_s(str(packaged_maze_path("default_6x6.txt"))) == 900.0
     assert time_limit_s(str(packaged_maze_path("japan2013ef.txt"))) == 14.0 * 256

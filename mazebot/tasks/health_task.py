@@ -39,6 +39,10 @@ OTHER_WHEEL_TICKS = 40
 #: at 0.14 looked like a motor at 35 %), tell nothing about their motor's strength.
 MIN_WHEEL_SPEED_MPS = 0.015
 WEAK_CHECK_EFFECTIVE_THROTTLE = 0.12
+#: A wheel whose speed changed by more than this share since the previous check is still
+#: following a new throttle (the motor's lag: a turn in place reversing one wheel showed it
+#: at 18 % of its throttle's speed for two checks), and tells nothing about its strength.
+STEADY_SPEED_SHARE = 0.2
 #: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
 NOTE_EVERY_S = 5.0
 
@@ -74,6 +78,7 @@ class HealthMonitor:
         self._wheels = (_Wheel(), _Wheel())
         self._invalid_seen = 0
         self._weak_streak = [0, 0]
+        self._last_speeds_mps: tuple[float, ...] | None = None
         self._last_note_s: dict[str, float] = {}
 
     def check(self, state: SharedState, now_s: float) -> None:
@@ -101,11 +106,22 @@ class HealthMonitor:
                        "drift, SLAM corrects it; check the encoder wiring", now_s)
 
     def _check_motor_strength(self, state: SharedState, now_s: float) -> None:
-        """Speed per effective throttle of each wheel; one far below the other is a weak motor."""
+        """Speed per effective throttle of each wheel; one far below the other is a weak motor.
+
+        Only wheels in steady motion count: turning the way they are pushed, well above the
+        deadband, at about the speed of the previous check.
+        """
         gains = []
-        for throttle, speed in zip(state.throttles, state.wheel_speeds_mps, strict=True):
+        last = self._last_speeds_mps or tuple(state.wheel_speeds_mps)
+        self._last_speeds_mps = tuple(state.wheel_speeds_mps)
+        for throttle, speed, last_speed in zip(state.throttles, state.wheel_speeds_mps, last, strict=True):
             effective = abs(throttle) - self.motor_deadband
-            driven = effective >= WEAK_CHECK_EFFECTIVE_THROTTLE and abs(speed) >= MIN_WHEEL_SPEED_MPS
+            driven = (
+                effective >= WEAK_CHECK_EFFECTIVE_THROTTLE
+                and abs(speed) >= MIN_WHEEL_SPEED_MPS
+                and throttle * speed > 0
+                and abs(speed - last_speed) <= STEADY_SPEED_SHARE * abs(speed)
+            )
             gains.append(abs(speed) / effective if driven else None)
         if gains[0] is None or gains[1] is None or max(gains) <= 0:
             self._weak_streak = [0, 0]

@@ -313,6 +313,24 @@ def test_an_arcs_inner_wheel_just_above_the_deadband_is_no_weak_motor() -> None:
     assert not [e for e in state.events if e.source == "motors"]
 
 
+def test_a_wheel_reversing_in_a_turn_in_place_is_no_weak_motor() -> None:
+    # measured in the room with cylinders: the right wheel reverses from -0.22 to +0.24; the
+    # motor's lag leaves it at -0.07, then +0.03, then +0.09 m/s over three checks
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(motor_deadband=0.08)
+    state.latest_scan = _scan_ending(1000.0)
+    samples = [((0.219, -0.223), (0.091, -0.091))] * 5 + [
+        ((0.268, 0.240), (0.091, -0.069)),
+        ((0.290, 0.238), (0.109, 0.028)),
+        ((0.227, 0.305), (0.120, 0.082)),
+        ((0.225, 0.300), (0.118, 0.115)),
+    ]
+    for k, (throttles, speeds) in enumerate(samples):
+        state.throttles, state.wheel_speeds_mps = throttles, speeds
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert not [e for e in state.events if e.source == "motors"]
+
+
 async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> None:
     import threading
 

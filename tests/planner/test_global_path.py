@@ -1,4 +1,4 @@
-"""Global paths: A* on the cell graph (with turn costs), straight-run merging, grid A* on the inflated map."""
+"""Global paths: A* on the cell graph (with turn costs), straight-run merging, grid paths on the inflated map."""
 
 from __future__ import annotations
 
@@ -150,3 +150,20 @@ def test_start_next_to_a_wall_snaps_to_the_nearest_passable_cell() -> None:
     path = costmap.plan((0.05, 0.05), (1.7, 0.6))  # closer to the corner than the inflation
     assert path is not None
     assert math.dist(path[0], (0.05, 0.05)) < 0.15
+
+
+def test_grid_plan_is_a_cheapest_chain_of_passable_neighbours() -> None:
+    """With the wall cost on, the path's summed step costs are the Dijkstra cost to the goal."""
+    grid, origin, res = room_grid()
+    costmap = GridCostmap(grid, origin, res)
+    path = costmap.plan((0.3, 0.25), (1.7, 0.95))
+    assert path is not None
+    cells = [costmap.to_cell(x, y) for x, y in path]
+    cost = 0.0
+    for (r0, c0), (r1, c1) in itertools.pairwise(cells):
+        assert max(abs(r1 - r0), abs(c1 - c0)) == 1 and costmap.passable[r1, c1]
+        if r1 != r0 and c1 != c0:  # a diagonal step never cuts a blocked corner
+            assert costmap.passable[r0, c1] and costmap.passable[r1, c0]
+        cost += math.hypot(r1 - r0, c1 - c0) * costmap.step_cost[r1, c1]
+    r, c = cells[-1]
+    assert cost == pytest.approx(costmap.distances_from((0.3, 0.25))[r, c], rel=1e-9)

@@ -223,7 +223,9 @@ class Explorer:
     walls fit the lattice), ``"maze"`` or ``"frontier"``; ``start_xy_m`` the start pose
     (map frame, metres), where the run ends; ``maze_fit_min`` the share of wall cells on
     lattice lines that makes a maze (with ``maze_fit_hysteresis`` before leaving maze
-    mode); ``turn_cost_cells`` the cost of a quarter turn in cell steps; ``switch_margin``
+    mode; every maze map measured fits at 1.0, while a room's first straight walls fit at
+    0.91-0.96 until its cylinders and its off-lattice far wall show); ``turn_cost_cells``
+    the cost of a quarter turn in cell steps; ``switch_margin``
     how much cheaper (in cell steps; in frontier mode, in cell lengths of route) a new
     target must be to replace the current one; ``goal_tolerance_m`` how close counts as
     arrived (keep it above the local planner's own tolerance, or the robot stops short
@@ -247,8 +249,8 @@ class Explorer:
         strategy: Strategy | str = "nearest",
         mode: Literal["auto", "maze", "frontier"] = "auto",
         start_xy_m: tuple[float, float] = (0.0, 0.0),
-        maze_fit_min: float = 0.92,
-        maze_fit_hysteresis: float = 0.05,
+        maze_fit_min: float = 0.96,
+        maze_fit_hysteresis: float = 0.04,
         turn_cost_cells: float = 0.5,
         switch_margin: float = 1.0,
         goal_tolerance_m: float = 0.06,

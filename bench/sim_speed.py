@@ -63,8 +63,10 @@ async def _drain_scans(state: Any, clock: Any, params: Any, executor: Any = None
         await state.scans.get()
 
 
-def _one(seed: int, with_slam: bool, executor: str | None) -> dict[str, float]:
+def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) -> dict[str, float]:
     config = load_config(None)
+    if paced:  # [sim] lidar_paced_by_robot (an older tree ignores the key)
+        config = config.model_copy(update={"sim": config.sim.model_copy(update={"lidar_paced_by_robot": True})})
     if executor is not None:
         config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": executor})})
     jobs = _JobTimer()  # loop-closure jobs in this process (older code has no state.loop_job_ms)
@@ -102,7 +104,7 @@ def _callback_name(handle: asyncio.Handle) -> str:
     return getattr(callback, "__qualname__", type(callback).__name__)
 
 
-def _wakeups(seed: int) -> None:
+def _wakeups(seed: int, paced: bool) -> None:
     """Event-loop passes and callbacks per simulated second of a run without SLAM."""
     counts: collections.Counter[str] = collections.Counter()
     passes = [0]
@@ -120,7 +122,7 @@ def _wakeups(seed: int) -> None:
     asyncio.BaseEventLoop._run_once = counting_run_once  # type: ignore[attr-defined]
     asyncio.Handle._run = counting_run  # type: ignore[attr-defined]
     try:
-        r = _one(seed, False, None)
+        r = _one(seed, False, None, paced)
     finally:
         asyncio.BaseEventLoop._run_once = run_once  # type: ignore[attr-defined]
         asyncio.Handle._run = handle_run  # type: ignore[attr-defined]
@@ -138,6 +140,7 @@ def main() -> None:
     parser.add_argument(
         "--executor", choices=("process", "thread"), help="where loop-closure jobs run (default: config.toml's)"
     )
+    parser.add_argument("--paced", action="store_true", help="[sim] lidar_paced_by_robot = true for these runs")
     parser.add_argument("--wakeups", action="store_true", help="also count what wakes the event loop (one more run)")
     args = parser.parse_args()
     modes = [True] if args.no_baseline else [True, False]
@@ -145,7 +148,7 @@ def main() -> None:
     per_cpu: dict[bool, list[float]] = {True: [], False: []}
     for seed in range(1, args.seeds + 1):
         for with_slam in modes:
-            r = _one(seed, with_slam, args.executor)
+            r = _one(seed, with_slam, args.executor, args.paced)
             factors[with_slam].append(r["realtime_factor"])
             per_cpu[with_slam].append(r["sim_s_per_cpu_s"])
             label = "SLAM   " if with_slam else "no SLAM"
@@ -163,7 +166,7 @@ def main() -> None:
             f"simulated s per process CPU s: {statistics.median(per_cpu[with_slam]):.2f}"
         )
     if args.wakeups:
-        _wakeups(1)
+        _wakeups(1, args.paced)
 
 
 if __name__ == "__main__":

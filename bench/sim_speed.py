@@ -14,11 +14,18 @@ updates (on the event loop) and loop-closure jobs (in the executor: a worker pro
 default, whose CPU is not in the process figure; ``--executor thread`` puts it back).
 All are in the wall time of a virtual-time run: the clock does not wait for them, the
 CPU does.
+
+``--wakeups`` adds one more run without SLAM (seed 1) that counts the event loop's
+passes and what each callback was (which task it stepped, or which plain callback),
+per simulated second: what wakes the loop how often. Counting costs time, so that run's
+speed is not reported.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import collections
 import statistics
 import time
 from typing import Any
@@ -56,8 +63,10 @@ async def _drain_scans(state: Any, clock: Any, params: Any, executor: Any = None
         await state.scans.get()
 
 
-def _one(seed: int, with_slam: bool, executor: str | None) -> dict[str, float]:
+def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) -> dict[str, float]:
     config = load_config(None)
+    if paced:  # [sim] lidar_paced_by_robot (an older tree ignores the key)
+        config = config.model_copy(update={"sim": config.sim.model_copy(update={"lidar_paced_by_robot": True})})
     if executor is not None:
         config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": executor})})
     jobs = _JobTimer()  # loop-closure jobs in this process (older code has no state.loop_job_ms)
@@ -84,6 +93,46 @@ def _one(seed: int, with_slam: bool, executor: str | None) -> dict[str, float]:
     }
 
 
+def _callback_name(handle: asyncio.Handle) -> str:
+    callback = handle._callback  # type: ignore[attr-defined]
+    owner = getattr(callback, "__self__", None)
+    if isinstance(owner, asyncio.Task):
+        coro = owner.get_coro()
+        code = getattr(coro, "cr_code", None)
+        where = code.co_filename.rsplit("/", 1)[-1] if code is not None else "?"
+        return f"task {getattr(coro, '__qualname__', '?')} ({where})"
+    return getattr(callback, "__qualname__", type(callback).__name__)
+
+
+def _wakeups(seed: int, paced: bool) -> None:
+    """Event-loop passes and callbacks per simulated second of a run without SLAM."""
+    counts: collections.Counter[str] = collections.Counter()
+    passes = [0]
+    run_once = asyncio.BaseEventLoop._run_once  # type: ignore[attr-defined]
+    handle_run = asyncio.Handle._run  # type: ignore[attr-defined]
+
+    def counting_run_once(loop: Any) -> None:
+        passes[0] += 1
+        run_once(loop)
+
+    def counting_run(handle: asyncio.Handle) -> None:
+        counts[_callback_name(handle)] += 1
+        handle_run(handle)
+
+    asyncio.BaseEventLoop._run_once = counting_run_once  # type: ignore[attr-defined]
+    asyncio.Handle._run = counting_run  # type: ignore[attr-defined]
+    try:
+        r = _one(seed, False, None, paced)
+    finally:
+        asyncio.BaseEventLoop._run_once = run_once  # type: ignore[attr-defined]
+        asyncio.Handle._run = handle_run  # type: ignore[attr-defined]
+    sim_s = r["time_s"]
+    print(f"seed {seed} no SLAM: {passes[0] / sim_s:.0f} event-loop passes and "
+          f"{sum(counts.values()) / sim_s:.0f} callbacks per simulated second; callbacks:")
+    for name, n in counts.most_common(12):
+        print(f"  {n / sim_s:7.1f}/s  {name}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5, help="seeds 1..N (default 5)")
@@ -91,13 +140,15 @@ def main() -> None:
     parser.add_argument(
         "--executor", choices=("process", "thread"), help="where loop-closure jobs run (default: config.toml's)"
     )
+    parser.add_argument("--paced", action="store_true", help="[sim] lidar_paced_by_robot = true for these runs")
+    parser.add_argument("--wakeups", action="store_true", help="also count what wakes the event loop (one more run)")
     args = parser.parse_args()
     modes = [True] if args.no_baseline else [True, False]
     factors: dict[bool, list[float]] = {True: [], False: []}
     per_cpu: dict[bool, list[float]] = {True: [], False: []}
     for seed in range(1, args.seeds + 1):
         for with_slam in modes:
-            r = _one(seed, with_slam, args.executor)
+            r = _one(seed, with_slam, args.executor, args.paced)
             factors[with_slam].append(r["realtime_factor"])
             per_cpu[with_slam].append(r["sim_s_per_cpu_s"])
             label = "SLAM   " if with_slam else "no SLAM"
@@ -108,12 +159,14 @@ def main() -> None:
                 f"loop-closure jobs {r['loop_jobs']} x, {r['loop_job_cpu_s']:.2f} s CPU",
                 flush=True,
             )
-    for with_slam in modes:
+    for with_slam in modes if args.seeds > 0 else []:
         label = "with SLAM" if with_slam else "without SLAM"
         print(
             f"median realtime factor {label}: {statistics.median(factors[with_slam])}, "
             f"simulated s per process CPU s: {statistics.median(per_cpu[with_slam]):.2f}"
         )
+    if args.wakeups:
+        _wakeups(1, args.paced)
 
 
 if __name__ == "__main__":

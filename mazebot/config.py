@@ -341,6 +341,9 @@ class SimConfig(Section):
     step_period_s: float = Field(
         0.01, gt=0, le=0.05, description="period of the simulator task; physics sub-steps at physics_rate_hz"
     )
+    lidar_paced_by_robot: bool = Field(
+        False, description="the simulator task also sends the lidar's samples (one timer, never ahead of the physics)"
+    )
     motor_time_constant_s: float = Field(0.08, gt=0, le=2, description="first-order lag of a driven wheel")
     brake_time_constant_s: float = Field(0.04, gt=0, le=2, description="lag of a wheel braked at throttle 0")
     deadband: float = Field(0.08, ge=0, lt=1, description="throttle below which a motor does not turn")

@@ -352,18 +352,20 @@ def encode_standard_samples(
     n = angle.shape[0]
     if not dist.shape[0] == qual.shape[0] == flag.shape[0] == n:
         raise ValueError("angle_deg, dist_mm, quality and start must have the same length")
-    if np.any((qual < 0) | (qual > 63)):
+    if n == 0:
+        return b""
+    # min/max instead of elementwise masks: the same verdict (NaN passes both ways)
+    if qual.min() < 0 or qual.max() > 63:
         raise ValueError("quality must be in 0..63")
-    if np.any((dist < 0) | (dist * 4 > 0xFFFF)):
+    if dist.min() < 0 or dist.max() * 4 > 0xFFFF:
         raise ValueError("dist_mm must be in 0..16383.75")
     angle_q6 = np.rint(angle * 64).astype(np.int64) % _FULL_TURN_Q6
-    dist_q2 = np.rint(dist * 4).astype(np.int64)
+    # Bytes 1-2 are the little-endian u16 (angle_q6 << 1) | check bit, bytes 3-4 the
+    # little-endian u16 distance in quarter millimetres: each written as one u16 column.
     out = np.empty((n, STANDARD_SAMPLE_LEN), dtype=np.uint8)
-    out[:, 0] = (qual << 2) | ((~flag).astype(np.int64) << 1) | flag.astype(np.int64)
-    out[:, 1] = ((angle_q6 & 0x7F) << 1) | 1
-    out[:, 2] = angle_q6 >> 7
-    out[:, 3] = dist_q2 & 0xFF
-    out[:, 4] = dist_q2 >> 8
+    out[:, 0] = (qual << 2) | np.where(flag, 0b01, 0b10)  # S and its complement in bits 0-1
+    out[:, 1:3] = ((angle_q6 << 1) | 1).astype("<u2").view(np.uint8).reshape(n, 2)
+    out[:, 3:5] = np.rint(dist * 4).astype("<u2").view(np.uint8).reshape(n, 2)
     return out.tobytes()
 
 

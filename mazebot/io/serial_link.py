@@ -276,6 +276,8 @@ class _MemoryTransport(asyncio.Transport):
         self.peer: _MemoryTransport | None = None
         self._closing = False
         self._paused = False
+        #: the peer's reader is full and asked this end to stop writing (drain() would wait)
+        self.peer_full = False
 
     def get_extra_info(self, name: str, default: Any = None) -> Any:
         return {"peername": "memory", "sockname": "memory"}.get(name, default)
@@ -309,11 +311,13 @@ class _MemoryTransport(asyncio.Transport):
         # our reader is full: the peer must stop writing
         if self.peer is not None and self.peer.protocol is not None and not self._paused:
             self._paused = True
+            self.peer.peer_full = True
             self.peer.protocol.pause_writing()
 
     def resume_reading(self) -> None:
         if self.peer is not None and self.peer.protocol is not None and self._paused:
             self._paused = False
+            self.peer.peer_full = False
             self.peer.protocol.resume_writing()
 
     def is_reading(self) -> bool:

@@ -90,7 +90,10 @@ def sim_hardware_builder(
         encoders = WheelEncoders.from_config(config.encoders, robot.pin_factory)
         stack.callback(encoders.close)
 
-        emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock)
+        paced = config.sim.lidar_paced_by_robot
+        emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, self_paced=not paced)
+        if paced:
+            robot.attach_lidar(emulator)
         line = SimLidarLine(emulator)
         stack.push_async_callback(line.close)
         lidar = RPLidar.from_config(config.lidar, clock, link_factory=line.connect)

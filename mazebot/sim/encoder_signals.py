@@ -70,17 +70,27 @@ class QuadratureSignal:
             return 0
         if self.rng is not None and (self.bounce_probability or self.lost_edge_probability):
             return self._update_glitching(target)
-        n = target - self._step
-        direction = 1 if n > 0 else -1
-        for _ in range(abs(n)):
-            self._step += direction
-            a, b = _GRAY[(self._step + self._offset) % 4]
+        step = self._step
+        n = target - step
+        if n == 0:
+            return 0
+        # One pin change per quarter step, in order, as before; locals and the pins' own
+        # level attribute instead of attribute lookups and the ``state`` property per edge
+        # (~1 300 edges per simulated second go through here).
+        pin_a, pin_b, offset = self._a, self._b, self._offset
+        for s in range(step + 1, target + 1) if n > 0 else range(step - 1, target - 1, -1):
+            a, b = _GRAY[(s + offset) & 3]
             # exactly one channel changes per quarter step
-            pin, level = (self._a, a) if self._a.state != a else (self._b, b)
-            if level:
-                pin.drive_high()
+            if pin_a._state != a:
+                if a:
+                    pin_a.drive_high()
+                else:
+                    pin_a.drive_low()
+            elif b:
+                pin_b.drive_high()
             else:
-                pin.drive_low()
+                pin_b.drive_low()
+        self._step = target
         self.edges += abs(n)
         return n
 

@@ -64,6 +64,7 @@ class RPLidarEmulator:
         *,
         info: proto.DeviceInfo | None = None,
         serial_number: bytes = bytes(range(0x30, 0x40)),
+        self_paced: bool = True,
     ) -> None:
         self.head = head
         self.poses = poses
@@ -78,6 +79,9 @@ class RPLidarEmulator:
         self._pending: list[DeviceSamples] = []  # express samples waiting to fill a capsule
         self._capsule_start = True
         self._writer: asyncio.StreamWriter | None = None
+        #: True: a streaming task of its own sends the samples every SEND_PERIOD_S. False:
+        #: the simulator calls ``pump`` from its own tick instead (``SimulatedRobot.attach_lidar``)
+        self.self_paced = self_paced
         # --- fault injection (mazebot.sim.faults): what a sick A1 does on its serial line ---
         #: the device core hangs: it neither answers nor streams (a brown-out, a stuck firmware)
         self.frozen = False
@@ -102,7 +106,7 @@ class RPLidarEmulator:
     async def serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Answer requests and stream samples until the host closes the line."""
         self._writer = writer
-        streamer = asyncio.create_task(self._stream(writer), name="lidar-emulator-stream")
+        streamer = asyncio.create_task(self._stream(writer), name="lidar-emulator-stream") if self.self_paced else None
         buf = bytearray()
         try:
             while True:
@@ -117,9 +121,10 @@ class RPLidarEmulator:
         except (ConnectionError, OSError):
             return
         finally:
-            streamer.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await streamer
+            if streamer is not None:
+                streamer.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await streamer
             self._writer = None
 
     def _handle_requests(self, buf: bytearray, writer: asyncio.StreamWriter) -> None:
@@ -206,17 +211,37 @@ class RPLidarEmulator:
     async def _stream(self, writer: asyncio.StreamWriter) -> None:
         while True:
             await self.clock.sleep(self.SEND_PERIOD_S)
-            if self.mode is None or not self.motor_on or writer.is_closing() or self.frozen:
-                continue
-            if self.motor_jammed:
-                self.head.restart(self.clock.now_s())  # the head stands still: nothing measured
-                continue
-            samples = self.head.advance(self.clock.now_s(), self.poses)
-            data = self.encode(samples)
-            if data:
-                self._send(writer, data)
+            if self._send_samples(writer):
                 with contextlib.suppress(ConnectionError):
                     await writer.drain()
+
+    def pump(self) -> None:
+        """Send what the head measured since the last send (the simulator's tick calls this).
+
+        The same step as the streaming task's, without a task and a timer of its own:
+        one wake-up of the event loop serves the physics and the lidar, and the samples
+        never run ahead of the poses they are measured from. While the host's end is
+        full (it stopped reading) nothing is measured, as when the streaming task
+        waits in ``drain()``: the head catches up on the next send.
+        """
+        writer = self._writer
+        if writer is None or getattr(writer.transport, "peer_full", False):
+            return
+        self._send_samples(writer)
+
+    def _send_samples(self, writer: asyncio.StreamWriter) -> bool:
+        """One streaming step: measure since the last one and send it; True if bytes went out."""
+        if self.mode is None or not self.motor_on or writer.is_closing() or self.frozen:
+            return False
+        if self.motor_jammed:
+            self.head.restart(self.clock.now_s())  # the head stands still: nothing measured
+            return False
+        samples = self.head.advance(self.clock.now_s(), self.poses)
+        data = self.encode(samples)
+        if not data:
+            return False
+        self._send(writer, data)
+        return True
 
     def encode(self, samples: DeviceSamples) -> bytes:
         """Protocol bytes for these samples in the current scan mode."""

@@ -119,6 +119,12 @@ class SpinningLidar:
         self._time_s: float | None = None  # time of the last emitted sample
         self._index_in_rev = 0  # index of the next sample within its revolution
         self._period_s = self._draw_period_s()
+        # Per sample index, its angle in degrees and in radians: the same floats as
+        # ``i * (360 / n)`` and its ``deg2rad``, looked up instead of recomputed per batch.
+        n = params.samples_per_rev
+        self._angle_deg = np.arange(n, dtype=np.int64) * (360.0 / n)
+        self._angle_rad = np.deg2rad(self._angle_deg)
+        self._centred = params.mount_x_m == 0.0 and params.mount_y_m == 0.0
 
     def _draw_period_s(self) -> float:
         p = self.params
@@ -168,15 +174,18 @@ class SpinningLidar:
         """Range samples at the given times and within-revolution indices."""
         p = self.params
         k = times_s.shape[0]
-        angle_deg = indices * (360.0 / p.samples_per_rev)
         if k == 0:
             empty = np.zeros(0)
             return DeviceSamples(empty, empty, empty, np.zeros(0, np.uint8), np.zeros(0, bool))
+        angle_deg = self._angle_deg[indices]
         x, y, th = poses.at(times_s)
-        ox = x + p.mount_x_m * np.cos(th) - p.mount_y_m * np.sin(th)
-        oy = y + p.mount_x_m * np.sin(th) + p.mount_y_m * np.cos(th)
-        ray_world_rad = th + p.mount_yaw_rad - np.deg2rad(angle_deg)
-        true_m = self._caster.cast(np.column_stack([ox, oy]), ray_world_rad, p.max_range_m)
+        if self._centred:  # x + 0·cos − 0·sin is x: skip four trigonometric passes
+            ox, oy = x, y
+        else:
+            ox = x + p.mount_x_m * np.cos(th) - p.mount_y_m * np.sin(th)
+            oy = y + p.mount_x_m * np.sin(th) + p.mount_y_m * np.cos(th)
+        ray_world_rad = th + p.mount_yaw_rad - self._angle_rad[indices]
+        true_m = self._caster.cast_xy(ox, oy, ray_world_rad, p.max_range_m)
         measured_m = true_m * (1.0 + p.range_noise * self._rng.standard_normal(k))
         valid = np.isfinite(true_m) & (true_m >= p.min_range_m) & (measured_m <= p.max_range_m)
         valid &= self._rng.random(k) >= p.dropout

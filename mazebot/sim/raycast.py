@@ -65,6 +65,18 @@ class RayCaster:
             origins = np.broadcast_to(origins, (k, 2))
         elif origins.shape != (k, 2):
             raise ValueError(f"origins_xy must have shape (2,) or ({k}, 2), got {origins.shape}")
+        return self.cast_xy(origins[:, 0], origins[:, 1], angles, max_range_m, miss_value)
+
+    def cast_xy(
+        self,
+        x_m: np.ndarray,
+        y_m: np.ndarray,
+        angles: np.ndarray,
+        max_range_m: float,
+        miss_value: float = np.inf,
+    ) -> np.ndarray:
+        """``cast`` with the per-ray origins as two float arrays ``(K,)`` (the lidar's batches)."""
+        k = angles.shape[0]
         out = np.full(k, np.inf)
         if k == 0:
             return out
@@ -80,7 +92,7 @@ class RayCaster:
         with np.errstate(invalid="ignore"):  # inf * 0 on grazing rays is nan, rejected below
             for lo in range(0, k, per_chunk):
                 s = slice(lo, min(k, lo + per_chunk))
-                px, py = origins[s, 0], origins[s, 1]
+                px, py = x_m[s], y_m[s]
                 best = np.full(px.shape, np.inf)
                 if h_lines.shape[1]:
                     np.minimum(best, _hit_axis_lines(py, px, inv_dy[s], dx[s], h_lines), out=best)

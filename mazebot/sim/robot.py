@@ -94,6 +94,8 @@ class SimulatedRobot:
         )
         self.poses = PoseHistory()
         self.lidar_line: Any = None  # mazebot.sim.backend.SimLidarLine, set by the backend
+        self._lidar: Any = None  # an RPLidarEmulator paced by this robot's tick (attach_lidar)
+        self._lidar_every = 1  # ... every this many ticks
         self.lidar_head = SpinningLidar(world, lidar_params(config), rngs[1])
         self.time_s: float | None = None
         self.trajectory: list[tuple[float, float, float, float]] = []  # (t, x, y, theta), ground truth
@@ -134,11 +136,27 @@ class SimulatedRobot:
         if not self.trajectory or now_s - self.trajectory[-1][0] >= 0.05:
             self.trajectory.append((now_s, x, y, th))
 
+    def attach_lidar(self, emulator: Any) -> None:
+        """Let this robot's tick pace the lidar emulator (one built with ``self_paced=False``).
+
+        Every ``emulator.SEND_PERIOD_S`` (rounded to whole ticks) the tick, right after
+        stepping the physics, has the emulator send what its head measured since the last
+        send. Two periodic tasks become one, and every sample is measured from poses the
+        physics has already reached: on its own timer the emulator ran up to one tick
+        ahead of the physics and held the last pose for those samples.
+        """
+        self._lidar = emulator
+        self._lidar_every = max(1, round(emulator.SEND_PERIOD_S / self.config.sim.step_period_s))
+
     async def run(self, clock: Clock) -> None:
-        """The simulator task: step the world every ``[sim] step_period_s``."""
+        """The simulator task: step the world every ``[sim] step_period_s`` (and pace the lidar)."""
         period_s = self.config.sim.step_period_s
+        tick = 0
         while True:
             self.step(clock.now_s())
+            tick += 1
+            if self._lidar is not None and tick % self._lidar_every == 0:
+                self._lidar.pump()
             await clock.sleep(period_s)
 
     def close(self) -> None:

@@ -118,3 +118,59 @@ def test_encoder_pins_keep_a_bounded_edge_history() -> None:
     finally:
         encoders.close()
         robot.close()
+
+
+def test_the_robot_tick_paces_the_lidar_from_poses_already_reached() -> None:
+    """The daemon's wiring: the robot's tick has the emulator send, and the real driver decodes it.
+
+    Every sample the head measures lies at or before the last physics step, so its pose is
+    interpolated between true poses (on its own timer the emulator could run up to one tick
+    past the physics and hold the last pose), and the revolutions come through whole.
+    """
+    import asyncio
+    import contextlib
+
+    from mazebot.io.rplidar import RPLidar
+    from mazebot.sim.backend import SimLidarLine
+    from mazebot.sim.lidar_emulator import RPLidarEmulator
+    from mazebot.sim.virtual_time import run_virtual
+
+    config = Config()
+    robot = SimulatedRobot(_open_world(), config, seed=4)
+    robot.kit.motor1.throttle, robot.kit.motor2.throttle = 0.5, -0.5  # spin in place
+    clock = RealClock()
+    emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, self_paced=False)
+    robot.attach_lidar(emulator)
+    ahead_s: list[float] = []
+    advance = robot.lidar_head.advance
+
+    def checked_advance(now_s: float, poses):  # type: ignore[no-untyped-def]
+        samples = advance(now_s, poses)
+        if len(samples):
+            ahead_s.append(float(samples.time_s.max()) - float(robot.time_s))
+        return samples
+
+    robot.lidar_head.advance = checked_advance  # type: ignore[method-assign]
+
+    async def run() -> list[int]:
+        sim = asyncio.create_task(robot.run(clock))
+        line = SimLidarLine(emulator)
+        sizes: list[int] = []
+        try:
+            async with RPLidar(line.connect, clock, spin_up_s=0.1) as lidar:
+                scans = lidar.scans()
+                async with contextlib.aclosing(scans):  # type: ignore[type-var]
+                    async for scan in scans:
+                        sizes.append(len(scan.range_m))
+                        if len(sizes) == 8:
+                            break
+        finally:
+            sim.cancel()
+            await line.close()
+        return sizes
+
+    sizes = run_virtual(asyncio.wait_for(run(), 60.0))
+    assert len(ahead_s) > 50  # one send every other tick for ~1.5 s
+    assert max(ahead_s) <= 0.0
+    per_rev = config.sim.lidar_samples_per_rev
+    assert all(abs(n - per_rev) <= 0.05 * per_rev for n in sizes)  # whole revolutions (±3 % jitter)

@@ -1,0 +1,23 @@
+"""The odometry task's one-pose composition gives exactly ``posegraph.compose``'s numbers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mazebot.slam.posegraph import compose
+from mazebot.tasks.odometry_task import _compose
+
+
+def test_scalar_compose_is_bit_identical_to_posegraph_compose() -> None:
+    rng = np.random.default_rng(7)
+    poses = rng.normal(0.0, 3.0, size=(5_000, 6))
+    # headings on and around the wrap points, and exact zeros
+    poses[:200, 2] = rng.choice([math.pi, -math.pi, 0.0, math.pi / 2, 2 * math.pi], 200)
+    poses[200:400, 5] = -poses[200:400, 2] + rng.choice([math.pi, -math.pi, 0.0], 200)
+    poses[400:500, :] = 0.0
+    for a in poses:
+        want = tuple(float(v) for v in compose(a[:3], a[3:]))
+        got = _compose((a[0], a[1], a[2]), float(a[3]), float(a[4]), float(a[5]))
+        assert got == want, (a, got, want)

@@ -10,7 +10,11 @@ import pytest
 
 from mazebot.errors import EXIT_USAGE
 from mazebot.slam.carmen import CarmenLogError, parse_carmen, read_carmen
+from mazebot.slam.grid import FREE, UNKNOWN
+from mazebot.slam.keyframes import map_rays
 from mazebot.slam.preprocess import PrepareParams, prepare_scan
+from mazebot.slam.slam import SlamParams
+from mazebot.slam.slam_cli import laser_log_params
 
 
 def _flaser(n: int = 4, ranges: str = "1 2 3 81.83") -> str:
@@ -89,11 +93,37 @@ def test_parses_flaser_robotlaser1_and_odom_lines() -> None:
 def test_a_record_becomes_a_scan_for_prepare_scan() -> None:
     (rec,) = parse_carmen([_flaser()]).lasers
     scan = rec.to_scan()
-    assert len(scan) == 4 and scan.valid.all()
+    assert len(scan) == 4
+    np.testing.assert_array_equal(scan.valid, [True, True, True, False])  # 81.83 m: the SICK saw no echo
     prepared = prepare_scan(scan, None, PrepareParams(max_range_m=30.0, median_window=1, circular=False))
     assert prepared.points_full.shape == (3, 2)
-    assert prepared.free_endpoints.shape == (1, 2)  # the 81.83 m "no return"
+    assert prepared.free_endpoints.shape == (0, 2)
     assert prepared.time_s == 12.5
+
+
+def test_a_beam_without_echo_clears_no_space_in_the_map() -> None:
+    """The 81.83 m beam (45° left) leaves its line unknown; the 3 m hit ahead clears the space before its wall.
+
+    With the laser-log settings (no-return beams would clear 20 m) a missing echo from a
+    window once fanned free space far outside the Intel building.
+    """
+    (rec,) = parse_carmen([_flaser(ranges="3 3 3 81.83")]).lasers
+    params = laser_log_params(SlamParams(), (0.05, 0.05))
+    prepared = prepare_scan(rec.to_scan(), None, params.prepare)
+    ends, hit, origins = map_rays(prepared, params.map_max_range_m, params.map_smoothing, params.range_noise_rel)
+    grid = params.grid.new_grid()
+    for _ in range(3):  # one miss is not yet "free"
+        grid.integrate(np.zeros(3), ends, hit, origins)
+    three = grid.three_state()
+
+    def state_at(angle_rad: float, ranges_m: np.ndarray) -> np.ndarray:
+        rows, cols = grid.to_cell(np.column_stack((ranges_m * np.cos(angle_rad), ranges_m * np.sin(angle_rad))))
+        inside = (rows >= 0) & (rows < three.shape[0]) & (cols >= 0) & (cols < three.shape[1])
+        return np.where(inside, three[np.clip(rows, 0, three.shape[0] - 1), np.clip(cols, 0, three.shape[1] - 1)],
+                        UNKNOWN)
+
+    assert (state_at(math.pi / 4, np.arange(0.5, 20.0, 0.25)) == UNKNOWN).all()
+    assert (state_at(0.0, np.arange(0.5, 2.8, 0.25)) == FREE).all()  # the hit ahead at 3 m
 
 
 @pytest.mark.parametrize(

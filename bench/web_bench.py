@@ -18,7 +18,9 @@ oversized, deep nesting). ``--compare-abuse N`` runs N quiet and N abused runs a
 each in a fresh process, and reports the control loop's p99 lateness of each and the medians.
 ``--pin D,C`` pins the daemon (and the processes it starts, such as SLAM's worker) to CPU D and
 the viewers' and abusers' processes to CPU C (``os.sched_setaffinity``): on the robot the
-clients run on other machines, so here they should not take the daemon's core.
+clients run on other machines, so here they should not take the daemon's core. Every run reports
+the loop thread's CPU time and the time it waited for a CPU (``/proc``'s schedstat);
+``--sample-stalls`` also samples the loop thread's stack whenever the loop is 30 ms late.
 
 Latency of a map change = time the viewer received the first packet built after it minus
 the time a 100 Hz poll of the live grid saw the cell change (wall clock, one machine;

@@ -8,7 +8,7 @@ one more viewer.
 
     .venv/bin/python bench/web_bench.py --viewers 20 --seconds 120 [--browser] [--out web.json]
     .venv/bin/python bench/web_bench.py --viewers 1 --seconds 60 --abuse [--out abused.json]
-    .venv/bin/python bench/web_bench.py --compare-abuse 3 --seconds 60 --out abuse.json
+    .venv/bin/python bench/web_bench.py --compare-abuse 3 --seconds 60 [--pin 0,1] --out abuse.json
 
 ``--abuse`` adds the network abuse set of issue 7 from another process: a client flooding
 resync requests as fast as it can (reconnecting whenever it is closed for it), 50 clients
@@ -16,6 +16,11 @@ connecting and dropping in a loop (polite closes, vanished TCP connections, half
 handshakes), a client that never reads, and a client sending junk frames (bad JSON, binary,
 oversized, deep nesting). ``--compare-abuse N`` runs N quiet and N abused runs alternately,
 each in a fresh process, and reports the control loop's p99 lateness of each and the medians.
+``--pin D,C`` pins the daemon (and the processes it starts, such as SLAM's worker) to CPU D and
+the viewers' and abusers' processes to CPU C (``os.sched_setaffinity``): on the robot the
+clients run on other machines, so here they should not take the daemon's core. Every run reports
+the loop thread's CPU time and the time it waited for a CPU (``/proc``'s schedstat);
+``--sample-stalls`` also samples the loop thread's stack whenever the loop is 30 ms late.
 
 Latency of a map change = time the viewer received the first packet built after it minus
 the time a 100 Hz poll of the live grid saw the cell change (wall clock, one machine;
@@ -33,7 +38,10 @@ import socket
 import statistics
 import subprocess
 import sys
+import threading
 import time
+import traceback
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +59,20 @@ from mazebot.tasks.supervisor import Supervisor
 from mazebot.web.protocol import decode_packet
 
 PIN = "2468"
+
+
+def _pin(cpu: int | None, who: str) -> None:
+    """Keep this process (and the threads and processes it starts from now on) on one CPU."""
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
+        print(f"web_bench: {who} pinned to CPU {cpu} (os.sched_setaffinity)", file=sys.stderr, flush=True)
+
+
+def _pins(text: str | None) -> tuple[int | None, int | None]:
+    if not text:
+        return None, None
+    daemon, clients = (int(x) for x in text.split(","))
+    return daemon, clients
 
 
 # -- the viewers' process ------------------------------------------------------------------
@@ -219,6 +241,71 @@ class ChangeWatcher:
             prev, prev_key, self.shape = now, key, now.shape
 
 
+def _schedstat_s(native_id: int) -> tuple[float, float]:
+    """(CPU time, time spent runnable but waiting for a CPU) of one thread of this process, in s.
+
+    From ``/proc/PID/task/TID/schedstat`` (Linux, Documentation/scheduler/sched-stats.rst):
+    the second figure tells lateness caused by other processes on the same CPU from lateness
+    caused by work on the loop.
+    """
+    try:
+        fields = Path(f"/proc/self/task/{native_id}/schedstat").read_text().split()
+    except OSError:
+        return float("nan"), float("nan")
+    return int(fields[0]) / 1e9, int(fields[1]) / 1e9
+
+
+class StallSampler:
+    """Where the event loop's thread is while the loop is late: a thread samples its stack.
+
+    A task stamps the time every ``period_s``; a thread looks every ``period_s`` too and, while
+    the stamp is older than ``late_s``, records the loop thread's innermost frames and its CPU
+    time. A stall during which the loop thread's CPU time grew is work done on the loop; one
+    during which it did not is the process waiting for a CPU (or for the GIL).
+    """
+
+    def __init__(self, period_s: float = 0.005, late_s: float = 0.03, depth: int = 8) -> None:
+        self.period_s, self.late_s, self.depth = period_s, late_s, depth
+        self.stamp_s = time.monotonic()
+        self.stacks: Counter[str] = Counter()
+        self.stalls: list[tuple[float, float]] = []  # (wall s, loop thread CPU s) of each stall
+        self._tid = threading.get_ident()
+        self._clock = time.pthread_getcpuclockid(self._tid)
+        self._stop = threading.Event()
+
+    async def run(self) -> None:
+        thread = threading.Thread(target=self._watch, name="stall-sampler", daemon=True)
+        thread.start()
+        try:
+            while True:
+                await asyncio.sleep(self.period_s)
+                self.stamp_s = time.monotonic()
+        finally:
+            self._stop.set()
+
+    def _watch(self) -> None:
+        stall: tuple[float, float] | None = None
+        while not self._stop.wait(self.period_s):
+            now = time.monotonic()
+            if now - self.stamp_s > self.late_s:
+                if stall is None:
+                    stall = (self.stamp_s, time.clock_gettime(self._clock))
+                frame = sys._current_frames().get(self._tid)
+                if frame is not None:
+                    frames = traceback.extract_stack(frame)[-self.depth:]
+                    self.stacks[" < ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}"
+                                           for f in reversed(frames))] += 1
+            elif stall is not None:
+                self.stalls.append((self.stamp_s - stall[0], time.clock_gettime(self._clock) - stall[1]))
+                stall = None
+
+    def summary(self, top: int = 15) -> dict[str, Any]:
+        return {"stalls": len(self.stalls), "stalled_s": round(sum(w for w, _ in self.stalls), 3),
+                "loop_cpu_in_stalls_s": round(sum(c for _, c in self.stalls), 3),
+                "longest_s": round(max((w for w, _ in self.stalls), default=0.0), 3),
+                "samples": sum(self.stacks.values()), "top_stacks": self.stacks.most_common(top)}
+
+
 def _latencies_ms(log: list[list], changes: list[tuple[float, int]]) -> np.ndarray:
     """Per changed cell: receive time of the first packet built after its change minus the change time."""
     packets = sorted((p[3], p[4]) for p in log if p[3] is not None)  # (built ms, received ms)
@@ -264,11 +351,16 @@ def _compare_abuse(args: argparse.Namespace) -> int:
         cmd = [sys.executable, __file__, "--viewers", str(args.viewers), "--seconds", str(args.seconds),
                "--seed", str(args.seed), "--out", str(out), "--abuser-nice", str(args.abuser_nice)]
         cmd += ["--abuse"] if abused else []
+        cmd += ["--pin", args.pin] if args.pin else []
+        cmd += ["--sample-stalls"] if args.sample_stalls else []
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         r = json.loads(out.read_text())
         out.unlink()
         runs.append({"abused": abused, **r["control_lateness_ms"], "load_average": r["load_average"],
-                     "daemon_cpu_s": r["daemon_cpu_s"], "abuse": r.get("abuse")})
+                     "pinned": r.get("pinned"),
+                     "daemon_cpu_s": r["daemon_cpu_s"], "loop_thread_cpu_s": r.get("loop_thread_cpu_s"),
+                     "loop_thread_waiting_for_cpu_s": r.get("loop_thread_waiting_for_cpu_s"),
+                     "stall_sampler": r.get("stall_sampler"), "abuse": r.get("abuse")})
         print(json.dumps(runs[-1]), flush=True)
     summary = {}
     for name, abused in (("quiet", False), ("abused", True)):
@@ -278,6 +370,7 @@ def _compare_abuse(args: argparse.Namespace) -> int:
                          "median_p50_ms": statistics.median(r["p50"] for r in mine),
                          "median_daemon_cpu_s": statistics.median(r["daemon_cpu_s"] for r in mine)}
     summary["abused_minus_quiet_median_p99_ms"] = summary["abused"]["median_p99_ms"] - summary["quiet"]["median_p99_ms"]
+    summary["pinned"] = runs[0]["pinned"]
     out_path.write_text(json.dumps({"runs": runs, "summary": summary}, indent=2))
     print(json.dumps(summary, indent=2))
     return 0
@@ -296,29 +389,41 @@ def main() -> int:
                     help="N quiet and N abused runs, alternating, each in a fresh process")
     ap.add_argument("--abuser-nice", type=int, default=0, metavar="N",
                     help="run the abusers N nice levels lower (on a robot their CPU is another machine's)")
+    ap.add_argument("--pin", default=None, metavar="D,C",
+                    help="pin the daemon to CPU D and the viewers and abusers to CPU C (os.sched_setaffinity)")
+    ap.add_argument("--sample-stalls", action="store_true",
+                    help="sample the event loop thread's stack whenever the loop is 30 ms late")
     ap.add_argument("--viewer-child", nargs=4, metavar=("URL", "N", "SECONDS", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--abuse-child", nargs=4, metavar=("URL", "SECONDS", "OUT", "NICE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.compare_abuse:
         return _compare_abuse(args)
+    daemon_cpu, client_cpu = _pins(args.pin)
     if args.abuse_child:
         url, seconds, out, nice = args.abuse_child
+        _pin(client_cpu, "abusers")
         os.nice(int(nice))
         Path(out).write_text(json.dumps(asyncio.run(_abusers(url, float(seconds)))))
         return 0
     if args.viewer_child:
         url, n, seconds, out = args.viewer_child
+        _pin(client_cpu, "viewers")
         Path(out).write_text(json.dumps(asyncio.run(_viewers(url, int(n), float(seconds)))))
         return 0
 
+    _pin(daemon_cpu, "daemon")
+    pin_args = ["--pin", args.pin] if args.pin else []
     config = Config()
     config.web.host, config.web.port, config.web.control_token = "127.0.0.1", unused_port(), PIN
     base = f"http://127.0.0.1:{config.web.port}"
     out_path = Path(args.out)
     child_out = out_path.with_suffix(".viewers.json")
     abuse_out = out_path.with_suffix(".abuse.json")
-    result: dict[str, Any] = {"viewers": args.viewers, "seconds": args.seconds, "out_dir": str(out_path.parent)}
+    result: dict[str, Any] = {"viewers": args.viewers, "seconds": args.seconds, "out_dir": str(out_path.parent),
+                              "pinned": None if daemon_cpu is None else {"daemon_cpu": daemon_cpu,
+                                                                         "viewers_and_abusers_cpu": client_cpu}}
     started: dict[str, Any] = {}
+    sampler = StallSampler() if args.sample_stalls else None
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         robot = hardware.sim
@@ -336,17 +441,21 @@ def main() -> int:
         async def session() -> None:
             await asyncio.sleep(0.5)
             state.control_lateness_ms.clear()
+            if sampler is not None:  # only the measured part
+                sampler.stacks.clear()
+                sampler.stalls.clear()
             cpu0 = time.process_time()  # the daemon's own CPU (every thread), not the clients'
+            sched0 = _schedstat_s(threading.get_native_id())
             proc = None
             if args.viewers:
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, __file__, "--viewer-child", base.replace("http", "ws") + "/ws",
-                    str(args.viewers), str(args.seconds), str(child_out))
+                    str(args.viewers), str(args.seconds), str(child_out), *pin_args)
             abusers = None
             if args.abuse:
                 abusers = await asyncio.create_subprocess_exec(
                     sys.executable, __file__, "--abuse-child", base.replace("http", "ws") + "/ws",
-                    str(args.seconds), str(abuse_out), str(args.abuser_nice))
+                    str(args.seconds), str(abuse_out), str(args.abuser_nice), *pin_args)
             browser = None
             if args.browser:
                 browser = asyncio.get_running_loop().run_in_executor(None, _browser, base + "/", args.seconds, result)
@@ -366,11 +475,16 @@ def main() -> int:
                                              "max": float(lateness.max()), "n": int(lateness.size)}
             result["load_average"] = os.getloadavg()
             result["daemon_cpu_s"] = time.process_time() - cpu0
+            sched1 = _schedstat_s(threading.get_native_id())
+            result["loop_thread_cpu_s"] = sched1[0] - sched0[0]
+            result["loop_thread_waiting_for_cpu_s"] = sched1[1] - sched0[1]
             result["tour_done"] = driver.done
             result["tour_index"] = [driver.index, len(driver.waypoints_m)]
             supervisor.request_stop("web bench over")
 
         supervisor.start("bench-watcher", watcher.run)
+        if sampler is not None:
+            supervisor.start("bench-stall-sampler", sampler.run)
         supervisor.start("bench-session", session)
 
     builder = sim_hardware_builder(maze_path=args.maze, seed=None if args.maze else args.seed,
@@ -393,6 +507,8 @@ def main() -> int:
                                                  "max": float(lat.max()), "cells": int(lat.size)}
         child_out.unlink()
     result["map_cells"] = list(started["watcher"].shape)
+    if sampler is not None:
+        result["stall_sampler"] = sampler.summary()
     if args.abuse:
         result["abuse"] = json.loads(abuse_out.read_text())
         abuse_out.unlink()

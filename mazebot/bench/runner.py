@@ -31,6 +31,8 @@ import math
 import resource
 import time
 from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,6 +40,7 @@ import numpy as np
 
 from mazebot.bench.fault_metrics import RECOVERY_WINDOW_S, FaultRecord, fault_metrics
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
+from mazebot.bench.virtual_executor import CpuTimedExecutor
 from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.errors import UsageError
@@ -214,6 +217,19 @@ def false_closures(closures: list, trajectory: list[tuple[float, float, float, f
     return count
 
 
+def _instrument(spec: RunSpec, injector: FaultInjector | None) -> Callable[[Any, Executor], Executor] | None:
+    """The ``run_daemon`` hook: on virtual time the lost-robot search takes its CPU time
+    (:mod:`mazebot.bench.virtual_executor`); the fault injector reaches SLAM and its executor."""
+    if spec.clock != "virtual":
+        return injector.instrument if injector is not None else None
+
+    def instrument(slam: Any, executor: Executor) -> Executor:
+        timed = CpuTimedExecutor(executor, asyncio.get_running_loop())
+        return injector.instrument(slam, timed) if injector is not None else timed
+
+    return instrument
+
+
 def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     """Run one simulated mission and return its metrics and the raw record (for figures)."""
     if spec.drive not in ("scripted", "explore"):
@@ -326,7 +342,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         session = RunSession(record_path=Path(spec.record_path))
     daemon = run_daemon(
         config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started, session=session,
-        autonomous=spec.drive == "explore", instrument=injector.instrument if injector is not None else None,
+        autonomous=spec.drive == "explore", instrument=_instrument(spec, injector),
     )
     exit_code = run_virtual(daemon) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0

@@ -74,7 +74,10 @@ async def run(
         while True:
             if next_scan is None:
                 next_scan = asyncio.ensure_future(state.scans.get())
-            waiting: set[asyncio.Future] = {f for f in (next_scan, job, search) if f is not None}
+            # a loop closure's result waits while a search for the lost robot reads the map (in a
+            # thread): merging it then would rebuild the grid and move the keyframes under the search
+            mergeable = job if search is None else None
+            waiting: set[asyncio.Future] = {f for f in (next_scan, mergeable, search) if f is not None}
             timeout_s = None
             if job is not None and not job_noted:  # wake up to say so when a job runs long
                 timeout_s = max(0.0, job_since_s + SLOW_JOB_S - clock.now_s())

@@ -212,12 +212,31 @@ def parse_client_message(text: str) -> ClientMessage:
     if kind is not None and not isinstance(kind, str):  # a list or object there is not even hashable
         raise ProtocolError(f"message type must be a string, got {type(kind).__name__}")
     if kind not in CLIENT_TYPES:
-        shown = kind if kind is None or len(kind) <= 40 else kind[:40] + "…"  # the client's own words, kept short
+        shown = kind if kind is None else _shown(kind)
         raise ProtocolError(f"unknown message type {shown!r}; expected start, stop or resync")
     token = obj.get("token")
     if token is not None and not isinstance(token, str):
         raise ProtocolError("token must be a string")
     return ClientMessage(kind, token)
+
+
+#: The longest the client's own words may be in an error, quoted and escaped ('x' * 40 + "…").
+SHOWN_CHARS = 43
+
+
+def _shown(text: str) -> str:
+    """``text`` cut (with "…") so that its repr fits in :data:`SHOWN_CHARS`: the client's own words,
+    kept short even when each of them is a control or an unprintable character (``\\U000e0001``)."""
+    if len(repr(text)) <= SHOWN_CHARS:
+        return text
+    lo, hi = 0, min(len(text), SHOWN_CHARS)  # the longest prefix whose repr, with "…", fits
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if len(repr(text[:mid] + "…")) <= SHOWN_CHARS:
+            lo = mid
+        else:
+            hi = mid - 1
+    return text[:lo] + "…"
 
 
 def server_message(kind: str, **fields: Any) -> str:

@@ -189,3 +189,69 @@ async def test_odometry_task_keeps_a_history_and_publishes_the_map_pose() -> Non
     assert (state.pose.x_m, state.pose.y_m, state.pose.theta_rad) == pytest.approx(tuple(pose))
     assert state.pose.x_m == pytest.approx(1.0) and state.pose.y_m > 2.0  # map frame: x forward became +y
     assert state.pose_time_s == t
+
+
+class LosingGuard:
+    """Stands in for ``LocalizationGuard``: the third revolution finds the robot lost."""
+
+    def __init__(self) -> None:
+        self.checked = 0
+        self.guess = np.zeros(3)
+        self.params = None
+        self.search_scale = 1.0
+        self.last_fit = None
+        self.accepted: list[str] = []
+
+    def check(self, slam, scan, history) -> str:
+        self.checked += 1
+        return "lost" if self.checked == 3 else "ok"
+
+    def accept(self, slam, found) -> bool:
+        self.accepted.append(f"accepted after {len(slam.applied_on)} merges")
+        return False
+
+    def slipped(self, predicted, corrected):
+        return None
+
+
+async def test_a_loop_closure_is_not_merged_while_the_search_for_the_lost_robot_reads_the_map(monkeypatch) -> None:
+    """The search reads the live grid and keyframes in a thread; a loop closure finishing meanwhile
+    must wait until the search is over, or the grid would be rebuilt under it."""
+    state = SharedState()
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(100.0, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    job_may_end, search_may_end, searching = threading.Event(), threading.Event(), threading.Event()
+    fake = FakeSlam()
+    real_job = fake.run
+
+    def slow_job() -> LoopClosureResult:
+        job_may_end.wait(10)
+        return real_job()
+
+    fake.run = slow_job  # type: ignore[method-assign]
+
+    def search(slam, scan, history, guess, params, scale):
+        searching.set()
+        search_may_end.wait(10)
+        return SimpleNamespace(pose=None, tried=0)
+
+    monkeypatch.setattr(slam_task, "search_pose", search)
+    guard = LosingGuard()
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="test-slam") as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake,  # type: ignore[arg-type]
+                                                 guard=guard))  # type: ignore[arg-type]
+        for k in range(3):  # the second hands out the job, the third is lost: the search starts
+            await state.scans.put(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
+        await _until(searching.is_set)
+        job_may_end.set()  # the loop closure is done while the search still runs
+        await asyncio.sleep(0.2)
+        assert fake.applied_on == []  # held back
+        search_may_end.set()
+        await _until(lambda: fake.applied_on)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    assert guard.accepted == ["accepted after 0 merges"]  # the search's answer first, then the merge
+    assert fake.applied_on == [threading.current_thread().name] and state.slam.map_rebuilds == 1

@@ -14,6 +14,7 @@ from aiohttp import WSMsgType, web
 from aiohttp.test_utils import TestClient, TestServer
 
 from mazebot.slam.grid import OccupancyGrid
+from mazebot.slam.map_export import read_ros_map, write_ros_map
 from mazebot.state import SharedState
 from mazebot.web.app import BROADCASTER_KEY, WebSettings, create_app
 from mazebot.web.protocol import KIND_DELTA, KIND_FULL, decode_packet
@@ -104,7 +105,31 @@ async def test_map_files_404_without_a_map_then_png_pgm_yaml(aiohttp_client, sta
     np.testing.assert_array_equal(pixels == 254, three == 0)
     yaml = await (await client.get("/map.yaml")).text()
     assert "image: map.pgm" in yaml and "resolution: 0.05" in yaml
-    assert f"origin: [{grid.origin_m[0]:.6g}, {grid.origin_m[1]:.6g}, 0.0]" in yaml
+    assert f"origin: [{grid.origin_m[0]:.9g}, {grid.origin_m[1]:.9g}, 0.0]" in yaml
+
+
+async def test_the_served_map_files_are_the_exporters_and_load_back(aiohttp_client, state, tmp_path) -> None:
+    """What a browser downloads from /map.pgm and /map.yaml is what ``write_ros_map`` writes
+    (``mode: trinary`` included), and map_server's reading of it gives back the live grid."""
+    client = await aiohttp_client(_app(state))
+    grid = OccupancyGrid(resolution_m=0.05, margin_m=0.1)
+    angles = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    grid.integrate(np.array([0.1, -0.05, 0.3]), 0.8 * np.column_stack((np.cos(angles), np.sin(angles))),
+                   np.ones(90, bool))
+    state.map = grid
+    served = tmp_path / "served"
+    served.mkdir()
+    (served / "map.pgm").write_bytes(await (await client.get("/map.pgm")).read())
+    (served / "map.yaml").write_bytes(await (await client.get("/map.yaml")).read())
+    (tmp_path / "exported").mkdir()
+    exported_pgm, exported_yaml = write_ros_map(grid, tmp_path / "exported" / "map")
+    assert "mode: trinary" in (served / "map.yaml").read_text()
+    assert (served / "map.yaml").read_bytes() == exported_yaml.read_bytes()
+    assert (served / "map.pgm").read_bytes() == exported_pgm.read_bytes()
+    back = read_ros_map(served / "map.yaml")
+    np.testing.assert_array_equal(back.three_state, grid.three_state())
+    assert back.resolution_m == pytest.approx(0.05)
+    assert back.origin[:2] == pytest.approx(tuple(grid.origin_m))
 
 
 # -- control over HTTP ------------------------------------------------------------------------

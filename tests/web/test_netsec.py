@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import gc
 import json
 import logging
@@ -22,6 +23,7 @@ import pytest
 from aiohttp import WSMsgType, web
 
 from mazebot.state import RunState, SharedState
+from mazebot.web import app as web_app
 from mazebot.web import auth
 from mazebot.web.app import BROADCASTER_KEY, WebSettings, create_app
 from mazebot.web.protocol import KIND_FULL, decode_packet
@@ -342,6 +344,46 @@ async def test_a_flooding_client_is_warned_once_then_closed_with_1008_and_others
     assert network["flood_warnings"] == 1 and network["flood_closes"] == 1
     assert len(broadcaster.viewers) == 1 and not steady.closed
     assert state.commands.empty()
+    await steady.close()
+    assert_no_exception_logged(server_log)
+
+
+async def test_a_flooder_that_goes_on_after_its_close_frame_is_cut_off_not_read_for_the_handshake(
+    aiohttp_client, state, server_log, monkeypatch
+) -> None:
+    """A flooder never answers the close frame and keeps sending: the server must not sit reading
+    (parsing) its flood for the whole close handshake, it hangs up. The polite close wait is made
+    a minute long here, so a server that waited for this client's close frame would not hang up."""
+    monkeypatch.setattr(web_app, "CLOSE_HANDSHAKE_S", 60.0)
+    app = _app(state, message_rate_per_s=20, message_burst=40)
+    client = await aiohttp_client(app)
+    steady = await client.ws_connect("/ws")
+    raw = await RawWebSocket.connect(client.server.host, client.server.port)
+    loop = asyncio.get_running_loop()
+    resync = RawWebSocket.frame(0x1, b'{"type":"resync"}')
+
+    async def flood() -> None:
+        with contextlib.suppress(OSError):  # ends when the server hangs up
+            while True:
+                await raw.send(resync * 200)
+
+    flooding = asyncio.ensure_future(flood())
+    try:
+        _, code, reason = await raw.until_close()
+        assert code == aiohttp.WSCloseCode.POLICY_VIOLATION and reason == "too many messages (over 20/s)"
+        # the server hangs up on its own: EOF (or a reset) while the client still sends and never closes
+        while True:
+            chunk = await asyncio.wait_for(loop.sock_recv(raw.sock, 65536), 10)
+            if not chunk:
+                break
+    except ConnectionResetError:
+        pass
+    finally:
+        flooding.cancel()
+        raw.close()
+    network = (await (await client.get("/api/status")).json())["network"]
+    assert network["flood_closes"] == 1
+    assert not steady.closed and state.commands.empty()
     await steady.close()
     assert_no_exception_logged(server_log)
 

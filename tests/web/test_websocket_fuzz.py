@@ -209,8 +209,14 @@ async def test_every_random_frame_gets_one_clear_answer_and_the_others_are_serve
         ('{"type": {"start": 1}}', "message type must be a string, got dict"),
         ('{"type": 7}', "message type must be a string, got int"),
         ('{"type": "' + "x" * 500 + '"}', "unknown message type '" + "x" * 40 + "…'; expected start, stop or resync"),
+        # 20 unprintable characters were echoed as 200 characters of escapes (a 255-character "line")
+        (json.dumps({"type": "\U000e0001" * 20}),
+         "unknown message type '" + "\\U000e0001" * 4 + "…'; expected start, stop or resync"),
+        (json.dumps({"type": "\x00" * 30}),
+         "unknown message type '" + "\\x00" * 10 + "…'; expected start, stop or resync"),
     ],
-    ids=["deep-list", "deep-object", "list-type", "object-type", "number-type", "long-type"],
+    ids=["deep-list", "deep-object", "list-type", "object-type", "number-type", "long-type", "unprintable-type",
+         "control-type"],
 )
 async def test_deep_nesting_and_unhashable_types_are_answered_not_crashed_on(aiohttp_client, caplog, text: str,
                                                                              message: str) -> None:

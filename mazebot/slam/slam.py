@@ -59,7 +59,7 @@ from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, map_rays
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
-from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan, voxel_downsample
 
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
@@ -135,6 +135,11 @@ class SlamParams:
     wall_min_strength: float = 0.6  # only keyframes whose normals mostly lie on a right-angle grid ...
     wall_min_normals: int = 40  # ... with at least this many normals ...
     wall_max_deviation_rad: float = 0.087  # ... and within this of the reference grid count
+    # keyframe 0 holds this many revolutions at rest (fused), the map's anchor (1: the first scan alone)
+    anchor_revolutions: int = 5
+    anchor_still_m: float = 0.002  # the robot stands still while the odometry moved less than this ...
+    anchor_still_rad: float = 0.002  # ... and turned less than this since keyframe 0
+    wall_anchor_std_rad: float = 0.001  # how much the anchor's (fused) wall direction is trusted
     optimize_every_keyframes: int = 40  # optimize (wall priors) this often even without a loop closure
     rebuild_threshold_m: float = 0.01
     rebuild_threshold_rad: float = 0.005
@@ -224,6 +229,8 @@ class SlamParams:
             wall_prior=slam.wall_prior,
             wall_prior_std_rad=slam.wall_prior_std_rad,
             wall_min_strength=slam.wall_min_strength,
+            anchor_revolutions=slam.anchor_revolutions,
+            wall_anchor_std_rad=slam.wall_anchor_std_rad,
             optimize_every_keyframes=slam.optimize_every_keyframes,
             rebuild_threshold_m=slam.rebuild_threshold_m,
             rebuild_threshold_rad=slam.rebuild_threshold_rad,
@@ -267,6 +274,7 @@ class LoopClosureJob:
     params: SlamParams
     wall_reference_rad: float | None = None  # the wall grid's direction in the map frame, if known
     optimize_anyway: bool = False  # optimize even if no candidate is accepted (periodic wall priors)
+    anchor_std_rad: float | None = None  # keyframe 0's wall direction ties the wall vertex this tightly (None: not)
 
     def __call__(self) -> LoopClosureResult:
         """The job as a callable, so any executor runs it (``loop.run_in_executor(executor, job)``)."""
@@ -354,29 +362,41 @@ class LoopClosureJob:
         Birchfield, Cunningham & Fiedler, "Accurate on-line 3D occupancy grids using
         Manhattan world constraints", IROS 2012, with the direction estimated rather than
         assumed).
+
+        Estimated from the keyframes alone, ``φ`` follows the map wherever its chain of
+        matches turned it: the first in-place turns, matched against a submap of one or
+        two keyframes, leave the whole map turned by a few tenths of a degree about the
+        start, and every later keyframe agrees with that. Keyframe 0, the **anchor**,
+        stands still for several revolutions (their normals fused, so its wall direction
+        is measured several times better than one scan's) and sits at the map frame's
+        origin by definition: with ``anchor_std_rad`` its edge ties ``φ`` to the walls as
+        seen from the start, and the other keyframes' priors then turn the map back onto
+        them.
         """
         p = self.params
         if not p.wall_prior or self.wall_reference_rad is None or len(self.keyframes) < 2:
             return None
         reference = float(self.wall_reference_rad)
         rows = []
-        for k in range(1, len(self.keyframes)):
+        first = 0 if self.anchor_std_rad is not None else 1  # keyframe 0 is fixed: alone it only moves φ
+        for k in range(first, len(self.keyframes)):
             direction, strength, count = self.keyframes[k].wall_direction()
             if strength < p.wall_min_strength or count < p.wall_min_normals:
                 continue
             theta = float(self.poses[k, 2])
             deviation = _wrap_quarter(direction + theta - reference)
             if abs(deviation) <= p.wall_max_deviation_rad:
-                rows.append((k, theta - reference - deviation))
+                std = self.anchor_std_rad if k == 0 and self.anchor_std_rad is not None else p.wall_prior_std_rad
+                rows.append((k, theta - reference - deviation, std))
         if not rows:
             return None
         wall = self.poses.shape[0]  # the index the wall vertex gets
         wall_pose = np.array([[self.poses[0, 0], self.poses[0, 1], reference]])
-        index = np.array([k for k, _ in rows])
+        index = np.array([k for k, _, _ in rows])
         z = relative_pose(wall_pose[0], self.poses[index])
-        z[:, 2] = wrap_angle(np.array([t for _, t in rows]))
+        z[:, 2] = wrap_angle(np.array([t for _, t, _ in rows]))
         info = np.zeros((len(rows) + 1, 3, 3))
-        info[:-1, 2, 2] = 1.0 / p.wall_prior_std_rad**2
+        info[:-1, 2, 2] = 1.0 / np.array([std for _, _, std in rows]) ** 2
         info[-1, 0, 0] = info[-1, 1, 1] = 1e6  # the vertex's position sits on keyframe 0 (it means nothing)
         ei = np.concatenate((np.full(len(rows), wall, dtype=np.intp), [0]))
         ej = np.concatenate((index, [wall])).astype(np.intp)
@@ -469,6 +489,9 @@ class Slam:
         self._keyframes_since_optimization = 0
         self._pending_candidates: list[Candidate] = []
         self.wall_reference_rad: float | None = None  # the maze's wall grid in the map frame (mod 90°)
+        # the revolutions at rest fused into keyframe 0 (prepared scan, rays); closed once the robot moves
+        self._anchor_parts: list[tuple[PreparedScan, tuple[np.ndarray, np.ndarray, np.ndarray]]] = []
+        self._anchor_closed = False
         self._target_position: np.ndarray | None = None
         self._in_submap: set[int] = set()
         self._keyframes_since_target = 0
@@ -492,6 +515,22 @@ class Slam:
         if self._last_odom is None:
             return self.initial_pose.copy()
         return compose(self.ekf.mean, inverse(self._last_odom))
+
+    @property
+    def anchored(self) -> bool:
+        """Keyframe 0, the map's anchor, is final: it holds ``anchor_revolutions`` at rest, or the robot moved.
+
+        The planner waits for it before it drives (a resumed map is anchored already).
+        """
+        if not self.keyframes:
+            return False
+        parts = len(self._anchor_parts)
+        return len(self.keyframes) > 1 or self._anchor_closed or parts == 0 or parts >= self.params.anchor_revolutions
+
+    @property
+    def anchor_revolutions(self) -> int:
+        """How many revolutions keyframe 0 holds (0 for a resumed map)."""
+        return len(self._anchor_parts)
 
     def keyframe_poses(self) -> np.ndarray:
         """Poses (N, 3) of all keyframes, optimized."""
@@ -559,7 +598,9 @@ class Slam:
         # 5. keyframe: into the pose graph, and a new local submap
         rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel)
         keyframe = None
-        if self.selector.is_keyframe(pose):
+        if self._standing_at_anchor(odom):
+            self._fuse_into_anchor(prepared, rays)  # one more revolution of keyframe 0, still at its pose
+        elif self.selector.is_keyframe(pose):
             keyframe = self._add_keyframe(pose, odom, prepared, rays)
         if self.record_trajectory:
             self._scan_log.append((time_s, len(self.keyframes) - 1, relative_pose(self.keyframes[-1].pose, pose)))
@@ -674,6 +715,8 @@ class Slam:
         p = self.params
         index = len(self.keyframes)
         kf = Keyframe.from_scan(index, pose, prepared, p.normals, p.map_max_range_m, rays=rays)
+        if index == 0 and rays is not None:
+            self._anchor_parts = [(prepared, rays)]
         self.keyframes.append(kf)
         self.graph.add_vertex(pose)
         self.selector.accept(pose)
@@ -702,6 +745,59 @@ class Slam:
             self._rebuild_target()
         self._keyframes_since_attempt += 1
         return index
+
+    def _standing_at_anchor(self, odom: np.ndarray) -> bool:
+        """Keyframe 0 is the only one, wants more revolutions, and the odometry has not moved since it."""
+        p = self.params
+        if len(self.keyframes) != 1 or self._anchor_closed or not self._anchor_parts:
+            return False
+        if len(self._anchor_parts) >= p.anchor_revolutions or self._odom_at_keyframe is None:
+            return False
+        moved = relative_pose(self._odom_at_keyframe, odom)
+        if math.hypot(float(moved[0]), float(moved[1])) > p.anchor_still_m or abs(float(moved[2])) > p.anchor_still_rad:
+            self._anchor_closed = True  # the robot drives: keyframe 0 keeps what it has
+            return False
+        return True
+
+    def _fuse_into_anchor(self, prepared: PreparedScan, rays: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """Keyframe 0 again, from all the revolutions at rest so far, at its own pose.
+
+        The robot has not moved, so the scans are stacked as they are (no matching: their
+        differences are the lidar's noise, which is what the stacking averages). The
+        normals are estimated over as many neighbours per point as there are scans, the
+        same stretch of wall as from one scan with several times the points: the anchor's
+        wall direction, which ties the map's wall grid (:meth:`LoopClosureJob._wall_priors`),
+        gets correspondingly less noisy. No loop-closure job can hold keyframe 0 yet (a
+        job needs a second keyframe), so replacing it is safe.
+        """
+        p = self.params
+        self._anchor_parts.append((prepared, rays))
+        scans = [part for part, _ in self._anchor_parts]
+        fused_points = np.concatenate([s.points_full for s in scans])
+        match_points = np.concatenate([s.points_match for s in scans])
+        fused = replace(
+            prepared,
+            points_full=fused_points,
+            points_match=match_points[voxel_downsample(match_points, p.prepare.voxel_size_m)],
+            origins_full=np.concatenate([s.origins_full for s in scans]),
+            free_endpoints=np.concatenate([s.free_endpoints for s in scans]),
+            free_origins=np.concatenate([s.free_origins for s in scans]),
+            angle_rad=np.concatenate([s.angle_rad for s in scans]),
+            range_m=np.concatenate([s.range_m for s in scans]),
+            index=np.concatenate([s.index for s in scans]),
+        )
+        fused_rays = tuple(np.concatenate([r[i] for _, r in self._anchor_parts]) for i in range(3))
+        old = self.keyframes[0]
+        normals = replace(p.normals, neighbours=p.normals.neighbours * len(scans))
+        kf = Keyframe.from_scan(0, old.pose, fused, normals, p.map_max_range_m, rays=fused_rays)  # type: ignore[arg-type]
+        kf.time_s = old.time_s
+        kf.integrated_pose = old.integrated_pose
+        self.keyframes[0] = kf
+        if p.wall_prior:
+            direction, strength, count = kf.wall_direction()
+            ok = strength >= p.wall_min_strength and count >= p.wall_min_normals
+            self.wall_reference_rad = _wrap_quarter(direction + float(old.pose[2])) if ok else None
+        self._rebuild_target()
 
     def _in_sight(self, a: np.ndarray, b: np.ndarray) -> bool:
         """No wall of the map between two positions (the line between them crosses no occupied cell)."""
@@ -824,6 +920,7 @@ class Slam:
             params=self.params,
             wall_reference_rad=self.wall_reference_rad,
             optimize_anyway=periodic,
+            anchor_std_rad=self.params.wall_anchor_std_rad if len(self._anchor_parts) > 1 else None,
         )
 
 

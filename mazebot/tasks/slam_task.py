@@ -65,6 +65,7 @@ async def run(
     if slam.keyframes:  # a resumed run: its map is served before the first revolution
         state.map = slam.grid
         state.slam.keyframes = len(slam.keyframes)
+        state.slam.anchored = slam.anchored
     next_scan: asyncio.Future[Scan] | None = None
     job: asyncio.Future[LoopClosureResult] | None = None
     job_since_s = 0.0
@@ -210,6 +211,7 @@ def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
     stats = state.slam
     stats.scans = slam.scans
     stats.keyframes = len(slam.keyframes)
+    stats.anchored = slam.anchored
 
 
 def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult) -> None:

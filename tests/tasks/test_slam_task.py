@@ -154,6 +154,32 @@ class FakeLidar:
             yield scan
 
 
+async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimized_keyframes() -> None:
+    state = SharedState()
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(100.0, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    fake = FakeSlam()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
+        state.run_state = RunState.EXPLORING
+        await state.scans.put(_static_scan(1.0, np.zeros(3)))
+        await _until(lambda: fake.scans == 1)
+        assert fake.final_jobs == 0  # still exploring
+        state.run_state = RunState.RETURNING
+        for k in range(3):
+            await state.scans.put(_static_scan(1.2 + 0.2 * k, np.zeros(3)))
+        await _until(lambda: fake.scans == 4 and len(fake.applied_on) == 2)  # scan 2's job, then the final one
+        state.run_state = RunState.DONE
+        await state.scans.put(_static_scan(2.0, np.zeros(3)))
+        await _until(lambda: fake.scans == 5)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    assert fake.final_jobs == 1  # once, not once per scan nor again at done
+    assert state.slam.map_rebuilds == 2 and state.map is fake.grid
+
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind() -> None:
     state = SharedState()
     state.scans = asyncio.Queue(maxsize=2)
@@ -196,29 +222,3 @@ async def test_odometry_task_keeps_a_history_and_publishes_the_map_pose() -> Non
     assert state.pose.x_m == pytest.approx(1.0) and state.pose.y_m > 2.0  # map frame: x forward became +y
     assert state.pose_time_s == t
 
-
-async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimized_keyframes() -> None:
-    state = SharedState()
-    history = OdometryHistory()
-    history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(100.0, 0.0, 0.0, 0.0)
-    state.odometry_history = history
-    fake = FakeSlam()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
-        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
-        state.run_state = RunState.EXPLORING
-        await state.scans.put(_static_scan(1.0, np.zeros(3)))
-        await _until(lambda: fake.scans == 1)
-        assert fake.final_jobs == 0  # still exploring
-        state.run_state = RunState.RETURNING
-        for k in range(3):
-            await state.scans.put(_static_scan(1.2 + 0.2 * k, np.zeros(3)))
-        await _until(lambda: fake.scans == 4 and len(fake.applied_on) == 2)  # scan 2's job, then the final one
-        state.run_state = RunState.DONE
-        await state.scans.put(_static_scan(2.0, np.zeros(3)))
-        await _until(lambda: fake.scans == 5)
-        task.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await task
-    assert fake.final_jobs == 1  # once, not once per scan nor again at done
-    assert state.slam.map_rebuilds == 2 and state.map is fake.grid

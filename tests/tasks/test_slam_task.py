@@ -180,6 +180,7 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
     assert fake.final_jobs == 1  # once, not once per scan nor again at done
     assert state.slam.map_rebuilds == 2 and state.map is fake.grid
 
+
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind() -> None:
     state = SharedState()
     state.scans = asyncio.Queue(maxsize=2)
@@ -221,4 +222,3 @@ async def test_odometry_task_keeps_a_history_and_publishes_the_map_pose() -> Non
     assert (state.pose.x_m, state.pose.y_m, state.pose.theta_rad) == pytest.approx(tuple(pose))
     assert state.pose.x_m == pytest.approx(1.0) and state.pose.y_m > 2.0  # map frame: x forward became +y
     assert state.pose_time_s == t
-

@@ -446,6 +446,12 @@ class SlamConfig(Section):
     wall_min_strength: float = Field(
         0.6, ge=0, le=1, description="use a keyframe only if its wall normals are this aligned to a right-angle grid"
     )
+    anchor_revolutions: int = Field(
+        20, ge=1, le=100, description="revolutions at rest keyframe 0, the map's anchor, measures its walls over"
+    )
+    wall_anchor_std_rad: float = Field(
+        0.001, gt=0, description="trust in the anchor's wall direction (it fixes the wall grid of the whole map)"
+    )
     optimize_every_keyframes: int = Field(
         40, ge=1, description="optimize the pose graph this often even without a loop closure (wall priors)"
     )

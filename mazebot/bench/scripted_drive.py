@@ -115,6 +115,8 @@ class ScriptedDriver:
 
     async def run(self, state: SharedState, clock: Clock, period_s: float) -> None:
         """Drive until the tour ends, then leave the robot stopped and DONE."""
+        while not state.slam.anchored:  # as the planner does: SLAM takes its anchor at rest first
+            await clock.sleep(period_s)
         state.run_state = RunState.EXPLORING
         state.started_at_s = clock.now_s()
         while not self.done:

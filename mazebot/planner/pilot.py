@@ -200,6 +200,9 @@ class Pilot:
         if grid is None:
             self._hold(state, now_s, "waiting for the first map")
             return False
+        if not state.slam.anchored:  # SLAM fuses a few revolutions at rest into the map's anchor (< 1 s)
+            self._hold(state, now_s, "waiting for SLAM to anchor the map (standing still)")
+            return False
         three = grid.three_state()
         goal = self.explorer.update(three, grid.origin_m, grid.resolution_m, pose, now_s)
         self._note_events(state, now_s, goal.reason if goal is not None else None, pose)

@@ -11,7 +11,8 @@ When the recording has SLAM's steps (``/mazebot/slam``), replay takes the very s
 steps: the revolutions the live SLAM processed (not those it dropped), each when the
 odometry had reached the same reading, and each loop-closure result merged after the
 same number of scans as live (the job itself is computed at once, in this thread,
-from the same snapshot). The replayed map is then the live map. Without steps (a
+from the same snapshot); the end-of-exploration job (``Slam.final_job``) is asked for
+at the same step as live. The replayed map is then the live map. Without steps (a
 recording of sensors only) every revolution is processed as soon as the odometry
 covers it and loop closures are merged at once.
 
@@ -143,6 +144,10 @@ class Replayer:
             if expected is not None and (latest is None or latest[0] != expected):
                 self.result.odometry_mismatches += 1
             self._process(scan, done)
+        elif data.get("kind") == "final":  # the exploration ended: Slam.final_job, as live
+            job = self.slam.final_job()
+            if job is not None:
+                self._held.append(self._submit(job))
         elif data.get("kind") == "apply" and self._held:
             self._apply(self._held.pop(0).result(), done)
         return done

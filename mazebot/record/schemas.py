@@ -170,13 +170,14 @@ SCHEMAS: dict[str, bytes] = {
     "mazebot.SlamStep": _schema(
         "mazebot.SlamStep",
         {
-            "kind": {"type": "string", "enum": ["update", "apply"]},
+            "kind": {"type": "string", "enum": ["update", "final", "apply"]},
             "scan_end_time_s": {"type": "number"},
             "odometry_latest_s": {"type": "number"},
             "scans": {"type": "integer"},
         },
-        "What SLAM consumed, in order: which revolution with odometry up to which reading, and when a "
-        "loop-closure result was merged (after how many scans), so a replay takes the same steps",
+        "What SLAM consumed, in order: which revolution with odometry up to which reading, when the "
+        "end-of-exploration job was asked for, and when a loop-closure result was merged (after how many "
+        "scans), so a replay takes the same steps",
     ),
     "mazebot.Stats": _schema(
         "mazebot.Stats",

@@ -8,7 +8,7 @@ The method itself is untouched; this subclass only reports after each step.
 Example::
 
     slam = ObservedSlam(params, background=True, record_trajectory=False)
-    slam.observers.append(my_observer)   # slam_updated(...) and slam_applied(...)
+    slam.observers.append(my_observer)   # slam_updated(...), slam_final(...) and slam_applied(...)
 """
 
 from __future__ import annotations
@@ -16,11 +16,13 @@ from __future__ import annotations
 from typing import Protocol
 
 from mazebot.io.scan import Scan
-from mazebot.slam.slam import LoopClosureResult, OdometrySource, Slam, SlamUpdate
+from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, OdometrySource, Slam, SlamUpdate
 
 
 class SlamObserver(Protocol):
     def slam_updated(self, slam: Slam, scan: Scan, odometry: OdometrySource, update: SlamUpdate) -> None: ...
+
+    def slam_final(self, slam: Slam) -> None: ...
 
     def slam_applied(self, slam: Slam, result: LoopClosureResult, rebuilt: bool) -> None: ...
 
@@ -37,6 +39,13 @@ class ObservedSlam(Slam):
         for observer in self.observers:
             observer.slam_updated(self, scan, odometry, update)
         return update
+
+    def final_job(self) -> LoopClosureJob | None:
+        job = super().final_job()
+        if job is not None:
+            for observer in self.observers:
+                observer.slam_final(self)
+        return job
 
     def apply(self, result: LoopClosureResult) -> bool:
         rebuilt = super().apply(result)

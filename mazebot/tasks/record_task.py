@@ -61,6 +61,9 @@ class RecordingTap:
             },
         )
 
+    def slam_final(self, slam: Slam) -> None:
+        self.put("/mazebot/slam", {"kind": "final", "scans": slam.scans})
+
     def slam_applied(self, slam: Slam, result: LoopClosureResult, rebuilt: bool) -> None:
         self.put("/mazebot/slam", {"kind": "apply", "scans": slam.scans, "rebuilt": bool(rebuilt)})
 

@@ -5,7 +5,9 @@ Each revolution from ``state.scans`` goes through :meth:`mazebot.slam.slam.Slam.
 hands back a loop-closure job (verification, pose-graph optimization, grid rebuild:
 tens to hundreds of milliseconds), it runs in ``executor`` (by default a worker process,
 :mod:`mazebot.slam.loop_worker`) while scans keep being processed; its result is merged
-with :meth:`Slam.apply` as soon as it is done.
+with :meth:`Slam.apply` as soon as it is done. When the exploration ends (``returning``
+or ``done``) one more job optimizes the whole graph and rebuilds the map from it
+(:meth:`Slam.final_job`): the map the user keeps has the optimized keyframes' accuracy.
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
@@ -29,7 +31,7 @@ from mazebot.io.scan import Scan
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
 from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams, SlamUpdate
-from mazebot.state import SharedState
+from mazebot.state import RunState, SharedState
 
 log = logging.getLogger(__name__)
 
@@ -65,11 +67,13 @@ async def run(
     if slam.keyframes:  # a resumed run: its map is served before the first revolution
         state.map = slam.grid
         state.slam.keyframes = len(slam.keyframes)
+        state.slam.anchored = slam.anchored
     next_scan: asyncio.Future[Scan] | None = None
     job: asyncio.Future[LoopClosureResult] | None = None
     job_since_s = 0.0
     job_noted = False
     search: asyncio.Future[SearchResult] | None = None
+    final_done = False  # this exploration's final rebuild has been asked for
     try:
         while True:
             if next_scan is None:
@@ -130,6 +134,16 @@ async def run(
                 _note_slip(state, slam, guard, predicted, update, clock)
                 if update.loop_job is not None:  # the job itself, so a LoopClosureExecutor can ship it
                     job = loop.run_in_executor(executor, update.loop_job)
+                    job_since_s, job_noted = clock.now_s(), False
+            # the maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job)
+            if state.run_state is RunState.EXPLORING:
+                final_done = False
+            elif state.run_state in (RunState.RETURNING, RunState.DONE) and not final_done and job is None:
+                final = slam.final_job()
+                if final is not None:
+                    final_done = True
+                    log.info("exploration over: optimizing the pose graph and rebuilding the map once more")
+                    job = loop.run_in_executor(executor, final)
                     job_since_s, job_noted = clock.now_s(), False
     finally:
         if job is not None:
@@ -213,6 +227,7 @@ def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
     stats = state.slam
     stats.scans = slam.scans
     stats.keyframes = len(slam.keyframes)
+    stats.anchored = slam.anchored
 
 
 def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult) -> None:

@@ -40,8 +40,10 @@ def _check(row: dict) -> None:
         # mapped in about 20 s
         (FaultSpec("lidar-unplug", 5), FaultSpec("encoder-dead", 11), FaultSpec("lidar-health-error", 18),
          FaultSpec("loop-stall", 26)),
-        (FaultSpec("kidnap", 5), FaultSpec("motor-i2c", 14), FaultSpec("slam-raise", 21),
-         FaultSpec("executor-slow", 26)),
+        # the robot stands still for SLAM's anchor until about 4 s (20 revolutions), so the
+        # kidnap comes once it has driven a few seconds and has keyframes to be found in
+        (FaultSpec("kidnap", 8), FaultSpec("motor-i2c", 17), FaultSpec("slam-raise", 24),
+         FaultSpec("executor-slow", 29)),
     ],
     ids=["lidar-encoder-loop", "kidnap-motors-slam"],
 )

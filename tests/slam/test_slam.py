@@ -42,9 +42,15 @@ def _scan(parts: list[DeviceSamples]) -> Scan:
 
 
 def tour(
-    world: World, config: Config, seed: int, slam: Slam, after_update: Callable[[SlamUpdate], None] | None = None
+    world: World,
+    config: Config,
+    seed: int,
+    slam: Slam,
+    after_update: Callable[[SlamUpdate], None] | None = None,
+    still_s: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, np.ndarray]]]:
-    """Drive the whole scripted tour; returns (SLAM poses, true poses in the map frame, true trajectory)."""
+    """Drive the whole scripted tour (after ``still_s`` at rest); returns (SLAM poses, true poses in the map
+    frame, true trajectory)."""
     robot = SimulatedRobot(world, config, seed=seed)
     encoders = WheelEncoders.from_config(config.encoders, robot.pin_factory)
     motors = DifferentialMotors.from_config(config.motors, robot.kit, RealClock(), loop=None)
@@ -76,7 +82,7 @@ def tour(
         while not driver.done and k * STEP_S < 600.0:
             k += 1
             t = k * STEP_S
-            motors.set(*driver.command())
+            motors.set(*(driver.command() if t >= still_s else (0.0, 0.0)))
             robot.step(t)
             trajectory.append((t, np.array(robot.physics.pose)))
             if k % 2:
@@ -240,6 +246,91 @@ def test_wall_direction_shows_the_maze_grid(theta: float, cast_scan) -> None:
     off = (direction + theta + math.pi / 4) % (math.pi / 2) - math.pi / 4
     assert abs(math.degrees(off)) < 1.0  # one keyframe is a weak prior (its std: wall_prior_std_rad, 0.57°)
     assert strength > 0.8 and count > 100
+
+
+def _map_rotation_deg(slam: Slam, trajectory: list[tuple[float, np.ndarray]], start: np.ndarray) -> float:
+    """The rotation (degrees) that best fits the keyframe positions to the true ones (2D Kabsch, map frame)."""
+    times = np.array([t for t, _ in trajectory])
+    poses = np.array([p for _, p in trajectory])
+    at = np.array([kf.time_s for kf in slam.keyframes])
+    true_xy = np.column_stack((np.interp(at, times, poses[:, 0]), np.interp(at, times, poses[:, 1])))
+    truth = relative_pose(start, np.column_stack((true_xy, np.zeros(len(at)))))
+    est = slam.keyframe_poses()[:, :2]
+    a, b = est - est.mean(axis=0), truth[:, :2] - truth[:, :2].mean(axis=0)
+    return math.degrees(math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b))))
+
+
+def test_a_map_started_at_rest_is_not_turned_about_the_start(loop_maze: World) -> None:
+    # The first in-place turns, matched against a submap of one or two keyframes, used to
+    # leave the whole map turned about the start (0.1-0.4° in the bench's 6x6 mazes, 0.16°
+    # here), and the wall priors, estimating the wall grid from the keyframes alone,
+    # followed the turned map. Now keyframe 0 fuses the revolutions the robot stands still
+    # for and ties the wall grid to the walls it sees: the map is turned by far less.
+    config = Config()
+    slam = Slam(SlamParams.from_config(config.slam, config.lidar))
+    _, _, trajectory = tour(loop_maze, config, seed=2, slam=slam, still_s=4.0)
+    rotation_deg = _map_rotation_deg(slam, trajectory, np.array(loop_maze.start_pose))
+    assert abs(rotation_deg) < 0.05, rotation_deg
+    assert slam.anchor_revolutions == config.slam.anchor_revolutions
+
+
+def test_keyframe_0_measures_the_walls_over_the_revolutions_at_rest(maze_world: World, cast_scan) -> None:
+    # One scan's wall direction is a few tenths of a degree off (the A1's 1 % range noise);
+    # while the robot stands still, keyframe 0 averages it over anchor_revolutions, and
+    # the planner waits for that (Slam.anchored) before it drives.
+    from mazebot.slam.keyframes import Keyframe
+    from mazebot.slam.preprocess import prepare_scan
+
+    assert maze_world.maze is not None
+    x, y = maze_world.maze.cell_center_m((2, 3))
+    theta = 0.3
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(100.0, 0.0, 0.0, 0.0)
+    slam = Slam(SlamParams())
+    revolutions = slam.params.anchor_revolutions
+
+    def scan(k: int, pose: np.ndarray) -> Scan:
+        angles, ranges = cast_scan(maze_world, pose, noise_rel=0.01, seed=k)
+        valid = np.isfinite(ranges)
+        times = np.linspace(0.2 * k, 0.2 * k + 0.18, 360)
+        return Scan(angles, np.where(valid, ranges, 0.0), np.full(360, 47, np.uint8), times, valid)
+
+    def off_deg(direction_rad: float) -> float:  # the walls lie at -theta (mod 90°) in the robot frame
+        return math.degrees((direction_rad + theta + math.pi / 4) % (math.pi / 2) - math.pi / 4)
+
+    single = []
+    for k in range(revolutions):
+        assert not slam.anchored
+        one = scan(k, np.array([x, y, theta]))
+        slam.update(one, history)
+        single.append(off_deg(Keyframe.from_scan(0, np.zeros(3), prepare_scan(one, None)).wall_direction()[0]))
+    assert slam.anchored and slam.anchor_revolutions == revolutions and len(slam.keyframes) == 1
+    assert slam.anchor_wall_rad is not None
+    single_rms = math.sqrt(np.mean(np.square(single)))
+    assert single_rms > 0.2 and max(np.abs(single)) > 0.4  # one revolution alone
+    # the average takes the noise out; what is left (0.14° here) is the normals' bias at this spot
+    assert abs(off_deg(slam.anchor_wall_rad)) < 0.6 * single_rms
+    assert slam.wall_reference_rad is not None
+    assert abs(math.degrees(slam.wall_reference_rad - slam.anchor_wall_rad)) < 1e-9  # keyframe 0 is the map frame
+
+
+def test_keyframe_0_stops_measuring_when_the_robot_moves_early(maze_world: World, cast_scan) -> None:
+    assert maze_world.maze is not None
+    x, y = maze_world.maze.cell_center_m((2, 3))
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(0.79, 0.0, 0.0, 0.0)
+    history.append(0.8, 0.005, 0.0, 0.0)  # the robot was pushed 5 mm
+    history.append(2.0, 0.005, 0.0, 0.0)
+    slam = Slam(SlamParams())
+    for k in range(5):
+        angles, ranges = cast_scan(maze_world, np.array([x + (0.005 if k == 4 else 0.0), y, 0.0]), seed=k)
+        valid = np.isfinite(ranges)
+        times = np.linspace(0.2 * k, 0.2 * k + 0.18, 360)
+        slam.update(Scan(angles, np.where(valid, ranges, 0.0), np.full(360, 47, np.uint8), times, valid), history)
+        assert slam.anchored is (k == 4)
+    assert slam.anchor_revolutions == 4 and len(slam.keyframes) == 1  # the moved revolution is no part of it
 
 
 def test_wall_direction_is_estimated_with_the_poses_not_taken_from_one_keyframe(loop_maze: World) -> None:

@@ -25,7 +25,7 @@ from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.posegraph import compose
 from mazebot.slam.preprocess import PrepareParams
 from mazebot.slam.slam import LoopClosureResult, SlamParams, SlamUpdate
-from mazebot.state import SharedState
+from mazebot.state import RunState, SharedState
 from mazebot.tasks import lidar_task, odometry_task, slam_task
 
 
@@ -90,6 +90,12 @@ class FakeSlam:
     # what the localization guard reads (an empty grid: every revolution is "ok")
     time_offset: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(offset_s=0.0))
     params: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(prepare=PrepareParams()))
+    anchored: bool = True
+    final_jobs: int = 0
+
+    def final_job(self):  # the end-of-exploration job: the same result as the others
+        self.final_jobs += 1
+        return self.run
 
     def update(self, scan: Scan, odometry: OdometryHistory) -> SlamUpdate:
         self.scans += 1
@@ -146,6 +152,33 @@ class FakeLidar:
     async def scans(self):
         for scan in self._scans:
             yield scan
+
+
+async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimized_keyframes() -> None:
+    state = SharedState()
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(100.0, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    fake = FakeSlam()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
+        state.run_state = RunState.EXPLORING
+        await state.scans.put(_static_scan(1.0, np.zeros(3)))
+        await _until(lambda: fake.scans == 1)
+        assert fake.final_jobs == 0  # still exploring
+        state.run_state = RunState.RETURNING
+        for k in range(3):
+            await state.scans.put(_static_scan(1.2 + 0.2 * k, np.zeros(3)))
+        await _until(lambda: fake.scans == 4 and len(fake.applied_on) == 2)  # scan 2's job, then the final one
+        state.run_state = RunState.DONE
+        await state.scans.put(_static_scan(2.0, np.zeros(3)))
+        await _until(lambda: fake.scans == 5)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    assert fake.final_jobs == 1  # once, not once per scan nor again at done
+    assert state.slam.map_rebuilds == 2 and state.map is fake.grid
 
 
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind() -> None:

@@ -41,8 +41,10 @@ MIN_WHEEL_SPEED_MPS = 0.015
 WEAK_CHECK_EFFECTIVE_THROTTLE = 0.12
 #: A wheel whose speed changed by more than this share since the previous check is still
 #: following a new throttle (the motor's lag: a turn in place reversing one wheel showed it
-#: at 18 % of its throttle's speed for two checks), and tells nothing about its strength.
-STEADY_SPEED_SHARE = 0.2
+#: at 18 % of its throttle's speed for two checks, changing by 70-340 % a check), and tells
+#: nothing about its strength. 20 % also held back a really weak motor whose wheel control
+#: was still pushing it harder (said after 600 ms instead of 300).
+STEADY_SPEED_SHARE = 0.5
 #: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
 NOTE_EVERY_S = 5.0
 

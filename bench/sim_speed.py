@@ -58,7 +58,12 @@ class _JobTimer:
 
 
 async def _drain_scans(state: Any, clock: Any, params: Any, executor: Any = None, slam: Any = None) -> None:
-    """Stands in for ``slam_task.run``: takes every scan and does nothing with it."""
+    """Stands in for ``slam_task.run``: takes every scan and does nothing with it.
+
+    It says the map is anchored at once, or the scripted drive would wait for SLAM's anchor
+    for ever (the tour then idles to the time limit).
+    """
+    state.slam.anchored = True
     while True:
         await state.scans.get()
 

@@ -200,7 +200,7 @@ class Pilot:
         if grid is None:
             self._hold(state, now_s, "waiting for the first map")
             return False
-        if not state.slam.anchored:  # SLAM fuses a few revolutions at rest into the map's anchor (< 1 s)
+        if not state.slam.anchored:  # SLAM fuses revolutions at rest into the map's anchor (20, ~3.6 s)
             self._hold(state, now_s, "waiting for SLAM to anchor the map (standing still)")
             return False
         three = grid.three_state()

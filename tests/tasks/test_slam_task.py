@@ -122,12 +122,17 @@ class FakeSlam:
         return np.array([[0.1, 0.2, 0.0], [0.3, 0.4, 0.0]])
 
 
-async def test_loop_closure_job_runs_in_the_executor_and_its_result_is_published() -> None:
-    state = SharedState()
+def _standing_still() -> OdometryHistory:
+    """Odometry of a robot that has not moved, covering every scan of these tests (0-100 s)."""
     history = OdometryHistory()
     history.append(0.0, 0.0, 0.0, 0.0)
     history.append(100.0, 0.0, 0.0, 0.0)
-    state.odometry_history = history
+    return history
+
+
+async def test_loop_closure_job_runs_in_the_executor_and_its_result_is_published() -> None:
+    state = SharedState()
+    state.odometry_history = _standing_still()
     fake = FakeSlam()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
         task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
@@ -156,10 +161,7 @@ class FakeLidar:
 
 async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimized_keyframes() -> None:
     state = SharedState()
-    history = OdometryHistory()
-    history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(100.0, 0.0, 0.0, 0.0)
-    state.odometry_history = history
+    state.odometry_history = _standing_still()
     fake = FakeSlam()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
         task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
@@ -251,10 +253,7 @@ async def test_a_loop_closure_is_not_merged_while_the_search_for_the_lost_robot_
     """The search reads the live grid and keyframes in a thread; a loop closure finishing meanwhile
     must wait until the search is over, or the grid would be rebuilt under it."""
     state = SharedState()
-    history = OdometryHistory()
-    history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(100.0, 0.0, 0.0, 0.0)
-    state.odometry_history = history
+    state.odometry_history = _standing_still()
     job_may_end, search_may_end, searching = threading.Event(), threading.Event(), threading.Event()
     fake = FakeSlam()
     real_job = fake.run

@@ -47,17 +47,17 @@ class FrozenOdometry:
 def capture(seed: int, size: int, out: str) -> None:
     config = load_config(None)
     frames: list[tuple[Any, np.ndarray]] = []
-    real_update = slam_module.Slam.update
+    real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
     def update(self: Slam, scan: Any, odometry: Any) -> Any:
         frames.append((scan, odometry._buf[odometry._start : odometry._end].copy()))
-        return real_update(self, scan, odometry)
+        return (yield from real_update(self, scan, odometry))
 
-    slam_module.Slam.update = update  # type: ignore[method-assign]
+    slam_module.Slam.update_steps = update  # type: ignore[method-assign]
     try:
         metrics, _ = run_one(config, RunSpec(None, (size, size), seed, "scripted"))
     finally:
-        slam_module.Slam.update = real_update  # type: ignore[method-assign]
+        slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
     with open(out, "wb") as f:
         pickle.dump({"seed": seed, "size": size, "frames": frames}, f)
     print(f"{len(frames)} scans over {metrics['time_s']:.1f} s simulated written to {out}")

@@ -19,6 +19,7 @@ keyframe by a weak odometry edge), and loop closure ties them to the saved ones 
 from __future__ import annotations
 
 import logging
+from collections.abc import Generator
 from dataclasses import dataclass
 from typing import Any
 
@@ -105,10 +106,11 @@ class ResumedSlam(ObservedSlam):
             self._edge_var_xy.append(var_xy)
             self._edge_var_theta.append(var_theta)
 
-    def update(self, scan: Scan, odometry: OdometrySource) -> SlamUpdate:
+    def update_steps(self, scan: Scan, odometry: OdometrySource) -> Generator[None, None, SlamUpdate]:
         if self.relocalization is None and self.keyframes:
             self.relocalization = self.relocalize(scan, odometry)
-        return super().update(scan, odometry)
+            yield
+        return (yield from super().update_steps(scan, odometry))
 
     def relocalize(self, scan: Scan, odometry: OdometrySource) -> Relocalization:
         """Find the first revolution in the saved map; sets ``initial_pose`` and the submap."""

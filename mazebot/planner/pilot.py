@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,7 @@ from mazebot.planner.maze_graph import MazeGraph
 from mazebot.planner.safety import reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
+from mazebot.steps import run_steps
 
 log = logging.getLogger(__name__)
 
@@ -225,6 +227,14 @@ class Pilot:
 
     def drive(self, state: SharedState, now_s: float) -> None:
         """The motion half of a tick: the DWA along the path on the latest scan, map and pose."""
+        run_steps(self.drive_steps(state, now_s))
+
+    def drive_steps(self, state: SharedState, now_s: float) -> Generator[None, None, None]:
+        """:meth:`drive` in stages (:mod:`mazebot.steps`): the planner task lets the loop run between them.
+
+        The inputs (pose, scan, map) are read before the first stage; a stop pressed while
+        the stages run leaves the command alone (the control task already commands zero).
+        """
         if self._drive_inputs is None or not state.run_state.moving:  # stopped since plan(): nothing to drive
             return
         three, origin_m, resolution_m, target_m = self._drive_inputs
@@ -236,9 +246,13 @@ class Pilot:
         if self.explorer.mode == "maze":
             walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
-        cmd = self.local.step(
-            pose, velocity, self._scan_points(state), map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy
+        scan_xy = self._scan_points(state)
+        yield
+        cmd = yield from self.local.step_steps(
+            pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy
         )
+        if not state.run_state.moving:  # stopped while the stages ran
+            return
         if cmd.status is LocalStatus.RECOVERING and not self._recovering:
             where = f"{pose[0]:.2f}, {pose[1]:.2f}"
             state.planner_events.append((now_s, f"stuck: recovery {self.local.recoveries} at {where}"))

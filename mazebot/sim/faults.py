@@ -257,13 +257,13 @@ def _slam_raises(ctx: FaultContext) -> None:
     slam = ctx.slam
     if slam is None:
         raise RuntimeError("slam-raise needs the daemon's Slam (FaultInjector.instrument)")
-    real_update = slam.update
+    real_update = slam.update_steps  # what the SLAM task calls (Slam.update runs the same stages)
 
     def update_once_failing(scan: Any, odometry: Any) -> Any:
-        slam.update = real_update  # the next scan is processed normally
+        slam.update_steps = real_update  # the next scan is processed normally
         raise InjectedFault("injected: a SLAM update failed")
 
-    slam.update = update_once_failing
+    slam.update_steps = update_once_failing
 
 
 def _slow_job(ctx: FaultContext) -> None:

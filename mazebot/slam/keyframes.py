@@ -81,6 +81,11 @@ class Keyframe:
     def normals(self) -> np.ndarray:
         return self.surface()[1]
 
+    @property
+    def has_surface(self) -> bool:
+        """The surface has been computed (asking for it costs nothing more)."""
+        return self._surface is not None
+
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
         """``(points, normals)``: hits with a usable normal (oriented to the lidar), smoothed; computed once."""
         surface = self._surface

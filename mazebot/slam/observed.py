@@ -13,6 +13,7 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from typing import Protocol
 
 from mazebot.io.scan import Scan
@@ -28,14 +29,14 @@ class SlamObserver(Protocol):
 
 
 class ObservedSlam(Slam):
-    """Slam plus a list of observers called after ``update`` and ``apply``."""
+    """Slam plus a list of observers called after ``update`` (``update_steps``) and ``apply``."""
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.observers: list[SlamObserver] = []
 
-    def update(self, scan: Scan, odometry: OdometrySource) -> SlamUpdate:
-        update = super().update(scan, odometry)
+    def update_steps(self, scan: Scan, odometry: OdometrySource) -> Generator[None, None, SlamUpdate]:
+        update = yield from super().update_steps(scan, odometry)
         for observer in self.observers:
             observer.slam_updated(self, scan, odometry, update)
         return update

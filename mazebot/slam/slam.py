@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Generator
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -60,6 +61,7 @@ from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, bui
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+from mazebot.steps import run_steps
 
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
@@ -569,6 +571,20 @@ class Slam:
 
     def update(self, scan: Scan, odometry: OdometrySource) -> SlamUpdate:
         """Process one revolution; ``odometry`` gives odometry poses at any recent time."""
+        return run_steps(self.update_steps(scan, odometry))
+
+    def update_steps(self, scan: Scan, odometry: OdometrySource) -> Generator[None, None, SlamUpdate]:
+        """:meth:`update` in stages: a generator that yields between them and returns the update.
+
+        The daemon's SLAM task lets the event loop run between two stages (the 20 Hz
+        control tick must not wait for a whole keyframe scan: up to ~20 ms with the submap
+        rebuild); offline tools call :meth:`update`, which runs every stage at once. The
+        stages are the same computation in the same order either way, so the result is
+        the same; between two of them SLAM's state is consistent (a keyframe is in the
+        list, the graph and the selector together), only the new submap may still be
+        under construction. A subclass that adds to an update overrides this method
+        (``update = yield from super().update_steps(scan, odometry)``).
+        """
         p = self.params
         # the lidar's stamps are late by the time offset: the samples were taken earlier
         offset_s = self.time_offset.offset_s
@@ -590,11 +606,12 @@ class Slam:
 
         # 2. de-skew: every sample into the robot frame at the end of the revolution
         prepared = prepare_scan(scan, self._deskew_motion(odometry, odom), p.prepare)
+        yield
 
         # 3. match against the local submap, from the prediction (and from turned guesses if that fails)
         match = None
         if self.target is not None and len(self.target) and prepared.points_match.shape[0]:
-            match = self._match(prepared)
+            match = yield from self._match_steps(prepared)
 
         # 4. correct the filter (unobserved directions keep the odometry)
         matched = False
@@ -613,6 +630,8 @@ class Slam:
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
 
+        yield
+
         # 5. keyframe: into the pose graph, and a new local submap
         rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel)
         keyframe = None
@@ -622,10 +641,16 @@ class Slam:
             keyframe = self._add_keyframe(pose, odom, prepared, rays)
         if self.record_trajectory:
             self._scan_log.append((time_s, len(self.keyframes) - 1, relative_pose(self.keyframes[-1].pose, pose)))
+        if keyframe is not None and self._target_due(pose):
+            yield
+            yield from self._rebuild_target_steps()
+        yield
 
         # 6. update the grid with the scan's rays at the corrected pose
         ends, hit, origins = rays
         self.grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
+        if keyframe is not None:
+            yield
 
         # 7. close loops: candidates by distance and drift, strict verification, optimization, rebuilt map
         job = self._loop_closure_job() if keyframe is not None else None
@@ -754,16 +779,19 @@ class Slam:
             direction, strength, count = kf.wall_direction()
             if strength >= p.wall_min_strength and count >= p.wall_min_normals:
                 self.wall_reference_rad = _wrap_quarter(direction + float(pose[2]))
+        self._keyframes_since_attempt += 1
+        return index
+
+    def _target_due(self, pose: np.ndarray) -> bool:
+        """The new keyframe at ``pose`` calls for a new local submap (moved far enough, or enough keyframes)."""
+        p = self.params
         moved = (
             math.inf
             if self._target_position is None
             else math.hypot(pose[0] - self._target_position[0], pose[1] - self._target_position[1])
         )
         due = self._keyframes_since_target >= p.submap_update_keyframes
-        if self.target is None or moved >= p.submap_update_m or due:
-            self._rebuild_target()
-        self._keyframes_since_attempt += 1
-        return index
+        return self.target is None or moved >= p.submap_update_m or due
 
     def _standing_at_anchor(self, odom: np.ndarray) -> bool:
         """Keyframe 0 is the only one, wants more revolutions, and the odometry has not moved since it."""
@@ -821,6 +849,10 @@ class Slam:
         laser log) can put ICP in the wrong basin; the best acceptable retry (lowest
         residual) wins, else the first result stands.
         """
+        return run_steps(self._match_steps(prepared))
+
+    def _match_steps(self, prepared: PreparedScan) -> Generator[None, None, IcpResult]:
+        """:meth:`_match`, yielding before each retry (a scan that needs them costs up to five ICP runs)."""
         p = self.params
         assert self.target is not None
         guess = self.ekf.mean
@@ -829,6 +861,7 @@ class Slam:
             return match
         best = None
         for turn in p.retry_headings_rad:
+            yield
             start = guess + np.array([0.0, 0.0, turn])
             retry = match_scan(
                 self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy, prior_pose=guess
@@ -865,6 +898,15 @@ class Slam:
 
     def _rebuild_target(self) -> None:
         """The local submap: the recent keyframes, and older ones close to the newest (KISS-ICP's local map)."""
+        run_steps(self._rebuild_target_steps())
+
+    def _rebuild_target_steps(self) -> Generator[None, None, None]:
+        """:meth:`_rebuild_target` in stages: the new keyframes' surfaces one by one, then the submap.
+
+        A keyframe's surface (normals, points smoothed onto their lines) is computed the
+        first time a submap needs it, one to four of them per rebuild, about a
+        millisecond each; the submap (transform, voxel filter, kd-tree) comes after them.
+        """
         p = self.params
         count = len(self.keyframes)
         first_recent = max(0, count - p.submap_keyframes)
@@ -876,6 +918,10 @@ class Slam:
             near = np.flatnonzero(dist <= p.submap_radius_m)
             near = near[np.argsort(dist[near], kind="stable")[: p.submap_near_keyframes]]
             chosen = sorted(near.tolist()) + chosen
+        for k in chosen:
+            if not self.keyframes[k].has_surface:
+                self.keyframes[k].surface()
+                yield
         self.target = build_target([self.keyframes[k] for k in chosen], p.submap_voxel_m)
         self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()

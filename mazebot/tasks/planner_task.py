@@ -3,9 +3,10 @@
 The tick reads the map and pose SLAM published and writes the goal, the path and the
 body-velocity command; the wheels are the control task's. A tick costs a few
 milliseconds (graph update, route search, DWA); it runs on the event loop so it sees a
-consistent map (SLAM replaces it only between ticks) and never races the writers, in two
-halves (goal, then motion) with the loop free in between, so a control tick never waits
-for a whole planner tick.
+consistent map (its inputs are taken at the start of each half) and never races the
+writers, in two halves (goal, then motion) with the loop free in between, the motion half
+itself in stages (the DWA's clearance queries, :meth:`Pilot.drive_steps`), so a control
+tick never waits for a whole planner tick.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from collections import deque
 from mazebot.clock import Clock
 from mazebot.planner.pilot import Pilot
 from mazebot.state import SharedState
+from mazebot.steps import run_steps_async
 
 
 async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: deque[float] | None = None) -> None:
@@ -28,9 +30,9 @@ async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: deque[flo
         if pilot.plan(state, clock.now_s()):
             spent_s = time.process_time() - cpu0
             await asyncio.sleep(0)  # let a due control tick run between the two halves
-            cpu0 = time.process_time()
-            pilot.drive(state, clock.now_s())
-            spent_s += time.process_time() - cpu0
+            drive_cpu_s = [0.0]
+            await run_steps_async(pilot.drive_steps(state, clock.now_s()), drive_cpu_s)  # the DWA in stages too
+            spent_s += drive_cpu_s[0]
         else:
             spent_s = time.process_time() - cpu0
         if tick_ms is not None:

@@ -41,19 +41,19 @@ def frames() -> list[tuple[object, np.ndarray]]:
     The tour starts once SLAM has its anchor (about 4 s at rest), so this is its first 46 s.
     """
     captured: list[tuple[object, np.ndarray]] = []
-    real_update = slam_module.Slam.update
+    real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
     def update(self: Slam, scan: object, odometry: object) -> object:
         captured.append((scan, odometry._buf[odometry._start : odometry._end].copy()))  # type: ignore[attr-defined]
-        return real_update(self, scan, odometry)  # type: ignore[arg-type]
+        return (yield from real_update(self, scan, odometry))  # type: ignore[arg-type]
 
     config = Config()
     config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": "thread"})})
-    slam_module.Slam.update = update  # type: ignore[method-assign]
+    slam_module.Slam.update_steps = update  # type: ignore[method-assign]
     try:
         run_one(config, RunSpec(None, (4, 4), 5, "scripted", max_sim_s=50.0))
     finally:
-        slam_module.Slam.update = real_update  # type: ignore[method-assign]
+        slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
     return captured
 
 

@@ -239,16 +239,16 @@ async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -
     state.odometry_history = history
     params = SlamParams.from_config(config.slam, config.lidar)
     slam = Slam(params, background=True, record_trajectory=False)
-    real_update = slam.update
+    real_update = slam.update_steps  # what the SLAM task calls
     calls: list[int] = []
 
     def update_failing_once(scan, hist):
         calls.append(1)
         if len(calls) == 2:
             raise np.linalg.LinAlgError("Singular matrix")
-        return real_update(scan, hist)
+        return (yield from real_update(scan, hist))
 
-    slam.update = update_failing_once  # type: ignore[method-assign]
+    slam.update_steps = update_failing_once  # type: ignore[method-assign]
     with ThreadPoolExecutor(max_workers=1) as executor:
         task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor, slam))
         state.scans.put_nowait(_maze_scan(1.0))
@@ -342,7 +342,7 @@ async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> No
     state.odometry_history = history
     params = SlamParams.from_config(config.slam, config.lidar)
     slam = Slam(params, background=True, record_trajectory=False)
-    real_update = slam.update
+    real_update = slam.update_steps  # what the SLAM task calls
     release = threading.Event()
 
     class SlowJob:
@@ -351,12 +351,12 @@ async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> No
             return slam_task.LoopClosureResult(verdicts=[], poses=None)
 
     def update_with_a_slow_job(scan, hist):
-        update = real_update(scan, hist)
+        update = yield from real_update(scan, hist)
         if slam.scans == 1:
             return replace(update, loop_job=SlowJob())
         return update
 
-    slam.update = update_with_a_slow_job  # type: ignore[method-assign]
+    slam.update_steps = update_with_a_slow_job  # type: ignore[method-assign]
     with ThreadPoolExecutor(max_workers=1) as executor:
         task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor, slam))
         state.scans.put_nowait(_maze_scan(1.0))

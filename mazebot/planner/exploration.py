@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -53,6 +53,7 @@ from mazebot.planner.global_path import (
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
+from mazebot.steps import run_steps
 
 
 class Phase(enum.StrEnum):
@@ -315,11 +316,23 @@ class Explorer:
         every phase (in DONE: stay at the start); None before the map holds anything to
         plan on.
         """
+        return run_steps(self.update_steps(three_state, grid_origin_m, resolution_m, pose, now_s))
+
+    def update_steps(
+        self,
+        three_state: np.ndarray,
+        grid_origin_m: tuple[float, float],
+        resolution_m: float,
+        pose: tuple[float, float, float],
+        now_s: float,
+    ) -> Generator[None, None, Goal | None]:
+        """:meth:`update` in two stages (:mod:`mazebot.steps`): the maze graph from the map, then the goal."""
         self.updates += 1
         grid = np.asarray(three_state)
         self._costmap = None
         if self.mode_setting != "frontier":
             self.graph.update(grid, grid_origin_m, resolution_m)
+            yield
         self._choose_mode()
         if self.phase is Phase.DONE:
             return Goal(Phase.DONE, self.start_xy_m, [self.start_xy_m], reason="done: back at the start")

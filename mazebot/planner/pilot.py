@@ -184,6 +184,14 @@ class Pilot:
         The two halves are separate so the planner task can let the event loop run in
         between (the control loop's ticks must not wait for a whole planner tick).
         """
+        return run_steps(self.plan_steps(state, now_s))
+
+    def plan_steps(self, state: SharedState, now_s: float) -> Generator[None, None, bool]:
+        """:meth:`plan` in stages (:mod:`mazebot.steps`): the map's three states, the maze graph, the goal.
+
+        The map and pose are read before the first stage; a stop pressed while the stages
+        run leaves the state alone (no goal, no ``returning``).
+        """
         self._drive_inputs = None
         if not state.run_state.moving:
             if self._was_moving:  # stopped, done or faulted since the last tick: forget the path
@@ -206,7 +214,10 @@ class Pilot:
             self._hold(state, now_s, "waiting for SLAM to anchor the map (standing still)")
             return False
         three = grid.three_state()
-        goal = self.explorer.update(three, grid.origin_m, grid.resolution_m, pose, now_s)
+        yield
+        goal = yield from self.explorer.update_steps(three, grid.origin_m, grid.resolution_m, pose, now_s)
+        if not state.run_state.moving:  # stopped while the stages ran: the next tick forgets the path
+            return False
         self._note_events(state, now_s, goal.reason if goal is not None else None, pose)
         state.coverage = self._coverage()
         if goal is None:

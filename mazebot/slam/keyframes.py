@@ -21,7 +21,7 @@ voxel map).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
+from mazebot.steps import run_steps
 
 
 @dataclass(frozen=True)
@@ -293,6 +294,17 @@ def build_target(
     All keyframes are moved in one vectorized pass (each point with its keyframe's cosine,
     sine and translation), the same arithmetic as :func:`transform` point by point.
     """
+    return run_steps(build_target_steps(keyframes, voxel_m, frame, poses, clip))
+
+
+def build_target_steps(
+    keyframes: Sequence[Keyframe],
+    voxel_m: float,
+    frame: np.ndarray | None = None,
+    poses: Sequence[np.ndarray] | None = None,
+    clip: tuple[np.ndarray, float] | None = None,
+) -> Generator[None, None, Target | None]:
+    """:func:`build_target` in stages (:mod:`mazebot.steps`): the union, the voxel filter, the kd-tree."""
     kept = [k for k, kf in enumerate(keyframes) if kf.points.shape[0]]
     if not kept:
         return None
@@ -329,7 +341,9 @@ def build_target(
         points, normals, views = points[near], normals[near], views[near]
         if points.shape[0] == 0:
             return None
+    yield
     first = voxel_downsample(points, voxel_m)
+    yield
     return Target(points[first], views[first], normals[first])
 
 

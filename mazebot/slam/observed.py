@@ -48,8 +48,8 @@ class ObservedSlam(Slam):
                 observer.slam_final(self)
         return job
 
-    def apply(self, result: LoopClosureResult) -> bool:
-        rebuilt = super().apply(result)
+    def apply_steps(self, result: LoopClosureResult) -> Generator[None, None, bool]:
+        rebuilt = yield from super().apply_steps(result)
         for observer in self.observers:
             observer.slam_applied(self, result, rebuilt)
         return rebuilt

@@ -57,7 +57,7 @@ from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffse
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
-from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, map_rays
+from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
@@ -684,6 +684,14 @@ class Slam:
         Keyframes added while the job ran keep their pose relative to the newest
         keyframe of the snapshot, so the whole recent trajectory follows the correction.
         """
+        return run_steps(self.apply_steps(result))
+
+    def apply_steps(self, result: LoopClosureResult) -> Generator[None, None, bool]:
+        """:meth:`apply` in stages (as :meth:`update_steps`): the new submap and the late keyframes' rays.
+
+        The keyframes and the filter move in the first stage, together; the old grid stays
+        the published one until the new one has every keyframe.
+        """
         self.job_running = False
         for v in result.verdicts:
             if not v.accepted:
@@ -708,11 +716,13 @@ class Slam:
         self._last_matched_pose = None  # the map moved under the filter: no calibration sample
         if self.selector.last is not None:
             self.selector.accept(compose(correction, self.selector.last))
-        self._rebuild_target()
+        yield
+        yield from self._rebuild_target_steps()
         if result.grid is None:
             return False
         grid = result.grid
         for kf in self.keyframes[count:]:  # added while the job ran
+            yield
             pose, ends, hit, origins = kf.rays()
             grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
         for kf in self.keyframes:
@@ -922,7 +932,7 @@ class Slam:
             if not self.keyframes[k].has_surface:
                 self.keyframes[k].surface()
                 yield
-        self.target = build_target([self.keyframes[k] for k in chosen], p.submap_voxel_m)
+        self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m)
         self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0

@@ -12,7 +12,6 @@ tick never waits for a whole planner tick.
 from __future__ import annotations
 
 import asyncio
-import time
 from collections import deque
 
 from mazebot.clock import Clock
@@ -26,15 +25,11 @@ async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: deque[flo
     period_s = pilot.params.period_s
     next_tick_s = clock.now_s()
     while True:
-        cpu0 = time.process_time()
-        if pilot.plan(state, clock.now_s()):
-            spent_s = time.process_time() - cpu0
+        cpu_s = [0.0]  # each half in stages (map and graph, goal; DWA blocks), the loop free in between
+        if await run_steps_async(pilot.plan_steps(state, clock.now_s()), cpu_s):
             await asyncio.sleep(0)  # let a due control tick run between the two halves
-            drive_cpu_s = [0.0]
-            await run_steps_async(pilot.drive_steps(state, clock.now_s()), drive_cpu_s)  # the DWA in stages too
-            spent_s += drive_cpu_s[0]
-        else:
-            spent_s = time.process_time() - cpu0
+            await run_steps_async(pilot.drive_steps(state, clock.now_s()), cpu_s)
+        spent_s = cpu_s[0]
         if tick_ms is not None:
             tick_ms.append(spent_s * 1000.0)
         next_tick_s += period_s

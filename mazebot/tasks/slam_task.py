@@ -96,7 +96,8 @@ async def run(
             if job is not None and job in done:
                 result = job.result()  # a crashed job is a SLAM fault, not silence
                 job = None
-                _publish_closure(state, slam, result)
+                rebuilt = await run_steps_async(slam.apply_steps(result))  # in stages, as the updates
+                _publish_closure(state, slam, result, rebuilt)
             if search is not None and search in done:
                 found = search.result()
                 search = None
@@ -232,9 +233,9 @@ def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
     stats.anchored = slam.anchored
 
 
-def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult) -> None:
+def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult, rebuilt: bool) -> None:
+    """What a merged loop-closure job (``rebuilt``: it replaced the grid) changed, into the shared state."""
     state.loop_job_ms.append(result.cpu_s * 1e3)
-    rebuilt = slam.apply(result)
     stats = state.slam
     stats.loop_closures = len(slam.closures)
     for record in slam.closures[len(stats.closures) :]:

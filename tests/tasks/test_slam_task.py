@@ -113,7 +113,8 @@ class FakeSlam:
         self.job_threads.append(threading.current_thread().name)
         return LoopClosureResult(verdicts=[], poses=np.array([[0.1, 0.2, 0.0], [0.3, 0.4, 0.0]]))
 
-    def apply(self, result: LoopClosureResult) -> bool:
+    def apply_steps(self, result: LoopClosureResult):  # what the SLAM task calls: one stage
+        yield
         self.applied_on.append(threading.current_thread().name)
         self.grid = OccupancyGrid()
         self.grid.generation = 7

@@ -37,11 +37,16 @@ neighbours (Hoppe et al., SIGGRAPH 1992); points whose neighbourhood is not a li
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Generator, Iterable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from mazebot.steps import run_steps
+
+#: ICP iterations between two stages of :func:`match_scan_steps` (a millisecond or two).
+ITERATIONS_PER_STAGE = 8
 
 
 @dataclass(frozen=True)
@@ -236,6 +241,22 @@ def match_scan(
     ``sensor_xy`` (2,) is the lidar centre in the robot frame (for the facing test);
     ``prior_pose`` (default ``initial_pose``) is what unobservable directions keep.
     """
+    return run_steps(match_scan_steps(target, source_xy, initial_pose, params, sensor_xy, prior_pose))
+
+
+def match_scan_steps(
+    target: Target,
+    source_xy: np.ndarray,
+    initial_pose: np.ndarray,
+    params: IcpParams | None = None,
+    sensor_xy: np.ndarray | None = None,
+    prior_pose: np.ndarray | None = None,
+) -> Generator[None, None, IcpResult]:
+    """:func:`match_scan` in stages (:mod:`mazebot.steps`): it yields every ``ITERATIONS_PER_STAGE`` iterations.
+
+    Most scans converge in a few iterations; a poor start can take up to
+    ``max_iterations`` (150), tens of milliseconds on the event loop in one piece.
+    """
     p = params or IcpParams()
     src = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
     pose = np.array(initial_pose, dtype=np.float64).reshape(3)
@@ -250,6 +271,8 @@ def match_scan(
         return _give_up(prior, 0)
 
     for iterations in range(1, p.max_iterations + 1):
+        if iterations % ITERATIONS_PER_STAGE == 0:
+            yield
         # 1. transform the source by the current estimate
         c, sn = math.cos(pose[2]), math.sin(pose[2])
         rot = np.array([[c, -sn], [sn, c]])

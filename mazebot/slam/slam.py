@@ -29,6 +29,13 @@ in an executor and hands the result to :meth:`Slam.apply`, which merges it with 
 keyframes added meanwhile. With ``background=False`` (offline tools, tests) ``update``
 runs and applies it at once.
 
+Steps 1–6 still take a few milliseconds per revolution, up to ~20 ms for a keyframe scan
+that rebuilds the local submap; on the daemon's event loop that is as long as the 20 Hz
+control tick may run late. :meth:`Slam.update_steps` and :meth:`Slam.apply_steps` are the
+same methods as generators that yield between their stages (:mod:`mazebot.steps`): the
+SLAM task lets the loop run in between, offline tools call ``update``/``apply``, which run
+every stage at once. Same stages, same order: the same result.
+
 Frames: the map frame is the robot's pose at the start (``initial_pose``, default the
 origin: x forward, y left); the odometry frame is wherever the encoders started.
 ``SlamUpdate.map_from_odom`` is the correction between them (ROS' ``map → odom``): the
@@ -56,7 +63,7 @@ from mazebot.io.scan import Scan
 from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
+from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
@@ -866,14 +873,16 @@ class Slam:
         p = self.params
         assert self.target is not None
         guess = self.ekf.mean
-        match = match_scan(self.target, prepared.points_match, guess, p.icp, sensor_xy=prepared.sensor_xy)
+        match = yield from match_scan_steps(
+            self.target, prepared.points_match, guess, p.icp, sensor_xy=prepared.sensor_xy
+        )
         if self.acceptable(match) or not p.retry_headings_rad:
             return match
         best = None
         for turn in p.retry_headings_rad:
             yield
             start = guess + np.array([0.0, 0.0, turn])
-            retry = match_scan(
+            retry = yield from match_scan_steps(
                 self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy, prior_pose=guess
             )
             if self.acceptable(retry) and (best is None or retry.rmse_m < best.rmse_m):

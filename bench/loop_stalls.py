@@ -9,8 +9,10 @@ on the wall clock; inside it, the heavy functions of SLAM and the planner listed
 ``SECTIONS`` are timed too. Printed: per callback kind, how many ran longer than
 ``--slow-ms`` (default 5 ms), their p99 and max; then the sections inside those slow
 callbacks, by total time: what to cut or move off the loop for the control task (20 Hz,
-its lateness is the loop's longest stretch) to keep its deadline. Timing costs a few
-percent; the run's own metrics (control lateness, scan ms) are printed as well.
+its lateness is the loop's longest stretch) to keep its deadline. Functions that are
+generators (``*_steps``, :mod:`mazebot.steps`) cannot be timed this way, so the list
+names what they call. Timing costs a few percent; the run's own metrics (control
+lateness, scan ms) are printed as well.
 """
 
 from __future__ import annotations
@@ -31,9 +33,9 @@ from mazebot.config import load_config
 #: (module, attribute path) of the functions timed inside callbacks.
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("mazebot.slam.slam", "Slam.apply"),
-    ("mazebot.slam.slam", "match_scan"),
+    ("mazebot.slam.icp", "_associate"),  # the ICP's nearest-neighbour search, each iteration
     ("mazebot.slam.slam", "Slam._add_keyframe"),
-    ("mazebot.slam.slam", "build_target"),
+    ("mazebot.slam.keyframes", "voxel_downsample"),  # the submap's voxel filter
     ("mazebot.slam.keyframes", "Keyframe.surface"),
     ("mazebot.slam.slam", "Slam._loop_closure_job"),
     ("mazebot.slam.slam", "prepare_scan"),

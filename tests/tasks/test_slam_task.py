@@ -97,7 +97,7 @@ class FakeSlam:
         self.final_jobs += 1
         return self.run
 
-    def update(self, scan: Scan, odometry: OdometryHistory) -> SlamUpdate:
+    def update(self, scan: Scan, odometry: OdometryHistory, **kwargs: object) -> SlamUpdate:
         self.scans += 1
         self.keyframes.append(self.scans)
         job = None

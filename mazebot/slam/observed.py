@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import Protocol
 
 from mazebot.io.scan import Scan
-from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, OdometrySource, Slam, SlamUpdate
+from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, OdometrySource, PaintDecision, Slam, SlamUpdate
 
 
 class SlamObserver(Protocol):
@@ -34,8 +34,8 @@ class ObservedSlam(Slam):
         super().__init__(*args, **kwargs)
         self.observers: list[SlamObserver] = []
 
-    def update(self, scan: Scan, odometry: OdometrySource) -> SlamUpdate:
-        update = super().update(scan, odometry)
+    def update(self, scan: Scan, odometry: OdometrySource, *, paint: bool | PaintDecision = True) -> SlamUpdate:
+        update = super().update(scan, odometry, paint=paint)
         for observer in self.observers:
             observer.slam_updated(self, scan, odometry, update)
         return update

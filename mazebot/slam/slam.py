@@ -66,6 +66,10 @@ from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, pre
 PENDING_CANDIDATES = 4
 
 
+#: Decides, once a revolution is matched, whether SLAM paints it: ``decide(match, matched)``.
+PaintDecision = Callable[["IcpResult | None", bool], bool]
+
+
 class OdometrySource(Protocol):
     """What SLAM needs from odometry: poses at any recent time (``OdometryHistory`` has this)."""
 
@@ -573,7 +577,7 @@ class Slam:
         scan: Scan,
         odometry: OdometrySource,
         *,
-        paint: bool | Callable[[IcpResult | None, bool], bool] = True,
+        paint: bool | PaintDecision = True,
     ) -> SlamUpdate:
         """Process one revolution; ``odometry`` gives odometry poses at any recent time.
 

@@ -49,9 +49,9 @@ def capture(seed: int, size: int, out: str) -> None:
     frames: list[tuple[Any, np.ndarray]] = []
     real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
-    def update(self: Slam, scan: Any, odometry: Any) -> Any:
+    def update(self: Slam, scan: Any, odometry: Any, **kwargs: Any) -> Any:
         frames.append((scan, odometry._buf[odometry._start : odometry._end].copy()))
-        return (yield from real_update(self, scan, odometry))
+        return (yield from real_update(self, scan, odometry, **kwargs))
 
     slam_module.Slam.update_steps = update  # type: ignore[method-assign]
     try:

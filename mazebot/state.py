@@ -108,6 +108,7 @@ class SlamStats:
     scans: int = 0  # revolutions processed
     scans_dropped: int = 0  # revolutions dropped because SLAM was behind
     keyframes: int = 0
+    held_back: int = 0  # revolutions that only localized, not painted: the odometry was known bad
     anchored: bool = False  # keyframe 0 holds its revolutions at rest (the robot waits for it before driving)
     loop_closures: int = 0  # accepted
     loop_closures_rejected: int = 0

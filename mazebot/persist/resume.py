@@ -34,7 +34,7 @@ from mazebot.slam.keyframes import build_target, transform
 from mazebot.slam.observed import ObservedSlam
 from mazebot.slam.posegraph import compose, inverse
 from mazebot.slam.preprocess import prepare_scan
-from mazebot.slam.slam import OdometrySource, SlamUpdate, _pose_at
+from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate, _pose_at
 
 log = logging.getLogger(__name__)
 
@@ -106,11 +106,13 @@ class ResumedSlam(ObservedSlam):
             self._edge_var_xy.append(var_xy)
             self._edge_var_theta.append(var_theta)
 
-    def update_steps(self, scan: Scan, odometry: OdometrySource) -> Generator[None, None, SlamUpdate]:
+    def update_steps(
+        self, scan: Scan, odometry: OdometrySource, *, paint: bool | PaintDecision = True
+    ) -> Generator[None, None, SlamUpdate]:
         if self.relocalization is None and self.keyframes:
             self.relocalization = self.relocalize(scan, odometry)
             yield
-        return (yield from super().update_steps(scan, odometry))
+        return (yield from super().update_steps(scan, odometry, paint=paint))
 
     def relocalize(self, scan: Scan, odometry: OdometrySource) -> Relocalization:
         """Find the first revolution in the saved map; sets ``initial_pose`` and the submap."""

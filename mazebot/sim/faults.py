@@ -259,7 +259,7 @@ def _slam_raises(ctx: FaultContext) -> None:
         raise RuntimeError("slam-raise needs the daemon's Slam (FaultInjector.instrument)")
     real_update = slam.update_steps  # what the SLAM task calls (Slam.update runs the same stages)
 
-    def update_once_failing(scan: Any, odometry: Any) -> Any:
+    def update_once_failing(scan: Any, odometry: Any, **kwargs: Any) -> Any:
         slam.update_steps = real_update  # the next scan is processed normally
         raise InjectedFault("injected: a SLAM update failed")
 

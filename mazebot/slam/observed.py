@@ -17,7 +17,7 @@ from collections.abc import Generator
 from typing import Protocol
 
 from mazebot.io.scan import Scan
-from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, OdometrySource, Slam, SlamUpdate
+from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, OdometrySource, PaintDecision, Slam, SlamUpdate
 
 
 class SlamObserver(Protocol):
@@ -35,8 +35,10 @@ class ObservedSlam(Slam):
         super().__init__(*args, **kwargs)
         self.observers: list[SlamObserver] = []
 
-    def update_steps(self, scan: Scan, odometry: OdometrySource) -> Generator[None, None, SlamUpdate]:
-        update = yield from super().update_steps(scan, odometry)
+    def update_steps(
+        self, scan: Scan, odometry: OdometrySource, *, paint: bool | PaintDecision = True
+    ) -> Generator[None, None, SlamUpdate]:
+        update = yield from super().update_steps(scan, odometry, paint=paint)
         for observer in self.observers:
             observer.slam_updated(self, scan, odometry, update)
         return update

@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -72,6 +72,10 @@ from mazebot.steps import run_steps
 
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
+
+
+#: Decides, once a revolution is matched, whether SLAM paints it: ``decide(match, matched)``.
+PaintDecision = Callable[["IcpResult | None", bool], bool]
 
 
 class OdometrySource(Protocol):
@@ -576,11 +580,27 @@ class Slam:
 
     # -- the method ----------------------------------------------------------------------
 
-    def update(self, scan: Scan, odometry: OdometrySource) -> SlamUpdate:
-        """Process one revolution; ``odometry`` gives odometry poses at any recent time."""
-        return run_steps(self.update_steps(scan, odometry))
+    def update(
+        self,
+        scan: Scan,
+        odometry: OdometrySource,
+        *,
+        paint: bool | PaintDecision = True,
+    ) -> SlamUpdate:
+        """Process one revolution; ``odometry`` gives odometry poses at any recent time.
 
-    def update_steps(self, scan: Scan, odometry: OdometrySource) -> Generator[None, None, SlamUpdate]:
+        ``paint=False`` (the odometry is known bad: a wheel slips, an encoder was dead, the robot
+        was just found again): the revolution only localizes the robot against the map as it is.
+        No keyframe, no grid update, and no calibration learnt from the bad odometry: a revolution
+        de-skewed and predicted with wrong wheel motion would put its walls in the wrong place.
+        A callable decides once the revolution is matched: ``paint(match, matched)`` (the SLAM task
+        asks whether ICP had to move the odometry's prediction far, i.e. a wheel slips right now).
+        """
+        return run_steps(self.update_steps(scan, odometry, paint=paint))
+
+    def update_steps(
+        self, scan: Scan, odometry: OdometrySource, *, paint: bool | PaintDecision = True
+    ) -> Generator[None, None, SlamUpdate]:
         """:meth:`update` in stages: a generator that yields between them and returns the update.
 
         The daemon's SLAM task lets the event loop run between two stages (the 20 Hz
@@ -590,7 +610,7 @@ class Slam:
         the same; between two of them SLAM's state is consistent (a keyframe is in the
         list, the graph and the selector together), only the new submap may still be
         under construction. A subclass that adds to an update overrides this method
-        (``update = yield from super().update_steps(scan, odometry)``).
+        (``update = yield from super().update_steps(scan, odometry, paint=paint)``).
         """
         p = self.params
         # the lidar's stamps are late by the time offset: the samples were taken earlier
@@ -626,14 +646,17 @@ class Slam:
         good_match = match is not None and self.acceptable(match)
         if good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
-        if good_match and p.estimate_time_offset and self._last_rate is not None:
+        if callable(paint):
+            paint = bool(paint(match, matched))
+        if paint and good_match and p.estimate_time_offset and self._last_rate is not None:
             # a turn starting or stopping shows a stamp offset (even when the filter's gate refused the match)
             self.time_offset.observe(float(match.pose[2]) - predicted_theta, rate - self._last_rate)
         self._last_rate = rate
         self.matched_scans += matched
         self._last_match = match if matched else None
         pose = self.ekf.mean.copy()
-        if matched and raw_increment is not None and self._last_matched_pose is not None and p.calibrate_heading:
+        if (paint and matched and raw_increment is not None and self._last_matched_pose is not None
+                and p.calibrate_heading):
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
 
@@ -642,11 +665,13 @@ class Slam:
         # 5. keyframe: into the pose graph, and a new local submap
         rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel)
         keyframe = None
-        if self._standing_at_anchor(odom):
+        if not paint:
+            pass  # localizing only: the map and the graph stay as they are
+        elif self._standing_at_anchor(odom):
             self._measure_anchor(prepared, rays)  # one more revolution of keyframe 0's walls, still at its pose
         elif self.selector.is_keyframe(pose):
             keyframe = self._add_keyframe(pose, odom, prepared, rays)
-        if self.record_trajectory:
+        if self.record_trajectory and self.keyframes:
             self._scan_log.append((time_s, len(self.keyframes) - 1, relative_pose(self.keyframes[-1].pose, pose)))
         if keyframe is not None and self._target_due(pose):
             yield
@@ -654,8 +679,9 @@ class Slam:
         yield
 
         # 6. update the grid with the scan's rays at the corrected pose
-        ends, hit, origins = rays
-        self.grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
+        if paint:
+            ends, hit, origins = rays
+            self.grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
         if keyframe is not None:
             yield
 

@@ -43,9 +43,9 @@ def frames() -> list[tuple[object, np.ndarray]]:
     captured: list[tuple[object, np.ndarray]] = []
     real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
-    def update(self: Slam, scan: object, odometry: object) -> object:
+    def update(self: Slam, scan: object, odometry: object, **kwargs: object) -> object:
         captured.append((scan, odometry._buf[odometry._start : odometry._end].copy()))  # type: ignore[attr-defined]
-        return (yield from real_update(self, scan, odometry))  # type: ignore[arg-type]
+        return (yield from real_update(self, scan, odometry, **kwargs))  # type: ignore[arg-type]
 
     config = Config()
     config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": "thread"})})

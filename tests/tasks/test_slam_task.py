@@ -97,7 +97,7 @@ class FakeSlam:
         self.final_jobs += 1
         return self.run
 
-    def update_steps(self, scan: Scan, odometry: OdometryHistory):  # what the SLAM task calls: one stage
+    def update_steps(self, scan: Scan, odometry: OdometryHistory, **kwargs: object):  # the task calls: one stage
         self.scans += 1
         yield
         self.keyframes.append(self.scans)

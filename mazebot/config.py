@@ -508,6 +508,12 @@ class SlamConfig(Section):
         0.01, ge=0, lt=0.3, description="the lidar's range noise, std as a fraction of the range (A1: about 1 %)"
     )
     grid_max_free_range_m: float = Field(4.0, gt=0, description="no-return beams clear space this far")
+    map_hit_depth_m: float = Field(
+        0.006,
+        ge=0,
+        le=0.05,
+        description="a hit marks the cell this far behind the wall's face (under the wall thickness)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> SlamConfig:

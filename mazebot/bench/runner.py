@@ -55,6 +55,8 @@ RECORD_PERIOD_S = 0.1
 #: A loop closure this far from the true relative pose is counted as false (a maze cell is 0.3 m).
 FALSE_CLOSURE_M = 0.1
 FALSE_CLOSURE_RAD = 0.1
+#: Cells of the map metrics' truth raster beyond the world's bounds on every side.
+MARGIN_CELLS = 2
 
 
 @dataclass(frozen=True)
@@ -158,7 +160,13 @@ def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footpr
     if grid is None or grid.shape[0] == 0:
         return {"coverage": None, "map_f1": None, "map_precision": None, "map_recall": None}
     res = grid.resolution_m
-    truth, origin = true_occupancy(world, res)
+    # the truth raster reaches MARGIN_CELLS beyond the world's bounds: a map cell on the outer
+    # wall whose centre lies just outside them is within the one-cell tolerance, not off the grid
+    bounds, bounds_origin = true_occupancy(world, res)
+    bounds_shape = bounds.shape
+    origin = (bounds_origin[0] - MARGIN_CELLS * res, bounds_origin[1] - MARGIN_CELLS * res)
+    shape = (bounds_shape[0] + 2 * MARGIN_CELLS, bounds_shape[1] + 2 * MARGIN_CELLS)
+    truth, origin = true_occupancy(world, res, origin, shape)
     reach, _ = free_reachable(world, res, footprint_radius_m, origin, truth.shape)
     rows, cols = truth.shape
     # coverage: look every reachable cell centre up in the map

@@ -201,6 +201,7 @@ def map_rays(
     max_range_m: float | None = None,
     smoothing: EndpointSmoothing | None = None,
     range_noise_rel: float = 0.0,
+    hit_depth_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The scan's rays for the occupancy grid, robot frame: ``(ends (K, 2), hit (K,), origins (K, 2))``.
 
@@ -215,6 +216,14 @@ def map_rays(
     point, so nothing is lost. Such a ray ends three noise standard deviations short
     of its hit (``range · (1 − 3 · range_noise_rel)``), so it never clears the wall it
     hit; with ``range_noise_rel`` 0 it ends at ``max_range_m``.
+
+    ``hit_depth_m`` moves every hit that marks a wall this far beyond the face along its
+    beam: a return comes from the face of the wall, and the cell to mark is the one
+    holding the wall's body behind it. When a face lies just behind a cell edge, the
+    endpoints left scattered around it (pose error, what smoothing leaves of the range
+    noise) would otherwise mark the free cell in front in most revolutions, the wall
+    would show two cells thick and the free space end one cell short of it. Keep it
+    below the thinnest wall (the maze's is 12 mm) so the marked cell is still on it.
     """
     beams = prepared.beams()
     ends, hit, origins = beams.endpoints, beams.hit.copy(), beams.origins
@@ -222,16 +231,20 @@ def map_rays(
         n = prepared.points_full.shape[0]  # the hits come first, in scan order
         ends = ends.copy()
         ends[:n] = smooth_endpoints(ends[:n], origins[:n], smoothing)
-    if max_range_m is None:
+    if max_range_m is None and hit_depth_m <= 0.0:
         return ends, hit, origins
     vec = ends - origins
     length = np.hypot(vec[:, 0], vec[:, 1])
-    far = hit & (length > max_range_m)
-    if far.any():
-        ends = ends.copy()
-        clear_m = length[far] * (1.0 - 3.0 * range_noise_rel) if range_noise_rel > 0 else max_range_m
-        ends[far] = origins[far] + vec[far] * (clear_m / length[far])[:, None]
-        hit[far] = False
+    ends = ends.copy()
+    if max_range_m is not None:
+        far = hit & (length > max_range_m)
+        if far.any():
+            clear_m = length[far] * (1.0 - 3.0 * range_noise_rel) if range_noise_rel > 0 else max_range_m
+            ends[far] = origins[far] + vec[far] * (clear_m / length[far])[:, None]
+            hit[far] = False
+    if hit_depth_m > 0.0:
+        deep = hit & (length > 0.0)
+        ends[deep] += vec[deep] * (hit_depth_m / length[deep])[:, None]
     return ends, hit, origins
 
 

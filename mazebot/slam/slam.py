@@ -124,6 +124,7 @@ class SlamParams:
     # hits moved along their beams onto their local wall line before mapping (None: as measured)
     map_smoothing: EndpointSmoothing | None = field(default_factory=EndpointSmoothing)
     range_noise_rel: float = 0.01  # the lidar's range noise (std / range): far hits clear up to 3 std short
+    map_hit_depth_m: float = 0.0  # a hit marks the cell this far behind the wall's face (keyframes.map_rays)
     filter_gate_chi2: float = 16.27
     calibrate_heading: bool = True  # learn the odometry's heading bias online (see ekf.HeadingCalibration)
     calibration_memory_scans: float = 1000.0
@@ -221,6 +222,7 @@ class SlamParams:
             map_max_range_m=slam.map_max_range_m or None,
             map_smoothing=EndpointSmoothing() if slam.map_smooth_endpoints else None,
             range_noise_rel=slam.range_noise_rel,
+            map_hit_depth_m=slam.map_hit_depth_m,
             filter_gate_chi2=slam.filter_gate_chi2,
             calibrate_heading=slam.odom_calibration,
             calibration_memory_scans=slam.odom_calibration_memory_scans,
@@ -663,7 +665,7 @@ class Slam:
         yield
 
         # 5. keyframe: into the pose graph, and a new local submap
-        rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel)
+        rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel, p.map_hit_depth_m)
         keyframe = None
         if not paint:
             pass  # localizing only: the map and the graph stay as they are

@@ -60,6 +60,25 @@ def time_limit_s(maze_path: str) -> float:
     return max(900.0, SIM_S_PER_CELL * len(seen))
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """``WxH`` (cells) of a generated maze, e.g. ``16x16``."""
+    try:
+        w_text, h_text = text.lower().split("x")
+        w, h = int(w_text), int(h_text)
+    except ValueError:
+        raise UsageError(f"--size must be WxH in cells, e.g. 16x16, got {text!r}") from None
+    if w < 2 or h < 2:
+        raise UsageError(f"--size needs at least 2x2 cells, got {text!r}")
+    return w, h
+
+
+def generated_specs(size: tuple[int, int], seeds: range, drive: str, clock: str) -> list[RunSpec]:
+    """Generated mazes of one size, one run per seed, with the time limit of a maze file of
+    that many cells (a 16x16 tour needs far more than the 6x6's 900 s)."""
+    max_sim_s = max(900.0, SIM_S_PER_CELL * size[0] * size[1])
+    return [RunSpec(None, size, s, drive, clock=clock, max_sim_s=max_sim_s) for s in seeds]
+
+
 def _progress(i: int, n: int, text: str) -> None:
     width = 30
     filled = int(width * i / n)
@@ -76,9 +95,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--first-seed must be at least 1, got {args.first_seed}")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     if args.room:
-        if args.maze:
-            raise UsageError("give either --room or --maze, not both")
+        if args.maze or args.size:
+            raise UsageError("give either --room or --maze/--size, not both")
         specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in seeds]
+    elif args.size:
+        if args.maze:
+            raise UsageError("give either --size or --maze, not both")
+        specs = generated_specs(parse_size(args.size), seeds, args.drive, args.clock)
     elif args.maze:
         for path in args.maze:
             if not Path(path).is_file():
@@ -121,6 +144,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench.add_argument("--maze", action="append", default=None, help="run these maze files instead of a suite")
     bench.add_argument("--room", action="store_true",
                        help="run the room with cylinders ([sim] room_*) instead of mazes, one run per seed")
+    bench.add_argument("--size", default=None, metavar="WxH",
+                       help="run generated mazes of this size (cells, e.g. 16x16) instead of a suite, "
+                            "one per seed")
     bench.add_argument("--seeds", type=int, default=3, help="seeds per generated maze (default 3)")
     bench.add_argument("--first-seed", type=int, default=1,
                        help="first seed of the generated mazes (default 1; above 1 the suite's fixed mazes are "

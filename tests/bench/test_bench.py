@@ -15,11 +15,13 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mazebot.bench.cli import suite_specs
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.cli import main
 from mazebot.config import Config
+from mazebot.errors import UsageError
 
 REQUIRED_KEYS = {
     "maze", "seed", "cells", "done", "time_s", "wall_s", "path_m", "avg_speed_mps", "coverage", "collisions",
@@ -139,3 +141,16 @@ def test_large_maze_files_get_a_time_limit_that_fits_their_size() -> None:
 
     assert time_limit_s(str(packaged_maze_path("default_6x6.txt"))) == 900.0
     assert time_limit_s(str(packaged_maze_path("japan2013ef.txt"))) == 14.0 * 256
+
+
+def test_generated_mazes_of_another_size_get_a_time_limit_for_their_cells() -> None:
+    from mazebot.bench.cli import generated_specs, parse_size
+
+    assert parse_size("16x16") == (16, 16) and parse_size("8X5") == (8, 5)
+    for bad in ("16", "16x", "axb", "1x16"):
+        with pytest.raises(UsageError):
+            parse_size(bad)
+    specs = generated_specs((16, 16), range(3, 6), "scripted", "virtual")
+    assert [(s.size, s.seed, s.drive) for s in specs] == [((16, 16), k, "scripted") for k in (3, 4, 5)]
+    assert specs[0].max_sim_s == pytest.approx(14.0 * 256)  # the 6x6's 900 s would cut a 16x16 tour
+    assert generated_specs((6, 6), range(1, 2), "scripted", "virtual")[0].max_sim_s == 900.0

@@ -52,6 +52,11 @@ STEADY_SPEED_SHARE = 0.5
 #: missed the 500 ms when the fault came while the robot braked into a turn in place (the
 #: first steady check of both wheels 400 ms after it).
 WEAK_AT_ONCE_RATIO = 0.3
+#: While any fault is active, and this long after the last one cleared, the wheels are held
+#: or starting again from rest (the motors' lag, half-failed throttle writes): their speeds
+#: tell nothing about a motor's strength. Without it the fault suite said a weak motor in
+#: the runs of lidar-motor-stop, motor-i2c and slam-raise.
+FAULT_SETTLE_S = 1.0
 #: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
 NOTE_EVERY_S = 5.0
 
@@ -87,6 +92,7 @@ class HealthMonitor:
         self._wheels = (_Wheel(), _Wheel())
         self._invalid_seen = 0
         self._weak_streak = [0, 0]
+        self._fault_seen_s: float | None = None  # the last check that saw an active fault
         self._last_speeds_mps: tuple[float, ...] | None = None
         self._last_note_s: dict[str, float] = {}
 
@@ -123,6 +129,11 @@ class HealthMonitor:
         gains = []
         last = self._last_speeds_mps or tuple(state.wheel_speeds_mps)
         self._last_speeds_mps = tuple(state.wheel_speeds_mps)
+        if state.faults:
+            self._fault_seen_s = now_s
+        if self._fault_seen_s is not None and now_s - self._fault_seen_s < FAULT_SETTLE_S:
+            self._weak_streak = [0, 0]
+            return
         for throttle, speed, last_speed in zip(state.throttles, state.wheel_speeds_mps, last, strict=True):
             effective = abs(throttle) - self.motor_deadband
             driven = (

@@ -319,6 +319,25 @@ def test_a_motor_far_weaker_than_the_other_is_said_at_its_first_steady_check() -
     assert len(notes) == 1 and "left motor gives only 28 %" in notes[0].message
 
 
+def test_no_weak_motor_is_said_while_a_fault_holds_the_wheels_nor_as_they_start_again() -> None:
+    # the same wheels as a weak motor at once, but a fault is active (half the throttle writes
+    # fail, the wheels are stopped): said only once the fault has been gone FAULT_SETTLE_S
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(motor_deadband=0.08)
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles, state.wheel_speeds_mps = (0.3, 0.3), (0.02, 0.25)
+    state.raise_fault("motors", "throttle writes fail", 100.0)
+    for k in range(5):
+        monitor.check(state, 100.0 + 0.1 * k)
+    state.clear_faults("motors")
+    for k in range(5, 14):  # 0.9 s after the last check that saw the fault
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert not [e for e in state.events if "motor gives only" in e.message]
+    for k in range(14, 17):
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert [e for e in state.events if "left motor gives only" in e.message]
+
+
 def test_an_arcs_inner_wheel_just_above_the_deadband_is_no_weak_motor() -> None:
     # an open-loop arc: the inner wheel at 0.14 (0.06 above the deadband) barely turns,
     # which says more about the deadband and the motor's lag than about its strength

@@ -66,7 +66,8 @@ async def test_slam_task_publishes_the_map_the_pose_correction_and_its_timing() 
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
-    assert isinstance(state.map, OccupancyGrid) and state.map.occupied_mask().sum() > 100
+    # the 3x3 maze's walls seen from the start cell: about 100 cells one cell thin
+    assert isinstance(state.map, OccupancyGrid) and state.map.occupied_mask().sum() > 60
     assert len(state.scan_ms) == 3 and all(ms > 0 for ms in state.scan_ms)
     assert state.pose_covariance is not None and state.pose_covariance.shape == (3, 3)
     assert list(state.trajectory) == [(pytest.approx(odom[0]), pytest.approx(odom[1]))]  # one keyframe: it stood still

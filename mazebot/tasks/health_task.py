@@ -14,9 +14,8 @@
   event, at most every ``NOTE_EVERY_S``). The wheels go on: SLAM corrects the odometry.
 - **Weak motor**: per wheel, the measured speed for the throttle given; a wheel that
   runs at less than ``weak_ratio`` of the other's for the same throttle, for
-  ``weak_checks`` checks in a row, or at less than ``WEAK_AT_ONCE_RATIO`` in one check,
-  is said (a ``motors`` event): the wheel controller makes up for it, but a gearbox or a
-  motor is failing.
+  ``weak_checks`` checks in a row, is said (a ``motors`` event): the wheel controller
+  makes up for it, but a gearbox or a motor is failing.
 
 All are plain checks on ``SharedState`` at 10 Hz; they never touch a device.
 """
@@ -47,11 +46,6 @@ WEAK_CHECK_EFFECTIVE_THROTTLE = 0.10
 #: nothing about its strength. 20 % also held back a really weak motor whose wheel control
 #: was still pushing it harder (said after 600 ms instead of 300).
 STEADY_SPEED_SHARE = 0.5
-#: A steady wheel below this share of the other's speed per throttle is weak at the first
-#: check (the suite's 40 % motor showed 28 % with its wheel control pushing it): two checks
-#: missed the 500 ms when the fault came while the robot braked into a turn in place (the
-#: first steady check of both wheels 400 ms after it).
-WEAK_AT_ONCE_RATIO = 0.3
 #: While any fault is active, and this long after the last one cleared, the wheels are held
 #: or starting again from rest (the motors' lag, half-failed throttle writes): their speeds
 #: tell nothing about a motor's strength. Without it the fault suite said a weak motor in
@@ -150,7 +144,7 @@ class HealthMonitor:
             ratio = gains[side] / gains[1 - side] if gains[1 - side] > 0 else 1.0
             weak = ratio < self.weak_ratio
             self._weak_streak[side] = self._weak_streak[side] + 1 if weak else 0
-            if self._weak_streak[side] >= self.weak_checks or ratio < WEAK_AT_ONCE_RATIO:
+            if self._weak_streak[side] >= self.weak_checks:
                 name = ("left", "right")[side]
                 share = 100 * gains[side] / gains[1 - side]
                 self._note(state, "motors", f"the {name} motor gives only {share:.0f} % of the other's speed for "

@@ -300,23 +300,24 @@ def test_a_motor_giving_much_less_speed_for_its_throttle_is_said() -> None:
     assert state.run_state is RunState.EXPLORING
 
 
-def test_a_motor_far_weaker_than_the_other_is_said_at_its_first_steady_check() -> None:
+def test_a_motor_far_weaker_than_the_other_is_said_at_its_second_steady_check() -> None:
     # measured in the fault suite (motor-weak, the left motor at 40 % of its speed): the fault
     # came as the robot braked into a turn in place; the right wheel reversing is no steady
-    # check, the first steady one shows the left wheel at 28 % of the right's speed per throttle
+    # check. One steady check alone is not enough: healthy wheels showed 19-30 % for one check
+    # in the training mazes (a wheel still catching up with its throttle), so the second says it
     state = SharedState(run_state=RunState.EXPLORING)
     monitor = HealthMonitor(motor_deadband=0.08)
     state.latest_scan = _scan_ending(1000.0)
     samples = [((0.446, 0.415), (0.25, 0.249)), ((0.147, 0.0), (0.185, 0.201)), ((0.131, -0.356), (0.08, 0.042)),
-               ((0.175, -0.293), (0.032, -0.097))]
+               ((0.175, -0.293), (0.032, -0.097)), ((0.204, -0.262), (0.025, -0.13))]
     for k, (throttles, speeds) in enumerate(samples):
         state.throttles, state.wheel_speeds_mps = throttles, speeds
         monitor.check(state, 100.0 + 0.1 * k)
     assert not [e for e in state.events if e.source == "motors"]
-    state.throttles, state.wheel_speeds_mps = (0.204, -0.262), (0.025, -0.13)
-    monitor.check(state, 100.4)
+    state.throttles, state.wheel_speeds_mps = (0.204, -0.262), (0.026, -0.13)
+    monitor.check(state, 100.5)
     notes = [e for e in state.events if e.source == "motors"]
-    assert len(notes) == 1 and "left motor gives only 28 %" in notes[0].message
+    assert len(notes) == 1 and "left motor gives only" in notes[0].message
 
 
 def test_no_weak_motor_is_said_while_a_fault_holds_the_wheels_nor_as_they_start_again() -> None:

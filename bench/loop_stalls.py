@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.bench.loop_callbacks import callback_name
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 
@@ -70,7 +71,7 @@ class Profile:
             start = time.perf_counter()
             handle_run(handle)
             ms = (time.perf_counter() - start) * 1e3
-            name = _callback_name(handle)
+            name = callback_name(handle)
             profile.callbacks[name].append(ms)
             if ms >= profile.slow_ms:
                 profile.slow.append((ms, name, profile._sections))
@@ -138,17 +139,6 @@ class Profile:
         for ms, name, sections in sorted(self.slow, key=lambda s: -s[0])[:10]:
             inner = ", ".join(f"{n.rsplit('.', 1)[-1]} {t:.1f}" for n, t in sections if t >= 1.0)
             print(f"  {ms:7.2f} ms  {name}: {inner}")
-
-
-def _callback_name(handle: asyncio.Handle) -> str:
-    callback = handle._callback  # type: ignore[attr-defined]
-    owner = getattr(callback, "__self__", None)
-    if isinstance(owner, asyncio.Task):
-        coro = owner.get_coro()
-        code = getattr(coro, "cr_code", None)
-        where = code.co_filename.rsplit("/", 1)[-1] if code is not None else "?"
-        return f"task {getattr(coro, '__qualname__', '?')} ({where})"
-    return getattr(callback, "__qualname__", type(callback).__name__)
 
 
 def main() -> None:

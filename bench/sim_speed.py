@@ -30,6 +30,7 @@ import statistics
 import time
 from typing import Any
 
+from mazebot.bench.loop_callbacks import callback_name
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 from mazebot.slam import slam as slam_module
@@ -98,17 +99,6 @@ def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) 
     }
 
 
-def _callback_name(handle: asyncio.Handle) -> str:
-    callback = handle._callback  # type: ignore[attr-defined]
-    owner = getattr(callback, "__self__", None)
-    if isinstance(owner, asyncio.Task):
-        coro = owner.get_coro()
-        code = getattr(coro, "cr_code", None)
-        where = code.co_filename.rsplit("/", 1)[-1] if code is not None else "?"
-        return f"task {getattr(coro, '__qualname__', '?')} ({where})"
-    return getattr(callback, "__qualname__", type(callback).__name__)
-
-
 def _wakeups(seed: int, paced: bool) -> None:
     """Event-loop passes and callbacks per simulated second of a run without SLAM."""
     counts: collections.Counter[str] = collections.Counter()
@@ -121,7 +111,7 @@ def _wakeups(seed: int, paced: bool) -> None:
         run_once(loop)
 
     def counting_run(handle: asyncio.Handle) -> None:
-        counts[_callback_name(handle)] += 1
+        counts[callback_name(handle)] += 1
         handle_run(handle)
 
     asyncio.BaseEventLoop._run_once = counting_run_once  # type: ignore[attr-defined]

@@ -78,8 +78,10 @@ def _pins(text: str | None) -> tuple[int | None, int | None]:
 # -- the viewers' process ------------------------------------------------------------------
 
 
-async def _viewer(url: str, seconds: float, log: list[tuple] | None, totals: list[int], index: int) -> None:
+async def _viewer(url: str, seconds: float, log: list[tuple] | None, totals: list[int], index: int,
+                  connected: asyncio.Event) -> None:
     async with aiohttp.ClientSession() as session, session.ws_connect(url, max_msg_size=0) as ws:
+        connected.set()
         end = time.monotonic() + seconds
         while (left := end - time.monotonic()) > 0:
             try:
@@ -102,7 +104,19 @@ async def _viewer(url: str, seconds: float, log: list[tuple] | None, totals: lis
 async def _viewers(url: str, count: int, seconds: float) -> dict[str, Any]:
     log: list[tuple] = []
     totals = [0] * count
-    await asyncio.gather(*(_viewer(url, seconds, log if i == 0 else None, totals, i) for i in range(count)))
+    events = [asyncio.Event() for _ in range(count)]
+
+    async def say_connected() -> None:
+        # The parent starts the abusers only after this line: the churning clients share the
+        # viewers' address, and the daemon's per-address connect limit would refuse a viewer
+        # that came second (on a quiet machine the abusers' process starts first).
+        await asyncio.gather(*(e.wait() for e in events))
+        print("viewers connected", flush=True)
+
+    announce = asyncio.ensure_future(say_connected())
+    await asyncio.gather(*(_viewer(url, seconds, log if i == 0 else None, totals, i, events[i])
+                           for i in range(count)))
+    announce.cancel()
     return {"log": log, "totals": totals, "seconds": seconds}
 
 
@@ -450,7 +464,10 @@ def main() -> int:
             if args.viewers:
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, __file__, "--viewer-child", base.replace("http", "ws") + "/ws",
-                    str(args.viewers), str(args.seconds), str(child_out), *pin_args)
+                    str(args.viewers), str(args.seconds), str(child_out), *pin_args,
+                    stdout=asyncio.subprocess.PIPE)
+                assert proc.stdout is not None
+                await asyncio.wait_for(proc.stdout.readline(), 30.0)  # "viewers connected"
             abusers = None
             if args.abuse:
                 abusers = await asyncio.create_subprocess_exec(

@@ -352,9 +352,25 @@ async def test_a_flooder_that_goes_on_after_its_close_frame_is_cut_off_not_read_
     aiohttp_client, state, server_log, monkeypatch
 ) -> None:
     """A flooder never answers the close frame and keeps sending: the server must not sit reading
-    (parsing) its flood for the whole close handshake, it hangs up. The polite close wait is made
-    a minute long here, so a server that waited for this client's close frame would not hang up."""
+    (parsing) its flood for the close handshake, it hangs up. The polite close wait is made
+    a minute long here, so a server that waited for this client's close frame would not hang up;
+    and no close handshake may start while the flooder's socket is still read (even a 0.1 s one
+    kept the loop parsing the flood for 0.1 s)."""
     monkeypatch.setattr(web_app, "CLOSE_HANDSHAKE_S", 60.0)
+    handshakes: list[tuple[int, bool]] = []  # (close code, the socket still read when it began)
+    prepare, close = web_app.GuardedWebSocket.prepare, web_app.GuardedWebSocket.close
+
+    async def remembering_prepare(self: Any, request: web.Request) -> Any:
+        self.request_for_test = request
+        return await prepare(self, request)
+
+    async def recorded_close(self: Any, **kwargs: Any) -> bool:
+        transport = self.request_for_test.transport
+        handshakes.append((int(kwargs.get("code", 1000)), transport is not None and not transport.is_closing()))
+        return await close(self, **kwargs)
+
+    monkeypatch.setattr(web_app.GuardedWebSocket, "prepare", remembering_prepare)
+    monkeypatch.setattr(web_app.GuardedWebSocket, "close", recorded_close)
     app = _app(state, message_rate_per_s=20, message_burst=40)
     client = await aiohttp_client(app)
     steady = await client.ws_connect("/ws")
@@ -383,6 +399,7 @@ async def test_a_flooder_that_goes_on_after_its_close_frame_is_cut_off_not_read_
         raw.close()
     network = (await (await client.get("/api/status")).json())["network"]
     assert network["flood_closes"] == 1
+    assert (aiohttp.WSCloseCode.POLICY_VIOLATION, True) not in handshakes, handshakes
     assert not steady.closed and state.commands.empty()
     await steady.close()
     assert_no_exception_logged(server_log)

@@ -139,6 +139,9 @@ class SharedState:
 
     run_state: RunState = RunState.IDLE
     faults: list[Fault] = field(default_factory=list)  # the active faults, one per source
+    #: how many faults were ever raised: the control task stops the wheels for a tick on each new
+    #: one, even one that cleared before the tick saw it (``mazebot.tasks.control_task``)
+    faults_raised: int = 0
     events: deque[Event] = field(default_factory=lambda: deque(maxlen=20))  # recent faults and notices
     #: the moving state a fault interrupted, or ``stopped`` if the user stopped during the fault
     #: (see ``clear_faults``)
@@ -217,6 +220,7 @@ class SharedState:
         """
         self.faults = [f for f in self.faults if f.source != source]
         self.faults.append(Fault(source, message, time_s, latched))
+        self.faults_raised += 1
         del self.faults[:-50]  # bounded, whatever happens
         self.note(source, message, time_s)
         if self.run_state.moving:

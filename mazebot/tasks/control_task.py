@@ -55,6 +55,7 @@ class MotorControl:
         # each motor's answer to the throttles written, for the health monitor's weak-motor check
         self.gains = WheelGainEstimator(d.max_wheel_speed_mps, c.motor_deadband, self.period_s, c.actuation_latency_s)
         self._last_tick_s: float | None = None
+        self._faults_raised_seen = 0
         guard = CollisionGuard(
             footprint_radius_m=config.robot.footprint_radius_m,
             margin_m=c.stop_margin_m,
@@ -84,6 +85,12 @@ class MotorControl:
         self._last_tick_s = now_s
         state.wheel_gains = self.gains.update(state.throttles, measured, dt_s)
         moving = state.run_state.moving
+        if state.faults_raised != self._faults_raised_seen:
+            # a fault since the last tick stops the wheels, even one already cleared again: a
+            # kidnapped robot found again 50 ms after it was lost, between two ticks, kept
+            # driving (tests/bench/test_fault_runs.py; issue 7: motors zero <= 200 ms after it)
+            self._faults_raised_seen = state.faults_raised
+            moving = False
         command = state.motion_command
         if moving and command is not None:
             return self._drive(state, command, measured, now_s)

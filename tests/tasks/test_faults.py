@@ -318,3 +318,19 @@ async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> No
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
+
+
+def test_a_fault_raised_and_cleared_between_two_control_ticks_still_stops_the_wheels_for_one() -> None:
+    # the kidnap of tests/bench/test_fault_runs.py: the robot was found again 40 ms after it was
+    # lost, the control task never saw the fault, and the wheels drove on for 8.6 s
+    control = control_task.MotorControl(Config())
+    state = SharedState(run_state=RunState.EXPLORING, auto_resume=True)
+    state.throttle_command = (0.3, 0.3, 100.0)
+    assert control.tick(state, 100.0) == (0.3, 0.3)
+    state.raise_fault("localization", "the robot does not know where it is", 100.02)
+    state.clear_faults("localization")
+    assert state.run_state is RunState.EXPLORING
+    state.throttle_command = (0.3, 0.3, 100.05)
+    assert control.tick(state, 100.05) == (0.0, 0.0)
+    state.throttle_command = (0.3, 0.3, 100.1)
+    assert control.tick(state, 100.1) == (0.3, 0.3)

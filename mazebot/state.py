@@ -139,6 +139,9 @@ class SharedState:
 
     run_state: RunState = RunState.IDLE
     faults: list[Fault] = field(default_factory=list)  # the active faults, one per source
+    #: how many faults were ever raised: the control task stops the wheels for a tick on each new
+    #: one, even one that cleared before the tick saw it (``mazebot.tasks.control_task``)
+    faults_raised: int = 0
     events: deque[Event] = field(default_factory=lambda: deque(maxlen=20))  # recent faults and notices
     #: the moving state a fault interrupted, or ``stopped`` if the user stopped during the fault
     #: (see ``clear_faults``)
@@ -162,6 +165,10 @@ class SharedState:
     motion_command: MotionRequest | None = None
     #: measured wheel surface speeds (left, right), m/s, written by the control task
     wheel_speeds_mps: tuple[float, float] = (0.0, 0.0)
+    #: each motor's speed for the throttles written over the last 0.2 s, against the nominal
+    #: motor model (1: as the feed-forward expects; None: too little motion to tell), written
+    #: by the control task (``mazebot.planner.wheel_control.WheelGainEstimator``)
+    wheel_gains: tuple[float | None, float | None] = (None, None)
     #: why the safety layer last stopped the wheels (empty: it has not), for the status page
     safety_stop: str = ""
     safety_stops: int = 0
@@ -213,6 +220,7 @@ class SharedState:
         """
         self.faults = [f for f in self.faults if f.source != source]
         self.faults.append(Fault(source, message, time_s, latched))
+        self.faults_raised += 1
         del self.faults[:-50]  # bounded, whatever happens
         self.note(source, message, time_s)
         if self.run_state.moving:

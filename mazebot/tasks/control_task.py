@@ -24,7 +24,7 @@ from mazebot.io.motors import MotorWriteError
 from mazebot.planner.dwa import scan_points_robot
 from mazebot.planner.pilot import moved_since_scan
 from mazebot.planner.safety import CollisionGuard, ControlWatchdog, SafetyLayer
-from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
+from mazebot.planner.wheel_control import DriveMode, WheelController, WheelGainEstimator, WheelSpeedEstimator
 from mazebot.state import SharedState
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,10 @@ class MotorControl:
         for pid in (self.wheels.left, self.wheels.right):
             pid.latency_s = c.actuation_latency_s
         self.estimator = WheelSpeedEstimator.for_wheel(config.encoders.ticks_per_rev, d.wheel_diameter_m)
+        # each motor's answer to the throttles written, for the health monitor's weak-motor check
+        self.gains = WheelGainEstimator(d.max_wheel_speed_mps, c.motor_deadband, self.period_s, c.actuation_latency_s)
+        self._last_tick_s: float | None = None
+        self._faults_raised_seen = 0
         guard = CollisionGuard(
             footprint_radius_m=config.robot.footprint_radius_m,
             margin_m=c.stop_margin_m,
@@ -76,7 +80,17 @@ class MotorControl:
         sensors = state.sensors
         measured = self.estimator.update(sensors.encoder_ticks_left, sensors.encoder_ticks_right, stamp)
         state.wheel_speeds_mps = measured
+        # state.throttles: what the last tick wrote (zeros if the HAT refused it), what moved the wheels since
+        dt_s = None if self._last_tick_s is None else now_s - self._last_tick_s
+        self._last_tick_s = now_s
+        state.wheel_gains = self.gains.update(state.throttles, measured, dt_s)
         moving = state.run_state.moving
+        if state.faults_raised != self._faults_raised_seen:
+            # a fault since the last tick stops the wheels, even one already cleared again: a
+            # kidnapped robot found again 50 ms after it was lost, between two ticks, kept
+            # driving (tests/bench/test_fault_runs.py; issue 7: motors zero <= 200 ms after it)
+            self._faults_raised_seen = state.faults_raised
+            moving = False
         command = state.motion_command
         if moving and command is not None:
             return self._drive(state, command, measured, now_s)

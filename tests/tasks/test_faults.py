@@ -201,6 +201,31 @@ def test_a_wheel_that_stalls_with_the_other_one_is_not_an_encoder_fault() -> Non
     assert not state.faults
 
 
+def test_a_silent_encoder_in_a_pivot_about_the_idle_wheel_is_a_fault_within_half_a_second() -> None:
+    # the fault suite's encoder-dead run: the left encoder cut while the robot pivots about its
+    # right wheel, which idles around the deadband and counts a tick now and then
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    for k in range(5):
+        state.throttles = (0.3, 0.09 if k % 2 else -0.09)
+        state.sensors.encoder_ticks_right = k
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert state.run_state is RunState.FAULT and "left wheel" in state.faults[0].message
+
+
+def test_a_wheel_starting_from_rest_while_the_other_idles_is_no_encoder_fault() -> None:
+    # the motor's lag: a driven wheel counts nothing for a check or two after a start from rest
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.3, 0.0)
+    for k in range(20):
+        state.sensors.encoder_ticks_left = max(0, 15 * (k - 2))
+        monitor.check(state, 100.0 + 0.1 * k)
+    assert not state.faults
+
+
 # -- the control task and the motor HAT --------------------------------------------------
 
 

@@ -1,4 +1,4 @@
-"""Count the weak-motor notes of whole simulated runs, and keep each control tick's wheel trace.
+"""Count the weak-motor notes and dead-encoder faults of whole simulated runs; keep the wheel traces.
 
 A false "the left motor gives only 30 %" in a healthy run is as bad as a weak motor said
 late, and ``results.json`` keeps no events of runs without an injected fault, so this runs
@@ -40,6 +40,8 @@ from mazebot.tasks.health_task import HealthMonitor
 
 #: what a weak-motor note says (other ``motors`` notes: the HAT answering again after I²C errors)
 WEAK_NOTE = "motor gives only"
+#: what a dead-encoder fault says (``HealthMonitor._check_encoders``): in a healthy run it is a false stop
+DEAD_ENCODER = "encoder counted nothing"
 #: the columns of a trace, one row per control tick
 COLUMNS = (
     "now_s", "stamp_s", "written_l", "written_r", "measured_l", "measured_r", "out_l", "out_r",
@@ -123,6 +125,7 @@ def main(argv: list[str]) -> int:
             "run": label, "done": metrics["done"], "time_s": metrics["time_s"], "coverage": metrics["coverage"],
             "injections": injections, "faults": metrics["faults"],
             "motors_notes": [(t, m) for t, s, m in notes if s == "motors"],
+            "dead_encoder_faults": [(t, m) for t, s, m in notes if s == "encoders" and DEAD_ENCODER in m],
             "wall_s": round(time.perf_counter() - t0, 1),
         }
         report.append(entry)
@@ -132,13 +135,15 @@ def main(argv: list[str]) -> int:
                                 injections=np.array([[j["begin_s"] or np.nan, j["end_s"] or np.nan]
                                                      for j in injections]).reshape(-1, 2))
         detected = [(r["fault"], r.get("detected_ms"), r["passed"]) for r in (metrics["faults"] or [])]
-        print(f"{label}: done={metrics['done']} weak-motor notes={weak_notes(entry)} faults={detected} "
+        print(f"{label}: done={metrics['done']} weak-motor notes={weak_notes(entry)} "
+              f"dead-encoder faults={len(entry['dead_encoder_faults'])} faults={detected} "
               f"wall {entry['wall_s']} s", file=sys.stderr, flush=True)
         (out / "notes.json").write_text(json.dumps(report, indent=1) + "\n")
     healthy = sum(weak_notes(e) for e in report if not e["injections"])
     other = sum(weak_notes(e) for e in report if e["injections"] and "motor-weak" not in e["run"])
+    dead = sum(len(e["dead_encoder_faults"]) for e in report if not e["injections"])
     print(f"{len(report)} runs; weak-motor notes in runs without a fault: {healthy}, in runs of other faults: "
-          f"{other}", file=sys.stderr)
+          f"{other}; dead-encoder faults in runs without a fault: {dead}", file=sys.stderr)
     return 0
 
 

@@ -315,44 +315,6 @@ def test_keyframe_0_measures_the_walls_over_the_revolutions_at_rest(maze_world: 
     assert abs(math.degrees(slam.wall_reference_rad - slam.anchor_wall_rad)) < 1e-9  # keyframe 0 is the map frame
 
 
-def test_the_anchor_measures_the_wall_grid_without_much_bias_of_its_place(cast_scan) -> None:
-    # The whole map turns by the anchor's error (the wall vertex follows it, the wall
-    # priors turn every keyframe onto the vertex): on the bench's 16x16 seed 8 the
-    # keyframes' mean heading error was the anchor's +0.15°. Averaging the revolutions at
-    # rest takes the noise out, not the bias of the place: normals of neighbourhoods that
-    # reach round a corner or a wall's end. At the starts of the bench's 16x16 series
-    # (exact degrees, as the simulated head samples them, 1 % range noise, three noise
-    # draws each) the keyframes' own normals leave 0.066° RMS (worst 0.21°); normals of
-    # straight neighbourhoods only, 0.047° (worst 0.16°).
-    from mazebot.sim.world_source import make_world
-
-    config = Config()
-    params = SlamParams.from_config(config.slam, config.lidar)
-    history = OdometryHistory()
-    history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(100.0, 0.0, 0.0, 0.0)
-    off_deg = []
-    for seed in range(1, 21):
-        world = make_world(config, None, seed, (16, 16))
-        x, y, theta = world.start_pose
-        for draw in range(3):
-            slam = Slam(params)
-            for k in range(params.anchor_revolutions):
-                angles, ranges = cast_scan(
-                    world, np.array([x, y, theta]), noise_rel=0.01, seed=100000 * draw + 1000 * seed + k
-                )
-                valid = np.isfinite(ranges) & (ranges >= 0.15)
-                times = np.linspace(0.2 * k, 0.2 * k + 0.18, 360)
-                scan = Scan(angles, np.where(valid, ranges, 0.0), np.full(360, 47, np.uint8), times, valid)
-                slam.update(scan, history)
-            assert slam.anchored and slam.anchor_wall_rad is not None
-            # the start heading lies on the grid: the walls are at -theta (mod 90°) in the robot frame
-            wall = (slam.anchor_wall_rad + theta + math.pi / 4) % (math.pi / 2) - math.pi / 4
-            off_deg.append(math.degrees(wall))
-    rms_deg = math.sqrt(float(np.mean(np.square(off_deg))))
-    assert rms_deg < 0.056, rms_deg
-
-
 def test_keyframe_0_stops_measuring_when_the_robot_moves_early(maze_world: World, cast_scan) -> None:
     assert maze_world.maze is not None
     x, y = maze_world.maze.cell_center_m((2, 3))

@@ -154,10 +154,6 @@ class SlamParams:
     anchor_still_m: float = 0.002  # the robot stands still while the odometry moved less than this ...
     anchor_still_rad: float = 0.002  # ... and turned less than this since keyframe 0
     wall_anchor_std_rad: float = 0.001  # how much the anchor's (averaged) wall direction is trusted
-    # the normals the anchor measures its walls with: only neighbourhoods that are lines (see _anchor_walls_of)
-    anchor_normals: NormalParams = field(
-        default_factory=lambda: NormalParams(neighbours=24, radius_m=0.1, max_line_spread=0.05)
-    )
     optimize_every_keyframes: int = 40  # optimize (wall priors) this often even without a loop closure
     rebuild_threshold_m: float = 0.01
     rebuild_threshold_rad: float = 0.005
@@ -809,7 +805,7 @@ class Slam:
         kf = Keyframe.from_scan(index, pose, prepared, p.normals, p.map_max_range_m, rays=rays)
         if index == 0:
             self._anchor_revolutions = 1
-            self._anchor_walls = self._anchor_walls_of(pose, prepared, rays)
+            self._anchor_walls = self._usable_walls(kf)
         self.keyframes.append(kf)
         self.graph.add_vertex(pose)
         self.selector.accept(pose)
@@ -861,38 +857,17 @@ class Slam:
         One scan's wall direction is noisy (0.27° RMS at the start of the bench's mazes
         with the A1's 1 % range noise), and independent from one revolution to the next:
         20 revolutions average it down to 0.07° (``wall_prior`` tests). The robot has not
-        moved, so the scan's own normals (of straight neighbourhoods, ``_anchor_walls_of``),
-        in keyframe 0's frame, are all it takes (a millisecond or two a revolution);
-        keyframe 0 itself, its points and rays, stays the first scan (the grid has every
-        revolution anyway).
+        moved, so the scan's own normals, in keyframe 0's frame, are all it takes (about a
+        millisecond a revolution); keyframe 0 itself, its points and rays, stays the first
+        scan (the grid has every revolution anyway).
         """
+        p = self.params
         self._anchor_revolutions += 1
-        self._anchor_walls += self._anchor_walls_of(self.keyframes[0].pose, prepared, rays)
+        kf = Keyframe.from_scan(0, self.keyframes[0].pose, prepared, p.normals, p.map_max_range_m, rays=rays)
+        self._anchor_walls += self._usable_walls(kf)
         direction = self.anchor_wall_rad
-        if self.params.wall_prior and direction is not None:
+        if p.wall_prior and direction is not None:
             self.wall_reference_rad = _wrap_quarter(direction + float(self.keyframes[0].pose[2]))
-
-    def _anchor_walls_of(
-        self, pose: np.ndarray, prepared: PreparedScan, rays: tuple[np.ndarray, np.ndarray, np.ndarray] | None
-    ) -> list[float]:
-        """One revolution's wall direction for the anchor, from normals of straight neighbourhoods only.
-
-        The map's rotation about the start is the anchor's error (the wall vertex follows
-        it, and the keyframes' wall priors turn the whole map onto the vertex: on the
-        bench's 16x16 seed 8 the keyframes' mean heading error was +0.151° for an anchor
-        off by +0.166°; turning the optimized keyframes
-        back by that rotation took their error from 12.1 to 4.2 mm RMS). With the keyframes' own normals
-        (10 neighbours, any neighbourhood up to a spread of 0.2) the average over the
-        revolutions at rest keeps a bias of the place: neighbourhoods that reach round a
-        corner or a wall's end tilt their normals, and averaging revolutions does not
-        remove it (noise-free scans keep 0.061° RMS at the bench's 16x16 starts). Normals
-        of 24 neighbours whose spread is a line (``max_line_spread`` 0.05) halve it:
-        0.067° -> 0.043° RMS, worst 0.144° -> 0.086° at the 20 starts of the 16x16 series
-        (0.058° -> 0.040°, worst 0.124° -> 0.086° at the 6x6 ones), with the A1's 1 %
-        range noise. Keyframe 0 itself keeps the usual normals (ICP, submaps).
-        """
-        kf = Keyframe.from_scan(0, pose, prepared, self.params.anchor_normals, self.params.map_max_range_m, rays=rays)
-        return self._usable_walls(kf)
 
     def _usable_walls(self, kf: Keyframe) -> list[float]:
         """``[direction]`` if the keyframe's normals show the wall grid (as the wall priors require), else ``[]``."""

@@ -51,8 +51,9 @@ def run_and_capture(seed: int, drive: str, size: int, config_path: str | None = 
             super().__init__(*args, **kwargs)
             captured.append(self)
 
-        def update_steps(self, scan: Any, odometry: Any) -> Any:
-            out = yield from super().update_steps(scan, odometry)
+        def update_steps(self, scan: Any, odometry: Any, **kwargs: Any) -> Any:
+            # the SLAM task passes its paint decision (paint=...): hand it on
+            out = yield from super().update_steps(scan, odometry, **kwargs)
             m = out.match
             scans.append({
                 "time_s": out.time_s, "pose": out.pose.copy(), "matched": out.matched,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import os
 import signal
 import subprocess
@@ -62,6 +63,8 @@ async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
         if state.sensors.lidar_revolutions >= 3:
             break
         await asyncio.sleep(0.1)
+    # start-up's objects sit out the garbage collector's full scans (57 ms each on the loop otherwise)
+    assert gc.get_freeze_count() > 10_000
     status = await _get_status(port)
     assert status["state"] == "idle"
     assert status["sensors"]["lidar_revolutions"] >= 3
@@ -90,6 +93,7 @@ async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
 
     started["sup"].request_stop("test over")  # type: ignore[union-attr]
     assert await asyncio.wait_for(daemon, 10) == 0
+    assert gc.get_freeze_count() == 0  # collectable again once the daemon is over
 
 
 async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -> None:

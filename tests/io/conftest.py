@@ -165,11 +165,13 @@ class FakeLidarLine:
     """A link factory: each call connects a fresh FakeLidar configured by ``configure``.
 
     ``fail_first`` makes the first calls raise HardwareUnavailable, like a port that
-    is not there yet. ``devices`` holds every device plugged in so far.
+    is not there yet. ``first_device_options`` apply to the first device only (a cable
+    pulled once). ``devices`` holds every device plugged in so far.
     """
 
     def __init__(self, **device_options: object) -> None:
         self.device_options = device_options
+        self.first_device_options: dict[str, object] = {}
         self.fail_first = 0
         self.calls = 0
         self.devices: list[FakeLidar] = []
@@ -181,7 +183,8 @@ class FakeLidarLine:
         if self.calls <= self.fail_first:
             raise HardwareUnavailable("lidar serial port /dev/fake cannot be opened (No such file)")
         link, (reader, writer) = memory_link_pair(on_motor=self.motor.append)
-        device = FakeLidar(reader, writer, **self.device_options)  # type: ignore[arg-type]
+        options = {**self.device_options, **(self.first_device_options if not self.devices else {})}
+        device = FakeLidar(reader, writer, **options)  # type: ignore[arg-type]
         self.devices.append(device)
         self._tasks.append(asyncio.create_task(device.serve()))
         return link

@@ -39,14 +39,19 @@ def _mapped_start(maze_world, moving_scan):
     return slam, history, guard, t, start
 
 
+def _picked_up(start, odom_heading):
+    """(where the robot stands, where it is put down): 0.2 m along the open side it faced at the start, turned 20°."""
+    here = compose(start, np.array([0.0, 0.0, odom_heading]))
+    kidnapped = compose(here, np.array([0.2 * math.cos(-odom_heading), 0.2 * math.sin(-odom_heading),
+                                        math.radians(20)]))
+    return here, kidnapped
+
+
 def test_a_kidnapped_robot_is_held_back_from_the_map_and_found_again(maze_world, moving_scan) -> None:
     slam, history, guard, t, start = _mapped_start(maze_world, moving_scan)
     odom_heading = 0.05 * 21
     before = slam.grid.log_odds.copy()
-    here = compose(start, np.array([0.0, 0.0, odom_heading]))
-    # picked up: 0.2 m along the open side the robot faced at the start, turned by 20°
-    kidnapped = compose(here, np.array([0.2 * math.cos(-odom_heading), 0.2 * math.sin(-odom_heading),
-                                        math.radians(20)]))
+    _, kidnapped = _picked_up(start, odom_heading)
     verdicts = []
     for k in range(2):
         scan = moving_scan(maze_world, _still(kidnapped), t0_s=t, noise_rel=0.005, seed=100 + k)
@@ -94,9 +99,7 @@ def test_the_revolution_the_robot_is_picked_up_in_is_held_back_from_the_map(maze
     slam, history, guard, t, start = _mapped_start(maze_world, moving_scan)
     odom_heading = 0.05 * 21
     before = slam.grid.log_odds.copy()
-    here = compose(start, np.array([0.0, 0.0, odom_heading]))
-    kidnapped = compose(here, np.array([0.2 * math.cos(-odom_heading), 0.2 * math.sin(-odom_heading),
-                                        math.radians(20)]))
+    here, kidnapped = _picked_up(start, odom_heading)
     picked_up_s = t + 0.25 * PERIOD_S  # the mixed revolution fits at 0.23, as in the fault suite
 
     def carried(times):

@@ -37,7 +37,7 @@ def replay(trace: np.ndarray, cols: list[str], *, tau_s: float, window_s: float,
     c = {name: k for k, name in enumerate(cols)}
     est = WheelGainEstimator(0.6, 0.08, 0.05, latency_s=latency_s, time_constant_s=tau_s, window_s=window_s,
                              min_speed_mps=min_speed_mps)
-    monitor = HealthMonitor(startup_grace_s=1e9, motor_deadband=0.08, weak_ratio=ratio, weak_checks=checks)
+    monitor = HealthMonitor(startup_grace_s=1e9, weak_ratio=ratio, weak_checks=checks)
     state = SharedState(run_state=RunState.EXPLORING)
     fault = Fault("replay", "a fault of the recorded run", 0.0)
     fault_seen = -np.inf

@@ -238,9 +238,7 @@ async def run_daemon(
             restart=True,
         )
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
-        monitor = HealthMonitor(
-            config.daemon.lidar_silence_s, config.daemon.startup_grace_s, motor_deadband=config.control.motor_deadband
-        )
+        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s)
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))

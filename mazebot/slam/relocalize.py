@@ -61,8 +61,8 @@ class GuardParams:
     min_known_hits: int = 30  # hits in known cells needed for a verdict
     free_margin_cells: int = 2  # a hit contradicts only this deep inside known free space
     # share of known hits in free space above which a revolution does not fit. Healthy revolutions
-    # reach 0.006 in the simulated mazes; the one the robot is picked up in (half of it at each pose)
-    # 0.16-0.24, and at 0.25 it went to SLAM, was painted in, and the search never found the robot
+    # reach 0.006 in the simulated mazes; the one the robot is picked up in (part of it at each pose)
+    # 0.16-0.24: at 0.25 it went to SLAM and the robot was said lost one revolution later (550 ms)
     max_contradiction: float = 0.10
     lost_after: int = 2  # revolutions in a row that do not fit
     stride: int = 2  # every n-th sample is checked (a cheap check: ~180 lookups)

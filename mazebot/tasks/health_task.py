@@ -78,7 +78,6 @@ class HealthMonitor:
         startup_grace_s: float = 5.0,
         encoder_dead_s: float = 0.2,
         driven_throttle: float = 0.15,
-        motor_deadband: float = 0.08,
         weak_ratio: float = 0.6,
         weak_checks: int = 1,
     ) -> None:
@@ -86,7 +85,6 @@ class HealthMonitor:
         self.startup_grace_s = float(startup_grace_s)
         self.encoder_dead_s = float(encoder_dead_s)
         self.driven_throttle = float(driven_throttle)
-        self.motor_deadband = float(motor_deadband)
         self.weak_ratio = float(weak_ratio)
         self.weak_checks = int(weak_checks)
         self._started_s: float | None = None
@@ -197,7 +195,7 @@ class HealthMonitor:
                 wheel.other_idle and silent_s >= max(self.encoder_dead_s, OTHER_IDLE_DEAD_S)
             ):
                 message = (
-                    f"the {name} wheel's encoder counted nothing for {now_s - wheel.since_s:.1f} s while its motor "
+                    f"the {name} wheel's encoder counted nothing for {silent_s:.1f} s while its motor "
                     "drove: check the encoder's wires; press start to try again"
                 )
                 log.warning("%s", message)

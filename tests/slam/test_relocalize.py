@@ -93,9 +93,9 @@ def test_a_match_far_from_the_prediction_is_a_slip() -> None:
 def test_the_revolution_the_robot_is_picked_up_in_is_held_back_from_the_map(maze_world, moving_scan) -> None:
     """Half the revolution at the old pose, half where the robot was put down: it fits the map
     worse than any healthy revolution (a few hundredths at most in the simulated mazes), though
-    better than a wholly kidnapped one. Given to SLAM, it was matched and painted, and in the
-    fault suite the search then never found the robot again; held back, the robot is lost one
-    revolution later (the suite's detection: 390 ms instead of 550 ms)."""
+    better than a wholly kidnapped one. Given to SLAM it was matched and painted, and the robot
+    was said lost only one revolution later; held back, the fault suite's kidnap is detected in
+    390 ms instead of 550 ms."""
     slam, history, guard, t, start = _mapped_start(maze_world, moving_scan)
     odom_heading = 0.05 * 21
     before = slam.grid.log_odds.copy()

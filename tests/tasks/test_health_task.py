@@ -40,7 +40,7 @@ class WheelsOnTheFloor:
         self.physics = RobotPhysics(PhysicsParams(), floor, floor.start_pose, np.random.default_rng(seed))
         self.control = control_task.MotorControl(self.config)
         self.state = SharedState(run_state=RunState.EXPLORING)
-        self.monitor = HealthMonitor(startup_grace_s=1e9, motor_deadband=self.config.control.motor_deadband)
+        self.monitor = HealthMonitor(startup_grace_s=1e9)
         self.ticks_per_rad = self.config.encoders.ticks_per_rev / math.tau
         self.now_s = 0.0
         self.ticks = 0
@@ -138,7 +138,7 @@ def test_no_weak_motor_is_said_while_a_fault_holds_the_wheels_nor_as_they_start_
     # the gains of a weak motor, but a fault is active (half the throttle writes fail, the
     # wheels are stopped): said only once the fault has been gone FAULT_SETTLE_S
     state = SharedState(run_state=RunState.EXPLORING)
-    monitor = HealthMonitor(startup_grace_s=1e9, motor_deadband=0.08)
+    monitor = HealthMonitor(startup_grace_s=1e9)
     state.wheel_gains = (0.1, 0.95)
     state.raise_fault("motors", "throttle writes fail", 100.0)
     for k in range(5):
@@ -213,7 +213,7 @@ def _feed(rows: list[tuple[float, float, float, float]]) -> list[tuple[float, st
     gains = WheelGainEstimator(config.drive.max_wheel_speed_mps, config.control.motor_deadband,
                                config.daemon.control_period_s, config.control.actuation_latency_s)
     state = SharedState(run_state=RunState.EXPLORING)
-    monitor = HealthMonitor(startup_grace_s=1e9, motor_deadband=config.control.motor_deadband)
+    monitor = HealthMonitor(startup_grace_s=1e9)
     for k, (left, right, left_mps, right_mps) in enumerate(rows):
         now_s = 0.05 * k
         state.wheel_gains = gains.update((left, right), (left_mps, right_mps))

@@ -74,7 +74,8 @@ def smooth_endpoints(
         inside = (idx >= 0) & (idx < n)
         idx = idx.clip(0, n - 1)
     nb = pts[idx]  # (N, W, 2)
-    near = inside & (np.sum((nb - pts[:, None, :]) ** 2, axis=2) <= p.radius_m**2)
+    gap = nb - pts[:, None, :]
+    near = inside & (gap[..., 0] * gap[..., 0] + gap[..., 1] * gap[..., 1] <= p.radius_m**2)
     w = near.astype(np.float64)
     count = w.sum(axis=1)
     mean = np.einsum("nw,nwd->nd", w, nb) / np.maximum(count, 1.0)[:, None]

@@ -196,8 +196,10 @@ class OccupancyGrid:
         hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
 
         # one update per cell per scan, a hit winning over a miss: mark a window, then update
-        lo = np.minimum(end_cell.min(axis=0), np.floor(start_c.min(axis=0)).astype(np.int64))
-        hi = np.maximum(end_cell.max(axis=0), np.floor(start_c.max(axis=0)).astype(np.int64))
+        end_lo, end_hi = _xy_bounds(end_cell)
+        start_lo, start_hi = _xy_bounds(start_c)
+        lo = np.minimum(end_lo, np.floor(start_lo).astype(np.int64))
+        hi = np.maximum(end_hi, np.floor(start_hi).astype(np.int64))
         shape = (int(hi[1] - lo[1]) + 1, int(hi[0] - lo[0]) + 1)
         is_free = np.zeros(shape, dtype=bool)
         is_hit = np.zeros(shape, dtype=bool)
@@ -280,8 +282,9 @@ class OccupancyGrid:
     def _ensure_contains(self, xy: np.ndarray) -> None:
         """Grow the array (with ``margin_m`` on each side) so every point lies on it."""
         res = self.resolution_m
-        lo = np.floor(xy.min(axis=0) / res).astype(np.int64)  # (col, row) in the lattice
-        hi = np.floor(xy.max(axis=0) / res).astype(np.int64)
+        xy_lo, xy_hi = _xy_bounds(xy)
+        lo = np.floor(xy_lo / res).astype(np.int64)  # (col, row) in the lattice
+        hi = np.floor(xy_hi / res).astype(np.int64)
         rows, cols = self.shape
         oc, orow = self._origin_cells
         if rows and cols and lo[0] >= oc and lo[1] >= orow and hi[0] < oc + cols and hi[1] < orow + rows:
@@ -358,6 +361,16 @@ class OccupancyGrid:
         self.generation = generation + 1
         self._touched[...] = False
         self._reported = self.three_state()
+
+
+def _xy_bounds(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column minimum and maximum of an (N, 2) array: ``xy.min(axis=0)``, ``xy.max(axis=0)``.
+
+    Column by column, because numpy reduces along a length-2 axis element by element:
+    ~20 µs against ~5 µs for a revolution's points, and the grid takes bounds per scan.
+    """
+    x, y = xy[:, 0], xy[:, 1]
+    return np.array((x.min(), y.min())), np.array((x.max(), y.max()))
 
 
 def _transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:

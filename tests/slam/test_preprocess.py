@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from mazebot.io.scan import Scan
 from mazebot.sim.raycast import distance_to_segments
 from mazebot.sim.world import World
+from mazebot.slam import preprocess
 from mazebot.slam.preprocess import (
     PrepareParams,
     impulse_mask,
@@ -145,6 +148,30 @@ def test_voxel_downsample_keeps_one_original_point_per_voxel(maze_world: World, 
     # and every measured point has a match point in its voxel
     assert np.unique(np.floor(full / 0.03).astype(np.int64), axis=0).shape[0] == match.shape[0]
     assert voxel_downsample(np.zeros((0, 2)), 0.03).size == 0
+
+
+def _nearest_centre_by_hand(points: np.ndarray, voxel_m: float) -> list[int]:
+    """Per voxel, the first of the points nearest its centre: the definition, one point at a time."""
+    best: dict[tuple[int, int], tuple[float, int]] = {}
+    for i, (x, y) in enumerate(points.tolist()):
+        cell = (math.floor(x / voxel_m), math.floor(y / voxel_m))
+        d = (x / voxel_m - cell[0] - 0.5) ** 2 + (y / voxel_m - cell[1] - 0.5) ** 2
+        if cell not in best or d < best[cell][0]:
+            best[cell] = (d, i)
+    return sorted(i for _, i in best.values())
+
+
+@pytest.mark.parametrize("spread_m", [0.3, 40.0])  # a small box (dense pass) and a wide one (sort)
+def test_voxel_downsample_keeps_the_point_nearest_each_centre_whichever_way_it_runs(monkeypatch, spread_m) -> None:
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-spread_m, spread_m, (3000, 2))
+    points[::7] = points[3::7]  # exact duplicates: the first of them wins
+    points[1::11] = np.round(points[1::11], 2) + 0.005  # right at voxel centres, on a 1 cm grid
+    expected = _nearest_centre_by_hand(points, 0.01)
+    assert voxel_downsample(points, 0.01).tolist() == expected
+    for per_point in (0, 10**9):  # force the sort, then the dense pass
+        monkeypatch.setattr(preprocess, "DENSE_VOXELS_PER_POINT", per_point)
+        assert voxel_downsample(points, 0.01).tolist() == expected
 
 
 def test_beams_world_places_rays_from_the_lidar(maze_world: World, cast_scan) -> None:

@@ -11,8 +11,15 @@ not of the robot.
 
 Here such a job runs at once on the loop's thread (which costs no virtual time: the world waits)
 and its result is handed over after the CPU time it took, on the virtual clock: as if it ran on a
-core of its own (the Pi 4 has four) while the world went on. Loop-closure jobs go to the daemon's
-executor unchanged (its worker process).
+core of its own (the Pi 4 has four) while the world went on.
+
+Loop-closure jobs still run in the daemon's executor (its worker process, on the other core), but
+their results no longer land whenever the worker happens to finish: that made SLAM's estimate,
+and so every accuracy figure, differ from run to run of one seed by millimetres, because the
+worker's wall time decided at which scan a correction was merged. A job's result is handed over
+:func:`loop_job_latency_s` simulated seconds after it was submitted (a fixed cost model of the
+job, not a measurement), and if the worker is not done by then the loop waits for it, with
+virtual time standing still. A run is then a function of its seed.
 
 Example (``run_daemon``'s ``instrument`` hook on a virtual-time run)::
 
@@ -32,9 +39,28 @@ from typing import Any
 
 from mazebot.slam.slam import LoopClosureJob
 
+#: Longest the loop waits for the worker to finish a job whose hand-over time has come; past it the
+#: job counts as failed (a SLAM fault), so a hung worker cannot hang a benchmark.
+WORKER_WAIT_MAX_S = 300.0
+
+
+#: Simulated seconds from a loop-closure job's submission to its result reaching SLAM. On this
+#: machine the worker takes a median 25 ms a job on a 6×6 tour (p90 69, max 148 ms) and 62 ms on a
+#: 16×16 one (p90 158 ms, max 1.5 s): a Pi 4 core, several times slower, needs a few hundred
+#: milliseconds for most. Before this model, results landed a median 1.07 s (p90 2.2 s) after
+#: submission on a simulator running ~15× real time. At 1 s the loop waits for the worker ~0.3 s
+#: of wall time in a 6×6 tour.
+LOOP_JOB_LATENCY_S = 1.0
+
+
+def loop_job_latency_s(job: LoopClosureJob) -> float:
+    """When a job's result reaches SLAM, after its submission (simulated seconds)."""
+    return LOOP_JOB_LATENCY_S
+
 
 class CpuTimedExecutor(Executor):
-    """Plain callables run inline and finish after their thread CPU time; loop-closure jobs go to ``inner``."""
+    """Plain callables run inline and finish after their thread CPU time; loop-closure jobs go to
+    ``inner`` and are handed over at a fixed time on the virtual clock (see the module docstring)."""
 
     def __init__(self, inner: Executor, loop: asyncio.AbstractEventLoop) -> None:
         self._inner = inner
@@ -43,7 +69,7 @@ class CpuTimedExecutor(Executor):
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
         if isinstance(fn, LoopClosureJob) and not args and not kwargs:
-            return self._inner.submit(fn)
+            return self._hand_over_later(self._inner.submit(fn), loop_job_latency_s(fn))
         future: concurrent.futures.Future[Any] = concurrent.futures.Future()
         start_s = time.thread_time()
         try:
@@ -62,6 +88,27 @@ class CpuTimedExecutor(Executor):
                 settle()
 
         self._loop.call_later(cpu_s, deliver)
+
+    def _hand_over_later(
+        self, running: concurrent.futures.Future[Any], latency_s: float
+    ) -> concurrent.futures.Future[Any]:
+        """A future settled with ``running``'s outcome exactly ``latency_s`` from now on the loop's clock."""
+        future: concurrent.futures.Future[Any] = concurrent.futures.Future()
+
+        def hand_over() -> None:
+            if future.cancelled():  # the SLAM task stopped waiting (the daemon is stopping)
+                return
+            try:  # not done yet: the world waits for the worker (the loop's clock does not move)
+                result = running.result(timeout=WORKER_WAIT_MAX_S)
+            except concurrent.futures.CancelledError:
+                future.cancel()
+            except Exception as exc:  # handed over like the worker's own exception (or the wait's timeout)
+                future.set_exception(exc)
+            else:
+                future.set_result(result)
+
+        self._loop.call_later(latency_s, hand_over)
+        return future
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         """The daemon shuts the inner executor down itself."""

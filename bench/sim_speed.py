@@ -11,9 +11,10 @@ other tasks are measured alone. Printed per run: simulated and wall seconds, the
 realtime factor, the daemon process's CPU time (and simulated seconds per CPU second,
 steadier than wall time on a shared machine), and SLAM's thread CPU split into per-scan
 updates (on the event loop) and loop-closure jobs (in the executor: a worker process by
-default, whose CPU is not in the process figure; ``--executor thread`` puts it back).
-All are in the wall time of a virtual-time run: the clock does not wait for them, the
-CPU does.
+default, whose CPU is not in the process figure; ``--executor thread`` puts it back),
+and the wall time the loop stood waiting for a loop-closure result the worker had not
+finished by its hand-over time (:mod:`mazebot.bench.virtual_executor`). All are in the
+wall time of a virtual-time run: the clock does not wait for them, the CPU does.
 
 ``--wakeups`` adds one more run without SLAM (seed 1) that counts the event loop's
 passes and what each callback was (which task it stepped, or which plain callback),
@@ -96,6 +97,7 @@ def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) 
         "slam_update_cpu_s": sum(record.state.scan_ms) / 1e3,
         "loop_job_cpu_s": sum(job_cpu_s),
         "loop_jobs": len(job_cpu_s),
+        "worker_wait_s": record.executor.worker_wait_s if getattr(record, "executor", None) is not None else 0.0,
     }
 
 
@@ -151,7 +153,8 @@ def main() -> None:
                 f"seed {seed} {label}: {r['time_s']:.1f} s simulated in {r['wall_s']:.2f} s "
                 f"({r['realtime_factor']}x), process CPU {r['process_cpu_s']:.2f} s "
                 f"({r['sim_s_per_cpu_s']:.1f} simulated s per CPU s); SLAM updates {r['slam_update_cpu_s']:.2f} s CPU, "
-                f"loop-closure jobs {r['loop_jobs']} x, {r['loop_job_cpu_s']:.2f} s CPU",
+                f"loop-closure jobs {r['loop_jobs']} x, {r['loop_job_cpu_s']:.2f} s CPU, "
+                f"waited for {r['worker_wait_s']:.2f} s",
                 flush=True,
             )
     for with_slam in modes if args.seeds > 0 else []:

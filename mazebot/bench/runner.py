@@ -100,6 +100,7 @@ class RunRecord:
     start_s: float = 0.0
     end_s: float = 0.0
     faults: FaultRecord | None = None  # what was injected and what happened (fault runs)
+    executor: CpuTimedExecutor | None = None  # virtual time: how long the loop waited for the worker
 
 
 def _relative(base: tuple[float, float, float], poses: np.ndarray) -> np.ndarray:
@@ -225,14 +226,16 @@ def false_closures(closures: list, trajectory: list[tuple[float, float, float, f
     return count
 
 
-def _instrument(spec: RunSpec, injector: FaultInjector | None) -> Callable[[Any, Executor], Executor] | None:
+def _instrument(
+    spec: RunSpec, injector: FaultInjector | None, record: RunRecord
+) -> Callable[[Any, Executor], Executor] | None:
     """The ``run_daemon`` hook: on virtual time the lost-robot search takes its CPU time
     (:mod:`mazebot.bench.virtual_executor`); the fault injector reaches SLAM and its executor."""
     if spec.clock != "virtual":
         return injector.instrument if injector is not None else None
 
     def instrument(slam: Any, executor: Executor) -> Executor:
-        timed = CpuTimedExecutor(executor, asyncio.get_running_loop())
+        timed = record.executor = CpuTimedExecutor(executor, asyncio.get_running_loop())
         return injector.instrument(slam, timed) if injector is not None else timed
 
     return instrument
@@ -350,7 +353,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         session = RunSession(record_path=Path(spec.record_path))
     daemon = run_daemon(
         config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started, session=session,
-        autonomous=spec.drive == "explore", instrument=_instrument(spec, injector),
+        autonomous=spec.drive == "explore", instrument=_instrument(spec, injector, record),
     )
     exit_code = run_virtual(daemon) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0

@@ -66,6 +66,7 @@ class CpuTimedExecutor(Executor):
         self._inner = inner
         self._loop = loop
         self.cpu_s: list[float] = []  # what each inline job cost (the bench's record)
+        self.worker_wait_s = 0.0  # wall time the loop stood waiting for loop-closure results
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
         if isinstance(fn, LoopClosureJob) and not args and not kwargs:
@@ -98,6 +99,7 @@ class CpuTimedExecutor(Executor):
         def hand_over() -> None:
             if future.cancelled():  # the SLAM task stopped waiting (the daemon is stopping)
                 return
+            wall0_s = time.perf_counter()
             try:  # not done yet: the world waits for the worker (the loop's clock does not move)
                 result = running.result(timeout=WORKER_WAIT_MAX_S)
             except concurrent.futures.CancelledError:
@@ -106,6 +108,8 @@ class CpuTimedExecutor(Executor):
                 future.set_exception(exc)
             else:
                 future.set_result(result)
+            finally:
+                self.worker_wait_s += time.perf_counter() - wall0_s
 
         self._loop.call_later(latency_s, hand_over)
         return future

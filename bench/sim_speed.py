@@ -4,7 +4,7 @@ Run from the repository root::
 
     .venv/bin/python bench/sim_speed.py --seeds 5
 
-For each seed, one scripted tour of a generated 6×6 maze (as ``mazebot bench --suite
+For each seed, one scripted tour of a generated 6×6 maze (``--size N`` for N×N; as ``mazebot bench --suite
 standard``) with SLAM, then (unless ``--no-baseline``) the same tour with SLAM replaced
 by a task that only drains the scan queue, so that the simulator, the drivers and the
 other tasks are measured alone. Printed per run: simulated and wall seconds, the
@@ -70,7 +70,7 @@ async def _drain_scans(state: Any, clock: Any, params: Any, executor: Any = None
         await state.scans.get()
 
 
-def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) -> dict[str, float]:
+def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False, size: int = 6) -> dict[str, float]:
     config = load_config(None)
     if paced:  # [sim] lidar_paced_by_robot (an older tree ignores the key)
         config = config.model_copy(update={"sim": config.sim.model_copy(update={"lidar_paced_by_robot": True})})
@@ -81,7 +81,7 @@ def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) 
     if not with_slam:
         slam_task.run = _drain_scans  # type: ignore[assignment]
     try:
-        metrics, record = run_one(config, RunSpec(None, (6, 6), seed, "scripted"))
+        metrics, record = run_one(config, RunSpec(None, (size, size), seed, "scripted"))
     finally:
         slam_task.run = real_slam  # type: ignore[assignment]
         jobs.close()
@@ -97,6 +97,7 @@ def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False) 
         "slam_update_cpu_s": sum(record.state.scan_ms) / 1e3,
         "loop_job_cpu_s": sum(job_cpu_s),
         "loop_jobs": len(job_cpu_s),
+        "job_ms": sorted(ms for ms in job_ms) if job_ms is not None else [],
         "worker_wait_s": record.executor.worker_wait_s if getattr(record, "executor", None) is not None else 0.0,
     }
 
@@ -137,6 +138,7 @@ def main() -> None:
     parser.add_argument(
         "--executor", choices=("process", "thread"), help="where loop-closure jobs run (default: config.toml's)"
     )
+    parser.add_argument("--size", type=int, default=6, help="generated N×N mazes (default 6)")
     parser.add_argument("--paced", action="store_true", help="[sim] lidar_paced_by_robot = true for these runs")
     parser.add_argument("--wakeups", action="store_true", help="also count what wakes the event loop (one more run)")
     args = parser.parse_args()
@@ -145,7 +147,7 @@ def main() -> None:
     per_cpu: dict[bool, list[float]] = {True: [], False: []}
     for seed in range(1, args.seeds + 1):
         for with_slam in modes:
-            r = _one(seed, with_slam, args.executor, args.paced)
+            r = _one(seed, with_slam, args.executor, args.paced, args.size)
             factors[with_slam].append(r["realtime_factor"])
             per_cpu[with_slam].append(r["sim_s_per_cpu_s"])
             label = "SLAM   " if with_slam else "no SLAM"
@@ -157,6 +159,10 @@ def main() -> None:
                 f"waited for {r['worker_wait_s']:.2f} s",
                 flush=True,
             )
+            if r["job_ms"]:
+                ms = r["job_ms"]
+                print(f"  loop-closure job ms: median {statistics.median(ms):.1f}, "
+                      f"p90 {ms[int(0.9 * (len(ms) - 1))]:.1f}, max {ms[-1]:.1f}", flush=True)
     for with_slam in modes if args.seeds > 0 else []:
         label = "with SLAM" if with_slam else "without SLAM"
         print(

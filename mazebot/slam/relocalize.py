@@ -26,6 +26,15 @@ odometry predicts:
   as in re-localizing a resumed run (:mod:`mazebot.persist.resume`). A found pose that
   also fits the map (low contradiction) becomes SLAM's pose (:meth:`Slam.relocalized`),
   the fault clears and the run goes on in the same map.
+- **the known part**: an exploring robot faces the frontier, so put down a little further
+  it sees about half its view where the map knows nothing, and no pose puts 60 % of the
+  hits on known ground. The search's second pass matches each candidate on the hits the
+  map knows there, with stricter limits (many known hits, nearly all on walls, hardly any
+  contradicting, the pose fixed in every direction), and such a pose is only taken when
+  the next revolution's search finds it again.
+- **ambiguity**: a view that fits another pose of the window nearly as well (a corridor
+  whose ends are out of sight, repeated cells) is not taken at all: staying lost only
+  waits, a wrong pose spoils the map for good. While lost, every revolution is searched.
 
 The guard also notes revolutions where ICP had to move the odometry's prediction far
 (a wheel slipping): the robot still knows where it is, but the user should know why.

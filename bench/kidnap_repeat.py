@@ -23,7 +23,7 @@ from collections import Counter
 from dataclasses import replace
 
 from mazebot.bench.cli import suite_specs
-from mazebot.bench.runner import run_one
+from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
 
 ROW_KEYS = ("detail", "detected_ms", "motors_zero_ms", "recovered", "map_intact", "relocalized_s", "passed")
@@ -53,22 +53,32 @@ class _Tally(logging.Handler):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("seeds", type=int, nargs="+", help="one run per seed (repeat a seed to repeat its run)")
+    parser.add_argument("--at-s", type=float, nargs="+", default=None,
+                        help="kidnap at these simulated seconds instead of the suite's (each seed at each time)")
     args = parser.parse_args()
     kidnap = next(s for s in suite_specs("faults", 1, "explore", "virtual") if s.faults[0].name == "kidnap")
-    for seed in args.seeds:
-        tally = _Tally()
-        for name in ("mazebot.slam.relocalize", "mazebot.tasks.slam_task"):
-            logger = logging.getLogger(name)
-            logger.setLevel(logging.INFO)
-            logger.addHandler(tally)
-        spec = replace(kidnap, seed=seed)
-        t0 = time.perf_counter()
+    times = args.at_s or [kidnap.faults[0].at_s]
+    for seed, at_s in ((seed, at_s) for seed in args.seeds for at_s in times):
+        _run(replace(kidnap, seed=seed, faults=(replace(kidnap.faults[0], at_s=at_s),)))
+
+
+def _run(spec: RunSpec) -> None:
+    """One kidnap run: its JSON line."""
+    tally = _Tally()
+    loggers = [logging.getLogger(name) for name in ("mazebot.slam.relocalize", "mazebot.tasks.slam_task")]
+    for logger in loggers:
+        logger.setLevel(logging.INFO)
+        logger.addHandler(tally)
+    t0 = time.perf_counter()
+    try:
         metrics, _ = run_one(load_config(None), spec)
-        for name in ("mazebot.slam.relocalize", "mazebot.tasks.slam_task"):
-            logging.getLogger(name).removeHandler(tally)
-        for row in metrics.get("faults") or [{}]:
-            print(json.dumps({"seed": seed, "wall_s": round(time.perf_counter() - t0, 1),
-                              **{k: row.get(k) for k in ROW_KEYS}, "log": dict(tally.counts)}), flush=True)
+    finally:
+        for logger in loggers:
+            logger.removeHandler(tally)
+    wall_s = round(time.perf_counter() - t0, 1)
+    for row in metrics.get("faults") or [{}]:
+        print(json.dumps({"seed": spec.seed, "at_s": spec.faults[0].at_s, "wall_s": wall_s,
+                          **{k: row.get(k) for k in ROW_KEYS}, "log": dict(tally.counts)}), flush=True)
 
 
 if __name__ == "__main__":

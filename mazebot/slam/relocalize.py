@@ -142,7 +142,7 @@ class SearchResult:
 
 def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
     """Look hits (N, 2, map frame) up in the grid: see :class:`ScanFit`."""
-    known, contradicting, on_walls = hit_classes(grid, hits_map, free_margin_cells)
+    _, known, contradicting, on_walls = _classify(grid, hits_map, free_margin_cells)
     return ScanFit(int(known.sum()), int(contradicting.sum()), int(on_walls.sum()))
 
 
@@ -153,13 +153,20 @@ def hit_classes(
 
     Hits within ``free_margin_cells`` of the grid's edge are in none of the three.
     """
+    inside, known_in, contradicting_in, on_walls_in = _classify(grid, hits_map, free_margin_cells)
+    out = []
+    for values in (known_in, contradicting_in, on_walls_in):
+        full = np.zeros(inside.shape[0], dtype=bool)
+        full[inside] = values
+        out.append(full)
+    return out[0], out[1], out[2]
+
+
+def _classify(
+    grid: Any, hits_map: np.ndarray, free_margin_cells: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(inside the grid's margin (N,), then known, contradicting, on a wall for the hits inside)."""
     hits_map = np.asarray(hits_map, dtype=np.float64).reshape(-1, 2)
-    n = hits_map.shape[0]
-    known = np.zeros(n, dtype=bool)
-    contradicting = np.zeros(n, dtype=bool)
-    on_walls = np.zeros(n, dtype=bool)
-    if n == 0:
-        return known, contradicting, on_walls
     rows, cols = grid.to_cell(hits_map)
     shape = grid.shape
     lo = grid.log_odds
@@ -167,18 +174,16 @@ def hit_classes(
     inside = (rows >= m) & (rows < shape[0] - m) & (cols >= m) & (cols < shape[1] - m)
     rows, cols = rows[inside], cols[inside]
     if rows.size == 0:
-        return known, contradicting, on_walls
+        empty = np.zeros(0, dtype=bool)
+        return inside, empty, empty, empty
     dr, dc = _offsets(m)
     around = lo[rows[:, None] + dr, cols[:, None] + dc]  # (N, (2m+1)²): each hit's neighbourhood, one gather
     here = around[:, dr.size // 2]
     free_all = (around < grid.free_logodds).all(axis=1)
     near = (np.abs(dr) <= 1) & (np.abs(dc) <= 1)
     wall_near = (around[:, near] > grid.occupied_logodds).any(axis=1)
-    known_in = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near
-    known[inside] = known_in
-    contradicting[inside] = free_all & known_in
-    on_walls[inside] = wall_near
-    return known, contradicting, on_walls
+    known = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near
+    return inside, known, free_all & known, wall_near
 
 
 def _offsets(margin: int) -> tuple[np.ndarray, np.ndarray]:

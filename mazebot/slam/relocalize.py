@@ -26,6 +26,15 @@ odometry predicts:
   as in re-localizing a resumed run (:mod:`mazebot.persist.resume`). A found pose that
   also fits the map (low contradiction) becomes SLAM's pose (:meth:`Slam.relocalized`),
   the fault clears and the run goes on in the same map.
+- **the known part**: an exploring robot faces the frontier, so put down a little further
+  it sees about half its view where the map knows nothing, and no pose puts 60 % of the
+  hits on known ground. The search's second pass matches each candidate on the hits the
+  map knows there, with stricter limits (many known hits, nearly all on walls, hardly any
+  contradicting, the pose fixed in every direction), and such a pose is only taken when
+  the next revolution's search finds it again.
+- **ambiguity**: a view that fits another pose of the window nearly as well (a corridor
+  whose ends are out of sight, repeated cells) is not taken at all: staying lost only
+  waits, a wrong pose spoils the map for good. While lost, every revolution is searched.
 
 The guard also notes revolutions where ICP had to move the odometry's prediction far
 (a wheel slipping): the robot still knows where it is, but the user should know why.
@@ -72,8 +81,29 @@ class GuardParams:
     search_theta_step_rad: float = 0.035
     wall_sigma_m: float = 0.04  # spread of the wall likelihood (half the xy step of the grid, and then some)
     refine: int = 6  # best grid poses refined with ICP
-    found_max_contradiction: float = 0.125  # a pose the search found may contradict the map this much at most
+    # a found pose may contradict the map this much at most: below max_contradiction, or the guard
+    # calls the next revolution lost again (at 0.125 a kidnap run took a pose one cell off at 0.11,
+    # was lost again 0.4 s later and took it again). Not much below: right poses were found at
+    # 0.068-0.071 (one corner of the map free where there is wall; at 0.05 that robot stayed lost)
+    found_max_contradiction: float = 0.09
     min_known_share: float = 0.6  # a found pose must put this share of the hits where the map knows
+    # another pose with this share of the found one's hits on walls, contradicting the map hardly more
+    # (the ratio, plus this): the view is ambiguous
+    runner_up_share: float = 0.9
+    runner_up_contradiction: float = 0.01
+    # A robot put down at the edge of what it has mapped (an exploring robot faces the frontier)
+    # sees half its view in unknown space: no pose meets min_known_share. Such a view is matched
+    # on its known part alone (ICP on the hits the map knows at the candidate pose), and a pose it
+    # gives must be much stricter: the known part large, on the walls, not contradicting, fixing
+    # the pose in every direction, clearly better than any other pose, and found again from the
+    # next revolution (see :meth:`LocalizationGuard.accept`).
+    partial_min_known_hits: int = 80  # hits (of ~330 in a revolution) the map knows at the pose
+    partial_min_known_share: float = 0.25
+    partial_min_fitness: float = 0.8  # ICP inlier ratio of the known hits
+    partial_min_wall_share: float = 0.9  # known hits next to a wall
+    partial_max_contradiction: float = 0.03
+    confirm_m: float = 0.03  # two revolutions' partial finds agree this well (the robot stands still)
+    confirm_rad: float = math.radians(2.0)
     submap_radius_m: float = 1.2  # keyframes this close to the guess form the ICP target
     # ICP moved the odometry's prediction this far in one revolution, or turned it this much in
     # the last ``slip_scans`` together: a wheel slipped. On the simulated robot with 1 % slip the
@@ -107,10 +137,36 @@ class SearchResult:
     match: IcpResult | None
     tried: int
     guess: np.ndarray
+    partial: bool = False  # found from the known part of the view only: to be confirmed by the next revolution
 
 
 def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
     """Look hits (N, 2, map frame) up in the grid: see :class:`ScanFit`."""
+    _, known, contradicting, on_walls = _classify(grid, hits_map, free_margin_cells)
+    return ScanFit(int(known.sum()), int(contradicting.sum()), int(on_walls.sum()))
+
+
+def hit_classes(
+    grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per hit (N, 2, map frame): (in known space, contradicting the map, on a wall), boolean (N,) each.
+
+    Hits within ``free_margin_cells`` of the grid's edge are in none of the three.
+    """
+    inside, known_in, contradicting_in, on_walls_in = _classify(grid, hits_map, free_margin_cells)
+    out = []
+    for values in (known_in, contradicting_in, on_walls_in):
+        full = np.zeros(inside.shape[0], dtype=bool)
+        full[inside] = values
+        out.append(full)
+    return out[0], out[1], out[2]
+
+
+def _classify(
+    grid: Any, hits_map: np.ndarray, free_margin_cells: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(inside the grid's margin (N,), then known, contradicting, on a wall for the hits inside)."""
+    hits_map = np.asarray(hits_map, dtype=np.float64).reshape(-1, 2)
     rows, cols = grid.to_cell(hits_map)
     shape = grid.shape
     lo = grid.log_odds
@@ -118,7 +174,8 @@ def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> Sca
     inside = (rows >= m) & (rows < shape[0] - m) & (cols >= m) & (cols < shape[1] - m)
     rows, cols = rows[inside], cols[inside]
     if rows.size == 0:
-        return ScanFit(0, 0, 0)
+        empty = np.zeros(0, dtype=bool)
+        return inside, empty, empty, empty
     dr, dc = _offsets(m)
     around = lo[rows[:, None] + dr, cols[:, None] + dc]  # (N, (2m+1)²): each hit's neighbourhood, one gather
     here = around[:, dr.size // 2]
@@ -126,7 +183,7 @@ def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> Sca
     near = (np.abs(dr) <= 1) & (np.abs(dc) <= 1)
     wall_near = (around[:, near] > grid.occupied_logodds).any(axis=1)
     known = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near
-    return ScanFit(int(known.sum()), int((free_all & known).sum()), int(wall_near.sum()))
+    return inside, known, free_all & known, wall_near
 
 
 def _offsets(margin: int) -> tuple[np.ndarray, np.ndarray]:
@@ -255,27 +312,127 @@ def search_pose(
     if near.size == 0:
         return SearchResult(None, odom, None, None, 0, guess)
     target = build_target([slam.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
+    whole = _search_whole_view(slam, target, prepared, candidates, guess, params)
+    if whole is not None:
+        match, fit = whole
+        return SearchResult(match.pose.copy(), odom, fit, match, len(candidates), guess)
+    partial = _search_known_part(slam, target, prepared, candidates, guess, params)
+    if partial is None:
+        return SearchResult(None, odom, None, None, len(candidates), guess)
+    match, fit = partial
+    return SearchResult(match.pose.copy(), odom, fit, match, len(candidates), guess, partial=True)
+
+
+def _search_whole_view(
+    slam: Any,
+    target: Any,
+    prepared: Any,
+    candidates: list[tuple[float, np.ndarray]],
+    guess: np.ndarray,
+    params: GuardParams,
+) -> tuple[IcpResult, ScanFit] | None:
+    """The search's first pass: each candidate refined by ICP on the whole view; (match, fit) of the best, or None.
+
+    A pose is kept if SLAM would accept the match, the hits do not contradict the map and
+    most fall where the map knows; the one with most hits on the walls wins, unless another
+    one fits nearly as well (:func:`_ambiguous`).
+    """
+    p = slam.params
+    hits = prepared.points_full.shape[0]
     best: tuple[float, IcpResult, ScanFit] | None = None
+    rivals: list[tuple[ScanFit, np.ndarray]] = []
     for _, start in candidates:
         match = match_scan(target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy)
-        if not slam.acceptable(match):
-            continue
-        offset = match.pose - guess
-        if math.hypot(offset[0], offset[1]) > params.search_xy_m + 0.05 or (
-            abs(wrap_angle(offset[2])) > params.search_theta_rad + 0.1
-        ):
+        if not match.converged or not _in_window(match.pose, guess, params):
             continue  # ICP slid out of the searched window: not what was searched for
-        hits = prepared.points_full.shape[0]
         fit = scan_fit(slam.grid, transform(match.pose, prepared.points_full), params.free_margin_cells)
-        if fit.contradiction > params.found_max_contradiction or fit.known < params.min_known_share * hits:
-            continue  # contradicts the map, or mostly falls where the map cannot confirm it
+        if fit.contradiction > params.found_max_contradiction:
+            continue  # contradicts the map
+        rivals.append((fit, match.pose))
+        if not slam.acceptable(match) or fit.known < params.min_known_share * hits:
+            continue  # a poor match, or mostly falls where the map cannot confirm it
         score = fit.on_walls / max(1, hits)
         if best is None or score > best[0] + 1e-9 or (abs(score - best[0]) <= 1e-9 and match.rmse_m < best[1].rmse_m):
             best = (score, match, fit)
-    if best is None:
-        return SearchResult(None, odom, None, None, len(candidates), guess)
-    _, match, fit = best
-    return SearchResult(match.pose.copy(), odom, fit, match, len(candidates), guess)
+    if best is None or _ambiguous(best[1].pose, best[2], rivals, params):
+        return None
+    return best[1], best[2]
+
+
+def _ambiguous(pose: np.ndarray, fit: ScanFit, rivals: list[tuple[ScanFit, np.ndarray]], params: GuardParams) -> bool:
+    """Another pose, not the same, fits the map nearly as well: the view does not say which.
+
+    Nearly as well: nearly as many hits on the walls, hardly more contradicting the map. A
+    corridor seen without its ends, or a maze's repeated cells, fit several poses of the
+    window; taking one of them would spoil the map for good, staying lost only waits.
+    """
+    for other_fit, other in rivals:
+        if (_same_pose(other, pose, params) or other_fit.on_walls < params.runner_up_share * fit.on_walls
+                or other_fit.contradiction > fit.contradiction + params.runner_up_contradiction):
+            continue
+        log.info("the view fits the map at (%.3f m, %.3f m, %.1f°) and nearly as well %.3f m / %.1f° from there: "
+                 "ambiguous, not taken", pose[0], pose[1], math.degrees(pose[2]),
+                 math.hypot(*(other[:2] - pose[:2])), math.degrees(wrap_angle(other[2] - pose[2])))
+        return True
+    return False
+
+
+def _in_window(pose: np.ndarray, guess: np.ndarray, params: GuardParams) -> bool:
+    """The pose lies in the searched window (with a margin for ICP's last steps)."""
+    offset = pose - guess
+    return (math.hypot(offset[0], offset[1]) <= params.search_xy_m + 0.05
+            and abs(wrap_angle(offset[2])) <= params.search_theta_rad + 0.1)
+
+
+def _search_known_part(
+    slam: Any,
+    target: Any,
+    prepared: Any,
+    candidates: list[tuple[float, np.ndarray]],
+    guess: np.ndarray,
+    params: GuardParams,
+) -> tuple[IcpResult, ScanFit] | None:
+    """The search's second pass, for a view half in unknown space: (match, fit) of the one clear pose, or None.
+
+    Each candidate is refined by ICP on the hits the map knows at the candidate (the rest
+    say nothing about where the robot is, and would only lower the inlier ratio). A pose
+    is kept if its known hits are many, fit the keyframes (inlier ratio, residual), lie on
+    the walls and do not contradict the map, and if they fix the pose in every direction
+    (a corridor seen alone slides along itself). The pose with most hits on the walls wins,
+    unless another one, not the same, fits nearly as well: then the view is ambiguous and
+    nothing is found (better lost than wrong: a wrong pose would spoil the map for good).
+    """
+    p = slam.params
+    hits = prepared.points_full.shape[0]
+    kept: list[tuple[int, IcpResult, ScanFit]] = []
+    rivals: list[tuple[ScanFit, np.ndarray]] = []  # every plausible pose, for the ambiguity test
+    for _, start in candidates:
+        known, _, _ = hit_classes(slam.grid, transform(start, prepared.points_match), params.free_margin_cells)
+        if int(known.sum()) < p.icp.min_correspondences:
+            continue
+        match = match_scan(target, prepared.points_match[known], start, p.icp, sensor_xy=prepared.sensor_xy)
+        if not match.converged or not _in_window(match.pose, guess, params):
+            continue
+        fit = scan_fit(slam.grid, transform(match.pose, prepared.points_full), params.free_margin_cells)
+        if fit.contradiction <= params.found_max_contradiction:
+            rivals.append((fit, match.pose))
+        if (match.degenerate or match.fitness < params.partial_min_fitness or match.rmse_m > p.max_match_rmse_m
+                or fit.contradiction > params.partial_max_contradiction
+                or fit.known < max(params.partial_min_known_hits, params.partial_min_known_share * hits)
+                or fit.on_walls < params.partial_min_wall_share * fit.known):
+            continue
+        kept.append((fit.on_walls, match, fit))
+    if not kept:
+        return None
+    _, match, fit = max(kept, key=lambda k: (k[0], -k[1].rmse_m))
+    if _ambiguous(match.pose, fit, rivals, params):
+        return None
+    return match, fit
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray, params: GuardParams) -> bool:
+    """Two found poses are one (ICP from two candidates converging to the same place)."""
+    return math.hypot(a[0] - b[0], a[1] - b[1]) < 2 * params.search_step_m and abs(wrap_angle(a[2] - b[2])) < 0.1
 
 
 def _odom_at(odometry: Any, time_s: float) -> np.ndarray:
@@ -302,6 +459,7 @@ class LocalizationGuard:
         self.last_fit: ScanFit | None = None
         self.relocalizations = 0
         self.failed_searches = 0  # since the robot got lost: each one widens the next search
+        self.unconfirmed: SearchResult | None = None  # a pose found from a partly known view, not yet found again
         self._turns: list[float] = []  # ICP's heading corrections of the last revolutions
 
     def predicted_pose(self, slam: Any, scan: Scan, odometry: Any) -> np.ndarray:
@@ -320,34 +478,59 @@ class LocalizationGuard:
                            mount_xy_m=mount, stride=p.stride)
         fit = scan_fit(slam.grid, hits, p.free_margin_cells)
         self.last_fit = fit
+        if self.lost:
+            # search with every revolution, even one the map hardly knows at the odometry's wrong
+            # pose (it was held back, and the robot stood waiting for ever): the search looks around
+            return "lost"
         if fit.known < p.min_known_hits // p.stride:
-            return "skip" if self.lost else "ok"
-        if fit.contradiction <= p.max_contradiction and not self.lost:
+            return "ok"
+        if fit.contradiction <= p.max_contradiction:
             self._misfits = 0
             return "ok"
         self._misfits += 1
-        if self.lost or self._misfits >= p.lost_after:
+        if self._misfits >= p.lost_after:
             self.lost = True
             return "lost"
         return "skip"
 
     def accept(self, slam: Any, result: SearchResult) -> bool:
-        """Put SLAM at the found pose (True), or stay lost (False: search again on the next revolution)."""
+        """Put SLAM at the found pose (True), or stay lost (False: search again on the next revolution).
+
+        A pose found from the known part of the view only (``result.partial``) is taken when
+        the next revolution's search finds it again (the robot stands still while lost, so
+        both must agree within ``confirm_m`` / ``confirm_rad`` after the odometry's motion in
+        between): one revolution's noise can favour a wrong pose once, rarely twice.
+        """
         if result.pose is None:
+            self.unconfirmed = None
             self.failed_searches += 1
+            return False
+        if result.partial and not self._confirms(result):
+            self.unconfirmed = result  # the next search must find it again; the window stays as it is
             return False
         slam.relocalized(result.pose, result.odom)
         self.lost = False
         self._misfits = 0
         self.failed_searches = 0
+        self.unconfirmed = None
         self.relocalizations += 1
         log.info(
-            "re-localized at (%.3f m, %.3f m, %.1f°), %.3f m / %.1f° from where the odometry thought",
+            "re-localized at (%.3f m, %.3f m, %.1f°), %.3f m / %.1f° from where the odometry thought%s",
             result.pose[0], result.pose[1], math.degrees(result.pose[2]),
             math.hypot(*(result.pose[:2] - result.guess[:2])),
             math.degrees(wrap_angle(result.pose[2] - result.guess[2])),
+            " (from the part of the view the map knows, found twice)" if result.partial else "",
         )
         return True
+
+    def _confirms(self, result: SearchResult) -> bool:
+        """``result`` (partial) is where the previous partial find says the robot is now."""
+        earlier = self.unconfirmed
+        if earlier is None or earlier.pose is None or result.pose is None:
+            return False
+        expected = compose(earlier.pose, compose(inverse(earlier.odom), result.odom))
+        d = result.pose - expected
+        return math.hypot(d[0], d[1]) <= self.params.confirm_m and abs(wrap_angle(d[2])) <= self.params.confirm_rad
 
     @property
     def search_scale(self) -> float:

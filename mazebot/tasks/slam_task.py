@@ -140,6 +140,9 @@ async def run(
                 if guard.accept(slam, found):
                     trust.distrust()  # found, but the odometry that lost it may still be wrong
                     _publish_relocalized(state, slam, found, clock)
+                elif found.pose is not None:  # from a partly known view: the guard waits for it again
+                    log.info("the robot may be at (%.3f m, %.3f m) by the part of its view the map knows; "
+                             "the next revolution must find it there again", found.pose[0], found.pose[1])
                 else:
                     log.info("the robot is not found near where the odometry has it (%d poses tried); "
                              "searching again with the next revolution", found.tried)

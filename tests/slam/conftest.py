@@ -5,6 +5,7 @@ helpers unimportable, so the helpers travel as fixtures):
 
 - ``maze_world``: a 6x6 braided maze of 1 ft cells with 12 mm walls.
 - ``corridor_world``: two parallel walls 20 m long and one cell apart, no cross wall.
+- ``room_world``: a dead-end cell whose open side leads into a 1.8 m × 1.2 m room.
 - ``cast_scan(world, pose, ...)``: one static revolution as (angles, ranges) in the lidar frame.
 - ``moving_scan(world, pose_at_time, ...)``: a :class:`Scan` whose samples are taken from
   the pose at each sample's own time, like the real spinning head.
@@ -65,6 +66,37 @@ def corridor_world() -> World:
         circles=np.zeros((0, 3)),
         start_pose=(0.0, 0.0, 0.0),
         bounds_m=(-10.0, -half - WALL_M, 10.0, half + WALL_M),
+    )
+
+
+@pytest.fixture(scope="session")
+def room_world() -> World:
+    """A dead-end cell (the robot at its centre, facing its open side) that opens into a room.
+
+    From the cell the lidar sees the room through the opening only; 0.2 m further, at the
+    opening, it sees the walls on either side of it too: the view of an exploring robot at
+    the edge of what it has mapped.
+    """
+    h = WALL_M / 2
+    c = CELL_M / 2
+    rects = np.array(
+        [
+            [-c - h, -c - h, c + h, -c + h],  # the dead end's back wall
+            [-c - h, -c - h, -c + h, c + h],  # its left and right walls
+            [c - h, -c - h, c + h, c + h],
+            [-0.9 - h, c - h, -c + h, c + h],  # the room's near wall, left and right of the opening
+            [c - h, c - h, 0.9 + h, c + h],
+            [-0.9 - h, c - h, -0.9 + h, 1.35 + h],  # the room's side walls and far wall
+            [0.9 - h, c - h, 0.9 + h, 1.35 + h],
+            [-0.9 - h, 1.35 - h, 0.9 + h, 1.35 + h],
+        ]
+    )
+    return World(
+        name="room",
+        segments=rectangles_outline(rects),
+        circles=np.zeros((0, 3)),
+        start_pose=(0.0, 0.0, np.pi / 2),
+        bounds_m=(-0.9 - WALL_M, -c - WALL_M, 0.9 + WALL_M, 1.35 + WALL_M),
     )
 
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
-from mazebot.slam.relocalize import LocalizationGuard, search_pose
+from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
 from mazebot.slam.slam import Slam, SlamParams
 
 PERIOD_S = 1 / 5.5
@@ -19,9 +19,9 @@ def _still(pose):
     return lambda t: (np.full(t.shape, pose[0]), np.full(t.shape, pose[1]), np.full(t.shape, pose[2]))
 
 
-def _mapped_start(maze_world, moving_scan):
-    """SLAM after the robot turned 1 rad on the spot in the start cell: (slam, odometry, scan maker, t, start)."""
-    start = np.asarray(maze_world.start_pose)
+def _mapped_start(maze_world, moving_scan, start=None):
+    """SLAM after the robot turned 1 rad on the spot from ``start`` (the world's): (slam, odometry, guard, t, start)."""
+    start = np.asarray(maze_world.start_pose if start is None else start, dtype=np.float64)
     slam = Slam(SlamParams(), background=False, record_trajectory=False)
     history = OdometryHistory(horizon_s=30.0)
     t = 0.0
@@ -116,3 +116,114 @@ def test_the_revolution_the_robot_is_picked_up_in_is_held_back_from_the_map(maze
         contradictions.append(guard.last_fit.contradiction)
     assert verdicts == ["skip", "lost"], contradictions
     assert np.array_equal(slam.grid.log_odds, before)
+
+
+ODOM_HEADING = 0.05 * 21  # where _mapped_start leaves the robot turned, in the odometry
+
+
+def _lost_at(slam, history, guard, t, world, moving_scan, kidnapped, seed):
+    """Two revolutions where the robot was put down, the wheels still: the guard's verdicts, the last scan, t."""
+    verdicts = []
+    for k in range(2):
+        scan = moving_scan(world, _still(kidnapped), t0_s=t, noise_rel=0.005, seed=seed + k)
+        t += PERIOD_S
+        history.append(t, 0.0, 0.0, ODOM_HEADING)
+        verdicts.append(guard.check(slam, scan, history))
+    return verdicts, scan, t
+
+
+def _error(pose, truth):
+    return math.hypot(*(pose[:2] - truth[:2])), abs(math.degrees(wrap_angle(pose[2] - truth[2])))
+
+
+def test_a_robot_put_down_at_the_edge_of_its_map_is_found_from_the_part_it_knows(room_world, moving_scan) -> None:
+    """The fault suite's kidnap: the exploring robot faces the unmapped side, and 0.2 m ahead, turned
+    20°, 60 % of its hits fall where the map knows nothing. No pose put 60 % where the map knows, so
+    the robot was never found (it stood still, the same view for ever); the known part alone finds
+    it, once confirmed by the next revolution."""
+    start = np.array([0.0, 0.0, math.pi / 2 - ODOM_HEADING])  # the turn ends facing the room
+    slam, history, guard, t, start = _mapped_start(room_world, moving_scan, start)
+    before = slam.grid.log_odds.copy()
+    kidnapped = np.array([0.0, 0.2, math.pi / 2 + math.radians(20)])
+    truth = relative_pose(start, kidnapped)
+    verdicts, scan, t = _lost_at(slam, history, guard, t, room_world, moving_scan, kidnapped, seed=400)
+    assert verdicts == ["skip", "lost"]
+    found = search_pose(slam, scan, history, guard.guess, guard.params)
+    assert found.pose is not None and found.partial
+    assert found.fit is not None and found.fit.known < guard.params.min_known_share * scan.valid.sum()
+    moved_m, turned_deg = _error(found.pose, truth)
+    assert moved_m < 0.03 and turned_deg < 2.0
+    assert not guard.accept(slam, found) and guard.lost  # once is not enough from a partial view
+    # the next revolution (the robot still stands there) finds it again: now it is taken
+    scan = moving_scan(room_world, _still(kidnapped), t0_s=t, noise_rel=0.005, seed=410)
+    t += PERIOD_S
+    history.append(t, 0.0, 0.0, ODOM_HEADING)
+    assert guard.check(slam, scan, history) == "lost"
+    again = search_pose(slam, scan, history, guard.guess, guard.params)
+    assert again.partial and guard.accept(slam, again) and not guard.lost
+    assert np.array_equal(slam.grid.log_odds, before)  # nothing of the lost revolutions went into the map
+    # from there SLAM tracks at the true pose and maps the room
+    scan = moving_scan(room_world, _still(kidnapped), t0_s=t, noise_rel=0.005, seed=420)
+    t += PERIOD_S
+    history.append(t, 0.0, 0.0, ODOM_HEADING)
+    assert guard.check(slam, scan, history) == "ok"
+    update = slam.update(scan, history)
+    moved_m, turned_deg = _error(update.pose, truth)
+    assert moved_m < 0.03 and turned_deg < 2.0
+
+
+def test_a_view_that_fits_several_poses_is_not_taken(corridor_world, moving_scan) -> None:
+    """In a corridor whose ends are out of sight every pose along it looks the same: a robot put
+    down 0.2 m further must stay lost rather than be put anywhere (the map would be spoiled)."""
+    slam, history, guard, t, start = _mapped_start(corridor_world, moving_scan)
+    _, kidnapped = _picked_up(start, ODOM_HEADING)
+    verdicts, scan, t = _lost_at(slam, history, guard, t, corridor_world, moving_scan, kidnapped, seed=500)
+    assert verdicts == ["skip", "lost"]
+    for scale in (1.0, 1.5, 3.0):  # the widened searches as well
+        found = search_pose(slam, scan, history, guard.guess, guard.params, scale)
+        assert found.pose is None, (scale, _error(found.pose, relative_pose(start, kidnapped)))
+
+
+def test_a_view_of_the_room_from_out_of_reach_is_not_taken(room_world, moving_scan) -> None:
+    """Put down 0.5 m into the room (beyond the searched window), no pose of the window may be taken."""
+    start = np.array([0.0, 0.0, math.pi / 2 - ODOM_HEADING])
+    slam, history, guard, t, start = _mapped_start(room_world, moving_scan, start)
+    kidnapped = np.array([0.1, 0.5, math.pi / 2 + math.radians(20)])
+    verdicts, scan, t = _lost_at(slam, history, guard, t, room_world, moving_scan, kidnapped, seed=600)
+    assert verdicts[-1] == "lost"
+    found = search_pose(slam, scan, history, guard.guess, guard.params)
+    assert found.pose is None or max(_error(found.pose, relative_pose(start, kidnapped))) < 0.03
+
+
+class _RecordingSlam:
+    """Just what LocalizationGuard.accept calls."""
+
+    def __init__(self) -> None:
+        self.poses: list[np.ndarray] = []
+
+    def relocalized(self, pose, odom) -> None:
+        self.poses.append(np.asarray(pose))
+
+
+def _partial(x_m: float, odom_x_m: float = 0.0) -> SearchResult:
+    return SearchResult(np.array([x_m, 0.0, 0.0]), np.array([odom_x_m, 0.0, 0.0]), None, None, 6,
+                        np.zeros(3), partial=True)
+
+
+def test_a_pose_from_a_partial_view_is_taken_when_the_next_search_finds_it_again() -> None:
+    guard, slam = LocalizationGuard(), _RecordingSlam()
+    guard.lost = True
+    assert not guard.accept(slam, _partial(1.00))
+    assert not guard.accept(slam, _partial(1.10))  # elsewhere: not confirmed, the newer one waits
+    assert guard.failed_searches == 0  # a find is not a failed search: the window stays as it was
+    failed = SearchResult(None, np.zeros(3), None, None, 6, np.zeros(3))
+    assert not guard.accept(slam, failed) and guard.failed_searches == 1
+    assert not guard.accept(slam, _partial(1.10))  # a failed search in between: start over
+    assert guard.lost and not slam.poses
+    # the robot crept 5 cm (odometry) between the two: the second find is where the first one moved
+    assert guard.accept(slam, _partial(1.15, odom_x_m=0.05))
+    assert not guard.lost and len(slam.poses) == 1 and slam.poses[0][0] == 1.15
+    # a whole view is taken at once, as before
+    guard.lost = True
+    whole = SearchResult(np.array([2.0, 0.0, 0.0]), np.zeros(3), None, None, 6, np.zeros(3))
+    assert guard.accept(slam, whole) and len(slam.poses) == 2

@@ -9,8 +9,10 @@ maze of that seed, explore drive, virtual time; the robot picked up and put down
 away, turned 20°), and one JSON line per run: the fault row (detected_ms, motors_zero_ms,
 recovered, map_intact, relocalized_s, passed) and what the guard logged (searches that found
 nothing, partial finds waiting for the next revolution, views refused as ambiguous,
-re-localizations). Virtual-time runs are not deterministic (the loop-closure worker
-races the clock), so repeat a seed to see the spread.
+re-localizations). Loop-closure results land at fixed simulated times, but the search for
+the lost robot hands its answer over after the CPU time it took
+(:mod:`mazebot.bench.virtual_executor`), so a kidnap run can still differ from the next one
+of the same seed: repeat a seed to see the spread.
 """
 
 from __future__ import annotations

@@ -22,11 +22,12 @@ SUITES = ("smoke", "6x6", "standard", "full", "faults")
 def suite_specs(suite: str, seeds: int, drive: str, clock: str, first_seed: int = 1) -> list[RunSpec]:
     """The runs of a suite. smoke: one 6x6 maze; 6x6: seeds x 6x6; standard: 6x6 + an 8x8 training maze;
     full: standard + generated 8x8 + the 5x5 training maze + a 16x16 contest maze;
-    faults: every fault of :data:`mazebot.sim.faults.FAULTS` in its own run of the 6x6 maze.
+    faults: every fault of :data:`mazebot.sim.faults.FAULTS` in its own run of the 6x6 maze (of each seed).
     Generated mazes take the seeds ``first_seed .. first_seed + seeds - 1``; above 1 the
     suite's fixed mazes are left out, so a suite can be split over several processes."""
     if suite == "faults":
-        return [RunSpec(None, (6, 6), 1, drive, clock=clock, faults=(FaultSpec(name),)) for name in FAULTS]
+        return [RunSpec(None, (6, 6), seed, drive, clock=clock, faults=(FaultSpec(name),))
+                for seed in range(first_seed, first_seed + seeds) for name in FAULTS]
     n_seeds = 1 if suite == "smoke" else seeds
     specs = [RunSpec(None, (6, 6), seed, drive, clock=clock) for seed in range(first_seed, first_seed + n_seeds)]
     if suite in ("standard", "full") and first_seed == 1:
@@ -89,6 +90,8 @@ def _progress(i: int, n: int, text: str) -> None:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    if args.seeds is None:  # one maze of 16 runs is the fault suite; three seeds for the others
+        args.seeds = 1 if args.suite == "faults" and not (args.maze or args.size or args.room) else 3
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
     if args.first_seed < 1:
@@ -147,7 +150,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench.add_argument("--size", default=None, metavar="WxH",
                        help="run generated mazes of this size (cells, e.g. 16x16) instead of a suite, "
                             "one per seed")
-    bench.add_argument("--seeds", type=int, default=3, help="seeds per generated maze (default 3)")
+    bench.add_argument("--seeds", type=int, default=None,
+                       help="seeds per generated maze (default 3; 1 for --suite faults)")
     bench.add_argument("--first-seed", type=int, default=1,
                        help="first seed of the generated mazes (default 1; above 1 the suite's fixed mazes are "
                             "left out, so a suite can be split over several processes)")

@@ -124,6 +124,15 @@ def test_a_suite_can_be_split_over_processes_by_its_first_seed() -> None:
     assert [s.seed for s in suite_specs("6x6", 5, "explore", "virtual", first_seed=6)] == [6, 7, 8, 9, 10]
 
 
+def test_the_fault_suite_runs_every_fault_on_each_seed_asked_for() -> None:
+    from mazebot.sim.faults import FAULTS
+
+    specs = suite_specs("faults", 2, "explore", "virtual", first_seed=3)
+    assert len(specs) == 2 * len(FAULTS)
+    assert {(s.seed, s.faults[0].name) for s in specs} == {(seed, name) for seed in (3, 4) for name in FAULTS}
+    assert {s.seed for s in suite_specs("faults", 1, "explore", "virtual")} == {1}
+
+
 def test_a_long_suite_writes_what_it_has_measured_as_it_goes(tmp_path: Path) -> None:
     from mazebot.bench.report import write_partial
 

@@ -5,9 +5,15 @@
   stops the wheels within one control period. The driver reconnects by itself; the
   fault clears with the first new revolution.
 - **Dead encoder**: a wheel whose motor has been driven well above the deadband for
-  ``encoder_dead_s`` while its tick count did not move, and the other wheel's did: a
-  cut encoder wire. Odometry is then wrong, so this is a fault too; it is latched (the
-  evidence only exists while driving) and the user's next start gives it another try.
+  ``encoder_dead_s`` in all while its tick count did not move, and the other wheel's did:
+  a cut encoder wire. The driven time adds up over the pauses of the control (under
+  ``IDLE_RESET_S`` each): a dead encoder makes the odometry wrong at once, and the robot's
+  reaction to that (braking, backing off, stopping because it is lost) cuts the drive
+  into short stretches, none of them as long as ``encoder_dead_s``. A wheel that was
+  turning and falls silent while still driven and while the other one counts is dead
+  after ``SUDDEN_SILENCE_S`` already (it cannot stop that fast). Odometry is then
+  wrong, so this is a fault too; it is latched (the evidence only exists while driving)
+  and the user's next start gives it another try.
 
 - **Bouncing encoders**: impossible transitions (a contact bouncing, an edge lost) are
   counted by the decoders; new ones are said in ``/api/status`` (an ``encoders``
@@ -47,6 +53,16 @@ OTHER_WHEEL_TICKS = 40
 #: from rest counts within ~0.1 s (the motor's 0.09 s lag); a wheel pushed against a wall has the
 #: other one driven too, which keeps the old rule.
 OTHER_IDLE_DEAD_S = 0.3
+#: A silent wheel's driven time starts again from nothing after this long without being driven.
+IDLE_RESET_S = 0.5
+#: A wheel that counted this many ticks in the check interval before it fell silent was turning
+#: (at 0.1 m/s a wheel counts ~40 ticks in 50 ms). Turning and still driven the same way, it
+#: cannot stop within ``SUDDEN_SILENCE_S`` (the motor's lag is 0.09 s) unless its encoder died or
+#: the wheel is blocked while the other turns: in the fault suite's encoder-dead run of seed 4 the
+#: robot, misled by the dead encoder, braked 0.1 s after the cut (one silent check) and drove
+#: again only 0.8 s later, and the driven-time rule said it after 1.1 s.
+MOVING_TICKS = 10
+SUDDEN_SILENCE_S = 0.05
 #: While any fault is active, and this long after the last one cleared, the wheels are held
 #: or starting again from rest (the motors' lag, half-failed throttle writes): their speeds
 #: tell nothing about a motor's strength. Without it the fault suite said a weak motor in
@@ -63,10 +79,12 @@ NOTE_EVERY_S = 5.0
 
 @dataclass
 class _Wheel:
-    since_s: float | None = None  # when the current stretch of "driven but silent" began
-    ticks: int = 0  # the tick count at its start
+    driven_s: float = 0.0  # how long the motor was driven since the tick count last moved
+    driven_at_s: float | None = None  # the last check that saw it driven (None: a new stretch)
+    ticks: int = 0  # the tick count at the stretch's start
     other_ticks: int = 0
-    other_idle: bool = True  # the other wheel was not driven at any check of the stretch
+    other_idle: bool = True  # the other wheel was not driven at any driven check of the stretch
+    moving: int = 0  # it was turning this way (+1 forward, -1 back, 0 not) just before the silence began
 
 
 class HealthMonitor:
@@ -89,6 +107,7 @@ class HealthMonitor:
         self.weak_checks = int(weak_checks)
         self._started_s: float | None = None
         self._wheels = (_Wheel(), _Wheel())
+        self._encoders_checked_s: float | None = None
         self._invalid_seen = 0
         self._weak_streak = [0, 0]
         self._last_gains: list[tuple[float, float] | None] = [None, None]  # (gain, check time) per wheel
@@ -105,7 +124,14 @@ class HealthMonitor:
         self._check_motor_strength(state, now_s)
 
     def check_motors(self, state: SharedState, now_s: float) -> None:
-        """The weak-motor check alone: the calls between two of :meth:`check` (``MOTOR_PERIOD_S``)."""
+        """The checks at the control rate: the calls between two of :meth:`check` (``MOTOR_PERIOD_S``).
+
+        The dead-encoder check runs here too: the control task writes a throttle every
+        ``MOTOR_PERIOD_S``, so each check sees each throttle the wheels were given.
+        """
+        if self._started_s is None:
+            self._started_s = now_s
+        self._check_encoders(state, now_s)
         self._check_motor_strength(state, now_s)
 
     def _note(self, state: SharedState, source: str, message: str, now_s: float) -> None:
@@ -176,31 +202,44 @@ class HealthMonitor:
             log.info("lidar data flows again")
 
     def _check_encoders(self, state: SharedState, now_s: float) -> None:
+        last_s, self._encoders_checked_s = self._encoders_checked_s, now_s
+        step_s = 0.0 if last_s is None else min(max(0.0, now_s - last_s), PERIOD_S)
         ticks = (state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
         for side, (wheel, name) in enumerate(zip(self._wheels, ("left", "right"), strict=True)):
             driven = abs(state.throttles[side]) >= self.driven_throttle
             other_driven = abs(state.throttles[1 - side]) >= self.driven_throttle
             mine, other = ticks[side], ticks[1 - side]
-            if not driven or mine != wheel.ticks:
-                wheel.since_s = now_s if driven else None
+            idle_too_long = wheel.driven_at_s is not None and now_s - wheel.driven_at_s > IDLE_RESET_S
+            if mine != wheel.ticks or idle_too_long or (wheel.driven_at_s is None and driven):
+                # it turned (or a new stretch begins): the silence, if any, starts now
+                counted = mine - wheel.ticks
+                turning = driven and abs(counted) >= MOVING_TICKS and not idle_too_long
+                wheel.moving = (1 if counted > 0 else -1) if turning else 0
+                wheel.driven_s = 0.0
+                wheel.driven_at_s = now_s if driven else None
                 wheel.ticks, wheel.other_ticks, wheel.other_idle = mine, other, not other_driven
                 continue
-            if wheel.since_s is None:
-                wheel.since_s, wheel.other_ticks, wheel.other_idle = now_s, other, not other_driven
-                continue
+            if not driven:
+                continue  # no evidence either way; the stretch waits (IDLE_RESET_S)
+            # the throttle seen now has been the wheel's since the last check (written at that rate)
+            wheel.driven_s += step_s
+            wheel.driven_at_s = now_s
             wheel.other_idle = wheel.other_idle and not other_driven
-            silent_s = now_s - wheel.since_s
             other_counted = abs(other - wheel.other_ticks) >= OTHER_WHEEL_TICKS
-            if (silent_s >= self.encoder_dead_s and other_counted) or (
-                wheel.other_idle and silent_s >= max(self.encoder_dead_s, OTHER_IDLE_DEAD_S)
+            # still driven the way it was turning (not reversing: a turn-round can count nothing once)
+            same_way = wheel.moving != 0 and (state.throttles[side] > 0) == (wheel.moving > 0)
+            driven_s = wheel.driven_s + 1e-6  # check times are sums of float periods: 0.05 may add up to 0.0499..
+            sudden = same_way and driven_s >= min(self.encoder_dead_s, SUDDEN_SILENCE_S)
+            if ((driven_s >= self.encoder_dead_s or sudden) and other_counted) or (
+                wheel.other_idle and driven_s >= max(self.encoder_dead_s, OTHER_IDLE_DEAD_S)
             ):
                 message = (
-                    f"the {name} wheel's encoder counted nothing for {silent_s:.1f} s while its motor "
-                    "drove: check the encoder's wires; press start to try again"
+                    f"the {name} wheel's encoder counted nothing while its motor drove for "
+                    f"{wheel.driven_s:.2f} s: check the encoder's wires; press start to try again"
                 )
                 log.warning("%s", message)
                 state.raise_fault("encoders", message, now_s, latched=True)
-                wheel.since_s = None
+                wheel.driven_at_s = None
 
 
 async def run(state: SharedState, clock: Clock, monitor: HealthMonitor) -> None:

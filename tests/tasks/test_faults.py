@@ -214,6 +214,92 @@ def test_a_silent_encoder_in_a_pivot_about_the_idle_wheel_is_a_fault_within_half
     assert state.run_state is RunState.FAULT and "left wheel" in state.faults[0].message
 
 
+#: The throttles (left, right) the control wrote every 50 ms after the left encoder was cut in the
+#: fault suite's encoder-dead run of seed 2: the wrong odometry made the robot brake, back off and
+#: stop (lost), so no stretch of driving lasted 0.2 s; main said it after 1.1 s.
+_AFTER_THE_CUT = [(0.47, -0.59), (0.54, -0.65), (0.63, -0.65), (0.0, 0.0), (0.13, 0.0), (-0.15, -0.09),
+                  (-0.19, -0.15), (-0.20, -0.18), (-0.21, -0.20), (0.09, -0.05), (0.12, 0.15), (0.13, 0.14)]
+
+
+def test_a_cut_encoder_is_a_fault_within_half_a_second_though_the_drive_keeps_pausing() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.47, -0.59)
+    for k in range(10):  # both wheels count before the cut
+        state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right = 30 * k, -40 * k
+        monitor.check_motors(state, 99.5 + 0.05 * k)
+    for k, throttles in enumerate(_AFTER_THE_CUT):
+        state.throttles = throttles
+        if abs(throttles[1]) >= 0.1:
+            state.sensors.encoder_ticks_right += 30 if throttles[1] > 0 else -30
+        (monitor.check if k % 2 else monitor.check_motors)(state, 100.0 + 0.05 * k)
+        if state.faults:
+            break
+    assert state.faults and state.faults[0].source == "encoders" and "left wheel" in state.faults[0].message
+    assert 0.05 * k <= 0.5
+
+
+def test_a_turning_wheel_whose_encoder_goes_silent_is_a_fault_before_the_robot_brakes() -> None:
+    # the suite's encoder-dead run of seed 4: driven one more check after the cut, then stopped
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.47, -0.65)
+    t = 100.0
+    for _ in range(6):  # both wheels turn
+        state.sensors.encoder_ticks_left += 35
+        state.sensors.encoder_ticks_right -= 45
+        monitor.check_motors(state, t)
+        t += 0.05
+    state.sensors.encoder_ticks_right -= 45  # the left encoder is cut: one silent check, still driven ...
+    monitor.check_motors(state, t)
+    state.throttles = (0.0, 0.0)  # ... then the robot brakes and stands for 0.7 s
+    for _ in range(14):
+        t += 0.05
+        monitor.check_motors(state, t)
+    assert state.faults and "left wheel" in state.faults[0].message
+    assert state.faults[0].time_s <= t - 0.6
+
+
+@pytest.mark.parametrize("case", ["reversing", "both blocked"])
+def test_a_wheel_that_reverses_or_stops_with_the_other_is_no_sudden_silence(case: str) -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    state.throttles = (0.4, 0.4)
+    t = 100.0
+    for k in range(30):
+        if case == "reversing":  # forward, then braking and backing: the count turns round, never stands
+            state.throttles = (0.4, 0.4) if k < 10 else (-0.4, -0.4)
+            step = 30 if k < 10 else (-15 if k > 10 else 0)  # one check in the turn-round sees no net motion
+            state.sensors.encoder_ticks_left += step
+            state.sensors.encoder_ticks_right += step
+        elif k < 10:  # both wheels turn, then the robot runs into a wall: neither counts
+            state.sensors.encoder_ticks_left += 30
+            state.sensors.encoder_ticks_right += 30
+        monitor.check_motors(state, t)
+        t += 0.05
+    assert not state.faults
+
+
+def test_short_drives_of_a_healthy_wheel_with_pauses_are_no_encoder_fault() -> None:
+    # stop-and-go: each drive from rest counts within the motor's lag, however many there are
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor()
+    state.latest_scan = _scan_ending(1000.0)
+    t = 100.0
+    for k in range(40):
+        driving = k % 4 != 3
+        state.throttles = (0.3, 0.3) if driving else (0.0, 0.0)
+        if driving and k % 4 != 0:  # the first check of each drive sees no tick yet
+            state.sensors.encoder_ticks_left += 20
+            state.sensors.encoder_ticks_right += 20
+        monitor.check_motors(state, t)
+        t += 0.05
+    assert not state.faults
+
+
 def test_a_wheel_starting_from_rest_while_the_other_idles_is_no_encoder_fault() -> None:
     # the motor's lag: a driven wheel counts nothing for a check or two after a start from rest
     state = SharedState(run_state=RunState.EXPLORING)

@@ -80,9 +80,9 @@ class IcpParams:
     max_correspondence_m: float = 0.3  # initial distance gate (about the initial pose error)
     min_correspondence_m: float = 0.05  # the gate never shrinks below this
     candidates: int = 16  # nearest neighbours searched when the nearest faces away from the lidar
-    robust_scale_min_m: float = 0.01  # floor of the Cauchy kernel's scale
+    robust_scale_min_m: float = 0.01  # floor of the Cauchy kernel's scale (unweighted; see robust_scale_min_sigma)
     degeneracy_ratio: float = 0.02  # eigenvalue / largest eigenvalue below this: unobservable
-    sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix
+    sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix (unweighted)
     min_correspondences: int = 10  # fewer matches than this: give up, keep the prior
     # range noise std / range of the lidar (A1M8: ~0.01): residuals weighted by 1/σ²; 0: all points alike
     range_noise_ratio: float = 0.0

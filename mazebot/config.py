@@ -423,6 +423,15 @@ class SlamConfig(Section):
     icp_information_scale: float = Field(
         0.5, gt=0, le=1, description="scale of ICP's information matrix (ICP is optimistic about itself)"
     )
+    icp_range_noise_ratio: float = Field(
+        0.0,
+        ge=0,
+        lt=0.3,
+        description="weight ICP residuals by the lidar's range noise, std / range (A1: 0.01; 0: all points alike)",
+    )
+    icp_noise_floor_m: float = Field(
+        0.002, gt=0, description="... plus this std that does not grow with range (submap pose errors)"
+    )
     normal_neighbours: int = Field(10, ge=3, le=50, description="neighbours for surface normals")
     normal_radius_m: float = Field(0.1, gt=0, description="neighbours farther than this do not count for a normal")
     # keyframes, local submap, pose graph

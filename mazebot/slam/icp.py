@@ -16,7 +16,9 @@ most 150 iterations or a step below 1 cm / 0.01 rad. Each iteration:
 4. **Weight** the point-to-line residuals ``r_i = n_iᵀ(R p_i + t − q_i)`` (Chen &
    Medioni 1992; Censi, "An ICP variant using a point-to-line metric", ICRA 2008) with
    the Cauchy kernel ``w = 1 / (1 + (r/c)²)``, ``c`` from the residuals' median
-   absolute deviation.
+   absolute deviation. With ``range_noise_ratio`` ρ > 0 each residual is first divided
+   by its expected noise (weighted least squares, below) and the kernel acts on the
+   normalized residual ``e_i = r_i / σ_i``.
 5. **Solve** the linearized least squares ``(JᵀWJ) δ = −JᵀWr`` (3×3) in the eigenbasis
    of ``JᵀWJ``: directions whose eigenvalue is below ``degeneracy_ratio`` times the
    largest are not observable (a straight corridor does not say where along it the
@@ -28,6 +30,23 @@ most 150 iterations or a step below 1 cm / 0.01 rad. Each iteration:
 
 The rotation column of the Jacobian is scaled by the points' RMS lever arm ``L`` so the
 Hessian has one unit (m⁻²) and its eigenvalues can be compared.
+
+**Range-proportional noise.** A lidar like the A1M8 measures the bearing precisely and
+the range with a noise proportional to the range (about 1 %). Projected on the wall's
+normal, a point's noise is ``ρ·|nᵀb|`` with ``b`` the beam (lidar to point; ``|nᵀb| =
+range·|cos|`` of the incidence angle), and the target point ``q`` carries its own, from
+the lidar position it was seen from. So ``σ_i² = ρ²((nᵀb_i)² + (nᵀ(q_i − v_i))²) +
+σ_floor²`` (``σ_floor``: what does not scale with range: quantization, the submap's own
+pose errors). In a corridor the only points that fix the position along it are on a
+far wall ahead; with all points weighted alike their noise, ten times that of the side
+walls, sets the along-track error. Weighting by ``1/σ_i²`` is the maximum-likelihood
+estimate (the weighted point-to-line metric of Censi, ICRA 2008, with a per-point
+covariance; Segal, Haehnel & Thrun, "Generalized-ICP", RSS 2009, for the general
+form). Observability (step 5) is still judged on the kernel-weighted Hessian without
+the ``1/σ_i²`` factor: a far wall is a weak measurement, not a missing one. The
+information matrix is then ``JᵀWJ / s²`` with ``W`` the same weights and ``s²`` the
+weighted variance of the normalized residuals (1 when the noise model is right), at
+least ``min_variance_factor``. ``ρ = 0`` is the unweighted estimate (every point alike).
 
 Target normals come from a PCA of each target point's ``normal_neighbours`` nearest
 neighbours (Hoppe et al., SIGGRAPH 1992); points whose neighbourhood is not a line
@@ -61,10 +80,15 @@ class IcpParams:
     max_correspondence_m: float = 0.3  # initial distance gate (about the initial pose error)
     min_correspondence_m: float = 0.05  # the gate never shrinks below this
     candidates: int = 16  # nearest neighbours searched when the nearest faces away from the lidar
-    robust_scale_min_m: float = 0.01  # floor of the Cauchy kernel's scale
+    robust_scale_min_m: float = 0.01  # floor of the Cauchy kernel's scale (unweighted; see robust_scale_min_sigma)
     degeneracy_ratio: float = 0.02  # eigenvalue / largest eigenvalue below this: unobservable
-    sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix
+    sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix (unweighted)
     min_correspondences: int = 10  # fewer matches than this: give up, keep the prior
+    # range noise std / range of the lidar (A1M8: ~0.01): residuals weighted by 1/σ²; 0: all points alike
+    range_noise_ratio: float = 0.0
+    noise_floor_m: float = 0.002  # the part of each residual's std that does not grow with range
+    robust_scale_min_sigma: float = 2.0  # floor of the Cauchy scale on normalized residuals (in σ)
+    min_variance_factor: float = 1.0  # the information never trusts the points more than the noise model
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -76,6 +100,10 @@ class IcpParams:
             )
         if not 0.0 <= self.degeneracy_ratio < 1.0:
             raise ValueError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio}")
+        if self.range_noise_ratio < 0.0:
+            raise ValueError(f"range_noise_ratio must be at least 0, got {self.range_noise_ratio}")
+        if self.range_noise_ratio > 0.0 and self.noise_floor_m <= 0.0:
+            raise ValueError(f"noise_floor_m must be positive with range noise weighting, got {self.noise_floor_m}")
 
 
 @dataclass(frozen=True)
@@ -84,8 +112,10 @@ class IcpResult:
 
     ``pose`` (3,) is the source frame's pose in the target frame. ``fitness`` is the
     share of source points with an accepted correspondence, ``rmse_m`` their unweighted
-    point-to-line RMS. ``information`` (3×3, for the pose graph) is ``JᵀWJ / σ²`` with
-    ``σ²`` the weighted residual variance, with unobservable directions removed (there
+    point-to-line RMS (in metres, whatever the weighting). ``information`` (3×3, for the
+    pose graph) is ``JᵀWJ / σ²`` with ``σ²`` the weighted residual variance (with range
+    noise weighting: ``W`` includes ``1/σ_i²`` and ``σ²`` is the normalized residuals'
+    variance factor), with unobservable directions removed (there
     the pose is the prior, so the scan adds no information). ``degenerate`` says some
     direction was unobservable; ``weak_direction`` (3,) is the weakest one as a unit
     pose step ``(dx, dy, dθ)``, or None.
@@ -145,6 +175,13 @@ class Target:
             normals = np.where(flip[:, None], -normals, normals)
         self.points = pts[good]
         self.normals = normals[good]
+        # |nᵀ(v − q)|: the range from the viewpoint projected on the normal, what the point's
+        # own range noise moves it by along the normal (0 without viewpoints: exact points)
+        self.normal_range_m = (
+            np.zeros(self.points.shape[0])
+            if view is None
+            else np.abs(np.einsum("ij,ij->i", self.normals, view[good] - self.points))
+        )
         # one extra row: cKDTree reports a missing neighbour as index M
         self._normals_pad = np.vstack((self.normals, np.zeros((1, 2))))
         self.tree = cKDTree(self.points)
@@ -264,6 +301,8 @@ def match_scan_steps(
     sensor = np.zeros(2) if sensor_xy is None else np.asarray(sensor_xy, dtype=np.float64).reshape(2)
     gate_m = p.max_correspondence_m
     k = max(1, p.candidates if target.oriented else 1)
+    weighted = p.range_noise_ratio > 0.0
+    beam = src - sensor  # lidar to point in the robot frame: range × direction
     converged = False
     last: tuple = ()
     iterations = 0
@@ -293,9 +332,19 @@ def match_scan_steps(
         # 4. point-to-line residuals r = nᵀ(R p + t − q) to the matched target points q, Cauchy weights
         n = target.normals[j]
         r = np.einsum("ij,ij->i", n, moved[rows] - target.points[j])
-        abs_r = np.abs(r)
-        scale = max(p.robust_scale_min_m, 1.4826 * float(np.partition(abs_r, m // 2)[m // 2]))  # MAD
-        w = 1.0 / (1.0 + (r / scale) ** 2)
+        if weighted:
+            # expected noise of each residual: both points' range noise along the normal, and a floor
+            var = (p.range_noise_ratio**2) * (
+                np.einsum("ij,ij->i", n, beam[rows] @ rot.T) ** 2 + target.normal_range_m[j] ** 2
+            ) + p.noise_floor_m**2
+            e = r / np.sqrt(var)
+            abs_e = np.abs(e)
+            scale = max(p.robust_scale_min_sigma, 1.4826 * float(np.partition(abs_e, m // 2)[m // 2]))
+            w = 1.0 / (1.0 + (e / scale) ** 2)
+        else:
+            abs_r = np.abs(r)
+            scale = max(p.robust_scale_min_m, 1.4826 * float(np.partition(abs_r, m // 2)[m // 2]))  # MAD
+            w = 1.0 / (1.0 + (r / scale) ** 2)
 
         # 5. linearized least squares; the rotation column scaled by the lever arm to metres
         arm = rp[rows]
@@ -306,7 +355,15 @@ def match_scan_steps(
         jac[:, 2] = (arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]) / lever_m
         jw = jac * w[:, None]
         hess = jw.T @ jac
-        step_s, strong, eigval, eigvec = _solve_observable(hess, jw.T @ r, p.degeneracy_ratio)
+        if weighted:
+            # observability from the kernel-weighted geometry, the step from the noise-weighted system
+            jwn = jw / var[:, None]
+            step_s, strong, eigval, eigvec, hess_obs = _solve_weighted(
+                jwn.T @ jac, jwn.T @ r, hess, p.degeneracy_ratio
+            )
+        else:
+            step_s, strong, eigval, eigvec = _solve_observable(hess, jw.T @ r, p.degeneracy_ratio)
+            hess_obs = None
         # unobservable directions go back to the prior instead of sliding along them
         offset = pose - prior
         offset[2] = math.remainder(offset[2], math.tau)
@@ -314,7 +371,7 @@ def match_scan_steps(
         step_s -= weak @ (weak.T @ (offset * unit))
         step = step_s / unit
         pose += step
-        last = (m, r, w, strong, eigval, eigvec, lever_m)
+        last = (m, r, (e if weighted else r), w, strong, eigval, eigvec, lever_m, hess_obs)
 
         # 6. convergence: the seed's criteria, then finer steps until they stop mattering
         step_t, step_r = math.hypot(step[0], step[1]), abs(float(step[2]))
@@ -322,12 +379,16 @@ def match_scan_steps(
         if step_t < p.stop_translation_m and step_r < p.stop_rotation_rad:
             break
 
-    count, r, w, strong, eigval, eigvec, lever_m = last
+    count, r, e, w, strong, eigval, eigvec, lever_m, hess_obs = last
     pose[2] = math.remainder(pose[2], math.tau)
-    sigma2 = max(p.sigma_min_m**2, float(np.sum(w * r**2) / np.sum(w)))
-    # information of the observable directions only, back in (x, y, θ) units
-    kept = eigvec[:, strong]
-    hess_obs = (kept * eigval[strong]) @ kept.T
+    if weighted:
+        # the normalized residuals' variance factor: 1 when the noise model is right
+        sigma2 = max(p.min_variance_factor, float(np.sum(w * e**2) / np.sum(w)))
+    else:
+        sigma2 = max(p.sigma_min_m**2, float(np.sum(w * r**2) / np.sum(w)))
+        # information of the observable directions only, back in (x, y, θ) units
+        kept = eigvec[:, strong]
+        hess_obs = (kept * eigval[strong]) @ kept.T
     unscale = np.array([1.0, 1.0, lever_m])
     information = hess_obs * np.outer(unscale, unscale) / sigma2
     weak_direction = None
@@ -389,6 +450,28 @@ def _solve_observable(
     proj = eigvec.T @ grad
     coef = np.where(strong, -proj / np.where(strong, eigval, 1.0), 0.0)
     return eigvec @ coef, strong, eigval, eigvec
+
+
+def _solve_weighted(
+    hess: np.ndarray, grad: np.ndarray, hess_geometry: np.ndarray, ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton step of the noise-weighted system ``(hess, grad)`` within the observable directions.
+
+    Which directions are observable is read from ``hess_geometry`` (the same Jacobian with
+    the kernel's weights only), as in :func:`_solve_observable`: weighting far points down
+    must not turn a weak direction into a missing one. The step solves the weighted system
+    restricted to the span of the strong eigenvectors ``V``: ``δ = −V (VᵀHV)⁻¹ Vᵀg``.
+    Returns the step, the strong mask, the geometry's eigenvalues and eigenvectors, and
+    ``V VᵀHV Vᵀ`` (the weighted Hessian of the observable directions, for the information).
+    """
+    eigval, eigvec = np.linalg.eigh(hess_geometry)
+    strong = eigval > ratio * max(float(eigval[-1]), 1e-12)
+    kept = eigvec[:, strong]
+    if not strong.any():
+        return np.zeros(3), strong, eigval, eigvec, np.zeros((3, 3))
+    reduced = kept.T @ hess @ kept
+    step = -kept @ np.linalg.solve(reduced, kept.T @ grad)
+    return step, strong, eigval, eigvec, kept @ reduced @ kept.T
 
 
 def _give_up(prior: np.ndarray, iterations: int, fitness: float = 0.0) -> IcpResult:

@@ -182,6 +182,8 @@ class SlamParams:
                 max_correspondence_m=slam.icp_max_correspondence_m,
                 min_correspondence_m=slam.icp_min_correspondence_m,
                 degeneracy_ratio=slam.icp_degeneracy_ratio,
+                range_noise_ratio=slam.icp_range_noise_ratio,
+                noise_floor_m=slam.icp_noise_floor_m,
             ),
             normals=NormalParams(neighbours=slam.normal_neighbours, radius_m=slam.normal_radius_m),
             motion=MotionNoise(

@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from mazebot.cli import main
+from mazebot.config import load_config
 from mazebot.slam.carmen import read_carmen
 from mazebot.slam.map_export import read_ros_map
 from mazebot.slam.posegraph import wrap_angle
-from mazebot.slam.slam_cli import noisy_odometry
+from mazebot.slam.slam import SlamParams
+from mazebot.slam.slam_cli import laser_log_params, noisy_odometry
 
 
 def test_slam_run_on_the_intel_log(intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -85,3 +87,13 @@ def test_bad_odometry_noise_is_a_usage_error(
 def test_missing_log_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["slam", "run", "--carmen", str(tmp_path / "nope.log"), "--out", str(tmp_path / "o")]) == 2
     assert "nope.log not found" in capsys.readouterr().err
+
+
+def test_range_noise_weighting_comes_from_the_config_and_is_off_for_laser_logs() -> None:
+    """The maze's A1 has range-proportional noise (``icp_range_noise_ratio``); a SICK's does not grow with range."""
+    config = load_config(None)
+    config.slam.icp_range_noise_ratio = 0.01
+    config.slam.icp_noise_floor_m = 0.003
+    params = SlamParams.from_config(config.slam, config.lidar)
+    assert params.icp.range_noise_ratio == 0.01 and params.icp.noise_floor_m == 0.003
+    assert laser_log_params(params, None).icp.range_noise_ratio == 0.0

@@ -24,8 +24,8 @@
   other's is said (a ``motors`` event): the wheel controller makes up for it, but a
   gearbox or a motor is failing.
 
-All are plain checks on ``SharedState`` at 10 Hz (the weak-motor one at 20 Hz, the control
-rate); they never touch a device.
+All are plain checks on ``SharedState`` at 10 Hz (the dead-encoder and weak-motor ones at
+20 Hz, the control rate); they never touch a device.
 """
 
 from __future__ import annotations

@@ -97,7 +97,7 @@ def _one(seed: int, with_slam: bool, executor: str | None, paced: bool = False, 
         "slam_update_cpu_s": sum(record.state.scan_ms) / 1e3,
         "loop_job_cpu_s": sum(job_cpu_s),
         "loop_jobs": len(job_cpu_s),
-        "job_ms": sorted(ms for ms in job_ms) if job_ms is not None else [],
+        "job_ms": sorted(job_ms) if job_ms is not None else [],
         "worker_wait_s": record.executor.worker_wait_s if getattr(record, "executor", None) is not None else 0.0,
     }
 

@@ -17,7 +17,7 @@ Loop-closure jobs still run in the daemon's executor (its worker process, on the
 their results no longer land whenever the worker happens to finish: that made SLAM's estimate,
 and so every accuracy figure, differ from run to run of one seed by millimetres, because the
 worker's wall time decided at which scan a correction was merged. A job's result is handed over
-:func:`loop_job_latency_s` simulated seconds after it was submitted (a fixed cost model of the
+``LOOP_JOB_LATENCY_S`` simulated seconds after it was submitted (a fixed cost model of the
 job, not a measurement), and if the worker is not done by then the loop waits for it, with
 virtual time standing still. A run is then a function of its seed.
 
@@ -52,12 +52,6 @@ WORKER_WAIT_MAX_S = 300.0
 #: of wall time in a 6×6 tour.
 LOOP_JOB_LATENCY_S = 1.0
 
-
-def loop_job_latency_s(job: LoopClosureJob) -> float:
-    """When a job's result reaches SLAM, after its submission (simulated seconds)."""
-    return LOOP_JOB_LATENCY_S
-
-
 class CpuTimedExecutor(Executor):
     """Plain callables run inline and finish after their thread CPU time; loop-closure jobs go to
     ``inner`` and are handed over at a fixed time on the virtual clock (see the module docstring)."""
@@ -70,7 +64,7 @@ class CpuTimedExecutor(Executor):
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
         if isinstance(fn, LoopClosureJob) and not args and not kwargs:
-            return self._hand_over_later(self._inner.submit(fn), loop_job_latency_s(fn))
+            return self._hand_over_later(self._inner.submit(fn), LOOP_JOB_LATENCY_S)
         future: concurrent.futures.Future[Any] = concurrent.futures.Future()
         start_s = time.thread_time()
         try:

@@ -302,7 +302,6 @@ def match_scan_steps(
     gate_m = p.max_correspondence_m
     k = max(1, p.candidates if target.oriented else 1)
     weighted = p.range_noise_ratio > 0.0
-    beam = src - sensor  # lidar to point in the robot frame: range × direction
     converged = False
     last: tuple = ()
     iterations = 0
@@ -334,8 +333,9 @@ def match_scan_steps(
         r = np.einsum("ij,ij->i", n, moved[rows] - target.points[j])
         if weighted:
             # expected noise of each residual: both points' range noise along the normal, and a floor
+            beam = (src[rows] - sensor) @ rot.T  # lidar to point
             var = (p.range_noise_ratio**2) * (
-                np.einsum("ij,ij->i", n, beam[rows] @ rot.T) ** 2 + target.normal_range_m[j] ** 2
+                np.einsum("ij,ij->i", n, beam) ** 2 + target.normal_range_m[j] ** 2
             ) + p.noise_floor_m**2
             e = r / np.sqrt(var)
             abs_e = np.abs(e)

@@ -22,11 +22,13 @@ import hashlib
 import pickle
 import statistics
 import time
+import tomllib
 from typing import Any
 
 import numpy as np
 
-from mazebot.bench.runner import RunSpec, run_one
+from mazebot.bench.cli import SIM_S_PER_CELL
+from mazebot.bench.runner import RunSpec, _relative, run_one
 from mazebot.config import load_config
 from mazebot.slam import slam as slam_module
 from mazebot.slam.slam import Slam, SlamParams
@@ -46,6 +48,7 @@ class FrozenOdometry:
 
 def capture(seed: int, size: int, out: str) -> None:
     config = load_config(None)
+    max_sim_s = max(900.0, SIM_S_PER_CELL * size * size)  # as ``mazebot bench --size``
     frames: list[tuple[Any, np.ndarray]] = []
     real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
@@ -55,28 +58,68 @@ def capture(seed: int, size: int, out: str) -> None:
 
     slam_module.Slam.update_steps = update  # type: ignore[method-assign]
     try:
-        metrics, _ = run_one(config, RunSpec(None, (size, size), seed, "scripted"))
+        metrics, record = run_one(config, RunSpec(None, (size, size), seed, "scripted", max_sim_s=max_sim_s))
     finally:
         slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
+    true_poses = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
+    truth = {  # the true poses in the map frame (the start's), on the daemon's clock
+        "times_s": np.asarray(record.times_s, dtype=float) + record.start_s,
+        "poses": _relative(tuple(true_poses[0]), true_poses),
+    }
+    keys = ("done", "time_s", "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "loop_closures")
+    bench = {key: metrics[key] for key in keys}
     with open(out, "wb") as f:
-        pickle.dump({"seed": seed, "size": size, "frames": frames}, f)
-    print(f"{len(frames)} scans over {metrics['time_s']:.1f} s simulated written to {out}")
+        pickle.dump({"seed": seed, "size": size, "frames": frames, "truth": truth, "bench": bench}, f)
+    print(f"{len(frames)} scans over {metrics['time_s']:.1f} s simulated written to {out}; the run's {bench}")
 
 
-def replay_once(frames: list[tuple[Any, np.ndarray]]) -> tuple[list[float], list[float], Slam]:
-    params = SlamParams.from_config(load_config(None).slam, load_config(None).lidar)
+def replay_once(
+    frames: list[tuple[Any, np.ndarray]], config: Any, latency_s: float = 0.0
+) -> tuple[list[float], list[float], Slam, np.ndarray]:
+    """SLAM over the frames; each loop-closure job merged ``latency_s`` after the update that made it.
+
+    Returns the per-scan and per-job thread CPU, the SLAM, and its live estimates
+    ``(time_s, x, y, theta)`` after every update (what the daemon publishes).
+    """
+    params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
     slam = Slam(params, background=True, record_trajectory=False)
-    update_s, job_s = [], []
+    update_s, job_s, estimates = [], [], []
+    pending: tuple[float, Any] | None = None  # (merge time, result) of the job in flight
     for scan, live in frames:
+        if pending is not None and scan.end_time_s >= pending[0]:
+            slam.apply(pending[1])
+            pending = None
         start = time.thread_time()
         update = slam.update(scan, FrozenOdometry(live))
         update_s.append(time.thread_time() - start)
+        estimates.append((update.time_s, *update.pose))
         if update.loop_job is not None:
             start = time.thread_time()
             result = update.loop_job.run()
-            slam.apply(result)
             job_s.append(time.thread_time() - start)
-    return update_s, job_s, slam
+            if latency_s > 0:
+                pending = (update.time_s + latency_s, result)
+            else:
+                slam.apply(result)
+    return update_s, job_s, slam, np.asarray(estimates, dtype=float).reshape(-1, 4)
+
+
+def trajectory_error(estimates: np.ndarray, truth: dict[str, np.ndarray]) -> dict[str, float]:
+    """ATE RMS / max (m) and heading RMS (degrees) of the live estimates against the true poses."""
+    t = truth["times_s"]
+    true = truth["poses"]
+    inside = (estimates[:, 0] >= t[0]) & (estimates[:, 0] <= t[-1])
+    est = estimates[inside]
+    x = np.interp(est[:, 0], t, true[:, 0])
+    y = np.interp(est[:, 0], t, true[:, 1])
+    th = np.interp(est[:, 0], t, np.unwrap(true[:, 2]))
+    err = np.hypot(est[:, 1] - x, est[:, 2] - y)
+    err_th = np.remainder(est[:, 3] - th + np.pi, 2 * np.pi) - np.pi
+    return {
+        "ate_rms_mm": float(np.sqrt(np.mean(err**2)) * 1e3),
+        "ate_max_mm": float(err.max() * 1e3),
+        "heading_rms_deg": float(np.degrees(np.sqrt(np.mean(err_th**2)))),
+    }
 
 
 def digest(slam: Slam) -> str:
@@ -87,12 +130,25 @@ def digest(slam: Slam) -> str:
     return h.hexdigest()[:16]
 
 
-def replay(path: str, repeat: int) -> None:
+def configured(settings: list[str]) -> Any:
+    """The default config with ``section.key=value`` settings (TOML values) applied."""
+    config = load_config(None)
+    for setting in settings:
+        name, _, text = setting.partition("=")
+        section, _, key = name.partition(".")
+        if not key or not text:
+            raise SystemExit(f"--set wants section.key=value, got {setting!r}")
+        setattr(getattr(config, section), key, tomllib.loads(f"v = {text}")["v"])
+    return config
+
+
+def replay(path: str, repeat: int, latency_s: float, settings: list[str]) -> None:
     with open(path, "rb") as f:
         data = pickle.load(f)
+    config = configured(settings)
     best_update, best_job = float("inf"), float("inf")
     for _ in range(repeat):
-        update_s, job_s, slam = replay_once(data["frames"])
+        update_s, job_s, slam, estimates = replay_once(data["frames"], config, latency_s)
         if sum(update_s) + sum(job_s) < best_update + best_job:
             best_update, best_job = sum(update_s), sum(job_s)
             medians = (statistics.median(update_s) * 1e3, statistics.median(job_s) * 1e3 if job_s else 0.0)
@@ -102,6 +158,13 @@ def replay(path: str, repeat: int) -> None:
         f"(median {medians[0]:.2f} ms), {jobs} loop-closure jobs {best_job:.2f} s CPU (median {medians[1]:.1f} ms); "
         f"{len(slam.keyframes)} keyframes, {len(slam.closures)} closures, digest {digest(slam)}"
     )
+    if "truth" in data:
+        error = trajectory_error(estimates, data["truth"])
+        print(
+            f"  live estimate against the truth: ATE RMS {error['ate_rms_mm']:.1f} mm, "
+            f"max {error['ate_max_mm']:.1f} mm, heading RMS {error['heading_rms_deg']:.3f} deg "
+            f"(the captured run's bench figures: {data['bench']})"
+        )
 
 
 def main() -> None:
@@ -114,11 +177,16 @@ def main() -> None:
     rep = sub.add_parser("replay", help="run SLAM over a capture")
     rep.add_argument("path")
     rep.add_argument("--repeat", type=int, default=1, help="passes; the fastest is printed")
+    rep.add_argument("--latency-s", type=float, default=0.0,
+                     help="merge each loop-closure job this long (scan time) after it was made; "
+                     "0: at once (the digest's reference); the daemon's bench uses 1.0")
+    rep.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                     help="a config value for the replayed SLAM (TOML syntax), e.g. slam.submap_keyframes=30")
     args = parser.parse_args()
     if args.command == "capture":
         capture(args.seed, args.size, args.out)
     else:
-        replay(args.path, args.repeat)
+        replay(args.path, args.repeat, args.latency_s, args.set)
 
 
 if __name__ == "__main__":

@@ -461,6 +461,15 @@ class SlamConfig(Section):
     wall_anchor_std_rad: float = Field(
         0.001, gt=0, description="trust in the anchor's wall direction (it fixes the wall grid of the whole map)"
     )
+    wall_lattice: bool = Field(
+        True,
+        description="walls lie on a square lattice of the planner's cell size: each keyframe's wall faces "
+        "give a weak position prior (needs wall_prior)",
+    )
+    wall_lattice_std_m: float = Field(0.005, gt=0, description="trust in one keyframe's wall faces on the lattice")
+    wall_lattice_gate_m: float = Field(
+        0.04, gt=0, description="a face farther than this from its lattice line is not used for the prior"
+    )
     optimize_every_keyframes: int = Field(
         40, ge=1, description="optimize the pose graph this often even without a loop closure (wall priors)"
     )

@@ -221,7 +221,7 @@ async def run_daemon(
         odometry = DiffDriveOdometry(
             config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m
         )
-        slam_params = SlamParams.from_config(config.slam, config.lidar)
+        slam_params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
         if session is not None:  # recorded, saved or resumed
             slam = session.make_slam(slam_params)
         else:

@@ -96,7 +96,7 @@ class Replayer:
     ) -> None:
         self.recording = recording
         self.config = config = recorded_config(recording)
-        params = SlamParams.from_config(config.slam, config.lidar)
+        params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
         self.slam = Slam(params, background=True, record_trajectory=True)
         drive = config.drive
         self.odometry = DiffDriveOdometry(config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)

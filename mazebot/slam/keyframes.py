@@ -30,7 +30,12 @@ from scipy.spatial import cKDTree
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
+from mazebot.slam.wall_lattice import LatticeFaces, LatticeParams, measure_faces
 from mazebot.steps import run_steps
+
+#: A keyframe's wall faces are measured again when its heading on the wall grid changed by more
+#: than this (a few millimetres at the farthest face used, 1.2 m; smaller changes are followed to first order).
+LATTICE_REMEASURE_RAD = 0.005
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,7 @@ class Keyframe:
     normal_params: NormalParams = field(default_factory=NormalParams)
     _surface: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     _walls: tuple[float, float, int] | None = field(default=None, repr=False)
+    _lattice: LatticeFaces | None = field(default=None, repr=False)
 
     @property
     def points(self) -> np.ndarray:
@@ -125,6 +131,20 @@ class Keyframe:
                 c, s = float(np.mean(np.cos(four))), float(np.mean(np.sin(four)))
                 cached = (0.25 * math.atan2(s, c), math.hypot(c, s), int(nrm.shape[0]))
             self._walls = cached
+        return cached
+
+    def lattice_faces(self, psi_rad: float, params: LatticeParams) -> LatticeFaces:
+        """The keyframe's wall faces on the lattice (:func:`mazebot.slam.wall_lattice.measure_faces`), cached.
+
+        ``psi_rad`` is the keyframe's heading on the wall grid; the faces are measured again
+        only if it has changed by more than :data:`LATTICE_REMEASURE_RAD` since (the
+        cached offsets follow smaller changes to first order).
+        """
+        cached = self._lattice
+        if cached is None or abs(math.remainder(psi_rad - cached.psi_rad, math.tau)) > LATTICE_REMEASURE_RAD:
+            points, normals = self.surface()
+            cached = measure_faces(points, normals, self.sensor_xy, psi_rad, params)
+            self._lattice = cached
         return cached
 
     @classmethod

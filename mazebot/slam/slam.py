@@ -68,6 +68,7 @@ from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, bui
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+from mazebot.slam.wall_lattice import LatticeParams, lattice_priors
 from mazebot.steps import run_steps
 
 #: Loop-closure candidates kept while a job runs (the newest).
@@ -157,11 +158,24 @@ class SlamParams:
     optimize_every_keyframes: int = 40  # optimize (wall priors) this often even without a loop closure
     rebuild_threshold_m: float = 0.01
     rebuild_threshold_rad: float = 0.005
+    # the walls lie on a square lattice of this pitch: a position prior per keyframe (None: no lattice)
+    lattice: LatticeParams | None = None
 
     @classmethod
-    def from_config(cls, slam: Any, lidar: Any) -> SlamParams:
-        """From the ``[slam]`` and ``[lidar]`` config sections (plain values only from here on)."""
+    def from_config(cls, slam: Any, lidar: Any, cell_size_m: float | None = None) -> SlamParams:
+        """From the ``[slam]`` and ``[lidar]`` config sections (plain values only from here on).
+
+        ``cell_size_m`` is the maze's cell size (``[planner] cell_size_m``): with it, and
+        ``wall_lattice`` and ``wall_prior`` on, the keyframes' wall faces are tied to the
+        lattice of that pitch (:mod:`mazebot.slam.wall_lattice`).
+        """
+        lattice = None
+        if cell_size_m is not None and slam.wall_lattice and slam.wall_prior:
+            lattice = LatticeParams(
+                pitch_m=cell_size_m, std_m=slam.wall_lattice_std_m, gate_m=slam.wall_lattice_gate_m
+            )
         return cls(
+            lattice=lattice,
             prepare=PrepareParams(
                 min_range_m=lidar.min_range_m,
                 max_range_m=min(slam.max_range_m, lidar.max_range_m),
@@ -422,7 +436,40 @@ class LoopClosureJob:
         ei = np.concatenate((np.full(len(rows), wall, dtype=np.intp), [0]))
         ej = np.concatenate((index, [wall])).astype(np.intp)
         z = np.vstack((z, relative_pose(self.poses[0], wall_pose[0])))
+        lattice = self._lattice_edges(index, reference) if p.lattice is not None else None
+        if lattice is not None:
+            wall_pose[0, :2], lattice_j, lattice_z, lattice_info = lattice
+            # the vertex's position, where the lattice's lines cross, is estimated with the poses; the
+            # tie to keyframe 0 stays only as a weak hold (1 m) on an axis no wall face measures
+            z[-1] = relative_pose(self.poses[0], wall_pose[0])
+            info[-1, 0, 0] = info[-1, 1, 1] = 1.0
+            ei = np.concatenate((ei, np.full(len(lattice_j), wall, dtype=np.intp)))
+            ej = np.concatenate((ej, lattice_j)).astype(np.intp)
+            z = np.vstack((z, lattice_z))
+            info = np.concatenate((info, lattice_info))
         return wall_pose, ei, ej, z, info
+
+    def _lattice_edges(
+        self, index: np.ndarray, reference: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The lattice priors of keyframes ``index`` (:mod:`mazebot.slam.wall_lattice`), as wall-vertex edges.
+
+        ``(vertex position (2,), j (P,), z (P, 3), information (P, 3, 3))``: the wall vertex
+        moves to a crossing of the lattice's lines, and each edge says where keyframe ``j``
+        lies relative to it along the grid's axes (its heading is left to the wall priors:
+        no information on it). None if no keyframe's faces fit the lattice.
+        """
+        lattice = self.params.lattice
+        assert lattice is not None
+        faces = [self.keyframes[k].lattice_faces(float(self.poses[k, 2]) - reference, lattice) for k in index]
+        rows, target, weight, line = lattice_priors(self.poses[index], faces, self.poses[0, :2], reference, lattice)
+        if not len(rows):
+            return None
+        c, s = math.cos(reference), math.sin(reference)
+        crossing = self.poses[0, :2] + (c * line[0] - s * line[1], s * line[0] + c * line[1])
+        info = np.zeros((len(rows), 3, 3))
+        info[:, 0, 0], info[:, 1, 1] = weight[:, 0], weight[:, 1]
+        return crossing, index[rows], np.column_stack((target, np.zeros(len(rows)))), info
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,12 @@ at once after the update that made it::
     .venv/bin/python bench/slam_replay.py capture --seed 2 --out /tmp/seed2.pkl
     .venv/bin/python bench/slam_replay.py replay /tmp/seed2.pkl [--repeat 3]
 
+A capture also keeps the run's true poses: ``replay`` then prints the live estimate's
+error against them (ATE RMS / max, heading RMS, as ``mazebot bench`` computes them).
+``--latency-s 1.0`` merges each loop-closure job a simulated second after it was made,
+as the bench's virtual-time runs do (the replay then gives the captured run's ATE), and
+``--set slam.KEY=VALUE`` tries another setting on the same data.
+
 ``replay`` prints the thread CPU of the per-scan updates and of the loop-closure jobs
 (total and median, the minimum over ``--repeat`` passes) and a digest of SLAM's output
 (keyframe poses, closures, the grid's log odds): two code versions that print the same

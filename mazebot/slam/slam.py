@@ -404,6 +404,10 @@ class LoopClosureJob:
         still (``anchor_wall``: the mean of many revolutions' wall directions, several
         times less noisy than one scan's): its tight edge ties ``φ`` to the walls as seen
         from the start, and the other keyframes' priors turn the map back onto them.
+
+        With ``params.lattice`` the same keyframes' wall faces also tie their positions to
+        the maze's lattice (:meth:`_lattice_edges`); the vertex then stands where the
+        lattice's lines cross, and its position is estimated too.
         """
         p = self.params
         if not p.wall_prior or self.wall_reference_rad is None or len(self.keyframes) < 2:

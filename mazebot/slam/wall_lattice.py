@@ -17,8 +17,9 @@ ahead or a post) along it, to the one lattice the whole maze shares, instead of 
 its neighbours in the chain: parts of the maze that meet only across a wall, which no
 loop closure links, can no longer drift apart, and the lattice's far lines fix the
 grid's direction better than any one keyframe's walls. In the graph each prior is an
-ordinary edge from the wall vertex (its position on keyframe 0, its heading the grid's
-direction) to the keyframe, whose information covers only the lattice axes it measured.
+ordinary edge from the wall vertex (its heading the grid's direction, its position a
+crossing of the lattice's lines, estimated with the poses) to the keyframe, whose
+information covers only the lattice axes it measured.
 
 A world whose walls do not fit the pitch (a room, a maze of another cell size) shows
 it: the faces of one class then do not agree on an offset across keyframes, and that

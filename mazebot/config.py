@@ -471,7 +471,7 @@ class SlamConfig(Section):
         0.04, gt=0, description="a face farther than this from its lattice line is not used for the prior"
     )
     optimize_every_keyframes: int = Field(
-        40, ge=1, description="optimize the pose graph this often even without a loop closure (wall priors)"
+        20, ge=1, description="optimize the pose graph this often even without a loop closure (wall priors)"
     )
     # loop closure
     loop_search_radius_m: float = Field(0.25, gt=0, description="look for loop closures at least this close ...")

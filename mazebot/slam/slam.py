@@ -155,7 +155,7 @@ class SlamParams:
     anchor_still_m: float = 0.002  # the robot stands still while the odometry moved less than this ...
     anchor_still_rad: float = 0.002  # ... and turned less than this since keyframe 0
     wall_anchor_std_rad: float = 0.001  # how much the anchor's (averaged) wall direction is trusted
-    optimize_every_keyframes: int = 40  # optimize (wall priors) this often even without a loop closure
+    optimize_every_keyframes: int = 20  # optimize (wall priors) this often even without a loop closure
     rebuild_threshold_m: float = 0.01
     rebuild_threshold_rad: float = 0.005
     # the walls lie on a square lattice of this pitch: a position prior per keyframe (None: no lattice)

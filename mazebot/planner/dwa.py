@@ -383,6 +383,41 @@ class DynamicWindowPlanner:
         vv, ww = np.meshgrid(np.unique(vs), np.unique(ws), indexing="ij")
         return vv.reshape(-1), ww.reshape(-1)
 
+    def _clearance_until_contact(
+        self, pts: np.ndarray, costmap: LocalCostmap
+    ) -> Generator[None, None, tuple[np.ndarray, float]]:
+        """Clearance (K, S) of the rollout points up to each rollout's first contact, and the contact limit.
+
+        A rollout's points after its first contact are never scored (its objectives stop
+        just before it), so they are left at inf and not queried: the points are asked in
+        slices of time steps, each slice only for the rollouts still free, and the result
+        is the same as querying all of them. In 1 ft corridors most turning rollouts meet
+        a wall early, so this asks far fewer than all the points. It yields after about
+        ``CLEARANCE_BLOCK`` queried points. The limit is the contact distance, or a hair
+        less than the start's clearance when the robot is already that close (map noise,
+        a bump): it must not get any closer.
+        """
+        k, s_count, _ = pts.shape
+        bound_m = self.clearance_cap_m + self.contact_m
+        clear = np.full((k, s_count), np.inf)
+        clear[:, 0] = costmap.clearance_m(pts[0, 0][None, :], upper_bound_m=bound_m)[0]  # point 0: the robot
+        limit = min(self.contact_m, float(clear[0, 0]) - 1e-4)
+        free = np.flatnonzero(clear[:, 0] >= limit)
+        first = 1
+        since_yield = 0
+        while first < s_count and free.size:
+            cols = max(1, CLEARANCE_BLOCK // free.size)
+            last = min(s_count, first + cols)
+            block = pts[free, first:last].reshape(-1, 2)
+            clear[free, first:last] = costmap.clearance_m(block, upper_bound_m=bound_m).reshape(free.size, -1)
+            free = free[(clear[free, first:last] >= limit).all(axis=1)]
+            first = last
+            since_yield += block.shape[0]
+            if since_yield >= CLEARANCE_BLOCK and first < s_count and free.size:
+                since_yield = 0
+                yield
+        return clear, limit
+
     def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray) -> np.ndarray:
         """Robot-frame positions (K, S, 2) along the arcs of constant ``(v, w)`` for ``horizon_s``.
 
@@ -435,17 +470,8 @@ class DynamicWindowPlanner:
         step_len = np.abs(v) * self.horizon_s / (s_count - 1)  # (K,)
 
         # 1. Admissibility (Fox et al. 1997, section 4.2): free arc length before contact.
-        flat = pts.reshape(-1, 2)
-        blocks = []
-        for first in range(0, flat.shape[0], CLEARANCE_BLOCK):
-            if first:
-                yield
-            block = flat[first : first + CLEARANCE_BLOCK]
-            blocks.append(costmap.clearance_m(block, upper_bound_m=self.clearance_cap_m + self.contact_m))
-        clear = np.concatenate(blocks).reshape(k, s_count)
+        clear, limit = yield from self._clearance_until_contact(pts, costmap)
         start_clear = float(clear[0, 0])
-        # already inside the contact distance (map noise, a bump): do not get any closer
-        limit = min(self.contact_m, start_clear - 1e-4)
         hit = clear < limit
         first_hit = np.where(hit.any(axis=1), np.argmax(hit, axis=1), s_count)
         free_m = np.where(first_hit >= s_count, np.inf, np.maximum(first_hit - 1, 0) * step_len)

@@ -105,6 +105,44 @@ def test_every_admissible_rollout_is_collision_free_for_its_stopping_distance() 
                 assert min_distance(arc_points(v, w, stop), obstacles) >= FOOTPRINT
 
 
+def _clearance_of_every_point(dwa: DynamicWindowPlanner, pts: np.ndarray, costmap: LocalCostmap):
+    """The unsliced reference: every rollout point asked at once."""
+    clear = costmap.clearance_m(pts.reshape(-1, 2), upper_bound_m=dwa.clearance_cap_m + dwa.contact_m)
+    clear = clear.reshape(pts.shape[:2])
+    return clear, min(dwa.contact_m, float(clear[0, 0]) - 1e-4)
+    yield  # a generator, like the method it stands in for
+
+
+def test_asking_only_the_points_before_contact_scores_every_rollout_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(99)
+    dwa = DynamicWindowPlanner()
+    scenes = [random_scene(rng) for _ in range(80)]
+    scenes += [corridor(half_width_m=h) for h in (0.146, 0.12, 0.1)]  # walls close on both sides
+    scenes += [np.array([[0.095, 0.0], [0.3, 0.2]])]  # already inside the contact distance
+    cases = []
+    for obstacles in scenes:
+        v0 = float(rng.uniform(0.0, dwa.max_speed_mps))
+        w0 = float(rng.uniform(-dwa.max_yaw_rate_radps, dwa.max_yaw_rate_radps))
+        heading = rng.uniform(-math.pi, math.pi)
+        waypoints = [(0.0, 0.0), (0.6 * math.cos(heading), 0.6 * math.sin(heading))]
+        cases.append((LocalCostmap(obstacles, footprint_radius_m=FOOTPRINT), (v0, w0), waypoints))
+
+    def plan_all(cases):
+        return [dwa.plan((0.0, 0.0, 0.0), vel, costmap, PathTrack(wp)) for costmap, vel, wp in cases]
+
+    sliced = plan_all(cases)
+    monkeypatch.setattr(DynamicWindowPlanner, "_clearance_until_contact", _clearance_of_every_point)
+    reference = plan_all(cases)
+    blocked_rollouts = 0
+    for a, b in zip(sliced, reference, strict=True):
+        assert (a.v_mps, a.w_radps, a.blocked) == (b.v_mps, b.w_radps, b.blocked)
+        np.testing.assert_array_equal(a.rollouts.score, b.rollouts.score)
+        np.testing.assert_array_equal(a.rollouts.free_m, b.rollouts.free_m)
+        np.testing.assert_array_equal(a.rollouts.admissible, b.rollouts.admissible)
+        blocked_rollouts += int(np.isfinite(a.rollouts.free_m).sum())
+    assert blocked_rollouts > 1000  # most scenes cut rollouts short, so the slicing was exercised
+
+
 def corridor(length_m: float = 3.0, half_width_m: float = 0.146) -> np.ndarray:
     x = np.arange(-0.5, length_m, 0.01)
     return np.concatenate(

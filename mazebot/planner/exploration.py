@@ -569,6 +569,11 @@ class Explorer:
             self._history[key] = target
         continued = self._target is target and target.last_s is not None
         dt_s = now_s - target.last_s if continued and target.last_s is not None else 0.0
+        if not continued and cost > target.best_cost + self._fresh_margin(key):
+            # Chosen again from much farther away than its best (the robot went elsewhere
+            # meanwhile): progress counts from here, or the drive back would count as
+            # stalled until it gets closer than it once was. Its stalled time is kept.
+            target.best_cost = cost
         self._target = target
         target.position_m, target.cost = position, cost
         if cost < target.best_cost - 1e-6:
@@ -584,6 +589,16 @@ class Explorer:
             self._blacklist(target)
             return None
         return target
+
+    def _fresh_margin(self, key: object) -> float:
+        """How much costlier than its best a target picked up again must be to count progress afresh.
+
+        Two switching margins (cells in a maze, metres for grid frontiers): a target
+        that flickers or is dithered to and from comes back at about its old cost and
+        keeps its clocks.
+        """
+        margin = 2.0 * self.switch_margin
+        return margin * self.graph.cell_size_m if isinstance(key, _RegionKey) else margin
 
     def _blacklist(self, target: _Target) -> None:
         key = target.key

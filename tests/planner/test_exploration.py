@@ -159,6 +159,36 @@ def test_a_target_without_progress_is_blacklisted_and_the_next_one_chosen() -> N
     assert later is not None and later.reason != first.reason
 
 
+def test_a_target_chosen_again_from_far_away_counts_its_progress_afresh() -> None:
+    # kor92: a link chosen once from next to it, given up for nearer ones, then chosen
+    # again 10 cells away. The drive back lowers its cost every cell but stays above the
+    # first cost for longer than the timeout; it must not be blacklisted for that.
+    explorer = Explorer(progress_timeout_s=10.0)
+    near, other = (((5, 5), None), ((1, 1), None))
+    assert explorer._track(near, (0.0, 0.0), 1.0, now_s=0.0, at_goal=False) is not None
+    assert explorer._track(other, (0.0, 0.0), 2.0, now_s=0.2, at_goal=False) is not None
+    t_s, cost = 30.0, 12.0
+    while cost > 1.0:  # one cell closer every 2.5 s: 27 s in all, none of it stalled
+        for _ in range(12):
+            assert explorer._track(near, (0.0, 0.0), cost, now_s=t_s, at_goal=False) is not None, t_s
+            t_s += 0.2
+        cost -= 1.0
+    assert not explorer.blacklisted_links
+
+
+def test_a_target_dithered_to_and_from_keeps_its_stalled_time() -> None:
+    explorer = Explorer(progress_timeout_s=10.0)
+    a, b = (((5, 5), None), ((1, 1), None))
+    for k in range(41):  # 8 s on it without progress
+        assert explorer._track(a, (0.0, 0.0), 3.0, now_s=0.2 * k, at_goal=False) is not None
+    explorer._track(b, (0.0, 0.0), 2.5, now_s=8.2, at_goal=False)
+    t_s = 8.4
+    while explorer._track(a, (0.0, 0.0), 3.5, now_s=t_s, at_goal=False) is not None:  # back at about its cost
+        t_s += 0.2
+    assert explorer.blacklisted_links == {a}
+    assert t_s < 11.0  # the 8 s counted: 2 s more were enough
+
+
 def test_report_unreachable_blacklists_the_current_target() -> None:
     world, grid, origin = t_maze()
     partial = hide_east_of(grid, origin, 2.5 * CELL)

@@ -9,6 +9,7 @@ radius of any obstacle point.
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 
 import numpy as np
 import pytest
@@ -105,7 +106,9 @@ def test_every_admissible_rollout_is_collision_free_for_its_stopping_distance() 
                 assert min_distance(arc_points(v, w, stop), obstacles) >= FOOTPRINT
 
 
-def _clearance_of_every_point(dwa: DynamicWindowPlanner, pts: np.ndarray, costmap: LocalCostmap):
+def _clearance_of_every_point(
+    dwa: DynamicWindowPlanner, pts: np.ndarray, costmap: LocalCostmap
+) -> Generator[None, None, tuple[np.ndarray, float]]:
     """The unsliced reference: every rollout point asked at once."""
     clear = costmap.clearance_m(pts.reshape(-1, 2), upper_bound_m=dwa.clearance_cap_m + dwa.contact_m)
     clear = clear.reshape(pts.shape[:2])

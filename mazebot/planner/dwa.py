@@ -402,7 +402,7 @@ class DynamicWindowPlanner:
         clear = np.full((k, s_count), np.inf)
         clear[:, 0] = costmap.clearance_m(pts[0, 0][None, :], upper_bound_m=bound_m)[0]  # point 0: the robot
         limit = min(self.contact_m, float(clear[0, 0]) - 1e-4)
-        free = np.flatnonzero(clear[:, 0] >= limit)
+        free = np.arange(k)  # rollouts not yet in contact: all, as the limit lies below the start's clearance
         first = 1
         since_yield = 0
         while first < s_count and free.size:

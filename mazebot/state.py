@@ -15,6 +15,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from mazebot.cpu_budget import CpuBudget
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -177,6 +179,9 @@ class SharedState:
     finished_at_s: float | None = None  # clock time the run reached DONE
     #: recent lateness of control ticks beyond their period, milliseconds
     control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+    #: CPU time per part of the daemon (:mod:`mazebot.cpu_budget`); each part's meter is
+    #: written only by the task or thread whose part it is
+    cpu: CpuBudget = field(default_factory=CpuBudget)
     #: lidar revolutions waiting for SLAM: the lidar task puts, the SLAM task gets; when SLAM is
     #: behind the oldest is dropped (``mazebot.tasks.lidar_task``); replaced at start-up with the
     #: configured ``[slam] scan_queue_size``

@@ -134,6 +134,23 @@ def fault_table(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
+def budget_table(metrics: list[dict[str, Any]]) -> list[str]:
+    """Each part's thread CPU, medians over the runs: ms per robot-second, p99 ms per call."""
+    rows = ["| part | CPU ms per robot-second | p50 ms per call | p99 ms per call | calls per robot-second |",
+            "|---|---|---|---|---|"]
+    budgets = [m["cpu_budget"] for m in metrics if m.get("cpu_budget")]
+    if not budgets:
+        return []
+    for part in budgets[0]:
+        def med(key: str, part: str = part) -> str:
+            values = [b[part][key] for b in budgets if b[part][key] is not None]
+            return f"{statistics.median(values):.3g}" if values else "null"
+        rates = [b[part]["calls"] / m["time_s"] for b, m in zip(budgets, metrics, strict=False) if m["time_s"]]
+        rate = f"{statistics.median(rates):.3g}" if rates else "null"
+        rows.append(f"| {part} | {med('cpu_ms_per_s')} | {med('p50_ms')} | {med('p99_ms')} | {rate} |")
+    return rows
+
+
 def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], command: str) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     metrics = [m for m, _ in runs]
@@ -169,6 +186,7 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
         lines += ["", "## Faults", "", *fault_table(fault_rows)]
     results = {"command": command, "runs": metrics, "summary": summary}
     write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
+    lines += ["", "## CPU per part of the daemon", "", *budget_table(metrics)]
     lines += ["", "## Summary (medians)", "", "```json", json.dumps(summary, indent=2), "```", "", "## Figures", ""]
     for m in metrics:
         lines.append(f"- {m['maze']} seed {m['seed']}: true trajectory (blue) and estimate (red) over the true "

@@ -431,4 +431,6 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "encoder_invalid_transitions": state.sensors.encoder_invalid_transitions,
         # injected faults, measured from the simulation's ground truth (mazebot.bench.fault_metrics)
         "faults": fault_metrics(record, exit_code) if record.faults is not None else None,
+        # CPU per part of the daemon over the run (mazebot.cpu_budget): ms per robot-second, ms per call
+        "cpu_budget": state.cpu.table(time_s),
     }

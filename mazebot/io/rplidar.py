@@ -36,6 +36,7 @@ import numpy as np
 
 from mazebot.clock import Clock, RealClock
 from mazebot.config import LidarConfig
+from mazebot.cpu_budget import PartMeter
 from mazebot.errors import HardwareUnavailable, MazebotError, ProtocolError
 from mazebot.io import rplidar_protocol as proto
 from mazebot.io.rplidar_protocol import DecodedSamples, DeviceHealth, DeviceInfo, SampleRate
@@ -146,6 +147,8 @@ class RPLidar:
         self._sample_period_s = sample_period_s
         self.name = name
         self.stats = LidarStats()
+        #: CPU time the decoders take (the daemon's budget: :mod:`mazebot.cpu_budget`)
+        self.decode_meter = PartMeter("lidar decoding")
         self._link: ByteLink | None = None
         self._rx = bytearray()  # received, not yet consumed by a response
         self._reader: asyncio.Future[bytes] | None = None  # the pending read of the link
@@ -484,7 +487,8 @@ class RPLidar:
             now_s = self._clock.now_s()
             stalled = now_s - last_data_s >= self._no_data_timeout_s
             if batch and (stalled or now_s - batch_since_s >= DECODE_INTERVAL_S):
-                samples = decoder.feed(bytes(batch))
+                with self.decode_meter.measure():
+                    samples = decoder.feed(bytes(batch))
                 batch.clear()
                 self.stats.bytes_dropped = self._dropped_before + decoder.bytes_dropped
                 if len(samples):

@@ -94,6 +94,7 @@ class RunSession:
             recorder.start()
         except OSError as exc:
             raise UsageError(f"cannot write the recording {self.record_path}: {exc.strerror or exc}") from None
+        state.cpu.adopt(recorder.meter)
         tap = record_task.RecordingTap(recorder, clock)
         handler = record_task.LogTap(tap)
         logging.getLogger("mazebot").addHandler(handler)

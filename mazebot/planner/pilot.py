@@ -259,8 +259,8 @@ class Pilot:
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
         scan_xy = self._scan_points(state)
         yield
-        cmd = yield from self.local.step_steps(
-            pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy
+        cmd = yield from state.cpu.part("dwa").steps(
+            self.local.step_steps(pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy)
         )
         if not state.run_state.moving:  # stopped while the stages ran
             return

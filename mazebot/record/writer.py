@@ -42,6 +42,7 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, Writer
 
 from mazebot import __version__
+from mazebot.cpu_budget import PartMeter
 from mazebot.record.schemas import CHANNELS, MESSAGE_ENCODING, SCHEMA_ENCODING, SCHEMAS, encode
 
 log = logging.getLogger(__name__)
@@ -95,6 +96,8 @@ class McapRecorder:
         self.keep_files = int(keep_files)
         self.compression = _COMPRESSION[compression]
         self.stats = RecorderStats()
+        #: CPU time of each batch the writer thread writes (the daemon's budget: :mod:`mazebot.cpu_budget`)
+        self.meter = PartMeter("recording")
         self.queue_messages = int(queue_messages)
         self.flush_period_s = float(flush_period_s)
         # appended by the caller, popped by the writer thread: both atomic under the GIL
@@ -177,11 +180,13 @@ class McapRecorder:
     def _drain(self) -> None:
         """Write everything queued, oldest first."""
         pending = self._queue
-        if pending:
-            self.stats.batches += 1
-        while pending:
-            topic, log_time_ns, message = pending.popleft()
-            self._write(topic, log_time_ns, message)
+        if not pending:
+            return
+        self.stats.batches += 1
+        with self.meter.measure():
+            while pending:
+                topic, log_time_ns, message = pending.popleft()
+                self._write(topic, log_time_ns, message)
         self.stats.writer_cpu_s = time.thread_time()
 
     def _write(self, topic: str, log_time_ns: int, message: Any) -> None:

@@ -135,6 +135,7 @@ async def run(motors, state: SharedState, clock: Clock, control: MotorControl) -
     the loop keeps ticking, writing zeros, and the fault clears once a write succeeds.
     """
     period_s = control.period_s
+    meter = state.cpu.part("control tick")
     next_tick_s = clock.now_s()
     while True:
         now_s = clock.now_s()
@@ -143,12 +144,13 @@ async def run(motors, state: SharedState, clock: Clock, control: MotorControl) -
         if late_s > control.safety.watchdog.deadline_s:
             state.note("control", f"the control loop was blocked for {late_s + period_s:.2f} s; wheels stopped", now_s)
             log.warning("control loop blocked for %.2f s; wheels stopped for a tick", late_s + period_s)
-        try:
-            left, right = control.tick(state, now_s)
-        except Exception:
-            _write(motors, state, 0.0, 0.0, now_s)
-            raise
-        _write(motors, state, left, right, now_s)
+        with meter.measure():
+            try:
+                left, right = control.tick(state, now_s)
+            except Exception:
+                _write(motors, state, 0.0, 0.0, now_s)
+                raise
+            _write(motors, state, left, right, now_s)
         next_tick_s += period_s
         if next_tick_s < now_s:  # we fell behind (a stalled loop): do not try to catch up
             next_tick_s = now_s + period_s

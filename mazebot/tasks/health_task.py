@@ -245,9 +245,11 @@ class HealthMonitor:
 async def run(state: SharedState, clock: Clock, monitor: HealthMonitor) -> None:
     """Every check each ``PERIOD_S``, the weak-motor check alone each ``MOTOR_PERIOD_S`` between."""
     every = max(1, round(PERIOD_S / MOTOR_PERIOD_S))
+    meter = state.cpu.part("health check")
     for k in itertools.count():
-        if k % every == 0:
-            monitor.check(state, clock.now_s())
-        else:
-            monitor.check_motors(state, clock.now_s())
+        with meter.measure():
+            if k % every == 0:
+                monitor.check(state, clock.now_s())
+            else:
+                monitor.check_motors(state, clock.now_s())
         await clock.sleep(MOTOR_PERIOD_S)

@@ -18,6 +18,9 @@ async def run(lidar, state: SharedState) -> None:
     resyncs, restarts and reconnects; this loop only ends on cancellation.
     """
     last_garbled_s: float | None = None
+    meter = getattr(lidar, "decode_meter", None)  # fakes in tests may have none
+    if meter is not None:
+        state.cpu.adopt(meter)
     async for scan in lidar.scans():
         state.latest_scan = scan
         queue = state.scans

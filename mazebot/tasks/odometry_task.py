@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 from mazebot.clock import Clock
 from mazebot.config import DriveConfig, EncodersConfig
@@ -34,7 +35,9 @@ async def run(
     history = state.odometry_history or OdometryHistory(history_s)
     state.odometry_history = history
     period_s = 1.0 / enc_cfg.odometry_rate_hz
+    meter = state.cpu.part("odometry")
     while True:
+        start_s = time.thread_time()
         reading = encoders.read()
         odometry.update(reading.left_ticks, reading.right_ticks)
         odo = odometry.pose
@@ -50,6 +53,7 @@ async def run(
         state.pose.y_m = y
         state.pose.theta_rad = th
         state.pose_time_s = now_s
+        meter.add(time.thread_time() - start_s)
         await clock.sleep(period_s)
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from mazebot.clock import Clock
+from mazebot.cpu_budget import PartMeter
 from mazebot.persist.snapshot import save_snapshot, take_snapshot
 from mazebot.slam.slam import Slam
 from mazebot.state import SharedState
@@ -30,6 +31,12 @@ def _save(state: SharedState, slam: Slam, run_dir: Path, extra: Callable[[], dic
     return lambda: save_snapshot(snapshot, run_dir)
 
 
+def _measured(write: Callable[[], None], meter: PartMeter) -> None:
+    """``write()`` in the executor's thread, its CPU time on the saving meter."""
+    with meter.measure():
+        write()
+
+
 async def run(
     state: SharedState,
     slam: Slam,
@@ -39,6 +46,7 @@ async def run(
     extra: Callable[[], dict[str, Any]] = dict,
 ) -> None:
     loop = asyncio.get_running_loop()
+    meter = state.cpu.part("saving")
     state.record.run_dir = str(run_dir)
     try:
         while True:
@@ -47,7 +55,7 @@ async def run(
                 continue
             write = _save(state, slam, run_dir, extra)
             try:
-                await loop.run_in_executor(None, write)
+                await loop.run_in_executor(None, _measured, write, meter)
                 state.record.saves += 1
             except OSError as exc:
                 state.record.save_errors += 1

@@ -30,6 +30,7 @@ async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: deque[flo
             await asyncio.sleep(0)  # let a due control tick run between the two halves
             await run_steps_async(pilot.drive_steps(state, clock.now_s()), cpu_s)
         spent_s = cpu_s[0]
+        state.cpu.part("planner tick").add(spent_s)
         if tick_ms is not None:
             tick_ms.append(spent_s * 1000.0)
         next_tick_s += period_s

@@ -178,6 +178,7 @@ async def run(
                     _scan_failed(state, clock, exc)
                     continue
                 state.scan_ms.append(cpu_s[0] * 1e3)
+                state.cpu.part("slam per revolution").add(cpu_s[0])
                 if any(f.source == "slam" for f in state.faults):
                     state.clear_faults("slam")
                     state.note("slam", "SLAM processes scans again", clock.now_s())
@@ -278,6 +279,7 @@ def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
 def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult, rebuilt: bool) -> None:
     """What a merged loop-closure job (``rebuilt``: it replaced the grid) changed, into the shared state."""
     state.loop_job_ms.append(result.cpu_s * 1e3)
+    state.cpu.part("loop closure (worker)").add(result.cpu_s)
     stats = state.slam
     stats.loop_closures = len(slam.closures)
     for record in slam.closures[len(stats.closures) :]:

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from aiohttp import WSCloseCode, web
 
+from mazebot.cpu_budget import PartMeter
 from mazebot.state import RunState, SharedState
 from mazebot.web.protocol import (
     KIND_DELTA,
@@ -123,8 +124,9 @@ class MapTracker:
 class Viewer:
     """One websocket client: a bounded outgoing queue and the writer that drains it."""
 
-    def __init__(self, ws: web.WebSocketResponse, remote: str, capacity: int) -> None:
+    def __init__(self, ws: web.WebSocketResponse, remote: str, capacity: int, meter: PartMeter | None = None) -> None:
         self.ws = ws
+        self.meter = meter or PartMeter("web send per viewer")  # CPU of each send (mazebot.cpu_budget)
         self.remote = remote
         self.capacity = capacity
         self.needs_full = False
@@ -185,11 +187,13 @@ class Viewer:
                     await self._wakeup.wait()
                 item = self._items.popleft()
                 self._sending = True
+                start_s = time.thread_time()  # the frame is written to the socket inside the call
                 if isinstance(item, bytes):
                     await self.ws.send_bytes(item)
                     self.sent_packets += 1
                 else:
                     await self.ws.send_str(item)
+                self.meter.add(time.thread_time() - start_s)
                 self._sending = False
                 self.sent_bytes += len(item)
         except (ConnectionError, RuntimeError) as exc:  # closing transport: the reader ends too
@@ -248,7 +252,7 @@ class Broadcaster:
         """Register a viewer; it is sent the hello and the full map of the last packet."""
         if self.seq == 0:
             self.tick()  # the first viewer: make a first packet so its full map has a status
-        viewer = Viewer(ws, remote, self.queue_packets)
+        viewer = Viewer(ws, remote, self.queue_packets, self.state.cpu.part("web send per viewer"))
         self.viewers.add(viewer)
         viewer.offer(
             server_message("hello", protocol=1, seq=self.seq, rate_hz=self.rate_hz,
@@ -397,7 +401,8 @@ class Broadcaster:
         next_heartbeat_s = next_s + self.heartbeat_s
         while True:
             try:
-                self.tick()
+                with self.state.cpu.part("web packet").measure():
+                    self.tick()
             except Exception as exc:  # a bad snapshot must not end the live page for good: log it once
                 if repr(exc) not in self._errors_logged:
                     self._errors_logged.add(repr(exc))

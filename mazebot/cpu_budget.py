@@ -1,0 +1,146 @@
+"""Where the daemon's CPU goes: thread CPU time per part, per call, measured where it is spent.
+
+The robot's computer is a Raspberry Pi, three to five times slower per core than the
+machine it is developed on, so every part has a budget: CPU milliseconds per second of
+the robot's life and the 99th percentile of one call. Each part measures its own calls
+with :func:`time.thread_time` (CPU time of the calling thread only: time the loop spent
+in other tasks, or the process spent waiting for the CPU, never counts), so the figures
+hold whether the machine is busy or not, and a part that runs in a worker thread or
+process is measured there.
+
+Each :class:`PartMeter` has one writer, the task or thread whose part it is (the
+DESIGN's one writer per piece of shared state); the budget only reads them.
+
+Example::
+
+    budget = CpuBudget()
+    with budget.part("control tick").measure():
+        control.tick(state, now_s)
+    budget.table(robot_s=60.0)   # {"control tick": {"cpu_ms_per_s": ..., "p99_ms": ..., "calls": ...}}
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Generator, Iterator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import numpy as np
+
+T = TypeVar("T")
+
+#: Calls kept per part for the percentile: minutes of the busiest part (the 50 Hz odometry).
+RECENT_CALLS = 20000
+
+#: The parts of the daemon, in the order a reader follows the data (DESIGN.md, "Data flow").
+PARTS = (
+    "lidar decoding",
+    "odometry",
+    "slam per revolution",
+    "loop closure (worker)",
+    "planner tick",
+    "dwa",
+    "control tick",
+    "health check",
+    "web packet",
+    "web send per viewer",
+    "recording",
+    "saving",
+)
+
+
+class PartMeter:
+    """CPU time of one part of the daemon: a running total and the recent calls.
+
+    Example::
+
+        meter = PartMeter("odometry")
+        with meter.measure():
+            odometry.update(left, right)
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.calls = 0
+        self.cpu_s = 0.0
+        self.recent_ms: deque[float] = deque(maxlen=RECENT_CALLS)
+
+    def add(self, cpu_s: float) -> None:
+        """One call that took ``cpu_s`` seconds of CPU (measured by the caller, e.g. in a worker)."""
+        self.calls += 1
+        self.cpu_s += cpu_s
+        self.recent_ms.append(cpu_s * 1e3)
+
+    @contextmanager
+    def measure(self) -> Iterator[None]:
+        """Measure the body as one call, in the calling thread's CPU time."""
+        start_s = time.thread_time()
+        try:
+            yield
+        finally:
+            self.add(time.thread_time() - start_s)
+
+    def steps(self, steps: Generator[None, None, T]) -> Generator[None, None, T]:
+        """Wrap work in stages (:mod:`mazebot.steps`): its stages are one call together.
+
+        Only the stages' own CPU counts, not what the loop did between them.
+        """
+        spent_s = 0.0
+        try:
+            while True:
+                start_s = time.thread_time()
+                try:
+                    next(steps)
+                except StopIteration as stop:
+                    spent_s += time.thread_time() - start_s
+                    return stop.value
+                spent_s += time.thread_time() - start_s
+                yield
+        finally:
+            steps.close()
+            self.add(spent_s)
+
+    def summary(self, robot_s: float) -> dict[str, Any]:
+        """CPU ms per robot-second over the whole life, p50/p99 ms of the recent calls."""
+        ms = np.fromiter(self.recent_ms, dtype=float, count=len(self.recent_ms))
+        return {
+            "calls": self.calls,
+            "cpu_ms_per_s": round(1e3 * self.cpu_s / robot_s, 3) if robot_s > 0 else None,
+            "p50_ms": round(float(np.percentile(ms, 50)), 3) if len(ms) else None,
+            "p99_ms": round(float(np.percentile(ms, 99)), 3) if len(ms) else None,
+        }
+
+
+class CpuBudget:
+    """The daemon's parts by name; each task takes its own meter with :meth:`part`."""
+
+    def __init__(self) -> None:
+        self.meters: dict[str, PartMeter] = {}
+
+    def part(self, name: str) -> PartMeter:
+        """The meter of ``name`` (one of :data:`PARTS`), created on first use."""
+        if name not in PARTS:
+            raise ValueError(f"unknown part {name!r} of the CPU budget; the parts are {', '.join(PARTS)}")
+        meter = self.meters.get(name)
+        if meter is None:
+            meter = self.meters[name] = PartMeter(name)
+        return meter
+
+    def adopt(self, meter: PartMeter) -> None:
+        """Take a meter a device keeps itself (the lidar driver's decoding) as its part."""
+        if meter.name not in PARTS:
+            raise ValueError(f"unknown part {meter.name!r} of the CPU budget; the parts are {', '.join(PARTS)}")
+        self.meters[meter.name] = meter
+
+    def table(self, robot_s: float) -> dict[str, dict[str, Any]]:
+        """Every part in :data:`PARTS` order; a part that never ran has ``None`` figures."""
+        out: dict[str, dict[str, Any]] = {}
+        for name in PARTS:
+            meter = self.meters.get(name)
+            if meter is None:
+                out[name] = {"calls": 0, "cpu_ms_per_s": None, "p50_ms": None, "p99_ms": None}
+            else:
+                out[name] = meter.summary(robot_s)
+        return out

@@ -138,7 +138,11 @@ class CollisionGuard:
             phi = s * curvature
             ax = direction * np.sin(phi) / curvature
             ay = (1.0 - np.cos(phi)) / curvature
-        ahead = pts[:, 0] * direction > 0.0
+        # every arc point lies within ``length`` of the centre (an arc is never shorter than
+        # its chord), so a return farther than length + radius cannot be inside the guard:
+        # most of a revolution's returns are left out before the distance matrix
+        reach = length + self.radius_m
+        ahead = (pts[:, 0] * direction > 0.0) & (pts[:, 0] * pts[:, 0] + pts[:, 1] * pts[:, 1] < reach * reach)
         cand = pts[ahead]
         if cand.shape[0] == 0:
             return OK

@@ -102,12 +102,12 @@ class PartMeter:
             steps.close()
             self.add(spent_s)
 
-    def summary(self, robot_s: float) -> dict[str, Any]:
+    def summary(self, robot_s: float | None) -> dict[str, Any]:
         """CPU ms per robot-second over the whole life, p50/p99 ms of the recent calls."""
         ms = np.fromiter(self.recent_ms, dtype=float, count=len(self.recent_ms))
         return {
             "calls": self.calls,
-            "cpu_ms_per_s": round(1e3 * self.cpu_s / robot_s, 3) if robot_s > 0 else None,
+            "cpu_ms_per_s": round(1e3 * self.cpu_s / robot_s, 3) if robot_s else None,
             "p50_ms": round(float(np.percentile(ms, 50)), 3) if len(ms) else None,
             "p99_ms": round(float(np.percentile(ms, 99)), 3) if len(ms) else None,
         }
@@ -118,6 +118,12 @@ class CpuBudget:
 
     def __init__(self) -> None:
         self.meters: dict[str, PartMeter] = {}
+        #: the daemon's clock when its tasks started (``run_daemon`` sets it); None before
+        self.started_s: float | None = None
+
+    def age_s(self, now_s: float) -> float | None:
+        """Seconds of the daemon's life so far on its clock; None before it started."""
+        return None if self.started_s is None else max(0.0, now_s - self.started_s)
 
     def part(self, name: str) -> PartMeter:
         """The meter of ``name`` (one of :data:`PARTS`), created on first use."""
@@ -134,7 +140,7 @@ class CpuBudget:
             raise ValueError(f"unknown part {meter.name!r} of the CPU budget; the parts are {', '.join(PARTS)}")
         self.meters[meter.name] = meter
 
-    def table(self, robot_s: float) -> dict[str, dict[str, Any]]:
+    def table(self, robot_s: float | None) -> dict[str, dict[str, Any]]:
         """Every part in :data:`PARTS` order; a part that never ran has ``None`` figures."""
         out: dict[str, dict[str, Any]] = {}
         for name in PARTS:

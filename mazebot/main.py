@@ -211,6 +211,7 @@ async def run_daemon(
                 stack.callback(loop.remove_signal_handler, sig)
         for name, factory in hardware.extra_tasks:
             supervisor.start(name, factory)
+        state.cpu.started_s = clock.now_s()
         state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
         # loop closures (verification, pose-graph optimization, map rebuilds) run here, off the event loop
         slam_executor = LoopClosureExecutor(config.slam.loop_closure_executor)

@@ -163,6 +163,8 @@ def status_json(
             {"source": e.source, "message": e.message, "age_s": round(now_s - e.time_s, 1)} for e in state.events
         ],
         "sensors": vars(state.sensors),
+        # CPU time per part of the daemon since it started (mazebot.cpu_budget)
+        "cpu": state.cpu.table(state.cpu.age_s(now_s)),
         "record": vars(state.record),
         "map": None if grid is None else {
             "rows": grid.shape[0], "cols": grid.shape[1], "resolution_m": grid.resolution_m,

@@ -13,6 +13,7 @@ import pytest
 from aiohttp import WSMsgType, web
 from aiohttp.test_utils import TestClient, TestServer
 
+from mazebot.clock import RealClock
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.map_export import read_ros_map, write_ros_map
 from mazebot.state import SharedState
@@ -63,6 +64,17 @@ async def test_page_assets_and_status_are_served(aiohttp_client, state) -> None:
     status = await (await client.get("/api/status")).json()
     assert status["state"] == "idle" and status["map"] is None and status["coverage"] is None
     assert status["versions"]["protocol"] == 1 and status["versions"]["mazebot"] == status["version"]
+    assert status["cpu"]["control tick"] == {"calls": 0, "cpu_ms_per_s": None, "p50_ms": None, "p99_ms": None}
+
+
+async def test_status_says_where_the_cpu_goes(aiohttp_client, state) -> None:
+    state.cpu.started_s = RealClock().now_s() - 10.0  # the daemon started ten seconds ago
+    state.cpu.part("slam per revolution").add(0.004)
+    state.cpu.part("slam per revolution").add(0.006)
+    client = await aiohttp_client(_app(state))
+    slam = (await (await client.get("/api/status")).json())["cpu"]["slam per revolution"]
+    assert slam["calls"] == 2 and slam["p99_ms"] == pytest.approx(6.0, abs=0.05)
+    assert slam["cpu_ms_per_s"] == pytest.approx(1.0, rel=0.05)  # 10 ms over ~10 s
 
 
 async def test_the_page_weighs_under_350_kb_and_travels_compressed(aiohttp_client, state) -> None:

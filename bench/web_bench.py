@@ -496,6 +496,8 @@ def main() -> int:
             result["loop_thread_cpu_s"] = sched1[0] - sched0[0]
             result["loop_thread_waiting_for_cpu_s"] = sched1[1] - sched0[1]
             result["tour_done"] = driver.done
+            # each part's thread CPU since the daemon started (web packet, sends per viewer among them)
+            result["cpu_budget"] = state.cpu.table(state.cpu.age_s(RealClock().now_s()))
             result["tour_index"] = [driver.index, len(driver.waypoints_m)]
             supervisor.request_stop("web bench over")
 

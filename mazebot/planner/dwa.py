@@ -205,6 +205,22 @@ class PathTrack:
         p = self.points[k] + t * (self.points[k + 1] - self.points[k])
         return (float(p[0]), float(p[1]))
 
+    def points_at(self, s_m: np.ndarray) -> np.ndarray:
+        """:meth:`point_at` for many arc lengths at once, (M,) -> (M, 2): the same arithmetic, element by element."""
+        s = np.asarray(s_m, dtype=np.float64).reshape(-1)
+        out = np.empty((s.size, 2))
+        if self.points.shape[0] == 1:
+            out[:] = self.points[0]
+            return out
+        inside = (s > 0) & (s < self.length_m)
+        out[s <= 0] = self.points[0]
+        out[s >= self.length_m] = self.points[-1]
+        si = s[inside]
+        k = np.searchsorted(self.cum, si, side="right") - 1
+        t = (si - self.cum[k]) / self.seg_len[k]
+        out[inside] = self.points[k] + t[:, None] * (self.points[k + 1] - self.points[k])
+        return out
+
     def project(self, xy: np.ndarray, s_min: float = -np.inf, s_max: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """``(s, d)``: arc length of the nearest path point and the distance to it, for points (M, 2).
 
@@ -488,7 +504,7 @@ class DynamicWindowPlanner:
         s0 = path.progress_m
         s_end, d_end = path.project(end_map, s0 - 0.05, s0 + self.max_speed_mps * self.horizon_s + 0.1)
         progress = (s_end - s0) / (self.max_speed_mps * self.horizon_s)
-        carrot = np.array([path.point_at(float(si) + self.lookahead_m) for si in s_end])
+        carrot = path.points_at(s_end + self.lookahead_m)
         to_carrot = np.arctan2(carrot[:, 1] - end_map[:, 1], carrot[:, 0] - end_map[:, 0])
         near_carrot = np.hypot(carrot[:, 0] - end_map[:, 0], carrot[:, 1] - end_map[:, 1]) < 0.02
         heading_err = np.abs(np.remainder(to_carrot - (pose[2] + heading_end) + np.pi, 2 * np.pi) - np.pi) / np.pi

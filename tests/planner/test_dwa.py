@@ -325,3 +325,13 @@ def test_a_robot_that_ended_up_too_close_backs_out_instead_of_freezing() -> None
         pose[2] += cmd.w_radps * 0.2
         assert float(distance_to_obstacles(np.array([pose[:2]]), world)[0]) >= min(start_clearance, 0.095) - 1e-3
     assert local.status is LocalStatus.REACHED
+
+
+def test_points_at_is_point_at_for_every_arc_length() -> None:
+    """The carrots of all rollouts at once are, to the bit, the ones asked one by one."""
+    rng = np.random.default_rng(3)
+    for waypoints in ([(0.0, 0.0)], [(0.0, 0.0), (0.3, 0.0)], rng.uniform(-1, 1, (9, 2)).tolist()):
+        path = PathTrack(waypoints)
+        s = np.concatenate((rng.uniform(-0.5, path.length_m + 0.5, 200), [0.0, path.length_m, *path.cum]))
+        want = np.array([path.point_at(float(v)) for v in s])
+        assert np.array_equal(path.points_at(s), want)

@@ -26,6 +26,7 @@ from mazebot.sim.raster import true_occupancy
 from mazebot.sim.raycast import distance_to_segments
 from mazebot.sim.room import make_room
 from mazebot.sim.world import MazeLayout, World, world_from_layout
+from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
 
 RES = 0.02
 CELL = 0.3048
@@ -386,3 +387,33 @@ def test_a_known_link_is_not_forgotten_when_its_wall_fades_but_changes_when_the_
     opened[r - 2 : r + 2, c0 + 1 : c1 - 1] = 0  # the map now sees through it: believe that
     graph.update(opened, origin, RES)
     assert graph.link((1, 1), Direction.S) is LinkState.OPEN
+
+
+def test_sample_cells_follow_the_grid_values_and_refresh_when_the_grid_moves() -> None:
+    """The kept sample indices read what a fresh lookup reads, on new values and on a moved or grown grid."""
+    from mazebot.planner.maze_graph import _SampleCells
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-0.2, 1.2, (500, 2))
+
+    def direct(grid: np.ndarray, origin_m: tuple[float, float], res_m: float) -> np.ndarray:
+        c = np.floor((xy[:, 0] - origin_m[0]) / res_m).astype(int)
+        r = np.floor((xy[:, 1] - origin_m[1]) / res_m).astype(int)
+        ok = (r >= 0) & (r < grid.shape[0]) & (c >= 0) & (c < grid.shape[1])
+        out = np.full(len(xy), UNKNOWN, dtype=np.int8)
+        out[ok] = grid[r[ok], c[ok]]
+        return out
+
+    cells = _SampleCells()
+    calls = []
+
+    def sample_xy() -> np.ndarray:
+        calls.append(1)
+        return xy
+
+    for grid_shape, origin_m in (((50, 50), (0.0, 0.0)), ((50, 50), (0.0, 0.0)), ((60, 55), (-0.1, -0.04))):
+        for _ in range(3):  # the values change every revolution; the indices stay
+            grid = rng.choice(np.array([UNKNOWN, FREE, OCCUPIED], dtype=np.int8), size=grid_shape)
+            got = cells.lookup(("e", "frame"), grid, origin_m, 0.02, sample_xy)
+            assert np.array_equal(got, direct(grid, origin_m, 0.02))
+    assert len(calls) == 2  # worked out once per placement of the grid

@@ -418,7 +418,11 @@ class DynamicWindowPlanner:
         clear = np.full((k, s_count), np.inf)
         clear[:, 0] = costmap.clearance_m(pts[0, 0][None, :], upper_bound_m=bound_m)[0]  # point 0: the robot
         limit = min(self.contact_m, float(clear[0, 0]) - 1e-4)
-        free = np.arange(k)  # rollouts not yet in contact: all, as the limit lies below the start's clearance
+        # a rollout that stays where the robot is (turning in place, v = 0) has every point at
+        # point 0: its clearance is the start's all along, no need to ask again
+        standing = (pts[:, 1:] == pts[:, :1]).all(axis=(1, 2))
+        clear[standing] = clear[0, 0]
+        free = np.flatnonzero(~standing)  # rollouts not yet in contact (the limit lies below the start's clearance)
         first = 1
         since_yield = 0
         while first < s_count and free.size:

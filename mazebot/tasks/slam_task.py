@@ -23,6 +23,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from collections import deque
 from concurrent.futures import Executor
 
@@ -152,7 +153,9 @@ async def run(
                 history = await _odometry_covering(state, clock, scan.end_time_s)
                 if history is None or search is not None:
                     continue  # no odometry yet, or a search for the robot is under way
+                guard_start_s = time.thread_time()
                 verdict = guard.check(slam, scan, history)
+                guard_cpu_s = time.thread_time() - guard_start_s  # part of this revolution's SLAM cost
                 if verdict == "lost":
                     trust.distrust()
                     _lost(state, guard, clock)
@@ -178,7 +181,7 @@ async def run(
                     _scan_failed(state, clock, exc)
                     continue
                 state.scan_ms.append(cpu_s[0] * 1e3)
-                state.cpu.part("slam per revolution").add(cpu_s[0])
+                state.cpu.part("slam per revolution").add(guard_cpu_s + cpu_s[0])  # the guard's check too
                 if any(f.source == "slam" for f in state.faults):
                     state.clear_faults("slam")
                     state.note("slam", "SLAM processes scans again", clock.now_s())

@@ -36,9 +36,9 @@ class _FrozenOdometry:
 
 @pytest.fixture(scope="module")
 def frames() -> list[tuple[object, np.ndarray]]:
-    """What SLAM was given during 50 simulated seconds of a scripted 4x4 tour (thread executor).
+    """What SLAM was given during 80 simulated seconds of a scripted 4x4 tour (thread executor).
 
-    The tour starts once SLAM has its anchor (about 4 s at rest), so this is its first 46 s.
+    The tour starts once SLAM has its anchor (about 4 s at rest), so this is its first 76 s.
     """
     captured: list[tuple[object, np.ndarray]] = []
     real_update = slam_module.Slam.update_steps  # what the SLAM task calls
@@ -51,7 +51,7 @@ def frames() -> list[tuple[object, np.ndarray]]:
     config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": "thread"})})
     slam_module.Slam.update_steps = update  # type: ignore[method-assign]
     try:
-        run_one(config, RunSpec(None, (4, 4), 5, "scripted", max_sim_s=50.0))
+        run_one(config, RunSpec(None, (4, 4), 5, "scripted", max_sim_s=80.0))
     finally:
         slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
     return captured

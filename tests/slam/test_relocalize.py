@@ -22,7 +22,8 @@ def _still(pose):
 def _mapped_start(maze_world, moving_scan, start=None):
     """SLAM after the robot turned 1 rad on the spot from ``start`` (the world's): (slam, odometry, guard, t, start)."""
     start = np.asarray(maze_world.start_pose if start is None else start, dtype=np.float64)
-    slam = Slam(SlamParams(), background=False, record_trajectory=False)
+    # a keyframe every 0.15 rad of the turn: the guard needs five before it judges
+    slam = Slam(SlamParams(keyframe_angle_rad=0.15), background=False, record_trajectory=False)
     history = OdometryHistory(horizon_s=30.0)
     t = 0.0
     history.append(t, 0.0, 0.0, 0.0)

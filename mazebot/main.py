@@ -238,7 +238,8 @@ async def run_daemon(
             restart=True,
         )
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
-        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s)
+        lidar_activity = hardware.lidar if hasattr(hardware.lidar, "bytes_waiting") else None
+        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s, lidar=lidar_activity)
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))

@@ -33,7 +33,7 @@ import logging
 import math
 import random
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, Self
 
@@ -178,6 +178,8 @@ class FakeMotorKit:
         self._fail_probability = 1.0
         self._rng: random.Random | None = None
         self._motors = {channel: FakeMotor(self, channel) for channel in CHANNELS}
+        #: called before every write (the simulator brings its world up to the moment of the write)
+        self.before_write: Callable[[], None] | None = None
 
     @property
     def motor1(self) -> FakeMotor:
@@ -228,6 +230,8 @@ class FakeMotorKit:
     def _write(self, channel: int, throttle: float | None) -> None:
         if throttle is not None and not -1.0 <= throttle <= 1.0:
             raise ValueError(f"throttle must be None or between -1.0 and +1.0, got {throttle}")
+        if self.before_write is not None:
+            self.before_write()
         failing = channel in self._failing and self._failures_left != 0
         if failing and self._fail_probability < 1.0:
             assert self._rng is not None

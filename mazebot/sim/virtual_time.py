@@ -70,8 +70,8 @@ class SlowCpu:
     callback_cost_s: float = 0.0
     stall_every_s: float = 0.0
     stalls_s: tuple[float, ...] = ()
-    free_tasks: tuple[str, ...] = ("simulator",)
-    free_prefixes: tuple[str, ...] = ("bench-",)
+    free_tasks: tuple[str, ...] = ("simulator", "lidar-emulator-stream")
+    free_prefixes: tuple[str, ...] = ("bench-", "sim-")
 
     def costs(self, task_name: str) -> bool:
         """True when callbacks of the task called ``task_name`` take ``callback_cost_s``."""

@@ -190,11 +190,20 @@ class PlannerConfig(Section):
     cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
     wall_thickness_m: float = Field(0.012, gt=0, lt=0.1, description="maze wall thickness")
     goal_tolerance_m: float = Field(0.06, gt=0.01, lt=0.3, description="this close to a goal counts as arrived")
-    progress_timeout_s: float = Field(
-        20.0, gt=1, le=300, description="a goal whose route cost stops dropping this long is blacklisted"
+    progress_revolutions: int = Field(
+        110, ge=5, le=2000,
+        description="a goal whose route cost stops dropping for this many map revolutions (SLAM's painted "
+        "scans, ~5.5/s) is blacklisted",
     )
-    dwell_timeout_s: float = Field(
-        3.0, gt=0, le=60, description="a goal still unresolved this long after arriving is blacklisted"
+    dwell_revolutions: int = Field(
+        16, ge=1, le=400, description="a goal still unresolved this many map revolutions after arriving is blacklisted"
+    )
+    retry_after_m: float = Field(
+        0.9, ge=0, le=100, description="a blacklisted goal is tried again once the robot has driven this far"
+    )
+    max_attempts: int = Field(
+        3, ge=1, le=20,
+        description="times a goal is tried before it is given up (the last ones when nothing else is left)",
     )
     horizon_s: float = Field(1.2, gt=0.2, le=5.0, description="DWA rollout length")
     stuck_timeout_s: float = Field(

@@ -56,8 +56,10 @@ class PilotParams:
     cell_size_m: float
     wall_thickness_m: float
     goal_tolerance_m: float
-    progress_timeout_s: float
-    dwell_timeout_s: float
+    progress_revolutions: int
+    dwell_revolutions: int
+    retry_after_m: float
+    max_attempts: int
     horizon_s: float
     stuck_timeout_s: float
     max_recoveries: int
@@ -87,8 +89,10 @@ class PilotParams:
             cell_size_m=p.cell_size_m,
             wall_thickness_m=p.wall_thickness_m,
             goal_tolerance_m=p.goal_tolerance_m,
-            progress_timeout_s=p.progress_timeout_s,
-            dwell_timeout_s=p.dwell_timeout_s,
+            progress_revolutions=p.progress_revolutions,
+            dwell_revolutions=p.dwell_revolutions,
+            retry_after_m=p.retry_after_m,
+            max_attempts=p.max_attempts,
             horizon_s=p.horizon_s,
             stuck_timeout_s=p.stuck_timeout_s,
             max_recoveries=p.max_recoveries,
@@ -141,8 +145,10 @@ class Pilot:
             mode=p.mode,  # type: ignore[arg-type]
             start_xy_m=start_xy_m,
             goal_tolerance_m=p.goal_tolerance_m,
-            progress_timeout_s=p.progress_timeout_s,
-            dwell_timeout_s=p.dwell_timeout_s,
+            progress_revolutions=p.progress_revolutions,
+            dwell_revolutions=p.dwell_revolutions,
+            retry_after_m=p.retry_after_m,
+            max_attempts=p.max_attempts,
             footprint_radius_m=p.footprint_radius_m,
             clearance_m=p.clearance_m,
         )
@@ -215,7 +221,9 @@ class Pilot:
             return False
         three = grid.three_state()
         yield
-        goal = yield from self.explorer.update_steps(three, grid.origin_m, grid.resolution_m, pose, now_s)
+        # the explorer's clock: revolutions SLAM painted into the map (what can resolve a target)
+        painted = max(0, state.slam.scans - state.slam.held_back)
+        goal = yield from self.explorer.update_steps(three, grid.origin_m, grid.resolution_m, pose, painted)
         if not state.run_state.moving:  # stopped while the stages ran: the next tick forgets the path
             return False
         self._note_events(state, now_s, goal.reason if goal is not None else None, pose)
@@ -271,7 +279,7 @@ class Pilot:
         if cmd.give_up:
             log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
             state.planner_events.append((now_s, "the local planner gave up on the goal"))
-            self.explorer.report_unreachable(now_s)
+            self.explorer.report_unreachable()
             self._note_events(state, now_s, None, pose)
         state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
 

@@ -15,12 +15,7 @@ from __future__ import annotations
 
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
-from mazebot.sim.virtual_time import SlowCpu
-
-#: About a Pi-class core under load: ~4.5 ms of virtual time per task step (the daemon makes
-#: ~400 steps per simulated second here, so the loop is busy most of the time, and SLAM
-#: falls behind the lidar now and then), and a stall every 3 s of 0.1, 0.25 and 0.15 s in turn.
-SLOW = SlowCpu(callback_cost_s=0.0045, stall_every_s=3.0, stalls_s=(0.1, 0.25, 0.15))
+from mazebot.sim.virtual_time import PI_CLASS_CPU as SLOW
 
 
 def _outcome(metrics: dict) -> dict:

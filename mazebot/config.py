@@ -229,9 +229,13 @@ class ControlConfig(Section):
     actuation_latency_s: float = Field(
         0.05, ge=0, le=0.5, description="time from a throttle write to the wheel reacting"
     )
-    command_ttl_s: float = Field(0.5, gt=0, le=5, description="a planner command older than this is a stop")
-    scan_timeout_s: float = Field(
-        1.0, gt=0.2, le=10, description="no lidar revolution this long: only turning in place is allowed"
+    command_ttl_ticks: int = Field(
+        10, ge=2, le=100,
+        description="a planner command seen for this many control ticks (0.5 s at 20 Hz) without a new one is a stop",
+    )
+    scan_timeout_ticks: int = Field(
+        20, ge=4, le=200,
+        description="no new lidar revolution for this many control ticks (1 s at 20 Hz): only turning in place",
     )
     stop_margin_m: float = Field(
         0.03, ge=0, le=0.5, description="emergency stop: free distance kept ahead beyond the stopping distance"

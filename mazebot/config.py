@@ -207,7 +207,9 @@ class PlannerConfig(Section):
     )
     horizon_s: float = Field(1.2, gt=0.2, le=5.0, description="DWA rollout length")
     stuck_timeout_s: float = Field(
-        4.0, gt=0.5, le=30, description="no progress along the path this long starts a recovery"
+        4.0, gt=0.5, le=30,
+        description="no progress along the path for this many seconds of planner ticks run (20 at 5 Hz; "
+        "not wall time) starts a recovery",
     )
     max_recoveries: int = Field(3, ge=1, le=20, description="recoveries on one path before its goal is given up")
     map_window_m: float = Field(

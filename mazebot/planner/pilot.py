@@ -129,6 +129,9 @@ class Pilot:
         self.local = self._new_local_planner()
         self._was_moving = False
         self._recovering = False
+        #: motion halves run so far: the local planner's clock is this times the period, so its
+        #: time-outs (stuck, blocked, aligning, backing off) count ticks run, not wall time
+        self.drive_ticks = 0
         self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
@@ -266,9 +269,11 @@ class Pilot:
             walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
         scan_xy = self._scan_points(state)
+        self.drive_ticks += 1
+        tick_time_s = self.drive_ticks * self.params.period_s  # a late tick is one tick, not its lateness
         yield
         cmd = yield from self.local.step_steps(
-            pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy
+            pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), tick_time_s, walls_xy
         )
         if not state.run_state.moving:  # stopped while the stages ran
             return

@@ -97,10 +97,10 @@ class _StreamingLink:
     async def read(self, max_bytes: int = 4096) -> bytes:
         self._catch_up()
         data = await self._link.read(max_bytes)
-        if len(data) < max_bytes:  # woken up later than the bytes came: what came since, too
-            self._catch_up()
-            if self._link.pending_bytes():
-                data += await self._link.read(max_bytes - len(data))
+        # woken up later than the bytes came: what the device sent since is on the line too
+        self._catch_up()
+        if len(data) < max_bytes and self._link.pending_bytes():
+            data += await self._link.read(max_bytes - len(data))
         return data
 
     def __getattr__(self, name: str) -> Any:

@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import threading
 from collections.abc import Callable
 from contextlib import AsyncExitStack
 from typing import Any
@@ -119,8 +120,11 @@ def sim_hardware_builder(
         robot.step(clock.now_s())
 
         emulator: RPLidarEmulator | None = None
+        loop_thread = threading.get_ident()
 
         def catch_up() -> None:
+            if threading.get_ident() != loop_thread:  # the motors' hang guard braking: the world is the loop's
+                return
             robot.catch_up(clock.now_s())
             if emulator is not None and emulator.self_paced:  # a paced one was pumped by catch_up
                 emulator.pump()

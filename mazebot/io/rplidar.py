@@ -214,6 +214,7 @@ class RPLidar:
         self.stats.connected = False
         self._cancel_read()
         self._rx.clear()
+        self._undecoded = 0  # the session's batch went with the link
         if link is None:
             return
         try:
@@ -520,6 +521,7 @@ class RPLidar:
         waiting to be read (:meth:`_heard_after_all`): a loop that could not run is no
         silent device.
         """
+        self._undecoded = 0
         decoder = self._new_decoder()
         revolution = _RevolutionBuilder(self)
         restarts_without_data = 0

@@ -301,3 +301,11 @@ async def test_bytes_waiting_in_the_link_are_no_silence() -> None:
     assert lidar.bytes_waiting() == 0 and not await lidar._heard_after_all()
     link.waiting = 1200
     assert lidar.bytes_waiting() == 1200 and await lidar._heard_after_all()
+
+
+async def test_a_lost_link_leaves_no_bytes_waiting(lidar_line: FakeLidarLine) -> None:
+    async with make_lidar(lidar_line) as lidar:
+        await take(lidar.scans(), 1)
+        lidar._undecoded = 100  # a batch in hand when the link went away
+        await lidar._drop_link(stop=False)
+        assert lidar.bytes_waiting() == 0

@@ -190,15 +190,26 @@ class PlannerConfig(Section):
     cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
     wall_thickness_m: float = Field(0.012, gt=0, lt=0.1, description="maze wall thickness")
     goal_tolerance_m: float = Field(0.06, gt=0.01, lt=0.3, description="this close to a goal counts as arrived")
-    progress_timeout_s: float = Field(
-        20.0, gt=1, le=300, description="a goal whose route cost stops dropping this long is blacklisted"
+    progress_revolutions: int = Field(
+        110, ge=5, le=2000,
+        description="a goal whose route cost stops dropping for this many map revolutions (SLAM's painted "
+        "scans, ~5.5/s) is blacklisted",
     )
-    dwell_timeout_s: float = Field(
-        3.0, gt=0, le=60, description="a goal still unresolved this long after arriving is blacklisted"
+    dwell_revolutions: int = Field(
+        16, ge=1, le=400, description="a goal still unresolved this many map revolutions after arriving is blacklisted"
+    )
+    retry_after_m: float = Field(
+        0.9, ge=0, le=100, description="a blacklisted goal is tried again once the robot has driven this far"
+    )
+    max_attempts: int = Field(
+        3, ge=1, le=20,
+        description="times a goal is tried before it is given up (the last ones when nothing else is left)",
     )
     horizon_s: float = Field(1.2, gt=0.2, le=5.0, description="DWA rollout length")
     stuck_timeout_s: float = Field(
-        4.0, gt=0.5, le=30, description="no progress along the path this long starts a recovery"
+        4.0, gt=0.5, le=30,
+        description="no progress along the path for this many seconds of planner ticks run (20 at 5 Hz; "
+        "not wall time) starts a recovery",
     )
     max_recoveries: int = Field(3, ge=1, le=20, description="recoveries on one path before its goal is given up")
     map_window_m: float = Field(
@@ -220,9 +231,13 @@ class ControlConfig(Section):
     actuation_latency_s: float = Field(
         0.05, ge=0, le=0.5, description="time from a throttle write to the wheel reacting"
     )
-    command_ttl_s: float = Field(0.5, gt=0, le=5, description="a planner command older than this is a stop")
-    scan_timeout_s: float = Field(
-        1.0, gt=0.2, le=10, description="no lidar revolution this long: only turning in place is allowed"
+    command_ttl_ticks: int = Field(
+        10, ge=2, le=100,
+        description="a planner command seen for this many control ticks (0.5 s at 20 Hz) without a new one is a stop",
+    )
+    scan_timeout_ticks: int = Field(
+        20, ge=4, le=200,
+        description="no new lidar revolution for this many control ticks (1 s at 20 Hz): only turning in place",
     )
     stop_margin_m: float = Field(
         0.03, ge=0, le=0.5, description="emergency stop: free distance kept ahead beyond the stopping distance"

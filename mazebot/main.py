@@ -15,6 +15,7 @@ import gc
 import logging
 import signal
 import sys
+import time
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import AsyncExitStack
@@ -157,6 +158,23 @@ def _start_up_objects_frozen() -> Iterator[None]:
         gc.unfreeze()
 
 
+def _guard_motors_from_a_thread(motors: Any, clock: Clock, loop: asyncio.AbstractEventLoop, stack: Any) -> None:
+    """Brake from a thread when the event loop hangs (:class:`mazebot.io.motors.TtlGuard`).
+
+    Only where the loop runs on the monotonic clock: a virtual-time loop's clock is not
+    the wall clock, and there a hung loop lets no time pass either.
+    """
+    from mazebot.io.motors import DifferentialMotors, TtlGuard
+
+    if not isinstance(motors, DifferentialMotors) or not isinstance(clock, RealClock):
+        return
+    if abs(loop.time() - time.monotonic()) > 0.5:  # pragma: no cover - a loop on a clock of its own
+        return
+    guard = TtlGuard(motors)
+    guard.start()
+    stack.callback(guard.close)
+
+
 async def run_daemon(
     config: Config,
     build_hardware: HardwareBuilder,
@@ -200,6 +218,7 @@ async def run_daemon(
     state = state if state is not None else SharedState()
     async with AsyncExitStack() as stack:
         hardware = await build_hardware(config, clock, stack)
+        _guard_motors_from_a_thread(hardware.motors, clock, loop, stack)
         if session is not None:  # the recording taps go in front of the devices
             hardware = session.open(config, clock, state, hardware, stack)
         motors = hardware.motors
@@ -239,7 +258,8 @@ async def run_daemon(
             restart=True,
         )
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
-        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s)
+        lidar_activity = hardware.lidar if hasattr(hardware.lidar, "bytes_waiting") else None
+        monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s, lidar=lidar_activity)
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))

@@ -116,6 +116,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.faults:
         extra = tuple(parse_fault(text) for text in args.faults)
         specs = [replace(spec, faults=spec.faults + extra) for spec in specs]
+    if args.slow_cpu:
+        if args.clock != "virtual":
+            raise UsageError("--slow-cpu emulates a slower computer on the virtual clock; drop --clock real")
+        from mazebot.sim.virtual_time import PI_CLASS_CPU
+
+        specs = [replace(spec, slow=PI_CLASS_CPU) for spec in specs]
     out_dir = Path(args.out)
     runs = []
     t0 = time.perf_counter()
@@ -162,6 +168,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench.add_argument("--faults", nargs="+", default=None, metavar="NAME[@T]",
                        help="inject these faults into every run, T simulated seconds after the start "
                        f"(default {DEFAULT_AT_S:g}); names: {', '.join(FAULTS)}")
+    bench.add_argument("--slow-cpu", action="store_true",
+                       help="virtual clock: behave like a Pi-class computer, deterministically (each task step "
+                       "costs 4.5 ms, the loop stalls 0.1-0.25 s every 3 s; mazebot.sim.virtual_time)")
     bench.add_argument("--out", default="bench-out", help="output directory (default bench-out)")
     bench.add_argument("--config", default=None, help="config file")
     bench.set_defaults(func=_cmd_bench)

@@ -47,7 +47,7 @@ from mazebot.errors import UsageError
 from mazebot.main import Hardware, run_daemon
 from mazebot.sim.backend import sim_hardware_builder
 from mazebot.sim.faults import FaultInjector, FaultSpec
-from mazebot.sim.virtual_time import run_virtual
+from mazebot.sim.virtual_time import SlowCpu, run_virtual
 from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
 
@@ -73,6 +73,7 @@ class RunSpec:
     record_path: str | None = None  # record the run to this MCAP file (mazebot.record)
     faults: tuple[FaultSpec, ...] = ()  # injected into the simulated world (mazebot.sim.faults)
     recovery_window_s: float = RECOVERY_WINDOW_S  # a fault run goes on this long after its last fault
+    slow: SlowCpu | None = None  # virtual time only: behave like a slower computer (mazebot.sim.virtual_time)
 
     @property
     def name(self) -> str:
@@ -355,7 +356,9 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started, session=session,
         autonomous=spec.drive == "explore", instrument=_instrument(spec, injector, record),
     )
-    exit_code = run_virtual(daemon) if spec.clock == "virtual" else asyncio.run(daemon)
+    if spec.slow is not None and spec.clock != "virtual":
+        raise UsageError("a slowed CPU is emulated on the virtual clock only; use --clock virtual")
+    exit_code = run_virtual(daemon, slow=spec.slow) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0
     cpu_s = time.process_time() - cpu0
     metrics = compute_metrics(spec, record, exit_code=exit_code, wall_s=wall_s, cpu_s=cpu_s)

@@ -32,8 +32,10 @@ import errno
 import logging
 import math
 import random
+import threading
+import time
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, Self
 
@@ -178,6 +180,8 @@ class FakeMotorKit:
         self._fail_probability = 1.0
         self._rng: random.Random | None = None
         self._motors = {channel: FakeMotor(self, channel) for channel in CHANNELS}
+        #: called before every write (the simulator brings its world up to the moment of the write)
+        self.before_write: Callable[[], None] | None = None
 
     @property
     def motor1(self) -> FakeMotor:
@@ -228,6 +232,8 @@ class FakeMotorKit:
     def _write(self, channel: int, throttle: float | None) -> None:
         if throttle is not None and not -1.0 <= throttle <= 1.0:
             raise ValueError(f"throttle must be None or between -1.0 and +1.0, got {throttle}")
+        if self.before_write is not None:
+            self.before_write()
         failing = channel in self._failing and self._failures_left != 0
         if failing and self._fail_probability < 1.0:
             assert self._rng is not None
@@ -315,6 +321,7 @@ class DifferentialMotors:
         self.last_error: MotorWriteError | None = None  # for a supervisor to poll
         self.nonfinite_commands = 0
         self.expirations = 0
+        self._write_lock = threading.RLock()  # the loop's writes and a hang guard's brake (TtlGuard)
         # The HAT may still be running the PWM of a previous process: brake first.
         self._write_both(0.0, 0.0, "stop")
 
@@ -424,8 +431,36 @@ class DifferentialMotors:
             return 0.0
         return min(1.0, max(-1.0, value))
 
+    def brake_if_stale(self, now_s: float) -> bool:
+        """From any thread: brake when the last driving :meth:`set` is older than the TTL at ``now_s``.
+
+        What :class:`TtlGuard` calls while the event loop cannot run its own TTL timer;
+        it leaves that timer alone (it belongs to the loop; braking twice is harmless).
+        """
+        last = self.last_command
+        if last is None or last.kind != "set" or (last.left == 0.0 and last.right == 0.0):
+            return False
+        if now_s - last.time_s < self.command_ttl_s - _TIME_EPSILON_S:
+            return False
+        self.expirations += 1
+        self._write_unguarded_brake()
+        return True
+
+    def _write_unguarded_brake(self) -> None:
+        with self._write_lock:
+            for _, channel, motor, _ in self._sides:
+                try:
+                    motor.throttle = 0.0
+                except Exception:
+                    logger.exception("could not brake motor%d from the hang guard", channel)
+            self.last_command = MotorCommand(0.0, 0.0, self._clock.now_s(), "expired")
+
     def _write_both(self, left: float | None, right: float | None, kind: CommandKind) -> None:
         """Write both throttles; on any failure, brake both and raise MotorWriteError."""
+        with self._write_lock:
+            self._write_both_locked(left, right, kind)
+
+    def _write_both_locked(self, left: float | None, right: float | None, kind: CommandKind) -> None:
         for (side, channel, motor, sign), throttle in zip(self._sides, (left, right), strict=True):
             try:
                 # "+ 0.0" turns an inverted brake (-0.0) into 0.0 for the log and the HAT.
@@ -511,6 +546,59 @@ class DifferentialMotors:
         )
         self._cancel_ttl()
         self._write_both(0.0, 0.0, "expired")
+
+
+class TtlGuard:
+    """Enforces the motors' time-to-live from a thread of its own, for when the event loop hangs.
+
+    The TTL of :class:`DifferentialMotors` is a timer of the event loop, and the control
+    task's deadline acts on the loop's next tick: a loop that is stuck for good (a
+    blocking call, a deadlock) runs neither, and the wheels would turn on until systemd's
+    watchdog (``WatchdogSec``) kills the process. This thread looks every ``period_s``
+    (wall time) and brakes a throttle older than ``command_ttl_s``. Use it only where the
+    loop's clock is the monotonic clock (the robot, ``run --sim``), never on virtual time.
+
+    Example::
+
+        guard = TtlGuard(motors)
+        guard.start()
+        ...
+        guard.close()
+    """
+
+    def __init__(self, motors: DifferentialMotors, period_s: float | None = None) -> None:
+        self._motors = motors
+        self.period_s = float(period_s) if period_s is not None else motors.command_ttl_s / 3.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.brakes = 0
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="mazebot-motor-ttl", daemon=True)
+            self._thread.start()
+
+    def check(self, now_s: float) -> bool:
+        """One look at monotonic time ``now_s``; True when it braked."""
+        if not self._motors.brake_if_stale(now_s):
+            return False
+        self.brakes += 1
+        logger.error(
+            "the event loop has not refreshed the motors for over %.3f s: braked from the hang guard",
+            self._motors.command_ttl_s,
+        )
+        return True
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.check(time.monotonic())
+
+    def close(self) -> None:
+        """Stop the thread; idempotent."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
 
 
 def _motor(kit: MotorKitLike, channel: int) -> MotorLike:

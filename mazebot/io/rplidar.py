@@ -88,6 +88,8 @@ class LidarStats:
     health_errors: int = 0  # GET_HEALTH answers with status "error"
     revolutions: int = 0  # scans yielded
     samples: int = 0  # samples decoded
+    bytes_received: int = 0  # scan bytes read from the link
+    last_receive_s: float | None = None  # clock time of the last scan bytes read
     last_error: str = ""  # the last fault, one line
     connected: bool = False  # a link is open
 
@@ -152,6 +154,7 @@ class RPLidar:
         self._link: ByteLink | None = None
         self._rx = bytearray()  # received, not yet consumed by a response
         self._reader: asyncio.Future[bytes] | None = None  # the pending read of the link
+        self._read_at_s: float | None = None  # when the last byte of the latest read arrived
         self._motor_on = False
         self._scanning = False
         self._closed = False
@@ -159,6 +162,7 @@ class RPLidar:
         self._dropped_before = 0  # bytes dropped by decoders of earlier scans
         self._decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder | None = None
         self._revolutions_cut = 0  # numbers the revolutions (Scan.revolution)
+        self._undecoded = 0  # scan bytes read and not yet decoded (the session's batch)
 
     @classmethod
     def from_config(
@@ -213,6 +217,7 @@ class RPLidar:
         self.stats.connected = False
         self._cancel_read()
         self._rx.clear()
+        self._undecoded = 0  # the session's batch went with the link
         if link is None:
             return
         try:
@@ -238,7 +243,7 @@ class RPLidar:
         link = await self.open()
         reader = self._reader
         if reader is None:
-            reader = self._reader = asyncio.ensure_future(link.read())
+            reader = self._reader = asyncio.ensure_future(self._timed_read(link))
         if not reader.done():
             await self._wait_done(reader, max(0.0, timeout_s))
             if not reader.done():
@@ -248,6 +253,28 @@ class RPLidar:
         if not data:
             raise _LinkLost(f"{self.name}: the port closed (end of file)")
         return data
+
+    async def _timed_read(self, link: ByteLink) -> bytes:
+        """``link.read()``, noting when its last byte arrived in ``_read_at_s``.
+
+        The time is taken in the reader itself, as the read returns: the scan loop may
+        resume much later (the event loop was busy), and stamping the bytes then would
+        make them look younger than they are. When more bytes wait behind the ones read
+        (a backlog after a stall: the serial transport reads 1 KiB at a time), the last
+        byte read came that many bytes before the newest one, at the device's data rate.
+        """
+        data = await link.read()
+        pending = getattr(link, "pending_bytes", None)
+        behind = int(pending()) if pending is not None else 0
+        self._read_at_s = self._clock.now_s() - behind * self._byte_period_s()
+        return data
+
+    def _byte_period_s(self) -> float:
+        """Time the device takes to send one byte of a scan (5-byte samples, 84-byte capsules of 32)."""
+        period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S[self.scan_mode]
+        if self.scan_mode == "express":
+            return period_s * proto.CAPSULE_SAMPLES / proto.CAPSULE_LEN
+        return period_s / proto.STANDARD_SAMPLE_LEN
 
     def _cancel_read(self) -> None:
         """Forget the pending read (the input is flushed or the link dropped)."""
@@ -435,6 +462,22 @@ class RPLidar:
 
     # -- scanning --------------------------------------------------------------------
 
+    def bytes_waiting(self) -> int:
+        """Bytes from the device not yet decoded: in the link, in a finished read, in the batch.
+
+        Non-zero means the lidar is talking and the loop has not caught up with it yet
+        (it was blocked, or the reader has not had its turn): whoever judges the lidar
+        silent must wait for the reader instead (the health monitor does).
+        """
+        waiting = self._undecoded
+        reader = self._reader
+        if reader is not None and reader.done() and not reader.cancelled() and reader.exception() is None:
+            waiting += len(reader.result())
+        pending = getattr(self._link, "pending_bytes", None)
+        if pending is not None:
+            waiting += int(pending())
+        return waiting
+
     async def scans(self) -> AsyncIterator[Scan]:
         """One Scan per revolution, for ever: device faults are survived, not raised.
 
@@ -475,10 +518,17 @@ class RPLidar:
                 backoff_s = min(2 * backoff_s, self._backoff_max_s)
 
     async def _session(self, leftover: bytes) -> AsyncIterator[Scan]:
-        """Revolutions of one open link; raises on a link fault, restarts stalled scans."""
+        """Revolutions of one open link; raises on a link fault, restarts stalled scans.
+
+        A scan is stalled when no sample came for ``no_data_timeout_s`` and no byte is
+        waiting to be read (:meth:`_heard_after_all`): a loop that could not run is no
+        silent device.
+        """
+        self._undecoded = 0
         decoder = self._new_decoder()
         revolution = _RevolutionBuilder(self)
         restarts_without_data = 0
+        reprieved = False  # a stall was forgiven because bytes were waiting; no sample since
         last_data_s = batch_since_s = stamped_until_s = self._clock.now_s()
         batch = bytearray(leftover)
         arrivals = _ArrivalLog()
@@ -493,7 +543,7 @@ class RPLidar:
                 self.stats.bytes_dropped = self._dropped_before + decoder.bytes_dropped
                 if len(samples):
                     last_data_s = now_s
-                    stalled = False
+                    stalled = reprieved = False
                     restarts_without_data = 0
                     self.stats.samples += len(samples)
                     latest_s = self._latest_sample_s(arrivals, arrivals.received - decoder.pending_bytes)
@@ -504,6 +554,12 @@ class RPLidar:
                         yield scan
             if not batch:
                 batch_since_s = now_s
+            self._undecoded = len(batch)
+            if stalled and not batch and not reprieved and await self._heard_after_all():
+                # bytes wait: one decode interval to read and decode them before judging
+                # again (once: bytes that never decode into a sample are no data either)
+                stalled, reprieved = False, True
+                last_data_s = self._clock.now_s() - self._no_data_timeout_s + DECODE_INTERVAL_S
             if stalled:
                 self.stats.scan_restarts += 1
                 restarts_without_data += 1
@@ -525,7 +581,26 @@ class RPLidar:
             except TimeoutError:
                 continue
             batch += data
-            arrivals.add(len(data), self._clock.now_s())
+            self._undecoded = len(batch)
+            now_s = self._clock.now_s()
+            received_s = now_s if self._read_at_s is None else min(now_s, self._read_at_s)
+            received_s = max(received_s, arrivals.last_s)  # the estimate never runs backwards
+            self.stats.bytes_received += len(data)
+            self.stats.last_receive_s = received_s
+            arrivals.add(len(data), received_s)
+
+    async def _heard_after_all(self) -> bool:
+        """True when bytes wait although no sample came for ``no_data_timeout_s``.
+
+        After a stall of the event loop (heavy work, a slow core) the time-out expires
+        with the device's bytes still in the link, unread: the reader never had its
+        turn. It gets one pass of the loop first (the link's own callbacks run then),
+        and only a link with nothing waiting after it is silent.
+        """
+        if self.bytes_waiting() > 0:
+            return True
+        await asyncio.sleep(0)
+        return self.bytes_waiting() > 0
 
     def _latest_sample_s(self, arrivals: _ArrivalLog, decided_end: int) -> float:
         """Clock time at which the last sample decoded so far was taken.
@@ -607,11 +682,13 @@ class _ArrivalLog:
     def __init__(self) -> None:
         self._chunks: deque[tuple[int, float]] = deque()  # (stream offset after the chunk, time)
         self.received = 0  # bytes recorded so far
+        self.last_s = -math.inf  # the latest arrival time recorded
 
     def add(self, count: int, time_s: float) -> None:
         if count > 0:
             self.received += count
             self._chunks.append((self.received, time_s))
+            self.last_s = max(self.last_s, time_s)
 
     def time_of(self, offset: int) -> float:
         chunks = self._chunks

@@ -115,6 +115,11 @@ class _BufferedProtocol(asyncio.Protocol):
     def clear(self) -> None:
         self._buffer.clear()
 
+    @property
+    def buffered(self) -> int:
+        """Bytes received and not yet read."""
+        return len(self._buffer)
+
 
 class SerialLink:
     """The lidar's USB serial adapter, through pyserial-asyncio.
@@ -165,6 +170,18 @@ class SerialLink:
         if self._closed:
             return b""
         return await self._protocol.read(max_bytes)
+
+    def pending_bytes(self) -> int:
+        """Bytes that arrived and wait to be read: in the protocol's buffer and in the kernel's.
+
+        The kernel's count (``in_waiting``, the FIONREAD ioctl) holds what came while the
+        event loop could not run; the watchdogs look at it before they call the lidar silent.
+        """
+        waiting = self._protocol.buffered
+        if not self._closed:
+            with contextlib.suppress(OSError, serial.SerialException):
+                waiting += int(self._serial.in_waiting)
+        return waiting
 
     async def write(self, data: bytes) -> None:
         if self._closed or self._transport.is_closing():
@@ -235,6 +252,11 @@ class StreamLink:
         if self._closed:
             return b""
         return await self._reader.read(max_bytes)
+
+    def pending_bytes(self) -> int:
+        """Bytes that arrived and wait to be read (the stream reader's buffer)."""
+        # StreamReader has no public count of its buffer; ``_buffer`` is a bytearray in CPython
+        return 0 if self._closed else len(getattr(self._reader, "_buffer", b""))
 
     async def write(self, data: bytes) -> None:
         if self._closed or self._writer.is_closing():

@@ -26,10 +26,20 @@ grouped into connected regions; the robot drives to the nearest reachable region
 (path cost on the inflated costmap).
 
 Targets that cannot be resolved (a region the robot cannot reach or see, a link the
-lidar never classifies) are blacklisted after a timeout without progress, so nothing
-traps the robot. When no reachable, non-blacklisted unknown remains the explorer turns
-to :attr:`Phase.RETURNING`, plans back to the start, and reports :attr:`Phase.DONE` on
-arrival.
+lidar never classifies) are blacklisted once they stop progressing, so nothing traps the
+robot. How long that takes is counted in what the robot did, never in seconds: in the
+map's revolutions (the lidar turns SLAM painted into the map: the evidence that could
+have resolved the target) while it was the target without its route cost reaching a new
+low, or while the robot stood at it. On a slower computer SLAM paints fewer revolutions
+a second and the targets get as many chances as on a fast one.
+
+A blacklisted target is not given up for good: it is tried again once the robot has
+driven ``retry_after_m`` elsewhere (the map around it has changed), or at once when
+nothing else is left, up to ``max_attempts`` attempts in all. Only when no reachable
+unknown remains that has attempts left, neither a maze link nor (``map_check``) a
+frontier of the grid itself (known free cells next to unknown ones: the maze graph can
+misread a link as a wall), does the explorer turn to :attr:`Phase.RETURNING`, plan back to
+the start, and report :attr:`Phase.DONE` on arrival.
 """
 
 from __future__ import annotations
@@ -191,11 +201,11 @@ class _Region:
 class _Target:
     """Bookkeeping of one target, for switching hysteresis and blacklisting.
 
-    The clocks only run while it is the current target, and they are kept when it stops
+    The counts only run while it is the current target, and they are kept when it stops
     being one: a frontier that flickers in and out of a noisy map (or that the robot
-    dithers to and from) adds up its time over all its turns as the target instead of
-    starting afresh each time, so it is blacklisted after ``progress_timeout_s`` of
-    being chosen without getting cheaper, or ``dwell_timeout_s`` of the robot standing
+    dithers to and from) adds up its revolutions over all its turns as the target instead
+    of starting afresh each time, so it is blacklisted after ``progress_revolutions`` of
+    being chosen without getting cheaper, or ``dwell_revolutions`` of the robot standing
     on it, in total.
     """
 
@@ -203,10 +213,18 @@ class _Target:
     position_m: tuple[float, float]
     cost: float
     best_cost: float
-    stalled_s: float = 0.0  # time as the target without the route cost reaching a new low
-    dwelt_s: float = 0.0  # time as the target with the robot at it
-    last_s: float | None = None  # the last tick it was the target
+    stalled: int = 0  # map revolutions as the target without the route cost reaching a new low
+    dwelt: int = 0  # map revolutions as the target with the robot at it
+    last: int | None = None  # the map's revolution count at the last tick it was the target
     at_goal: bool = False  # the robot was at it on that tick
+
+
+@dataclass
+class _GivenUp:
+    """A blacklisted target: how often it was tried, and the robot's odometer when it was given up."""
+
+    attempts: int
+    travelled_m: float
 
 
 class Explorer:
@@ -215,9 +233,9 @@ class Explorer:
     Example::
 
         explorer = Explorer(start_xy_m=(0.0, 0.0))
-        goal = explorer.update(grid.three_state(), grid.origin_m, grid.resolution_m, pose, now_s)
+        goal = explorer.update(grid.three_state(), grid.origin_m, grid.resolution_m, pose, revolutions)
         goal.phase, goal.waypoints_m     # hand the waypoints to the local planner
-        explorer.report_unreachable(now_s)   # the local planner gave up on this goal
+        explorer.report_unreachable()    # the local planner gave up on this goal
 
     Parameters: ``graph`` the maze graph to keep updated (a default one is built);
     ``strategy`` a :class:`Strategy` or its name; ``mode`` ``"auto"`` (a maze when the
@@ -230,9 +248,14 @@ class Explorer:
     how much cheaper (in cell steps; in frontier mode, in cell lengths of route) a new
     target must be to replace the current one; ``goal_tolerance_m`` how close counts as
     arrived (keep it above the local planner's own tolerance, or the robot stops short
-    of "arrived"); ``progress_timeout_s`` how long a target may go without its route
-    cost dropping before it is blacklisted, ``dwell_timeout_s`` how long it may stay
-    unresolved once the robot is there; ``footprint_radius_m``/``clearance_m`` the robot
+    of "arrived"); ``progress_revolutions`` how many map revolutions a target may go
+    without its route cost dropping before it is blacklisted, ``dwell_revolutions`` how
+    many it may stay unresolved once the robot is there (the map's revolutions are
+    SLAM's painted scans, passed to :meth:`update`; 5.5 a second on an A1 when SLAM
+    keeps up); ``retry_after_m`` how far the robot must drive before a blacklisted
+    target is tried again, ``max_attempts`` how often a target is tried in all;
+    ``map_check`` whether a maze is done only when the grid has no reachable frontier
+    either; ``footprint_radius_m``/``clearance_m`` the robot
     for the grid costmap; ``min_frontier_cells`` the smallest frontier region worth a
     visit, ``frontier_wall_margin_cells`` how close to a wall unknown cells are taken
     for wall (see :func:`frontier_regions`); ``view_radius_m`` how close the robot must
@@ -255,8 +278,11 @@ class Explorer:
         turn_cost_cells: float = 0.5,
         switch_margin: float = 1.0,
         goal_tolerance_m: float = 0.06,
-        progress_timeout_s: float = 20.0,
-        dwell_timeout_s: float = 3.0,
+        progress_revolutions: int = 110,
+        dwell_revolutions: int = 16,
+        retry_after_m: float = 0.9,
+        max_attempts: int = 3,
+        map_check: bool = True,
         footprint_radius_m: float = 0.09,
         clearance_m: float = 0.02,
         min_frontier_cells: int = 4,
@@ -277,8 +303,16 @@ class Explorer:
         self.turn_cost_cells = float(turn_cost_cells)
         self.switch_margin = float(switch_margin)
         self.goal_tolerance_m = float(goal_tolerance_m)
-        self.progress_timeout_s = float(progress_timeout_s)
-        self.dwell_timeout_s = float(dwell_timeout_s)
+        if progress_revolutions < 1 or dwell_revolutions < 1 or max_attempts < 1:
+            raise ValueError(
+                "need progress_revolutions, dwell_revolutions and max_attempts >= 1, got "
+                f"{progress_revolutions}, {dwell_revolutions}, {max_attempts}"
+            )
+        self.progress_revolutions = int(progress_revolutions)
+        self.dwell_revolutions = int(dwell_revolutions)
+        self.retry_after_m = float(retry_after_m)
+        self.max_attempts = int(max_attempts)
+        self.map_check = bool(map_check)
         self.footprint_radius_m = float(footprint_radius_m)
         self.clearance_m = float(clearance_m)
         self.min_frontier_cells = int(min_frontier_cells)
@@ -295,7 +329,11 @@ class Explorer:
         self.updates = 0
         self._discovered: dict[tuple[Cell, Direction | None], int] = {}
         self._target: _Target | None = None
-        self._history: dict[object, _Target] = {}  # every target so far, by key: clocks survive a switch
+        self._history: dict[object, _Target] = {}  # every target so far, by key: counts survive a switch
+        self._given_up: dict[object, _GivenUp] = {}  # blacklisted targets, by key
+        self.travelled_m = 0.0  # the robot's path length so far (from the poses of the ticks)
+        self._last_xy_m: tuple[float, float] | None = None
+        self._revolutions = 0  # the map's revolution count at this tick
         self._costmap: GridCostmap | None = None
         #: what happened to targets since the caller last emptied it (blacklists, with why)
         self.events: list[str] = []
@@ -308,15 +346,17 @@ class Explorer:
         grid_origin_m: tuple[float, float],
         resolution_m: float,
         pose: tuple[float, float, float],
-        now_s: float,
+        revolutions: int | None = None,
     ) -> Goal | None:
         """Read the map, choose the next goal; None only when there is nothing to do yet.
 
-        ``pose`` is the robot's map-frame ``(x_m, y_m, theta_rad)``. Returns a goal in
+        ``pose`` is the robot's map-frame ``(x_m, y_m, theta_rad)``; ``revolutions`` the
+        count of lidar revolutions painted into the map so far (SLAM's), the clock of the
+        blacklisting (None: count this explorer's updates instead). Returns a goal in
         every phase (in DONE: stay at the start); None before the map holds anything to
         plan on.
         """
-        return run_steps(self.update_steps(three_state, grid_origin_m, resolution_m, pose, now_s))
+        return run_steps(self.update_steps(three_state, grid_origin_m, resolution_m, pose, revolutions))
 
     def update_steps(
         self,
@@ -324,10 +364,15 @@ class Explorer:
         grid_origin_m: tuple[float, float],
         resolution_m: float,
         pose: tuple[float, float, float],
-        now_s: float,
+        revolutions: int | None = None,
     ) -> Generator[None, None, Goal | None]:
         """:meth:`update` in two stages (:mod:`mazebot.steps`): the maze graph from the map, then the goal."""
         self.updates += 1
+        self._revolutions = self.updates if revolutions is None else int(revolutions)
+        xy = (float(pose[0]), float(pose[1]))
+        if self._last_xy_m is not None:
+            self.travelled_m += math.dist(xy, self._last_xy_m)
+        self._last_xy_m = xy
         grid = np.asarray(three_state)
         self._costmap = None
         if self.mode_setting != "frontier":
@@ -340,15 +385,53 @@ class Explorer:
             self.mode == "maze" and self.graph.frame is None
         ):
             return None  # the map does not cover the robot yet (first scans): an empty map is not "done"
-        if self.mode == "maze":
-            goal = self._maze_goal(pose, now_s)
-        else:
-            goal = self._frontier_goal(grid, grid_origin_m, resolution_m, pose, now_s)
+        self._retry_given_up(everything=False)
+        goal = self._explore_goal(grid, grid_origin_m, resolution_m, pose)
+        if goal is None and self._retry_given_up(everything=True):  # nothing else left: try them again
+            goal = self._explore_goal(grid, grid_origin_m, resolution_m, pose)
         if goal is None:
             goal = self._return_goal(grid, grid_origin_m, resolution_m, pose)
         return goal
 
-    def report_unreachable(self, now_s: float) -> None:
+    def _explore_goal(
+        self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float, pose: tuple[float, float, float]
+    ) -> Goal | None:
+        """The next unknown to resolve: a maze link or cell, else (``map_check``) a frontier of the grid."""
+        if self.mode == "maze":
+            goal = self._maze_goal(pose)
+            if goal is None and self.map_check:
+                # the graph knows no unknown link: the grid itself must not know any
+                # known free space next to unknown space the robot can reach either
+                goal = self._frontier_goal(grid, origin, resolution_m, pose)
+            return goal
+        return self._frontier_goal(grid, origin, resolution_m, pose)
+
+    def _retry_given_up(self, everything: bool) -> bool:
+        """Take blacklisted targets with attempts left off the blacklist; True if any was.
+
+        Those given up ``retry_after_m`` of driving ago, or (``everything``) all of them:
+        the robot has nothing else left to do.
+        """
+        retried = False
+        for key, given_up in list(self._given_up.items()):
+            if given_up.attempts >= self.max_attempts or key not in self._blacklisted_keys():
+                continue
+            if not everything and self.travelled_m - given_up.travelled_m < self.retry_after_m:
+                continue
+            if isinstance(key, _RegionKey):
+                self.blacklisted_points_m.remove(key.centroid_m)
+            else:
+                self.blacklisted_links.discard(key)  # type: ignore[arg-type]
+            target = self._history.get(key)
+            if target is not None:  # a fresh start: its counts begin again
+                target.stalled, target.dwelt, target.best_cost = 0, 0, math.inf
+            retried = True
+        return retried
+
+    def _blacklisted_keys(self) -> set[object]:
+        return {*self.blacklisted_links, *(_RegionKey(c) for c in self.blacklisted_points_m)}
+
+    def report_unreachable(self, now_s: float | None = None) -> None:
         """The local planner could not reach the current goal: blacklist it and choose again."""
         target = self._target
         if target is None or self.phase is not Phase.EXPLORING:
@@ -362,6 +445,7 @@ class Explorer:
         self.blacklisted_points_m.clear()
         self._discovered.clear()
         self._history.clear()
+        self._given_up.clear()
         self._target = None
 
     def _choose_mode(self) -> None:
@@ -376,7 +460,7 @@ class Explorer:
 
     # -- maze mode -----------------------------------------------------------------------
 
-    def _maze_goal(self, pose: tuple[float, float, float], now_s: float) -> Goal | None:
+    def _maze_goal(self, pose: tuple[float, float, float]) -> Goal | None:
         graph = self.graph
         frame = graph.frame
         if frame is None:
@@ -420,9 +504,9 @@ class Explorer:
             if keep:
                 choice = kept
         position = frame.cell_center_m(choice.cell)
-        target = self._track((choice.cell, choice.side), position, choice.cost, now_s, at_goal=choice.cell == robot)
-        if target is None:  # just blacklisted (timed out): choose again among the rest
-            return self._maze_goal(pose, now_s) if candidates[1:] else None
+        target = self._track((choice.cell, choice.side), position, choice.cost, at_goal=choice.cell == robot)
+        if target is None:  # just blacklisted (no progress): choose again among the rest
+            return self._maze_goal(pose) if candidates[1:] else None
         route = shortest_cell_path(graph.open_neighbours, robot, choice.cell, heading, self.turn_cost_cells)
         side = "its inside" if choice.side is None else f"its {choice.side.name} side"
         what = f"look at {side} of cell {choice.cell}"
@@ -448,7 +532,6 @@ class Explorer:
         origin: tuple[float, float],
         resolution_m: float,
         pose: tuple[float, float, float],
-        now_s: float,
     ) -> Goal | None:
         costmap = self._costmap_for(grid, origin, resolution_m)
         options = self._frontier_options(grid, costmap, resolution_m, (pose[0], pose[1]))
@@ -466,9 +549,9 @@ class Explorer:
                 choice = same
         key = current.key if current is not None and choice is same else _RegionKey(choice.centroid_m)
         at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
-        if self._track(key, choice.goal_m, choice.cost_m, now_s, at_goal) is None:
-            # just blacklisted (timed out): choose again among the rest
-            return self._frontier_goal(grid, origin, resolution_m, pose, now_s) if options[1:] else None
+        if self._track(key, choice.goal_m, choice.cost_m, at_goal) is None:
+            # just blacklisted (no progress): choose again among the rest
+            return self._frontier_goal(grid, origin, resolution_m, pose) if options[1:] else None
         path = costmap.plan((pose[0], pose[1]), choice.goal_m)
         waypoints = shortcut(path, costmap) if path else [choice.goal_m]
         cx, cy = choice.centroid_m
@@ -555,40 +638,48 @@ class Explorer:
 
     # -- target bookkeeping --------------------------------------------------------------
 
-    def _track(
-        self, key: object, position: tuple[float, float], cost: float, now_s: float, at_goal: bool
-    ) -> _Target | None:
-        """Keep timers for the target; blacklist it (returning None) when it stops progressing.
+    def _track(self, key: object, position: tuple[float, float], cost: float, at_goal: bool) -> _Target | None:
+        """Keep counts for the target; blacklist it (returning None) when it stops progressing.
 
-        Time counts only between consecutive ticks on the same target, so a target
-        picked up again later continues its clocks where it left them (see :class:`_Target`).
+        The map's revolutions count only between consecutive ticks on the same target, so
+        a target picked up again later continues its counts where it left them (see
+        :class:`_Target`).
         """
+        now = self._revolutions
         target = self._history.get(key)
         if target is None:
             target = _Target(key, position, cost, best_cost=cost)
             self._history[key] = target
-        continued = self._target is target and target.last_s is not None
-        dt_s = now_s - target.last_s if continued and target.last_s is not None else 0.0
+        continued = self._target is target and target.last is not None
+        step = max(0, now - target.last) if continued and target.last is not None else 0
         if not continued and cost > target.best_cost + self._fresh_margin(key):
             # Chosen again from much farther away than its best (the robot went elsewhere
             # meanwhile): progress counts from here, or the drive back would count as
-            # stalled until it gets closer than it once was. Its stalled time is kept.
+            # stalled until it gets closer than it once was. Its stalled count is kept.
             target.best_cost = cost
         self._target = target
         target.position_m, target.cost = position, cost
         if cost < target.best_cost - 1e-6:
-            target.best_cost, target.stalled_s = cost, 0.0
+            target.best_cost, target.stalled = cost, 0
         else:
-            target.stalled_s += dt_s
+            target.stalled += step
         if at_goal and continued and target.at_goal:
-            target.dwelt_s += dt_s
-        target.last_s, target.at_goal = now_s, at_goal
-        stalled = target.stalled_s > self.progress_timeout_s
-        dwelt = target.dwelt_s > self.dwell_timeout_s
+            target.dwelt += step
+        target.last, target.at_goal = now, at_goal
+        stalled = target.stalled > self.progress_revolutions
+        dwelt = target.dwelt > self.dwell_revolutions
         if stalled or dwelt:
             self._blacklist(target)
             return None
         return target
+
+    def _near_region(self, a: object, b: object) -> bool:
+        """True when two grid-frontier targets are one region (their centroids within the blacklist radius)."""
+        return (
+            isinstance(a, _RegionKey)
+            and isinstance(b, _RegionKey)
+            and math.dist(a.centroid_m, b.centroid_m) < self.blacklist_radius_m
+        )
 
     def _fresh_margin(self, key: object) -> float:
         """How much costlier than its best a target picked up again must be to count progress afresh.
@@ -602,9 +693,15 @@ class Explorer:
 
     def _blacklist(self, target: _Target) -> None:
         key = target.key
+        attempts = 1 + max(
+            (g.attempts for k, g in self._given_up.items() if k == key or self._near_region(k, key)), default=0
+        )
+        self._given_up[key] = _GivenUp(attempts, self.travelled_m)
         what = f"frontier at {key.centroid_m[0]:.2f}, {key.centroid_m[1]:.2f}" if isinstance(key, _RegionKey) else key
+        again = "given up" if attempts >= self.max_attempts else f"tried again after {self.retry_after_m:g} m"
         self.events.append(
-            f"blacklisted {what} (chosen {target.stalled_s:.1f} s without progress, {target.dwelt_s:.1f} s there)"
+            f"blacklisted {what} (chosen {target.stalled} map revolutions without progress, {target.dwelt} there; "
+            f"attempt {attempts} of {self.max_attempts}, {again})"
         )
         if isinstance(key, _RegionKey):
             self.blacklisted_points_m.append(key.centroid_m)

@@ -56,8 +56,10 @@ class PilotParams:
     cell_size_m: float
     wall_thickness_m: float
     goal_tolerance_m: float
-    progress_timeout_s: float
-    dwell_timeout_s: float
+    progress_revolutions: int
+    dwell_revolutions: int
+    retry_after_m: float
+    max_attempts: int
     horizon_s: float
     stuck_timeout_s: float
     max_recoveries: int
@@ -87,8 +89,10 @@ class PilotParams:
             cell_size_m=p.cell_size_m,
             wall_thickness_m=p.wall_thickness_m,
             goal_tolerance_m=p.goal_tolerance_m,
-            progress_timeout_s=p.progress_timeout_s,
-            dwell_timeout_s=p.dwell_timeout_s,
+            progress_revolutions=p.progress_revolutions,
+            dwell_revolutions=p.dwell_revolutions,
+            retry_after_m=p.retry_after_m,
+            max_attempts=p.max_attempts,
             horizon_s=p.horizon_s,
             stuck_timeout_s=p.stuck_timeout_s,
             max_recoveries=p.max_recoveries,
@@ -125,6 +129,9 @@ class Pilot:
         self.local = self._new_local_planner()
         self._was_moving = False
         self._recovering = False
+        #: motion halves run so far: the local planner's clock is this times the period, so its
+        #: time-outs (stuck, blocked, aligning, backing off) count ticks run, not wall time
+        self.drive_ticks = 0
         self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
@@ -141,8 +148,10 @@ class Pilot:
             mode=p.mode,  # type: ignore[arg-type]
             start_xy_m=start_xy_m,
             goal_tolerance_m=p.goal_tolerance_m,
-            progress_timeout_s=p.progress_timeout_s,
-            dwell_timeout_s=p.dwell_timeout_s,
+            progress_revolutions=p.progress_revolutions,
+            dwell_revolutions=p.dwell_revolutions,
+            retry_after_m=p.retry_after_m,
+            max_attempts=p.max_attempts,
             footprint_radius_m=p.footprint_radius_m,
             clearance_m=p.clearance_m,
         )
@@ -215,7 +224,9 @@ class Pilot:
             return False
         three = grid.three_state()
         yield
-        goal = yield from self.explorer.update_steps(three, grid.origin_m, grid.resolution_m, pose, now_s)
+        # the explorer's clock: revolutions SLAM painted into the map (what can resolve a target)
+        painted = max(0, state.slam.scans - state.slam.held_back)
+        goal = yield from self.explorer.update_steps(three, grid.origin_m, grid.resolution_m, pose, painted)
         if not state.run_state.moving:  # stopped while the stages ran: the next tick forgets the path
             return False
         self._note_events(state, now_s, goal.reason if goal is not None else None, pose)
@@ -258,9 +269,11 @@ class Pilot:
             walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
         scan_xy = self._scan_points(state)
+        self.drive_ticks += 1
+        tick_time_s = self.drive_ticks * self.params.period_s  # a late tick is one tick, not its lateness
         yield
         cmd = yield from state.cpu.part("dwa").steps(
-            self.local.step_steps(pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), now_s, walls_xy)
+            self.local.step_steps(pose, velocity, scan_xy, map_xy, resolution_m * math.sqrt(0.5), tick_time_s, walls_xy)
         )
         if not state.run_state.moving:  # stopped while the stages ran
             return
@@ -271,7 +284,7 @@ class Pilot:
         if cmd.give_up:
             log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
             state.planner_events.append((now_s, "the local planner gave up on the goal"))
-            self.explorer.report_unreachable(now_s)
+            self.explorer.report_unreachable()
             self._note_events(state, now_s, None, pose)
         state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
 

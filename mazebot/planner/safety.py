@@ -14,10 +14,15 @@ check by hand:
   round body sweeps nothing new) and so is moving away, so the planner's recovery
   (rotate, back off) can still get the robot out.
 - :class:`ControlWatchdog`: a **control deadline**: if the control loop has not ticked
-  within ``deadline_s`` (an event loop blocked by heavy work), the next tick stops.
+  within ``deadline_s`` (an event loop blocked by heavy work), the next tick stops. This
+  one is wall time on purpose: it measures how long the motors ran unsupervised.
 - :class:`CommandGate`: a **stale-command stop**: a planner command older than its
   time-to-live is replaced by a stop.
-- :class:`SafetyLayer` chains the three (plus a lidar timeout) and says why it stopped.
+- :class:`SafetyLayer` chains them (plus a lidar timeout) and says why it stopped. Its
+  command and lidar ages count **control ticks run** since the command or the revolution
+  was first seen, not seconds: a loop that could not run for 0.3 s (a slow core, a
+  collector pause) aged neither, and its late tick is the deadline's business; a planner
+  or a lidar that stopped while the loop runs is still caught within that many ticks.
 
 Note on the lidar's minimum range: the RPLidar A1 reports nothing closer than 0.15 m
 (``min_range_m``), which is more than the 0.09 m footprint; an obstacle can only be seen
@@ -234,19 +239,46 @@ class CommandGate(Generic[T]):
         self._command, self._stamp_s = None, -math.inf
 
 
+class TickAge:
+    """How many ticks have run since a stamp (a command's, a revolution's) was first seen.
+
+    Example::
+
+        age = TickAge()
+        age.tick(1.0), age.tick(1.0), age.tick(1.2)   # 0, 1, 0: the stamp changed
+    """
+
+    def __init__(self) -> None:
+        self.stamp: float | None = None
+        self.ticks = 0
+
+    def tick(self, stamp: float | None) -> int | None:
+        """Count this tick for ``stamp``; its age in ticks (0 when new, None without one)."""
+        if stamp is None:
+            self.stamp, self.ticks = None, 0
+            return None
+        if stamp != self.stamp:
+            self.stamp, self.ticks = stamp, 0
+        else:
+            self.ticks += 1
+        return self.ticks
+
+
 class SafetyLayer:
     """All stop conditions of one control tick, in one call.
 
     Example::
 
-        safety = SafetyLayer(CollisionGuard(), ControlWatchdog(0.1), command_ttl_s=0.5, scan_timeout_s=1.0)
+        safety = SafetyLayer(CollisionGuard(), ControlWatchdog(0.1), command_ttl_ticks=10, scan_timeout_ticks=20)
         verdict = safety.check(now_s, v_mps, w_radps, command_time_s, scan_points, scan_time_s)
         if verdict.stop:
             motors.stop()
 
-    Checks, in order: the control deadline, the command's age (``command_ttl_s``), the
-    lidar's age (``scan_timeout_s``: without fresh returns the guard is blind, so only
-    turning in place is allowed), then the collision guard on the latest returns.
+    Checks, in order: the control deadline, the command's age (``command_ttl_ticks``
+    control ticks since it was first seen), the lidar's age (``scan_timeout_ticks`` since
+    the latest revolution was: without fresh returns the guard is blind, so only turning
+    in place is allowed), then the collision guard on the latest returns. Call it (or
+    :meth:`idle`) once per control tick: the ages are counted in those calls.
     ``stops`` counts verdicts that stopped, ``last`` is the latest verdict.
     """
 
@@ -254,15 +286,29 @@ class SafetyLayer:
         self,
         guard: CollisionGuard | None = None,
         watchdog: ControlWatchdog | None = None,
-        command_ttl_s: float = 0.5,
-        scan_timeout_s: float = 1.0,
+        command_ttl_ticks: int = 10,
+        scan_timeout_ticks: int = 20,
     ) -> None:
+        if command_ttl_ticks < 1 or scan_timeout_ticks < 1:
+            raise ValueError(f"need ticks >= 1, got {command_ttl_ticks} and {scan_timeout_ticks}")
         self.guard = guard or CollisionGuard()
         self.watchdog = watchdog or ControlWatchdog()
-        self.command_ttl_s = float(command_ttl_s)
-        self.scan_timeout_s = float(scan_timeout_s)
+        self.command_ttl_ticks = int(command_ttl_ticks)
+        self.scan_timeout_ticks = int(scan_timeout_ticks)
+        self.command_age = TickAge()
+        self.scan_age = TickAge()
         self.stops = 0
         self.last = OK
+
+    def idle(self, now_s: float, command_time_s: float | None, scan_time_s: float | None) -> None:
+        """A control tick that drives nothing: the deadline clock and the ages still count.
+
+        A command that waited through idle ticks (the planner died, then the user
+        pressed start) is as stale as one that waited while driving.
+        """
+        self.watchdog.tick(now_s)
+        self.command_age.tick(command_time_s)
+        self.scan_age.tick(scan_time_s)
 
     def check(
         self,
@@ -273,15 +319,17 @@ class SafetyLayer:
         scan_points_robot: np.ndarray | None,
         scan_time_s: float | None,
     ) -> SafetyVerdict:
-        """The verdict for applying ``(v_mps, w_radps)`` now."""
+        """The verdict for applying ``(v_mps, w_radps)`` now (one call per control tick)."""
         verdict = self.watchdog.tick(now_s)
-        if not verdict.stop and (command_time_s is None or now_s - command_time_s > self.command_ttl_s):
-            age = "no command" if command_time_s is None else f"command is {now_s - command_time_s:.2f} s old"
-            verdict = SafetyVerdict(True, f"stale command: {age} (ttl {self.command_ttl_s} s)")
+        command_ticks = self.command_age.tick(command_time_s)
+        scan_ticks = self.scan_age.tick(scan_time_s)
+        if not verdict.stop and (command_ticks is None or command_ticks >= self.command_ttl_ticks):
+            age = "no command" if command_ticks is None else f"{command_ticks} control ticks since the command came"
+            verdict = SafetyVerdict(True, f"stale command: {age} (ttl {self.command_ttl_ticks} ticks)")
         translating = abs(v_mps) >= self.guard.min_speed_mps
-        if not verdict.stop and translating and (scan_time_s is None or now_s - scan_time_s > self.scan_timeout_s):
-            age = "no scan yet" if scan_time_s is None else f"last scan {now_s - scan_time_s:.2f} s old"
-            verdict = SafetyVerdict(True, f"lidar silent: {age} (timeout {self.scan_timeout_s} s)")
+        if not verdict.stop and translating and (scan_ticks is None or scan_ticks >= self.scan_timeout_ticks):
+            age = "no scan yet" if scan_ticks is None else f"{scan_ticks} control ticks since the last revolution"
+            verdict = SafetyVerdict(True, f"lidar silent: {age} (timeout {self.scan_timeout_ticks} ticks)")
         if not verdict.stop and translating and scan_points_robot is not None:
             verdict = self.guard.check(scan_points_robot, v_mps, w_radps)
         if verdict.stop:

@@ -3,6 +3,10 @@
 The motor driver writes into the simulator's fake MotorKit, the encoder driver counts
 edges on the simulator's gpiozero mock pins, and the lidar driver talks to the RPLidar
 emulator over an in-memory byte stream. Nothing in the daemon knows it is simulated.
+
+The world is brought up to the present (:meth:`SimulatedRobot.catch_up`) whenever a driver
+reads a sensor or writes a throttle, not only at the simulator's own ticks: a real lidar
+streams and real encoders count while the daemon's loop is busy elsewhere.
 """
 
 from __future__ import annotations
@@ -11,7 +15,10 @@ import asyncio
 import contextlib
 import errno
 import logging
+import threading
+from collections.abc import Callable
 from contextlib import AsyncExitStack
+from typing import Any
 
 from mazebot.clock import Clock
 from mazebot.config import Config
@@ -34,8 +41,9 @@ class SimLidarLine:
     serves the device end until the driver closes its end.
     """
 
-    def __init__(self, emulator: RPLidarEmulator) -> None:
+    def __init__(self, emulator: RPLidarEmulator, catch_up: Callable[[], None] | None = None) -> None:
         self.emulator = emulator
+        self.catch_up = catch_up  # brings the world (and so the lidar's stream) up to now
         self._served: set[asyncio.Task[None]] = set()
         self._device_writers: list[asyncio.StreamWriter] = []
         self.plugged = True
@@ -65,13 +73,39 @@ class SimLidarLine:
         task = asyncio.create_task(self.emulator.serve(device_reader, device_writer), name="sim-lidar-device")
         self._served.add(task)
         task.add_done_callback(self._served.discard)
-        return link
+        return link if self.catch_up is None else _StreamingLink(link, self.catch_up)
 
     async def close(self) -> None:
         for task in list(self._served):
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+
+
+class _StreamingLink:
+    """The host end of the lidar's line, as if the device streamed without pause.
+
+    The emulator sends on the simulator's ticks; a reader that comes later (its loop was
+    busy) would get only what was sent by the last tick and stamp it with the later time
+    of the read. A real A1 keeps sending meanwhile, so the newest byte a read returns is
+    always just arrived: each read first brings the world up to now.
+    """
+
+    def __init__(self, link: Any, catch_up: Callable[[], None]) -> None:
+        self._link = link
+        self._catch_up = catch_up
+
+    async def read(self, max_bytes: int = 4096) -> bytes:
+        self._catch_up()
+        data = await self._link.read(max_bytes)
+        # woken up later than the bytes came: what the device sent since is on the line too
+        self._catch_up()
+        if len(data) < max_bytes and self._link.pending_bytes():
+            data += await self._link.read(max_bytes - len(data))
+        return data
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._link, name)
 
 
 def sim_hardware_builder(
@@ -85,16 +119,34 @@ def sim_hardware_builder(
         stack.callback(robot.close)
         robot.step(clock.now_s())
 
+        emulator: RPLidarEmulator | None = None
+        loop_thread = threading.get_ident()
+
+        def catch_up() -> None:
+            if threading.get_ident() != loop_thread:  # the motors' hang guard braking: the world is the loop's
+                return
+            robot.catch_up(clock.now_s())
+            if emulator is not None and emulator.self_paced:  # a paced one was pumped by catch_up
+                emulator.pump()
+
+        robot.kit.before_write = catch_up
         motors = DifferentialMotors.from_config(config.motors, robot.kit, clock)
         stack.callback(motors.close)
         encoders = WheelEncoders.from_config(config.encoders, robot.pin_factory)
         stack.callback(encoders.close)
+        read_encoders = encoders.read
+
+        def read_now() -> Any:
+            catch_up()
+            return read_encoders()
+
+        encoders.read = read_now  # type: ignore[method-assign]
 
         paced = config.sim.lidar_paced_by_robot
         emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, self_paced=not paced)
         if paced:
             robot.attach_lidar(emulator)
-        line = SimLidarLine(emulator)
+        line = SimLidarLine(emulator, catch_up)
         stack.push_async_callback(line.close)
         lidar = RPLidar.from_config(config.lidar, clock, link_factory=line.connect)
         await stack.enter_async_context(lidar)

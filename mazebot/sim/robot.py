@@ -148,6 +148,19 @@ class SimulatedRobot:
         self._lidar = emulator
         self._lidar_every = max(1, round(emulator.SEND_PERIOD_S / self.config.sim.step_period_s))
 
+    def catch_up(self, now_s: float) -> None:
+        """The world as it is at ``now_s``, whenever the daemon looks at it or acts on it.
+
+        A real world does not wait for the simulator's next tick: encoders count and the
+        lidar streams all the time, and a throttle acts from the moment it is written.
+        The backend calls this before each encoder reading, lidar read and throttle write,
+        so what the daemon sees is as fresh as on the robot even when its loop is late
+        (on a slower computer the reader comes tens of milliseconds after the tick).
+        """
+        self.step(now_s)
+        if self._lidar is not None:
+            self._lidar.pump()
+
     async def run(self, clock: Clock) -> None:
         """The simulator task: step the world every ``[sim] step_period_s`` (and pace the lidar)."""
         period_s = self.config.sim.step_period_s

@@ -7,12 +7,22 @@ to the next timer instead of sleeping: the run goes as fast as the CPU allows, a
 order of events is exactly the one real time would give. Sockets still work (the
 selector is polled without blocking), but their timing becomes meaningless, so the web
 server is not started on this loop. Work handed to an executor takes no virtual time.
+
+A :class:`SlowCpu` makes the same loop behave like a slower computer, deterministically:
+every callback of the daemon's tasks costs a fixed amount of virtual time (the clock
+moves on while it "runs", and everything else waits, as on a busy core), and every so
+often the loop stalls for a while with nothing running (a garbage-collector pause, a
+throttled cgroup period, another process on the core). The simulated world's own tasks
+cost nothing: its physics integrates whatever time passed, so the robot keeps driving at
+its last throttle through a stall, as a real one would.
 """
 
 from __future__ import annotations
 
 import asyncio
 import selectors
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 #: Virtual time one pass of the event loop takes.
@@ -48,6 +58,34 @@ class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc, valid-t
         return events
 
 
+@dataclass(frozen=True)
+class SlowCpu:
+    """How much slower than this machine a virtual-time run behaves (see the module docstring).
+
+    ``callback_cost_s`` virtual seconds pass during each callback of a task not named in
+    ``free_tasks`` (nor starting with one of ``free_prefixes``); every ``stall_every_s``
+    the loop stalls, each stall taking the next of ``stalls_s`` in turn.
+    """
+
+    callback_cost_s: float = 0.0
+    stall_every_s: float = 0.0
+    stalls_s: tuple[float, ...] = ()
+    free_tasks: tuple[str, ...] = ("simulator", "lidar-emulator-stream")
+    free_prefixes: tuple[str, ...] = ("bench-", "sim-")
+
+    def costs(self, task_name: str) -> bool:
+        """True when callbacks of the task called ``task_name`` take ``callback_cost_s``."""
+        return task_name not in self.free_tasks and not task_name.startswith(self.free_prefixes)
+
+
+#: A Pi-class computer under load (``mazebot bench --slow-cpu``, the timing-independence test):
+#: ~4.5 ms of virtual time per task step (the daemon makes ~400 steps per simulated second on
+#: this machine, so the loop is busy most of the time and SLAM falls behind the lidar now and
+#: then), and a stall every 3 s of 0.1, 0.25 and 0.15 s in turn (0.23 s was measured under a
+#: 25 % CPU quota here).
+PI_CLASS_CPU = SlowCpu(callback_cost_s=0.0045, stall_every_s=3.0, stalls_s=(0.1, 0.25, 0.15))
+
+
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """A selector event loop on virtual time, starting at ``start_s``.
 
@@ -58,11 +96,44 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         loop.time()  # 3600.0
     """
 
-    def __init__(self, start_s: float = 0.0) -> None:
+    def __init__(self, start_s: float = 0.0, slow: SlowCpu | None = None) -> None:
         ref: list[VirtualTimeLoop] = []
         super().__init__(selector=_JumpingSelector(ref))
         ref.append(self)
         self._now_s = start_s
+        self.slow = slow
+        #: virtual seconds the loop stood still in stalls, and callbacks that paid ``callback_cost_s``
+        self.stalled_s = 0.0
+        self.costly_callbacks = 0
+        self._stall_count = 0
+        if slow is not None and slow.stall_every_s > 0 and slow.stalls_s:
+            super().call_at(start_s + slow.stall_every_s, self._stall)
+
+    def call_soon(self, callback: Callable[..., Any], *args: Any, context: Any = None) -> asyncio.Handle:
+        """As usual; with a :class:`SlowCpu`, a step of a costly task also moves the clock on."""
+        slow = self.slow
+        if slow is not None and slow.callback_cost_s > 0:
+            task = getattr(callback, "__self__", None)  # a task's step or wake-up
+            if isinstance(task, asyncio.Task) and slow.costs(task.get_name()):
+                return super().call_soon(self._costly, callback, *args, context=context)
+        return super().call_soon(callback, *args, context=context)
+
+    def _costly(self, callback: Callable[..., Any], *args: Any) -> None:
+        try:
+            callback(*args)
+        finally:
+            assert self.slow is not None
+            self.costly_callbacks += 1
+            self.advance(self.slow.callback_cost_s)
+
+    def _stall(self) -> None:
+        slow = self.slow
+        assert slow is not None
+        stall_s = slow.stalls_s[self._stall_count % len(slow.stalls_s)]
+        self._stall_count += 1
+        self.stalled_s += stall_s
+        self.advance(stall_s)
+        super().call_at(self._now_s + slow.stall_every_s, self._stall)
 
     def time(self) -> float:
         return self._now_s
@@ -72,9 +143,9 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         self._now_s += duration_s
 
 
-def run_virtual(coro: Any, start_s: float = 0.0) -> Any:
-    """``asyncio.run`` on virtual time."""
-    loop = VirtualTimeLoop(start_s)
+def run_virtual(coro: Any, start_s: float = 0.0, slow: SlowCpu | None = None) -> Any:
+    """``asyncio.run`` on virtual time (as on a slower computer with ``slow``)."""
+    loop = VirtualTimeLoop(start_s, slow)
     try:
         asyncio.set_event_loop(loop)
         return loop.run_until_complete(coro)

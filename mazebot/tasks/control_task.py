@@ -63,7 +63,10 @@ class MotorControl:
             latency_s=self.period_s + c.actuation_latency_s,
         )
         self.safety = SafetyLayer(
-            guard, ControlWatchdog(c.deadline_s), command_ttl_s=c.command_ttl_s, scan_timeout_s=c.scan_timeout_s
+            guard,
+            ControlWatchdog(c.deadline_s),
+            command_ttl_ticks=c.command_ttl_ticks,
+            scan_timeout_ticks=c.scan_timeout_ticks,
         )
         self.lidar_range_m = (config.lidar.min_range_m, config.lidar.max_range_m)
         self.lidar_mount_xy_m = (config.lidar.mount_x_m, config.lidar.mount_y_m)
@@ -94,7 +97,9 @@ class MotorControl:
         command = state.motion_command
         if moving and command is not None:
             return self._drive(state, command, measured, now_s)
-        self.safety.watchdog.tick(now_s)  # keep the deadline clock running while idle
+        # keep the deadline clock and the command's and the lidar's ages running while idle
+        scan = state.latest_scan
+        self.safety.idle(now_s, None if command is None else command.time_s, None if scan is None else scan.end_time_s)
         self.wheels.reset()
         direct = state.throttle_command
         if moving and direct is not None and now_s - direct[2] <= STALE_PERIODS * self.period_s:

@@ -3,7 +3,13 @@
 - **Lidar silence**: no revolution for ``lidar_silence_s`` (a revolution takes 0.18 s) means
   the robot no longer knows what is in front of it: a ``lidar`` fault, so the control task
   stops the wheels within one control period. The driver reconnects by itself; the
-  fault clears with the first new revolution.
+  fault clears with the first new revolution. The silence counts the checks that ran, not
+  the wall time between them: a check that comes late because the event loop was blocked
+  (heavy work, a slow core) adds one period, not the time the lidar's reader could not
+  run either, and it never raises the fault itself: the reader gets its turn first. Nor
+  is the lidar silent while bytes from it wait to be decoded (``lidar.bytes_waiting()``) or
+  arrived since the last check; bytes that never make a revolution are a fault after
+  ``GARBLED_SILENCE_FACTOR`` times as long.
 - **Dead encoder**: a wheel whose motor has been driven well above the deadband for
   ``encoder_dead_s`` in all while its tick count did not move, and the other wheel's did:
   a cut encoder wire. The driven time adds up over the pauses of the control (under
@@ -33,6 +39,7 @@ from __future__ import annotations
 import itertools
 import logging
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 from mazebot.clock import Clock
 from mazebot.state import SharedState
@@ -75,6 +82,21 @@ FAULT_SETTLE_S = 1.0
 REFERENCE_AGE_S = 5.0
 #: Events about the same trouble (bouncing encoders, a weak motor) at most this often.
 NOTE_EVERY_S = 5.0
+#: A lidar check that comes more than this many periods after the previous one was held up
+#: by a blocked loop: it counts one period of silence and judges nothing.
+LATE_CHECK_PERIODS = 1.5
+#: Bytes keep arriving but no revolution is made of them (a garbled line, a wrong baud rate):
+#: a fault once the silence is this many times ``lidar_silence_s``.
+GARBLED_SILENCE_FACTOR = 3.0
+
+
+class LidarActivity(Protocol):
+    """What the health monitor reads of the lidar driver (:class:`mazebot.io.rplidar.RPLidar`)."""
+
+    @property
+    def stats(self) -> Any: ...  # ``bytes_received``: scan bytes read so far
+
+    def bytes_waiting(self) -> int: ...
 
 
 @dataclass
@@ -98,8 +120,14 @@ class HealthMonitor:
         driven_throttle: float = 0.15,
         weak_ratio: float = 0.6,
         weak_checks: int = 1,
+        lidar: LidarActivity | None = None,
     ) -> None:
         self.lidar_silence_s = float(lidar_silence_s)
+        self.lidar = lidar
+        self._lidar_checked_s: float | None = None  # the last lidar check
+        self._lidar_scan: object = None  # the revolution that check saw
+        self._lidar_silent_s = 0.0  # checks-run time since the last new revolution (or since the start)
+        self._lidar_bytes = 0  # the driver's bytes_received at that check
         self.startup_grace_s = float(startup_grace_s)
         self.encoder_dead_s = float(encoder_dead_s)
         self.driven_throttle = float(driven_throttle)
@@ -187,12 +215,29 @@ class HealthMonitor:
 
     def _check_lidar(self, state: SharedState, now_s: float) -> None:
         scan = state.latest_scan
-        last_s = scan.end_time_s if scan is not None else self._started_s + self.startup_grace_s  # type: ignore[operator]
-        silent_s = now_s - last_s
+        last_s, self._lidar_checked_s = self._lidar_checked_s, now_s
+        step_s = 0.0 if last_s is None else max(0.0, now_s - last_s)
+        late = step_s > LATE_CHECK_PERIODS * PERIOD_S
+        if scan is not self._lidar_scan:  # a new revolution: the silence since it ended (one period at most)
+            self._lidar_scan = scan
+            self._lidar_silent_s = 0.0 if scan is None else min(max(0.0, now_s - scan.end_time_s), PERIOD_S)
+        else:
+            self._lidar_silent_s += min(step_s, PERIOD_S)
+        # the time allowed: at start-up the grace as well; never more than the revolution's own age
+        allowed_s = self.lidar_silence_s + (self.startup_grace_s if scan is None else 0.0)
+        silent_s = self._lidar_silent_s if scan is None else min(self._lidar_silent_s, now_s - scan.end_time_s)
+        bytes_flow = False
+        if self.lidar is not None:
+            received = int(self.lidar.stats.bytes_received)
+            bytes_flow = received != self._lidar_bytes or self.lidar.bytes_waiting() > 0
+            self._lidar_bytes = received
         active = any(f.source == "lidar" for f in state.faults)
-        if silent_s > self.lidar_silence_s:
-            if not active:
+        if silent_s > allowed_s:
+            garbled = silent_s > GARBLED_SILENCE_FACTOR * allowed_s
+            if not active and not late and (garbled or not bytes_flow):
                 what = "no lidar data yet" if scan is None else f"no lidar data for {silent_s:.1f} s"
+                if bytes_flow:
+                    what = f"lidar bytes arrive but make no revolution for {silent_s:.1f} s"
                 message = f"{what}: check the lidar's USB cable and power; reconnecting by itself"
                 log.warning("%s", message)
                 state.raise_fault("lidar", message, now_s)

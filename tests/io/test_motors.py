@@ -24,6 +24,7 @@ from mazebot.io.motors import (
     MotorCommand,
     MotorWriteError,
     ThrottleWrite,
+    TtlGuard,
     open_motorkit,
 )
 
@@ -456,3 +457,41 @@ def test_open_motorkit_off_a_pi_is_hardware_unavailable() -> None:
     lines = result.stdout.splitlines()
     assert len(lines) == 1
     assert lines[0].startswith("motor HAT not found at I2C address 0x60 (")
+
+
+# --- the hang guard ------------------------------------------------------------------
+
+
+def test_the_hang_guard_brakes_a_throttle_the_loop_no_longer_refreshes(
+    kit: FakeMotorKit, clock: FakeClock, loop: FakeLoop
+) -> None:
+    motors = make(kit, clock, loop, command_ttl_s=0.3)
+    guard = TtlGuard(motors)
+    motors.set(0.5, 0.5)  # at 100.0 s: the loop's timer is armed, and then the loop hangs
+    assert not guard.check(100.2)
+    assert kit.throttles()[1] == 0.5
+    assert guard.check(100.31)  # the loop's own timer never fired
+    assert kit.throttles()[1] == 0.0 and kit.throttles()[2] == 0.0 and guard.brakes == 1
+    assert not guard.check(100.5)  # braked: nothing to do until the next drive
+    motors.set(0.0, 0.0)
+    assert not guard.check(101.0)  # a stop is no stale throttle
+
+
+def test_the_hang_guard_thread_stops_the_wheels_of_a_blocked_loop() -> None:
+    import time
+
+    async def drive_then_hang() -> dict[int, float | None]:
+        clock = RealClock()
+        kit = FakeMotorKit(clock)
+        motors = DifferentialMotors(kit, clock=clock, command_ttl_s=0.1)
+        guard = TtlGuard(motors)
+        guard.start()
+        try:
+            motors.set(0.4, 0.4)
+            time.sleep(1.0)  # noqa: ASYNC251  # the event loop is blocked: its TTL timer cannot fire
+            return kit.throttles()
+        finally:
+            guard.close()
+
+    throttles = asyncio.run(drive_then_hang())
+    assert throttles[1] == 0.0 and throttles[2] == 0.0

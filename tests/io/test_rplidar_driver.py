@@ -284,3 +284,28 @@ async def test_memory_link_eof_and_motor_callback() -> None:
     assert await link.read() == b""  # the device went away: end of file
     await link.close()
     await link.close()
+
+
+async def test_bytes_waiting_in_the_link_are_no_silence() -> None:
+    # the no-data time-out judged after a blocked loop: bytes that arrived meanwhile and wait
+    # unread (in the link's buffers) mean the device talks; only an empty link is silent
+    class Link:
+        waiting = 0
+
+        def pending_bytes(self) -> int:
+            return self.waiting
+
+    lidar = RPLidar(lambda: None, RealClock())  # type: ignore[arg-type, return-value]
+    link = Link()
+    lidar._link = link  # type: ignore[assignment]
+    assert lidar.bytes_waiting() == 0 and not await lidar._heard_after_all()
+    link.waiting = 1200
+    assert lidar.bytes_waiting() == 1200 and await lidar._heard_after_all()
+
+
+async def test_a_lost_link_leaves_no_bytes_waiting(lidar_line: FakeLidarLine) -> None:
+    async with make_lidar(lidar_line) as lidar:
+        await take(lidar.scans(), 1)
+        lidar._undecoded = 100  # a batch in hand when the link went away
+        await lidar._drop_link(stop=False)
+        assert lidar.bytes_waiting() == 0

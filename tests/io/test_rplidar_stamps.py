@@ -21,11 +21,18 @@ from mazebot.sim.backend import SimLidarLine
 from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.lidar_samples import DeviceSamples, LidarParams, PoseHistory, SpinningLidar
 from mazebot.sim.maze_file import load_maze, packaged_maze_path
-from mazebot.sim.virtual_time import run_virtual
+from mazebot.sim.virtual_time import SlowCpu, run_virtual
 
 
-def _stamps_and_truth(mode: str, revolutions: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Driver stamps of ``revolutions`` scans and the emulator's times of the same samples."""
+def _stamps_and_truth(
+    mode: str, revolutions: int = 6, slow: SlowCpu | None = None, restarts: list[int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Driver stamps of ``revolutions`` scans and the emulator's times of the same samples.
+
+    With ``slow`` the loop behaves like a slower computer (its stalls included), and the
+    emulator streams as a device does, whatever the loop does (each read brings it up to
+    now); the driver's scan restarts go into ``restarts``.
+    """
     world = load_maze(packaged_maze_path("default_6x6.txt"))
     per_rev = 360 if mode == "standard" else 720
     head = SpinningLidar(world, LidarParams(samples_per_rev=per_rev, range_noise=0.0, dropout=0.0),
@@ -44,7 +51,8 @@ def _stamps_and_truth(mode: str, revolutions: int = 6) -> tuple[np.ndarray, np.n
     clock = RealClock()
 
     async def run() -> np.ndarray:
-        line = SimLidarLine(RPLidarEmulator(head, poses, clock))
+        emulator = RPLidarEmulator(head, poses, clock)
+        line = SimLidarLine(emulator, emulator.pump if slow is not None else None)
         stamps = []
         try:
             async with RPLidar(line.connect, clock, scan_mode=mode, spin_up_s=0.1) as lidar:
@@ -54,11 +62,13 @@ def _stamps_and_truth(mode: str, revolutions: int = 6) -> tuple[np.ndarray, np.n
                         stamps.append(scan.time_s)
                         if len(stamps) == revolutions:
                             break
+                if restarts is not None:
+                    restarts.append(lidar.stats.scan_restarts)
         finally:
             await line.close()
         return np.concatenate(stamps)
 
-    stamps = run_virtual(asyncio.wait_for(run(), 60.0))
+    stamps = run_virtual(asyncio.wait_for(run(), 60.0), slow=slow)
     true_s = np.concatenate([s.time_s for s in emitted])
     starts = np.flatnonzero(np.concatenate([s.start for s in emitted]))
     # the driver drops the partial revolution before the first start flag, then every
@@ -79,3 +89,20 @@ def test_samples_are_stamped_from_byte_arrival_not_decode_time(mode: str, median
     assert np.median(err_s) < median_s
     assert np.max(err_s) < max_s
     assert np.all(np.diff(stamps) > 0)
+
+
+def test_a_loop_stall_longer_than_the_no_data_timeout_is_no_stalled_scan_and_keeps_the_stamps() -> None:
+    # stalls of 1.2 s (the driver's no-data timeout is 1 s) with the device streaming on:
+    # the backlog waits in the link and the scan is not restarted for it (a restart throws
+    # the backlog away and costs a revolution); its samples stay stamped in order, spaced
+    # back from the last byte at the nominal sample period (the emulator's is 1 % longer,
+    # which over 1.2 s of backlog comes to ~45 ms at the oldest sample)
+    slow = SlowCpu(callback_cost_s=0.002, stall_every_s=2.0, stalls_s=(1.2, 0.3))
+    restarts: list[int] = []
+    stamps, true_s = _stamps_and_truth("standard", revolutions=30, slow=slow, restarts=restarts)
+    assert restarts == [0]
+    assert len(stamps) == len(true_s)
+    err_s = np.abs(stamps - true_s)
+    assert np.median(err_s) < 5e-3
+    assert np.max(err_s) < 60e-3
+

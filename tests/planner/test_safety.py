@@ -79,17 +79,35 @@ def test_stale_commands_become_stops() -> None:
 
 
 def test_safety_layer_says_why_it_stopped() -> None:
-    layer = SafetyLayer(command_ttl_s=0.5, scan_timeout_s=1.0)
+    layer = SafetyLayer(command_ttl_ticks=3, scan_timeout_ticks=4)
     clear = np.array([[2.0, 0.0]])
-    assert not layer.check(0.0, 0.2, 0.0, 0.0, clear, 0.0).stop
+    assert not layer.check(0.00, 0.2, 0.0, 0.0, clear, 0.0).stop
     assert "stale command" in layer.check(0.05, 0.2, 0.0, None, clear, 0.0).reason
-    assert "stale command" in layer.check(0.10, 0.2, 0.0, -0.45, clear, 0.1).reason
-    assert "lidar silent" in layer.check(0.15, 0.2, 0.0, 0.15, clear, -0.9).reason
-    assert not layer.check(0.20, 0.0, 1.0, 0.2, clear, -0.9).stop  # turning in place needs no scan
+    assert not layer.check(0.10, 0.2, 0.0, 0.1, clear, 0.0).stop  # a new command; the scan 2 ticks old
+    assert not layer.check(0.15, 0.2, 0.0, 0.1, clear, 0.0).stop
+    assert "lidar silent" in layer.check(0.20, 0.2, 0.0, 0.1, clear, 0.0).reason  # 4 ticks on one revolution
+    assert not layer.check(0.20, 0.0, 1.0, 0.2, clear, 0.0).stop  # turning in place needs no scan
     assert "emergency stop" in layer.check(0.25, 0.2, 0.0, 0.25, np.array([[0.16, 0.0]]), 0.25).reason
     assert "deadline" in layer.check(0.5, 0.2, 0.0, 0.5, clear, 0.5).reason
-    assert not layer.check(0.55, 0.2, 0.0, 0.55, clear, 0.55).stop
-    assert layer.stops == 5 and not layer.last.stop
+    assert not layer.check(0.55, 0.2, 0.0, 0.5, clear, 0.55).stop
+    assert not layer.check(0.60, 0.2, 0.0, 0.5, clear, 0.60).stop
+    assert "stale command" in layer.check(0.65, 0.2, 0.0, 0.5, clear, 0.65).reason  # 3 ticks on one command
+    assert layer.stops == 5 and layer.last.stop
+
+
+def test_a_blocked_loop_ages_neither_the_command_nor_the_scan_but_misses_its_deadline() -> None:
+    # the loop could not run for 0.4 s: the tick after it stops the wheels (the deadline:
+    # they ran unsupervised), and the command and revolution waiting then are not stale
+    layer = SafetyLayer(command_ttl_ticks=10, scan_timeout_ticks=20)
+    clear = np.array([[2.0, 0.0]])
+    assert not layer.check(1.00, 0.2, 0.0, 0.95, clear, 0.9).stop
+    assert "deadline" in layer.check(1.40, 0.2, 0.0, 1.0, clear, 0.9).reason
+    assert not layer.check(1.45, 0.2, 0.0, 1.0, clear, 1.3).stop  # 0.45 s old, one tick old
+    # a planner that stopped while the loop runs is caught after 10 ticks, idle ones included
+    layer.idle(1.50, 1.0, 1.3)
+    for k in range(7):  # ticks 3 to 9 on the command first seen at 1.40 s
+        assert not layer.check(1.55 + 0.05 * k, 0.2, 0.0, 1.0, clear, 1.3 + 0.05 * k).stop, k
+    assert "stale command" in layer.check(1.90, 0.2, 0.0, 1.0, clear, 1.7).reason
 
 
 def test_the_safety_layer_stops_a_runaway_planner_before_the_wall() -> None:

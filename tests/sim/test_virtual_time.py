@@ -44,3 +44,33 @@ def test_executor_work_completes() -> None:
         return await asyncio.get_running_loop().run_in_executor(None, sum, range(10))
 
     assert run_virtual(job()) == 45
+
+
+def test_a_slow_cpu_makes_steps_of_daemon_tasks_cost_time_and_stalls_the_loop() -> None:
+    from mazebot.sim.virtual_time import SlowCpu, VirtualTimeLoop
+
+    slow = SlowCpu(callback_cost_s=0.01, stall_every_s=1.0, stalls_s=(0.2, 0.3))
+    steps: dict[str, list[float]] = {"simulator": [], "planner": []}
+
+    async def spin(name: str) -> None:
+        loop = asyncio.get_running_loop()
+        for _ in range(5):
+            steps[name].append(loop.time())
+            await asyncio.sleep(0)
+
+    async def both() -> None:
+        await asyncio.gather(asyncio.create_task(spin("simulator"), name="simulator"),
+                             asyncio.create_task(spin("planner"), name="planner"))
+        await asyncio.sleep(2.5)
+
+    loop = VirtualTimeLoop(slow=slow)
+    try:
+        loop.run_until_complete(both())
+    finally:
+        loop.close()
+    # each step of the planner costs 10 ms of the clock; the simulator's own cost nothing
+    assert loop.costly_callbacks >= 5
+    gaps = [b - a for a, b in zip(steps["planner"], steps["planner"][1:], strict=False)]
+    assert all(gap >= 0.01 for gap in gaps), gaps
+    # stalls at 1 s and 2.2 s (0.2 then 0.3 s of nothing running): the clock jumped
+    assert loop.stalled_s == pytest.approx(0.5)

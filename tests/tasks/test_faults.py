@@ -163,9 +163,10 @@ def test_lidar_silence_is_a_fault_that_clears_with_the_next_revolution() -> None
     monitor.check(state, 1.9)  # no scan yet, but within the start-up grace
     assert state.run_state is RunState.EXPLORING
     state.latest_scan = _scan_ending(2.0)
-    monitor.check(state, 2.3)
-    assert not state.faults
-    monitor.check(state, 2.5)  # 0.5 s after the last revolution ended
+    for k in range(4):  # the checks every 0.1 s, as the task makes them
+        monitor.check(state, 2.0 + 0.1 * (k + 1))
+        assert not state.faults, k
+    monitor.check(state, 2.5)  # checks of 0.5 s after the last revolution ended
     assert state.run_state is RunState.FAULT
     assert "no lidar data for 0.5 s" in state.faults[0].message and "USB" in state.faults[0].message
     state.latest_scan = _scan_ending(2.9)
@@ -445,3 +446,69 @@ def test_a_fault_raised_and_cleared_between_two_control_ticks_still_stops_the_wh
     assert control.tick(state, 100.05) == (0.0, 0.0)
     state.throttle_command = (0.3, 0.3, 100.1)
     assert control.tick(state, 100.1) == (0.3, 0.3)
+
+
+class _LidarBytes:
+    """The driver as the health monitor sees it: bytes read so far, bytes waiting."""
+
+    def __init__(self) -> None:
+        self.stats = type("Stats", (), {"bytes_received": 0})()
+        self.waiting = 0
+
+    def bytes_waiting(self) -> int:
+        return self.waiting
+
+
+def test_a_loop_stall_is_no_lidar_silence_and_the_reader_gets_its_turn_first() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    lidar = _LidarBytes()
+    monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=0.0, lidar=lidar)
+    state.latest_scan = _scan_ending(10.0)
+    monitor.check(state, 10.0)
+    monitor.check(state, 10.1)
+    # the loop is blocked for 0.35 s: the revolutions of that time wait in the link, unread
+    lidar.waiting = 900
+    monitor.check(state, 10.45)  # 0.45 s after the last revolution, by the wall clock
+    assert not state.faults
+    monitor.check(state, 10.5)  # the reader has not been able to decode yet: bytes still wait
+    assert not state.faults
+    lidar.waiting, lidar.stats.bytes_received = 0, 900
+    state.latest_scan = _scan_ending(10.48)
+    monitor.check(state, 10.6)
+    assert not state.faults and state.run_state is RunState.EXPLORING
+
+
+def test_a_silent_lidar_is_a_fault_on_a_slow_loop_and_after_a_stall() -> None:
+    for late_s in (0.0, 0.03):  # checks on time, or each one 30 ms late (a busy core)
+        state = SharedState(run_state=RunState.EXPLORING)
+        monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=0.0, lidar=_LidarBytes())
+        state.latest_scan = _scan_ending(0.0)
+        now_s, faulted_s = 0.0, None
+        while faulted_s is None and now_s < 2.0:
+            now_s += 0.1 + late_s
+            monitor.check(state, now_s)
+            faulted_s = now_s if state.faults else None
+        assert faulted_s is not None and faulted_s <= 0.7, (late_s, faulted_s)
+    # a stall, then nothing: the first check after it judges nothing, the next one does
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=0.0, lidar=_LidarBytes())
+    state.latest_scan = _scan_ending(0.0)
+    for now_s in (0.1, 0.2, 0.3, 0.8):
+        monitor.check(state, now_s)
+    assert not state.faults
+    monitor.check(state, 0.9)
+    assert state.run_state is RunState.FAULT and "no lidar data" in state.faults[0].message
+
+
+def test_lidar_bytes_that_never_make_a_revolution_are_a_fault_too() -> None:
+    state = SharedState(run_state=RunState.EXPLORING)
+    lidar = _LidarBytes()
+    monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=0.0, lidar=lidar)
+    state.latest_scan = _scan_ending(0.0)
+    for k in range(1, 30):
+        lidar.stats.bytes_received += 100  # garbage flows in all the time
+        monitor.check(state, 0.1 * k)
+        if state.faults:
+            break
+    assert state.faults and "make no revolution" in state.faults[0].message
+    assert 1.2 <= 0.1 * k <= 1.4

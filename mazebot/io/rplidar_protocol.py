@@ -599,20 +599,18 @@ class StandardScanDecoder:
         n = len(buf)
         parts: list[DecodedSamples] = []
         pos = 0
-        fields: _Fields | None = None  # per-offset form and angle, made on the first resync
         self._descriptors_at = _find_all(buf, self._descriptor)
+        fields = _Fields(arr, self._descriptors_at)  # per-offset form, angle and successor
         while True:
             if self._synced:
-                taken, waiting = self._take_locked(arr, pos, final)
+                taken, end, waiting = self._take_locked(arr, fields, pos, final)
                 parts.append(taken)
-                pos += STANDARD_SAMPLE_LEN * len(taken)
                 if len(taken):
+                    pos = end
                     self._adjacent_at = pos
                 if waiting or n - pos < STANDARD_SAMPLE_LEN:
                     break
                 self._synced = False  # the sample at pos is not believed: resync here
-            if fields is None:
-                fields = _Fields(arr, self._descriptors_at)
             pos, verdict = self._hunt(buf, fields, pos, final)
             if verdict is None or verdict == self._WAIT:
                 break
@@ -628,53 +626,59 @@ class StandardScanDecoder:
         self.samples_decoded += len(out)
         return out
 
-    def _take_locked(self, arr: np.ndarray, pos: int, final: bool) -> tuple[DecodedSamples, bool]:
+    def _take_locked(
+        self, arr: np.ndarray, fields: _Fields, pos: int, final: bool
+    ) -> tuple[DecodedSamples, int, bool]:
         """Accept the run of believed samples at sample boundaries from ``pos``.
+
+        The boundaries are where the device's own reader (the SDK's ``_waitNode``)
+        would look for the next sample: right after the previous one, past any bytes
+        that cannot start a sample (S == !S). Such bytes may have been inserted by the
+        line, but they cannot hide a sample, so skipping them keeps the lock and the
+        sample before them is confirmed by the one after them.
 
         Vectorized: in one block while the stream runs clean (each numpy call has a
         fixed cost), in growing blocks after a break, so that a short run in a long
-        buffer costs little. Returns the samples and whether the run stopped only for
-        want of the sample that would confirm the last one.
+        buffer costs little. Returns the samples, the offset just after the last one
+        taken, and whether the run stopped only for want of the sample that would
+        confirm the last one.
         """
-        total = (len(arr) - pos) // STANDARD_SAMPLE_LEN
+        offsets, total = fields.boundaries(pos)
         parts: list[DecodedSamples] = []
         done = 0
+        end = pos
         block = total if self._clean else 32
         while done < total:
             size = min(block, total - done)
-            look = min(size + 1, total - done)  # one more, to confirm the block's last
-            begin = pos + done * STANDARD_SAMPLE_LEN
-            end = begin + look * STANDARD_SAMPLE_LEN
-            rows = arr[begin:end].reshape(look, STANDARD_SAMPLE_LEN)
-            cuts = [d - begin for d in self._descriptors_at if begin < d < end]
-            taken, stopped, waiting = self._take_rows(rows, size, cuts, done + look == total and not final)
+            look = min(size + 1, offsets.size - done)  # one more, to confirm the block's last
+            at = offsets[done : done + look]
+            rows = arr[at[:, None] + np.arange(STANDARD_SAMPLE_LEN)]
+            ok = fields.ok[at]
+            taken, stopped, waiting = self._take_rows(rows, ok, size, done + look == offsets.size and not final)
             parts.append(taken)
+            if len(taken):
+                end = int(at[len(taken) - 1]) + STANDARD_SAMPLE_LEN
             done += len(taken)
             if stopped:
                 self._clean = waiting
-                return DecodedSamples.concat(parts), waiting
+                return DecodedSamples.concat(parts), end, waiting
             block = min(block * 4, 4096)
-        self._clean = True
-        return DecodedSamples.concat(parts), False
+        self._clean = total == offsets.size
+        return DecodedSamples.concat(parts), end, False
 
     def _take_rows(
-        self, rows: np.ndarray, size: int, cuts: list[int], may_wait: bool
+        self, rows: np.ndarray, ok: np.ndarray, size: int, may_wait: bool
     ) -> tuple[DecodedSamples, bool, bool]:
         """Accept the leading believed samples among the first ``size`` of ``rows``.
 
-        ``cuts``: offsets in ``rows`` where a descriptor starts (the sample it falls in
-        is cut short). Returns (samples, stopped before ``size``, stopped only to await
-        the sample that would confirm the last row; only when ``may_wait``).
+        ``ok``: which rows are well-formed (a sample a descriptor cuts short is not).
+        Returns (samples, stopped before ``size``, stopped only to await the sample that
+        would confirm the last row; only when ``may_wait``).
         """
         k = rows.shape[0]
-        b0 = rows[:, 0].astype(np.int32)
-        b1 = rows[:, 1].astype(np.int32)
-        angle_q6 = (b1 >> 1) | (rows[:, 2].astype(np.int32) << 7)
-        ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
-        for d in cuts:
-            ok[d // STANDARD_SAMPLE_LEN] = False
+        angle_q6 = (rows[:, 1].astype(np.int32) >> 1) | (rows[:, 2].astype(np.int32) << 7)
         angle = angle_q6 / 64.0
-        fast = None if cuts or self._approved or not self.FAST_PATH else self._steady_run(angle, ok, size)
+        fast = None if self._approved or not self.FAST_PATH else self._steady_run(angle, ok, size)
         if fast is not None:
             r = fast
             waiting = may_wait and r == k - 1
@@ -785,16 +789,29 @@ class StandardScanDecoder:
                 if confirmed is None:  # its confirmation has not arrived yet
                     return self._ACCEPT_CONTINUE if final else self._WAIT
                 if confirmed:
+                    if self._outdone_by_overlap(fields, q, n, off, rhythm):
+                        return self._REJECT
                     return self._ACCEPT_CONTINUE
                 if off <= exact:  # a lone sample between stretches of noise?
                     return self._lone_sample(fields, q, n, final, off, rhythm)
         chain, cut = self._chain(fields, q, n, self.LONG_RUN)
         if cut and not final:
             return self._WAIT
-        if chain.size >= self.REGULAR_RUN and self._fresh_run(chain[: self.REGULAR_RUN], rhythm):
+        fresh = chain.size >= self.REGULAR_RUN and self._fresh_run(chain[: self.REGULAR_RUN], rhythm)
+        # a long run, regular enough: the rhythm changed
+        fresh = fresh or (
+            chain.size >= self.LONG_RUN and self._regular(chain) and not self._continues(chain[1], rhythm)
+        )
+        if fresh:
+            if rhythm is not None:
+                resumed = self._continuation_ahead(fields, q, n, final, rhythm)
+                if resumed is None:
+                    return self._WAIT
+                if resumed:
+                    # a fresh run that merges into the old stream a little later is a
+                    # stretch of noise that the old stream's tail bytes happen to continue
+                    return self._REJECT
             return self._ACCEPT_FRESH
-        if chain.size >= self.LONG_RUN and self._regular(chain) and not self._continues(chain[1], rhythm):
-            return self._ACCEPT_FRESH  # a long run, regular enough: the rhythm changed
         if self._has_regular_window(chain[1:]):
             return self._REJECT  # regular only after its head: the head is noise
         other_lengths = []
@@ -810,11 +827,38 @@ class StandardScanDecoder:
             other_lengths.append(other.size)
         if rhythm is not None:
             return self._REJECT  # a regular stream does not turn irregular
-        reaches_end = q + STANDARD_SAMPLE_LEN * (chain.size + 1) > n
-        long_enough = chain.size >= self.LONG_RUN or (final and reaches_end)
+        long_enough = chain.size >= self.LONG_RUN or (final and cut)
         if long_enough and chain.size >= max(other_lengths):
             return self._ACCEPT_FRESH  # an irregular stream: believe the form
         return self._REJECT
+
+    def _outdone_by_overlap(self, fields: _Fields, q: int, n: int, off: float, rhythm: _Rhythm) -> bool:
+        """Does a sample overlapping ``q`` continue the rhythm better than ``q`` does?
+
+        Only asked when ``q`` is confirmed across skipped bytes: the last bytes of a
+        real sample (distance bits) often cannot start a sample, so a well-formed
+        impostor that ends inside the real sample just after it is "confirmed" by the
+        real stream too. The real sample matches the rhythm more closely (to its own
+        jitter); on a tie the first one wins.
+        """
+        if fields.next_start[q + STANDARD_SAMPLE_LEN] == q + STANDARD_SAMPLE_LEN:
+            return False  # confirmed by the very next bytes: the usual, strong case
+        for p in range(q + 1, q + STANDARD_SAMPLE_LEN):
+            if fields.ok[p] and self._offset(fields, p, rhythm) < off and self._confirmed(fields, p, n, rhythm):
+                return True
+        return False
+
+    def _continuation_ahead(self, fields: _Fields, q: int, n: int, final: bool, rhythm: _Rhythm) -> bool | None:
+        """Is there, within the lookahead after ``q``, a confirmed continuation of the
+        rhythm (what the resync would accept as resumed samples)? None: not known yet."""
+        gap = rhythm[2]
+        look = self.LOOKAHEAD_BYTES
+        if not final and q + look + 2 * STANDARD_SAMPLE_LEN > n:
+            return None
+        for p in range(q + 1, min(q + look, n - STANDARD_SAMPLE_LEN) + 1):
+            if fields.ok[p] and self._offset(fields, p, rhythm) <= gap and self._confirmed(fields, p, n, rhythm):
+                return True
+        return False
 
     def _offset(self, fields: _Fields, q: int, rhythm: _Rhythm) -> float:
         """How far the step from the last accepted sample to ``q`` is from the rhythm."""
@@ -825,7 +869,7 @@ class StandardScanDecoder:
         """Does the sample after ``q`` confirm it as the next one? None: not received."""
         assert self._last_angle is not None
         m, loose, gap, _ = rhythm
-        nxt = q + STANDARD_SAMPLE_LEN
+        nxt = int(fields.next_start[q + STANDARD_SAMPLE_LEN])
         if nxt + STANDARD_SAMPLE_LEN > n:
             return None
         step = float(_wrap_deg(fields.angle[nxt] - fields.angle[q]))
@@ -849,7 +893,7 @@ class StandardScanDecoder:
 
         def rank(c: int, c_off: float) -> tuple[int, float]:
             points = (
-                int(c == self._adjacent_at)
+                int(self._adjacent_at >= 0 and c == fields.next_start[self._adjacent_at])
                 + int(bool(self._confirmed(fields, c, n, rhythm)))
                 + int(self._confirmed_later(fields, c, n, rhythm))
             )
@@ -900,17 +944,22 @@ class StandardScanDecoder:
 
     @staticmethod
     def _chain(fields: _Fields, q: int, n: int, limit: int) -> tuple[np.ndarray, bool]:
-        """Angles of the run of well-formed samples at q, q+5, ... (at most ``limit``).
+        """Angles of the run of well-formed samples from q, each followed by the next
+        at its successor (past bytes that cannot start a sample), at most ``limit``.
 
         Also says whether the run was cut by the end of the buffer (so more bytes could
         make it longer) rather than by a malformed sample or the limit.
         """
-        last = min(n - STANDARD_SAMPLE_LEN, q + STANDARD_SAMPLE_LEN * (limit - 1))
-        idx = np.arange(q, last + 1, STANDARD_SAMPLE_LEN)
-        bad = np.flatnonzero(~fields.ok[idx])
-        length = int(bad[0]) if bad.size else idx.size
-        cut_by_end = (not bad.size) and idx.size < limit
-        return fields.angle[idx[:length]], cut_by_end
+        idx = []
+        p = q
+        while len(idx) < limit:
+            if p + STANDARD_SAMPLE_LEN > n:
+                return fields.angle[idx], True
+            if not fields.ok[p]:
+                break
+            idx.append(p)
+            p = int(fields.next_start[p + STANDARD_SAMPLE_LEN])
+        return fields.angle[idx], False
 
 
 def _find_all(buf: bytes, pattern: bytes) -> list[int]:
@@ -939,10 +988,16 @@ def _row_median(rows: np.ndarray, count: np.ndarray) -> np.ndarray:
 
 
 class _Fields:
-    """For every byte offset of a buffer: is a well-formed sample there, and its angle.
+    """For every byte offset of a buffer: is a well-formed sample there, its angle, and
+    where the next sample could start.
 
     A sample that a descriptor (at the offsets ``descriptors``) cuts short is not
     well-formed, however good its first bytes look.
+
+    ``next_start[i]`` is the first offset at or after ``i`` whose byte could start a
+    sample (S != !S), ``n`` and beyond where none does: the successor of a sample at
+    ``q`` is at ``next_start[q + 5]``, as the SDK's byte-by-byte reader (``_waitNode``
+    in sl_lidar_driver.cpp) skips every byte whose two sync bits agree.
 
     ``candidates`` are the offsets where a resync could stop: well-formed samples and
     0xA5 bytes (a descriptor may start there).
@@ -950,18 +1005,62 @@ class _Fields:
 
     def __init__(self, arr: np.ndarray, descriptors: list[int]) -> None:
         n = arr.shape[0]
-        self.ok = np.zeros(n + STANDARD_SAMPLE_LEN, dtype=bool)
-        self.angle = np.zeros(n + STANDARD_SAMPLE_LEN)
+        self.n = n
+        pad = n + 2 * STANDARD_SAMPLE_LEN
+        self.ok = np.zeros(pad, dtype=bool)
+        self.angle = np.zeros(pad)
+        b = arr.astype(np.int32)
+        can = (b & 1) != ((b >> 1) & 1)
+        self.can_start = np.zeros(pad, dtype=bool)
+        self.can_start[:n] = can
+        idx = np.full(pad, n, dtype=np.int64)
+        idx[:n] = np.where(can, np.arange(n), n)
+        self.next_start = np.minimum.accumulate(idx[::-1])[::-1]
+        self.next_start[n:] = np.arange(n, pad)
         if n >= STANDARD_SAMPLE_LEN:
-            b0 = arr[: n - 4].astype(np.int32)
-            b1 = arr[1 : n - 3].astype(np.int32)
-            angle_q6 = (b1 >> 1) | (arr[2 : n - 2].astype(np.int32) << 7)
-            ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
+            b1 = b[1 : n - 3]
+            angle_q6 = (b1 >> 1) | (b[2 : n - 2] << 7)
+            ok = can[: n - 4] & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
             self.ok[: n - 4] = ok
             self.angle[: n - 4] = angle_q6 / 64.0
             for d in descriptors:  # a sample cut short by a descriptor is no sample
                 self.ok[max(0, d - STANDARD_SAMPLE_LEN + 1) : d] = False
         self.candidates = np.flatnonzero(self.ok[:n] | (arr == SYNC_BYTE))
+
+    def boundaries(self, pos: int) -> tuple[np.ndarray, int]:
+        """Offsets of the samples a locked reader meets from ``pos``, and how many of
+        them it may accept.
+
+        The acceptable ones follow each other 5 bytes apart, all well-formed. After them
+        comes the sample that judges the last one (its confirmation): the malformed one
+        that ends the run, or, where the run ends at bytes that cannot start a sample,
+        the sample after those bytes. The reader stops there either way: after skipped
+        bytes it is the resynchronisation that decides, more strictly, whether samples
+        resume (see ``StandardScanDecoder._judge``).
+        """
+        n = self.n
+        parts = []
+        p = pos
+        chunk = 64
+        while p + STANDARD_SAMPLE_LEN <= n:
+            k = min((n - p) // STANDARD_SAMPLE_LEN, chunk)
+            at = p + STANDARD_SAMPLE_LEN * np.arange(k)
+            stop = np.flatnonzero(~self.ok[at])
+            if stop.size:
+                first = int(at[stop[0]])
+                parts.append(at[: int(stop[0])])
+                accept = sum(x.size for x in parts)
+                judge = first if self.can_start[first] else int(self.next_start[first])
+                if accept and judge + STANDARD_SAMPLE_LEN <= n:
+                    parts.append(np.array([judge]))
+                return np.concatenate(parts), accept
+            parts.append(at)
+            p += STANDARD_SAMPLE_LEN * k
+            chunk = min(chunk * 4, 1 << 16)
+        if not parts:
+            return np.empty(0, dtype=np.int64), 0
+        out = np.concatenate(parts)
+        return out, out.size
 
 
 # --- express scan: 84-byte capsules (legacy format) ----------------------------------
@@ -972,7 +1071,8 @@ _CABINS = 16
 _SYNC_NIBBLE_1 = 0xA
 _SYNC_NIBBLE_2 = 0x5
 _START_FLAG = 0x8000
-_MAX_COMPENSATION_Q3 = 31
+#: The compensation field is 6 bits, unsigned: 0..63 eighths of a degree (0..7.875°).
+_MAX_COMPENSATION_Q3 = 63
 _MAX_EXPRESS_DIST_MM = (1 << 14) - 1
 
 
@@ -990,9 +1090,10 @@ def encode_express_capsule(
     an emulator that takes its 32 samples evenly between two capsule start angles needs
     no compensation (the default). ``start`` marks the first capsule after EXPRESS_SCAN.
 
-    The compensation is limited to 0..3.875° (q3 values 0..31): in that range the
-    Slamtec SDK (which reads the 6-bit field unsigned), the datasheet's signed reading
-    and the ``rplidar`` Python package (sign and magnitude) all decode the same angle.
+    The compensation covers the field's whole range, 0..7.875° (q3 values 0..63),
+    read unsigned and subtracted as Slamtec's SDK does. (The datasheet's signed
+    reading and the ``rplidar`` Python package's sign-and-magnitude reading agree with
+    the SDK only below 4°; a real A1 sends 5-6.5° for walls 0.5-1 m away.)
     Distances are whole millimetres, 0..16383.
     """
     dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
@@ -1007,7 +1108,7 @@ def encode_express_capsule(
         if comp.shape != (CAPSULE_SAMPLES,):
             raise ValueError(f"an express capsule holds {CAPSULE_SAMPLES} compensations, got {comp.shape}")
         if np.any((comp < 0) | (comp > _MAX_COMPENSATION_Q3)):
-            raise ValueError("express angle compensation must be in 0..3.875 degrees")
+            raise ValueError("express angle compensation must be in 0..7.875 degrees")
     start_q6 = round(start_angle_deg * 64) % _FULL_TURN_Q6
     word = np.empty(CAPSULE_SAMPLES, dtype=np.int64)
     word[:] = (dist << 2) | ((comp >> 4) & 0x3)
@@ -1028,8 +1129,8 @@ def express_compensation_deg(
 ) -> np.ndarray:
     """The compensation that makes a capsule decode to ``angles_deg`` (32 values).
 
-    Raises ValueError when an angle is not within 0..3.875° before its interpolated
-    position (the range every decoder agrees on, see ``encode_express_capsule``).
+    Raises ValueError when an angle is not within 0..7.875° before its interpolated
+    position (what the 6-bit field can carry, see ``encode_express_capsule``).
     """
     angles = np.asarray(angles_deg, dtype=np.float64)
     if angles.shape != (CAPSULE_SAMPLES,):
@@ -1040,8 +1141,20 @@ def express_compensation_deg(
     interp = s + np.arange(CAPSULE_SAMPLES) * diff / CAPSULE_SAMPLES
     comp = np.asarray(_wrap_deg(interp - angles))
     if np.any(comp < -1e-9) or np.any(comp > _MAX_COMPENSATION_Q3 / 8 + 1e-9):
-        raise ValueError("express sample angles must lie 0..3.875 degrees before their interpolated angle")
+        raise ValueError("express sample angles must lie 0..7.875 degrees before their interpolated angle")
     return np.clip(comp, 0.0, _MAX_COMPENSATION_Q3 / 8)
+
+
+def _sdk_sync_bits(raw_q16: np.ndarray, inc_q16: np.ndarray) -> np.ndarray:
+    """The SDK's revolution flag of each capsule sample (m x n raw angles -> flat bools).
+
+    As in ``_onScanNodeCapsuleData`` (handler_capsules.cpp): a sample is flagged when
+    the raw angle of the sample after it, ``raw + inc``, has wrapped past 360°, i.e.
+    ``(raw + inc) mod 360° < inc``. The flagged sample is the last one before 0° of
+    the uncompensated sweep, and the SDK starts its new revolution with it.
+    """
+    nxt = (raw_q16 + inc_q16[:, None]) % (360 << 16)
+    return (nxt < inc_q16[:, None]).reshape(-1)
 
 
 def _capsules_valid(rows: np.ndarray) -> np.ndarray:
@@ -1060,7 +1173,8 @@ def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray
 
     Follows the SDK's fixed-point arithmetic (q8 start angles, q16 interpolation, q6
     result) so this decoder and the SDK agree to the last bit on the angle.
-    Returns angle_q6, dist_q2, raw interpolated angle q16 (m x 32 each).
+    Returns angle_q6, dist_q2, raw interpolated angle q16 (m x 32 each; not wrapped)
+    and the q16 increment per sample (m).
     """
     prev_q8 = (_start_word(prev) & 0x7FFF) << 2
     cur_q8 = (_start_word(cur) & 0x7FFF) << 2
@@ -1076,10 +1190,14 @@ def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray
     low = np.empty_like(word)
     low[:, 0::2] = cab[:, :, 4] & 0xF
     low[:, 1::2] = cab[:, :, 4] >> 4
+    # The 6-bit compensation is unsigned and subtracted, as in the SDK (Slamtec
+    # rplidar_sdk, sdk/src/dataunpacker/unpacker/handler_capsules.cpp,
+    # UnpackerHandler_CapsuleNode::_onScanNodeCapsuleData; sl_lidar_driver.cpp
+    # _capsuleToNormal in SDK 2.0): a real A1 reports 40-52 (5-6.5°) for walls at
+    # 0.5-1 m, which a signed reading would turn into -3..-1.5°.
     comp_q3 = low | ((word & 0x3) << 4)
-    comp_q3 = np.where(comp_q3 >= 32, comp_q3 - 64, comp_q3)  # signed 6-bit (datasheet)
     angle_q6 = ((raw_q16 - (comp_q3 << 13)) >> 10) % _FULL_TURN_Q6
-    return angle_q6, word & 0xFFFC, raw_q16 % (360 << 16)
+    return angle_q6, word & 0xFFFC, raw_q16, inc_q16
 
 
 class ExpressScanDecoder:
@@ -1091,8 +1209,8 @@ class ExpressScanDecoder:
     between its start angle and the next capsule's, so they come out only when the
     next valid capsule arrives; a capsule followed by dropped bytes, by a capsule with
     the start flag (a new scan), or by the end of the stream is discarded
-    (``capsules_discarded``). Capsules carry no revolution flag: ``start`` is set on
-    the first sample whose interpolated angle wrapped past 360°.
+    (``capsules_discarded``). Capsules carry no revolution flag: ``start`` is set as
+    the SDK sets it, on the last sample before the uncompensated sweep passes 360°.
 
     Example::
 
@@ -1104,7 +1222,6 @@ class ExpressScanDecoder:
         self._tail = b""
         self._synced = False
         self._pending: np.ndarray | None = None  # last valid capsule, waiting for the next
-        self._last_raw_q16: int | None = None  # uncompensated angle of the last sample
         self.bytes_dropped = 0
         self.samples_decoded = 0
         self.capsules_decoded = 0
@@ -1122,7 +1239,6 @@ class ExpressScanDecoder:
         if self._pending is not None:
             self.capsules_discarded += 1
         self._pending = None
-        self._last_raw_q16 = None
 
     def feed(self, data: bytes) -> DecodedSamples:
         return self._decode(self._tail + bytes(data), final=False)
@@ -1218,22 +1334,9 @@ class ExpressScanDecoder:
         self.capsules_discarded += int(np.count_nonzero(opens_scan[1:]))
         self._pending = rows[-1].copy()
         if idx.size == 0:
-            if opens_scan[-1]:
-                self._last_raw_q16 = None
             return DecodedSamples.empty()
-        angle_q6, dist_q2, raw = _decode_capsule_pairs(rows[idx], rows[idx + 1])
-        # the revolution flag compares each sample with the one before it; a skipped
-        # capsule (new scan) or a fresh start leaves nothing to compare with
-        fresh = np.zeros(idx.size, dtype=bool)
-        fresh[1:] = idx[1:] != idx[:-1] + 1
-        fresh[0] = self._last_raw_q16 is None or idx[0] > 0
-        raw_flat = raw.reshape(-1)
-        prev = np.empty_like(raw_flat)
-        prev[1:] = raw_flat[:-1]
-        prev[0] = raw_flat[0] if self._last_raw_q16 is None else self._last_raw_q16
-        start = raw_flat < prev
-        start[np.flatnonzero(fresh) * CAPSULE_SAMPLES] = False
-        self._last_raw_q16 = None if opens_scan[-1] else int(raw_flat[-1])
+        angle_q6, dist_q2, raw, inc = _decode_capsule_pairs(rows[idx], rows[idx + 1])
+        start = _sdk_sync_bits(raw, inc)
         self.capsules_decoded += idx.size
         dist = dist_q2.reshape(-1) / 4.0
         return DecodedSamples(angle_q6.reshape(-1) / 64.0, dist, (dist > 0).astype(np.uint8), start)

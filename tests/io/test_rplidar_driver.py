@@ -232,10 +232,12 @@ async def test_express_mode_scans(lidar_line: FakeLidarLine) -> None:
         scans = await take(lidar.scans(), 3)
     assert proto.CMD_EXPRESS_SCAN in lidar_line.device.requests
     for scan in scans:
-        # 720 samples a turn (0.5° apart); a revolution runs from 0° to just under 360°
+        # 720 samples a turn (0.5° apart). As in Slamtec's SDK, a capsule revolution
+        # starts with the last sample before the sweep passes 0° (here 359.5°).
         assert len(scan) == 2 * SAMPLES_PER_REV
         device_deg = np.rad2deg(-scan.angle_rad) % 360
-        np.testing.assert_allclose(np.diff(device_deg), 0.5, atol=1 / 64)
+        assert device_deg[0] == pytest.approx(359.5, abs=1 / 64)
+        np.testing.assert_allclose((np.diff(device_deg) + 180) % 360 - 180, 0.5, atol=1 / 64)
         assert np.all(scan.valid)
         np.testing.assert_array_equal(scan.range_m, 2.0)
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import enum
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -1164,8 +1165,17 @@ def _capsules_valid(rows: np.ndarray) -> np.ndarray:
     return (rows[:, 0] >> 4 == _SYNC_NIBBLE_1) & (rows[:, 1] >> 4 == _SYNC_NIBBLE_2) & (cs == recv)
 
 
-def _start_word(rows: np.ndarray) -> np.ndarray:
-    return rows[:, 2].astype(np.int64) | (rows[:, 3].astype(np.int64) << 8)
+def _start_word(rows: np.ndarray, at: int = 2) -> np.ndarray:
+    return rows[:, at].astype(np.int64) | (rows[:, at + 1].astype(np.int64) << 8)
+
+
+def _legacy_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """Legacy express capsules (answer type 0x82) ``prev`` interpolated up to ``cur``:
+    angle_q6, dist_q2, quality (1 where a distance, as the SDK's 0x2F), SDK sync bits."""
+    del carry  # nothing carries over from capsule to capsule
+    angle_q6, dist_q2, raw, inc = _decode_capsule_pairs(prev, cur)
+    dist = dist_q2.reshape(-1)
+    return angle_q6.reshape(-1), dist, (dist > 0).astype(np.uint8), _sdk_sync_bits(raw, inc)
 
 
 def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -1218,21 +1228,25 @@ class ExpressScanDecoder:
         samples = dec.feed(port_bytes)
     """
 
-    def __init__(self) -> None:
+    def __init__(self, capsule_format: CapsuleFormat | None = None) -> None:
+        self.format = capsule_format or LEGACY_CAPSULE
+        self._length = self.format.length
         self._tail = b""
         self._synced = False
         self._pending: np.ndarray | None = None  # last valid capsule, waiting for the next
+        self._carry: dict[str, int] = {}  # the SDK's state carried from sample to sample
         self.bytes_dropped = 0
         self.samples_decoded = 0
         self.capsules_decoded = 0
         self.capsules_discarded = 0
         self.descriptors_skipped = 0
-        self._descriptor = EXPRESS_DESCRIPTOR.encode()
+        self._descriptor = self.format.descriptor.encode()
 
     def reset(self, *, synced: bool = False) -> None:
         """Forget the stream; ``synced``: the next byte starts a capsule."""
         self._tail = b""
         self._synced = synced
+        self._carry = {}
         self._break()
 
     def _break(self) -> None:
@@ -1265,14 +1279,15 @@ class ExpressScanDecoder:
         parts: list[DecodedSamples] = []
         while True:
             if self._synced:
-                k = (n - pos) // CAPSULE_LEN
+                size = self._length
+                k = (n - pos) // size
                 if k > 0:
-                    rows = arr[pos : pos + k * CAPSULE_LEN].reshape(k, CAPSULE_LEN)
+                    rows = arr[pos : pos + k * size].reshape(k, size)
                     bad = np.flatnonzero(~_capsules_valid(rows))
                     r = int(bad[0]) if bad.size else k
                     if r:
                         parts.append(self._emit(rows[:r]))
-                        pos += r * CAPSULE_LEN
+                        pos += r * size
                     if r < k:
                         self._synced = False
                 if self._synced:
@@ -1306,12 +1321,12 @@ class ExpressScanDecoder:
                 self.descriptors_skipped += 1
                 self._break()
                 return q + DESCRIPTOR_LEN, True
-            if q + CAPSULE_LEN > n:
+            if q + self._length > n:
                 if final:
                     continue
                 self._drop(q - pos)  # maybe a capsule: wait for the rest of it
                 return q, False
-            if _capsules_valid(arr[q : q + CAPSULE_LEN][None, :])[0]:
+            if _capsules_valid(arr[q : q + self._length][None, :])[0]:
                 self._drop(q - pos)
                 return q, True
         # no candidate: keep a last byte that could begin a capsule
@@ -1328,15 +1343,443 @@ class ExpressScanDecoder:
         """Samples of every capsule that now has a successor, from contiguous ``rows``."""
         if self._pending is not None:
             rows = np.concatenate([self._pending[None, :], rows])
-        opens_scan = (_start_word(rows) & _START_FLAG) != 0
+        fmt = self.format
+        opens_scan = (_start_word(rows, fmt.start_at) & _START_FLAG) != 0
         # capsule j is decoded with j+1, unless j+1 opens a new scan (then j is lost)
         idx = np.flatnonzero(~opens_scan[1:])
         self.capsules_discarded += int(np.count_nonzero(opens_scan[1:]))
         self._pending = rows[-1].copy()
         if idx.size == 0:
             return DecodedSamples.empty()
-        angle_q6, dist_q2, raw, inc = _decode_capsule_pairs(rows[idx], rows[idx + 1])
-        start = _sdk_sync_bits(raw, inc)
+        angle_q6, dist_q2, quality, start = fmt.unpack(rows[idx], rows[idx + 1], self._carry)
         self.capsules_decoded += idx.size
-        dist = dist_q2.reshape(-1) / 4.0
-        return DecodedSamples(angle_q6.reshape(-1) / 64.0, dist, (dist > 0).astype(np.uint8), start)
+        dist = dist_q2 / 4.0
+        return DecodedSamples(angle_q6 / 64.0, dist, quality, start)
+
+
+# --- the other capsule kinds: ultra (A2/A3/A1 boost), dense (C1/S2), ultra-dense -----
+#
+# Each follows one handler of Slamtec's SDK 2.x, sdk/src/dataunpacker/unpacker/
+# handler_capsules.cpp (vendored in Slamtec/rplidar_ros), with the layouts of
+# sdk/include/sl_lidar_cmd.h. All of them, like the legacy capsule, carry a start
+# angle and are interpolated up to the next capsule's start angle, checksummed by the
+# XOR of every byte after the two sync bytes, and flagged with bit 15 of the start
+# angle word when they open a scan.
+
+TYPE_ULTRA = 0x84
+TYPE_DENSE = 0x85
+TYPE_ULTRA_DENSE = 0x86
+TYPE_LIDAR_CONF = 0x20
+
+ULTRA_DESCRIPTOR = Descriptor(132, SendMode.MULTIPLE, TYPE_ULTRA)
+DENSE_DESCRIPTOR = Descriptor(84, SendMode.MULTIPLE, TYPE_DENSE)
+ULTRA_DENSE_DESCRIPTOR = Descriptor(170, SendMode.MULTIPLE, TYPE_ULTRA_DENSE)
+
+_Unpack = Callable[[np.ndarray, np.ndarray, dict[str, int]], tuple[np.ndarray, ...]]
+
+
+@dataclass(frozen=True)
+class CapsuleFormat:
+    """One capsule kind: its answer type, size, samples, where its start angle sits,
+    and the SDK's recipe turning a capsule and its successor into samples."""
+
+    name: str
+    descriptor: Descriptor
+    samples: int
+    start_at: int  # byte offset of the start angle word (bit 15: opens a scan)
+    unpack: _Unpack
+
+    @property
+    def length(self) -> int:
+        return self.descriptor.length
+
+    @property
+    def answer_type(self) -> int:
+        return self.descriptor.dtype
+
+
+def _interpolated(prev: np.ndarray, cur: np.ndarray, start_at: int, inc_num: int, inc_den: int, n: int) -> tuple:
+    """The SDK's raw angles (q16, not wrapped) of the n samples of each capsule ``prev``
+    and the increment per sample: the angle from ``prev``'s start to ``cur``'s, q8,
+    wrapped once, times ``inc_num`` over ``inc_den`` (C integer division)."""
+    prev_q8 = (_start_word(prev, start_at) & 0x7FFF) << 2
+    cur_q8 = (_start_word(cur, start_at) & 0x7FFF) << 2
+    diff_q8 = cur_q8 - prev_q8
+    diff_q8 = np.where(prev_q8 > cur_q8, diff_q8 + (360 << 8), diff_q8)
+    inc_q16 = (diff_q8 * inc_num) // inc_den
+    raw_q16 = (prev_q8 << 8)[:, None] + inc_q16[:, None] * np.arange(n, dtype=np.int64)[None, :]
+    return raw_q16, inc_q16
+
+
+# -- ultra capsules (answer type 0x84): 32 cabins of 3 samples, 132 bytes --------------
+
+#: The SDK's variable bit scale (sl_lidar_cmd.h SL_LIDAR_VARBITSCALE_*): a 12-bit major
+#: distance above each threshold counts 2, 4, 8, 16 mm a unit.
+_VBS_SCALED_BASE = (3328, 1792, 1280, 512, 0)
+_VBS_LEVEL = (4, 3, 2, 1, 0)
+_VBS_TARGET_BASE = (1 << 14, 1 << 12, 1 << 11, 1 << 9, 0)
+
+
+def _varbitscale_decode(scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distance mm, scale level) of 12-bit scaled majors (SDK ``_varbitscale_decode``)."""
+    dist = np.zeros_like(scaled)
+    level = np.zeros_like(scaled)
+    done = np.zeros(scaled.shape, dtype=bool)
+    for base, lvl, target in zip(_VBS_SCALED_BASE, _VBS_LEVEL, _VBS_TARGET_BASE, strict=True):
+        here = ~done & (scaled >= base)
+        dist = np.where(here, target + ((scaled - base) << lvl), dist)
+        level = np.where(here, lvl, level)
+        done |= here
+    return dist, level
+
+
+def _varbitscale_encode(dist_mm: np.ndarray) -> np.ndarray:
+    """The 12-bit scaled major that decodes closest below ``dist_mm`` (inverse of the above)."""
+    d = np.asarray(dist_mm, dtype=np.int64)
+    out = np.zeros_like(d)
+    done = np.zeros(d.shape, dtype=bool)
+    for base, lvl, target in zip(_VBS_SCALED_BASE, _VBS_LEVEL, _VBS_TARGET_BASE, strict=True):
+        here = ~done & (d >= target)
+        out = np.where(here, np.minimum(base + ((d - target) >> lvl), 0xFFF), out)
+        done |= here
+    return out
+
+
+def _sign10(x: np.ndarray) -> np.ndarray:
+    return np.where(x >= 512, x - 1024, x)
+
+
+def ultra_angle_offset_q16(dist_q2: np.ndarray) -> np.ndarray:
+    """The angle an ultra capsule sample lies behind its raw angle, degrees q16.
+
+    The SDK (``_onScanNodeUltraCapsuleData``) derives it from the range, as the
+    triangulation geometry has it: 7.5° in radians q16 below 50 mm, otherwise
+    8° - (k << 6) - k³ / 98304 with k = 98361 / dist_q2 (C integer arithmetic), then
+    converted to degrees q16 with the SDK's own constants.
+    """
+    d = np.asarray(dist_q2, dtype=np.int64)
+    k = 98361 // np.maximum(d, 1)
+    near = int(7.5 * 3.1415926535 * (1 << 16) / 180.0)
+    far = int(8 * 3.1415926535 * (1 << 16) / 180) - (k << 6) - (k * k * k) // 98304
+    rad_q16 = np.where(d >= 50 * 4, far, near)
+    return np.trunc(rad_q16 * 180 / 3.14159265).astype(np.int64)
+
+
+def _ultra_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """SDK ``UnpackerHandler_UltraCapsuleNode::_onScanNodeUltraCapsuleData``."""
+    del carry
+    m = prev.shape[0]
+    raw, inc = _interpolated(prev, cur, 2, 8, 3, 96)  # (diff << 3) / 3
+    cab = prev[:, 4:].reshape(m, 32, 4).astype(np.int64)
+    word = cab[:, :, 0] | (cab[:, :, 1] << 8) | (cab[:, :, 2] << 16) | (cab[:, :, 3] << 24)
+    major = word & 0xFFF
+    predict1 = _sign10((word >> 12) & 0x3FF)
+    predict2 = _sign10((word >> 22) & 0x3FF)
+    first_next = (cur[:, 4].astype(np.int64) | (cur[:, 5].astype(np.int64) << 8)) & 0xFFF
+    major2 = np.concatenate([major[:, 1:], first_next[:, None]], axis=1)  # "prefetch next"
+    dist1, lvl1 = _varbitscale_decode(major)
+    dist2, lvl2 = _varbitscale_decode(major2)
+    base1 = np.where((dist1 == 0) & (dist2 != 0), dist2, dist1)
+    lvl1 = np.where((dist1 == 0) & (dist2 != 0), lvl2, lvl1)
+    d = np.empty((m, 32, 3), dtype=np.int64)
+    d[:, :, 0] = dist1 << 2
+    invalid1 = (predict1 == -512) | (predict1 == 511)
+    invalid2 = (predict2 == -512) | (predict2 == 511)
+    d[:, :, 1] = np.where(invalid1, 0, ((predict1 << lvl1) + base1) << 2)
+    d[:, :, 2] = np.where(invalid2, 0, ((predict2 << lvl2) + dist2) << 2)
+    dist_q2 = d.reshape(m, 96)
+    angle_q6 = ((raw - ultra_angle_offset_q16(dist_q2)) >> 10) % _FULL_TURN_Q6
+    dist = dist_q2.reshape(-1)
+    return angle_q6.reshape(-1), dist, (dist > 0).astype(np.uint8), _sdk_sync_bits(raw, inc)
+
+
+def encode_ultra_capsule(start_angle_deg: float, dists_mm: np.ndarray | list[float], *, start: bool = False) -> bytes:
+    """One 132-byte ultra capsule of 96 samples (32 cabins of a 12-bit major and two
+    10-bit signed predictions, each relative to its own major or the next cabin's).
+
+    The decoder puts sample ``i`` at ``start + i * (next_start - start) / 96`` minus the
+    range-dependent offset of ``ultra_angle_offset_q16``. Distances are rounded to
+    what the variable bit scale can carry; a prediction out of its 10 bits, or a
+    sample without return, becomes 0 (no return).
+    """
+    dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
+    if dist.shape != (96,):
+        raise ValueError(f"an ultra capsule holds 96 distances, got {dist.shape}")
+    if np.any((dist < 0) | (dist > 28656)):
+        raise ValueError("ultra distances must be in 0..28656 mm")
+    d = dist.reshape(32, 3)
+    major = _varbitscale_encode(d[:, 0])
+    base1, lvl1 = _varbitscale_decode(major)
+    nxt = np.concatenate([major[1:], [major[0]]])  # the last cabin's is fixed up by the next capsule
+    base2, lvl2 = _varbitscale_decode(nxt)
+    b1 = np.where((base1 == 0) & (base2 != 0), base2, base1)
+    l1 = np.where((base1 == 0) & (base2 != 0), lvl2, lvl1)
+
+    def predict(target: np.ndarray, base: np.ndarray, lvl: np.ndarray) -> np.ndarray:
+        p = np.floor_divide(target - base, 1 << lvl)
+        ok = (target > 0) & (p > -512) & (p < 511)
+        return np.where(ok, p, -512) & 0x3FF
+
+    # the second prediction refers to the *next* cabin's major, which the encoder of a
+    # single capsule only knows for cabins 0..30; the last one is sent as "no return"
+    p1 = predict(d[:, 1], b1, l1)
+    p2 = predict(d[:, 2], base2, lvl2)
+    p2[-1] = (-512) & 0x3FF
+    word = major | (p1 << 12) | (p2 << 22)
+    body = struct.pack("<H", round(start_angle_deg * 64) % _FULL_TURN_Q6 | (_START_FLAG if start else 0))
+    body += word.astype("<u4").tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+# -- dense capsules (answer type 0x85): 40 distances, 84 bytes --------------------------
+
+
+def _dense_sync(raw: np.ndarray, inc: np.ndarray, carry: dict[str, int], key: str) -> np.ndarray:
+    """The dense handlers' revolution flag: ``(raw + inc) mod 360° < 2 inc``, and set only
+    where the flag published for the sample before was not (``(syncBit ^
+    lastNodeSyncBit) & syncBit``, the last flag carried across capsules)."""
+    nxt = (raw + inc[:, None]) % (360 << 16)
+    cond = (nxt < (inc[:, None] << 1)).reshape(-1)
+    out = np.zeros_like(cond)
+    for i in np.flatnonzero(cond):  # about two a revolution
+        before = bool(out[i - 1]) if i > 0 else bool(carry.get(key, 0))
+        out[i] = not before
+    if out.size:
+        carry[key] = int(out[-1])
+    return out
+
+
+def _dense_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """SDK ``UnpackerHandler_DenseCapsuleNode::_onScanNodeDenseCapsuleData``: no angle
+    compensation (a time-of-flight head), distances in whole millimetres."""
+    m = prev.shape[0]
+    raw, inc = _interpolated(prev, cur, 2, 1 << 8, 40, 40)  # (diff << 8) / 40
+    cab = prev[:, 4:84].reshape(m, 40, 2).astype(np.int64)
+    dist_q2 = ((cab[:, :, 0] | (cab[:, :, 1] << 8)) << 2).reshape(-1)
+    angle_q6 = ((raw >> 10) % _FULL_TURN_Q6).reshape(-1)
+    return angle_q6, dist_q2, (dist_q2 > 0).astype(np.uint8), _dense_sync(raw, inc, carry, "dense_sync")
+
+
+def encode_dense_capsule(start_angle_deg: float, dists_mm: np.ndarray | list[float], *, start: bool = False) -> bytes:
+    """One 84-byte dense capsule: start angle and 40 distances (u16, mm)."""
+    dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
+    if dist.shape != (40,):
+        raise ValueError(f"a dense capsule holds 40 distances, got {dist.shape}")
+    if np.any((dist < 0) | (dist > 0xFFFF)):
+        raise ValueError("dense distances must be in 0..65535 mm")
+    body = struct.pack("<H", round(start_angle_deg * 64) % _FULL_TURN_Q6 | (_START_FLAG if start else 0))
+    body += dist.astype("<u2").tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+# -- ultra-dense capsules (answer type 0x86): 32 cabins of 2 samples, 170 bytes ---------
+
+_UD_THRESHOLD_MM = (0, 2046, 8187, 24567)  # SDK DISTANCE_THRESHOLD_TO_SCALE_1..3
+
+
+def _ultra_dense_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """SDK ``UnpackerHandler_UltraDenseCapsuleNode::_onScanNodeUltraDenseCapsuleData``.
+
+    Layout (sl_lidar_cmd.h): checksum nibbles, u32 time stamp, u16 device status, u16
+    start angle, then 32 cabins of two u16 "quality low, distance, scale" words and
+    one byte holding both samples' high quality nibbles. Each sample's 2-bit scale
+    picks the distance's unit (2, 3, 4 or 5 quarter-millimetre steps above a
+    threshold); at the finest scale, a distance within 2 mm of the previous sample's
+    is averaged with it (the SDK's ``_last_dist_q2``, carried across capsules).
+    """
+    m = prev.shape[0]
+    raw, inc = _interpolated(prev, cur, 8, 1 << 8, 64, 64)  # (diff << 8) / 64
+    cab = prev[:, 10:170].reshape(m, 32, 5).astype(np.int64)
+    w = np.empty((m, 64), dtype=np.int64)
+    w[:, 0::2] = (cab[:, :, 0] | (cab[:, :, 1] << 8)) | ((cab[:, :, 4] & 0x0F) << 16)
+    w[:, 1::2] = (cab[:, :, 2] | (cab[:, :, 3] << 8)) | ((cab[:, :, 4] >> 4) << 16)
+    w = w.reshape(-1)
+    scale = w & 0x3
+    quality = np.select(
+        [scale == 0, scale == 1, scale == 2], [w >> 12, (w >> 13) << 1, (w >> 14) << 2], (w >> 15) << 3
+    ) & 0xFF
+    dist = np.select(
+        [scale == 0, scale == 1, scale == 2],
+        [(w & 0xFFC) * 2, (w & 0x1FFC) * 3 + (_UD_THRESHOLD_MM[1] << 2), (w & 0x3FFC) * 4 + (_UD_THRESHOLD_MM[2] << 2)],
+        (w & 0x7FFC) * 5 + (_UD_THRESHOLD_MM[3] << 2),
+    )
+    last = carry.get("last_dist_q2", 0)
+    out = dist.copy()
+    for i in range(out.size):  # a recurrence: each sample may average with the one before
+        d = int(out[i])
+        if scale[i] == 0 and last and abs(d - last) <= 8:
+            d = (d + last) >> 1
+            out[i] = d
+        last = d
+    carry["last_dist_q2"] = last
+    angle_q6 = ((raw >> 10) % _FULL_TURN_Q6).reshape(-1)
+    del quality  # like every capsule kind here: 1 where a return, 0 where none
+    return angle_q6, out, (out > 0).astype(np.uint8), _dense_sync(raw, inc, carry, "ultra_dense_sync")
+
+
+def encode_ultra_dense_capsule(
+    start_angle_deg: float, dists_mm: np.ndarray | list[float], *, start: bool = False, time_stamp: int = 0
+) -> bytes:
+    """One 170-byte ultra-dense capsule of 64 samples, each at the finest scale that
+    holds its distance (quality 15, i.e. a good return, where the distance is not 0)."""
+    dist = np.asarray(dists_mm, dtype=np.float64)
+    if dist.shape != (64,):
+        raise ValueError(f"an ultra-dense capsule holds 64 distances, got {dist.shape}")
+    q2 = np.rint(dist * 4).astype(np.int64)
+    words = np.zeros(64, dtype=np.int64)
+    fields = (0xFFC, 0x1FFC, 0x3FFC, 0x7FFC)
+    for i, d in enumerate(q2.tolist()):
+        if d <= 0:
+            continue
+        for sc, field in enumerate(fields):
+            unit, base = sc + 2, _UD_THRESHOLD_MM[sc] << 2
+            f = (d - base) // (4 * unit) * 4
+            if f <= field or sc == 3:
+                words[i] = min(f, field) | sc | (1 << (12 + sc))  # quality 1 << sc: a return
+                break
+    high = words >> 16
+    cabins = np.empty((32, 5), dtype=np.uint8)
+    cabins[:, 0] = words[0::2] & 0xFF
+    cabins[:, 1] = (words[0::2] >> 8) & 0xFF
+    cabins[:, 2] = words[1::2] & 0xFF
+    cabins[:, 3] = (words[1::2] >> 8) & 0xFF
+    cabins[:, 4] = (high[0::2] & 0xF) | ((high[1::2] & 0xF) << 4)
+    body = struct.pack("<IHH", time_stamp & 0xFFFFFFFF, 0,
+                       round(start_angle_deg * 64) % _FULL_TURN_Q6 | (_START_FLAG if start else 0))
+    body += cabins.tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+LEGACY_CAPSULE = CapsuleFormat("express", EXPRESS_DESCRIPTOR, CAPSULE_SAMPLES, 2, _legacy_unpack)
+ULTRA_CAPSULE = CapsuleFormat("ultra", ULTRA_DESCRIPTOR, 96, 2, _ultra_unpack)
+DENSE_CAPSULE = CapsuleFormat("dense", DENSE_DESCRIPTOR, 40, 2, _dense_unpack)
+ULTRA_DENSE_CAPSULE = CapsuleFormat("ultradense", ULTRA_DENSE_DESCRIPTOR, 64, 8, _ultra_dense_unpack)
+
+#: Capsule kinds by the answer type of their scan mode (GET_LIDAR_CONF, descriptor).
+CAPSULE_FORMATS = {f.answer_type: f for f in (LEGACY_CAPSULE, ULTRA_CAPSULE, DENSE_CAPSULE, ULTRA_DENSE_CAPSULE)}
+#: ... and by the name ``mazebot lidar decode --mode`` knows them by.
+CAPSULE_FORMATS_BY_NAME = {f.name: f for f in CAPSULE_FORMATS.values()}
+
+
+def scan_decoder(answer_type: int) -> StandardScanDecoder | ExpressScanDecoder:
+    """The decoder of a scan mode's answer type (0x81 standard, 0x82/0x84/0x85/0x86 capsules)."""
+    if answer_type == TYPE_SCAN:
+        return StandardScanDecoder()
+    if answer_type not in CAPSULE_FORMATS:
+        raise ProtocolError(f"scan answer type {answer_type:#04x} is none of 0x81, 0x82, 0x84, 0x85, 0x86")
+    return ExpressScanDecoder(CAPSULE_FORMATS[answer_type])
+
+
+# --- GET_LIDAR_CONF: the device's scan modes --------------------------------------------
+#
+# Request A5 84 size [u32le type, u16le mode id, padding] checksum (the SDK sends the
+# type and 32 reserved bytes, the mode id in the first two: sl_lidar_driver.cpp,
+# getLidarConf). Answer: descriptor of type 0x20, single, then u32le type + payload.
+
+CMD_GET_LIDAR_CONF = 0x84
+COMMAND_NAMES[CMD_GET_LIDAR_CONF] = "GET_LIDAR_CONF"
+
+CONF_SCAN_MODE_COUNT = 0x70  # u16
+CONF_SCAN_MODE_US_PER_SAMPLE = 0x71  # u32, q8 microseconds
+CONF_SCAN_MODE_MAX_DISTANCE = 0x74  # u32, q8 metres
+CONF_SCAN_MODE_ANS_TYPE = 0x75  # u8
+CONF_SCAN_MODE_TYPICAL = 0x7C  # u16
+CONF_SCAN_MODE_NAME = 0x7F  # NUL-terminated string
+
+#: The mode ids of the scan commands a device without GET_LIDAR_CONF knows (sl_lidar_cmd.h).
+SCAN_MODE_ID_STANDARD = 0
+SCAN_MODE_ID_EXPRESS = 1
+
+
+@dataclass(frozen=True)
+class ScanModeInfo:
+    """One scan mode the device offers (GET_LIDAR_CONF)."""
+
+    id: int
+    name: str
+    us_per_sample: float
+    max_distance_m: float
+    answer_type: int
+
+    @property
+    def samples_per_s(self) -> float:
+        return 1e6 / self.us_per_sample if self.us_per_sample > 0 else 0.0
+
+    def __str__(self) -> str:
+        return (f"{self.id}: {self.name}, {self.samples_per_s:.0f} samples/s ({self.us_per_sample:g} us), "
+                f"max {self.max_distance_m:g} m, answer type {self.answer_type:#04x}")
+
+
+def build_conf_request(conf_type: int, mode_id: int | None = None) -> bytes:
+    """A GET_LIDAR_CONF request as the SDK sends it: the type and 32 reserved bytes,
+    the mode id (for the per-mode types) in the first two."""
+    reserved = bytearray(32)
+    if mode_id is not None:
+        reserved[:2] = struct.pack("<H", mode_id)
+    return build_request(CMD_GET_LIDAR_CONF, struct.pack("<I", conf_type) + bytes(reserved))
+
+
+def parse_conf_request(payload: bytes) -> tuple[int, int]:
+    """(type, mode id) of a GET_LIDAR_CONF request payload (mode id 0 if absent)."""
+    if len(payload) < 4:
+        raise ProtocolError(f"GET_LIDAR_CONF request: expected at least 4 payload bytes, found {len(payload)}")
+    (conf_type,) = struct.unpack_from("<I", payload)
+    mode_id = struct.unpack_from("<H", payload, 4)[0] if len(payload) >= 6 else 0
+    return conf_type, mode_id
+
+
+def conf_descriptor(payload_len: int) -> Descriptor:
+    return Descriptor(4 + payload_len, SendMode.SINGLE, TYPE_LIDAR_CONF)
+
+
+def encode_conf_answer(conf_type: int, payload: bytes) -> bytes:
+    return struct.pack("<I", conf_type) + payload
+
+
+def parse_conf_answer(data: bytes | bytearray, conf_type: int) -> bytes:
+    """The payload of a GET_LIDAR_CONF answer, insisting it answers ``conf_type``."""
+    if len(data) < 5:
+        raise ProtocolError(f"GET_LIDAR_CONF answer: expected a type and a payload, found {len(data)} bytes")
+    (found,) = struct.unpack_from("<I", data)
+    if found != conf_type:
+        raise ProtocolError(f"GET_LIDAR_CONF answer: expected type {conf_type:#x}, found {found:#x}")
+    return bytes(data[4:])
+
+
+def encode_mode_conf(mode: ScanModeInfo, conf_type: int) -> bytes:
+    """The payload the device sends for one per-mode conf type."""
+    if conf_type == CONF_SCAN_MODE_US_PER_SAMPLE:
+        return struct.pack("<I", round(mode.us_per_sample * 256))
+    if conf_type == CONF_SCAN_MODE_MAX_DISTANCE:
+        return struct.pack("<I", round(mode.max_distance_m * 256))
+    if conf_type == CONF_SCAN_MODE_ANS_TYPE:
+        return bytes((mode.answer_type,))
+    if conf_type == CONF_SCAN_MODE_NAME:
+        return mode.name.encode("ascii") + b"\0"
+    raise ValueError(f"conf type {conf_type:#x} is not a per-mode one")
+
+
+def decode_mode_conf(conf_type: int, payload: bytes) -> float | int | str:
+    """A per-mode conf value as the SDK reads it (q8 values shifted right by 8)."""
+    if conf_type in (CONF_SCAN_MODE_US_PER_SAMPLE, CONF_SCAN_MODE_MAX_DISTANCE):
+        if len(payload) < 4:
+            raise ProtocolError(f"GET_LIDAR_CONF {conf_type:#x}: expected 4 bytes, found {len(payload)}")
+        return float(struct.unpack_from("<I", payload)[0] >> 8)
+    if conf_type == CONF_SCAN_MODE_ANS_TYPE:
+        return payload[0]
+    if conf_type in (CONF_SCAN_MODE_COUNT, CONF_SCAN_MODE_TYPICAL):
+        if len(payload) < 2:
+            raise ProtocolError(f"GET_LIDAR_CONF {conf_type:#x}: expected 2 bytes, found {len(payload)}")
+        return struct.unpack_from("<H", payload)[0]
+    if conf_type == CONF_SCAN_MODE_NAME:
+        return payload.split(b"\0", 1)[0].decode("ascii", errors="replace")
+    raise ProtocolError(f"GET_LIDAR_CONF: unknown conf type {conf_type:#x}")
+
+
+def express_scan_payload(mode_id: int) -> bytes:
+    """EXPRESS_SCAN payload (sl_lidar_payload_express_scan_t): u8 working mode (the scan
+    mode id), u16 working flags, u16 param."""
+    return struct.pack("<BHH", mode_id, 0, 0)

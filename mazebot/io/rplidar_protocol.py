@@ -397,8 +397,10 @@ class StandardScanDecoder:
     confirms it (its step fits too, and the two steps make two rhythm steps). After
     dropped bytes, decoding resumes on a sample that continues the rhythm (inserted
     bytes lose no sample) or on a fresh run of four samples keeping the rhythm (lost
-    bytes, a restarted scan). A lone sample between two stretches of noise is believed
-    when it matches the rhythm to one angle unit and nothing nearby matches better.
+    bytes, a restarted scan). "Loosely" allows the 8° more or less a step takes where a
+    triangulation head's range, and with it its angle offset, jumps. A lone sample
+    between two stretches of noise is believed when it matches the rhythm to one angle
+    unit and nothing nearby matches better.
 
     A stream without rhythm (synthetic test data, or a head whose angles jitter by more
     than a twentieth of a step) is decoded by form alone; after a resync a run is then
@@ -431,7 +433,12 @@ class StandardScanDecoder:
     MAX_SPREAD = 0.15
     MIN_SPREAD_DEG = 2.0 / 64.0
     #: A plausible step differs from the rhythm by at most max(this, half the rhythm).
-    LOOSE_TOLERANCE_DEG = 1.5
+    #: A triangulation head reports each standard sample at its raw angle minus an
+    #: offset that its range sets anywhere in 0..8° (the geometry the SDK applies to
+    #: ultra capsules), so where the range jumps the angle steps up to 8° more or less
+    #: than the rhythm: a real A1 goes from 1234 mm at 68° to 315 mm at 72°, from "no
+    #: return" at 83° to 320 mm at 79° (tests/io/data/a1_standard_ev3dev_issue85.csv).
+    LOOSE_TOLERANCE_DEG = 8.5
     #: Confirmation and resumption after dropped bytes: max(this, a tenth of the rhythm,
     #: four times the spread of the recent steps), degrees.
     GAP_TOLERANCE_DEG = 0.3
@@ -568,14 +575,14 @@ class StandardScanDecoder:
         if fit is None:
             everything = np.ones(k, dtype=bool)
             return everything, everything
-        has, m, loose, gap, _ = fit
+        has, m, loose, _, _ = fit
         with np.errstate(invalid="ignore"):
             plausible = np.abs(step - m) <= loose
             nxt_step = np.full(k, np.nan)  # the next candidate's step, and the two steps
             nxt_step[:-1] = step[1:]
             two = np.full(k, np.nan)
             two[:-1] = _wrap_deg(angle[1:] - prev[:-1])
-            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= np.maximum(0.5 * m, gap))
+            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= np.maximum(0.5 * m, loose))
         confirmed[:-1] &= ok[1:]
         return ~has | plausible, ~has | (plausible & confirmed)
 
@@ -869,13 +876,13 @@ class StandardScanDecoder:
     def _confirmed(self, fields: _Fields, q: int, n: int, rhythm: _Rhythm) -> bool | None:
         """Does the sample after ``q`` confirm it as the next one? None: not received."""
         assert self._last_angle is not None
-        m, loose, gap, _ = rhythm
+        m, loose, _, _ = rhythm
         nxt = int(fields.next_start[q + STANDARD_SAMPLE_LEN])
         if nxt + STANDARD_SAMPLE_LEN > n:
             return None
         step = float(_wrap_deg(fields.angle[nxt] - fields.angle[q]))
         two = float(_wrap_deg(fields.angle[nxt] - self._last_angle))
-        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= max(0.5 * m, gap)
+        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= max(0.5 * m, loose)
 
     def _lone_sample(self, fields: _Fields, q: int, n: int, final: bool, off: float, rhythm: _Rhythm) -> int:
         """Believe an unconfirmed exact continuation unless a better one follows soon.

@@ -11,7 +11,8 @@ line as on the A1's USB adapter: DTR cleared = spinning.
 
 It is no easier than the device: a triangulation head (A series) measures along a
 direction that lies behind its raw angle by an offset that grows with the range (up
-to 8°), and its capsules carry that offset as the real ones do (legacy: the 6-bit
+to 8°), and reports it as the real one does (standard: the angle with the offset
+taken off, so angles step irregularly, even backwards; legacy capsules: the 6-bit
 field, 0..63 eighths of a degree; ultra: left to the decoder, which derives it from
 the range as Slamtec's SDK does).
 
@@ -74,6 +75,15 @@ def legacy_offset_deg(dist_mm: np.ndarray) -> np.ndarray:
     d_q2 = np.where(dist_mm > 0, np.asarray(dist_mm) * 4, 1 << 30).astype(np.int64)
     q3 = np.rint(proto.ultra_angle_offset_q16(d_q2) / 65536 * 8)
     return np.clip(q3, 0, 63) / 8
+
+
+def standard_offset_deg(dist_mm: np.ndarray) -> np.ndarray:
+    """The offset a triangulation head has already taken off a standard sample's angle:
+    the geometry's (as ``legacy_offset_deg``) to the standard format's 1/64°, none
+    where there is no return (a real A1 reports those at their raw angle)."""
+    d_q2 = np.rint(np.asarray(dist_mm) * 4).astype(np.int64)
+    q6 = np.clip(np.rint(proto.ultra_angle_offset_q16(d_q2) / 1024), 0, 8 * 64)
+    return np.where(np.asarray(dist_mm) > 0, q6 / 64, 0.0)
 
 
 def ultra_offset_deg(dist_mm: np.ndarray) -> np.ndarray:
@@ -287,8 +297,10 @@ class RPLidarEmulator:
         self._pending.clear()
         self._capsule_start = True
         self.head.set_samples_per_rev(max(36, round(mode.samples_per_s / self.model.rev_per_s)))
-        if not self.model.triangulation or mode.answer_type in (proto.TYPE_SCAN, proto.TYPE_DENSE):
+        if not self.model.triangulation or mode.answer_type == proto.TYPE_DENSE:
             self.head.angle_offset = None
+        elif mode.answer_type == proto.TYPE_SCAN:
+            self.head.angle_offset = standard_offset_deg
         elif mode.answer_type == proto.TYPE_EXPRESS:
             self.head.angle_offset = legacy_offset_deg
         else:
@@ -339,7 +351,9 @@ class RPLidarEmulator:
             self.stats.samples_sent += len(samples)
             if not len(samples):
                 return b""
-            return proto.encode_standard_samples(samples.angle_deg, samples.dist_mm, samples.quality, samples.start)
+            # the device reports the direction it measured along: raw angle minus offset
+            angle = samples.angle_deg if samples.offset_deg is None else (samples.angle_deg - samples.offset_deg) % 360
+            return proto.encode_standard_samples(angle, samples.dist_mm, samples.quality, samples.start)
         per_capsule, write = _CAPSULE_WRITERS[mode.answer_type]
         top_mm = 16383 if mode.answer_type == proto.TYPE_EXPRESS else 28000
         self._pending.append(samples)

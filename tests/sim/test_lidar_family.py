@@ -76,7 +76,7 @@ def test_the_driver_reads_the_scan_modes_of_each_model(key: str) -> None:
 @pytest.mark.parametrize(
     ("key", "scan_mode", "answer_type"),
     [("a1", "express", 0x82), ("a1", "auto", 0x84), ("a1", "boost", 0x84), ("a3", "stability", 0x84),
-     ("c1", "auto", 0x85), ("s2", "denseboost", 0x85), ("c1", "standard", 0x81)],
+     ("c1", "auto", 0x85), ("s2", "denseboost", 0x85), ("c1", "standard", 0x81), ("a1", "standard", 0x81)],
 )
 def test_each_capsule_kind_decodes_to_the_world(key: str, scan_mode: str, answer_type: int) -> None:
     scans, lidar, _ = run_virtual(_scans(key, scan_mode, 3))

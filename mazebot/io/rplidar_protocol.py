@@ -1,10 +1,11 @@
-"""The Slamtec RPLidar A1 serial protocol as pure functions: bytes in, values out.
+"""The Slamtec RPLidar serial protocol (A1, A2, A3, C1, S2) as pure functions: bytes in, values out.
 
 No port, no asyncio, no clock: the driver (``mazebot.io.rplidar``), the emulator in
 ``mazebot.sim`` and the ``mazebot lidar decode`` command all share these functions, so
 what the emulator writes is byte for byte what the decoder reads, and both follow the
 real device (Slamtec "RPLIDAR Interface Protocol and Application Notes", and the
-reference decoder ``_capsuleToNormal`` of Slamtec's ``rplidar_sdk``).
+decoders of Slamtec's SDK 2.x: sdk/src/dataunpacker/unpacker/handler_capsules.cpp;
+sdk/src/sl_lidar_driver.cpp _waitNode, getLidarConf; layouts in sdk/include/sl_lidar_cmd.h).
 
 Wire formats, in one place::
 
@@ -12,9 +13,14 @@ Wire formats, in one place::
                      A5 cmd size payload... checksum         (cmd >= 0x80; XOR of all before)
     descriptor       A5 5A  u32le(length | mode << 30)  dtype
     standard sample  [q<<2 | !S<<1 | S] [angle_q6 low7 <<1 | C=1] [angle_q6 >> 7] [dist_q2 u16le]
-    express capsule  [0xA<<4 | cs&0xF] [0x5<<4 | cs>>4] [start_q6 | S<<15 u16le] 16 x cabin
+    express capsule  [0xA<<4 | cs&0xF] [0x5<<4 | cs>>4] [start_q6 | S<<15 u16le] 16 x cabin   (0x82)
     cabin            [d1 u16le = dist_mm<<2 | dθ1 bits 4-5] [d2 u16le likewise]
                      [dθ1 bits 0-3 | dθ2 bits 0-3 << 4]
+    ultra capsule    sync/checksum, start angle, 32 x u32le [major 12 | predict1 10 | predict2 10]  (0x84)
+    dense capsule    sync/checksum, start angle, 40 x u16le distance mm                       (0x85)
+    ultra-dense      sync/checksum, u32 time stamp, u16 status, start angle,
+                     32 x [2 x u16 quality/distance/scale, u8 quality high nibbles]           (0x86)
+    GET_LIDAR_CONF   A5 84 size [u32 type, u16 mode id, reserved] checksum -> type 0x20 answer
 
 Angles are the device's: degrees, clockwise seen from above, 0 at the front mark.
 The scan decoders never raise on bad bytes: a serial line that drops or corrupts bytes

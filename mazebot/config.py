@@ -38,7 +38,7 @@ class Section(BaseModel):
 
 
 class LidarConfig(Section):
-    """Slamtec RPLidar A1M8 on its USB serial adapter."""
+    """Slamtec RPLidar on its USB serial adapter (an A1M8 by default; A2, A3, C1, S2 too)."""
 
     port: str = Field("/dev/ttyUSB0", description="serial device of the lidar's USB adapter")
     baudrate: int = Field(

@@ -119,7 +119,7 @@ class LidarStats:
 
 
 class RPLidar:
-    """The RPLidar A1M8 behind a ByteLink (serial port, pseudo-terminal or memory pipe).
+    """An RPLidar (A1, A2, A3, C1, S2) behind a ByteLink (serial port, pseudo-terminal or memory pipe).
 
     Nothing is opened by the constructor: the link is made by ``link_factory`` on first
     use, and again after a fault. Use it as an async context manager, or call

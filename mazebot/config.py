@@ -38,12 +38,18 @@ class Section(BaseModel):
 
 
 class LidarConfig(Section):
-    """Slamtec RPLidar A1M8 on its USB serial adapter."""
+    """Slamtec RPLidar on its USB serial adapter (an A1M8 by default; A2, A3, C1, S2 too)."""
 
     port: str = Field("/dev/ttyUSB0", description="serial device of the lidar's USB adapter")
-    baudrate: int = Field(115200, description="serial speed; the A1 speaks 115200 baud")
-    scan_mode: Literal["standard", "express"] = Field(
-        "standard", description="standard: 5-byte samples (~2000/s); express: capsules (~4000/s)"
+    baudrate: int = Field(
+        115200,
+        gt=0,
+        description="serial speed: A1, A2M8 115200; A2M12, A3 256000; C1 460800; S2 1000000 (Slamtec rplidar_ros)",
+    )
+    scan_mode: Literal["auto", "standard", "express", "boost", "sensitivity", "stability", "denseboost"] = Field(
+        "standard",
+        description="standard: 5-byte samples (A1 ~2000/s); express: legacy capsules (A1 ~4000/s); "
+        "auto: the mode the unit calls typical; boost, sensitivity, stability, denseboost: that mode by name",
     )
     motor_control: Literal["dtr", "none"] = Field(
         "dtr",
@@ -372,9 +378,10 @@ class SimConfig(Section):
         1.004, gt=0.9, lt=1.1, description="true right wheel diameter over the configured one"
     )
     slip_std: float = Field(0.01, ge=0, lt=0.5, description="random wheel slip (fraction, per physics step)")
-    lidar_rev_per_s: float = Field(5.5, gt=1, le=20, description="lidar rotation rate (A1M8 typical 5.5)")
+    lidar_model: Literal["a1", "a2m8", "a2m12", "a3", "c1", "s2"] = Field(
+        "a1", description="which RPLidar the emulator is: its rotation rate, scan modes, sample rates, serial speed"
+    )
     lidar_rev_jitter: float = Field(0.03, ge=0, lt=0.5, description="relative jitter of the rotation rate")
-    lidar_samples_per_rev: int = Field(360, ge=36, le=4000, description="samples per revolution")
     lidar_range_noise: float = Field(0.01, ge=0, lt=0.2, description="range noise std as a fraction of range")
     lidar_dropout: float = Field(0.02, ge=0, lt=1, description="probability that a sample has no return")
 

@@ -1,6 +1,7 @@
 """``mazebot lidar info|health|dump|decode``: look at the lidar without running the robot.
 
-``info`` and ``health`` ask the device; ``dump`` records its raw scan stream (the
+``info`` (model, firmware, serial number and the scan modes of GET_LIDAR_CONF) and
+``health`` ask the device; ``dump`` records its raw scan stream (the
 descriptor included) so it can be replayed, attached to a bug report, or fed to
 ``decode``, which turns such bytes into one JSON object per sample. ``decode`` needs
 no device at all: it reads a file (or stdin) that may start anywhere in a stream.
@@ -22,7 +23,8 @@ from mazebot.clock import RealClock
 from mazebot.config import LidarConfig, load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.io import rplidar_protocol as proto
-from mazebot.io.rplidar import RPLidar
+from mazebot.io.rplidar import SCAN_MODES, RPLidar
+from mazebot.io.rplidar_models import model_name
 
 READ_CHUNK = 1 << 16
 
@@ -54,14 +56,15 @@ def register(subparsers: Any) -> None:
     dump = sub.add_parser("dump", help="write the raw scan byte stream to stdout")
     device_options(dump)
     dump.add_argument("--seconds", type=float, required=True, help="how long to record")
-    dump.add_argument("--mode", choices=("standard", "express"), help="scan mode (default: config)")
+    dump.add_argument("--mode", choices=SCAN_MODES, help="scan mode (default: [lidar] scan_mode of the config)")
     dump.set_defaults(func=cmd_dump)
 
     decode = sub.add_parser("decode", help="decode a raw scan stream into JSON lines")
     decode.add_argument(
         "--mode",
-        choices=("standard", "express"),
-        help="scan mode (default: from the descriptor at the start of FILE, else standard)",
+        choices=("standard", *proto.CAPSULE_FORMATS_BY_NAME),
+        help="sample format: standard, express (legacy capsules), ultra, dense, ultradense "
+        "(default: the kind the descriptor at the start of FILE names, else standard)",
     )
     decode.add_argument("file", metavar="FILE", help="raw scan bytes, '-' for stdin")
     decode.set_defaults(func=cmd_decode)
@@ -85,28 +88,39 @@ def _lidar(args: argparse.Namespace) -> RPLidar:
 def cmd_info(args: argparse.Namespace) -> int:
     """``mazebot lidar info``: what the device says it is."""
 
-    async def run() -> proto.DeviceInfo:
+    async def run() -> tuple[proto.DeviceInfo, list[proto.ScanModeInfo], int]:
         async with _lidar(args) as lidar:
-            return await lidar.get_info()
+            info = await lidar.get_info()
+            modes, typical = await lidar.get_scan_modes()
+            return info, modes, typical
 
-    info = asyncio.run(run())
+    info, modes, typical = asyncio.run(run())
     if args.json:
         print(
             json.dumps(
                 {
                     "model": info.model,
-                    "model_name": info.model_name,
+                    "model_name": model_name(info.model),
                     "firmware": info.firmware_version,
                     "hardware": info.hardware,
                     "serial_number": info.serial_hex,
+                    "scan_modes": [
+                        {"id": m.id, "name": m.name, "us_per_sample": m.us_per_sample,
+                         "max_distance_m": m.max_distance_m, "answer_type": m.answer_type}
+                        for m in modes
+                    ],
+                    "typical_scan_mode": typical,
                 }
             )
         )
     else:
-        print(f"model: {info.model_name} ({info.model:#04x})")
+        print(f"model: {model_name(info.model)} ({info.model:#04x})")
         print(f"firmware: {info.firmware_version}")
         print(f"hardware: {info.hardware}")
         print(f"serial number: {info.serial_hex}")
+        print("scan modes:")
+        for m in modes:
+            print(f"  {m}{'  (typical)' if m.id == typical else ''}")
     return EXIT_OK
 
 
@@ -155,8 +169,11 @@ def cmd_decode(args: argparse.Namespace, out: IO[str] | None = None, err: IO[str
         raise UsageError(f"cannot read {args.file}: {exc.strerror or exc}") from None
     with source:
         first = source.read(READ_CHUNK)
-        mode = args.mode or ("express" if first.startswith(proto.EXPRESS_DESCRIPTOR.encode()) else "standard")
-        decoder = proto.ExpressScanDecoder() if mode == "express" else proto.StandardScanDecoder()
+        mode = args.mode or _mode_of_descriptor(first)
+        decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder = (
+            proto.StandardScanDecoder() if mode == "standard"
+            else proto.ExpressScanDecoder(proto.CAPSULE_FORMATS_BY_NAME[mode])
+        )
         chunk = first
         while chunk:
             _print_samples(decoder.feed(chunk), out)
@@ -168,6 +185,14 @@ def cmd_decode(args: argparse.Namespace, out: IO[str] | None = None, err: IO[str
         file=err,
     )
     return EXIT_OK
+
+
+def _mode_of_descriptor(head: bytes) -> str:
+    """The sample format a capture's leading scan descriptor names (standard without one)."""
+    for fmt in proto.CAPSULE_FORMATS.values():
+        if head.startswith(fmt.descriptor.encode()):
+            return fmt.name
+    return "standard"
 
 
 def _print_samples(samples: proto.DecodedSamples, out: IO[str]) -> None:

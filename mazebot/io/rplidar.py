@@ -1,10 +1,16 @@
-"""Asyncio driver of the Slamtec RPLidar A1M8: requests, scans, and surviving a flaky USB link.
+"""Asyncio driver of the Slamtec RPLidar family (A1, A2, A3, C1, S2): requests, scan modes,
+scans, and surviving a flaky USB link.
 
 The driver only buffers bytes and hands them to the pure decoders of
 ``mazebot.io.rplidar_protocol``; what it adds is the device's life cycle:
 
 * start: motor on (DTR cleared), STOP, wait, flush, GET_HEALTH (on an error: RESET
-  and ask again), let the motor spin up, SCAN or EXPRESS_SCAN;
+  and ask again), the scan mode (``[lidar] scan_mode``; ``auto`` asks GET_LIDAR_CONF
+  for the unit's typical mode), let the motor spin up, SCAN or EXPRESS_SCAN in that
+  mode, decoded by the capsule kind its answer type names;
+* a silent port: GET_INFO at the family's other serial speeds, to say which unit
+  speaks what (``no answer at 115200 baud on /dev/ttyUSB0: a C1M1 speaks 460800, set
+  [lidar] baudrate``);
 * run: decode, stamp each sample with a clock time (from the arrival time of the bytes
   that completed it, not the later decode time), cut the stream into revolutions
   (``mazebot.io.scan.Scan``, one per turn, in the robot's angle convention);
@@ -29,7 +35,7 @@ import logging
 import math
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -37,19 +43,32 @@ import numpy as np
 from mazebot.clock import Clock, RealClock
 from mazebot.config import LidarConfig
 from mazebot.cpu_budget import PartMeter
-from mazebot.errors import HardwareUnavailable, MazebotError, ProtocolError
+from mazebot.errors import ConfigError, HardwareUnavailable, MazebotError, ProtocolError
 from mazebot.io import rplidar_protocol as proto
-from mazebot.io.rplidar_protocol import DecodedSamples, DeviceHealth, DeviceInfo, SampleRate
+from mazebot.io.rplidar_models import BAUDRATES, model_name
+from mazebot.io.rplidar_protocol import DecodedSamples, DeviceHealth, DeviceInfo, SampleRate, ScanModeInfo
 from mazebot.io.scan import Scan
 from mazebot.io.serial_link import ByteLink, SerialLink
 
 log = logging.getLogger(__name__)
 
-ScanMode = Literal["standard", "express"]
+ScanMode = Literal["auto", "standard", "express", "boost", "sensitivity", "stability", "denseboost"]
+SCAN_MODES: tuple[str, ...] = ("auto", "standard", "express", "boost", "sensitivity", "stability", "denseboost")
 LinkFactory = Callable[[], Awaitable[ByteLink]]
+#: Opens the same port at another serial speed (to tell a silent port from a wrong speed).
+ProbeFactory = Callable[[int], Awaitable[ByteLink]]
 
-#: Nominal time per sample (A1M8 datasheet: ~2000 samples/s standard, ~4000 express).
+#: Nominal time per sample (A1M8 datasheet: ~2000 samples/s standard, ~4000 express),
+#: until the device's own figure for the mode is known.
 NOMINAL_SAMPLE_PERIOD_S = {"standard": 1 / 2000, "express": 1 / 4000}
+#: The two scan modes every unit has, with or without GET_LIDAR_CONF (the SDK's fallback
+#: for old firmware, sl_lidar_driver.cpp getTypicalScanMode: express).
+LEGACY_MODES = (
+    ScanModeInfo(proto.SCAN_MODE_ID_STANDARD, "Standard", 1e6 * NOMINAL_SAMPLE_PERIOD_S["standard"], 12.0,
+                 proto.TYPE_SCAN),
+    ScanModeInfo(proto.SCAN_MODE_ID_EXPRESS, "Express", 1e6 * NOMINAL_SAMPLE_PERIOD_S["express"], 12.0,
+                 proto.TYPE_EXPRESS),
+)
 #: Datasheet: wait at least 1 ms after STOP before the next request; 10 ms also lets
 #: the bytes already on the wire arrive, so the flush removes them.
 STOP_SETTLE_S = 0.010
@@ -70,8 +89,16 @@ _KNOWN_DESCRIPTORS = frozenset(
         proto.SAMPLERATE_DESCRIPTOR,
         proto.SCAN_DESCRIPTOR,
         proto.EXPRESS_DESCRIPTOR,
+        proto.ULTRA_DESCRIPTOR,
+        proto.DENSE_DESCRIPTOR,
+        proto.ULTRA_DENSE_DESCRIPTOR,
     )
 )
+_SCAN_DESCRIPTORS = {
+    d.dtype: d
+    for d in (proto.SCAN_DESCRIPTOR, proto.EXPRESS_DESCRIPTOR, proto.ULTRA_DESCRIPTOR, proto.DENSE_DESCRIPTOR,
+              proto.ULTRA_DENSE_DESCRIPTOR)
+}
 
 
 class _LinkLost(OSError):
@@ -95,7 +122,7 @@ class LidarStats:
 
 
 class RPLidar:
-    """The RPLidar A1M8 behind a ByteLink (serial port, pseudo-terminal or memory pipe).
+    """An RPLidar (A1, A2, A3, C1, S2) behind a ByteLink (serial port, pseudo-terminal or memory pipe).
 
     Nothing is opened by the constructor: the link is made by ``link_factory`` on first
     use, and again after a fault. Use it as an async context manager, or call
@@ -128,9 +155,11 @@ class RPLidar:
         reset_settle_s: float = 0.5,
         sample_period_s: float | None = None,
         name: str = "lidar",
+        baudrate: int | None = None,
+        probe_factory: ProbeFactory | None = None,
     ) -> None:
-        if scan_mode not in NOMINAL_SAMPLE_PERIOD_S:
-            raise ValueError(f"scan_mode must be 'standard' or 'express', got {scan_mode!r}")
+        if scan_mode not in SCAN_MODES:
+            raise ValueError(f"scan_mode must be one of {', '.join(SCAN_MODES)}, got {scan_mode!r}")
         if not 0 < backoff_min_s <= backoff_max_s:
             raise ValueError(f"need 0 < backoff_min_s ({backoff_min_s}) <= backoff_max_s ({backoff_max_s})")
         self._factory = link_factory
@@ -163,14 +192,25 @@ class RPLidar:
         self._decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder | None = None
         self._revolutions_cut = 0  # numbers the revolutions (Scan.revolution)
         self._undecoded = 0  # scan bytes read and not yet decoded (the session's batch)
+        self._pending_conf_length = 0
+        self._baudrate = baudrate
+        self._probe_factory = probe_factory
+        self._heard = False  # the open link ever brought a byte
+        #: the scan mode streaming (or last started): its answer type picks the decoder
+        self.active_mode: ScanModeInfo = LEGACY_MODES[1] if scan_mode == "express" else LEGACY_MODES[0]
 
     @classmethod
     def from_config(
-        cls, cfg: LidarConfig, clock: Clock, link_factory: LinkFactory | None = None
+        cls, cfg: LidarConfig, clock: Clock, link_factory: LinkFactory | None = None,
+        probe_factory: ProbeFactory | None = None,
     ) -> RPLidar:
-        """The lidar of the ``[lidar]`` config section (default link: its serial port)."""
+        """The lidar of the ``[lidar]`` config section (default link: its serial port;
+        ``probe_factory`` opens the same line at another speed, default: the port)."""
         async def open_serial() -> ByteLink:
             return await SerialLink.open(cfg.port, cfg.baudrate)
+
+        async def open_at(baudrate: int) -> ByteLink:
+            return await SerialLink.open(cfg.port, baudrate)
 
         return cls(
             link_factory or open_serial,
@@ -185,6 +225,8 @@ class RPLidar:
             max_range_m=cfg.max_range_m,
             mount_yaw_deg=cfg.mount_yaw_deg,
             name=f"lidar on {cfg.port}",
+            baudrate=cfg.baudrate,
+            probe_factory=probe_factory or (None if link_factory is not None else open_at),
         )
 
     async def __aenter__(self) -> RPLidar:
@@ -201,6 +243,7 @@ class RPLidar:
             raise RuntimeError(f"{self.name} is closed")
         if self._link is None:
             self._link = await self._factory()
+            self._heard = False
             self._rx.clear()
             self._motor_on = False
             self._scanning = False
@@ -252,6 +295,7 @@ class RPLidar:
         data = reader.result()
         if not data:
             raise _LinkLost(f"{self.name}: the port closed (end of file)")
+        self._heard = True
         return data
 
     async def _timed_read(self, link: ByteLink) -> bytes:
@@ -270,11 +314,11 @@ class RPLidar:
         return data
 
     def _byte_period_s(self) -> float:
-        """Time the device takes to send one byte of a scan (5-byte samples, 84-byte capsules of 32)."""
-        period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S[self.scan_mode]
-        if self.scan_mode == "express":
-            return period_s * proto.CAPSULE_SAMPLES / proto.CAPSULE_LEN
-        return period_s / proto.STANDARD_SAMPLE_LEN
+        """Time the device takes to send one byte of a scan: 5-byte samples, or the active mode's capsules."""
+        fmt = proto.CAPSULE_FORMATS.get(self.active_mode.answer_type)
+        if fmt is not None:
+            return self._period_s() * fmt.samples / fmt.length
+        return self._period_s() / proto.STANDARD_SAMPLE_LEN
 
     def _cancel_read(self) -> None:
         """Forget the pending read (the input is flushed or the link dropped)."""
@@ -359,10 +403,68 @@ class RPLidar:
                 raise TimeoutError
             self._rx += await self._read(remaining)
         except TimeoutError:
+            if not self._heard and self._probe_factory is not None and self._baudrate is not None:
+                wrong_speed = await self._diagnose_baudrate()
+                if wrong_speed:
+                    raise HardwareUnavailable(wrong_speed) from None
             raise HardwareUnavailable(
                 f"{self.name} did not answer {what} within {self._response_timeout_s:g} s; "
                 "check that the lidar is powered and that this is its port"
             ) from None
+
+    async def _diagnose_baudrate(self) -> str | None:
+        """A silent port: is it a unit of the family at another serial speed?
+
+        Asks GET_INFO at each speed the family speaks (``rplidar_models.BAUDRATES``) on
+        the same port; when one answers, says which model speaks what. The link is
+        closed (the next use reopens it at the configured speed).
+        """
+        assert self._probe_factory is not None
+        port = self.name.removeprefix("lidar on ")
+        await self._drop_link(stop=False)
+        for baud in BAUDRATES:
+            if baud == self._baudrate:
+                continue
+            try:
+                link = await self._probe_factory(baud)
+            except (OSError, MazebotError):
+                return None
+            try:
+                await link.write(proto.build_request(proto.CMD_GET_INFO))
+                info = await self._probe_info(link)
+            finally:
+                await link.close()
+            if info is not None:
+                name = model_name(info.model)
+                article = "an" if name[:1] in "AEFHILMNORSX" else "a"
+                return (f"no answer at {self._baudrate} baud on {port}: {article} {name} speaks {baud}, "
+                        "set [lidar] baudrate")
+        return None
+
+    async def _probe_info(self, link: ByteLink) -> DeviceInfo | None:
+        """The GET_INFO answer on a probing link, or None within the response timeout."""
+        deadline_s = self._clock.now_s() + self._response_timeout_s
+        buf = bytearray()
+        want = proto.INFO_DESCRIPTOR.encode()
+        reader = asyncio.ensure_future(link.read())
+        try:
+            while (remaining := deadline_s - self._clock.now_s()) > 0:
+                await self._wait_done(reader, remaining)
+                if not reader.done():
+                    return None
+                data = reader.result()
+                if not data:
+                    return None
+                buf += data
+                at = buf.find(want)
+                if at >= 0 and len(buf) >= at + len(want) + proto.INFO_DESCRIPTOR.length:
+                    begin = at + len(want)
+                    return proto.parse_info(bytes(buf[begin : begin + proto.INFO_DESCRIPTOR.length]))
+                reader = asyncio.ensure_future(link.read())
+            return None
+        finally:
+            if not reader.done():
+                reader.cancel()
 
     async def _request(self, cmd: int, expected: proto.Descriptor) -> bytes:
         """Send a single-response request and return its payload."""
@@ -393,6 +495,95 @@ class RPLidar:
         payload = await self._request(proto.CMD_GET_SAMPLERATE, proto.SAMPLERATE_DESCRIPTOR)
         return proto.parse_samplerate(payload)
 
+    async def get_lidar_conf(self, conf_type: int, mode_id: int | None = None) -> bytes:
+        """The payload of one GET_LIDAR_CONF answer (stops a running scan)."""
+        if self._scanning:
+            await self.stop()
+        await self._send_raw(proto.build_conf_request(conf_type, mode_id))
+        deadline = self._clock.now_s() + self._response_timeout_s
+        await self._conf_descriptor(deadline)
+        length = self._pending_conf_length
+        while len(self._rx) < length:
+            await self._receive(deadline, "GET_LIDAR_CONF")
+        data = bytes(self._rx[:length])
+        del self._rx[:length]
+        return proto.parse_conf_answer(data, conf_type)
+
+    async def _conf_descriptor(self, deadline_s: float) -> None:
+        """Read up to and including a GET_LIDAR_CONF descriptor (its length varies)."""
+        while True:
+            at = self._rx.find(b"\xa5\x5a")
+            if at >= 0 and len(self._rx) >= at + proto.DESCRIPTOR_LEN:
+                head = bytes(self._rx[at : at + proto.DESCRIPTOR_LEN])
+                del self._rx[: at + proto.DESCRIPTOR_LEN]
+                found = proto.parse_descriptor(head)
+                if found.dtype != proto.TYPE_LIDAR_CONF:
+                    raise ProtocolError(f"{self.name}, answer to GET_LIDAR_CONF: expected type 0x20, found ({found})")
+                self._pending_conf_length = found.length
+                return
+            await self._receive(deadline_s, "GET_LIDAR_CONF")
+
+    async def get_scan_modes(self) -> tuple[list[ScanModeInfo], int]:
+        """The scan modes the device offers and the id of its typical one.
+
+        As the SDK's ``getAllSupportedScanModes``: the mode count, then per mode its
+        sample period, maximum distance, answer type and name. A device without
+        GET_LIDAR_CONF (firmware before 1.24) does not answer: it has Standard and
+        Express, and Express is its typical mode, as the SDK assumes.
+        """
+        try:
+            count = await self._conf_value(proto.CONF_SCAN_MODE_COUNT)
+        except (HardwareUnavailable, ProtocolError) as exc:
+            log.info("%s has no GET_LIDAR_CONF (%s): standard and express only", self.name, _one_line(exc))
+            await self._flush()
+            return list(LEGACY_MODES), proto.SCAN_MODE_ID_EXPRESS
+        modes = []
+        for mode_id in range(int(count)):
+            values = [
+                await self._conf_value(t, mode_id)
+                for t in (proto.CONF_SCAN_MODE_US_PER_SAMPLE, proto.CONF_SCAN_MODE_MAX_DISTANCE,
+                          proto.CONF_SCAN_MODE_ANS_TYPE, proto.CONF_SCAN_MODE_NAME)
+            ]
+            us, max_m, answer, name = values
+            modes.append(ScanModeInfo(mode_id, str(name), float(us), float(max_m), int(answer)))
+        typical = await self._conf_value(proto.CONF_SCAN_MODE_TYPICAL)
+        return modes, int(typical)
+
+    async def _conf_value(self, conf_type: int, mode_id: int | None = None) -> float | int | str:
+        return proto.decode_mode_conf(conf_type, await self.get_lidar_conf(conf_type, mode_id))
+
+    async def resolve_scan_mode(self, mode: str) -> ScanModeInfo:
+        """The device's scan mode for a ``[lidar] scan_mode`` value.
+
+        ``standard`` and ``express`` are the SCAN and legacy EXPRESS_SCAN commands every
+        unit knows (asked without GET_LIDAR_CONF); ``auto`` is the mode the unit calls
+        typical (what the SDK's ``startScan(useTypicalScan)`` picks: its best); any
+        other is the device mode of that name, a ConfigError when there is none.
+        """
+        if mode in ("standard", "express"):
+            # GET_SAMPLERATE (firmware 1.17 on) gives both legacy modes' sample periods
+            legacy = LEGACY_MODES[0] if mode == "standard" else LEGACY_MODES[1]
+            try:
+                rate = await self.get_samplerate()
+            except (HardwareUnavailable, ProtocolError):
+                await self._flush()
+                return legacy
+            us = rate.standard_us if mode == "standard" else rate.express_us
+            return replace(legacy, us_per_sample=float(us)) if us > 0 else legacy
+        modes, typical = await self.get_scan_modes()
+        if mode == "auto":
+            chosen = [m for m in modes if m.id == typical] or [modes[-1]]
+            return chosen[0]
+        named = [m for m in modes if m.name.lower() == mode]
+        if not named:
+            offered = ", ".join(m.name for m in modes)
+            raise ConfigError(f"[lidar] scan_mode {mode!r}: the {self.name} offers no such mode; it has {offered}")
+        return named[0]
+
+    async def _send_raw(self, request: bytes) -> None:
+        link = await self.open()
+        await link.write(request)
+
     async def stop(self) -> None:
         """Stop scanning (the motor keeps spinning) and discard what was in flight."""
         await self._send(proto.CMD_STOP)
@@ -407,7 +598,7 @@ class RPLidar:
         await self._clock.sleep(self._reset_settle_s)
         await self._flush()
 
-    async def start_scan(self, mode: ScanMode | None = None) -> bytes:
+    async def start_scan(self, mode: str | None = None) -> bytes:
         """Bring the device up and start scanning; returns the raw bytes received so far.
 
         Motor on, STOP, flush, health check (RESET once on an error; HardwareUnavailable
@@ -437,15 +628,27 @@ class RPLidar:
                 )
         elif health.status == proto.HEALTH_WARNING:
             log.warning("%s reports warning %#06x", self.name, health.error_code)
+        chosen = await self.resolve_scan_mode(mode)
         if spin_up:
             await self._clock.sleep(self._spin_up_s)
-        if mode == "express":
-            await self._send(proto.CMD_EXPRESS_SCAN, proto.EXPRESS_SCAN_PAYLOAD)
-            expected = proto.EXPRESS_DESCRIPTOR
-        else:
+        expected = _SCAN_DESCRIPTORS.get(chosen.answer_type)
+        if expected is None:
+            raise HardwareUnavailable(
+                f"{self.name}: scan mode {chosen.name} answers with type {chosen.answer_type:#04x}, "
+                "which this driver cannot decode; set [lidar] scan_mode to another mode"
+            )
+        if chosen.answer_type == proto.TYPE_SCAN:
             await self._send(proto.CMD_SCAN)
-            expected = proto.SCAN_DESCRIPTOR
-        await self._descriptor(expected, "EXPRESS_SCAN" if mode == "express" else "SCAN")
+            what = "SCAN"
+        else:
+            # the legacy express scan as the protocol document has it (working mode 0),
+            # any other mode by its id, as the SDK's startScanExpress sends it
+            legacy = chosen.id == proto.SCAN_MODE_ID_EXPRESS and chosen.name == LEGACY_MODES[1].name
+            payload = proto.EXPRESS_SCAN_PAYLOAD if legacy else proto.express_scan_payload(chosen.id)
+            await self._send(proto.CMD_EXPRESS_SCAN, payload)
+            what = f"EXPRESS_SCAN ({chosen.name})"
+        await self._descriptor(expected, what)
+        self.active_mode = chosen
         self._scanning = True
         data = expected.encode() + bytes(self._rx)
         self._rx.clear()
@@ -496,6 +699,8 @@ class RPLidar:
                 async for scan in self._session(leftover[proto.DESCRIPTOR_LEN :]):
                     backoff_s = self._backoff_min_s
                     yield scan
+            except ConfigError:
+                raise  # a scan mode the unit does not have: no retry will find it
             except (OSError, TimeoutError, MazebotError) as exc:
                 if self._closed:
                     return
@@ -614,18 +819,22 @@ class RPLidar:
         before the byte that released it.
         """
         arrived_s = arrivals.time_of(decided_end - 1)
-        if self.scan_mode == "express":
-            period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S["express"]
-            arrived_s -= proto.CAPSULE_SAMPLES * period_s
+        fmt = proto.CAPSULE_FORMATS.get(self.active_mode.answer_type)
+        if fmt is not None:
+            arrived_s -= fmt.samples * self._period_s()
         return arrived_s
+
+    def _period_s(self) -> float:
+        """Time per sample: configured, else the active mode's (the device's own figure)."""
+        if self._sample_period_s:
+            return self._sample_period_s
+        return self.active_mode.us_per_sample * 1e-6
 
     def _new_decoder(self) -> proto.StandardScanDecoder | proto.ExpressScanDecoder:
         """A decoder for a scan that just started (its bytes follow the descriptor)."""
         if self._decoder is not None:  # keep counting what the previous one dropped
             self._dropped_before += self._decoder.bytes_dropped
-        decoder: proto.StandardScanDecoder | proto.ExpressScanDecoder = (
-            proto.ExpressScanDecoder() if self.scan_mode == "express" else proto.StandardScanDecoder()
-        )
+        decoder = proto.scan_decoder(self.active_mode.answer_type)
         decoder.reset(synced=True)
         self._decoder = decoder
         return decoder
@@ -640,7 +849,7 @@ class RPLidar:
         """
         if count <= 0:
             return np.empty(0)
-        period_s = self._sample_period_s or NOMINAL_SAMPLE_PERIOD_S[self.scan_mode]
+        period_s = self._period_s()
         if received_s > since_s:  # no interval (the first capsules of a scan): nominal spacing
             period_s = min(period_s, (received_s - since_s) / count)
         i = np.arange(count)

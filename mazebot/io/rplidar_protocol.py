@@ -1,10 +1,11 @@
-"""The Slamtec RPLidar A1 serial protocol as pure functions: bytes in, values out.
+"""The Slamtec RPLidar serial protocol (A1, A2, A3, C1, S2) as pure functions: bytes in, values out.
 
 No port, no asyncio, no clock: the driver (``mazebot.io.rplidar``), the emulator in
 ``mazebot.sim`` and the ``mazebot lidar decode`` command all share these functions, so
 what the emulator writes is byte for byte what the decoder reads, and both follow the
 real device (Slamtec "RPLIDAR Interface Protocol and Application Notes", and the
-reference decoder ``_capsuleToNormal`` of Slamtec's ``rplidar_sdk``).
+decoders of Slamtec's SDK 2.x: sdk/src/dataunpacker/unpacker/handler_capsules.cpp;
+sdk/src/sl_lidar_driver.cpp _waitNode, getLidarConf; layouts in sdk/include/sl_lidar_cmd.h).
 
 Wire formats, in one place::
 
@@ -12,9 +13,14 @@ Wire formats, in one place::
                      A5 cmd size payload... checksum         (cmd >= 0x80; XOR of all before)
     descriptor       A5 5A  u32le(length | mode << 30)  dtype
     standard sample  [q<<2 | !S<<1 | S] [angle_q6 low7 <<1 | C=1] [angle_q6 >> 7] [dist_q2 u16le]
-    express capsule  [0xA<<4 | cs&0xF] [0x5<<4 | cs>>4] [start_q6 | S<<15 u16le] 16 x cabin
+    express capsule  [0xA<<4 | cs&0xF] [0x5<<4 | cs>>4] [start_q6 | S<<15 u16le] 16 x cabin   (0x82)
     cabin            [d1 u16le = dist_mm<<2 | dθ1 bits 4-5] [d2 u16le likewise]
                      [dθ1 bits 0-3 | dθ2 bits 0-3 << 4]
+    ultra capsule    sync/checksum, start angle, 32 x u32le [major 12 | predict1 10 | predict2 10]  (0x84)
+    dense capsule    sync/checksum, start angle, 40 x u16le distance mm                       (0x85)
+    ultra-dense      sync/checksum, u32 time stamp, u16 status, start angle,
+                     32 x [2 x u16 quality/distance/scale, u8 quality high nibbles]           (0x86)
+    GET_LIDAR_CONF   A5 84 size [u32 type, u16 mode id, reserved] checksum -> type 0x20 answer
 
 Angles are the device's: degrees, clockwise seen from above, 0 at the front mark.
 The scan decoders never raise on bad bytes: a serial line that drops or corrupts bytes
@@ -25,6 +31,7 @@ from __future__ import annotations
 
 import enum
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -396,8 +403,10 @@ class StandardScanDecoder:
     confirms it (its step fits too, and the two steps make two rhythm steps). After
     dropped bytes, decoding resumes on a sample that continues the rhythm (inserted
     bytes lose no sample) or on a fresh run of four samples keeping the rhythm (lost
-    bytes, a restarted scan). A lone sample between two stretches of noise is believed
-    when it matches the rhythm to one angle unit and nothing nearby matches better.
+    bytes, a restarted scan). "Loosely" allows the 8° more or less a step takes where a
+    triangulation head's range, and with it its angle offset, jumps. A lone sample
+    between two stretches of noise is believed when it matches the rhythm to one angle
+    unit and nothing nearby matches better.
 
     A stream without rhythm (synthetic test data, or a head whose angles jitter by more
     than a twentieth of a step) is decoded by form alone; after a resync a run is then
@@ -430,7 +439,12 @@ class StandardScanDecoder:
     MAX_SPREAD = 0.15
     MIN_SPREAD_DEG = 2.0 / 64.0
     #: A plausible step differs from the rhythm by at most max(this, half the rhythm).
-    LOOSE_TOLERANCE_DEG = 1.5
+    #: A triangulation head reports each standard sample at its raw angle minus an
+    #: offset that its range sets anywhere in 0..8° (the geometry the SDK applies to
+    #: ultra capsules), so where the range jumps the angle steps up to 8° more or less
+    #: than the rhythm: a real A1 goes from 1234 mm at 68° to 315 mm at 72°, from "no
+    #: return" at 83° to 320 mm at 79° (tests/io/data/a1_standard_ev3dev_issue85.csv).
+    LOOSE_TOLERANCE_DEG = 8.5
     #: Confirmation and resumption after dropped bytes: max(this, a tenth of the rhythm,
     #: four times the spread of the recent steps), degrees.
     GAP_TOLERANCE_DEG = 0.3
@@ -567,14 +581,14 @@ class StandardScanDecoder:
         if fit is None:
             everything = np.ones(k, dtype=bool)
             return everything, everything
-        has, m, loose, gap, _ = fit
+        has, m, loose, _, _ = fit
         with np.errstate(invalid="ignore"):
             plausible = np.abs(step - m) <= loose
             nxt_step = np.full(k, np.nan)  # the next candidate's step, and the two steps
             nxt_step[:-1] = step[1:]
             two = np.full(k, np.nan)
             two[:-1] = _wrap_deg(angle[1:] - prev[:-1])
-            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= np.maximum(0.5 * m, gap))
+            confirmed = (np.abs(nxt_step - m) <= loose) & (np.abs(two - 2 * m) <= np.maximum(0.5 * m, loose))
         confirmed[:-1] &= ok[1:]
         return ~has | plausible, ~has | (plausible & confirmed)
 
@@ -599,20 +613,18 @@ class StandardScanDecoder:
         n = len(buf)
         parts: list[DecodedSamples] = []
         pos = 0
-        fields: _Fields | None = None  # per-offset form and angle, made on the first resync
         self._descriptors_at = _find_all(buf, self._descriptor)
+        fields = _Fields(arr, self._descriptors_at)  # per-offset form, angle and successor
         while True:
             if self._synced:
-                taken, waiting = self._take_locked(arr, pos, final)
+                taken, end, waiting = self._take_locked(arr, fields, pos, final)
                 parts.append(taken)
-                pos += STANDARD_SAMPLE_LEN * len(taken)
                 if len(taken):
+                    pos = end
                     self._adjacent_at = pos
                 if waiting or n - pos < STANDARD_SAMPLE_LEN:
                     break
                 self._synced = False  # the sample at pos is not believed: resync here
-            if fields is None:
-                fields = _Fields(arr, self._descriptors_at)
             pos, verdict = self._hunt(buf, fields, pos, final)
             if verdict is None or verdict == self._WAIT:
                 break
@@ -628,53 +640,59 @@ class StandardScanDecoder:
         self.samples_decoded += len(out)
         return out
 
-    def _take_locked(self, arr: np.ndarray, pos: int, final: bool) -> tuple[DecodedSamples, bool]:
+    def _take_locked(
+        self, arr: np.ndarray, fields: _Fields, pos: int, final: bool
+    ) -> tuple[DecodedSamples, int, bool]:
         """Accept the run of believed samples at sample boundaries from ``pos``.
+
+        The boundaries are where the device's own reader (the SDK's ``_waitNode``)
+        would look for the next sample: right after the previous one, past any bytes
+        that cannot start a sample (S == !S). Such bytes may have been inserted by the
+        line, but they cannot hide a sample, so skipping them keeps the lock and the
+        sample before them is confirmed by the one after them.
 
         Vectorized: in one block while the stream runs clean (each numpy call has a
         fixed cost), in growing blocks after a break, so that a short run in a long
-        buffer costs little. Returns the samples and whether the run stopped only for
-        want of the sample that would confirm the last one.
+        buffer costs little. Returns the samples, the offset just after the last one
+        taken, and whether the run stopped only for want of the sample that would
+        confirm the last one.
         """
-        total = (len(arr) - pos) // STANDARD_SAMPLE_LEN
+        offsets, total = fields.boundaries(pos)
         parts: list[DecodedSamples] = []
         done = 0
+        end = pos
         block = total if self._clean else 32
         while done < total:
             size = min(block, total - done)
-            look = min(size + 1, total - done)  # one more, to confirm the block's last
-            begin = pos + done * STANDARD_SAMPLE_LEN
-            end = begin + look * STANDARD_SAMPLE_LEN
-            rows = arr[begin:end].reshape(look, STANDARD_SAMPLE_LEN)
-            cuts = [d - begin for d in self._descriptors_at if begin < d < end]
-            taken, stopped, waiting = self._take_rows(rows, size, cuts, done + look == total and not final)
+            look = min(size + 1, offsets.size - done)  # one more, to confirm the block's last
+            at = offsets[done : done + look]
+            rows = arr[at[:, None] + np.arange(STANDARD_SAMPLE_LEN)]
+            ok = fields.ok[at]
+            taken, stopped, waiting = self._take_rows(rows, ok, size, done + look == offsets.size and not final)
             parts.append(taken)
+            if len(taken):
+                end = int(at[len(taken) - 1]) + STANDARD_SAMPLE_LEN
             done += len(taken)
             if stopped:
                 self._clean = waiting
-                return DecodedSamples.concat(parts), waiting
+                return DecodedSamples.concat(parts), end, waiting
             block = min(block * 4, 4096)
-        self._clean = True
-        return DecodedSamples.concat(parts), False
+        self._clean = total == offsets.size
+        return DecodedSamples.concat(parts), end, False
 
     def _take_rows(
-        self, rows: np.ndarray, size: int, cuts: list[int], may_wait: bool
+        self, rows: np.ndarray, ok: np.ndarray, size: int, may_wait: bool
     ) -> tuple[DecodedSamples, bool, bool]:
         """Accept the leading believed samples among the first ``size`` of ``rows``.
 
-        ``cuts``: offsets in ``rows`` where a descriptor starts (the sample it falls in
-        is cut short). Returns (samples, stopped before ``size``, stopped only to await
-        the sample that would confirm the last row; only when ``may_wait``).
+        ``ok``: which rows are well-formed (a sample a descriptor cuts short is not).
+        Returns (samples, stopped before ``size``, stopped only to await the sample that
+        would confirm the last row; only when ``may_wait``).
         """
         k = rows.shape[0]
-        b0 = rows[:, 0].astype(np.int32)
-        b1 = rows[:, 1].astype(np.int32)
-        angle_q6 = (b1 >> 1) | (rows[:, 2].astype(np.int32) << 7)
-        ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
-        for d in cuts:
-            ok[d // STANDARD_SAMPLE_LEN] = False
+        angle_q6 = (rows[:, 1].astype(np.int32) >> 1) | (rows[:, 2].astype(np.int32) << 7)
         angle = angle_q6 / 64.0
-        fast = None if cuts or self._approved or not self.FAST_PATH else self._steady_run(angle, ok, size)
+        fast = None if self._approved or not self.FAST_PATH else self._steady_run(angle, ok, size)
         if fast is not None:
             r = fast
             waiting = may_wait and r == k - 1
@@ -785,16 +803,29 @@ class StandardScanDecoder:
                 if confirmed is None:  # its confirmation has not arrived yet
                     return self._ACCEPT_CONTINUE if final else self._WAIT
                 if confirmed:
+                    if self._outdone_by_overlap(fields, q, n, off, rhythm):
+                        return self._REJECT
                     return self._ACCEPT_CONTINUE
                 if off <= exact:  # a lone sample between stretches of noise?
                     return self._lone_sample(fields, q, n, final, off, rhythm)
         chain, cut = self._chain(fields, q, n, self.LONG_RUN)
         if cut and not final:
             return self._WAIT
-        if chain.size >= self.REGULAR_RUN and self._fresh_run(chain[: self.REGULAR_RUN], rhythm):
+        fresh = chain.size >= self.REGULAR_RUN and self._fresh_run(chain[: self.REGULAR_RUN], rhythm)
+        # a long run, regular enough: the rhythm changed
+        fresh = fresh or (
+            chain.size >= self.LONG_RUN and self._regular(chain) and not self._continues(chain[1], rhythm)
+        )
+        if fresh:
+            if rhythm is not None:
+                resumed = self._continuation_ahead(fields, q, n, final, rhythm)
+                if resumed is None:
+                    return self._WAIT
+                if resumed:
+                    # a fresh run that merges into the old stream a little later is a
+                    # stretch of noise that the old stream's tail bytes happen to continue
+                    return self._REJECT
             return self._ACCEPT_FRESH
-        if chain.size >= self.LONG_RUN and self._regular(chain) and not self._continues(chain[1], rhythm):
-            return self._ACCEPT_FRESH  # a long run, regular enough: the rhythm changed
         if self._has_regular_window(chain[1:]):
             return self._REJECT  # regular only after its head: the head is noise
         other_lengths = []
@@ -810,11 +841,38 @@ class StandardScanDecoder:
             other_lengths.append(other.size)
         if rhythm is not None:
             return self._REJECT  # a regular stream does not turn irregular
-        reaches_end = q + STANDARD_SAMPLE_LEN * (chain.size + 1) > n
-        long_enough = chain.size >= self.LONG_RUN or (final and reaches_end)
+        long_enough = chain.size >= self.LONG_RUN or (final and cut)
         if long_enough and chain.size >= max(other_lengths):
             return self._ACCEPT_FRESH  # an irregular stream: believe the form
         return self._REJECT
+
+    def _outdone_by_overlap(self, fields: _Fields, q: int, n: int, off: float, rhythm: _Rhythm) -> bool:
+        """Does a sample overlapping ``q`` continue the rhythm better than ``q`` does?
+
+        Only asked when ``q`` is confirmed across skipped bytes: the last bytes of a
+        real sample (distance bits) often cannot start a sample, so a well-formed
+        impostor that ends inside the real sample just after it is "confirmed" by the
+        real stream too. The real sample matches the rhythm more closely (to its own
+        jitter); on a tie the first one wins.
+        """
+        if fields.next_start[q + STANDARD_SAMPLE_LEN] == q + STANDARD_SAMPLE_LEN:
+            return False  # confirmed by the very next bytes: the usual, strong case
+        for p in range(q + 1, q + STANDARD_SAMPLE_LEN):
+            if fields.ok[p] and self._offset(fields, p, rhythm) < off and self._confirmed(fields, p, n, rhythm):
+                return True
+        return False
+
+    def _continuation_ahead(self, fields: _Fields, q: int, n: int, final: bool, rhythm: _Rhythm) -> bool | None:
+        """Is there, within the lookahead after ``q``, a confirmed continuation of the
+        rhythm (what the resync would accept as resumed samples)? None: not known yet."""
+        gap = rhythm[2]
+        look = self.LOOKAHEAD_BYTES
+        if not final and q + look + 2 * STANDARD_SAMPLE_LEN > n:
+            return None
+        for p in range(q + 1, min(q + look, n - STANDARD_SAMPLE_LEN) + 1):
+            if fields.ok[p] and self._offset(fields, p, rhythm) <= gap and self._confirmed(fields, p, n, rhythm):
+                return True
+        return False
 
     def _offset(self, fields: _Fields, q: int, rhythm: _Rhythm) -> float:
         """How far the step from the last accepted sample to ``q`` is from the rhythm."""
@@ -824,13 +882,13 @@ class StandardScanDecoder:
     def _confirmed(self, fields: _Fields, q: int, n: int, rhythm: _Rhythm) -> bool | None:
         """Does the sample after ``q`` confirm it as the next one? None: not received."""
         assert self._last_angle is not None
-        m, loose, gap, _ = rhythm
-        nxt = q + STANDARD_SAMPLE_LEN
+        m, loose, _, _ = rhythm
+        nxt = int(fields.next_start[q + STANDARD_SAMPLE_LEN])
         if nxt + STANDARD_SAMPLE_LEN > n:
             return None
         step = float(_wrap_deg(fields.angle[nxt] - fields.angle[q]))
         two = float(_wrap_deg(fields.angle[nxt] - self._last_angle))
-        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= max(0.5 * m, gap)
+        return bool(fields.ok[nxt]) and abs(step - m) <= loose and abs(two - 2 * m) <= max(0.5 * m, loose)
 
     def _lone_sample(self, fields: _Fields, q: int, n: int, final: bool, off: float, rhythm: _Rhythm) -> int:
         """Believe an unconfirmed exact continuation unless a better one follows soon.
@@ -849,7 +907,7 @@ class StandardScanDecoder:
 
         def rank(c: int, c_off: float) -> tuple[int, float]:
             points = (
-                int(c == self._adjacent_at)
+                int(self._adjacent_at >= 0 and c == fields.next_start[self._adjacent_at])
                 + int(bool(self._confirmed(fields, c, n, rhythm)))
                 + int(self._confirmed_later(fields, c, n, rhythm))
             )
@@ -900,17 +958,22 @@ class StandardScanDecoder:
 
     @staticmethod
     def _chain(fields: _Fields, q: int, n: int, limit: int) -> tuple[np.ndarray, bool]:
-        """Angles of the run of well-formed samples at q, q+5, ... (at most ``limit``).
+        """Angles of the run of well-formed samples from q, each followed by the next
+        at its successor (past bytes that cannot start a sample), at most ``limit``.
 
         Also says whether the run was cut by the end of the buffer (so more bytes could
         make it longer) rather than by a malformed sample or the limit.
         """
-        last = min(n - STANDARD_SAMPLE_LEN, q + STANDARD_SAMPLE_LEN * (limit - 1))
-        idx = np.arange(q, last + 1, STANDARD_SAMPLE_LEN)
-        bad = np.flatnonzero(~fields.ok[idx])
-        length = int(bad[0]) if bad.size else idx.size
-        cut_by_end = (not bad.size) and idx.size < limit
-        return fields.angle[idx[:length]], cut_by_end
+        idx = []
+        p = q
+        while len(idx) < limit:
+            if p + STANDARD_SAMPLE_LEN > n:
+                return fields.angle[idx], True
+            if not fields.ok[p]:
+                break
+            idx.append(p)
+            p = int(fields.next_start[p + STANDARD_SAMPLE_LEN])
+        return fields.angle[idx], False
 
 
 def _find_all(buf: bytes, pattern: bytes) -> list[int]:
@@ -939,10 +1002,16 @@ def _row_median(rows: np.ndarray, count: np.ndarray) -> np.ndarray:
 
 
 class _Fields:
-    """For every byte offset of a buffer: is a well-formed sample there, and its angle.
+    """For every byte offset of a buffer: is a well-formed sample there, its angle, and
+    where the next sample could start.
 
     A sample that a descriptor (at the offsets ``descriptors``) cuts short is not
     well-formed, however good its first bytes look.
+
+    ``next_start[i]`` is the first offset at or after ``i`` whose byte could start a
+    sample (S != !S), ``n`` and beyond where none does: the successor of a sample at
+    ``q`` is at ``next_start[q + 5]``, as the SDK's byte-by-byte reader (``_waitNode``
+    in sl_lidar_driver.cpp) skips every byte whose two sync bits agree.
 
     ``candidates`` are the offsets where a resync could stop: well-formed samples and
     0xA5 bytes (a descriptor may start there).
@@ -950,18 +1019,62 @@ class _Fields:
 
     def __init__(self, arr: np.ndarray, descriptors: list[int]) -> None:
         n = arr.shape[0]
-        self.ok = np.zeros(n + STANDARD_SAMPLE_LEN, dtype=bool)
-        self.angle = np.zeros(n + STANDARD_SAMPLE_LEN)
+        self.n = n
+        pad = n + 2 * STANDARD_SAMPLE_LEN
+        self.ok = np.zeros(pad, dtype=bool)
+        self.angle = np.zeros(pad)
+        b = arr.astype(np.int32)
+        can = (b & 1) != ((b >> 1) & 1)
+        self.can_start = np.zeros(pad, dtype=bool)
+        self.can_start[:n] = can
+        idx = np.full(pad, n, dtype=np.int64)
+        idx[:n] = np.where(can, np.arange(n), n)
+        self.next_start = np.minimum.accumulate(idx[::-1])[::-1]
+        self.next_start[n:] = np.arange(n, pad)
         if n >= STANDARD_SAMPLE_LEN:
-            b0 = arr[: n - 4].astype(np.int32)
-            b1 = arr[1 : n - 3].astype(np.int32)
-            angle_q6 = (b1 >> 1) | (arr[2 : n - 2].astype(np.int32) << 7)
-            ok = ((b0 & 1) != ((b0 >> 1) & 1)) & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
+            b1 = b[1 : n - 3]
+            angle_q6 = (b1 >> 1) | (b[2 : n - 2] << 7)
+            ok = can[: n - 4] & ((b1 & 1) == 1) & (angle_q6 < _FULL_TURN_Q6)
             self.ok[: n - 4] = ok
             self.angle[: n - 4] = angle_q6 / 64.0
             for d in descriptors:  # a sample cut short by a descriptor is no sample
                 self.ok[max(0, d - STANDARD_SAMPLE_LEN + 1) : d] = False
         self.candidates = np.flatnonzero(self.ok[:n] | (arr == SYNC_BYTE))
+
+    def boundaries(self, pos: int) -> tuple[np.ndarray, int]:
+        """Offsets of the samples a locked reader meets from ``pos``, and how many of
+        them it may accept.
+
+        The acceptable ones follow each other 5 bytes apart, all well-formed. After them
+        comes the sample that judges the last one (its confirmation): the malformed one
+        that ends the run, or, where the run ends at bytes that cannot start a sample,
+        the sample after those bytes. The reader stops there either way: after skipped
+        bytes it is the resynchronisation that decides, more strictly, whether samples
+        resume (see ``StandardScanDecoder._judge``).
+        """
+        n = self.n
+        parts = []
+        p = pos
+        chunk = 64
+        while p + STANDARD_SAMPLE_LEN <= n:
+            k = min((n - p) // STANDARD_SAMPLE_LEN, chunk)
+            at = p + STANDARD_SAMPLE_LEN * np.arange(k)
+            stop = np.flatnonzero(~self.ok[at])
+            if stop.size:
+                first = int(at[stop[0]])
+                parts.append(at[: int(stop[0])])
+                accept = sum(x.size for x in parts)
+                judge = first if self.can_start[first] else int(self.next_start[first])
+                if accept and judge + STANDARD_SAMPLE_LEN <= n:
+                    parts.append(np.array([judge]))
+                return np.concatenate(parts), accept
+            parts.append(at)
+            p += STANDARD_SAMPLE_LEN * k
+            chunk = min(chunk * 4, 1 << 16)
+        if not parts:
+            return np.empty(0, dtype=np.int64), 0
+        out = np.concatenate(parts)
+        return out, out.size
 
 
 # --- express scan: 84-byte capsules (legacy format) ----------------------------------
@@ -972,7 +1085,8 @@ _CABINS = 16
 _SYNC_NIBBLE_1 = 0xA
 _SYNC_NIBBLE_2 = 0x5
 _START_FLAG = 0x8000
-_MAX_COMPENSATION_Q3 = 31
+#: The compensation field is 6 bits, unsigned: 0..63 eighths of a degree (0..7.875°).
+_MAX_COMPENSATION_Q3 = 63
 _MAX_EXPRESS_DIST_MM = (1 << 14) - 1
 
 
@@ -990,9 +1104,10 @@ def encode_express_capsule(
     an emulator that takes its 32 samples evenly between two capsule start angles needs
     no compensation (the default). ``start`` marks the first capsule after EXPRESS_SCAN.
 
-    The compensation is limited to 0..3.875° (q3 values 0..31): in that range the
-    Slamtec SDK (which reads the 6-bit field unsigned), the datasheet's signed reading
-    and the ``rplidar`` Python package (sign and magnitude) all decode the same angle.
+    The compensation covers the field's whole range, 0..7.875° (q3 values 0..63),
+    read unsigned and subtracted as Slamtec's SDK does. (The datasheet's signed
+    reading and the ``rplidar`` Python package's sign-and-magnitude reading agree with
+    the SDK only below 4°; a real A1 sends 5-6.5° for walls 0.5-1 m away.)
     Distances are whole millimetres, 0..16383.
     """
     dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
@@ -1007,7 +1122,7 @@ def encode_express_capsule(
         if comp.shape != (CAPSULE_SAMPLES,):
             raise ValueError(f"an express capsule holds {CAPSULE_SAMPLES} compensations, got {comp.shape}")
         if np.any((comp < 0) | (comp > _MAX_COMPENSATION_Q3)):
-            raise ValueError("express angle compensation must be in 0..3.875 degrees")
+            raise ValueError("express angle compensation must be in 0..7.875 degrees")
     start_q6 = round(start_angle_deg * 64) % _FULL_TURN_Q6
     word = np.empty(CAPSULE_SAMPLES, dtype=np.int64)
     word[:] = (dist << 2) | ((comp >> 4) & 0x3)
@@ -1028,8 +1143,8 @@ def express_compensation_deg(
 ) -> np.ndarray:
     """The compensation that makes a capsule decode to ``angles_deg`` (32 values).
 
-    Raises ValueError when an angle is not within 0..3.875° before its interpolated
-    position (the range every decoder agrees on, see ``encode_express_capsule``).
+    Raises ValueError when an angle is not within 0..7.875° before its interpolated
+    position (what the 6-bit field can carry, see ``encode_express_capsule``).
     """
     angles = np.asarray(angles_deg, dtype=np.float64)
     if angles.shape != (CAPSULE_SAMPLES,):
@@ -1040,8 +1155,20 @@ def express_compensation_deg(
     interp = s + np.arange(CAPSULE_SAMPLES) * diff / CAPSULE_SAMPLES
     comp = np.asarray(_wrap_deg(interp - angles))
     if np.any(comp < -1e-9) or np.any(comp > _MAX_COMPENSATION_Q3 / 8 + 1e-9):
-        raise ValueError("express sample angles must lie 0..3.875 degrees before their interpolated angle")
+        raise ValueError("express sample angles must lie 0..7.875 degrees before their interpolated angle")
     return np.clip(comp, 0.0, _MAX_COMPENSATION_Q3 / 8)
+
+
+def _sdk_sync_bits(raw_q16: np.ndarray, inc_q16: np.ndarray) -> np.ndarray:
+    """The SDK's revolution flag of each capsule sample (m x n raw angles -> flat bools).
+
+    As in ``_onScanNodeCapsuleData`` (handler_capsules.cpp): a sample is flagged when
+    the raw angle of the sample after it, ``raw + inc``, has wrapped past 360°, i.e.
+    ``(raw + inc) mod 360° < inc``. The flagged sample is the last one before 0° of
+    the uncompensated sweep, and the SDK starts its new revolution with it.
+    """
+    nxt = (raw_q16 + inc_q16[:, None]) % (360 << 16)
+    return (nxt < inc_q16[:, None]).reshape(-1)
 
 
 def _capsules_valid(rows: np.ndarray) -> np.ndarray:
@@ -1051,8 +1178,17 @@ def _capsules_valid(rows: np.ndarray) -> np.ndarray:
     return (rows[:, 0] >> 4 == _SYNC_NIBBLE_1) & (rows[:, 1] >> 4 == _SYNC_NIBBLE_2) & (cs == recv)
 
 
-def _start_word(rows: np.ndarray) -> np.ndarray:
-    return rows[:, 2].astype(np.int64) | (rows[:, 3].astype(np.int64) << 8)
+def _start_word(rows: np.ndarray, at: int = 2) -> np.ndarray:
+    return rows[:, at].astype(np.int64) | (rows[:, at + 1].astype(np.int64) << 8)
+
+
+def _legacy_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """Legacy express capsules (answer type 0x82) ``prev`` interpolated up to ``cur``:
+    angle_q6, dist_q2, quality (1 where a distance, as the SDK's 0x2F), SDK sync bits."""
+    del carry  # nothing carries over from capsule to capsule
+    angle_q6, dist_q2, raw, inc = _decode_capsule_pairs(prev, cur)
+    dist = dist_q2.reshape(-1)
+    return angle_q6.reshape(-1), dist, (dist > 0).astype(np.uint8), _sdk_sync_bits(raw, inc)
 
 
 def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -1060,7 +1196,8 @@ def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray
 
     Follows the SDK's fixed-point arithmetic (q8 start angles, q16 interpolation, q6
     result) so this decoder and the SDK agree to the last bit on the angle.
-    Returns angle_q6, dist_q2, raw interpolated angle q16 (m x 32 each).
+    Returns angle_q6, dist_q2, raw interpolated angle q16 (m x 32 each; not wrapped)
+    and the q16 increment per sample (m).
     """
     prev_q8 = (_start_word(prev) & 0x7FFF) << 2
     cur_q8 = (_start_word(cur) & 0x7FFF) << 2
@@ -1076,10 +1213,14 @@ def _decode_capsule_pairs(prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray
     low = np.empty_like(word)
     low[:, 0::2] = cab[:, :, 4] & 0xF
     low[:, 1::2] = cab[:, :, 4] >> 4
+    # The 6-bit compensation is unsigned and subtracted, as in the SDK (Slamtec
+    # rplidar_sdk, sdk/src/dataunpacker/unpacker/handler_capsules.cpp,
+    # UnpackerHandler_CapsuleNode::_onScanNodeCapsuleData; sl_lidar_driver.cpp
+    # _capsuleToNormal in SDK 2.0): a real A1 reports 40-52 (5-6.5°) for walls at
+    # 0.5-1 m, which a signed reading would turn into -3..-1.5°.
     comp_q3 = low | ((word & 0x3) << 4)
-    comp_q3 = np.where(comp_q3 >= 32, comp_q3 - 64, comp_q3)  # signed 6-bit (datasheet)
     angle_q6 = ((raw_q16 - (comp_q3 << 13)) >> 10) % _FULL_TURN_Q6
-    return angle_q6, word & 0xFFFC, raw_q16 % (360 << 16)
+    return angle_q6, word & 0xFFFC, raw_q16, inc_q16
 
 
 class ExpressScanDecoder:
@@ -1091,8 +1232,8 @@ class ExpressScanDecoder:
     between its start angle and the next capsule's, so they come out only when the
     next valid capsule arrives; a capsule followed by dropped bytes, by a capsule with
     the start flag (a new scan), or by the end of the stream is discarded
-    (``capsules_discarded``). Capsules carry no revolution flag: ``start`` is set on
-    the first sample whose interpolated angle wrapped past 360°.
+    (``capsules_discarded``). Capsules carry no revolution flag: ``start`` is set as
+    the SDK sets it, on the last sample before the uncompensated sweep passes 360°.
 
     Example::
 
@@ -1100,29 +1241,31 @@ class ExpressScanDecoder:
         samples = dec.feed(port_bytes)
     """
 
-    def __init__(self) -> None:
+    def __init__(self, capsule_format: CapsuleFormat | None = None) -> None:
+        self.format = capsule_format or LEGACY_CAPSULE
+        self._length = self.format.length
         self._tail = b""
         self._synced = False
         self._pending: np.ndarray | None = None  # last valid capsule, waiting for the next
-        self._last_raw_q16: int | None = None  # uncompensated angle of the last sample
+        self._carry: dict[str, int] = {}  # the SDK's state carried from sample to sample
         self.bytes_dropped = 0
         self.samples_decoded = 0
         self.capsules_decoded = 0
         self.capsules_discarded = 0
         self.descriptors_skipped = 0
-        self._descriptor = EXPRESS_DESCRIPTOR.encode()
+        self._descriptor = self.format.descriptor.encode()
 
     def reset(self, *, synced: bool = False) -> None:
         """Forget the stream; ``synced``: the next byte starts a capsule."""
         self._tail = b""
         self._synced = synced
+        self._carry = {}
         self._break()
 
     def _break(self) -> None:
         if self._pending is not None:
             self.capsules_discarded += 1
         self._pending = None
-        self._last_raw_q16 = None
 
     def feed(self, data: bytes) -> DecodedSamples:
         return self._decode(self._tail + bytes(data), final=False)
@@ -1149,14 +1292,15 @@ class ExpressScanDecoder:
         parts: list[DecodedSamples] = []
         while True:
             if self._synced:
-                k = (n - pos) // CAPSULE_LEN
+                size = self._length
+                k = (n - pos) // size
                 if k > 0:
-                    rows = arr[pos : pos + k * CAPSULE_LEN].reshape(k, CAPSULE_LEN)
+                    rows = arr[pos : pos + k * size].reshape(k, size)
                     bad = np.flatnonzero(~_capsules_valid(rows))
                     r = int(bad[0]) if bad.size else k
                     if r:
                         parts.append(self._emit(rows[:r]))
-                        pos += r * CAPSULE_LEN
+                        pos += r * size
                     if r < k:
                         self._synced = False
                 if self._synced:
@@ -1190,12 +1334,12 @@ class ExpressScanDecoder:
                 self.descriptors_skipped += 1
                 self._break()
                 return q + DESCRIPTOR_LEN, True
-            if q + CAPSULE_LEN > n:
+            if q + self._length > n:
                 if final:
                     continue
                 self._drop(q - pos)  # maybe a capsule: wait for the rest of it
                 return q, False
-            if _capsules_valid(arr[q : q + CAPSULE_LEN][None, :])[0]:
+            if _capsules_valid(arr[q : q + self._length][None, :])[0]:
                 self._drop(q - pos)
                 return q, True
         # no candidate: keep a last byte that could begin a capsule
@@ -1212,28 +1356,443 @@ class ExpressScanDecoder:
         """Samples of every capsule that now has a successor, from contiguous ``rows``."""
         if self._pending is not None:
             rows = np.concatenate([self._pending[None, :], rows])
-        opens_scan = (_start_word(rows) & _START_FLAG) != 0
+        fmt = self.format
+        opens_scan = (_start_word(rows, fmt.start_at) & _START_FLAG) != 0
         # capsule j is decoded with j+1, unless j+1 opens a new scan (then j is lost)
         idx = np.flatnonzero(~opens_scan[1:])
         self.capsules_discarded += int(np.count_nonzero(opens_scan[1:]))
         self._pending = rows[-1].copy()
         if idx.size == 0:
-            if opens_scan[-1]:
-                self._last_raw_q16 = None
             return DecodedSamples.empty()
-        angle_q6, dist_q2, raw = _decode_capsule_pairs(rows[idx], rows[idx + 1])
-        # the revolution flag compares each sample with the one before it; a skipped
-        # capsule (new scan) or a fresh start leaves nothing to compare with
-        fresh = np.zeros(idx.size, dtype=bool)
-        fresh[1:] = idx[1:] != idx[:-1] + 1
-        fresh[0] = self._last_raw_q16 is None or idx[0] > 0
-        raw_flat = raw.reshape(-1)
-        prev = np.empty_like(raw_flat)
-        prev[1:] = raw_flat[:-1]
-        prev[0] = raw_flat[0] if self._last_raw_q16 is None else self._last_raw_q16
-        start = raw_flat < prev
-        start[np.flatnonzero(fresh) * CAPSULE_SAMPLES] = False
-        self._last_raw_q16 = None if opens_scan[-1] else int(raw_flat[-1])
+        angle_q6, dist_q2, quality, start = fmt.unpack(rows[idx], rows[idx + 1], self._carry)
         self.capsules_decoded += idx.size
-        dist = dist_q2.reshape(-1) / 4.0
-        return DecodedSamples(angle_q6.reshape(-1) / 64.0, dist, (dist > 0).astype(np.uint8), start)
+        dist = dist_q2 / 4.0
+        return DecodedSamples(angle_q6 / 64.0, dist, quality, start)
+
+
+# --- the other capsule kinds: ultra (A2/A3/A1 boost), dense (C1/S2), ultra-dense -----
+#
+# Each follows one handler of Slamtec's SDK 2.x, sdk/src/dataunpacker/unpacker/
+# handler_capsules.cpp (vendored in Slamtec/rplidar_ros), with the layouts of
+# sdk/include/sl_lidar_cmd.h. All of them, like the legacy capsule, carry a start
+# angle and are interpolated up to the next capsule's start angle, checksummed by the
+# XOR of every byte after the two sync bytes, and flagged with bit 15 of the start
+# angle word when they open a scan.
+
+TYPE_ULTRA = 0x84
+TYPE_DENSE = 0x85
+TYPE_ULTRA_DENSE = 0x86
+TYPE_LIDAR_CONF = 0x20
+
+ULTRA_DESCRIPTOR = Descriptor(132, SendMode.MULTIPLE, TYPE_ULTRA)
+DENSE_DESCRIPTOR = Descriptor(84, SendMode.MULTIPLE, TYPE_DENSE)
+ULTRA_DENSE_DESCRIPTOR = Descriptor(170, SendMode.MULTIPLE, TYPE_ULTRA_DENSE)
+
+_Unpack = Callable[[np.ndarray, np.ndarray, dict[str, int]], tuple[np.ndarray, ...]]
+
+
+@dataclass(frozen=True)
+class CapsuleFormat:
+    """One capsule kind: its answer type, size, samples, where its start angle sits,
+    and the SDK's recipe turning a capsule and its successor into samples."""
+
+    name: str
+    descriptor: Descriptor
+    samples: int
+    start_at: int  # byte offset of the start angle word (bit 15: opens a scan)
+    unpack: _Unpack
+
+    @property
+    def length(self) -> int:
+        return self.descriptor.length
+
+    @property
+    def answer_type(self) -> int:
+        return self.descriptor.dtype
+
+
+def _interpolated(prev: np.ndarray, cur: np.ndarray, start_at: int, inc_num: int, inc_den: int, n: int) -> tuple:
+    """The SDK's raw angles (q16, not wrapped) of the n samples of each capsule ``prev``
+    and the increment per sample: the angle from ``prev``'s start to ``cur``'s, q8,
+    wrapped once, times ``inc_num`` over ``inc_den`` (C integer division)."""
+    prev_q8 = (_start_word(prev, start_at) & 0x7FFF) << 2
+    cur_q8 = (_start_word(cur, start_at) & 0x7FFF) << 2
+    diff_q8 = cur_q8 - prev_q8
+    diff_q8 = np.where(prev_q8 > cur_q8, diff_q8 + (360 << 8), diff_q8)
+    inc_q16 = (diff_q8 * inc_num) // inc_den
+    raw_q16 = (prev_q8 << 8)[:, None] + inc_q16[:, None] * np.arange(n, dtype=np.int64)[None, :]
+    return raw_q16, inc_q16
+
+
+# -- ultra capsules (answer type 0x84): 32 cabins of 3 samples, 132 bytes --------------
+
+#: The SDK's variable bit scale (sl_lidar_cmd.h SL_LIDAR_VARBITSCALE_*): a 12-bit major
+#: distance above each threshold counts 2, 4, 8, 16 mm a unit.
+_VBS_SCALED_BASE = (3328, 1792, 1280, 512, 0)
+_VBS_LEVEL = (4, 3, 2, 1, 0)
+_VBS_TARGET_BASE = (1 << 14, 1 << 12, 1 << 11, 1 << 9, 0)
+
+
+def _varbitscale_decode(scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distance mm, scale level) of 12-bit scaled majors (SDK ``_varbitscale_decode``)."""
+    dist = np.zeros_like(scaled)
+    level = np.zeros_like(scaled)
+    done = np.zeros(scaled.shape, dtype=bool)
+    for base, lvl, target in zip(_VBS_SCALED_BASE, _VBS_LEVEL, _VBS_TARGET_BASE, strict=True):
+        here = ~done & (scaled >= base)
+        dist = np.where(here, target + ((scaled - base) << lvl), dist)
+        level = np.where(here, lvl, level)
+        done |= here
+    return dist, level
+
+
+def _varbitscale_encode(dist_mm: np.ndarray) -> np.ndarray:
+    """The 12-bit scaled major that decodes closest below ``dist_mm`` (inverse of the above)."""
+    d = np.asarray(dist_mm, dtype=np.int64)
+    out = np.zeros_like(d)
+    done = np.zeros(d.shape, dtype=bool)
+    for base, lvl, target in zip(_VBS_SCALED_BASE, _VBS_LEVEL, _VBS_TARGET_BASE, strict=True):
+        here = ~done & (d >= target)
+        out = np.where(here, np.minimum(base + ((d - target) >> lvl), 0xFFF), out)
+        done |= here
+    return out
+
+
+def _sign10(x: np.ndarray) -> np.ndarray:
+    return np.where(x >= 512, x - 1024, x)
+
+
+def ultra_angle_offset_q16(dist_q2: np.ndarray) -> np.ndarray:
+    """The angle an ultra capsule sample lies behind its raw angle, degrees q16.
+
+    The SDK (``_onScanNodeUltraCapsuleData``) derives it from the range, as the
+    triangulation geometry has it: 7.5° in radians q16 below 50 mm, otherwise
+    8° - (k << 6) - k³ / 98304 with k = 98361 / dist_q2 (C integer arithmetic), then
+    converted to degrees q16 with the SDK's own constants.
+    """
+    d = np.asarray(dist_q2, dtype=np.int64)
+    k = 98361 // np.maximum(d, 1)
+    near = int(7.5 * 3.1415926535 * (1 << 16) / 180.0)
+    far = int(8 * 3.1415926535 * (1 << 16) / 180) - (k << 6) - (k * k * k) // 98304
+    rad_q16 = np.where(d >= 50 * 4, far, near)
+    return np.trunc(rad_q16 * 180 / 3.14159265).astype(np.int64)
+
+
+def _ultra_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """SDK ``UnpackerHandler_UltraCapsuleNode::_onScanNodeUltraCapsuleData``."""
+    del carry
+    m = prev.shape[0]
+    raw, inc = _interpolated(prev, cur, 2, 8, 3, 96)  # (diff << 3) / 3
+    cab = prev[:, 4:].reshape(m, 32, 4).astype(np.int64)
+    word = cab[:, :, 0] | (cab[:, :, 1] << 8) | (cab[:, :, 2] << 16) | (cab[:, :, 3] << 24)
+    major = word & 0xFFF
+    predict1 = _sign10((word >> 12) & 0x3FF)
+    predict2 = _sign10((word >> 22) & 0x3FF)
+    first_next = (cur[:, 4].astype(np.int64) | (cur[:, 5].astype(np.int64) << 8)) & 0xFFF
+    major2 = np.concatenate([major[:, 1:], first_next[:, None]], axis=1)  # "prefetch next"
+    dist1, lvl1 = _varbitscale_decode(major)
+    dist2, lvl2 = _varbitscale_decode(major2)
+    base1 = np.where((dist1 == 0) & (dist2 != 0), dist2, dist1)
+    lvl1 = np.where((dist1 == 0) & (dist2 != 0), lvl2, lvl1)
+    d = np.empty((m, 32, 3), dtype=np.int64)
+    d[:, :, 0] = dist1 << 2
+    invalid1 = (predict1 == -512) | (predict1 == 511)
+    invalid2 = (predict2 == -512) | (predict2 == 511)
+    d[:, :, 1] = np.where(invalid1, 0, ((predict1 << lvl1) + base1) << 2)
+    d[:, :, 2] = np.where(invalid2, 0, ((predict2 << lvl2) + dist2) << 2)
+    dist_q2 = d.reshape(m, 96)
+    angle_q6 = ((raw - ultra_angle_offset_q16(dist_q2)) >> 10) % _FULL_TURN_Q6
+    dist = dist_q2.reshape(-1)
+    return angle_q6.reshape(-1), dist, (dist > 0).astype(np.uint8), _sdk_sync_bits(raw, inc)
+
+
+def encode_ultra_capsule(start_angle_deg: float, dists_mm: np.ndarray | list[float], *, start: bool = False) -> bytes:
+    """One 132-byte ultra capsule of 96 samples (32 cabins of a 12-bit major and two
+    10-bit signed predictions, each relative to its own major or the next cabin's).
+
+    The decoder puts sample ``i`` at ``start + i * (next_start - start) / 96`` minus the
+    range-dependent offset of ``ultra_angle_offset_q16``. Distances are rounded to
+    what the variable bit scale can carry; a prediction out of its 10 bits, or a
+    sample without return, becomes 0 (no return).
+    """
+    dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
+    if dist.shape != (96,):
+        raise ValueError(f"an ultra capsule holds 96 distances, got {dist.shape}")
+    if np.any((dist < 0) | (dist > 28656)):
+        raise ValueError("ultra distances must be in 0..28656 mm")
+    d = dist.reshape(32, 3)
+    major = _varbitscale_encode(d[:, 0])
+    base1, lvl1 = _varbitscale_decode(major)
+    nxt = np.concatenate([major[1:], [major[0]]])  # the last cabin's is fixed up by the next capsule
+    base2, lvl2 = _varbitscale_decode(nxt)
+    b1 = np.where((base1 == 0) & (base2 != 0), base2, base1)
+    l1 = np.where((base1 == 0) & (base2 != 0), lvl2, lvl1)
+
+    def predict(target: np.ndarray, base: np.ndarray, lvl: np.ndarray) -> np.ndarray:
+        p = np.floor_divide(target - base, 1 << lvl)
+        ok = (target > 0) & (p > -512) & (p < 511)
+        return np.where(ok, p, -512) & 0x3FF
+
+    # the second prediction refers to the *next* cabin's major, which the encoder of a
+    # single capsule only knows for cabins 0..30; the last one is sent as "no return"
+    p1 = predict(d[:, 1], b1, l1)
+    p2 = predict(d[:, 2], base2, lvl2)
+    p2[-1] = (-512) & 0x3FF
+    word = major | (p1 << 12) | (p2 << 22)
+    body = struct.pack("<H", round(start_angle_deg * 64) % _FULL_TURN_Q6 | (_START_FLAG if start else 0))
+    body += word.astype("<u4").tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+# -- dense capsules (answer type 0x85): 40 distances, 84 bytes --------------------------
+
+
+def _dense_sync(raw: np.ndarray, inc: np.ndarray, carry: dict[str, int], key: str) -> np.ndarray:
+    """The dense handlers' revolution flag: ``(raw + inc) mod 360° < 2 inc``, and set only
+    where the flag published for the sample before was not (``(syncBit ^
+    lastNodeSyncBit) & syncBit``, the last flag carried across capsules)."""
+    nxt = (raw + inc[:, None]) % (360 << 16)
+    cond = (nxt < (inc[:, None] << 1)).reshape(-1)
+    out = np.zeros_like(cond)
+    for i in np.flatnonzero(cond):  # about two a revolution
+        before = bool(out[i - 1]) if i > 0 else bool(carry.get(key, 0))
+        out[i] = not before
+    if out.size:
+        carry[key] = int(out[-1])
+    return out
+
+
+def _dense_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """SDK ``UnpackerHandler_DenseCapsuleNode::_onScanNodeDenseCapsuleData``: no angle
+    compensation (a time-of-flight head), distances in whole millimetres."""
+    m = prev.shape[0]
+    raw, inc = _interpolated(prev, cur, 2, 1 << 8, 40, 40)  # (diff << 8) / 40
+    cab = prev[:, 4:84].reshape(m, 40, 2).astype(np.int64)
+    dist_q2 = ((cab[:, :, 0] | (cab[:, :, 1] << 8)) << 2).reshape(-1)
+    angle_q6 = ((raw >> 10) % _FULL_TURN_Q6).reshape(-1)
+    return angle_q6, dist_q2, (dist_q2 > 0).astype(np.uint8), _dense_sync(raw, inc, carry, "dense_sync")
+
+
+def encode_dense_capsule(start_angle_deg: float, dists_mm: np.ndarray | list[float], *, start: bool = False) -> bytes:
+    """One 84-byte dense capsule: start angle and 40 distances (u16, mm)."""
+    dist = np.rint(np.asarray(dists_mm, dtype=np.float64)).astype(np.int64)
+    if dist.shape != (40,):
+        raise ValueError(f"a dense capsule holds 40 distances, got {dist.shape}")
+    if np.any((dist < 0) | (dist > 0xFFFF)):
+        raise ValueError("dense distances must be in 0..65535 mm")
+    body = struct.pack("<H", round(start_angle_deg * 64) % _FULL_TURN_Q6 | (_START_FLAG if start else 0))
+    body += dist.astype("<u2").tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+# -- ultra-dense capsules (answer type 0x86): 32 cabins of 2 samples, 170 bytes ---------
+
+_UD_THRESHOLD_MM = (0, 2046, 8187, 24567)  # SDK DISTANCE_THRESHOLD_TO_SCALE_1..3
+
+
+def _ultra_dense_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]) -> tuple[np.ndarray, ...]:
+    """SDK ``UnpackerHandler_UltraDenseCapsuleNode::_onScanNodeUltraDenseCapsuleData``.
+
+    Layout (sl_lidar_cmd.h): checksum nibbles, u32 time stamp, u16 device status, u16
+    start angle, then 32 cabins of two u16 "quality low, distance, scale" words and
+    one byte holding both samples' high quality nibbles. Each sample's 2-bit scale
+    picks the distance's unit (2, 3, 4 or 5 quarter-millimetre steps above a
+    threshold); at the finest scale, a distance within 2 mm of the previous sample's
+    is averaged with it (the SDK's ``_last_dist_q2``, carried across capsules).
+    """
+    m = prev.shape[0]
+    raw, inc = _interpolated(prev, cur, 8, 1 << 8, 64, 64)  # (diff << 8) / 64
+    cab = prev[:, 10:170].reshape(m, 32, 5).astype(np.int64)
+    w = np.empty((m, 64), dtype=np.int64)
+    w[:, 0::2] = (cab[:, :, 0] | (cab[:, :, 1] << 8)) | ((cab[:, :, 4] & 0x0F) << 16)
+    w[:, 1::2] = (cab[:, :, 2] | (cab[:, :, 3] << 8)) | ((cab[:, :, 4] >> 4) << 16)
+    w = w.reshape(-1)
+    scale = w & 0x3
+    quality = np.select(
+        [scale == 0, scale == 1, scale == 2], [w >> 12, (w >> 13) << 1, (w >> 14) << 2], (w >> 15) << 3
+    ) & 0xFF
+    dist = np.select(
+        [scale == 0, scale == 1, scale == 2],
+        [(w & 0xFFC) * 2, (w & 0x1FFC) * 3 + (_UD_THRESHOLD_MM[1] << 2), (w & 0x3FFC) * 4 + (_UD_THRESHOLD_MM[2] << 2)],
+        (w & 0x7FFC) * 5 + (_UD_THRESHOLD_MM[3] << 2),
+    )
+    last = carry.get("last_dist_q2", 0)
+    out = dist.copy()
+    for i in range(out.size):  # a recurrence: each sample may average with the one before
+        d = int(out[i])
+        if scale[i] == 0 and last and abs(d - last) <= 8:
+            d = (d + last) >> 1
+            out[i] = d
+        last = d
+    carry["last_dist_q2"] = last
+    angle_q6 = ((raw >> 10) % _FULL_TURN_Q6).reshape(-1)
+    del quality  # like every capsule kind here: 1 where a return, 0 where none
+    return angle_q6, out, (out > 0).astype(np.uint8), _dense_sync(raw, inc, carry, "ultra_dense_sync")
+
+
+def encode_ultra_dense_capsule(
+    start_angle_deg: float, dists_mm: np.ndarray | list[float], *, start: bool = False, time_stamp: int = 0
+) -> bytes:
+    """One 170-byte ultra-dense capsule of 64 samples, each at the finest scale that
+    holds its distance (quality 15, i.e. a good return, where the distance is not 0)."""
+    dist = np.asarray(dists_mm, dtype=np.float64)
+    if dist.shape != (64,):
+        raise ValueError(f"an ultra-dense capsule holds 64 distances, got {dist.shape}")
+    q2 = np.rint(dist * 4).astype(np.int64)
+    words = np.zeros(64, dtype=np.int64)
+    fields = (0xFFC, 0x1FFC, 0x3FFC, 0x7FFC)
+    for i, d in enumerate(q2.tolist()):
+        if d <= 0:
+            continue
+        for sc, field in enumerate(fields):
+            unit, base = sc + 2, _UD_THRESHOLD_MM[sc] << 2
+            f = (d - base) // (4 * unit) * 4
+            if f <= field or sc == 3:
+                words[i] = min(f, field) | sc | (1 << (12 + sc))  # quality 1 << sc: a return
+                break
+    high = words >> 16
+    cabins = np.empty((32, 5), dtype=np.uint8)
+    cabins[:, 0] = words[0::2] & 0xFF
+    cabins[:, 1] = (words[0::2] >> 8) & 0xFF
+    cabins[:, 2] = words[1::2] & 0xFF
+    cabins[:, 3] = (words[1::2] >> 8) & 0xFF
+    cabins[:, 4] = (high[0::2] & 0xF) | ((high[1::2] & 0xF) << 4)
+    body = struct.pack("<IHH", time_stamp & 0xFFFFFFFF, 0,
+                       round(start_angle_deg * 64) % _FULL_TURN_Q6 | (_START_FLAG if start else 0))
+    body += cabins.tobytes()
+    cs = _xor(body)
+    return bytes(((_SYNC_NIBBLE_1 << 4) | (cs & 0xF), (_SYNC_NIBBLE_2 << 4) | (cs >> 4))) + body
+
+
+LEGACY_CAPSULE = CapsuleFormat("express", EXPRESS_DESCRIPTOR, CAPSULE_SAMPLES, 2, _legacy_unpack)
+ULTRA_CAPSULE = CapsuleFormat("ultra", ULTRA_DESCRIPTOR, 96, 2, _ultra_unpack)
+DENSE_CAPSULE = CapsuleFormat("dense", DENSE_DESCRIPTOR, 40, 2, _dense_unpack)
+ULTRA_DENSE_CAPSULE = CapsuleFormat("ultradense", ULTRA_DENSE_DESCRIPTOR, 64, 8, _ultra_dense_unpack)
+
+#: Capsule kinds by the answer type of their scan mode (GET_LIDAR_CONF, descriptor).
+CAPSULE_FORMATS = {f.answer_type: f for f in (LEGACY_CAPSULE, ULTRA_CAPSULE, DENSE_CAPSULE, ULTRA_DENSE_CAPSULE)}
+#: ... and by the name ``mazebot lidar decode --mode`` knows them by.
+CAPSULE_FORMATS_BY_NAME = {f.name: f for f in CAPSULE_FORMATS.values()}
+
+
+def scan_decoder(answer_type: int) -> StandardScanDecoder | ExpressScanDecoder:
+    """The decoder of a scan mode's answer type (0x81 standard, 0x82/0x84/0x85/0x86 capsules)."""
+    if answer_type == TYPE_SCAN:
+        return StandardScanDecoder()
+    if answer_type not in CAPSULE_FORMATS:
+        raise ProtocolError(f"scan answer type {answer_type:#04x} is none of 0x81, 0x82, 0x84, 0x85, 0x86")
+    return ExpressScanDecoder(CAPSULE_FORMATS[answer_type])
+
+
+# --- GET_LIDAR_CONF: the device's scan modes --------------------------------------------
+#
+# Request A5 84 size [u32le type, u16le mode id, padding] checksum (the SDK sends the
+# type and 32 reserved bytes, the mode id in the first two: sl_lidar_driver.cpp,
+# getLidarConf). Answer: descriptor of type 0x20, single, then u32le type + payload.
+
+CMD_GET_LIDAR_CONF = 0x84
+COMMAND_NAMES[CMD_GET_LIDAR_CONF] = "GET_LIDAR_CONF"
+
+CONF_SCAN_MODE_COUNT = 0x70  # u16
+CONF_SCAN_MODE_US_PER_SAMPLE = 0x71  # u32, q8 microseconds
+CONF_SCAN_MODE_MAX_DISTANCE = 0x74  # u32, q8 metres
+CONF_SCAN_MODE_ANS_TYPE = 0x75  # u8
+CONF_SCAN_MODE_TYPICAL = 0x7C  # u16
+CONF_SCAN_MODE_NAME = 0x7F  # NUL-terminated string
+
+#: The mode ids of the scan commands a device without GET_LIDAR_CONF knows (sl_lidar_cmd.h).
+SCAN_MODE_ID_STANDARD = 0
+SCAN_MODE_ID_EXPRESS = 1
+
+
+@dataclass(frozen=True)
+class ScanModeInfo:
+    """One scan mode the device offers (GET_LIDAR_CONF)."""
+
+    id: int
+    name: str
+    us_per_sample: float
+    max_distance_m: float
+    answer_type: int
+
+    @property
+    def samples_per_s(self) -> float:
+        return 1e6 / self.us_per_sample if self.us_per_sample > 0 else 0.0
+
+    def __str__(self) -> str:
+        return (f"{self.id}: {self.name}, {self.samples_per_s:.0f} samples/s ({self.us_per_sample:g} us), "
+                f"max {self.max_distance_m:g} m, answer type {self.answer_type:#04x}")
+
+
+def build_conf_request(conf_type: int, mode_id: int | None = None) -> bytes:
+    """A GET_LIDAR_CONF request as the SDK sends it: the type and 32 reserved bytes,
+    the mode id (for the per-mode types) in the first two."""
+    reserved = bytearray(32)
+    if mode_id is not None:
+        reserved[:2] = struct.pack("<H", mode_id)
+    return build_request(CMD_GET_LIDAR_CONF, struct.pack("<I", conf_type) + bytes(reserved))
+
+
+def parse_conf_request(payload: bytes) -> tuple[int, int]:
+    """(type, mode id) of a GET_LIDAR_CONF request payload (mode id 0 if absent)."""
+    if len(payload) < 4:
+        raise ProtocolError(f"GET_LIDAR_CONF request: expected at least 4 payload bytes, found {len(payload)}")
+    (conf_type,) = struct.unpack_from("<I", payload)
+    mode_id = struct.unpack_from("<H", payload, 4)[0] if len(payload) >= 6 else 0
+    return conf_type, mode_id
+
+
+def conf_descriptor(payload_len: int) -> Descriptor:
+    return Descriptor(4 + payload_len, SendMode.SINGLE, TYPE_LIDAR_CONF)
+
+
+def encode_conf_answer(conf_type: int, payload: bytes) -> bytes:
+    return struct.pack("<I", conf_type) + payload
+
+
+def parse_conf_answer(data: bytes | bytearray, conf_type: int) -> bytes:
+    """The payload of a GET_LIDAR_CONF answer, insisting it answers ``conf_type``."""
+    if len(data) < 5:
+        raise ProtocolError(f"GET_LIDAR_CONF answer: expected a type and a payload, found {len(data)} bytes")
+    (found,) = struct.unpack_from("<I", data)
+    if found != conf_type:
+        raise ProtocolError(f"GET_LIDAR_CONF answer: expected type {conf_type:#x}, found {found:#x}")
+    return bytes(data[4:])
+
+
+def encode_mode_conf(mode: ScanModeInfo, conf_type: int) -> bytes:
+    """The payload the device sends for one per-mode conf type."""
+    if conf_type == CONF_SCAN_MODE_US_PER_SAMPLE:
+        return struct.pack("<I", round(mode.us_per_sample * 256))
+    if conf_type == CONF_SCAN_MODE_MAX_DISTANCE:
+        return struct.pack("<I", round(mode.max_distance_m * 256))
+    if conf_type == CONF_SCAN_MODE_ANS_TYPE:
+        return bytes((mode.answer_type,))
+    if conf_type == CONF_SCAN_MODE_NAME:
+        return mode.name.encode("ascii") + b"\0"
+    raise ValueError(f"conf type {conf_type:#x} is not a per-mode one")
+
+
+def decode_mode_conf(conf_type: int, payload: bytes) -> float | int | str:
+    """A per-mode conf value as the SDK reads it (q8 values shifted right by 8)."""
+    if conf_type in (CONF_SCAN_MODE_US_PER_SAMPLE, CONF_SCAN_MODE_MAX_DISTANCE):
+        if len(payload) < 4:
+            raise ProtocolError(f"GET_LIDAR_CONF {conf_type:#x}: expected 4 bytes, found {len(payload)}")
+        return float(struct.unpack_from("<I", payload)[0] >> 8)
+    if conf_type == CONF_SCAN_MODE_ANS_TYPE:
+        return payload[0]
+    if conf_type in (CONF_SCAN_MODE_COUNT, CONF_SCAN_MODE_TYPICAL):
+        if len(payload) < 2:
+            raise ProtocolError(f"GET_LIDAR_CONF {conf_type:#x}: expected 2 bytes, found {len(payload)}")
+        return struct.unpack_from("<H", payload)[0]
+    if conf_type == CONF_SCAN_MODE_NAME:
+        return payload.split(b"\0", 1)[0].decode("ascii", errors="replace")
+    raise ProtocolError(f"GET_LIDAR_CONF: unknown conf type {conf_type:#x}")
+
+
+def express_scan_payload(mode_id: int) -> bytes:
+    """EXPRESS_SCAN payload (sl_lidar_payload_express_scan_t): u8 working mode (the scan
+    mode id), u16 working flags, u16 param."""
+    return struct.pack("<BHH", mode_id, 0, 0)

@@ -25,6 +25,7 @@ from mazebot.config import Config
 from mazebot.io.encoders import WheelEncoders
 from mazebot.io.motors import DifferentialMotors
 from mazebot.io.rplidar import RPLidar
+from mazebot.io.rplidar_models import MODELS
 from mazebot.io.serial_link import ByteLink, memory_link_pair
 from mazebot.main import Hardware, HardwareBuilder
 from mazebot.sim.lidar_emulator import RPLidarEmulator
@@ -48,6 +49,7 @@ class SimLidarLine:
         self._device_writers: list[asyncio.StreamWriter] = []
         self.plugged = True
         self.connects = 0  # lines opened (the first one and every reconnect)
+        self._silent_ends: list[object] = []  # device ends of lines opened at a wrong speed
 
     def unplug(self) -> None:
         """Pull the USB cable: the open line ends (the driver reads end of file) and the port is gone."""
@@ -74,6 +76,18 @@ class SimLidarLine:
         self._served.add(task)
         task.add_done_callback(self._served.discard)
         return link if self.catch_up is None else _StreamingLink(link, self.catch_up)
+
+    async def connect_at(self, baudrate: int) -> ByteLink:
+        """A line opened at ``baudrate``: at the unit's own speed the device answers;
+        at any other it hears only noise and its answers are noise, so nothing comes."""
+        if baudrate == self.emulator.model.baudrate:
+            return await self.connect()
+        if not self.plugged:
+            raise FileNotFoundError(errno.ENOENT, "No such file or directory: the lidar's USB adapter is unplugged")
+        self.connects += 1
+        link, device_end = memory_link_pair(on_motor=lambda on: None)
+        self._silent_ends.append(device_end)  # nobody serves it, but it stays open
+        return link
 
     async def close(self) -> None:
         for task in list(self._served):
@@ -143,12 +157,17 @@ def sim_hardware_builder(
         encoders.read = read_now  # type: ignore[method-assign]
 
         paced = config.sim.lidar_paced_by_robot
-        emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, self_paced=not paced)
+        emulator = RPLidarEmulator(
+            robot.lidar_head, robot.poses, clock, model=MODELS[config.sim.lidar_model], self_paced=not paced
+        )
         if paced:
             robot.attach_lidar(emulator)
         line = SimLidarLine(emulator, catch_up)
         stack.push_async_callback(line.close)
-        lidar = RPLidar.from_config(config.lidar, clock, link_factory=line.connect)
+        lidar = RPLidar.from_config(
+            config.lidar, clock, link_factory=lambda: line.connect_at(config.lidar.baudrate),
+            probe_factory=line.connect_at,
+        )
         await stack.enter_async_context(lidar)
         robot.lidar_line = line  # the fault injector pulls its cable (mazebot.sim.faults)
         return Hardware(

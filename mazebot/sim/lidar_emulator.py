@@ -1,14 +1,23 @@
-"""An RPLidar A1M8 that answers the real serial protocol from a simulated world.
+"""An RPLidar that answers the real serial protocol from a simulated world.
 
 The emulator is the device end of the serial line: it reads request bytes, answers
-GET_INFO (model 0x18), GET_HEALTH, GET_SAMPLERATE, SCAN / FORCE_SCAN (5-byte samples),
-EXPRESS_SCAN (84-byte legacy capsules), STOP and RESET (with the boot banner the
-device prints), ignores the A2's SET_PWM like an A1 does, and streams the samples of
-the spinning head (``lidar_samples.SpinningLidar``) while its motor turns. The motor
-follows the DTR line as on the A1's USB adapter: DTR cleared = spinning.
+GET_INFO, GET_HEALTH, GET_SAMPLERATE and GET_LIDAR_CONF (the scan modes of its model,
+``mazebot.io.rplidar_models``), SCAN / FORCE_SCAN (5-byte samples), EXPRESS_SCAN in
+each mode the model offers (legacy, ultra, dense or ultra-dense capsules at that
+mode's sample rate), STOP and RESET (with the boot banner the device prints), ignores
+the A2's SET_PWM like an A1 does, and streams the samples of the spinning head
+(``lidar_samples.SpinningLidar``) while its motor turns. The motor follows the DTR
+line as on the A1's USB adapter: DTR cleared = spinning.
 
-Because it speaks bytes, anything that talks to a real A1 can talk to it: the daemon's
-own driver over an in-memory stream pair, or a third-party client over a
+It is no easier than the device: a triangulation head (A series) measures along a
+direction that lies behind its raw angle by an offset that grows with the range (up
+to 8°), and reports it as the real one does (standard: the angle with the offset
+taken off, so angles step irregularly, even backwards; legacy capsules: the 6-bit
+field, 0..63 eighths of a degree; ultra: left to the decoder, which derives it from
+the range as Slamtec's SDK does).
+
+Because it speaks bytes, anything that talks to a real unit can talk to it: the
+daemon's own driver over an in-memory stream pair, or a third-party client over a
 pseudo-terminal (``mazebot sim lidar``).
 """
 
@@ -17,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -24,14 +34,62 @@ import numpy as np
 
 from mazebot.clock import Clock
 from mazebot.io import rplidar_protocol as proto
-from mazebot.sim.lidar_samples import DeviceSamples, PoseHistory, SpinningLidar, concat
+from mazebot.io.rplidar_models import MODELS, LidarModel
+from mazebot.sim.lidar_samples import DeviceSamples, PoseHistory, SpinningLidar, concat, tail
 
 log = logging.getLogger(__name__)
 
 #: A2/A3 motor speed command (payload: u16 PWM); an A1 ignores it, so do we.
 CMD_SET_PWM = 0xF0
-#: What the A1 prints on its serial line after a RESET (the driver must skip it).
-BOOT_BANNER = b"RP LIDAR System.\r\nFirmware Ver 1.29 - rc9, HW Ver 7\r\nModel: 18\r\n"
+
+
+def boot_banner(model: LidarModel) -> bytes:
+    """What the unit prints on its serial line after a RESET (the driver must skip it);
+    an A1M8 prints "RP LIDAR System. / Firmware Ver 1.29 - rtm, HW Ver 7 / Model: 18"."""
+    major, minor = model.firmware
+    return (f"RP LIDAR System.\r\nFirmware Ver {major}.{minor:02d} - rtm, HW Ver {model.hardware}\r\n"
+            f"Model: {model.model_id:X}\r\n").encode()
+
+
+#: Capsule kinds the emulator writes, by answer type.
+_CAPSULE_WRITERS: dict[int, tuple[int, Callable[..., bytes]]] = {
+    proto.TYPE_EXPRESS: (proto.CAPSULE_SAMPLES, proto.encode_express_capsule),
+    proto.TYPE_ULTRA: (96, proto.encode_ultra_capsule),
+    proto.TYPE_DENSE: (40, proto.encode_dense_capsule),
+    proto.TYPE_ULTRA_DENSE: (64, proto.encode_ultra_dense_capsule),
+}
+_DESCRIPTORS = {
+    proto.TYPE_SCAN: proto.SCAN_DESCRIPTOR,
+    proto.TYPE_EXPRESS: proto.EXPRESS_DESCRIPTOR,
+    proto.TYPE_ULTRA: proto.ULTRA_DESCRIPTOR,
+    proto.TYPE_DENSE: proto.DENSE_DESCRIPTOR,
+    proto.TYPE_ULTRA_DENSE: proto.ULTRA_DENSE_DESCRIPTOR,
+}
+
+
+def legacy_offset_deg(dist_mm: np.ndarray) -> np.ndarray:
+    """The offset a triangulation head reports in a legacy capsule: the geometry's angle
+    (the formula Slamtec's SDK applies to ultra capsules, ``ultra_angle_offset_q16``;
+    8° far away, about 5-6.5° at 0.5-1 m, what real A1 units send) in eighths of a
+    degree, 0..63. No return: the far value."""
+    d_q2 = np.where(dist_mm > 0, np.asarray(dist_mm) * 4, 1 << 30).astype(np.int64)
+    q3 = np.rint(proto.ultra_angle_offset_q16(d_q2) / 65536 * 8)
+    return np.clip(q3, 0, 63) / 8
+
+
+def standard_offset_deg(dist_mm: np.ndarray) -> np.ndarray:
+    """The offset a triangulation head has already taken off a standard sample's angle:
+    the geometry's (as ``legacy_offset_deg``) to the standard format's 1/64°, none
+    where there is no return (a real A1 reports those at their raw angle)."""
+    d_q2 = np.rint(np.asarray(dist_mm) * 4).astype(np.int64)
+    q6 = np.clip(np.rint(proto.ultra_angle_offset_q16(d_q2) / 1024), 0, 8 * 64)
+    return np.where(np.asarray(dist_mm) > 0, q6 / 64, 0.0)
+
+
+def ultra_offset_deg(dist_mm: np.ndarray) -> np.ndarray:
+    """The offset the SDK derives from an ultra capsule sample's range, in degrees."""
+    d_q2 = np.rint(np.asarray(dist_mm) * 4).astype(np.int64)
+    return proto.ultra_angle_offset_q16(d_q2) / 65536
 
 
 @dataclass
@@ -43,7 +101,7 @@ class EmulatorStats:
 
 
 class RPLidarEmulator:
-    """The device side of an RPLidar A1M8 serial line.
+    """The device side of an RPLidar serial line (an A1M8 unless told another model).
 
     Example::
 
@@ -62,6 +120,7 @@ class RPLidarEmulator:
         poses: PoseHistory,
         clock: Clock,
         *,
+        model: LidarModel | None = None,
         info: proto.DeviceInfo | None = None,
         serial_number: bytes = bytes(range(0x30, 0x40)),
         self_paced: bool = True,
@@ -69,12 +128,15 @@ class RPLidarEmulator:
         self.head = head
         self.poses = poses
         self.clock = clock
+        self.model = model or MODELS["a1"]
+        major, minor = self.model.firmware
         self.info = info or proto.DeviceInfo(
-            model=proto.MODEL_A1M8, firmware_minor=29, firmware_major=1, hardware=7, serial_number=serial_number
+            model=self.model.model_id, firmware_minor=minor, firmware_major=major, hardware=self.model.hardware,
+            serial_number=serial_number,
         )
         self.health = proto.DeviceHealth(status=0, error_code=0)
         self.motor_on = False
-        self.mode: str | None = None  # None (idle), "standard" or "express"
+        self.mode: proto.ScanModeInfo | None = None  # the scan mode streaming, None when idle
         self.stats = EmulatorStats()
         self._pending: list[DeviceSamples] = []  # express samples waiting to fill a capsule
         self._capsule_start = True
@@ -168,18 +230,49 @@ class RPLidarEmulator:
             self._send_descriptor(writer, proto.HEALTH_DESCRIPTOR)
             self._send(writer, proto.encode_health(self.health))
         elif cmd == proto.CMD_GET_SAMPLERATE:
-            per_rev = self.head.params.samples_per_rev * self.head.params.rev_per_s
-            us = max(1, round(1e6 / per_rev))
+            rate = proto.SampleRate(standard_us=round(self.model.standard_us), express_us=round(self.model.express_us))
             self._send_descriptor(writer, proto.SAMPLERATE_DESCRIPTOR)
-            self._send(writer, proto.encode_samplerate(proto.SampleRate(standard_us=us, express_us=max(1, us // 2))))
+            self._send(writer, proto.encode_samplerate(rate))
+        elif cmd == proto.CMD_GET_LIDAR_CONF:
+            self._answer_conf(writer, payload)
         elif cmd in (proto.CMD_SCAN, proto.CMD_FORCE_SCAN):
-            self._start_scan(writer, "standard")
+            self._start_scan(writer, self.model.mode(proto.SCAN_MODE_ID_STANDARD))
         elif cmd == proto.CMD_EXPRESS_SCAN:
-            self._start_scan(writer, "express")
+            # working mode 0 is the legacy express scan of the protocol document (what
+            # clients without GET_LIDAR_CONF send); any other is a scan mode id
+            working_mode = payload[0] if payload else 0
+            ids = {m.id for m in self.model.modes}
+            if working_mode == 0:
+                legacy = [m for m in self.model.modes if m.answer_type == proto.TYPE_EXPRESS]
+                working_mode = legacy[0].id if legacy else self.model.typical_mode
+            if working_mode not in ids:
+                self.stats.bad_requests += 1
+                return  # a mode the unit does not have: it stays silent
+            self._start_scan(writer, self.model.mode(working_mode))
         elif cmd == CMD_SET_PWM:
             pass  # an A2/A3 command; the A1 has no PWM motor control
         else:
             self.stats.bad_requests += 1
+
+    def _answer_conf(self, writer: asyncio.StreamWriter, payload: bytes) -> None:
+        """GET_LIDAR_CONF: the scan modes of the model (unknown types: no answer)."""
+        try:
+            conf_type, mode_id = proto.parse_conf_request(payload)
+        except proto.ProtocolError:
+            self.stats.bad_requests += 1
+            return
+        if conf_type == proto.CONF_SCAN_MODE_COUNT:
+            data = struct.pack("<H", len(self.model.modes))
+        elif conf_type == proto.CONF_SCAN_MODE_TYPICAL:
+            data = struct.pack("<H", self.model.typical_mode)
+        else:
+            try:
+                data = proto.encode_mode_conf(self.model.mode(mode_id), conf_type)
+            except (KeyError, ValueError):
+                self.stats.bad_requests += 1
+                return
+        self._send_descriptor(writer, proto.conf_descriptor(len(data)))
+        self._send(writer, proto.encode_conf_answer(conf_type, data))
 
     def _send_descriptor(self, writer: asyncio.StreamWriter, descriptor: proto.Descriptor) -> None:
         data = descriptor.encode()
@@ -194,18 +287,24 @@ class RPLidarEmulator:
 
     def _send_banner(self) -> None:
         if self._writer is not None and not self._writer.is_closing():
-            self._send(self._writer, BOOT_BANNER)
+            self._send(self._writer, boot_banner(self.model))
 
-    def _start_scan(self, writer: asyncio.StreamWriter, mode: str) -> None:
+    def _start_scan(self, writer: asyncio.StreamWriter, mode: proto.ScanModeInfo) -> None:
         if self.health.status == proto.HEALTH_ERROR:
             return  # protection stop: the device refuses to scan until RESET
-        if mode == "standard":
-            self._send_descriptor(writer, proto.SCAN_DESCRIPTOR)
-        else:
-            self._send_descriptor(writer, proto.EXPRESS_DESCRIPTOR)
+        self._send_descriptor(writer, _DESCRIPTORS[mode.answer_type])
         self.mode = mode
         self._pending.clear()
         self._capsule_start = True
+        self.head.set_samples_per_rev(max(36, round(mode.samples_per_s / self.model.rev_per_s)))
+        if not self.model.triangulation or mode.answer_type == proto.TYPE_DENSE:
+            self.head.angle_offset = None
+        elif mode.answer_type == proto.TYPE_SCAN:
+            self.head.angle_offset = standard_offset_deg
+        elif mode.answer_type == proto.TYPE_EXPRESS:
+            self.head.angle_offset = legacy_offset_deg
+        else:
+            self.head.angle_offset = ultra_offset_deg
         self.head.restart(self.clock.now_s())
 
     async def _stream(self, writer: asyncio.StreamWriter) -> None:
@@ -245,23 +344,33 @@ class RPLidarEmulator:
 
     def encode(self, samples: DeviceSamples) -> bytes:
         """Protocol bytes for these samples in the current scan mode."""
-        if self.mode == "standard":
+        mode = self.mode
+        if mode is None:
+            return b""
+        if mode.answer_type == proto.TYPE_SCAN:
             self.stats.samples_sent += len(samples)
             if not len(samples):
                 return b""
-            return proto.encode_standard_samples(samples.angle_deg, samples.dist_mm, samples.quality, samples.start)
+            # the device reports the direction it measured along: raw angle minus offset
+            angle = samples.angle_deg if samples.offset_deg is None else (samples.angle_deg - samples.offset_deg) % 360
+            return proto.encode_standard_samples(angle, samples.dist_mm, samples.quality, samples.start)
+        per_capsule, write = _CAPSULE_WRITERS[mode.answer_type]
+        top_mm = 16383 if mode.answer_type == proto.TYPE_EXPRESS else 28000
         self._pending.append(samples)
         pending = concat(self._pending)
-        n_caps = len(pending) // proto.CAPSULE_SAMPLES
+        n_caps = len(pending) // per_capsule
         out = bytearray()
         for k in range(n_caps):
-            lo = k * proto.CAPSULE_SAMPLES
-            dist = np.minimum(pending.dist_mm[lo : lo + proto.CAPSULE_SAMPLES], 16383)
-            out += proto.encode_express_capsule(float(pending.angle_deg[lo]), dist, start=self._capsule_start)
+            lo, hi = k * per_capsule, (k + 1) * per_capsule
+            dist = np.minimum(pending.dist_mm[lo:hi], top_mm)
+            start_deg = float(pending.angle_deg[lo])  # the raw angle: the decoder interpolates raw angles
+            if mode.answer_type == proto.TYPE_EXPRESS:
+                comp = None if pending.offset_deg is None else pending.offset_deg[lo:hi]
+                out += write(start_deg, dist, comp, start=self._capsule_start)
+            else:
+                out += write(start_deg, dist, start=self._capsule_start)
             self._capsule_start = False
-        used = n_caps * proto.CAPSULE_SAMPLES
+        used = n_caps * per_capsule
         self.stats.samples_sent += used
-        rest = DeviceSamples(*(getattr(pending, f)[used:] for f in
-                               ("time_s", "angle_deg", "dist_mm", "quality", "start")))
-        self._pending = [rest]
+        self._pending = [tail(pending, used)]
         return bytes(out)

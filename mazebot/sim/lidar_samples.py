@@ -13,8 +13,8 @@ valid return" (too close, below 0.15 m; too far, beyond 12 m; or no echo).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -48,6 +48,9 @@ class DeviceSamples:
     dist_mm: np.ndarray  # 0 = no valid return
     quality: np.ndarray  # 0..63
     start: np.ndarray  # True on the first sample of a revolution
+    #: how far (degrees) each measured direction lies behind its raw angle ``angle_deg``:
+    #: a triangulation head's geometry, None where the directions are the raw angles
+    offset_deg: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
@@ -119,12 +122,26 @@ class SpinningLidar:
         self._time_s: float | None = None  # time of the last emitted sample
         self._index_in_rev = 0  # index of the next sample within its revolution
         self._period_s = self._draw_period_s()
+        self._tables()
+        self._centred = params.mount_x_m == 0.0 and params.mount_y_m == 0.0
+        #: range (mm) -> how far behind its raw angle a sample's direction lies (degrees,
+        #: as the device will report it); None: the direction is the raw angle
+        self.angle_offset: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def _tables(self) -> None:
         # Per sample index, its angle in degrees and in radians: the same floats as
         # ``i * (360 / n)`` and its ``deg2rad``, looked up instead of recomputed per batch.
-        n = params.samples_per_rev
+        n = self.params.samples_per_rev
         self._angle_deg = np.arange(n, dtype=np.int64) * (360.0 / n)
         self._angle_rad = np.deg2rad(self._angle_deg)
-        self._centred = params.mount_x_m == 0.0 and params.mount_y_m == 0.0
+
+    def set_samples_per_rev(self, samples_per_rev: int) -> None:
+        """A scan mode with another sample rate starts: so many samples a turn from now on."""
+        if samples_per_rev != self.params.samples_per_rev:
+            self.params = replace(self.params, samples_per_rev=samples_per_rev)
+            self._tables()
+            self._period_s = self._draw_period_s()
+            self._index_in_rev = 0
 
     def _draw_period_s(self) -> float:
         p = self.params
@@ -176,7 +193,8 @@ class SpinningLidar:
         k = times_s.shape[0]
         if k == 0:
             empty = np.zeros(0)
-            return DeviceSamples(empty, empty, empty, np.zeros(0, np.uint8), np.zeros(0, bool))
+            no_offset = None if self.angle_offset is None else empty
+            return DeviceSamples(empty, empty, empty, np.zeros(0, np.uint8), np.zeros(0, bool), no_offset)
         angle_deg = self._angle_deg[indices]
         x, y, th = poses.at(times_s)
         if self._centred:  # x + 0·cos − 0·sin is x: skip four trigonometric passes
@@ -185,17 +203,36 @@ class SpinningLidar:
             ox = x + p.mount_x_m * np.cos(th) - p.mount_y_m * np.sin(th)
             oy = y + p.mount_x_m * np.sin(th) + p.mount_y_m * np.cos(th)
         ray_world_rad = th + p.mount_yaw_rad - self._angle_rad[indices]
+        offset_deg = None
+        if self.angle_offset is not None:
+            # A triangulation head sees along a direction behind its raw angle by an
+            # offset that depends on the range: find it from a first cast along the
+            # typical offset, then measure along the direction the device will report.
+            guess_m = self._caster.cast_xy(ox, oy, ray_world_rad + np.deg2rad(6.0), p.max_range_m)
+            guess_mm = np.where(np.isfinite(guess_m), guess_m * 1000.0, 0.0)
+            offset_deg = self.angle_offset(guess_mm)
+            ray_world_rad = ray_world_rad + np.deg2rad(offset_deg)
         true_m = self._caster.cast_xy(ox, oy, ray_world_rad, p.max_range_m)
         measured_m = true_m * (1.0 + p.range_noise * self._rng.standard_normal(k))
         valid = np.isfinite(true_m) & (true_m >= p.min_range_m) & (measured_m <= p.max_range_m)
         valid &= self._rng.random(k) >= p.dropout
         dist_mm = np.where(valid, np.round(measured_m * 1000.0 * 4.0) / 4.0, 0.0)
         quality = np.where(valid, p.quality, 0).astype(np.uint8)
-        return DeviceSamples(times_s, angle_deg, dist_mm, quality, indices == 0)
+        return DeviceSamples(times_s, angle_deg, dist_mm, quality, indices == 0, offset_deg)
+
+
+_FIELDS = ("time_s", "angle_deg", "dist_mm", "quality", "start")
 
 
 def concat(parts: Iterable[DeviceSamples]) -> DeviceSamples:
     """Join consecutive sample batches."""
     parts = list(parts)
-    return DeviceSamples(*(np.concatenate([getattr(s, f) for s in parts]) for f in
-                           ("time_s", "angle_deg", "dist_mm", "quality", "start")))
+    offsets = [s.offset_deg for s in parts]
+    offset = None if any(o is None for o in offsets) else np.concatenate(offsets)  # type: ignore[arg-type]
+    return DeviceSamples(*(np.concatenate([getattr(s, f) for s in parts]) for f in _FIELDS), offset)
+
+
+def tail(samples: DeviceSamples, begin: int) -> DeviceSamples:
+    """The samples from index ``begin`` on."""
+    offset = None if samples.offset_deg is None else samples.offset_deg[begin:]
+    return DeviceSamples(*(getattr(samples, f)[begin:] for f in _FIELDS), offset)

@@ -21,6 +21,7 @@ from gpiozero.pins.mock import MockFactory
 from mazebot.clock import Clock
 from mazebot.config import Config
 from mazebot.io.motors import FakeMotorKit
+from mazebot.io.rplidar_models import MODELS
 from mazebot.sim.encoder_signals import QuadratureSignal
 from mazebot.sim.lidar_samples import LidarParams, PoseHistory, SpinningLidar
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
@@ -50,11 +51,13 @@ def physics_params(config: Config) -> PhysicsParams:
 
 
 def lidar_params(config: Config) -> LidarParams:
-    """The emulated lidar from ``[lidar]`` (range limits, mounting) and ``[sim]`` (noise)."""
+    """The emulated lidar from ``[lidar]`` (range limits, mounting) and ``[sim]`` (model,
+    noise). The sample rate is the standard mode's until a scan mode starts."""
     sim, lidar = config.sim, config.lidar
-    samples = sim.lidar_samples_per_rev * (2 if lidar.scan_mode == "express" else 1)
+    model = MODELS[sim.lidar_model]
+    samples = round(1e6 / model.standard_us / model.rev_per_s)
     return LidarParams(
-        rev_per_s=sim.lidar_rev_per_s,
+        rev_per_s=model.rev_per_s,
         rev_jitter=sim.lidar_rev_jitter,
         samples_per_rev=samples,
         min_range_m=lidar.min_range_m,

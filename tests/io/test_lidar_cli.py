@@ -169,9 +169,15 @@ def test_info_and_health_from_a_device(pty_lidar: PtyLidar, capsys: pytest.Captu
         "firmware: 1.29",
         "hardware: 7",
         "serial number: 000102030405060708090A0B0C0D0E0F",
+        # this fake has no GET_LIDAR_CONF (firmware before 1.24): the SDK's fallback
+        "scan modes:",
+        "  0: Standard, 2000 samples/s (500 us), max 12 m, answer type 0x81",
+        "  1: Express, 4000 samples/s (250 us), max 12 m, answer type 0x82  (typical)",
     ]
     code, out, _ = run(["lidar", "info", "--json", "--port", pty_lidar.path], capsys)
-    assert json.loads(out) == {
+    got = json.loads(out)
+    assert got.pop("typical_scan_mode") == 1 and [m["name"] for m in got.pop("scan_modes")] == ["Standard", "Express"]
+    assert got == {
         "model": 24,
         "model_name": "A1M8",
         "firmware": "1.29",
@@ -193,7 +199,8 @@ def test_dump_writes_the_raw_stream_that_decode_reads(
     assert args.func(args) == 0
     raw = capsysbinary.readouterr().out
     assert raw.startswith(proto.SCAN_DESCRIPTOR.encode())
-    assert pty_lidar.requests[:3] == [proto.CMD_STOP, proto.CMD_GET_HEALTH, proto.CMD_SCAN]
+    # GET_SAMPLERATE: the standard mode's own sample period, for the time stamps
+    assert pty_lidar.requests[:4] == [proto.CMD_STOP, proto.CMD_GET_HEALTH, proto.CMD_GET_SAMPLERATE, proto.CMD_SCAN]
     deadline = time.monotonic() + 2
     while pty_lidar.requests[-1] != proto.CMD_STOP and time.monotonic() < deadline:
         time.sleep(0.01)  # the device thread reads the last request a little later
@@ -209,3 +216,47 @@ def test_dump_needs_a_positive_duration(capsys: pytest.CaptureFixture[str]) -> N
     code, _, err = run(["lidar", "dump", "--seconds", "0", "--port", "/dev/null"], capsys)
     assert code == 2
     assert "--seconds must be positive" in err
+
+
+@pytest.mark.parametrize(("kind", "encode", "per_capsule"), [
+    ("dense", proto.encode_dense_capsule, 40),
+    ("ultra", proto.encode_ultra_capsule, 96),
+    ("ultradense", proto.encode_ultra_dense_capsule, 64),
+])
+def test_decode_reads_every_capsule_kind(
+    kind: str, encode: object, per_capsule: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    fmt = proto.CAPSULE_FORMATS_BY_NAME[kind]
+    caps = b"".join(encode(8.0 * k, np.full(per_capsule, 1000.0 + 7 * k), start=k == 0)  # type: ignore[operator]
+                    for k in range(4))
+    bare, described = tmp_path / "bare.bin", tmp_path / "described.bin"
+    bare.write_bytes(caps)
+    described.write_bytes(fmt.descriptor.encode() + caps)
+    code, out, err = run(["lidar", "decode", "--mode", kind, str(bare)], capsys)
+    assert code == 0 and f"({kind})" in err
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert len(rows) == 3 * per_capsule
+    assert rows[0]["dist_mm"] == pytest.approx(1000.0, abs=2.0)
+    code, out2, err = run(["lidar", "decode", str(described)], capsys)  # the descriptor says which
+    assert code == 0 and f"({kind})" in err and out2 == out
+
+
+def test_info_prints_the_scan_modes_of_an_emulated_c1(capsys: pytest.CaptureFixture[str]) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "mazebot", "sim", "lidar", "--model", "c1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()  # type: ignore[union-attr]
+        code, out, _ = run(["lidar", "info", "--port", path, "--baud", "460800"], capsys)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        proc.stdout.close()  # type: ignore[union-attr]
+        proc.stderr.close()  # type: ignore[union-attr]
+    assert code == 0
+    lines = out.splitlines()
+    assert lines[0] == "model: C1M1 (0x41)"
+    assert lines[-3:] == [
+        "scan modes:",
+        "  0: Standard, 5000 samples/s (200 us), max 12 m, answer type 0x81",
+        "  1: DenseBoost, 5000 samples/s (200 us), max 12 m, answer type 0x85  (typical)",
+    ]

@@ -109,9 +109,11 @@ async def test_silent_device_times_out_as_unavailable(lidar_line: FakeLidarLine)
 async def test_scans_one_per_revolution_in_robot_convention(lidar_line: FakeLidarLine) -> None:
     async with make_lidar(lidar_line, mount_yaw_deg=90.0) as lidar:
         scans = await take(lidar.scans(), 3)
-        # start-up: motor on, STOP, health check, spin-up, SCAN
+        # start-up: motor on, STOP, health check, the mode's sample period, spin-up, SCAN
         assert lidar_line.motor == [True]
-        assert lidar_line.device.requests[:3] == [proto.CMD_STOP, proto.CMD_GET_HEALTH, proto.CMD_SCAN]
+        assert lidar_line.device.requests[:4] == [
+            proto.CMD_STOP, proto.CMD_GET_HEALTH, proto.CMD_GET_SAMPLERATE, proto.CMD_SCAN
+        ]
         assert lidar.stats.connected
     await asyncio.sleep(0.01)  # let the device read the last request
     assert lidar_line.device.requests[-1] == proto.CMD_STOP  # close() stops the scan
@@ -158,11 +160,12 @@ async def test_health_error_is_reset_then_scanning_works(lidar_line: FakeLidarLi
         scans = await take(lidar.scans(), 2)
         assert lidar.stats.health_errors == 1
         assert lidar.stats.reconnects == 0
-    assert lidar_line.device.requests[:5] == [
+    assert lidar_line.device.requests[:6] == [
         proto.CMD_STOP,
         proto.CMD_GET_HEALTH,
         proto.CMD_RESET,
         proto.CMD_GET_HEALTH,
+        proto.CMD_GET_SAMPLERATE,
         proto.CMD_SCAN,
     ]
     assert len(scans[0]) == SAMPLES_PER_REV
@@ -232,10 +235,12 @@ async def test_express_mode_scans(lidar_line: FakeLidarLine) -> None:
         scans = await take(lidar.scans(), 3)
     assert proto.CMD_EXPRESS_SCAN in lidar_line.device.requests
     for scan in scans:
-        # 720 samples a turn (0.5° apart); a revolution runs from 0° to just under 360°
+        # 720 samples a turn (0.5° apart). As in Slamtec's SDK, a capsule revolution
+        # starts with the last sample before the sweep passes 0° (here 359.5°).
         assert len(scan) == 2 * SAMPLES_PER_REV
         device_deg = np.rad2deg(-scan.angle_rad) % 360
-        np.testing.assert_allclose(np.diff(device_deg), 0.5, atol=1 / 64)
+        assert device_deg[0] == pytest.approx(359.5, abs=1 / 64)
+        np.testing.assert_allclose((np.diff(device_deg) + 180) % 360 - 180, 0.5, atol=1 / 64)
         assert np.all(scan.valid)
         np.testing.assert_array_equal(scan.range_m, 2.0)
 

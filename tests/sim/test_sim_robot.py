@@ -172,5 +172,5 @@ def test_the_robot_tick_paces_the_lidar_from_poses_already_reached() -> None:
     sizes = run_virtual(asyncio.wait_for(run(), 60.0))
     assert len(ahead_s) > 50  # one send every other tick for ~1.5 s
     assert max(ahead_s) <= 0.0
-    per_rev = config.sim.lidar_samples_per_rev
+    per_rev = robot.lidar_head.params.samples_per_rev
     assert all(abs(n - per_rev) <= 0.05 * per_rev for n in sizes)  # whole revolutions (±3 % jitter)

@@ -10,7 +10,7 @@ BIN = $(VENV)/bin
 MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data))
 export MAZEBOT_DATA
 
-.PHONY: run test lint system-deps clean
+.PHONY: run test lint system-deps check-install check-lock clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,16 @@ system-deps:
 
 test: system-deps lint
 	$(BIN)/pytest
+
+# CI's checks beyond the test suite (.ci/run): the wheel installed outside the checkout (a fresh
+# venv and pip install --user) serves the page; the Pi's lock file still resolves.
+check-install:
+	$(PYTHON) tools/check_install.py --python $(PYTHON)
+
+UV_VERSION ?= 0.13.9
+check-lock: $(BIN)/.installed
+	$(BIN)/python -m pip install --quiet 'uv==$(UV_VERSION)'
+	UV=$(BIN)/uv bash tools/lock-pi.sh --check
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -107,7 +107,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except MazebotError as exc:
-        print(f"mazebot: {exc}", file=sys.stderr)
+        from mazebot.logs import error_line
+
+        print(error_line(f"mazebot: {exc}"), file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         return 130

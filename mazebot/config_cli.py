@@ -10,13 +10,14 @@ from mazebot.errors import EXIT_OK, MazebotError
 
 def _config_check(args: argparse.Namespace) -> int:
     from mazebot.config import load_config
+    from mazebot.logs import error_line
 
     try:
         load_config(args.path)
     except MazebotError as exc:
         problems = getattr(exc, "problems", [str(exc)])
         for line in problems:
-            print(line, file=sys.stderr)
+            print(error_line(line), file=sys.stderr)
         return exc.exit_code
     print("ok")
     return EXIT_OK

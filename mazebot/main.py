@@ -15,7 +15,6 @@ import gc
 import importlib
 import logging
 import signal
-import sys
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import AsyncExitStack
@@ -28,6 +27,7 @@ from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config, load_config
 from mazebot.errors import EXIT_OK, HardwareUnavailable, UsageError
+from mazebot.logs import setup_logging
 from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor, TaskFactory
@@ -313,16 +313,6 @@ async def run_daemon(
         finally:
             sdnotify.notify("STOPPING=1")
     return EXIT_OK  # pragma: no cover - unreachable, keeps type checkers calm
-
-
-def setup_logging(level: str) -> None:
-    """Log to stderr without timestamps: journald adds its own."""
-    logging.basicConfig(
-        stream=sys.stderr,
-        level=getattr(logging, level.upper()),
-        format="%(levelname)s %(name)s: %(message)s",
-        force=True,
-    )
 
 
 def _parse_size(text: str) -> tuple[int, int]:

@@ -19,6 +19,7 @@ from mazebot.errors import EXIT_OK, ConfigError
 def _cmd_stop(args: argparse.Namespace) -> int:
     from mazebot.config import MotorsConfig, load_motors_config
     from mazebot.io.motor_hat import CHANNELS, open_motorkit
+    from mazebot.logs import error_line
 
     problem: ConfigError | None = None
     try:
@@ -26,7 +27,7 @@ def _cmd_stop(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         problem = exc
         motors = MotorsConfig()
-        print(f"mazebot: {exc}; stopping the HAT at the default I2C address 0x{motors.i2c_address:02x}",
+        print(error_line(f"mazebot: {exc}; stopping the HAT at the default I2C address 0x{motors.i2c_address:02x}"),
               file=sys.stderr)
     kit = open_motorkit(motors.i2c_address, motors.pwm_frequency_hz)
     for channel in CHANNELS:  # all four: a miswired config must not leave one turning

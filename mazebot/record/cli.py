@@ -59,7 +59,7 @@ async def _serve(args: argparse.Namespace, recording: Recording, speed: float | 
     from concurrent.futures import ThreadPoolExecutor
 
     from mazebot.config import load_config
-    from mazebot.main import setup_logging
+    from mazebot.logs import setup_logging
     from mazebot.record import replay_server
     from mazebot.record.replay import write_outputs
     from mazebot.state import SharedState

@@ -31,7 +31,7 @@ IMPORTS = {
     "numpy": "numpy",
     "scipy": "scipy.ndimage, scipy.sparse.csgraph, scipy.sparse.linalg, scipy.spatial",
     "aiohttp": "aiohttp.web",
-    "pydantic": "pydantic",
+    "pydantic": "pydantic.main",  # BaseModel: what `from pydantic import BaseModel` loads
     "pyserial-asyncio": "serial_asyncio",
     "pyserial": "serial",
     "gpiozero": "gpiozero, gpiozero.pins.mock",
@@ -40,6 +40,7 @@ IMPORTS = {
     "zstandard": "zstandard",
     "adafruit-circuitpython-motorkit": "adafruit_motorkit",
     "gpiod": "gpiod",
+    "shtab": "shtab",
 }
 LEFT_OUT = {"pyftdi", "pyusb", "binho-host-adapter", "sysv-ipc", "adafruit-circuitpython-requests",
             "adafruit-circuitpython-connectionmanager", "setuptools"}

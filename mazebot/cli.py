@@ -50,6 +50,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("runs", "mazebot.persist.cli", "list the saved runs (STATE_DIR/runs)"),
     Command("export-map", "mazebot.persist.cli",
             "export a saved run's map: PNG, ROS PGM+YAML, SVG or the cell graph"),
+    Command("completion", "mazebot.completion_cli", "print a shell completion script (bash or zsh)"),
 )
 
 #: ``build_parser(ALL)`` imports every command's module: the whole tree, for shell

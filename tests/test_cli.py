@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shutil
 import subprocess
 import sys
 import types
@@ -169,3 +170,39 @@ def test_motors_stop_on_a_missing_config_file_still_zeroes_the_hat(
     assert main(["motors", "stop", "--config", str(tmp_path / "nope.toml")]) == 78
     assert hat[0][0] == 0x60 and _all_zero(hat[0][2])
     assert "nope.toml: config file not found" in capsys.readouterr().err
+
+
+# -- shell completion ----------------------------------------------------------------------------------
+
+
+def _bash_complete(script: Path, words: list[str]) -> list[str]:
+    """What bash offers after ``words`` (the last one being typed), with the generated script loaded."""
+    array = " ".join(f"'{w}'" for w in words)
+    program = (f"source {script}; COMP_WORDS=({array}); COMP_CWORD={len(words) - 1}; "
+               "_shtab_mazebot; printf '%s\\n' \"${COMPREPLY[@]}\"")
+    proc = subprocess.run(["bash", "-c", program], capture_output=True, text=True, timeout=30, check=True)
+    return proc.stdout.split()
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="bash is not installed")
+def test_the_bash_completion_knows_every_command_and_the_options_of_each(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["completion", "bash"]) == 0
+    script = tmp_path / "mazebot.bash"
+    script.write_text(capsys.readouterr().out)
+    assert sorted(_bash_complete(script, ["mazebot", ""])) == sorted(c.name for c in COMMANDS)
+    assert _bash_complete(script, ["mazebot", "mo"]) == ["motors"]
+    assert _bash_complete(script, ["mazebot", "motors", "stop", "--c"]) == ["--config"]
+    levels = sorted(_bash_complete(script, ["mazebot", "run", "--log-level", ""]))
+    assert levels == ["debug", "error", "info", "warning"]
+
+
+def test_the_zsh_completion_names_every_command(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["completion", "zsh"]) == 0
+    script = capsys.readouterr().out
+    assert script.startswith("#compdef mazebot")
+    for command in COMMANDS:
+        assert f"\n    {command.name}:'" in script, command.name
+    if shutil.which("zsh"):
+        subprocess.run(["zsh", "-n"], input=script, text=True, check=True, timeout=30)

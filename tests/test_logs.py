@@ -60,20 +60,32 @@ def test_only_the_stream_systemd_named_is_the_journal(pipe: tuple[io.TextIOWrapp
     assert error_line("mazebot: x", writer) == "mazebot: x"
 
 
+@pytest.fixture
+def root_logger() -> Iterator[logging.Logger]:
+    """The root logger, given back afterwards with the handlers and level it had (pytest's own among them)."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        yield root
+    finally:
+        for handler in root.handlers[:]:
+            root.removeHandler(handler)
+        for handler in handlers:
+            root.addHandler(handler)
+        root.setLevel(level)
+
+
 def test_setup_logging_prefixes_on_the_journal_and_not_elsewhere(
-    pipe: tuple[io.TextIOWrapper, str], monkeypatch: pytest.MonkeyPatch
+    pipe: tuple[io.TextIOWrapper, str], monkeypatch: pytest.MonkeyPatch, root_logger: logging.Logger
 ) -> None:
     writer, value = pipe
     monkeypatch.setenv("JOURNAL_STREAM", value)
-    try:
-        setup_logging("info", writer)
-        assert isinstance(logging.getLogger().handlers[0].formatter, JournalFormatter)
-        plain = io.StringIO()
-        setup_logging("info", plain)
-        logging.getLogger("mazebot").warning("fault: lidar")
-        assert plain.getvalue() == "WARNING mazebot: fault: lidar\n"
-    finally:
-        logging.basicConfig(handlers=[logging.NullHandler()], force=True)
+    setup_logging("info", writer)
+    assert isinstance(root_logger.handlers[0].formatter, JournalFormatter)
+    plain = io.StringIO()
+    setup_logging("info", plain)
+    logging.getLogger("mazebot").warning("fault: lidar")
+    assert plain.getvalue() == "WARNING mazebot: fault: lidar\n"
 
 
 def _read_all(fd: int, into: list[bytes]) -> None:

@@ -5,12 +5,13 @@
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV ?= .venv
 BIN = $(VENV)/bin
-# Real data for tests and benchmarks (mazes, pose graphs, a laser log) lives outside the
-# repository; tests that need it skip with a reason when it cannot be found.
-MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data))
+# Real data for tests and benchmarks (mazes, pose graphs, laser logs) lives outside the
+# repository: ../shared/data where there is one (CI), else data/ in the checkout, which
+# `make data` fills from the data's origins; tests that need it skip with a reason without it.
+MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data) $(CURDIR)/data)
 export MAZEBOT_DATA
 
-.PHONY: run test lint system-deps clean
+.PHONY: run test lint system-deps data check-install check-lock clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +30,19 @@ system-deps:
 
 test: system-deps lint
 	$(BIN)/pytest
+
+data:
+	$(PYTHON) tools/fetch_data.py --data $(MAZEBOT_DATA)
+
+# CI's checks beyond the test suite (.ci/run): the wheel installed outside the checkout (a fresh
+# venv and pip install --user) serves the page; the Pi's lock file still resolves.
+check-install:
+	$(PYTHON) tools/check_install.py --python $(PYTHON)
+
+UV_VERSION ?= 0.13.9
+check-lock: $(BIN)/.installed
+	$(BIN)/python -m pip install --quiet 'uv==$(UV_VERSION)'
+	UV=$(BIN)/uv bash tools/lock-pi.sh --check
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -3,92 +3,114 @@
 Every subcommand sets ``args.func(args) -> int``. Errors the user can act on
 (``MazebotError``) become one line on stderr and the error's exit code; argparse's own
 usage errors exit 2. Nothing here prints a traceback for a user mistake.
+
+Start-up cost is paid per subcommand: the top-level parser is built from the table
+:data:`COMMANDS` (name, module, one-line help) without importing any command's module,
+and only the module of the subcommand being run is imported, to add its options and
+run it (pip does the same: ``pip/_internal/commands/__init__.py``). So ``mazebot motors
+stop``, which systemd runs after every exit of the daemon, never imports numpy, scipy or
+the SLAM, and ``mazebot config check`` works whatever optional part is missing.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import os
 import sys
 from collections.abc import Sequence
+from typing import NamedTuple
 
-from mazebot import __version__
-from mazebot.config import load_config, render_toml
 from mazebot.errors import EXIT_OK, MazebotError
 
-log = logging.getLogger("mazebot")
 
-#: Modules that add subcommands with ``register(subparsers)``; imported lazily so a
-#: missing optional part never breaks ``config check``.
-_COMMAND_MODULES = (
-    "mazebot.main",
-    "mazebot.io.lidar_cli",
-    "mazebot.io.motors_cli",
-    "mazebot.sim.cli",
-    "mazebot.slam.posegraph_cli",
-    "mazebot.slam.slam_cli",
-    "mazebot.bench.cli",
-    "mazebot.record.cli",
-    "mazebot.persist.cli",
+class Command(NamedTuple):
+    """One top-level subcommand: its name, the module whose ``register(subparsers)`` adds
+    its parser, and the help line ``mazebot --help`` shows without importing that module."""
+
+    name: str
+    module: str
+    help: str
+
+
+#: Every top-level subcommand, in the order ``mazebot --help`` lists them. A module may
+#: register several (``mazebot.persist.cli``: ``runs`` and ``export-map``); the help lines
+#: here must equal the ones the modules register (a test keeps them equal).
+COMMANDS: tuple[Command, ...] = (
+    Command("config", "mazebot.config_cli", "check or print the configuration"),
+    Command("run", "mazebot.main", "run the robot (or, with --sim, the simulated robot)"),
+    Command("lidar", "mazebot.io.lidar_cli", "talk to the RPLidar or decode its byte stream"),
+    Command("motors", "mazebot.io.motors_cli", "direct motor HAT commands"),
+    Command("sim", "mazebot.sim.cli", "parts of the simulator on their own"),
+    Command("posegraph", "mazebot.slam.posegraph_cli", "2D pose graphs in g2o format"),
+    Command("slam", "mazebot.slam.slam_cli", "run the SLAM offline on recorded data"),
+    Command("bench", "mazebot.bench.cli", "measure whole simulated runs against ground truth"),
+    Command("replay", "mazebot.record.cli",
+            "run a recording (MCAP) through SLAM again; writes map and trajectory"),
+    Command("runs", "mazebot.persist.cli", "list the saved runs (STATE_DIR/runs)"),
+    Command("export-map", "mazebot.persist.cli",
+            "export a saved run's map: PNG, ROS PGM+YAML, SVG or the cell graph"),
+    Command("completion", "mazebot.completion_cli", "print a shell completion script (bash or zsh)"),
 )
 
-
-def _config_check(args: argparse.Namespace) -> int:
-    try:
-        load_config(args.path)
-    except MazebotError as exc:
-        problems = getattr(exc, "problems", [str(exc)])
-        for line in problems:
-            print(line, file=sys.stderr)
-        return exc.exit_code
-    print("ok")
-    return EXIT_OK
+#: ``build_parser(ALL)`` imports every command's module: the whole tree, for shell
+#: completion and for the tests.
+ALL = "*"
 
 
-def _config_defaults(args: argparse.Namespace) -> int:
-    sys.stdout.write(render_toml())
-    return EXIT_OK
+class _VersionAction(argparse.Action):
+    """``--version``: the installed distribution's version, read from its metadata only when asked."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print the installed version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        from mazebot import __version__
+
+        sys.stdout.write(f"mazebot {__version__}\n")
+        parser.exit()
 
 
-def _register_config(sub: argparse._SubParsersAction) -> None:
-    config = sub.add_parser("config", help="check or print the configuration")
-    csub = config.add_subparsers(dest="config_command", required=True)
-    check = csub.add_parser("check", help="validate a config file: prints ok or one line per problem")
-    check.add_argument("path", nargs="?", default=None, help="config file (default: $MAZEBOT_CONFIG or ./config.toml)")
-    check.set_defaults(func=_config_check)
-    defaults = csub.add_parser("defaults", help="print a complete default config file")
-    defaults.set_defaults(func=_config_defaults)
+def command_name(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` asks for: its first word that is not an option (the top-level
+    parser has only flags without values), or None."""
+    return next((word for word in argv if not word.startswith("-")), None)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``mazebot`` parser with the full options of ``command`` (or of all, with :data:`ALL`).
+
+    The other subcommands are only their name and help line, which is all ``mazebot
+    --help`` shows; their modules are not imported.
+    """
     parser = argparse.ArgumentParser(
         prog="mazebot", description="A robot that maps an unknown maze and shows it on a phone."
     )
-    parser.add_argument("--version", action="version", version=f"mazebot {__version__}")
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _register_config(sub)
-    for name in _COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if not (exc.name and name.startswith(exc.name)):
-                raise
-            continue
-        module.register(sub)
+    wanted = {e.module for e in COMMANDS if command in (ALL, e.name)}
+    registered: set[str] = set()
+    for entry in COMMANDS:
+        if entry.module not in wanted:
+            sub.add_parser(entry.name, help=entry.help, add_help=False)
+        elif entry.module not in registered:  # a module registers all of its commands at once
+            importlib.import_module(entry.module).register(sub)
+            registered.add(entry.module)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(command_name(argv))
     args = parser.parse_args(argv)
     args.argv = argv
     try:
         return int(args.func(args))
     except MazebotError as exc:
-        print(f"mazebot: {exc}", file=sys.stderr)
+        from mazebot.logs import error_line
+
+        print(error_line(f"mazebot: {exc}"), file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         return 130

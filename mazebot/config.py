@@ -32,9 +32,14 @@ BcmPin = Annotated[int, Field(ge=0, le=27)]
 
 
 class Section(BaseModel):
-    """A config section: unknown keys rejected, values validated on assignment."""
+    """A config section: unknown keys rejected, values validated on assignment.
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    ``defer_build``: a model's validator is built on its first use, not at import
+    (https://docs.pydantic.dev/latest/api/config/#pydantic.config.ConfigDict.defer_build),
+    so a command that needs one section (``mazebot motors stop``) does not pay for all.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, defer_build=True)
 
 
 class LidarConfig(Section):
@@ -593,7 +598,7 @@ class PersistConfig(Section):
 class Config(BaseModel):
     """The whole configuration file: one section per part of the robot."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, defer_build=True)
 
     lidar: LidarConfig = Field(default_factory=LidarConfig)
     encoders: EncodersConfig = Field(default_factory=EncodersConfig)
@@ -614,13 +619,27 @@ class Config(BaseModel):
         return math.pi * self.drive.wheel_diameter_m
 
 
+#: The system-wide config file, the one the systemd unit names (``systemd/mazebot.service``).
+SYSTEM_CONFIG = Path("/etc/mazebot/config.toml")
+
+
+def config_search_path() -> list[Path]:
+    """Where a config file is looked for when no ``--config`` is given, first match wins:
+    ``$MAZEBOT_CONFIG``, ``./config.toml``, ``$XDG_CONFIG_HOME/mazebot/config.toml``
+    (``~/.config`` when unset, per the XDG Base Directory Specification), ``/etc/mazebot/config.toml``."""
+    env = os.environ.get(ENV_CONFIG)
+    if env:
+        return [Path(env)]  # named explicitly: must exist, no falling through to another file
+    xdg = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"), ".config")
+    return [Path("config.toml"), Path(xdg) / "mazebot" / "config.toml", SYSTEM_CONFIG]
+
+
 def default_config_path() -> Path | None:
-    """``$MAZEBOT_CONFIG`` if set, else ``./config.toml`` if present, else no file."""
+    """The config file used without ``--config`` (:func:`config_search_path`), or None: the defaults."""
     env = os.environ.get(ENV_CONFIG)
     if env:
         return Path(env)
-    local = Path("config.toml")
-    return local if local.is_file() else None
+    return next((p for p in config_search_path() if p.is_file()), None)
 
 
 def _describe_error(err: dict[str, Any]) -> str:
@@ -637,24 +656,24 @@ def _describe_error(err: dict[str, Any]) -> str:
     return f"{path}: {value!r} is not allowed: {msg}"
 
 
+def _problems(exc: ValidationError, source: str, prefix: str = "") -> ConfigError:
+    problems = [f"{source}: {prefix}{_describe_error(e)}" for e in exc.errors()]
+    more = len(problems) - 1
+    first = problems[0] + (f" (and {more} more: `mazebot config check` lists them)" if more else "")
+    return ConfigError(first, problems)
+
+
 def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
     """Validate a parsed TOML document; raise ConfigError with one line per problem."""
     try:
         # strict: TOML has real types, so "8080" or true for a port is a mistake, not a port
         return Config.model_validate(data, strict=True)
     except ValidationError as exc:
-        problems = [f"{source}: {_describe_error(e)}" for e in exc.errors()]
-        more = len(problems) - 1
-        first = problems[0] + (f" (and {more} more: `mazebot config check` lists them)" if more else "")
-        raise ConfigError(first, problems) from None
+        raise _problems(exc, source) from None
 
 
-def load_config(path: str | os.PathLike[str] | None = None) -> Config:
-    """Load and validate a config file; with no path, the defaults (or ``$MAZEBOT_CONFIG``)."""
-    if path is None:
-        path = default_config_path()
-        if path is None:
-            return Config()
+def read_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The TOML document of a config file, not yet validated; ConfigError naming the file if unreadable."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -663,12 +682,42 @@ def load_config(path: str | os.PathLike[str] | None = None) -> Config:
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read config file ({exc.strerror or exc})") from None
     try:
-        data = tomllib.loads(raw.decode("utf-8"))  # decoding here: a UnicodeDecodeError is no OSError
+        return tomllib.loads(raw.decode("utf-8"))  # decoding here: a UnicodeDecodeError is no OSError
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{p}: not valid TOML: the file is not UTF-8 text") from None
-    return parse_config(data, str(p))
+
+
+def load_config(path: str | os.PathLike[str] | None = None) -> Config:
+    """Load and validate a config file; with no path, the file :func:`default_config_path` finds, or the defaults."""
+    if path is None:
+        path = default_config_path()
+        if path is None:
+            return Config()
+    return parse_config(read_config_file(path), str(path))
+
+
+def load_motors_config(path: str | os.PathLike[str] | None = None) -> MotorsConfig:
+    """Only the ``[motors]`` section of a config file, validated like :func:`load_config` does.
+
+    For ``mazebot motors stop``, the safety net systemd runs after every exit of the daemon:
+    a mistake in any other section must not keep it from zeroing the HAT, and building
+    only this section's model keeps the command quick (the models are built on first use,
+    ``defer_build``).
+    """
+    if path is None:
+        path = default_config_path()
+        if path is None:
+            return MotorsConfig()
+    data = read_config_file(path)
+    section = data.get("motors", {})
+    if not isinstance(section, dict):
+        raise ConfigError(f"{path}: motors: expected a [motors] table, found {section!r}")
+    try:
+        return MotorsConfig.model_validate(section, strict=True)
+    except ValidationError as exc:
+        raise _problems(exc, str(path), "motors.") from None
 
 
 def _toml_value(value: Any) -> str:

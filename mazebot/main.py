@@ -12,9 +12,9 @@ import argparse
 import asyncio
 import contextlib
 import gc
+import importlib
 import logging
 import signal
-import sys
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
@@ -28,6 +28,7 @@ from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config, load_config
 from mazebot.errors import EXIT_OK, HardwareUnavailable, UsageError
+from mazebot.logs import setup_logging
 from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor, TaskFactory
@@ -137,6 +138,28 @@ async def open_robot_hardware(config: Config, clock: Clock, stack: AsyncExitStac
     return await robot_hardware_builder()(config, clock, stack)
 
 
+#: What ``run_daemon`` imports after the page is served: SLAM, planner and the tasks
+#: (numpy, scipy; most of the start-up time).
+_ROBOT_MODULES = (
+    "mazebot.planner.pilot",
+    "mazebot.slam.loop_worker",
+    "mazebot.slam.odometry",
+    "mazebot.slam.slam",
+    "mazebot.tasks.command_task",
+    "mazebot.tasks.control_task",
+    "mazebot.tasks.health_task",
+    "mazebot.tasks.lidar_task",
+    "mazebot.tasks.odometry_task",
+    "mazebot.tasks.planner_task",
+    "mazebot.tasks.slam_task",
+)
+
+
+def _import_the_robot() -> None:
+    for name in _ROBOT_MODULES:
+        importlib.import_module(name)
+
+
 @contextlib.contextmanager
 def _start_up_objects_frozen() -> Iterator[None]:
     """Keep the ~100 000 objects of start-up (modules, config, tasks) out of every full collection.
@@ -198,21 +221,6 @@ async def run_daemon(
     ``instrument(slam, executor)`` returns the executor SLAM is to use (the fault injector's
     way to reach the compute: :mod:`mazebot.sim.faults`).
     """
-    from mazebot.planner.pilot import Pilot, PilotParams
-    from mazebot.slam.loop_worker import LoopClosureExecutor
-    from mazebot.slam.odometry import DiffDriveOdometry
-    from mazebot.slam.slam import Slam, SlamParams
-    from mazebot.tasks import (
-        command_task,
-        control_task,
-        health_task,
-        lidar_task,
-        odometry_task,
-        planner_task,
-        slam_task,
-    )
-    from mazebot.tasks.health_task import HealthMonitor
-
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
     state = state if state is not None else SharedState()
@@ -232,6 +240,40 @@ async def run_daemon(
             supervisor.start(name, factory)
         state.cpu.started_s = clock.now_s()
         state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
+        web_started = False
+
+        async def serve() -> None:
+            from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
+
+            web = await start_web_server(state, config, hardware)
+            stack.push_async_callback(web.cleanup)
+            log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
+
+        if serve_web and getattr(session, "resume", None) is None:
+            # The page first, the SLAM and planner imports (most of start-up) after: the motors
+            # are open and zeroed already, and a start pressed meanwhile waits in the command
+            # queue until the tasks that act on it run. (A resumed run serves its saved map from
+            # the first answer on, so it starts the page once SLAM holds that map, below.)
+            await serve()
+            web_started = True
+            # the imports run in a thread, so the loop serves the page meanwhile (a module being
+            # imported there is locked for the others: https://docs.python.org/3/library/importlib.html)
+            await asyncio.to_thread(_import_the_robot)
+        from mazebot.planner.pilot import Pilot, PilotParams
+        from mazebot.slam.loop_worker import LoopClosureExecutor
+        from mazebot.slam.odometry import DiffDriveOdometry
+        from mazebot.slam.slam import Slam, SlamParams
+        from mazebot.tasks import (
+            command_task,
+            control_task,
+            health_task,
+            lidar_task,
+            odometry_task,
+            planner_task,
+            slam_task,
+        )
+        from mazebot.tasks.health_task import HealthMonitor
+
         # loop closures (verification, pose-graph optimization, map rebuilds) run here, off the event loop
         slam_executor = LoopClosureExecutor(config.slam.loop_closure_executor)
         stack.callback(slam_executor.shutdown)
@@ -276,13 +318,9 @@ async def run_daemon(
         supervisor.start("commands", lambda: command_task.run(state, motors, clock), restart=True)
         if session is not None:
             session.start_tasks(config, clock, state, supervisor, slam)
-        if serve_web:
-            from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
-
-            web = await start_web_server(state, config, hardware)
-            stack.push_async_callback(web.cleanup)
-            log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
-        else:
+        if serve_web and not web_started:
+            await serve()
+        elif not serve_web:
             log.info("%s; no web page", hardware.description)
         if on_started is not None:
             on_started(hardware, state, supervisor)
@@ -296,16 +334,6 @@ async def run_daemon(
         finally:
             sdnotify.notify("STOPPING=1")
     return EXIT_OK  # pragma: no cover - unreachable, keeps type checkers calm
-
-
-def setup_logging(level: str) -> None:
-    """Log to stderr without timestamps: journald adds its own."""
-    logging.basicConfig(
-        stream=sys.stderr,
-        level=getattr(logging, level.upper()),
-        format="%(levelname)s %(name)s: %(message)s",
-        force=True,
-    )
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -351,8 +379,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    run = sub.add_parser("run", help="run the robot (or, with --sim, the simulated robot)")
-    run.add_argument("--config", default=None, help="config file (default: $MAZEBOT_CONFIG or ./config.toml)")
+    run = sub.add_parser(
+        "run",
+        help="run the robot (or, with --sim, the simulated robot)",
+        description="Run the robot: lidar, encoders, SLAM, planner, motors and the phone page in one process, "
+        "until SIGINT/SIGTERM (exit 0). Without --sim it needs the motor HAT, GPIO and the lidar "
+        "(exit 69 naming a missing one); --sim drives a simulated robot in a generated 6x6 maze "
+        "(or --maze, --seed, --size, --room) through the same drivers.",
+    )
+    run.add_argument("--config", default=None, help="config file (default: the one `mazebot config path` prints)")
     run.add_argument("--sim", action="store_true", help="drive a simulated robot instead of the hardware")
     run.add_argument("--maze", default=None, help="maze file in micromouse text format (with --sim)")
     run.add_argument("--room", action="store_true", help="the room with cylinders instead of a maze (with --sim)")
@@ -360,7 +395,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--size", default=None, help="size of a generated maze, WxH cells (with --sim)")
     run.add_argument("--host", default=None, help="web server interface (overrides [web] host)")
     run.add_argument("--port", type=int, default=None, help="web server port (overrides [web] port)")
-    run.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"])
+    run.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"],
+                     help="log threshold on stderr (default: [daemon] log_level of the config)")
     run.add_argument("--record", default=None, metavar="FILE.mcap", help="record every sensor stream to MCAP")
     run.add_argument("--resume", default=None, metavar="RUN", help="continue a saved run (a name from `mazebot runs`)")
     run.set_defaults(func=_cmd_run)

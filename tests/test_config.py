@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from mazebot import config as config_module
 from mazebot.cli import main
 from mazebot.config import Config, load_config, parse_config, render_toml
 from mazebot.errors import ConfigError
@@ -67,6 +68,55 @@ def test_environment_variable_selects_the_file(tmp_path: Path, monkeypatch: pyte
     cfg.write_text('[lidar]\nport = "/dev/ttyAMA0"\n')
     monkeypatch.setenv("MAZEBOT_CONFIG", str(cfg))
     assert load_config().lidar.port == "/dev/ttyAMA0"
+
+
+@pytest.fixture
+def lookup(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Path]:
+    """A working directory, an XDG config home and an /etc file, all in tmp_path, none written yet."""
+    work, xdg, etc = tmp_path / "work", tmp_path / "xdg", tmp_path / "etc" / "mazebot" / "config.toml"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    monkeypatch.delenv("MAZEBOT_CONFIG", raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(xdg))
+    monkeypatch.setattr(config_module, "SYSTEM_CONFIG", etc)
+    return {"local": work / "config.toml", "xdg": xdg / "mazebot" / "config.toml", "etc": etc}
+
+
+def _write_port(path: Path, port: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f'[lidar]\nport = "{port}"\n')
+
+
+def test_config_lookup_goes_local_then_xdg_then_etc_then_defaults(
+    lookup: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert load_config().lidar.port == "/dev/ttyUSB0"
+    assert main(["config", "path"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("built-in defaults (no file at config.toml, ") and str(lookup["etc"]) in out
+    for name, port in (("etc", "/dev/etc"), ("xdg", "/dev/xdg"), ("local", "/dev/local")):
+        _write_port(lookup[name], port)
+        assert load_config().lidar.port == port  # each one found wins over the ones written before it
+        assert main(["config", "path"]) == 0
+        assert capsys.readouterr().out == f"{lookup[name]}\n"
+
+
+def test_xdg_config_home_defaults_to_dot_config_in_home(
+    lookup: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("XDG_CONFIG_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    _write_port(tmp_path / "home" / ".config" / "mazebot" / "config.toml", "/dev/home")
+    assert load_config().lidar.port == "/dev/home"
+
+
+def test_mazebot_config_names_the_file_even_when_it_is_missing(
+    lookup: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _write_port(lookup["etc"], "/dev/etc")
+    monkeypatch.setenv("MAZEBOT_CONFIG", str(tmp_path / "nope.toml"))
+    with pytest.raises(ConfigError, match=r"nope.toml: config file not found"):
+        load_config()  # never falls through to /etc when the file named explicitly is missing
 
 
 def test_derived_ticks_per_rev() -> None:

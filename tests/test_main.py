@@ -8,7 +8,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from contextlib import AsyncExitStack
 from pathlib import Path
 
 import aiohttp
@@ -17,7 +19,9 @@ from aiohttp.test_utils import unused_port
 from gpiozero import InputDevice
 from gpiozero.pins.mock import MockFactory
 
+from mazebot import main as main_module
 from mazebot.cli import main
+from mazebot.clock import Clock
 from mazebot.config import Config
 from mazebot.errors import HardwareUnavailable, MazebotError
 from mazebot.io.motors import FakeMotorKit
@@ -94,6 +98,51 @@ async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
     started["sup"].request_stop("test over")  # type: ignore[union-attr]
     assert await asyncio.wait_for(daemon, 10) == 0
     assert gc.get_freeze_count() == 0  # collectable again once the daemon is over
+
+
+async def test_the_page_is_served_with_the_motors_zeroed_before_slam_and_planner_are_imported(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Start-up imports SLAM and the planner (numpy, scipy: most of it) after the web server is up,
+    in a thread, so the page answers meanwhile; the motors are zero all along."""
+    port = unused_port()
+    importing, release = threading.Event(), threading.Event()
+    opened: list[Hardware] = []
+    real_import = main_module._import_the_robot
+
+    def slow_import() -> None:
+        importing.set()
+        release.wait(timeout=30)  # held until the page answered (never forever)
+        real_import()
+
+    monkeypatch.setattr(main_module, "_import_the_robot", slow_import)
+    sim = sim_hardware_builder()
+
+    async def build(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
+        opened.append(await sim(config, clock, stack))
+        return opened[0]
+
+    ready = asyncio.Event()
+    stop = asyncio.Event()
+
+    def on_started(hw: Hardware, state: SharedState, sup: Supervisor) -> None:
+        asyncio.get_running_loop().create_task(stop.wait()).add_done_callback(lambda _: sup.request_stop("test over"))
+
+    daemon = asyncio.create_task(run_daemon(_config(port), build, ready=ready, install_signal_handlers=False,
+                                            on_started=on_started, autonomous=False))
+    try:
+        await asyncio.wait_for(asyncio.to_thread(importing.wait, 20), 25)
+        assert importing.is_set() and not ready.is_set()
+        async with aiohttp.ClientSession() as session, session.get(f"http://127.0.0.1:{port}/") as resp:
+            assert resp.status == 200
+            assert "<script" in await resp.text()
+        kit = opened[0].sim.kit
+        assert kit.motor1.throttle == 0.0 and kit.motor2.throttle == 0.0
+    finally:
+        release.set()
+    await asyncio.wait_for(ready.wait(), 20)
+    stop.set()
+    assert await asyncio.wait_for(daemon, 10) == 0
 
 
 async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -> None:

@@ -148,7 +148,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    bench = sub.add_parser("bench", help="measure whole simulated runs against ground truth")
+    bench = sub.add_parser("bench", help="measure whole simulated runs against ground truth",
+                           description="Run whole simulated runs and measure them against the ground truth: "
+                                       "DIR/results.json, DIR/report.md and figures.")
     bench.add_argument("--suite", choices=SUITES, default="smoke", help="which set of mazes (default smoke)")
     bench.add_argument("--maze", action="append", default=None, help="run these maze files instead of a suite")
     bench.add_argument("--room", action="store_true",

@@ -40,26 +40,31 @@ def register(subparsers: Any) -> None:
         p.add_argument("--baud", type=int, help="serial speed (default: [lidar] baudrate of the config)")
         # SUPPRESS: never overwrite a --config given to the top-level parser
         p.add_argument(
-            "--config", default=argparse.SUPPRESS, help="config file (default: $MAZEBOT_CONFIG or ./config.toml)"
+            "--config", default=argparse.SUPPRESS, help="config file (default: the one `mazebot config path` prints)"
         )
 
-    info = sub.add_parser("info", help="model, firmware, hardware and serial number")
+    info = sub.add_parser("info", help="model, firmware, hardware and serial number",
+                          description="Ask the lidar for its model, firmware and hardware version and serial number.")
     device_options(info)
     info.add_argument("--json", action="store_true", help="print one JSON object")
     info.set_defaults(func=cmd_info)
 
-    health = sub.add_parser("health", help="health status and error code")
+    health = sub.add_parser("health", help="health status and error code",
+                            description="Ask the lidar for its health status (Good, Warning, Error) and error code.")
     device_options(health)
     health.add_argument("--json", action="store_true", help="print one JSON object")
     health.set_defaults(func=cmd_health)
 
-    dump = sub.add_parser("dump", help="write the raw scan byte stream to stdout")
+    dump = sub.add_parser("dump", help="write the raw scan byte stream to stdout",
+                          description="Start a scan and write its raw bytes to stdout, for bug reports and "
+                                      "`mazebot lidar decode`.")
     device_options(dump)
     dump.add_argument("--seconds", type=float, required=True, help="how long to record")
     dump.add_argument("--mode", choices=SCAN_MODES, help="scan mode (default: [lidar] scan_mode of the config)")
     dump.set_defaults(func=cmd_dump)
 
-    decode = sub.add_parser("decode", help="decode a raw scan stream into JSON lines")
+    decode = sub.add_parser("decode", help="decode a raw scan stream into JSON lines",
+                            description="Decode a raw scan capture into one JSON object per sample.")
     decode.add_argument(
         "--mode",
         choices=("standard", *proto.CAPSULE_FORMATS_BY_NAME),

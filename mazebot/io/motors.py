@@ -2,8 +2,8 @@
 
 The hardware boundary is an object shaped like ``adafruit_motorkit.MotorKit``:
 ``kit.motor1`` … ``kit.motor4``, each with a ``throttle`` in [-1, 1] (0 = brake, ``None``
-= coast). :func:`open_motorkit` builds the real one, importing ``adafruit_motorkit``
-(and with it Blinka's ``board``, which fails off a Pi) only when called;
+= coast). :func:`open_motorkit` (in :mod:`mazebot.io.motor_hat`) builds the real one, importing
+``adafruit_motorkit`` (and with it Blinka's ``board``, which fails off a Pi) only when called;
 :class:`FakeMotorKit` is the same shape for tests and the simulator.
 :class:`DifferentialMotors` is what the rest of mazebot drives: left/right throttles,
 per-side channel and polarity, and the safety rules.
@@ -37,15 +37,16 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Final, Literal, Protocol, Self
+from typing import Final, Literal, Self
 
 from mazebot.clock import Clock
 from mazebot.config import MotorsConfig
-from mazebot.errors import EXIT_UNAVAILABLE, HardwareUnavailable, MazebotError
+from mazebot.errors import EXIT_UNAVAILABLE, MazebotError
+from mazebot.io.motor_hat import CHANNELS, MotorKitLike, MotorLike
+from mazebot.io.motor_hat import open_motorkit as open_motorkit  # re-exported: main.py opens the HAT from here
 
 logger = logging.getLogger(__name__)
 
-CHANNELS: Final = (1, 2, 3, 4)
 #: Throttle writes the fake remembers (the newest ones).
 COMMAND_LOG_LENGTH: Final = 10_000
 
@@ -75,50 +76,6 @@ class MotorWriteError(MazebotError):
         self.channel = channel
         self.side = side
         self.stopped = stopped
-
-
-class MotorLike(Protocol):
-    """One DC motor: ``throttle`` in [-1, 1], 0 brakes, ``None`` coasts."""
-
-    throttle: float | None
-
-
-class MotorKitLike(Protocol):
-    """Anything shaped like ``adafruit_motorkit.MotorKit`` for DC motors."""
-
-    @property
-    def motor1(self) -> MotorLike: ...
-
-    @property
-    def motor2(self) -> MotorLike: ...
-
-    @property
-    def motor3(self) -> MotorLike: ...
-
-    @property
-    def motor4(self) -> MotorLike: ...
-
-
-def open_motorkit(i2c_address: int = 0x60, pwm_frequency_hz: float = 1600.0) -> MotorKitLike:
-    """Open the real motor HAT over I²C.
-
-    Imports ``adafruit_motorkit`` here, not at module import: it imports Blinka's
-    ``board``, which fails on anything but a supported board. Every way this fails
-    off a Pi or without a HAT (no ``board`` support, no I²C bus, nothing answering at
-    the address) becomes one :class:`HardwareUnavailable` line. ``AttributeError`` is
-    included because Blinka on an unrecognised Linux machine imports fine but has no
-    ``board.I2C``.
-    """
-    try:
-        from adafruit_motorkit import MotorKit
-
-        return MotorKit(address=i2c_address, pwm_frequency=pwm_frequency_hz)
-    except (ImportError, OSError, RuntimeError, ValueError, AttributeError) as error:
-        reason = " ".join(f"{type(error).__name__}: {error}".split())
-        raise HardwareUnavailable(
-            f"motor HAT not found at I2C address 0x{i2c_address:02x} ({reason}); "
-            "check the HAT is seated and I2C is enabled (raspi-config)"
-        ) from error
 
 
 # --- the fake -----------------------------------------------------------------------

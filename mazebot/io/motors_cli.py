@@ -1,30 +1,49 @@
 """``mazebot motors stop``: zero every channel of the motor HAT, whatever left them running.
 
 The systemd unit runs it after every exit of the daemon (``ExecStopPost``), so a
-process that died without its ``finally`` blocks still leaves the wheels stopped.
+process that died without its ``finally`` blocks still leaves the wheels stopped. It
+must be quick and must not fail for a reason that has nothing to do with the HAT: it
+imports only the motor driver and the ``[motors]`` section of the config (never numpy,
+scipy or the SLAM; a test checks), and a config it cannot use still gets the HAT at the
+default address zeroed before the problem is reported.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
-from mazebot.config import load_config
-from mazebot.errors import EXIT_OK
-from mazebot.io.motors import CHANNELS, open_motorkit
+from mazebot.errors import EXIT_OK, ConfigError
 
 
 def _cmd_stop(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
-    kit = open_motorkit(config.motors.i2c_address, config.motors.pwm_frequency_hz)
+    from mazebot.config import MotorsConfig, load_motors_config
+    from mazebot.io.motor_hat import CHANNELS, open_motorkit
+    from mazebot.logs import error_line
+
+    problem: ConfigError | None = None
+    try:
+        motors = load_motors_config(args.config)
+    except ConfigError as exc:
+        problem = exc
+        motors = MotorsConfig()
+        print(error_line(f"mazebot: {exc}; stopping the HAT at the default I2C address 0x{motors.i2c_address:02x}"),
+              file=sys.stderr)
+    kit = open_motorkit(motors.i2c_address, motors.pwm_frequency_hz)
     for channel in CHANNELS:  # all four: a miswired config must not leave one turning
         getattr(kit, f"motor{channel}").throttle = 0.0
-    print(f"motors stopped (HAT at I2C address 0x{config.motors.i2c_address:02x})")
-    return EXIT_OK
+    print(f"motors stopped (HAT at I2C address 0x{motors.i2c_address:02x})")
+    return problem.exit_code if problem is not None else EXIT_OK
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    motors = sub.add_parser("motors", help="direct motor HAT commands")
-    msub = motors.add_subparsers(dest="motors_command", required=True)
-    stop = msub.add_parser("stop", help="zero every motor channel of the HAT")
-    stop.add_argument("--config", default=None, help="config file (for the HAT's I2C address)")
+    motors = sub.add_parser("motors", help="direct motor HAT commands",
+                            description="Direct commands to the Adafruit DC & Stepper Motor HAT.")
+    msub = motors.add_subparsers(dest="motors_command", required=True, metavar="{stop}")
+    stop = msub.add_parser("stop", help="zero every motor channel of the HAT",
+                           description="Zero all four motor channels of the HAT (the systemd unit runs this "
+                                       "after every exit of the daemon). Reads only [motors] of the config.")
+    stop.add_argument("--config", default=None, metavar="PATH",
+                      help="config file, for [motors] i2c_address and pwm_frequency_hz "
+                           "(default: the one `mazebot config path` prints)")
     stop.set_defaults(func=_cmd_stop)

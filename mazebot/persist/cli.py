@@ -50,10 +50,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    runs = sub.add_parser("runs", help="list the saved runs (STATE_DIR/runs)")
+    runs = sub.add_parser("runs", help="list the saved runs (STATE_DIR/runs)",
+                          description="List the runs saved under [daemon] state_dir/runs, newest last.")
     runs.add_argument("--config", default=None, help="config file (for [daemon] state_dir)")
     runs.set_defaults(func=_cmd_runs)
-    export = sub.add_parser("export-map", help="export a saved run's map: PNG, ROS PGM+YAML, SVG or the cell graph")
+    export = sub.add_parser("export-map", help="export a saved run's map: PNG, ROS PGM+YAML, SVG or the cell graph",
+                            description="Export a saved run's map as PNG, ROS map_server PGM+YAML, SVG or the "
+                                        "maze's cell graph as JSON.")
     export.add_argument("run", help="run name from `mazebot runs`, 'latest', or a run folder")
     export.add_argument("--format", default="png", choices=["png", "pgm", "svg", "json"],
                         help="png (legend, scale bar, path), pgm (+ yaml, ROS map_server), svg, json (cell graph)")

@@ -13,16 +13,14 @@ either the old file or the new one, never half a map.
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from mazebot.errors import UsageError
+from mazebot.files import write_atomic as write_atomic  # re-exported: the run files are written with it
 from mazebot.web.auth import resolve_state_dir
 
 RUNS_DIR = "runs"
@@ -31,27 +29,6 @@ META_FILE = "meta.json"
 
 class RunNotFound(UsageError):
     """The run named on the command line does not exist (exit 2)."""
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Replace ``path`` with ``data`` atomically (temp file, fsync, ``os.replace``, directory fsync)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as stream:
-            stream.write(data)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    with contextlib.suppress(OSError):
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
 
 
 def runs_root(state_dir_setting: str) -> Path:

@@ -19,16 +19,18 @@ import logging
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mazebot.clock import Clock
 from mazebot.config import Config
 from mazebot.errors import UsageError
 from mazebot.persist.runs import find_run, new_run_dir, runs_root
-from mazebot.persist.snapshot import SavedRun, load_run
-from mazebot.slam.observed import ObservedSlam
-from mazebot.slam.slam import SlamParams
 from mazebot.state import SharedState
+
+if TYPE_CHECKING:  # the SLAM (numpy, scipy) is imported when it is built, after the page is served
+    from mazebot.persist.snapshot import SavedRun
+    from mazebot.slam.observed import ObservedSlam
+    from mazebot.slam.slam import SlamParams
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +53,11 @@ class RunSession:
     ) -> RunSession:
         """Resolve ``--record``/``--resume`` and the config switches into paths (no file is written yet)."""
         root = runs_root(config.daemon.state_dir)
-        saved = load_run(find_run(root, resume)) if resume else None
+        saved: SavedRun | None = None
+        if resume:
+            from mazebot.persist.snapshot import load_run
+
+            saved = load_run(find_run(root, resume))
         persist = config.persist.enabled if persist is None else persist
         run_dir = new_run_dir(root) if persist else None
         record_path: Path | None = None
@@ -113,6 +119,8 @@ class RunSession:
 
     def make_slam(self, params: SlamParams) -> ObservedSlam:
         """The daemon's Slam: resumed from the saved run, or fresh; observed by the recorder."""
+        from mazebot.slam.observed import ObservedSlam
+
         if self.resume is not None:
             from mazebot.persist.resume import ResumedSlam
 

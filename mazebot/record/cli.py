@@ -59,7 +59,7 @@ async def _serve(args: argparse.Namespace, recording: Recording, speed: float | 
     from concurrent.futures import ThreadPoolExecutor
 
     from mazebot.config import load_config
-    from mazebot.main import setup_logging
+    from mazebot.logs import setup_logging
     from mazebot.record import replay_server
     from mazebot.record.replay import write_outputs
     from mazebot.state import SharedState
@@ -103,7 +103,9 @@ async def _serve(args: argparse.Namespace, recording: Recording, speed: float | 
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    rep = sub.add_parser("replay", help="run a recording (MCAP) through SLAM again; writes map and trajectory")
+    rep = sub.add_parser("replay", help="run a recording (MCAP) through SLAM again; writes map and trajectory",
+                         description="Run a recording (MCAP) through SLAM again and write the map, trajectory "
+                                     "and pose graph; --serve shows it on the phone page as it runs.")
     rep.add_argument("file", help="a recording made with `mazebot run --record FILE.mcap`")
     pace = rep.add_mutually_exclusive_group()
     pace.add_argument("--speed", type=float, default=None,
@@ -114,5 +116,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     rep.add_argument("--host", default=None, help="with --serve: web server interface (overrides [web] host)")
     rep.add_argument("--port", type=int, default=None, help="with --serve: web server port (overrides [web] port)")
     rep.add_argument("--config", default=None, help="with --serve: config file for [web] (default as `mazebot run`)")
-    rep.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"])
+    rep.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"],
+                     help="log threshold on stderr (default: [daemon] log_level of the config)")
     rep.set_defaults(func=_cmd_replay)

@@ -68,7 +68,10 @@ def _cmd_sim_lidar(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     sim = sub.add_parser("sim", help="parts of the simulator on their own")
     ssub = sim.add_subparsers(dest="sim_command", required=True)
-    lidar = ssub.add_parser("lidar", help="serve an emulated RPLidar on a pseudo-terminal")
+    lidar = ssub.add_parser("lidar", help="serve an emulated RPLidar on a pseudo-terminal",
+                            description="Serve an emulated RPLidar (the model of --model) in a simulated maze on a "
+                                        "pseudo-terminal; its path is the first line of stdout (any RPLidar client "
+                                        "can open it).")
     src = lidar.add_mutually_exclusive_group()
     src.add_argument("--maze", default=None, help="maze file in micromouse text format")
     src.add_argument("--seed", type=int, default=None, help="generate a maze from this seed")

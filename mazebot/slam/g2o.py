@@ -25,16 +25,15 @@ Example::
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from mazebot.errors import UsageError
+from mazebot.files import write_atomic
 from mazebot.slam.posegraph import PoseGraph, invalid_information
 
 __all__ = ["G2oFormatError", "format_g2o", "parse_g2o", "read_g2o", "write_g2o"]
@@ -194,28 +193,8 @@ def format_g2o(graph: PoseGraph) -> Iterator[str]:
 
 
 def write_g2o(graph: PoseGraph, path: str | os.PathLike[str]) -> None:
-    """Write ``graph`` to ``path`` atomically: temp file in the same directory, fsync, ``os.replace``."""
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
+    """Write ``graph`` to ``path`` atomically (:func:`mazebot.files.write_atomic`)."""
     try:
-        fd, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+        write_atomic(path, "".join(format_g2o(graph)).encode("utf-8"), create_folder=False)
     except OSError as exc:
         raise UsageError(f"cannot write g2o file {path}: {exc.strerror or exc}") from None
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as stream:
-            stream.writelines(format_g2o(graph))
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(temp_name, path)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(temp_name)
-        if isinstance(exc, OSError):
-            raise UsageError(f"cannot write g2o file {path}: {exc.strerror or exc}") from None
-        raise
-    with contextlib.suppress(OSError):  # make the rename itself durable
-        dir_fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import os
 import struct
-import tempfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from mazebot.errors import UsageError
+from mazebot.files import write_atomic
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
 FREE_PIXEL = 254
@@ -104,7 +104,7 @@ def encode_grey_png(image: np.ndarray) -> bytes:
 def write_map_png(three_state: np.ndarray, path: str | os.PathLike[str]) -> Path:
     """The map as a greyscale PNG (map_saver grey levels, north up), atomically."""
     path = Path(path)
-    _write_atomic(path, encode_grey_png(map_pixels(three_state)))
+    write_atomic(path, encode_grey_png(map_pixels(three_state)))
     return path
 
 
@@ -113,8 +113,8 @@ def write_ros_map(grid: OccupancyGrid, stem: str | os.PathLike[str]) -> tuple[Pa
     stem = Path(stem)
     pgm = stem.with_name(stem.name + ".pgm")
     yaml = stem.with_name(stem.name + ".yaml")
-    _write_atomic(pgm, encode_pgm(grid.three_state()))
-    _write_atomic(yaml, encode_yaml(grid.resolution_m, grid.origin_m, pgm.name).encode())
+    write_atomic(pgm, encode_pgm(grid.three_state()))
+    write_atomic(yaml, encode_yaml(grid.resolution_m, grid.origin_m, pgm.name).encode())
     return pgm, yaml
 
 
@@ -199,15 +199,3 @@ def _read_pgm(path: Path) -> np.ndarray:
     if values.size != width * height:
         raise MapFileError(f"{path}: expected {width * height} pixels, found {values.size}")
     return values.astype(np.uint8).reshape(height, width)
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib.resources
 import logging
 import math
 import platform
 import secrets
-import sys
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +34,7 @@ from aiohttp.typedefs import Handler
 
 from mazebot import __version__
 from mazebot.clock import RealClock
+from mazebot.errors import MazebotError
 from mazebot.state import SharedState
 from mazebot.web import map_images
 from mazebot.web.auth import ControlAuth, client_key, origin_allowed
@@ -124,12 +125,19 @@ STATS_KEY = web.AppKey("network_stats", NetworkStats)
 
 
 def find_static_dir() -> Path:
-    """The page and its assets: the repository's ``static/`` folder in a checkout, or the
-    copy ``pip install`` puts under ``<prefix>/share/mazebot/static``."""
-    checkout = Path(__file__).resolve().parents[2] / "static"
-    if (checkout / "index.html").is_file():
-        return checkout
-    return Path(sys.prefix) / "share" / "mazebot" / "static"
+    """The page and its assets: the package data ``mazebot.static``, however mazebot is installed.
+
+    In the repository the folder is the top-level ``static/``; ``pyproject.toml`` maps it to
+    the package ``mazebot.static`` (``package-dir``), so a wheel installs it as
+    ``mazebot/static/`` next to the code (venv, ``pip install --user``, system pip) and an
+    editable install finds it in the checkout. ``importlib.resources`` finds it in both
+    (https://docs.python.org/3/library/importlib.resources.html). aiohttp serves files from
+    a real directory, which a wheel installed on disk always gives.
+    """
+    folder = importlib.resources.files("mazebot.static")
+    if not isinstance(folder, Path) or not (folder / "index.html").is_file():
+        raise MazebotError(f"the phone page is missing from the installed package ({folder}); reinstall mazebot")
+    return folder
 
 
 DEFAULT_STATIC_DIR = find_static_dir()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import struct
+import zlib
 from typing import Any
 
 import aiohttp
@@ -15,7 +17,7 @@ from aiohttp.test_utils import TestClient, TestServer
 
 from mazebot.clock import RealClock
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.map_export import read_ros_map, write_ros_map
+from mazebot.slam.map_export import encode_grey_png, map_pixels, read_ros_map, write_ros_map
 from mazebot.state import SharedState
 from mazebot.web.app import BROADCASTER_KEY, WebSettings, create_app
 from mazebot.web.protocol import KIND_DELTA, KIND_FULL, decode_packet
@@ -111,6 +113,12 @@ async def test_map_files_404_without_a_map_then_png_pgm_yaml(aiohttp_client, sta
     header = f"P5\n# mazebot map\n{cols} {rows}\n255\n".encode()
     assert pgm.startswith(header)
     pixels = np.frombuffer(pgm[len(header) :], np.uint8).reshape(rows, cols)
+    # the PNG is greyscale (IHDR colour type 0, 8 bits) with the PGM's pixels, as the exporter writes it
+    assert struct.unpack(">IIBB", png[16:26]) == (cols, rows, 8, 0)
+    idat_len = struct.unpack(">I", png[33:37])[0]
+    raw = np.frombuffer(zlib.decompress(png[41 : 41 + idat_len]), np.uint8).reshape(rows, cols + 1)
+    np.testing.assert_array_equal(raw[:, 1:], pixels)
+    assert png == encode_grey_png(map_pixels(grid.three_state()))
     three = grid.three_state()[::-1]  # PGM row 0 is north
     assert set(np.unique(pixels)) <= {0, 205, 254}
     np.testing.assert_array_equal(pixels == 0, three == 100)

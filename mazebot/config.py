@@ -463,7 +463,7 @@ class SlamConfig(Section):
     normal_radius_m: float = Field(0.1, gt=0, description="neighbours farther than this do not count for a normal")
     # keyframes, local submap, pose graph
     keyframe_distance_m: float = Field(0.10, gt=0, description="a scan becomes a keyframe after this much travel ...")
-    keyframe_angle_rad: float = Field(0.3, gt=0, description="... or this much turn (17°: five in a 90° turn)")
+    keyframe_angle_rad: float = Field(0.2, gt=0, description="... or this much turn (11°: eight in a 90° turn)")
     submap_keyframes: int = Field(20, ge=1, le=500, description="recent keyframes in the local submap ICP matches")
     submap_radius_m: float = Field(
         0.5, ge=0, description="older keyframes this close to the robot join the local submap (0: only recent ones)"

@@ -137,7 +137,7 @@ class SlamParams:
     retry_headings_rad: tuple[float, ...] = (0.05, -0.05, 0.1, -0.1)  # ICP restarts when a match fails
     match_information_scale: float = 0.5
     keyframe_distance_m: float = 0.10
-    keyframe_angle_rad: float = 0.3
+    keyframe_angle_rad: float = 0.2
     submap_keyframes: int = 20  # the most recent keyframes are always in the local submap ...
     submap_radius_m: float = 0.5  # ... with older ones within this distance of the robot (0: none) ...
     submap_near_keyframes: int = 20  # ... at most this many of them, nearest first

@@ -105,6 +105,7 @@ class CpuQuota:
         self.acct_dir = acct_dir
         self.percent = percent
         self.dirs = [cpu_dir] if acct_dir == cpu_dir else [cpu_dir, acct_dir]
+        self._made: list[Path] = []  # the directories this object created (and only those it removes)
         self._closed = False
 
     @staticmethod
@@ -141,11 +142,11 @@ class CpuQuota:
                 subtree = root / "cgroup.subtree_control"
                 if subtree.is_file() and "cpu" not in subtree.read_text().split():
                     _write(subtree, "+cpu")  # children of the root get the cpu controller
-                group.cpu_dir.mkdir()
+                group._mkdir(group.cpu_dir)
                 _write(group.cpu_dir / "cpu.max", f"{'max' if quota is None else quota} {period_us}")
             else:
                 for d in group.dirs:
-                    d.mkdir()
+                    group._mkdir(d)
                 # the period first: a quota is checked against the period in force
                 _write(group.cpu_dir / "cpu.cfs_period_us", str(period_us))
                 _write(group.cpu_dir / "cpu.cfs_quota_us", str(-1 if quota is None else quota))
@@ -156,6 +157,10 @@ class CpuQuota:
                 f"cannot set up the CPU quota cgroup {group.cpu_dir}: {exc.strerror or exc}{hint}"
             ) from None
         return group
+
+    def _mkdir(self, d: Path) -> None:
+        d.mkdir()
+        self._made.append(d)
 
     @property
     def procs_files(self) -> list[Path]:
@@ -203,7 +208,7 @@ class CpuQuota:
         self._closed = True
         deadline = time.monotonic() + DRAIN_TIMEOUT_S
         sent_term = False
-        for d in reversed(self.dirs):
+        for d in reversed(self._made):
             while d.exists():
                 try:
                     d.rmdir()

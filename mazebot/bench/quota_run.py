@@ -216,16 +216,63 @@ def process_tree(pid: int) -> list[int]:
     return seen
 
 
+def _proc_kb(path: str, key: str) -> int:
+    with contextlib.suppress(OSError, ValueError, IndexError), open(path) as f:
+        for line in f:
+            if line.startswith(key):
+                return int(line.split()[1])
+    return 0
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of process ``pid`` (field 22 of ``/proc/PID/stat``): a pid with its start time
+    names one process, even once the pid has been reused."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def end_processes(seen: dict[int, str | None], timeout_s: float = STOP_TIMEOUT_S / 3) -> list[int]:
+    """Wait for these processes (pid: start time) to end; SIGTERM, then SIGKILL, the ones that do not.
+
+    The daemon's fork server and resource tracker end by themselves shortly after the daemon;
+    one that outlives it (a stuck worker) would otherwise be an orphan. Returns the pids that
+    had to be signalled.
+    """
+    def alive() -> list[int]:
+        return [pid for pid, start in seen.items() if start is not None and _start_time(pid) == start]
+
+    signalled: list[int] = []
+    for sig in (None, signal.SIGTERM, signal.SIGKILL):
+        if sig is not None:
+            for pid in alive():
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, sig)
+                    signalled.append(pid)
+        deadline = time.monotonic() + timeout_s
+        while alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not alive():
+            break
+    return sorted(set(signalled))
+
+
 def rss_mb(pids: list[int]) -> float:
-    """The resident memory of these processes together (``VmRSS`` of ``/proc/PID/status``), MB."""
-    total_kb = 0
-    for pid in pids:
-        with contextlib.suppress(OSError), open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    total_kb += int(line.split()[1])
-                    break
-    return total_kb / 1024.0
+    """The resident memory of these processes added up (``VmRSS`` of ``/proc/PID/status``), MB.
+
+    Pages the processes share (the fork server's numpy and scipy, forked into the
+    loop-closure worker) count once per process here: an upper bound.
+    """
+    return sum(_proc_kb(f"/proc/{pid}/status", "VmRSS:") for pid in pids) / 1024.0
+
+
+def pss_mb(pids: list[int]) -> float:
+    """Their proportional set size added up (``Pss`` of ``/proc/PID/smaps_rollup``), MB: each shared
+    page split between the processes that map it, so the sum is the memory they take together
+    (kernel documentation, ``Documentation/filesystems/proc.rst``)."""
+    return sum(_proc_kb(f"/proc/{pid}/smaps_rollup", "Pss:") for pid in pids) / 1024.0
 
 
 @dataclass
@@ -241,8 +288,11 @@ class QuotaRecord:
     finished_s: float | None = None
     daemon_pid: int | None = None
     world_pid: int | None = None
-    daemon_rss_mb_peak: float = 0.0
+    daemon_rss_mb_peak: float = 0.0  # the daemon and its children (fork server, worker), VmRSS added up
+    daemon_pss_mb_peak: float = 0.0  # ... proportional set size added up (shared pages once)
     world_rss_mb_peak: float = 0.0
+    #: every process seen in the daemon's tree (pid: start time), ended with it
+    daemon_tree: dict[int, str | None] = field(default_factory=dict)
     truth: deque[tuple[float, float, float, float, int]] = field(default_factory=lambda: deque(maxlen=4))
     daemon: dict[str, Any] | None = None  # the daemon's report (``_run_daemon``)
     world: dict[str, Any] | None = None  # the world's summary
@@ -313,6 +363,9 @@ def run_two_process(
     finally:
         if daemon is not None:
             _stop_process(daemon, daemon_ctl_tx)
+            left = end_processes(record.daemon_tree)
+            if left:
+                record.errors.append(f"daemon: processes {left} outlived the daemon and were ended")
         with contextlib.suppress(OSError, ValueError):
             world_ctl_tx.send("stop")
         _drain_world(report_rx, world, record)
@@ -397,7 +450,12 @@ def _watch(
         if now >= next_rss:
             next_rss = now + RSS_PERIOD_S
             if daemon.pid is not None and daemon.exitcode is None:
-                record.daemon_rss_mb_peak = max(record.daemon_rss_mb_peak, rss_mb(process_tree(daemon.pid)))
+                tree = process_tree(daemon.pid)
+                for pid in tree:
+                    if pid not in record.daemon_tree:
+                        record.daemon_tree[pid] = _start_time(pid)
+                record.daemon_rss_mb_peak = max(record.daemon_rss_mb_peak, rss_mb(tree))
+                record.daemon_pss_mb_peak = max(record.daemon_pss_mb_peak, pss_mb(tree))
             if world.pid is not None and world.exitcode is None:
                 record.world_rss_mb_peak = max(record.world_rss_mb_peak, rss_mb([world.pid]))
         if daemon.exitcode is not None and not result_rx.poll():
@@ -518,6 +576,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "cfs_throttled": delta("nr_throttled"),
         "cfs_throttled_s": _round(throttled_s, 3),
         "daemon_rss_mb_peak": _round(record.daemon_rss_mb_peak or None, 1),  # daemon + its workers
+        "daemon_pss_mb_peak": _round(record.daemon_pss_mb_peak or None, 1),
         "world_rss_mb_peak": _round(record.world_rss_mb_peak or None, 1),
         "wall_s": _round(window_s, 2),
         "loadavg_before": record.loadavg_before,

@@ -191,6 +191,7 @@ QUOTA_COLUMNS = (
     ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core"),
     ("daemon_cpu_percent_of_quota", "% of quota"), ("cfs_throttled", "throttled periods"),
     ("cfs_periods", "periods"), ("daemon_rss_mb_peak", "daemon RSS MB peak"),
+    ("daemon_pss_mb_peak", "daemon PSS MB peak"),
     ("world_rss_mb_peak", "world RSS MB peak"), ("loadavg_before", "load average before"),
 )
 

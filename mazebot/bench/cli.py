@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import signal
 import sys
 import time
 from dataclasses import replace
@@ -108,8 +109,6 @@ def parse_quota(text: str) -> float | None:
 
 def _cmd_bench_quota(args: argparse.Namespace, config: Config, specs: list[RunSpec], command: str) -> int:
     """The daemon under a CPU quota, the world in its own process (:mod:`mazebot.bench.quota_run`)."""
-    from mazebot.bench.cgroup import CpuQuota
-    from mazebot.bench.quota_run import QuotaRunError, quota_metrics, run_two_process
     from mazebot.bench.report import write_quota_report
 
     percent = parse_quota(args.cpu_quota)
@@ -125,26 +124,36 @@ def _cmd_bench_quota(args: argparse.Namespace, config: Config, specs: list[RunSp
     out_dir.mkdir(parents=True, exist_ok=True)
     runs: list[dict[str, Any]] = []
     _progress(0, len(specs), "starting")
+    # SIGTERM (e.g. to the whole process group) ends the runs as Ctrl-C does: daemon, world, cgroup
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        _quota_runs(args, config, specs, percent, runs)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    write_quota_report(out_dir, runs, command)
+    print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} ({len(specs)} runs)", file=sys.stderr)
+    return EXIT_OK if all(r["done"] for r in runs) else 1
+
+
+def _quota_runs(args: argparse.Namespace, config: Config, specs: list[RunSpec], percent: float | None,
+                runs: list[dict[str, Any]]) -> None:
+    from mazebot.bench.cgroup import CpuQuota
+    from mazebot.bench.quota_run import quota_metrics, run_two_process
+
     for i, spec in enumerate(specs, 1):
         cfg = config.model_copy(deep=True)
         cfg.sim.seed = spec.seed
         cfg.sim.world = spec.world  # type: ignore[assignment]
         cfg.daemon.exit_on_fault = True
         with CpuQuota.create(f"mazebot-bench-{os.getpid()}-{i}", percent) as group:
-            try:
-                record = run_two_process(
-                    cfg, spec.maze_path, spec.seed if not spec.maze_path else None,
-                    spec.size if not spec.maze_path else None, spec.max_sim_s, group,
-                )
-            except QuotaRunError as exc:
-                raise UsageError(str(exc)) from None
+            record = run_two_process(
+                cfg, spec.maze_path, spec.seed if not spec.maze_path else None,
+                spec.size if not spec.maze_path else None, spec.max_sim_s, group,
+            )
         metrics = quota_metrics(cfg, spec, record)
         runs.append(metrics)
         _progress(i, len(specs), f"{spec.name} seed {spec.seed} at {args.cpu_quota} % of one core: "
                   f"done={metrics['done']} in {metrics['time_s']} s, daemon CPU {metrics['daemon_cpu_percent']} %")
-    write_quota_report(out_dir, runs, command)
-    print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} ({len(specs)} runs)", file=sys.stderr)
-    return EXIT_OK if all(r["done"] for r in runs) else 1
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

@@ -18,8 +18,10 @@ Three processes, on the real clock:
   samples every process's resident memory, and turns the daemon's report and the
   world's ground truth into metrics.
 
-Stopping: the daemon is stopped first (a message, then SIGTERM, then SIGKILL), then the
-world, then the cgroup goes; Ctrl-C does the same (both children ignore SIGINT).
+Stopping: the daemon is stopped first (a message, then SIGKILL), then the world, then the
+cgroup goes; Ctrl-C or SIGTERM to this process (or to the whole process group) does the same:
+the daemon ignores both and the world waits for the daemon, so this process alone decides the
+order.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from mazebot.errors import MazebotError
+
 #: How long the world may take to build and serve its lidar, and the daemon to come up.
 START_TIMEOUT_S = 60.0
 #: How long a stopped daemon or world may take to end before it is terminated, then killed.
@@ -49,8 +53,8 @@ RECORD_PERIOD_S = 0.1
 LATENESS_KEPT = 200_000
 
 
-class QuotaRunError(RuntimeError):
-    """The two-process run could not be carried out (a process failed to start or died)."""
+class QuotaRunError(MazebotError):
+    """The two-process run could not be carried out (the world failed to start): exit code 70."""
 
 
 # --- the daemon process ----------------------------------------------------------------
@@ -71,7 +75,12 @@ def daemon_main(
 
     if procs_files:  # first of all: everything this process does from here on is inside the quota
         join([Path(p) for p in procs_files])
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us (Ctrl-C reaches every process)
+    # Ctrl-C (or a SIGTERM to the process group) reaches every process at once: the parent stops
+    # us, then the world. Ignored here, both are ignored by the loop-closure fork server and its
+    # worker too (a process started from here inherits ignored signals), which would otherwise die
+    # under the daemon's feet.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     try:
         result = asyncio.run(_run_daemon(config, max_run_s, pty_path, motor_tx, edge_rx, result_tx, control_rx))
         result_tx.send(("result", result))
@@ -162,7 +171,7 @@ async def _run_daemon(
         supervisor.start("bench-driver", drive_then_stop)
 
     exit_code = await run_daemon(
-        config, build, clock=clock, serve_web=False, install_signal_handlers=True, state=state,
+        config, build, clock=clock, serve_web=False, install_signal_handlers=False, state=state,
         on_started=on_started, autonomous=True,
     )
     fault = state.active_fault
@@ -301,14 +310,33 @@ class QuotaRecord:
     loadavg_after: str | None = None
 
 
-def _stop_process(process: multiprocessing.process.BaseProcess, control_tx: Connection | None) -> None:
-    """Ask ``process`` to stop, then terminate it, then kill it; returns once it has ended."""
+def _stop_process(
+    process: multiprocessing.process.BaseProcess,
+    control_tx: Connection | None,
+    output: Connection | None = None,
+    on_message: Callable[[Any], None] | None = None,
+) -> None:
+    """Ask ``process`` to stop, then terminate it, then kill it; returns once it has ended.
+
+    While it stops, what it still sends on ``output`` is read (to ``on_message``): a process
+    blocked writing its last report into a full pipe could not end.
+    """
     if process.exitcode is not None or process.pid is None:
         return
     if control_tx is not None:
         with contextlib.suppress(OSError, ValueError):
             control_tx.send("stop")
-    process.join(STOP_TIMEOUT_S)
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    while process.exitcode is None and time.monotonic() < deadline:
+        watched = [process.sentinel] + ([output] if output is not None else [])
+        if output is not None and output in wait(watched, timeout=0.5):
+            try:
+                message = output.recv()
+            except (EOFError, OSError):
+                output = None
+                continue
+            if on_message is not None:
+                on_message(message)
     if process.exitcode is None:
         process.terminate()
         process.join(STOP_TIMEOUT_S / 3)
@@ -324,7 +352,6 @@ def run_two_process(
     size: tuple[int, int] | None,
     max_run_s: float,
     quota: Any = None,
-    on_progress: Callable[[str], None] | None = None,
 ) -> QuotaRecord:
     """One run: the world in its process, the daemon in another (inside ``quota``, a
     :class:`mazebot.bench.cgroup.CpuQuota`, when given); everything stopped on return."""
@@ -356,13 +383,13 @@ def run_two_process(
         record.daemon_pid = daemon.pid
         for conn in (motor_tx, edge_rx, result_tx, daemon_ctl_rx):
             conn.close()
-        _watch(daemon, world, result_rx, report_rx, daemon_ctl_tx, quota, record, max_run_s, on_progress)
+        _watch(daemon, world, result_rx, report_rx, daemon_ctl_tx, quota, record, max_run_s)
         if quota is not None:
             record.cpu_at_exit = quota.stat()
         record.loadavg_after = _loadavg()
     finally:
         if daemon is not None:
-            _stop_process(daemon, daemon_ctl_tx)
+            _stop_process(daemon, daemon_ctl_tx, result_rx, lambda message: _on_result(message, record, quota))
             left = end_processes(record.daemon_tree)
             if left:
                 record.errors.append(f"daemon: processes {left} outlived the daemon and were ended")
@@ -414,7 +441,6 @@ def _watch(
     quota: Any,
     record: QuotaRecord,
     max_run_s: float,
-    on_progress: Callable[[str], None] | None,
 ) -> None:
     """Until the daemon process ends: its messages, the world's truth, memory samples, the time limit."""
     hard_deadline = time.monotonic() + START_TIMEOUT_S + max_run_s + STOP_TIMEOUT_S
@@ -426,23 +452,9 @@ def _watch(
         ready = wait(watched, timeout=RSS_PERIOD_S)
         if result_rx in ready and result_open:
             try:
-                message = result_rx.recv()
+                _on_result(result_rx.recv(), record, quota)
             except EOFError:
                 result_open = False
-                message = ("eof",)
-            kind = message[0]
-            if kind == "started":
-                record.started_s = time.monotonic()
-                record.cpu_at_start = quota.stat() if quota is not None else None
-                if on_progress:
-                    on_progress("daemon started, exploring")
-            elif kind == "finished":
-                record.finished_s = time.monotonic()
-                record.cpu_at_end = quota.stat() if quota is not None else None
-            elif kind == "result":
-                record.daemon = message[1]
-            elif kind == "error":
-                record.errors.append(f"daemon: {message[1]}")
         if report_rx in ready:
             with contextlib.suppress(EOFError, OSError):
                 _take_truth(report_rx, record)
@@ -465,6 +477,21 @@ def _watch(
             with contextlib.suppress(OSError, ValueError):
                 daemon_ctl_tx.send("stop")
             stop_sent = True
+
+
+def _on_result(message: Any, record: QuotaRecord, quota: Any) -> None:
+    """One message of the daemon: the CPU counters are read the moment it says started or finished."""
+    kind = message[0]
+    if kind == "started":
+        record.started_s = time.monotonic()
+        record.cpu_at_start = quota.stat() if quota is not None else None
+    elif kind == "finished":
+        record.finished_s = time.monotonic()
+        record.cpu_at_end = quota.stat() if quota is not None else None
+    elif kind == "result":
+        record.daemon = message[1]
+    elif kind == "error":
+        record.errors.append(f"daemon: {message[1]}")
 
 
 def _drain_world(report_rx: Connection, world: multiprocessing.process.BaseProcess, record: QuotaRecord) -> None:

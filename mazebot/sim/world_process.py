@@ -20,7 +20,8 @@ on the real clock, and meets the daemon only where the real robot meets the worl
 
 The process ignores SIGINT (Ctrl-C reaches every process of the terminal's group): the
 parent stops the daemon first and then the world, so the daemon never loses its devices
-while it is still driving; SIGTERM stops it at once.
+while it is still driving. A SIGTERM stops it once the daemon has closed its motor line
+(at most :data:`SIGTERM_GRACE_S` later).
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ from mazebot.sim.sim_pins import BoundedHistoryPin
 
 #: How often the world reports the true pose to the parent (seconds of the real clock).
 TRUTH_PERIOD_S = 0.2
+#: After a SIGTERM, how long the world waits for the daemon to stop (and close its motor line) first.
+SIGTERM_GRACE_S = 5.0
 #: One throttle message: the motor channel, and the throttle (NaN: coasting, ``None``).
 THROTTLE = struct.Struct("<Bd")
 
@@ -130,7 +133,16 @@ async def serve_world(
     loop = asyncio.get_running_loop()
     clock = RealClock()
     stop = asyncio.Event()
-    loop.add_signal_handler(signal.SIGTERM, stop.set)
+    daemon_gone = False
+
+    def on_sigterm() -> None:
+        # a SIGTERM to the whole process group: the daemon must stop its wheels first
+        if daemon_gone:
+            stop.set()
+        else:
+            loop.call_later(SIGTERM_GRACE_S, stop.set)
+
+    loop.add_signal_handler(signal.SIGTERM, on_sigterm)
     world = make_world(config, maze_path, seed, size)
     factory = EdgeRecordingFactory(encoder_pins(config))
     robot = SimulatedRobot(world, config, seed=config.sim.seed if seed is None else seed, clock=clock,
@@ -149,6 +161,8 @@ async def serve_world(
                 getattr(robot.kit, f"motor{channel}").throttle = throttle
                 counts["motor_writes"] += 1
         except (EOFError, OSError):  # the daemon is gone: its motors are off
+            nonlocal daemon_gone
+            daemon_gone = True
             loop.remove_reader(motor_rx.fileno())
             for channel in (1, 2, 3, 4):
                 getattr(robot.kit, f"motor{channel}").throttle = None

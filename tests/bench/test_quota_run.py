@@ -9,10 +9,15 @@ cgroup (root only) shows the cgroup holds every process of the daemon and is gon
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
-from mazebot.bench.cgroup import CpuQuota
+from mazebot.bench.cgroup import CGROUP_ROOT, CpuQuota
 from mazebot.bench.cli import parse_quota
 from mazebot.bench.quota_run import QuotaRecord, quota_metrics, run_two_process
 from mazebot.bench.runner import RunSpec
@@ -106,7 +111,57 @@ def test_the_quota_is_a_percentage_of_one_core_or_max() -> None:
 @pytest.mark.parametrize("extra", [["--cpu-quota", "0"], ["--cpu-quota", "25", "--drive", "scripted"],
                                    ["--cpu-quota", "25", "--clock", "virtual"],
                                    ["--cpu-quota", "25", "--faults", "kidnap"]])
-def test_what_a_quota_run_cannot_do_is_a_usage_error(extra: list[str], tmp_path, capsys) -> None:
+def test_what_a_quota_run_cannot_do_is_a_usage_error(extra: list[str], tmp_path: Path, capsys) -> None:
     assert main(["bench", "--size", "4x4", "--seeds", "1", "--out", str(tmp_path), *extra]) == 2
     err = capsys.readouterr().err
     assert err.startswith("mazebot: ") and err.count("\n") == 1
+
+
+def session_processes(sid: int) -> list[int]:
+    """Every process whose session is ``sid`` (field 6 of ``/proc/PID/stat``), zombies included."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rpartition(")")[2].split()
+            except OSError:
+                continue
+            if int(fields[3]) == sid:
+                out.append(int(entry.name))
+    return out
+
+
+@pytest.mark.skipif(_cgroup_unusable() is not None, reason=str(_cgroup_unusable()))
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_to_every_process_ends_them_all_and_removes_the_cgroup(sig: int, tmp_path: Path) -> None:
+    """As a terminal's Ctrl-C does: the signal goes to every process of the group at once."""
+    log = tmp_path / "stderr.txt"
+    with open(log, "wb") as stderr:
+        bench = subprocess.Popen(
+            [sys.executable, "-m", "mazebot", "bench", "--cpu-quota", "50", "--size", "4x4", "--seeds", "1",
+             "--out", str(tmp_path)],
+            start_new_session=True, stdout=subprocess.DEVNULL, stderr=stderr,
+        )
+    try:
+        names = [f"mazebot-bench-{bench.pid}-1"]
+        dirs = [d / name for name in names for d in (CGROUP_ROOT, CGROUP_ROOT / "cpu", CGROUP_ROOT / "cpuacct")]
+        procs = [d / "cgroup.procs" for d in dirs]
+        deadline = time.monotonic() + 60
+        # the daemon is up once its loop-closure fork server has joined it in the cgroup
+        while time.monotonic() < deadline and max((len(p.read_text().split()) for p in procs if p.exists()),
+                                                  default=0) < 2:
+            time.sleep(0.2)
+        assert bench.poll() is None, log.read_text()
+        os.killpg(bench.pid, sig)
+        code = bench.wait(60)
+    finally:
+        if bench.poll() is None:
+            os.killpg(bench.pid, signal.SIGKILL)
+            bench.wait()
+    assert code == 130, log.read_text()
+    assert "Traceback" not in log.read_text()
+    deadline = time.monotonic() + 10  # the kernel reaps the last of them (the resource tracker) on its own
+    while session_processes(bench.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert session_processes(bench.pid) == []
+    assert not any(d.exists() for d in dirs)

@@ -197,6 +197,7 @@ async def _run_daemon(
         "gpio_edges": gpio.edges,
         "motor_writes": kit.writes_sent,
         "est": run["est"],
+        "planner_events": list(state.planner_events),
         "map": state.map,
     }
 
@@ -240,6 +241,18 @@ def _start_time(pid: int) -> str | None:
         with open(f"/proc/{pid}/stat") as f:
             return f.read().rpartition(")")[2].split()[19]
     except (OSError, IndexError):
+        return None
+
+
+def process_cpu_s(pid: int | None) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far (fields 14 and 15 of ``/proc/PID/stat``)."""
+    if pid is None:
+        return None
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
         return None
 
 
@@ -293,6 +306,8 @@ class QuotaRecord:
     cpu_at_start: Any = None  # mazebot.bench.cgroup.CpuStat when the daemon said "started"
     cpu_at_end: Any = None  # ... and "finished"
     cpu_at_exit: Any = None  # ... and when the daemon process had ended
+    world_cpu_at_start: float | None = None  # the world process's CPU seconds at "started" and "finished"
+    world_cpu_at_end: float | None = None
     started_s: float | None = None  # this process's monotonic clock at those moments
     finished_s: float | None = None
     daemon_pid: int | None = None
@@ -485,9 +500,11 @@ def _on_result(message: Any, record: QuotaRecord, quota: Any) -> None:
     if kind == "started":
         record.started_s = time.monotonic()
         record.cpu_at_start = quota.stat() if quota is not None else None
+        record.world_cpu_at_start = process_cpu_s(record.world_pid)
     elif kind == "finished":
         record.finished_s = time.monotonic()
         record.cpu_at_end = quota.stat() if quota is not None else None
+        record.world_cpu_at_end = process_cpu_s(record.world_pid)
     elif kind == "result":
         record.daemon = message[1]
     elif kind == "error":
@@ -602,10 +619,14 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "cfs_periods": delta("nr_periods"),
         "cfs_throttled": delta("nr_throttled"),
         "cfs_throttled_s": _round(throttled_s, 3),
+        "world_cpu_percent": _round(100.0 * (record.world_cpu_at_end - record.world_cpu_at_start) / window_s, 1)
+        if record.world_cpu_at_end is not None and record.world_cpu_at_start is not None and window_s else None,
         "daemon_rss_mb_peak": _round(record.daemon_rss_mb_peak or None, 1),  # daemon + its workers
         "daemon_pss_mb_peak": _round(record.daemon_pss_mb_peak or None, 1),
         "world_rss_mb_peak": _round(record.world_rss_mb_peak or None, 1),
         "wall_s": _round(window_s, 2),
+        # written beside results.json, not into it; seconds since the daemon started
+        "planner_events": [(t_s - (d.get("start_s") or 0.0), text) for t_s, text in d.get("planner_events") or []],
         "loadavg_before": record.loadavg_before,
         "loadavg_after": record.loadavg_after,
     }

@@ -191,7 +191,7 @@ QUOTA_COLUMNS = (
     ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core"),
     ("daemon_cpu_percent_of_quota", "% of quota"), ("cfs_throttled", "throttled periods"),
     ("cfs_periods", "periods"), ("daemon_rss_mb_peak", "daemon RSS MB peak"),
-    ("daemon_pss_mb_peak", "daemon PSS MB peak"),
+    ("daemon_pss_mb_peak", "daemon PSS MB peak"), ("world_cpu_percent", "world CPU % of a core"),
     ("world_rss_mb_peak", "world RSS MB peak"), ("loadavg_before", "load average before"),
 )
 
@@ -199,6 +199,12 @@ QUOTA_COLUMNS = (
 def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) -> dict[str, Any]:
     """results.json and report.md of CPU-quota runs (no figures: the world lived in another process)."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    for i, r in enumerate(runs):  # the planner's decisions, to read a run that ended early
+        events = r.pop("planner_events", None) or []
+        if events:
+            name = f"run{i:02d}-{r['maze']}-seed{r['seed']}-planner.txt"
+            write_atomic(out_dir / name, "".join(f"{t_s:8.2f}  {text}\n" for t_s, text in events))
+            r["planner_log"] = name
 
     def cell(key: str, v: Any) -> str:
         if key == "cpu_quota_percent" and v is None:

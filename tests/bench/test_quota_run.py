@@ -64,6 +64,10 @@ def assert_the_boundary_carried_everything(record: QuotaRecord, m: dict) -> None
     assert m["collisions"] == 0
     assert m["coverage"] is not None and m["coverage"] > 0
     assert m["daemon_rss_mb_peak"] > 20 and m["world_rss_mb_peak"] > 20
+    assert m["daemon_pss_mb_peak"] <= m["daemon_rss_mb_peak"]  # shared pages count once
+    assert m["world_cpu_percent"] > 0  # the world's own share, outside any quota
+    assert any("cell" in text for _, text in m["planner_events"])  # the planner chose where to look
+    assert all(0 <= t_s <= 2 * SHORT_RUN_S for t_s, _ in m["planner_events"])
     assert gone(record.daemon_pid) and gone(record.world_pid)
 
 
@@ -165,3 +169,23 @@ def test_ctrl_c_or_sigterm_to_every_process_ends_them_all_and_removes_the_cgroup
         time.sleep(0.1)
     assert session_processes(bench.pid) == []
     assert not any(d.exists() for d in dirs)
+
+
+def test_the_report_has_a_row_per_run_nulls_for_missing_parts_and_the_planner_log_beside_it(tmp_path: Path) -> None:
+    import json
+
+    from mazebot.bench.report import QUOTA_COLUMNS, write_quota_report
+
+    run = {key: None for key, _ in QUOTA_COLUMNS} | {
+        "maze": "generated-4x4", "seed": 1, "done": True, "collisions": 0, "time_s": 12.5,
+        "planner_events": [(1.25, "look at its E side of cell (2, -1)")],
+    }
+    results = write_quota_report(tmp_path, [run], "mazebot bench --cpu-quota max")
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved == results and "planner_events" not in saved["runs"][0]
+    log = tmp_path / saved["runs"][0]["planner_log"]
+    assert log.read_text() == "    1.25  look at its E side of cell (2, -1)\n"
+    report = (tmp_path / "report.md").read_text()
+    row = next(line for line in report.splitlines() if line.startswith("| generated-4x4"))
+    assert row.count("|") == len(QUOTA_COLUMNS) + 1
+    assert "no limit" in row and "null" in row  # no quota; no cgroup accounting

@@ -492,6 +492,8 @@ def _watch(
             with contextlib.suppress(OSError, ValueError):
                 daemon_ctl_tx.send("stop")
             stop_sent = True
+        elif stop_sent and now > hard_deadline + STOP_TIMEOUT_S:
+            return  # it does not listen: the caller kills it
 
 
 def _on_result(message: Any, record: QuotaRecord, quota: Any) -> None:

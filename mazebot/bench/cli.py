@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
+import signal
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from mazebot.bench.report import write_partial, write_report
 from mazebot.bench.runner import RunSpec, run_one
-from mazebot.config import load_config
+from mazebot.config import Config, load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.sim.faults import DEFAULT_AT_S, FAULTS, FaultSpec, parse_fault
 from mazebot.sim.maze_file import packaged_maze_path, read_maze_layout
@@ -88,8 +91,74 @@ def _progress(i: int, n: int, text: str) -> None:
     print(f"[{bar}] {i}/{n} {text}", end=end, file=sys.stderr, flush=True)
 
 
+def parse_quota(text: str) -> float | None:
+    """``--cpu-quota``: a percentage of one core (above 0; above 100 is several cores), or
+    ``max`` for no limit (the same processes and accounting, nothing throttled)."""
+    if text.lower() in ("max", "unlimited", "none"):
+        return None
+    try:
+        percent = float(text.rstrip("%"))
+    except ValueError:
+        raise UsageError(f"--cpu-quota must be a percentage of one core (e.g. 25) or max, got {text!r}") from None
+    cores = os.cpu_count() or 1
+    if not 0.0 < percent <= 100.0 * cores:
+        raise UsageError(f"--cpu-quota must be above 0 and at most {100 * cores} % (this machine's {cores} cores), "
+                         f"got {text!r}")
+    return percent
+
+
+def _cmd_bench_quota(args: argparse.Namespace, config: Config, specs: list[RunSpec], command: str) -> int:
+    """The daemon under a CPU quota, the world in its own process (:mod:`mazebot.bench.quota_run`)."""
+    from mazebot.bench.report import write_quota_report
+
+    percent = parse_quota(args.cpu_quota)
+    if args.clock == "virtual":
+        raise UsageError("--cpu-quota runs on the real clock; leave out --clock virtual")
+    for spec in specs:
+        if spec.drive != "explore":
+            raise UsageError("--cpu-quota runs --drive explore only (the scripted tour reads the true pose, "
+                             "which lives in the world's process)")
+        if spec.faults:
+            raise UsageError("--cpu-quota does not inject --faults (the injector reaches into both processes)")
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    runs: list[dict[str, Any]] = []
+    _progress(0, len(specs), "starting")
+    # SIGTERM (e.g. to the whole process group) ends the runs as Ctrl-C does: daemon, world, cgroup
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        _quota_runs(args, config, specs, percent, runs)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    write_quota_report(out_dir, runs, command)
+    print(f"wrote {out_dir / 'results.json'} and {out_dir / 'report.md'} ({len(specs)} runs)", file=sys.stderr)
+    return EXIT_OK if all(r["done"] for r in runs) else 1
+
+
+def _quota_runs(args: argparse.Namespace, config: Config, specs: list[RunSpec], percent: float | None,
+                runs: list[dict[str, Any]]) -> None:
+    from mazebot.bench.cgroup import CpuQuota
+    from mazebot.bench.quota_run import quota_metrics, run_two_process
+
+    for i, spec in enumerate(specs, 1):
+        cfg = config.model_copy(deep=True)
+        cfg.sim.seed = spec.seed
+        cfg.sim.world = spec.world  # type: ignore[assignment]
+        cfg.daemon.exit_on_fault = True
+        with CpuQuota.create(f"mazebot-bench-{os.getpid()}-{i}", percent) as group:
+            record = run_two_process(
+                cfg, spec.maze_path, spec.seed if not spec.maze_path else None,
+                spec.size if not spec.maze_path else None, spec.max_sim_s, group,
+            )
+        metrics = quota_metrics(cfg, spec, record)
+        runs.append(metrics)
+        _progress(i, len(specs), f"{spec.name} seed {spec.seed} at {args.cpu_quota} % of one core: "
+                  f"done={metrics['done']} in {metrics['time_s']} s, daemon CPU {metrics['daemon_cpu_percent']} %")
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    clock = args.clock or ("real" if args.cpu_quota is not None else "virtual")
     if args.seeds is None:  # one maze of 16 runs is the fault suite; three seeds for the others
         args.seeds = 1 if args.suite == "faults" and not (args.maze or args.size or args.room) else 3
     if args.seeds < 1:
@@ -100,33 +169,36 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.room:
         if args.maze or args.size:
             raise UsageError("give either --room or --maze/--size, not both")
-        specs = [RunSpec(None, None, s, args.drive, clock=args.clock, world="room") for s in seeds]
+        specs = [RunSpec(None, None, s, args.drive, clock=clock, world="room") for s in seeds]
     elif args.size:
         if args.maze:
             raise UsageError("give either --size or --maze, not both")
-        specs = generated_specs(parse_size(args.size), seeds, args.drive, args.clock)
+        specs = generated_specs(parse_size(args.size), seeds, args.drive, clock)
     elif args.maze:
         for path in args.maze:
             if not Path(path).is_file():
                 raise UsageError(f"maze file {path} not found")
-        specs = [RunSpec(p, None, s, args.drive, clock=args.clock, max_sim_s=time_limit_s(p))
+        specs = [RunSpec(p, None, s, args.drive, clock=clock, max_sim_s=time_limit_s(p))
                  for p in args.maze for s in seeds]
     else:
-        specs = suite_specs(args.suite, args.seeds, args.drive, args.clock, args.first_seed)
+        specs = suite_specs(args.suite, args.seeds, args.drive, clock, args.first_seed)
     if args.faults:
         extra = tuple(parse_fault(text) for text in args.faults)
         specs = [replace(spec, faults=spec.faults + extra) for spec in specs]
     if args.slow_cpu:
-        if args.clock != "virtual":
-            raise UsageError("--slow-cpu emulates a slower computer on the virtual clock; drop --clock real")
+        if clock != "virtual":
+            raise UsageError("--slow-cpu emulates a slower computer on the virtual clock; drop --clock real "
+                             "and --cpu-quota (which slows the real one)")
         from mazebot.sim.virtual_time import PI_CLASS_CPU
 
         specs = [replace(spec, slow=PI_CLASS_CPU) for spec in specs]
+    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
+    if args.cpu_quota is not None:
+        return _cmd_bench_quota(args, config, specs, command)
     out_dir = Path(args.out)
     runs = []
     t0 = time.perf_counter()
     _progress(0, len(specs), "starting")
-    command = "mazebot " + " ".join(shlex.quote(a) for a in args.argv)
     out_dir.mkdir(parents=True, exist_ok=True)
     for i, spec in enumerate(specs, 1):
         metrics, record = run_one(config, spec)
@@ -165,8 +237,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                             "left out, so a suite can be split over several processes)")
     bench.add_argument("--drive", choices=("explore", "scripted"), default="explore",
                        help="explore: the autonomous stack; scripted: a ground-truth tour of every cell")
-    bench.add_argument("--clock", choices=("virtual", "real"), default="virtual",
+    bench.add_argument("--clock", choices=("virtual", "real"), default=None,
                        help="virtual: as fast as the CPU allows (default); real: wall-clock time")
+    bench.add_argument("--cpu-quota", default=None, metavar="PERCENT",
+                       help="run the daemon in a cgroup with PERCENT %% of one core (10 ms period; max: no "
+                            "limit) and the simulated world in a process of its own, on the real clock; "
+                            "needs root and a cgroup CPU controller (Pi 4 ~ 25, Pi 5 ~ 50, Pi 3B+ ~ 15)")
     bench.add_argument("--faults", nargs="+", default=None, metavar="NAME[@T]",
                        help="inject these faults into every run, T simulated seconds after the start "
                        f"(default {DEFAULT_AT_S:g}); names: {', '.join(FAULTS)}")

@@ -199,3 +199,63 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
               "per scan (filter + ICP + grid), not virtual time."]
     write_atomic(out_dir / "report.md", "\n".join(lines) + "\n")
     return results
+
+
+#: The columns of a CPU-quota run's table (``mazebot bench --cpu-quota``), in order.
+QUOTA_COLUMNS = (
+    ("maze", "maze"), ("seed", "seed"), ("cpu_quota_percent", "quota % of a core"), ("done", "done"),
+    ("time_s", "time to done s"), ("coverage", "coverage"), ("collisions", "collisions"),
+    ("control_jitter_ms_p99", "control p99 late ms"), ("slam_scans_dropped", "revolutions dropped"),
+    ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core"),
+    ("daemon_cpu_percent_of_quota", "% of quota"), ("cfs_throttled", "throttled periods"),
+    ("cfs_periods", "periods"), ("daemon_rss_mb_peak", "daemon RSS MB peak"),
+    ("daemon_pss_mb_peak", "daemon PSS MB peak"), ("world_cpu_percent", "world CPU % of a core"),
+    ("world_rss_mb_peak", "world RSS MB peak"), ("loadavg_before", "load average before"),
+)
+
+
+def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) -> dict[str, Any]:
+    """results.json and report.md of CPU-quota runs (no figures: the world lived in another process)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for i, r in enumerate(runs):  # the planner's decisions, to read a run that ended early
+        events = r.pop("planner_events", None) or []
+        if events:
+            name = f"run{i:02d}-{r['maze']}-seed{r['seed']}-planner.txt"
+            write_atomic(out_dir / name, "".join(f"{t_s:8.2f}  {text}\n" for t_s, text in events))
+            r["planner_log"] = name
+
+    def cell(key: str, v: Any) -> str:
+        if key == "cpu_quota_percent" and v is None:
+            return "no limit"
+        return "null" if v is None else str(v)
+
+    summary: dict[str, Any] = {"runs": len(runs), "done": sum(1 for r in runs if r["done"])}
+    for key in ("time_s", "coverage", "control_jitter_ms_p99", "daemon_cpu_percent", "daemon_cpu_percent_of_quota",
+                "daemon_rss_mb_peak"):
+        values = [r[key] for r in runs if r.get(key) is not None]
+        summary[f"{key}_median"] = round(statistics.median(values), 4) if values else None
+    summary["collisions_total"] = sum(r["collisions"] or 0 for r in runs)
+    results = {"command": command, "runs": runs, "summary": summary}
+    write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
+    lines = [
+        "# mazebot benchmark on a share of one core", "", f"Command: `{command}`", "",
+        "The daemon in a cgroup with the CPU quota (10 ms period), the simulated world in a process of its "
+        "own outside it, on the real clock. CPU from the cgroup's own accounting, from the daemon's start "
+        "(devices open) to the end of the run.", "",
+        "| " + " | ".join(title for _, title in QUOTA_COLUMNS) + " |",
+        "|" + "---|" * len(QUOTA_COLUMNS),
+    ]
+    for r in runs:
+        lines.append("| " + " | ".join(cell(key, r.get(key)) for key, _ in QUOTA_COLUMNS) + " |")
+    errors = [f"- {r['maze']} seed {r['seed']}: {e}" for r in runs for e in r.get("errors") or []]
+    if errors:
+        lines += ["", "## Errors", "", *errors]
+    budget = budget_table([r for r in runs if r.get("cpu_budget") and r.get("time_s")])
+    if budget:
+        lines += ["", "## CPU per part of the daemon", "", *budget, "",
+                  "Thread CPU of each part's own calls (medians over the runs); the cgroup's total above also "
+                  "holds the event loop, the serial and GPIO threads and the interpreter."]
+    lines += ["", "## Summary (medians)", "", "```json", json.dumps(summary, indent=2), "```", "",
+              "`null` marks a metric whose part was missing (e.g. no cgroup accounting), never a guess."]
+    write_atomic(out_dir / "report.md", "\n".join(lines) + "\n")
+    return results

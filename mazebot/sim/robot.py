@@ -13,6 +13,7 @@ imperfections of ``[sim]``: motor lag and mismatch, unequal wheels, slip, lidar 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -80,14 +81,22 @@ class SimulatedRobot:
         robot.step(0.1)                       # physics, encoder edges, pose history
     """
 
-    def __init__(self, world: World, config: Config, seed: int, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        world: World,
+        config: Config,
+        seed: int,
+        clock: Clock | None = None,
+        pin_factory: MockFactory | None = None,
+    ) -> None:
         self.world = world
         self.config = config
         rngs = np.random.default_rng(seed).spawn(2)
         self.physics = RobotPhysics(physics_params(config), world, world.start_pose, rngs[0])
         self.kit = FakeMotorKit(clock)
-        # bounded edge history: gpiozero's MockPin keeps every edge (a leak over long runs)
-        self.pin_factory = MockFactory(pin_class=BoundedHistoryPin)
+        # bounded edge history: gpiozero's MockPin keeps every edge (a leak over long runs);
+        # the world process passes a factory that also records the edges it sends to the daemon
+        self.pin_factory = pin_factory if pin_factory is not None else MockFactory(pin_class=BoundedHistoryPin)
         enc = config.encoders
         self.left_signal = QuadratureSignal(
             self.pin_factory, enc.left_a_pin, enc.left_b_pin, enc.counts_per_rev, idle_high=enc.pull_up
@@ -164,8 +173,12 @@ class SimulatedRobot:
         if self._lidar is not None:
             self._lidar.pump()
 
-    async def run(self, clock: Clock) -> None:
-        """The simulator task: step the world every ``[sim] step_period_s`` (and pace the lidar)."""
+    async def run(self, clock: Clock, after_step: Callable[[], None] | None = None) -> None:
+        """The simulator task: step the world every ``[sim] step_period_s`` (and pace the lidar).
+
+        ``after_step`` is called after every step (the world process sends the step's encoder
+        edges to the daemon there: :mod:`mazebot.sim.world_process`).
+        """
         period_s = self.config.sim.step_period_s
         tick = 0
         while True:
@@ -173,6 +186,8 @@ class SimulatedRobot:
             tick += 1
             if self._lidar is not None and tick % self._lidar_every == 0:
                 self._lidar.pump()
+            if after_step is not None:
+                after_step()
             await clock.sleep(period_s)
 
     def close(self) -> None:

@@ -1,0 +1,646 @@
+"""``mazebot bench --cpu-quota``: the daemon on a Pi's share of this CPU, the world outside it.
+
+Three processes, on the real clock:
+
+- **the world** (:mod:`mazebot.sim.world_process`): physics, encoder edges, the lidar
+  emulator on a pseudo-terminal; outside any quota, so a slow daemon never slows the
+  world it lives in (a shared process would also share the GIL);
+- **the daemon** (:func:`daemon_main`): ``main.run_daemon`` with the robot's own hardware
+  builder (``main.robot_hardware_builder``): the serial driver opens the pty with
+  pyserial-asyncio as it opens ``/dev/ttyUSB0`` on the robot; the motor HAT is a
+  :class:`~mazebot.sim.remote_devices.PipeMotorKit` and lgpio's callback thread a
+  :class:`~mazebot.sim.remote_devices.GpioEdgeThread` (the real encoder code counts the
+  world's edges on it). The process joins the quota's cgroup before it imports the
+  daemon, so its tasks, thread pools and loop-closure worker (forked later from a fork
+  server the daemon itself starts) all run inside;
+- **this process**: makes and removes the cgroup (:mod:`mazebot.bench.cgroup`), reads its
+  CPU accounting and throttling counters when the daemon says the run started and ended,
+  samples every process's resident memory, and turns the daemon's report and the
+  world's ground truth into metrics.
+
+Stopping: the daemon is stopped first (a message, then SIGKILL), then the world, then the
+cgroup goes; Ctrl-C or SIGTERM to this process (or to the whole process group) does the same:
+the daemon ignores both and the world waits for the daemon, so this process alone decides the
+order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import multiprocessing
+import os
+import signal
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any
+
+from mazebot.errors import MazebotError
+
+#: How long the world may take to build and serve its lidar, and the daemon to come up.
+START_TIMEOUT_S = 60.0
+#: How long a stopped daemon or world may take to end before it is terminated, then killed.
+STOP_TIMEOUT_S = 15.0
+#: How often this process samples the resident memory of the others.
+RSS_PERIOD_S = 0.5
+#: How often the daemon samples SLAM's pose estimate (for the trajectory error).
+RECORD_PERIOD_S = 0.1
+#: Control ticks whose lateness is kept for the p99 (a 16x16 maze is ~12 000 ticks at 20 Hz).
+LATENESS_KEPT = 200_000
+
+
+class QuotaRunError(MazebotError):
+    """The two-process run could not be carried out (the world failed to start): exit code 70."""
+
+
+# --- the daemon process ----------------------------------------------------------------
+
+
+def daemon_main(
+    config: Any,
+    max_run_s: float,
+    pty_path: str,
+    motor_tx: Connection,
+    edge_rx: Connection,
+    result_tx: Connection,
+    control_rx: Connection,
+    procs_files: list[str],
+) -> None:
+    """The daemon process's entry point: join the cgroup, run the daemon, send its report."""
+    from mazebot.bench.cgroup import join
+
+    if procs_files:  # first of all: everything this process does from here on is inside the quota
+        join([Path(p) for p in procs_files])
+    # Ctrl-C (or a SIGTERM to the process group) reaches every process at once: the parent stops
+    # us, then the world. Ignored here, both are ignored by the loop-closure fork server and its
+    # worker too (a process started from here inherits ignored signals), which would otherwise die
+    # under the daemon's feet.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    try:
+        result = asyncio.run(_run_daemon(config, max_run_s, pty_path, motor_tx, edge_rx, result_tx, control_rx))
+        result_tx.send(("result", result))
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            result_tx.send(("error", f"{type(exc).__name__}: {exc}"))
+        raise
+    finally:
+        for conn in (motor_tx, edge_rx, result_tx, control_rx):
+            conn.close()
+
+
+async def _run_daemon(
+    config: Any,
+    max_run_s: float,
+    pty_path: str,
+    motor_tx: Connection,
+    edge_rx: Connection,
+    result_tx: Connection,
+    control_rx: Connection,
+) -> dict[str, Any]:
+    from mazebot.clock import RealClock
+    from mazebot.main import Hardware, robot_hardware_builder, run_daemon
+    from mazebot.sim.remote_devices import GpioEdgeThread, PipeMotorKit
+    from mazebot.sim.world_process import encoder_pins
+    from mazebot.state import RunState, SharedState
+    from mazebot.tasks.supervisor import Supervisor
+
+    loop = asyncio.get_running_loop()
+    clock = RealClock()
+    config = config.model_copy(deep=True)
+    config.lidar.port = pty_path  # the emulated A1 on its pty, where the robot has /dev/ttyUSB0
+    kit = PipeMotorKit(motor_tx, clock)
+    factory = GpioEdgeThread.pin_factory()
+    gpio = GpioEdgeThread(edge_rx, factory, encoder_pins(config))
+    robot_builder = robot_hardware_builder(open_kit=lambda address, frequency: kit, make_pin_factory=lambda: factory)
+
+    async def build(config: Any, clock: Any, stack: contextlib.AsyncExitStack) -> Hardware:
+        hardware = await robot_builder(config, clock, stack)
+        gpio.start()  # the encoders listen now: the edges start arriving
+        stack.callback(gpio.stop)
+        return hardware
+
+    state = SharedState()
+    state.control_lateness_ms = deque(maxlen=LATENESS_KEPT)
+    run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": [], "encoders": None}
+
+    def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
+        run["start_s"] = clock.now_s()
+        result_tx.send(("started", run["start_s"]))
+
+        def on_control() -> None:
+            try:
+                message = control_rx.recv()
+            except (EOFError, OSError):  # the parent is gone
+                message = "stop"
+            if message == "stop":
+                loop.remove_reader(control_rx.fileno())
+                supervisor.request_stop("benchmark stopped")
+
+        loop.add_reader(control_rx.fileno(), on_control)
+
+        async def recorder() -> None:
+            while True:
+                p = state.pose
+                if state.pose_time_s is not None:
+                    run["est"].append((state.pose_time_s, p.x_m, p.y_m, p.theta_rad))
+                await clock.sleep(RECORD_PERIOD_S)
+
+        async def explore() -> None:
+            """Press start as the user would, then wait for the planner to say done."""
+            await clock.sleep(1.0)  # the lidar spins up and SLAM publishes its first map
+            state.commands.put_nowait("start")
+            while state.run_state not in (RunState.DONE, RunState.FAULT):
+                await clock.sleep(0.2)
+            run["done"] = state.run_state is RunState.DONE
+
+        async def drive_then_stop() -> None:
+            with contextlib.suppress(TimeoutError):  # out of time: done stays False
+                await asyncio.wait_for(explore(), max_run_s)
+            run["end_s"] = clock.now_s()
+            reading = hardware.encoders.read()
+            run["encoders"] = (reading.left_ticks, reading.right_ticks)
+            result_tx.send(("finished", run["end_s"]))
+            supervisor.request_stop("benchmark run finished")
+
+        supervisor.start("bench-recorder", recorder)
+        supervisor.start("bench-driver", drive_then_stop)
+
+    exit_code = await run_daemon(
+        config, build, clock=clock, serve_web=False, install_signal_handlers=False, state=state,
+        on_started=on_started, autonomous=True,
+    )
+    fault = state.active_fault
+    slam = state.slam
+    return {
+        "exit_code": exit_code,
+        "done": run["done"] and exit_code == 0,
+        "start_s": run["start_s"],
+        "end_s": run["end_s"],
+        "run_state": str(state.run_state),
+        "fault": None if fault is None else f"{fault.source}: {fault.message}",
+        "faults_raised": state.faults_raised,
+        "lateness_ms": list(state.control_lateness_ms),
+        # thread CPU per part of the daemon (mazebot.cpu_budget), over the run
+        "cpu_budget": state.cpu.table(run["end_s"] - run["start_s"]
+                                      if run["end_s"] is not None and run["start_s"] is not None else None),
+        "scan_ms": list(state.scan_ms),
+        "slam_scans": slam.scans,
+        "slam_scans_dropped": slam.scans_dropped,
+        "keyframes": slam.keyframes,
+        "loop_closures": slam.loop_closures,
+        "lidar_revolutions": state.sensors.lidar_revolutions,
+        "lidar_bytes_dropped": state.sensors.lidar_bytes_dropped,
+        "encoder_invalid_transitions": state.sensors.encoder_invalid_transitions,
+        "encoder_ticks": run["encoders"],
+        "gpio_edges": gpio.edges,
+        "motor_writes": kit.writes_sent,
+        "est": run["est"],
+        "planner_events": list(state.planner_events),
+        "map": state.map,
+    }
+
+
+# --- this process ------------------------------------------------------------------------
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    with contextlib.suppress(OSError):
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(c) for c in f.read().split()]
+    return out
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants now (from ``/proc/PID/task/TID/children``)."""
+    seen, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.append(p)
+        todo += _children(p)
+    return seen
+
+
+def _proc_kb(path: str, key: str) -> int:
+    with contextlib.suppress(OSError, ValueError, IndexError), open(path) as f:
+        for line in f:
+            if line.startswith(key):
+                return int(line.split()[1])
+    return 0
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of process ``pid`` (field 22 of ``/proc/PID/stat``): a pid with its start time
+    names one process, even once the pid has been reused."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def process_cpu_s(pid: int | None) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far (fields 14 and 15 of ``/proc/PID/stat``)."""
+    if pid is None:
+        return None
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def end_processes(seen: dict[int, str | None], timeout_s: float = STOP_TIMEOUT_S / 3) -> list[int]:
+    """Wait for these processes (pid: start time) to end; SIGTERM, then SIGKILL, the ones that do not.
+
+    The daemon's fork server and resource tracker end by themselves shortly after the daemon;
+    one that outlives it (a stuck worker) would otherwise be an orphan. Returns the pids that
+    had to be signalled.
+    """
+    def alive() -> list[int]:
+        return [pid for pid, start in seen.items() if start is not None and _start_time(pid) == start]
+
+    signalled: list[int] = []
+    for sig in (None, signal.SIGTERM, signal.SIGKILL):
+        if sig is not None:
+            for pid in alive():
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, sig)
+                    signalled.append(pid)
+        deadline = time.monotonic() + timeout_s
+        while alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not alive():
+            break
+    return sorted(set(signalled))
+
+
+def rss_mb(pids: list[int]) -> float:
+    """The resident memory of these processes added up (``VmRSS`` of ``/proc/PID/status``), MB.
+
+    Pages the processes share (the fork server's numpy and scipy, forked into the
+    loop-closure worker) count once per process here: an upper bound.
+    """
+    return sum(_proc_kb(f"/proc/{pid}/status", "VmRSS:") for pid in pids) / 1024.0
+
+
+def pss_mb(pids: list[int]) -> float:
+    """Their proportional set size added up (``Pss`` of ``/proc/PID/smaps_rollup``), MB: each shared
+    page split between the processes that map it, so the sum is the memory they take together
+    (kernel documentation, ``Documentation/filesystems/proc.rst``)."""
+    return sum(_proc_kb(f"/proc/{pid}/smaps_rollup", "Pss:") for pid in pids) / 1024.0
+
+
+@dataclass
+class QuotaRecord:
+    """What this process saw of one two-process run."""
+
+    percent: float | None
+    cgroup_version: int | None = None
+    cpu_at_start: Any = None  # mazebot.bench.cgroup.CpuStat when the daemon said "started"
+    cpu_at_end: Any = None  # ... and "finished"
+    cpu_at_exit: Any = None  # ... and when the daemon process had ended
+    world_cpu_at_start: float | None = None  # the world process's CPU seconds at "started" and "finished"
+    world_cpu_at_end: float | None = None
+    started_s: float | None = None  # this process's monotonic clock at those moments
+    finished_s: float | None = None
+    daemon_pid: int | None = None
+    world_pid: int | None = None
+    daemon_rss_mb_peak: float = 0.0  # the daemon and its children (fork server, worker), VmRSS added up
+    daemon_pss_mb_peak: float = 0.0  # ... proportional set size added up (shared pages once)
+    world_rss_mb_peak: float = 0.0
+    #: every process seen in the daemon's tree (pid: start time), ended with it
+    daemon_tree: dict[int, str | None] = field(default_factory=dict)
+    truth: deque[tuple[float, float, float, float, int]] = field(default_factory=lambda: deque(maxlen=4))
+    daemon: dict[str, Any] | None = None  # the daemon's report (``_run_daemon``)
+    world: dict[str, Any] | None = None  # the world's summary
+    errors: list[str] = field(default_factory=list)
+    loadavg_before: str | None = None  # /proc/loadavg when the run began and when it ended
+    loadavg_after: str | None = None
+
+
+def _stop_process(
+    process: multiprocessing.process.BaseProcess,
+    control_tx: Connection | None,
+    output: Connection | None = None,
+    on_message: Callable[[Any], None] | None = None,
+) -> None:
+    """Ask ``process`` to stop, then terminate it, then kill it; returns once it has ended.
+
+    While it stops, what it still sends on ``output`` is read (to ``on_message``): a process
+    blocked writing its last report into a full pipe could not end.
+    """
+    if process.exitcode is not None or process.pid is None:
+        return
+    if control_tx is not None:
+        with contextlib.suppress(OSError, ValueError):
+            control_tx.send("stop")
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    while process.exitcode is None and time.monotonic() < deadline:
+        watched = [process.sentinel] + ([output] if output is not None else [])
+        if output is not None and output in wait(watched, timeout=0.5):
+            try:
+                message = output.recv()
+            except (EOFError, OSError):
+                output = None
+                continue
+            if on_message is not None:
+                on_message(message)
+    if process.exitcode is None:
+        process.terminate()
+        process.join(STOP_TIMEOUT_S / 3)
+    if process.exitcode is None:
+        process.kill()
+        process.join()
+
+
+def run_two_process(
+    config: Any,
+    maze_path: str | None,
+    seed: int | None,
+    size: tuple[int, int] | None,
+    max_run_s: float,
+    quota: Any = None,
+) -> QuotaRecord:
+    """One run: the world in its process, the daemon in another (inside ``quota``, a
+    :class:`mazebot.bench.cgroup.CpuQuota`, when given); everything stopped on return."""
+    from mazebot.sim.world_process import world_main
+
+    ctx = multiprocessing.get_context("spawn")  # fresh interpreters: nothing of this process's state
+    record = QuotaRecord(percent=quota.percent if quota is not None else None,
+                         cgroup_version=quota.version if quota is not None else None)
+    motor_rx, motor_tx = ctx.Pipe(duplex=False)
+    edge_rx, edge_tx = ctx.Pipe(duplex=False)
+    report_rx, report_tx = ctx.Pipe(duplex=False)
+    world_ctl_rx, world_ctl_tx = ctx.Pipe(duplex=False)
+    result_rx, result_tx = ctx.Pipe(duplex=False)
+    daemon_ctl_rx, daemon_ctl_tx = ctx.Pipe(duplex=False)
+    world = ctx.Process(target=world_main, name="mazebot-world",
+                        args=(config, maze_path, seed, size, motor_rx, edge_tx, report_tx, world_ctl_rx))
+    daemon: multiprocessing.process.BaseProcess | None = None
+    record.loadavg_before = _loadavg()
+    try:
+        world.start()
+        record.world_pid = world.pid
+        for conn in (motor_rx, edge_tx, report_tx, world_ctl_rx):
+            conn.close()  # the world's ends live in the world
+        pty_path = _await_ready(report_rx, world, record)
+        procs = [str(p) for p in quota.procs_files] if quota is not None else []
+        daemon = ctx.Process(target=daemon_main, name="mazebot-daemon",
+                             args=(config, max_run_s, pty_path, motor_tx, edge_rx, result_tx, daemon_ctl_rx, procs))
+        daemon.start()
+        record.daemon_pid = daemon.pid
+        for conn in (motor_tx, edge_rx, result_tx, daemon_ctl_rx):
+            conn.close()
+        _watch(daemon, world, result_rx, report_rx, daemon_ctl_tx, quota, record, max_run_s)
+        if quota is not None:
+            record.cpu_at_exit = quota.stat()
+        record.loadavg_after = _loadavg()
+    finally:
+        if daemon is not None:
+            _stop_process(daemon, daemon_ctl_tx, result_rx, lambda message: _on_result(message, record, quota))
+            left = end_processes(record.daemon_tree)
+            if left:
+                record.errors.append(f"daemon: processes {left} outlived the daemon and were ended")
+        with contextlib.suppress(OSError, ValueError):
+            world_ctl_tx.send("stop")
+        _drain_world(report_rx, world, record)
+        _stop_process(world, None)
+        for conn in (report_rx, world_ctl_tx, result_rx, daemon_ctl_tx):
+            conn.close()
+    return record
+
+
+def _await_ready(report_rx: Connection, world: multiprocessing.process.BaseProcess, record: QuotaRecord) -> str:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        ready = wait([report_rx, world.sentinel], timeout=1.0)
+        if report_rx in ready:
+            try:
+                message = report_rx.recv()
+            except EOFError:
+                break
+            if message[0] == "ready":
+                return message[1]
+            if message[0] == "error":
+                raise QuotaRunError(f"the simulated world failed to start: {message[1]}")
+        elif world.sentinel in ready:
+            break
+    raise QuotaRunError(f"the simulated world did not serve its lidar within {START_TIMEOUT_S:g} s "
+                        f"(exit code {world.exitcode})")
+
+
+def _take_truth(report_rx: Connection, record: QuotaRecord) -> None:
+    while report_rx.poll():
+        message = report_rx.recv()
+        if message[0] == "truth":
+            record.truth.append(message[1:])
+        elif message[0] == "summary":
+            record.world = message[1]
+        elif message[0] == "error":
+            record.errors.append(f"world: {message[1]}")
+
+
+def _watch(
+    daemon: multiprocessing.process.BaseProcess,
+    world: multiprocessing.process.BaseProcess,
+    result_rx: Connection,
+    report_rx: Connection,
+    daemon_ctl_tx: Connection,
+    quota: Any,
+    record: QuotaRecord,
+    max_run_s: float,
+) -> None:
+    """Until the daemon process ends: its messages, the world's truth, memory samples, the time limit."""
+    hard_deadline = time.monotonic() + START_TIMEOUT_S + max_run_s + STOP_TIMEOUT_S
+    next_rss = 0.0
+    stop_sent = False
+    result_open = True
+    while daemon.exitcode is None or result_open:
+        watched = [daemon.sentinel, report_rx] + ([result_rx] if result_open else [])
+        ready = wait(watched, timeout=RSS_PERIOD_S)
+        if result_rx in ready and result_open:
+            try:
+                _on_result(result_rx.recv(), record, quota)
+            except EOFError:
+                result_open = False
+        if report_rx in ready:
+            with contextlib.suppress(EOFError, OSError):
+                _take_truth(report_rx, record)
+        now = time.monotonic()
+        if now >= next_rss:
+            next_rss = now + RSS_PERIOD_S
+            if daemon.pid is not None and daemon.exitcode is None:
+                tree = process_tree(daemon.pid)
+                for pid in tree:
+                    if pid not in record.daemon_tree:
+                        record.daemon_tree[pid] = _start_time(pid)
+                record.daemon_rss_mb_peak = max(record.daemon_rss_mb_peak, rss_mb(tree))
+                record.daemon_pss_mb_peak = max(record.daemon_pss_mb_peak, pss_mb(tree))
+            if world.pid is not None and world.exitcode is None:
+                record.world_rss_mb_peak = max(record.world_rss_mb_peak, rss_mb([world.pid]))
+        if daemon.exitcode is not None and not result_rx.poll():
+            result_open = False
+        if now > hard_deadline and not stop_sent:
+            record.errors.append("daemon: did not end in time, stopped")
+            with contextlib.suppress(OSError, ValueError):
+                daemon_ctl_tx.send("stop")
+            stop_sent = True
+        elif stop_sent and now > hard_deadline + STOP_TIMEOUT_S:
+            return  # it does not listen: the caller kills it
+
+
+def _on_result(message: Any, record: QuotaRecord, quota: Any) -> None:
+    """One message of the daemon: the CPU counters are read the moment it says started or finished."""
+    kind = message[0]
+    if kind == "started":
+        record.started_s = time.monotonic()
+        record.cpu_at_start = quota.stat() if quota is not None else None
+        record.world_cpu_at_start = process_cpu_s(record.world_pid)
+    elif kind == "finished":
+        record.finished_s = time.monotonic()
+        record.cpu_at_end = quota.stat() if quota is not None else None
+        record.world_cpu_at_end = process_cpu_s(record.world_pid)
+    elif kind == "result":
+        record.daemon = message[1]
+    elif kind == "error":
+        record.errors.append(f"daemon: {message[1]}")
+
+
+def _drain_world(report_rx: Connection, world: multiprocessing.process.BaseProcess, record: QuotaRecord) -> None:
+    """Wait (a little) for the world's summary after it was told to stop."""
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    while record.world is None and time.monotonic() < deadline:
+        ready = wait([report_rx, world.sentinel], timeout=0.5)
+        if report_rx in ready:
+            try:
+                _take_truth(report_rx, record)
+            except (EOFError, OSError):
+                return
+        elif world.sentinel in ready and not report_rx.poll():
+            return
+
+
+# --- metrics -----------------------------------------------------------------------------
+
+
+def _round(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
+
+
+def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]:
+    """The per-run keys of results.json for a two-process run; a metric whose part is missing is None."""
+    import numpy as np
+
+    from mazebot.bench.runner import _relative, _revisits, map_metrics
+    from mazebot.sim.world_source import make_world
+
+    d, w = record.daemon or {}, record.world or {}
+    world = make_world(config, spec.maze_path, spec.seed if not spec.maze_path else None,
+                       spec.size if not spec.maze_path else None)
+    layout = world.maze
+    traj = np.asarray(w.get("trajectory") or [], dtype=float).reshape(-1, 4)
+    start = tuple(traj[0, 1:]) if len(traj) else world.start_pose
+    maps: dict[str, Any] = {"coverage": None, "map_f1": None}
+    if d.get("map") is not None:
+        maps = map_metrics(d["map"], world, start, config.robot.footprint_radius_m)
+    # SLAM's estimate against the true pose at the instant it describes (one monotonic clock for all)
+    est = np.asarray(d.get("est") or [], dtype=float).reshape(-1, 4)
+    ate_rms = ate_max = None
+    if len(est) and len(traj) > 1:
+        th = np.unwrap(traj[:, 3])
+        truth = np.column_stack([np.interp(est[:, 0], traj[:, 0], traj[:, k]) for k in (1, 2)]
+                                + [np.interp(est[:, 0], traj[:, 0], th)])
+        rel = _relative(start, truth)
+        err = np.hypot(est[:, 1] - rel[:, 0], est[:, 2] - rel[:, 1])
+        ate_rms, ate_max = float(np.sqrt(np.mean(err**2))), float(err.max())
+    lateness = np.asarray(d.get("lateness_ms") or [], dtype=float)
+    time_s = d["end_s"] - d["start_s"] if d.get("end_s") is not None and d.get("start_s") is not None else None
+    # the daemon's CPU from the cgroup's own accounting, over the run (started .. finished)
+    a, b = record.cpu_at_start, record.cpu_at_end
+    cpu_s = b.usage_s - a.usage_s if a is not None and b is not None and None not in (a.usage_s, b.usage_s) else None
+    window_s = (record.finished_s - record.started_s
+                if record.finished_s is not None and record.started_s is not None else None)
+    cpu_pct = 100.0 * cpu_s / window_s if cpu_s is not None and window_s else None
+
+    def delta(name: str) -> Any:
+        if a is None or b is None or getattr(a, name) is None or getattr(b, name) is None:
+            return None
+        return getattr(b, name) - getattr(a, name)
+
+    throttled_s = delta("throttled_s")
+    exit_stat = record.cpu_at_exit
+    return {
+        "maze": spec.name,
+        "seed": spec.seed,
+        "drive": spec.drive,
+        "clock": "real",
+        "cpu_quota_percent": record.percent,  # None: no limit (the same processes, accounting only)
+        "cgroup_version": record.cgroup_version,
+        "cells": int(layout.width * layout.height) if layout is not None else None,
+        "done": bool(d.get("done")) and not record.errors,
+        "exit_code": d.get("exit_code"),
+        "fault": d.get("fault"),
+        "faults_raised": d.get("faults_raised"),
+        "errors": record.errors,
+        "time_s": _round(time_s, 2),
+        "coverage": maps["coverage"],
+        "map_f1": maps["map_f1"],
+        "collisions": w.get("collisions"),
+        "path_m": _round(w.get("odometer_m"), 3),
+        "revisits": _revisits(layout, traj[:, 1:3]) if layout is not None and len(traj) else None,
+        "ate_rms_m": _round(ate_rms, 4),
+        "ate_max_m": _round(ate_max, 4),
+        "control_jitter_ms_p99": _round(float(np.percentile(lateness, 99)), 3) if len(lateness) else None,
+        "control_jitter_ms_max": _round(float(lateness.max()), 3) if len(lateness) else None,
+        "control_ticks": len(lateness),
+        "scan_ms_p50": _round(float(np.percentile(d["scan_ms"], 50)), 3) if d.get("scan_ms") else None,
+        "lidar_revolutions": d.get("lidar_revolutions"),
+        "slam_scans": d.get("slam_scans"),
+        "slam_scans_dropped": d.get("slam_scans_dropped"),  # revolutions SLAM had to drop
+        "lidar_bytes_dropped": d.get("lidar_bytes_dropped"),
+        "loop_closures": d.get("loop_closures"),
+        "encoder_invalid_transitions": d.get("encoder_invalid_transitions"),
+        "encoder_ticks": d.get("encoder_ticks"),
+        "gpio_edges": d.get("gpio_edges"),
+        "world_edges_sent": w.get("edges_sent"),
+        "motor_writes": d.get("motor_writes"),
+        "world_motor_writes": w.get("motor_writes"),
+        "lidar_bytes_sent": w.get("lidar_bytes_sent"),
+        "daemon_cpu_s": _round(cpu_s, 3),
+        "cpu_budget": d.get("cpu_budget"),
+        "daemon_cpu_percent": _round(cpu_pct, 1),  # of one core, over the run
+        "daemon_cpu_percent_of_quota": _round(100.0 * cpu_pct / record.percent, 1)
+        if cpu_pct is not None and record.percent else None,
+        "daemon_cpu_s_total": _round(exit_stat.usage_s if exit_stat is not None else None, 3),  # start-up included
+        "cfs_periods": delta("nr_periods"),
+        "cfs_throttled": delta("nr_throttled"),
+        "cfs_throttled_s": _round(throttled_s, 3),
+        "world_cpu_percent": _round(100.0 * (record.world_cpu_at_end - record.world_cpu_at_start) / window_s, 1)
+        if record.world_cpu_at_end is not None and record.world_cpu_at_start is not None and window_s else None,
+        "daemon_rss_mb_peak": _round(record.daemon_rss_mb_peak or None, 1),  # daemon + its workers
+        "daemon_pss_mb_peak": _round(record.daemon_pss_mb_peak or None, 1),
+        "world_rss_mb_peak": _round(record.world_rss_mb_peak or None, 1),
+        "wall_s": _round(window_s, 2),
+        # written beside results.json, not into it; seconds since the daemon started
+        "planner_events": [(t_s - (d.get("start_s") or 0.0), text) for t_s, text in d.get("planner_events") or []],
+        "loadavg_before": record.loadavg_before,
+        "loadavg_after": record.loadavg_after,
+    }
+
+
+def _loadavg() -> str | None:
+    """``/proc/loadavg`` now: the machine is shared, and a busy one makes any figure slower."""
+    try:
+        return Path("/proc/loadavg").read_text().strip()
+    except OSError:
+        return None

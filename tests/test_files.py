@@ -47,3 +47,6 @@ def test_the_savers_share_it() -> None:
 
     assert runs.write_atomic is write_atomic
     assert map_export.write_atomic is write_atomic and g2o.write_atomic is write_atomic
+    from mazebot.bench import png, report
+
+    assert png.write_atomic is write_atomic and report.files.write_atomic is write_atomic

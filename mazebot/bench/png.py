@@ -1,45 +1,21 @@
-"""A minimal PNG writer and line drawing for the benchmark figures (no plotting library).
+"""Line drawing for the benchmark figures, written as PNG (no plotting library).
 
-PNG: signature, IHDR, one zlib-compressed IDAT of filter-0 scanlines, IEND, each chunk
-with its CRC-32 (PNG specification, ISO/IEC 15948, sections 5 and 11).
+The encoder is :func:`mazebot.png.encode_png`, the one the map exports use too.
 """
 
 from __future__ import annotations
 
-import os
-import struct
-import tempfile
-import zlib
 from pathlib import Path
 
 import numpy as np
 
-
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-
-def encode_png(rgb: np.ndarray) -> bytes:
-    """PNG bytes of an (H, W, 3) uint8 image, row 0 at the top."""
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"expected an (H, W, 3) uint8 image, got {rgb.shape} {rgb.dtype}")
-    h, w, _ = rgb.shape
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), rgb.reshape(h, w * 3)], axis=1).tobytes()
-    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", zlib.compress(raw, 6)) + _chunk(b"IEND", b"")
+from mazebot.files import write_atomic
+from mazebot.png import encode_png
 
 
 def write_png(path: str | Path, rgb: np.ndarray) -> None:
-    """Write atomically: a half-written figure never replaces a good one."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(encode_png(rgb))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write atomically (:func:`mazebot.files.write_atomic`): a half-written figure never replaces a good one."""
+    write_atomic(path, encode_png(rgb))
 
 
 class Canvas:

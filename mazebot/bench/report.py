@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import statistics
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mazebot import files
 from mazebot.bench.png import Canvas, write_png
 from mazebot.bench.runner import RunRecord
 from mazebot.sim.raster import true_occupancy
@@ -36,14 +35,8 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """A report file written atomically (:func:`mazebot.files.write_atomic`), as UTF-8 text."""
+    files.write_atomic(path, text.encode("utf-8"))
 
 
 def write_partial(out_dir: Path, metrics: list[dict[str, Any]], command: str, planned: int) -> None:

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from mazebot.bench.png import encode_png
 from mazebot.persist.runs import write_atomic
 from mazebot.persist.snapshot import SavedRun
+from mazebot.png import encode_png
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
 from mazebot.slam.map_export import encode_pgm, encode_yaml
 

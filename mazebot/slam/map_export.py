@@ -25,8 +25,6 @@ Example::
 from __future__ import annotations
 
 import os
-import struct
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +32,7 @@ import numpy as np
 
 from mazebot.errors import UsageError
 from mazebot.files import write_atomic
+from mazebot.png import encode_png
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
 FREE_PIXEL = 254
@@ -86,25 +85,10 @@ def encode_yaml(resolution_m: float, origin_m: tuple[float, float], image: str) 
     )
 
 
-def encode_grey_png(image: np.ndarray) -> bytes:
-    """An 8-bit greyscale PNG (ISO/IEC 15948: IHDR colour type 0, one zlib IDAT of filter-0 rows)."""
-    img = np.ascontiguousarray(image, dtype=np.uint8)
-    if img.ndim != 2:
-        raise ValueError(f"expected a 2-D uint8 image, got shape {img.shape}")
-    h, w = img.shape
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-    raw = np.concatenate((np.zeros((h, 1), np.uint8), img), axis=1).tobytes()
-    header = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-
-
 def write_map_png(three_state: np.ndarray, path: str | os.PathLike[str]) -> Path:
     """The map as a greyscale PNG (map_saver grey levels, north up), atomically."""
     path = Path(path)
-    write_atomic(path, encode_grey_png(map_pixels(three_state)))
+    write_atomic(path, encode_png(map_pixels(three_state)))
     return path
 
 

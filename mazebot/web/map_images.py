@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mazebot.png import encode_png
 from mazebot.slam import map_export
 from mazebot.slam.map_export import map_pixels
 
@@ -22,7 +23,7 @@ def encode_pgm(three_state: np.ndarray) -> bytes:
 def encode_map_png(three_state: np.ndarray) -> bytes:
     """Greyscale PNG of the same grey levels as the PGM, byte for byte the exporter's ``map.png``
     (one channel where an RGB copy of the same grey had three)."""
-    return map_export.encode_grey_png(map_pixels(three_state))
+    return encode_png(map_pixels(three_state))
 
 
 def encode_yaml(resolution_m: float, origin_m: tuple[float, float], image: str = "map.pgm") -> bytes:

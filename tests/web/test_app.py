@@ -16,8 +16,9 @@ from aiohttp import WSMsgType, web
 from aiohttp.test_utils import TestClient, TestServer
 
 from mazebot.clock import RealClock
+from mazebot.png import encode_png
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.map_export import encode_grey_png, map_pixels, read_ros_map, write_ros_map
+from mazebot.slam.map_export import map_pixels, read_ros_map, write_ros_map
 from mazebot.state import SharedState
 from mazebot.web.app import BROADCASTER_KEY, WebSettings, create_app
 from mazebot.web.protocol import KIND_DELTA, KIND_FULL, decode_packet
@@ -118,7 +119,7 @@ async def test_map_files_404_without_a_map_then_png_pgm_yaml(aiohttp_client, sta
     idat_len = struct.unpack(">I", png[33:37])[0]
     raw = np.frombuffer(zlib.decompress(png[41 : 41 + idat_len]), np.uint8).reshape(rows, cols + 1)
     np.testing.assert_array_equal(raw[:, 1:], pixels)
-    assert png == encode_grey_png(map_pixels(grid.three_state()))
+    assert png == encode_png(map_pixels(grid.three_state()))
     three = grid.three_state()[::-1]  # PGM row 0 is north
     assert set(np.unique(pixels)) <= {0, 205, 254}
     np.testing.assert_array_equal(pixels == 0, three == 100)

@@ -126,11 +126,11 @@ class CpuBudget:
         return None if self.started_s is None else max(0.0, now_s - self.started_s)
 
     def part(self, name: str) -> PartMeter:
-        """The meter of ``name`` (one of :data:`PARTS`), created on first use."""
-        if name not in PARTS:
-            raise ValueError(f"unknown part {name!r} of the CPU budget; the parts are {', '.join(PARTS)}")
+        """The meter of ``name`` (one of :data:`PARTS`), created on first use (a dict lookup after that)."""
         meter = self.meters.get(name)
         if meter is None:
+            if name not in PARTS:
+                raise ValueError(f"unknown part {name!r} of the CPU budget; the parts are {', '.join(PARTS)}")
             meter = self.meters[name] = PartMeter(name)
         return meter
 

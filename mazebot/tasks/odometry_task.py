@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 from mazebot.clock import Clock
 from mazebot.config import DriveConfig, EncodersConfig
@@ -37,23 +36,22 @@ async def run(
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     meter = state.cpu.part("odometry")
     while True:
-        start_s = time.thread_time()
-        reading = encoders.read()
-        odometry.update(reading.left_ticks, reading.right_ticks)
-        odo = odometry.pose
-        now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
-        history.append(now_s, odo.x_m, odo.y_m, odo.theta_rad)
-        stats = state.sensors
-        stats.encoder_ticks_left = reading.left_ticks
-        stats.encoder_ticks_right = reading.right_ticks
-        stats.encoder_invalid_transitions = reading.invalid_transitions
-        state.odometry = odo
-        x, y, th = _compose(state.map_from_odom, odo.x_m, odo.y_m, odo.theta_rad)
-        state.pose.x_m = x
-        state.pose.y_m = y
-        state.pose.theta_rad = th
-        state.pose_time_s = now_s
-        meter.add(time.thread_time() - start_s)
+        with meter.measure():
+            reading = encoders.read()
+            odometry.update(reading.left_ticks, reading.right_ticks)
+            odo = odometry.pose
+            now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
+            history.append(now_s, odo.x_m, odo.y_m, odo.theta_rad)
+            stats = state.sensors
+            stats.encoder_ticks_left = reading.left_ticks
+            stats.encoder_ticks_right = reading.right_ticks
+            stats.encoder_invalid_transitions = reading.invalid_transitions
+            state.odometry = odo
+            x, y, th = _compose(state.map_from_odom, odo.x_m, odo.y_m, odo.theta_rad)
+            state.pose.x_m = x
+            state.pose.y_m = y
+            state.pose.theta_rad = th
+            state.pose_time_s = now_s
         await clock.sleep(period_s)
 
 

@@ -438,6 +438,34 @@ class DynamicWindowPlanner:
                 yield
         return clear, limit
 
+    def _free_beyond_the_rollout(
+        self,
+        pts: np.ndarray,
+        v_mps: np.ndarray,
+        never_hit: np.ndarray,
+        need_m: np.ndarray,
+        free_m: np.ndarray,
+        costmap: LocalCostmap,
+        limit_m: float,
+    ) -> np.ndarray:
+        """``free_m`` with the slow rollouts that end before their stopping distance measured on.
+
+        A rollout spans ``horizon_s`` of travel; at a crawl that is shorter than the stop
+        margin the safety layer keeps ahead, so a wall just past its end would go unseen and
+        the arc be called admissible although the emergency stop refuses it. Such a rollout
+        is free for its length plus its end point's clearance beyond the contact limit: the
+        arc, continued, stays within its own length of the end point.
+        """
+        arc_m = np.abs(v_mps) * self.horizon_s
+        short = np.flatnonzero(never_hit & (arc_m < need_m) & (np.abs(v_mps) > 1e-6))
+        if short.size == 0:
+            return free_m
+        reach_m = float(np.max(need_m[short] - arc_m[short])) + limit_m
+        end_clear = costmap.clearance_m(pts[short, -1], upper_bound_m=reach_m)
+        out = free_m.copy()
+        out[short] = arc_m[short] + (end_clear - limit_m)  # inf stays inf: free beyond the need
+        return out
+
     def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray) -> np.ndarray:
         """Robot-frame positions (K, S, 2) along the arcs of constant ``(v, w)`` for ``horizon_s``.
 
@@ -495,7 +523,9 @@ class DynamicWindowPlanner:
         hit = clear < limit
         first_hit = np.where(hit.any(axis=1), np.argmax(hit, axis=1), s_count)
         free_m = np.where(first_hit >= s_count, np.inf, np.maximum(first_hit - 1, 0) * step_len)
-        admissible = free_m >= self.stopping_distance_m(v)
+        need_m = self.stopping_distance_m(v)
+        free_m = self._free_beyond_the_rollout(pts, v, first_hit >= s_count, need_m, free_m, costmap, limit)
+        admissible = free_m >= need_m
         turning_in_place = np.abs(v) < 1e-6
         admissible |= turning_in_place & (start_clear >= limit)  # a round body turns freely
 

@@ -71,6 +71,7 @@ class PilotParams:
     max_yaw_rate_radps: float
     max_yaw_accel_radps2: float
     brake_decel_mps2: float
+    stop_margin_m: float
     track_width_m: float
     max_wheel_speed_mps: float
     control_period_s: float
@@ -104,6 +105,7 @@ class PilotParams:
             max_yaw_rate_radps=d.max_yaw_rate_radps,
             max_yaw_accel_radps2=d.max_yaw_accel_radps2,
             brake_decel_mps2=config.control.brake_decel_mps2,
+            stop_margin_m=config.control.stop_margin_m,
             track_width_m=d.track_width_m,
             max_wheel_speed_mps=d.max_wheel_speed_mps,
             control_period_s=config.daemon.control_period_s,
@@ -164,6 +166,8 @@ class Pilot:
             max_accel_mps2=p.max_accel_mps2,
             max_yaw_accel_radps2=p.max_yaw_accel_radps2,
             brake_decel_mps2=p.brake_decel_mps2,
+            # the emergency stop's margin: an arc admissible here is one the safety layer lets run
+            stop_margin_m=p.stop_margin_m,
             footprint_radius_m=p.footprint_radius_m,
             clearance_m=p.clearance_m,
             # the dynamic window spans one planner period; braking can start one period

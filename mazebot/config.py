@@ -275,6 +275,11 @@ class DaemonConfig(Section):
     control_period_s: float = Field(
         0.05, gt=0.001, le=0.5, description="period of the motor control loop (20 Hz)"
     )
+    control_thread: bool = Field(
+        True,
+        description="on the real clock, tick the motor control loop on a thread of its own, so a due tick "
+        "never waits for a revolution's SLAM or a planner tick to yield",
+    )
     auto_resume: bool = Field(
         False, description="resume a run by itself when the fault that stopped it clears; default: press start"
     )

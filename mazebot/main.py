@@ -181,6 +181,12 @@ def _start_up_objects_frozen() -> Iterator[None]:
         gc.unfreeze()
 
 
+def _on_the_monotonic_clock(clock: Clock, loop: asyncio.AbstractEventLoop) -> bool:
+    """Whether the daemon's clock is the wall's monotonic clock, which a thread can keep too
+    (not the simulator's virtual time, where only the loop moves the clock)."""
+    return isinstance(clock, RealClock) and abs(loop.time() - time.monotonic()) <= 0.5
+
+
 def _guard_motors_from_a_thread(motors: Any, clock: Clock, loop: asyncio.AbstractEventLoop, stack: Any) -> None:
     """Brake from a thread when the event loop hangs (:class:`mazebot.io.motors.TtlGuard`).
 
@@ -189,9 +195,7 @@ def _guard_motors_from_a_thread(motors: Any, clock: Clock, loop: asyncio.Abstrac
     """
     from mazebot.io.motors import DifferentialMotors, TtlGuard
 
-    if not isinstance(motors, DifferentialMotors) or not isinstance(clock, RealClock):
-        return
-    if abs(loop.time() - time.monotonic()) > 0.5:  # pragma: no cover - a loop on a clock of its own
+    if not isinstance(motors, DifferentialMotors) or not _on_the_monotonic_clock(clock, loop):
         return
     guard = TtlGuard(motors)
     guard.start()
@@ -308,8 +312,9 @@ async def run_daemon(
         if autonomous:
             supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms), restart=True)
         control = control_task.MotorControl(config)
+        control_thread = config.daemon.control_thread and _on_the_monotonic_clock(clock, loop)
         supervisor.start(
-            "control", lambda: control_task.run(motors, state, heartbeat, control), restart=True
+            "control", lambda: control_task.run(motors, state, heartbeat, control, thread=control_thread), restart=True
         )
         watchdog_s = sdnotify.watchdog_period_s()  # systemd's WatchdogSec, when it set one
         if watchdog_s is not None:

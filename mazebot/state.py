@@ -153,6 +153,10 @@ class SharedState:
     throttles: tuple[float, float] = (0.0, 0.0)
     pose: Pose2D = field(default_factory=Pose2D)
     pose_time_s: float | None = None  # clock time ``pose`` describes (the odometry reading behind it)
+    #: (time_s, left_ticks, right_ticks) of the latest encoder reading, written by the
+    #: odometry task in one assignment: the control loop, on a thread of its own, reads it
+    #: whole (two separate fields could pair this reading's left with the last one's right)
+    wheel_ticks: tuple[float, int, int] | None = None
     sensors: SensorStats = field(default_factory=SensorStats)
     commands: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=32))
     started_at_s: float | None = None

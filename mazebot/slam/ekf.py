@@ -54,7 +54,7 @@ class OdometryHistory:
 
     Times before the first or after the last entry are clamped to them (the robot is
     assumed to hold its pose beyond what was measured). Poses live in one numpy buffer
-    (rows ``[_start, _end)``), compacted when it fills, so a look-up is a single
+    (rows ``[_start, _end)``), copied into a new one when it fills, so a look-up is a single
     ``np.interp`` per coordinate over a view.
     """
 
@@ -65,6 +65,9 @@ class OdometryHistory:
         self._buf = np.zeros((max(int(capacity), 4), 4))  # columns: t, x, y, unwrapped theta
         self._start = 0
         self._end = 0
+        #: (buffer, start, end) as of the last append, replaced in one assignment: what
+        #: :meth:`at` reads, so a reader on another thread never sees a half-made update
+        self._live: tuple[np.ndarray, int, int] = (self._buf, 0, 0)
 
     def __len__(self) -> int:
         return self._end - self._start
@@ -77,11 +80,13 @@ class OdometryHistory:
                 raise ValueError(f"odometry time went backwards: {time_s} after {last_t}")
             theta_rad = last_th + math.remainder(theta_rad - last_th, math.tau)
         if self._end == self._buf.shape[0]:
-            live = self._buf[self._start : self._end].copy()
-            if live.shape[0] > self._buf.shape[0] // 2:  # mostly live: grow instead of compacting
-                self._buf = np.zeros((2 * self._buf.shape[0], 4))
-            self._buf[: live.shape[0]] = live
-            self._start, self._end = 0, live.shape[0]
+            live = self._buf[self._start : self._end]
+            # always a new buffer, never compacted in place: a reader on another thread (the
+            # control loop) may still hold the old one with its rows
+            rows = 2 * self._buf.shape[0] if live.shape[0] > self._buf.shape[0] // 2 else self._buf.shape[0]
+            buf = np.zeros((rows, 4))
+            buf[: live.shape[0]] = live
+            self._buf, self._start, self._end = buf, 0, live.shape[0]
         self._buf[self._end] = (time_s, x_m, y_m, theta_rad)
         self._end += 1
         # keep one pose at or before the horizon, for interpolation
@@ -89,27 +94,31 @@ class OdometryHistory:
         drop = int(np.searchsorted(t, time_s - self.horizon_s, side="right")) - 1
         if drop > 0:
             self._start += min(drop, self._end - self._start - 2)
+        self._live = (self._buf, self._start, self._end)
 
     @property
     def latest(self) -> tuple[float, np.ndarray] | None:
         """(time_s, pose (3,)) of the newest entry, or None."""
-        if self._end == self._start:
+        buf, start, end = self._live
+        if end == start:
             return None
-        t, x, y, th = self._buf[self._end - 1]
+        t, x, y, th = buf[end - 1]
         return float(t), np.array([x, y, math.remainder(th, math.tau)])
 
     @property
     def span_s(self) -> tuple[float, float] | None:
         """(oldest, newest) time held, or None."""
-        if self._end == self._start:
+        buf, start, end = self._live
+        if end == start:
             return None
-        return float(self._buf[self._start, 0]), float(self._buf[self._end - 1, 0])
+        return float(buf[start, 0]), float(buf[end - 1, 0])
 
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Odometry poses (x, y, unwrapped θ) at the given times; the shape of ``preprocess.PoseAtTime``."""
-        if self._end == self._start:
+        buf, start, end = self._live  # one read: consistent while another thread appends
+        if end == start:
             raise RuntimeError("no odometry recorded yet")
-        live = self._buf[self._start : self._end]
+        live = buf[start:end]
         times = np.asarray(times_s, dtype=np.float64)
         t = live[:, 0]
         return np.interp(times, t, live[:, 1]), np.interp(times, t, live[:, 2]), np.interp(times, t, live[:, 3])

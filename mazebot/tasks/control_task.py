@@ -14,7 +14,13 @@ tests) bypasses the wheel controller when no planner command is set.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
+import sys
+import threading
+import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -79,9 +85,8 @@ class MotorControl:
         stamped), not from a reading of our own: the encoders have one reader, so a
         recording of their readings is exactly what the odometry integrated.
         """
-        stamp = state.pose_time_s if state.pose_time_s is not None else now_s
-        sensors = state.sensors
-        measured = self.estimator.update(sensors.encoder_ticks_left, sensors.encoder_ticks_right, stamp)
+        stamp, left_ticks, right_ticks = state.wheel_ticks or (now_s, 0, 0)
+        measured = self.estimator.update(left_ticks, right_ticks, stamp)
         state.wheel_speeds_mps = measured
         # state.throttles: what the last tick wrote (zeros if the HAT refused it), what moved the wheels since
         dt_s = None if self._last_tick_s is None else now_s - self._last_tick_s
@@ -130,7 +135,50 @@ class MotorControl:
         return out.left_throttle, out.right_throttle
 
 
-async def run(motors, state: SharedState, clock: Clock, control: MotorControl) -> None:
+#: While the control loop runs on its own thread, the interpreter hands the GIL to a thread
+#: that asks for it after this long (Python's default is 5 ms: too long for a 50 ms period
+#: on a share of a slow core, where 5 ms of wall time can be most of a throttled period).
+SWITCH_INTERVAL_S = 0.001
+
+#: How long stopping waits for the control thread's last tick, seconds.
+THREAD_JOIN_S = 1.0
+
+Post = Callable[..., object]
+
+
+def _call(fn: Callable[..., object], *args: object) -> None:
+    fn(*args)
+
+
+def _tick_once(
+    motors, state: SharedState, control: MotorControl, meter, now_s: float, next_tick_s: float, post: Post
+) -> float:
+    """One period of the loop at ``now_s`` (due at ``next_tick_s``); returns when the next is due.
+
+    ``post(fn, *args)`` runs ``fn`` where the shared state's notes and faults are written:
+    directly on the event loop, or handed to it from the control thread.
+    """
+    period_s = control.period_s
+    late_s = now_s - next_tick_s
+    state.control_lateness_ms.append(max(0.0, late_s * 1000.0))
+    if late_s > control.safety.watchdog.deadline_s:
+        post(state.note, "control", f"the control loop was blocked for {late_s + period_s:.2f} s; wheels stopped",
+             now_s)
+        log.warning("control loop blocked for %.2f s; wheels stopped for a tick", late_s + period_s)
+    with meter.measure():
+        try:
+            left, right = control.tick(state, now_s)
+        except Exception:
+            _write(motors, state, 0.0, 0.0, now_s, post)
+            raise
+        _write(motors, state, left, right, now_s, post)
+    next_tick_s += period_s
+    if next_tick_s < now_s:  # we fell behind (a stalled loop): do not try to catch up
+        next_tick_s = now_s + period_s
+    return next_tick_s
+
+
+async def run(motors, state: SharedState, clock: Clock, control: MotorControl, *, thread: bool = False) -> None:
     """Tick ``control`` every period and write its throttles to the motors.
 
     ``clock`` may be the systemd watchdog's :class:`~mazebot.sdnotify.ControlHeartbeat`,
@@ -138,32 +186,77 @@ async def run(motors, state: SharedState, clock: Clock, control: MotorControl) -
     ``state.control_lateness_ms``. A failed write to the motor HAT (I²C error: the
     driver has already told both motors to brake) is a ``motors`` fault, not a crash:
     the loop keeps ticking, writing zeros, and the fault clears once a write succeeds.
+
+    With ``thread`` (the real clock only) the ticks run on a thread of their own, timed by
+    the monotonic clock the event loop also reads: on one core the kernel then lets a due
+    tick run in the middle of a revolution's SLAM or a planner tick, where on the event
+    loop it waits for them to yield. This coroutine lives as long as the thread, and a
+    crash of the thread is raised here, so the supervisor handles both alike.
     """
-    period_s = control.period_s
     meter = state.cpu.part("control tick")
+    if thread:
+        await _run_on_thread(motors, state, clock, control, meter)
+        return
     next_tick_s = clock.now_s()
     while True:
-        now_s = clock.now_s()
-        late_s = now_s - next_tick_s
-        state.control_lateness_ms.append(max(0.0, late_s * 1000.0))
-        if late_s > control.safety.watchdog.deadline_s:
-            state.note("control", f"the control loop was blocked for {late_s + period_s:.2f} s; wheels stopped", now_s)
-            log.warning("control loop blocked for %.2f s; wheels stopped for a tick", late_s + period_s)
-        with meter.measure():
-            try:
-                left, right = control.tick(state, now_s)
-            except Exception:
-                _write(motors, state, 0.0, 0.0, now_s)
-                raise
-            _write(motors, state, left, right, now_s)
-        next_tick_s += period_s
-        if next_tick_s < now_s:  # we fell behind (a stalled loop): do not try to catch up
-            next_tick_s = now_s + period_s
+        next_tick_s = _tick_once(motors, state, control, meter, clock.now_s(), next_tick_s, _call)
         await clock.sleep(next_tick_s - clock.now_s())
 
 
-def _write(motors, state: SharedState, left: float, right: float, now_s: float) -> None:
-    """Write the throttles; a HAT that fails is a fault that clears on the next good write."""
+async def _run_on_thread(motors, state: SharedState, clock: Clock, control: MotorControl, meter) -> None:
+    loop = asyncio.get_running_loop()
+    finished: asyncio.Future[None] = loop.create_future()
+    stop = threading.Event()
+    beats = hasattr(clock, "last_tick_s")  # the systemd watchdog's ControlHeartbeat
+
+    def post(fn: Callable[..., object], *args: object) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed under us: nothing left to tell
+            loop.call_soon_threadsafe(fn, *args)
+
+    def report(error: BaseException | None) -> None:
+        if finished.done():
+            return
+        if error is None:
+            finished.set_result(None)
+        else:
+            finished.set_exception(error)
+
+    def ticks() -> None:
+        error: BaseException | None = None
+        try:
+            next_tick_s = time.monotonic()
+            while not stop.is_set():
+                now_s = time.monotonic()
+                next_tick_s = _tick_once(motors, state, control, meter, now_s, next_tick_s, post)
+                if beats:
+                    clock.last_tick_s = now_s  # type: ignore[attr-defined]
+                stop.wait(max(0.0, next_tick_s - time.monotonic()))
+        except BaseException as exc:  # handed to the supervisor on the loop
+            error = exc
+        post(report, error)
+
+    previous_interval_s = sys.getswitchinterval()
+    sys.setswitchinterval(min(previous_interval_s, SWITCH_INTERVAL_S))
+    worker = threading.Thread(target=ticks, name="mazebot-control", daemon=True)
+    worker.start()
+    try:
+        await asyncio.shield(finished)
+    finally:
+        stop.set()
+        worker.join(THREAD_JOIN_S)  # wakes from its wait at once; at most one tick to finish
+        sys.setswitchinterval(previous_interval_s)
+        if worker.is_alive():  # a tick hung in the motor driver: brake from here
+            log.error("the control thread did not stop within %.1f s; braking the motors", THREAD_JOIN_S)
+            with contextlib.suppress(Exception):
+                motors.stop()
+
+
+def _write(motors, state: SharedState, left: float, right: float, now_s: float, post: Post = _call) -> None:
+    """Write the throttles; a HAT that fails is a fault that clears on the next good write.
+
+    The fault's bookkeeping goes through ``post`` (see :func:`_tick_once`); the throttles
+    written are the control loop's own field.
+    """
     try:
         if left == 0.0 and right == 0.0:
             motors.stop()
@@ -174,10 +267,10 @@ def _write(motors, state: SharedState, left: float, right: float, now_s: float) 
         if not any(f.source == "motors" for f in state.faults):
             message = f"cannot write to the motor HAT ({exc}); check its I²C connection and power"
             log.error("%s", message)
-            state.raise_fault("motors", message, now_s)
+            post(state.raise_fault, "motors", message, now_s)
         return
     state.throttles = (left, right)
     if any(f.source == "motors" for f in state.faults):
-        state.clear_faults("motors")
-        state.note("motors", "the motor HAT answers again", now_s)
+        post(state.clear_faults, "motors")
+        post(state.note, "motors", "the motor HAT answers again", now_s)
         log.info("the motor HAT answers again")

@@ -52,6 +52,7 @@ async def run(
             state.pose.y_m = y
             state.pose.theta_rad = th
             state.pose_time_s = now_s
+            state.wheel_ticks = (now_s, reading.left_ticks, reading.right_ticks)
         await clock.sleep(period_s)
 
 

@@ -316,14 +316,15 @@ def test_a_wheel_starting_from_rest_while_the_other_idles_is_no_encoder_fault() 
 # -- the control task and the motor HAT --------------------------------------------------
 
 
-async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_the_hat_answers() -> None:
+@pytest.mark.parametrize("thread", [False, True], ids=["on the loop", "on its thread"])
+async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_the_hat_answers(thread: bool) -> None:
     config = Config()
     state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
     motors = Motors()
     control = control_task.MotorControl(config)
     loop = asyncio.get_running_loop()
     state.motion_command = MotionRequest(0.0, 0.5, "turn", loop.time() + 3600)  # turning in place: always allowed
-    task = asyncio.create_task(control_task.run(motors, state, RealClock(), control))
+    task = asyncio.create_task(control_task.run(motors, state, RealClock(), control, thread=thread))
     await _until(lambda: len(motors.sets) > 2, 2.0)
     motors.fail = True
     await _until(lambda: state.run_state is RunState.FAULT, 2.0)

@@ -53,6 +53,7 @@ class WheelsOnTheFloor:
             state.sensors.encoder_ticks_left = math.floor(left_rad * self.ticks_per_rad)
             state.sensors.encoder_ticks_right = math.floor(right_rad * self.ticks_per_rad)
             state.pose_time_s = self.now_s
+            state.wheel_ticks = (self.now_s, state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
             state.latest_scan = Scan(np.zeros(1), np.full(1, 20.0), np.ones(1, np.uint8), np.array([self.now_s]),
                                      np.zeros(1, bool))
             state.motion_command = MotionRequest(v_mps, w_radps, mode.value, self.now_s)

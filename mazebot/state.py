@@ -140,6 +140,9 @@ class SharedState:
     """Everything the tasks share. Created once by ``main.py`` and handed to each task."""
 
     run_state: RunState = RunState.IDLE
+    #: set once the daemon is stopping (``Supervisor.request_stop``): from then on the control
+    #: loop commands zero, whichever thread it ticks on, until its task is cancelled
+    stopping: bool = False
     faults: list[Fault] = field(default_factory=list)  # the active faults, one per source
     #: how many faults were ever raised: the control task stops the wheels for a tick on each new
     #: one, even one that cleared before the tick saw it (``mazebot.tasks.control_task``)

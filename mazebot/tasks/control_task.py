@@ -92,7 +92,7 @@ class MotorControl:
         dt_s = None if self._last_tick_s is None else now_s - self._last_tick_s
         self._last_tick_s = now_s
         state.wheel_gains = self.gains.update(state.throttles, measured, dt_s)
-        moving = state.run_state.moving
+        moving = state.run_state.moving and not state.stopping
         if state.faults_raised != self._faults_raised_seen:
             # a fault since the last tick stops the wheels, even one already cleared again: a
             # kidnapped robot found again 50 ms after it was lost, between two ticks, kept

@@ -102,6 +102,7 @@ class Supervisor:
 
     def request_stop(self, reason: str = "stop requested", exit_code: int = EXIT_OK) -> None:
         """Zero the motors at once, then let ``wait()`` cancel the tasks and return."""
+        self._state.stopping = True  # the control loop must not drive them again meanwhile
         self.stop_motors()
         if not self._stopped.is_set():
             log.info("stopping: %s", reason)

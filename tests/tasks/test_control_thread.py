@@ -140,3 +140,23 @@ def test_rows_a_reader_may_hold_are_never_overwritten_by_later_appends() -> None
         history.append(k * 0.001, k * 0.001, 0.0, 0.0)
         assert np.array_equal(buf[start:end], held), f"rows under a reader changed at append {k}"
     assert float(history.at(np.array([0.1985]))[0][0]) == pytest.approx(0.1985)
+
+
+async def test_once_the_daemon_is_stopping_the_control_loop_commands_zero() -> None:
+    """The supervisor zeroes the motors before it cancels the tasks; a tick on the control
+    thread in between must not drive them again."""
+    loop = asyncio.get_running_loop()
+    motors, state = Motors(), _turning_state(loop)
+    task = asyncio.create_task(control_task.run(motors, state, RealClock(), control_task.MotorControl(Config()),
+                                                thread=True))
+    await _until(lambda: any(abs(w[2]) > 0 for w in motors.writes))
+    from mazebot.tasks.supervisor import Supervisor
+
+    Supervisor(state, motors, RealClock(), exit_on_fault=False).request_stop("the test is over")
+    stopped_at = time.monotonic()
+    await asyncio.sleep(0.3)  # six periods with the task still running
+    after = [w for w in motors.writes if w[1] > stopped_at]
+    assert len(after) >= 2 and all(w[2:] == (0.0, 0.0) for w in after)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task

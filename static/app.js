@@ -482,6 +482,7 @@
     connect();
   } else {
     $("unsupported").hidden = false;
+    $("empty").textContent = "no live map in this browser: ⤓ map saves a picture of it";
     pollStatus();
   }
 })();

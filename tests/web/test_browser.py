@@ -259,6 +259,26 @@ def test_the_map_downloads_as_png_and_as_a_ros_map_of_one_snapshot(browser_page,
     assert page.errors == []  # type: ignore[attr-defined]
 
 
+def test_the_chart_history_stays_bounded_over_a_long_run(browser_page) -> None:
+    """An hour of 5 Hz status (18 000 packets) keeps at most 300 samples, spanning the whole hour."""
+    page = browser_page
+    kept = page.evaluate("""() => {
+        const sizes = [];
+        for (let i = 0; i <= 18000; i++) {
+            const t = 5000 + i / 5;  // later than the real run, so it reads as the same run going on
+            document.dispatchEvent(new CustomEvent("mazebot:status",
+                { detail: { elapsed_s: t, coverage: i / 18000, distance_m: i / 50 } }));
+            sizes.push(mazebot.progress.series.points.length);
+        }
+        const pts = mazebot.progress.points();
+        return { max: Math.max(...sizes), first: pts[0][0], last: pts.at(-1), n: pts.length };
+    }""")
+    assert kept["max"] <= 300 and kept["n"] >= 100
+    assert kept["last"] == [5000 + 3600, 1, 360]  # the newest sample is always the current state
+    assert kept["first"] < 5000 + 60  # ... and the oldest still the start of the hour
+    assert page.errors == []  # type: ignore[attr-defined]
+
+
 def test_a_browser_without_decompression_stream_says_so_and_never_loops_on_resyncs(
         daemon, playwright, tmp_path) -> None:
     browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_FLAGS,

@@ -163,6 +163,8 @@ class SharedState:
     sensors: SensorStats = field(default_factory=SensorStats)
     commands: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=32))
     started_at_s: float | None = None
+    #: the odometry's ``distance_m`` when the exploration started (see ``run_distance_m``)
+    started_distance_m: float = 0.0
     latest_scan: Scan | None = None  # written by the lidar task
     odometry: OdometryPose | None = None  # written by the odometry task
     #: (left, right) throttle and the clock time it was set: a direct drive that bypasses
@@ -271,6 +273,18 @@ class SharedState:
             return None
         end_s = self.finished_at_s if self.finished_at_s is not None else now_s
         return max(0.0, end_s - self.started_at_s)
+
+    def run_distance_m(self) -> float | None:
+        """Path length the wheels drove since the exploration started (odometry), None before any start."""
+        if self.started_at_s is None or self.odometry is None:
+            return None
+        return max(0.0, self.odometry.distance_m - self.started_distance_m)
+
+    def begin_run(self, now_s: float) -> None:
+        """A new exploration starts now: its clock and its distance count from here."""
+        self.started_at_s = now_s
+        self.started_distance_m = 0.0 if self.odometry is None else self.odometry.distance_m
+        self.finished_at_s = None
 
     @property
     def active_fault(self) -> Fault | None:

@@ -75,6 +75,7 @@
       if (stats.latencyMs.length > 2000) stats.latencyMs.shift();
     }
     render();
+    document.dispatchEvent(new CustomEvent("mazebot:status", { detail: view.status })); // progress.js
   }
 
   function mergeStatus(status) {
@@ -304,8 +305,8 @@
   function renderStatus() {
     const s = view.status;
     document.body.dataset.state = s.state || "unknown";
-    $("state").textContent = s.state || "–";
-    $("coverage").textContent = s.coverage == null ? "–" : Math.round(100 * s.coverage) + "%";
+    setText($("state"), s.state || "–"); // live regions: rewritten only when they change
+    setText($("coverage"), s.coverage == null ? "–" : Math.round(100 * s.coverage) + "%");
     $("speed").textContent = s.speed_mps == null ? "–" : Math.round(100 * Math.abs(s.speed_mps)) + " cm/s";
     const fault = s.fault ? `${s.fault.source}: ${s.fault.message}` : null;
     const message = fault || (performance.now() < bannerUntil ? bannerText : null);
@@ -317,6 +318,8 @@
     renderElapsed();
     updateButton();
   }
+
+  function setText(el, text) { if (el.textContent !== text) el.textContent = text; }
 
   function renderElapsed() {
     let t = view.elapsedS;
@@ -455,6 +458,31 @@
   }
   window.mazebot = { view, stats, knownCells, drawnPixels, fit, command };
 
+  // Without DecompressionStream (Safari before 16.4) no packet can be read, and every failure
+  // would ask for a resync: say so once, and show the state from /api/status instead (start and
+  // stop then go over HTTP, as when the socket is down).
+  function pollStatus() {
+    const pin = loadPin();
+    fetch("/api/status", { cache: "no-store", headers: pin ? { "X-Mazebot-Token": pin } : {} })
+      .then((resp) => (resp.ok ? resp.json() : Promise.reject(new Error("HTTP " + resp.status))))
+      .then((body) => {
+        setConn("open");
+        $("conn-text").textContent = "status only";
+        const { state, coverage, distance_m, elapsed_s, planner, fault } = body;
+        mergeStatus({ state, coverage, distance_m, elapsed_s, planner, fault });
+        renderStatus();
+        document.dispatchEvent(new CustomEvent("mazebot:status", { detail: view.status }));
+      })
+      .catch(() => setConn("closed", "no live map"))
+      .finally(() => setTimeout(pollStatus, 1000));
+  }
+
   renderStatus();
-  connect();
+  if (typeof DecompressionStream === "function") {
+    connect();
+  } else {
+    $("unsupported").hidden = false;
+    $("empty").textContent = "no live map in this browser: ⤓ map saves a picture of it";
+    pollStatus();
+  }
 })();

@@ -7,8 +7,8 @@
 4. for each: from a folder with no ``config.toml``, checks ``mazebot`` is imported from that
    install (not from the checkout), starts ``mazebot run --sim``, fetches ``/`` and every
    asset the page references (``/static/app.js``, ``/static/style.css``,
-   ``/static/vendor/d3.min.js``), compares them with ``static/``, and stops it with SIGTERM
-   (exit 0).
+   ``/static/vendor/d3.min.js``, the web-app manifest and the icons it lists, ...), compares
+   them with ``static/``, and stops it with SIGTERM (exit 0).
 
 Run by ``.ci/run`` (``make check-install``); standard library only::
 
@@ -20,6 +20,7 @@ Dependencies come from PyPI through pip's cache (the real one, also under the sc
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import shutil
@@ -82,7 +83,10 @@ def check_serves(mazebot: Path, python: Path, env: dict[str, str], scratch: Path
             except (urllib.error.URLError, ConnectionError):
                 time.sleep(0.1)
         assets = re.findall(r'(?:src|href)="/static/([^"]+)"', page)
-        for asset in ("app.js", "style.css", "vendor/d3.min.js"):
+        for manifest in [a for a in assets if a.endswith(".webmanifest")]:  # its icons are assets too
+            icons = json.loads(_get(f"{base}/static/{manifest}"))["icons"]
+            assets += [icon["src"].removeprefix("/static/") for icon in icons]
+        for asset in ("app.js", "progress.js", "style.css", "manifest.webmanifest", "vendor/d3.min.js"):
             if asset not in assets:
                 raise SystemExit(f"the page no longer references /static/{asset}")
         if page.encode() != (REPO / "static" / "index.html").read_bytes():

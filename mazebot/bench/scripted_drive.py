@@ -118,7 +118,7 @@ class ScriptedDriver:
         while not state.slam.anchored:  # as the planner does: SLAM takes its anchor at rest first
             await clock.sleep(period_s)
         state.run_state = RunState.EXPLORING
-        state.started_at_s = clock.now_s()
+        state.begin_run(clock.now_s())
         while not self.done:
             if state.run_state is not RunState.EXPLORING:
                 return

@@ -113,7 +113,7 @@ class StatePublisher:
             return
         state = self.state
         if run_state.moving and state.started_at_s is None:
-            state.started_at_s = self._now_s()
+            state.begin_run(self._now_s())
         if run_state is RunState.DONE:
             state.finished_at_s = self._now_s()
         state.run_state = run_state

@@ -37,8 +37,7 @@ def apply_command(command: str, state: SharedState, motors, clock: Clock) -> str
             return str(state.run_state)
         if state.run_state in (RunState.IDLE, RunState.DONE) or state.started_at_s is None:
             state.run_number += 1
-            state.started_at_s = clock.now_s()
-            state.finished_at_s = None
+            state.begin_run(clock.now_s())
         state.run_state = RunState.EXPLORING
         return str(state.run_state)
     return f"unknown command {command!r}; expected start or stop"

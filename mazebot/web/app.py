@@ -8,9 +8,10 @@ Routes::
     GET  /api/status       run state, pose, coverage, elapsed time, faults, versions (JSON)
     POST /api/start        start exploring   (token: X-Mazebot-Token or Authorization: Bearer)
     POST /api/stop         stop the robot    (token as above)
-    GET  /map.png          the map as an image
+    GET  /map.png          the map as an image (``?download``: saved as mazebot-map-DATE-TIME.png)
     GET  /map.pgm          the map for ROS map_server, with
     GET  /map.yaml         its YAML
+    GET  /map.zip          both of one snapshot, for download (mazebot-map-DATE-TIME.pgm + .yaml)
 """
 
 from __future__ import annotations
@@ -160,6 +161,7 @@ def status_json(
             "theta_rad": round(state.pose.theta_rad, 4),
         },
         "coverage": None if state.coverage is None else round(float(state.coverage), 4),
+        "distance_m": None if (d := state.run_distance_m()) is None else round(d, 3),
         "elapsed_s": elapsed_s,
         "planner": state.planner_status,
         "safety_stop": state.safety_stop or None,
@@ -336,23 +338,30 @@ async def post_stop(request: web.Request) -> web.Response:
     return await _post_command(request, "stop")
 
 
+#: kind: (content type, download name (None: the snapshot's stem + suffix), encoder of a snapshot).
+#: /map.pgm and /map.yaml keep the names the YAML's ``image: map.pgm`` refers to.
+_MAP_FILES: dict[str, tuple[str, str | None, Callable[[map_images.MapSnapshot], bytes]]] = {
+    "png": ("image/png", None, lambda snap: map_images.encode_map_png(snap.three_state)),
+    "pgm": ("image/x-portable-graymap", "map.pgm", lambda snap: map_images.encode_pgm(snap.three_state)),
+    "yaml": ("text/yaml", "map.yaml", lambda snap: map_images.encode_yaml(snap.resolution_m, snap.origin_m)),
+    "zip": ("application/zip", None, map_images.encode_ros_zip),
+}
+
+
 async def _map_response(request: web.Request, kind: str) -> web.Response:
+    """One map file of one snapshot; ``?download`` (and always the zip) asks the browser to save it."""
     if (denied := _check_view(request)) is not None:
         return denied
     grid = request.app[STATE_KEY].map
     if grid is None:
         return web.json_response({"error": "no map yet: start the robot (SLAM builds the map)"}, status=404)
-    headers = {"Cache-Control": "no-store"}
-    if kind == "yaml":
-        body = map_images.encode_yaml(grid.resolution_m, grid.origin_m)
-        return web.Response(body=body, content_type="text/yaml", headers=headers)
-    three_state = grid.three_state()  # read on the loop (one writer); encode off it
-    loop = asyncio.get_running_loop()
-    if kind == "png":
-        body = await loop.run_in_executor(None, map_images.encode_map_png, three_state)
-        return web.Response(body=body, content_type="image/png", headers=headers)
-    body = await loop.run_in_executor(None, map_images.encode_pgm, three_state)
-    return web.Response(body=body, content_type="image/x-portable-graymap", headers=headers)
+    snap = map_images.take_snapshot(grid)  # read on the loop (one writer); encode off it
+    content_type, name, encode = _MAP_FILES[kind]
+    filename = name or f"{snap.stem}.{kind}"
+    disposition = "attachment" if kind == "zip" or "download" in request.query else "inline"
+    headers = {"Cache-Control": "no-store", "Content-Disposition": f'{disposition}; filename="{filename}"'}
+    body = await asyncio.get_running_loop().run_in_executor(None, encode, snap)
+    return web.Response(body=body, content_type=content_type, headers=headers)
 
 
 async def get_map_png(request: web.Request) -> web.Response:
@@ -365,6 +374,10 @@ async def get_map_pgm(request: web.Request) -> web.Response:
 
 async def get_map_yaml(request: web.Request) -> web.Response:
     return await _map_response(request, "yaml")
+
+
+async def get_map_zip(request: web.Request) -> web.Response:
+    return await _map_response(request, "zip")
 
 
 async def get_ws(request: web.Request) -> web.WebSocketResponse:
@@ -556,6 +569,7 @@ def create_app(
     app.router.add_get("/map.png", get_map_png)
     app.router.add_get("/map.pgm", get_map_pgm)
     app.router.add_get("/map.yaml", get_map_yaml)
+    app.router.add_get("/map.zip", get_map_zip)
     app.router.add_static("/static/", static_dir, follow_symlinks=False)
     app.cleanup_ctx.append(_broadcast_ctx)
     app.on_shutdown.append(_close_websockets)

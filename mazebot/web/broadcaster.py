@@ -298,6 +298,7 @@ class Broadcaster:
             "path": [round(float(v), 3) for p in s.path for v in p[:2]],
             "goal": None if s.goal is None else [round(float(s.goal[0]), 3), round(float(s.goal[1]), 3)],
             "coverage": None if s.coverage is None else round(float(s.coverage), 3),
+            "distance_m": None if (d := s.run_distance_m()) is None else round(d, 2),
             "planner": s.planner_status,
             "speed_mps": self._speed_mps(now_s),
             "fault": None if fault is None else {"source": fault.source, "message": fault.message},

@@ -37,9 +37,8 @@ from typing import Any
 import numpy as np
 
 from mazebot.errors import UsageError
-from mazebot.io.scan import Scan
 from mazebot.record.reader import Recording, RecordingError
-from mazebot.record.schemas import LASER_FRAME, MAP_FRAME, ODOM_FRAME, ROBOT_FRAME, scan_from_json
+from mazebot.record.schemas import LASER_FRAME, MAP_FRAME, ODOM_FRAME, ROBOT_FRAME, equal_bearings, scan_from_json
 
 #: rosbag2's metadata version that ROS 2 Jazzy writes and reads (rosbag2_storage/bag_metadata.hpp)
 BAG_VERSION = 8
@@ -84,22 +83,6 @@ def _qos(latched: bool) -> Any:
         forever,
         False,
     )
-
-
-def equal_bearings(scan: Scan) -> tuple[np.ndarray, np.ndarray, float]:
-    """Ranges and intensities on ``len(scan)`` equal bearings from 0 rad; ``+inf`` where none returned.
-
-    A sample goes to its nearest bearing (two on one bearing: the later in the revolution wins).
-    """
-    n = len(scan)
-    step_rad = 2 * math.pi / n
-    ranges = np.full(n, np.inf, dtype=np.float32)
-    intensities = np.zeros(n, dtype=np.float32)
-    index = np.rint(np.remainder(scan.angle_rad, 2 * math.pi) / step_rad).astype(np.int64) % n
-    ok = scan.valid & np.isfinite(scan.range_m) & (scan.range_m > 0)
-    ranges[index[ok]] = scan.range_m[ok]
-    intensities[index[ok]] = scan.quality[ok]
-    return ranges, intensities, step_rad
 
 
 def _time(types: Any, t_ns: int) -> Any:

@@ -284,6 +284,24 @@ def laser_scan_bytes(scan: Scan, log_time_ns: int) -> bytes:
     return text.encode()
 
 
+def equal_bearings(scan: Scan) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ranges and intensities on ``len(scan)`` equal bearings from 0 rad; ``+inf`` where none returned.
+
+    A sample goes to its nearest bearing (two on one bearing: the later in the revolution wins).
+    For binary messages (ROS 2 bags, Foxglove live), which can carry ``+inf`` (REP 117: no
+    return); JSON cannot, so the recording's ``/scan`` has :func:`laser_scan_bytes`.
+    """
+    n = len(scan)
+    step_rad = 2 * math.pi / n
+    ranges = np.full(n, np.inf, dtype=np.float32)
+    intensities = np.zeros(n, dtype=np.float32)
+    index = np.rint(np.remainder(scan.angle_rad, 2 * math.pi) / step_rad).astype(np.int64) % n
+    ok = scan.valid & np.isfinite(scan.range_m) & (scan.range_m > 0)
+    ranges[index[ok]] = scan.range_m[ok]
+    intensities[index[ok]] = scan.quality[ok]
+    return ranges, intensities, step_rad
+
+
 def raw_scan_json(scan: Scan, _log_time_ns: int) -> dict[str, Any]:
     return {
         "revolution": int(scan.revolution),

@@ -589,13 +589,15 @@ class RecordConfig(Section):
 
 
 class FoxgloveConfig(Section):
-    """Foxglove live: the daemon's state on the Foxglove WebSocket protocol (needs pip install 'mazebot[foxglove]')."""
+    """Foxglove live: the running robot on the Foxglove WebSocket protocol (pip install 'mazebot[foxglove]')."""
 
-    enabled: bool = Field(False, description="serve the live run to Foxglove (app or app.foxglove.dev) on its own port")
+    enabled: bool = Field(False, description="serve the live run to Foxglove (app or web) on its own port")
     host: str = Field("", description="interface to bind; empty: the web page's [web] host")
-    port: int = Field(8765, ge=1, le=65535, description="TCP port of the Foxglove WebSocket server (Foxglove's default)")
+    port: int = Field(8765, ge=1, le=65535, description="TCP port of the Foxglove WebSocket server (the SDK's default)")
     pose_hz: float = Field(10.0, gt=0, le=50, description="pose, odometry and transforms sent per second at most")
-    map_period_s: float = Field(1.0, gt=0.05, le=600, description="the map (foxglove.Grid) is sent this often when it changed")
+    map_period_s: float = Field(
+        1.0, gt=0.05, le=600, description="the map (foxglove.Grid) is sent this often when a client watches it"
+    )
 
 
 class PersistConfig(Section):

@@ -200,7 +200,7 @@ class FoxgloveLive:
         if not self._map.has_sinks():
             return
         m = self._m
-        rows, cols = three_state.shape
+        cols = three_state.shape[1]
         self._map.log(
             m.Grid(
                 timestamp=self._stamp(epoch_s),

@@ -64,40 +64,42 @@ async def test_a_foxglove_client_sees_the_channels_and_receives_the_live_run() -
     try:
         await asyncio.wait_for(ready.wait(), 20)
         state = started["state"]
-        async with aiohttp.ClientSession() as session:
-            async with session.ws_connect(f"ws://127.0.0.1:{fox_port}/", protocols=(SUBPROTOCOL,)) as ws:
-                assert ws.protocol == SUBPROTOCOL
-                info = json.loads((await ws.receive(timeout=5)).data)
-                assert info["op"] == "serverInfo" and info["name"] == "mazebot"
-                channels: dict[str, dict] = {}
-                while set(channels) != set(EXPECTED):
-                    op = json.loads((await ws.receive(timeout=5)).data)
-                    if op["op"] == "advertise":
-                        channels.update({c["topic"]: c for c in op["channels"]})
-                assert {t: (c["schemaName"], c["encoding"]) for t, c in channels.items()} == EXPECTED
-                assert json.loads(channels["/mazebot/run_state"]["schema"])["title"] == "mazebot.RunState"
-                subs = {topic: i + 1 for i, topic in enumerate(EXPECTED)}
-                await ws.send_str(json.dumps({
-                    "op": "subscribe",
-                    "subscriptions": [{"id": sid, "channelId": channels[t]["id"]} for t, sid in subs.items()],
-                }))
-                # explore, so the planner has a goal and a path and the wheels turn
-                async with session.post(f"http://127.0.0.1:{web_port}/api/start",
-                                        headers={"X-Mazebot-Token": CONTROL_TOKEN}) as resp:
-                    assert resp.status == 200
-                topic_of = {sid: t for t, sid in subs.items()}
-                got: dict[str, list[bytes]] = {}
-                want = set(EXPECTED) - {"/log"}  # a log line needs something to happen
-                for _ in range(2000):
-                    if want <= set(got):
-                        break
-                    msg = await ws.receive(timeout=10)
-                    if msg.type is not aiohttp.WSMsgType.BINARY:
-                        continue
-                    opcode, sid, log_time_ns = struct.unpack_from("<BIQ", msg.data)
-                    assert opcode == 0x01 and log_time_ns > 1_600_000_000 * 10**9
-                    got.setdefault(topic_of[sid], []).append(msg.data[13:])
-                assert want <= set(got), f"nothing on {sorted(want - set(got))}"
+        async with (
+            aiohttp.ClientSession() as session,
+            session.ws_connect(f"ws://127.0.0.1:{fox_port}/", protocols=(SUBPROTOCOL,)) as ws,
+        ):
+            assert ws.protocol == SUBPROTOCOL
+            info = json.loads((await ws.receive(timeout=5)).data)
+            assert info["op"] == "serverInfo" and info["name"] == "mazebot"
+            channels: dict[str, dict] = {}
+            while set(channels) != set(EXPECTED):
+                op = json.loads((await ws.receive(timeout=5)).data)
+                if op["op"] == "advertise":
+                    channels.update({c["topic"]: c for c in op["channels"]})
+            assert {t: (c["schemaName"], c["encoding"]) for t, c in channels.items()} == EXPECTED
+            assert json.loads(channels["/mazebot/run_state"]["schema"])["title"] == "mazebot.RunState"
+            subs = {topic: i + 1 for i, topic in enumerate(EXPECTED)}
+            await ws.send_str(json.dumps({
+                "op": "subscribe",
+                "subscriptions": [{"id": sid, "channelId": channels[t]["id"]} for t, sid in subs.items()],
+            }))
+            # explore, so the planner has a goal and a path and the wheels turn
+            async with session.post(f"http://127.0.0.1:{web_port}/api/start",
+                                    headers={"X-Mazebot-Token": CONTROL_TOKEN}) as resp:
+                assert resp.status == 200
+            topic_of = {sid: t for t, sid in subs.items()}
+            got: dict[str, list[bytes]] = {}
+            want = set(EXPECTED) - {"/log"}  # a log line needs something to happen
+            for _ in range(2000):
+                if want <= set(got):
+                    break
+                msg = await ws.receive(timeout=10)
+                if msg.type is not aiohttp.WSMsgType.BINARY:
+                    continue
+                opcode, sid, log_time_ns = struct.unpack_from("<BIQ", msg.data)
+                assert opcode == 0x01 and log_time_ns > 1_600_000_000 * 10**9
+                got.setdefault(topic_of[sid], []).append(msg.data[13:])
+            assert want <= set(got), f"nothing on {sorted(want - set(got))}"
         assert state.run_state in (RunState.EXPLORING, RunState.RETURNING, RunState.DONE)
         # the JSON channels carry the recording's own encoding
         states = [json.loads(p)["state"] for p in got["/mazebot/run_state"]]

@@ -38,6 +38,7 @@ import numpy as np
 from mazebot.errors import ConfigError
 from mazebot.io.scan import Scan
 from mazebot.record.schemas import (
+    CHANNELS,
     LASER_FRAME,
     LOG_LEVELS,
     MAP_FRAME,
@@ -92,8 +93,6 @@ class FoxgloveLive:
         self._path = channels.PosesInFrameChannel("/path", **c)
         self._map = channels.GridChannel("/map", **c)
         self._log = channels.LogChannel("/log", **c)
-        from mazebot.record.schemas import CHANNELS
-
         self._json = {
             topic: foxglove.Channel(
                 topic,

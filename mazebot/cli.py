@@ -45,6 +45,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("posegraph", "mazebot.slam.posegraph_cli", "2D pose graphs in g2o format"),
     Command("slam", "mazebot.slam.slam_cli", "run the SLAM offline on recorded data"),
     Command("bench", "mazebot.bench.cli", "measure whole simulated runs against ground truth"),
+    Command("export-bag", "mazebot.record.cli", "write a recording (MCAP) as a ROS 2 bag (rosbag2, CDR)"),
     Command("replay", "mazebot.record.cli",
             "run a recording (MCAP) through SLAM again; writes map and trajectory"),
     Command("runs", "mazebot.persist.cli", "list the saved runs (STATE_DIR/runs)"),

@@ -593,6 +593,18 @@ class RecordConfig(Section):
     compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="MCAP chunk compression")
 
 
+class FoxgloveConfig(Section):
+    """Foxglove live: the running robot on the Foxglove WebSocket protocol (pip install 'mazebot[foxglove]')."""
+
+    enabled: bool = Field(False, description="serve the live run to Foxglove (app or web) on its own port")
+    host: str = Field("", description="interface to bind; empty: the web page's [web] host")
+    port: int = Field(8765, ge=1, le=65535, description="TCP port of the Foxglove WebSocket server (the SDK's default)")
+    pose_hz: float = Field(10.0, gt=0, le=50, description="pose, odometry and transforms sent per second at most")
+    map_period_s: float = Field(
+        1.0, gt=0.05, le=600, description="the map (foxglove.Grid) is sent this often when a client watches it"
+    )
+
+
 class PersistConfig(Section):
     """Saving the map, pose graph and keyframes of each run under the state directory."""
 
@@ -617,6 +629,7 @@ class Config(BaseModel):
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     control: ControlConfig = Field(default_factory=ControlConfig)
     record: RecordConfig = Field(default_factory=RecordConfig)
+    foxglove: FoxgloveConfig = Field(default_factory=FoxgloveConfig)
     persist: PersistConfig = Field(default_factory=PersistConfig)
 
     @property

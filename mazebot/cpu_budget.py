@@ -47,6 +47,7 @@ PARTS = (
     "web packet",
     "web send per viewer",
     "recording",
+    "foxglove live",
     "saving",
 )
 

@@ -202,6 +202,22 @@ def _guard_motors_from_a_thread(motors: Any, clock: Clock, loop: asyncio.Abstrac
     stack.callback(guard.close)
 
 
+def _start_foxglove(config: Config, stack: AsyncExitStack) -> Any:
+    """The Foxglove live server when ``[foxglove] enabled`` (its SDK imported only then), else None."""
+    if not config.foxglove.enabled:
+        return None
+    from mazebot.record.foxglove_live import FoxgloveLive, LiveLogHandler
+
+    host = config.foxglove.host or config.web.host
+    live = FoxgloveLive.start(host, config.foxglove.port)
+    stack.callback(live.stop)
+    handler = LiveLogHandler(live)
+    logging.getLogger("mazebot").addHandler(handler)
+    stack.callback(logging.getLogger("mazebot").removeHandler, handler)
+    log.info("Foxglove live on ws://%s:%d/ (Foxglove: Open connection)", host, live.port)
+    return live
+
+
 async def run_daemon(
     config: Config,
     build_hardware: HardwareBuilder,
@@ -229,6 +245,7 @@ async def run_daemon(
     loop = asyncio.get_running_loop()
     state = state if state is not None else SharedState()
     async with AsyncExitStack() as stack:
+        live = _start_foxglove(config, stack)  # first: a missing package stops us before any device opens
         hardware = await build_hardware(config, clock, stack)
         _guard_motors_from_a_thread(hardware.motors, clock, loop, stack)
         if session is not None:  # the recording taps go in front of the devices
@@ -323,6 +340,15 @@ async def run_daemon(
         supervisor.start("commands", lambda: command_task.run(state, motors, clock), restart=True)
         if session is not None:
             session.start_tasks(config, clock, state, supervisor, slam)
+        if live is not None:
+            from mazebot.tasks import foxglove_task
+
+            fc, mount_xy_m = config.foxglove, (config.lidar.mount_x_m, config.lidar.mount_y_m)
+            supervisor.start(
+                "foxglove",
+                lambda: foxglove_task.run(state, live, clock, fc.pose_hz, fc.map_period_s, mount_xy_m),
+                restart=True,
+            )
         if serve_web and not web_started:
             await serve()
         elif not serve_web:

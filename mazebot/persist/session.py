@@ -137,7 +137,10 @@ class RunSession:
 
         if self.tap is not None:
             rc = config.record
-            supervisor.start("record", lambda: record_task.run(state, self.tap, rc.pose_hz, rc.map_period_s))
+            mount_xy_m = (config.lidar.mount_x_m, config.lidar.mount_y_m)
+            supervisor.start(
+                "record", lambda: record_task.run(state, self.tap, rc.pose_hz, rc.map_period_s, mount_xy_m)
+            )
         if self.run_dir is not None:
             run_dir = self.run_dir
             config_json = json.loads(config.model_dump_json())

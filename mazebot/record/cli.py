@@ -102,7 +102,24 @@ async def _serve(args: argparse.Namespace, recording: Recording, speed: float | 
     return EXIT_OK
 
 
+def _cmd_export_bag(args: argparse.Namespace) -> int:
+    from mazebot.record.rosbag_export import export_bag
+
+    summary = export_bag(args.file, args.out, odometry_only=args.odometry_only)
+    print(json.dumps({"out": summary.out, "messages": summary.messages}))
+    return EXIT_OK
+
+
 def register(sub: argparse._SubParsersAction) -> None:
+    bag = sub.add_parser("export-bag", help="write a recording (MCAP) as a ROS 2 bag (rosbag2, CDR)",
+                         description="Write a recording as a ROS 2 bag (rosbag2, MCAP storage, CDR): /scan, "
+                                     "/odom, /tf, /tf_static and /map, for rviz2, slam_toolbox and Nav2. "
+                                     "Needs the optional rosbags package (pip install 'mazebot[ros]').")
+    bag.add_argument("file", help="a recording made with `mazebot run --record FILE.mcap`")
+    bag.add_argument("out", help="the bag's folder, which must not exist yet")
+    bag.add_argument("--odometry-only", action="store_true",
+                     help="leave out map -> odom and /map (for slam_toolbox to map the bag itself)")
+    bag.set_defaults(func=_cmd_export_bag)
     rep = sub.add_parser("replay", help="run a recording (MCAP) through SLAM again; writes map and trajectory",
                          description="Run a recording (MCAP) through SLAM again and write the map, trajectory "
                                      "and pose graph; --serve shows it on the phone page as it runs.")

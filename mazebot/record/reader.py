@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,7 +78,7 @@ class Recording:
             raise RecordingError(f"recording {path} is a directory; expected an .mcap file") from None
         except OSError as exc:
             raise RecordingError(f"recording {path} cannot be read ({exc.strerror or exc})") from None
-        except (McapError, ValueError, EOFError, KeyError) as exc:
+        except (McapError, ValueError, EOFError, KeyError, struct.error) as exc:  # struct: a file shorter than a record
             raise RecordingError(f"{path} is not a readable MCAP file ({type(exc).__name__}: {exc})") from None
         if summary is None:
             raise RecordingError(f"{path} has no MCAP summary (the recording was cut off); it cannot be replayed")
@@ -104,5 +105,5 @@ class Recording:
                     yield RecordedMessage(
                         channel.topic, schema.name if schema else "", message.log_time, json.loads(message.data)
                     )
-        except (McapError, ValueError, EOFError) as exc:
+        except (McapError, ValueError, EOFError, struct.error) as exc:
             raise RecordingError(f"{self.path}: damaged MCAP data ({type(exc).__name__}: {exc})") from None

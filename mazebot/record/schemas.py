@@ -3,7 +3,7 @@
 Where Foxglove has a well-known schema, the channel uses it under its exact name, so
 Foxglove's 3D, Log and plot panels open the file without any set-up (schema names and
 fields from docs.foxglove.dev/docs/visualization/message-schemas/: ``foxglove.LaserScan``,
-``foxglove.PoseInFrame``, ``foxglove.Grid``, ``foxglove.Log``; "You must use the schema
+``foxglove.PoseInFrame``, ``foxglove.Grid``, ``foxglove.Log``, ``foxglove.FrameTransform``; "You must use the schema
 names specified above for Foxglove to recognize the schema"). Messages are JSON
 (MCAP message encoding ``json``, schema encoding ``jsonschema``): times are
 ``{"sec", "nsec"}`` objects, ``bytes`` fields base64 strings, enums their integer value.
@@ -33,9 +33,13 @@ from mazebot.io.scan import Scan
 
 MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
-#: The map frame (the robot's start pose) and the robot's body frame, as Foxglove frame ids.
+#: Frame ids, named as in ROS REP 105 ("Coordinate Frames for Mobile Platforms"): ``map`` is the
+#: start pose, corrected by SLAM; ``odom`` is where wheel odometry alone puts the start (it drifts,
+#: but never jumps); ``base_link`` the axle centre; ``laser`` the lidar's centre.
 MAP_FRAME = "map"
+ODOM_FRAME = "odom"
 ROBOT_FRAME = "base_link"
+LASER_FRAME = "laser"
 
 # Foxglove log levels (foxglove.LogLevel): UNKNOWN 0, DEBUG 1, INFO 2, WARNING 3, ERROR 4, FATAL 5.
 LOG_LEVELS = {"DEBUG": 1, "INFO": 2, "WARNING": 3, "ERROR": 4, "CRITICAL": 5}
@@ -121,6 +125,17 @@ SCHEMAS: dict[str, bytes] = {
             "data": _b64("Grid cell data, row-major (y-major)"),
         },
         "A 2D grid of data",
+    ),
+    "foxglove.FrameTransform": _schema(
+        "foxglove.FrameTransform",
+        {
+            "timestamp": _TIME,
+            "parent_frame_id": {"type": "string"},
+            "child_frame_id": {"type": "string"},
+            "translation": _VECTOR3,
+            "rotation": _QUATERNION,
+        },
+        "A transform between two reference frames in 3D space",
     ),
     "foxglove.Log": _schema(
         "foxglove.Log",
@@ -247,7 +262,7 @@ def laser_scan_bytes(scan: Scan, log_time_ns: int) -> bytes:
     n = len(scan)
     head = {
         "timestamp": stamp(log_time_ns),
-        "frame_id": ROBOT_FRAME,
+        "frame_id": LASER_FRAME,
         "pose": _pose(0.0, 0.0, 0.0),
         "start_angle": 0.0,
         "end_angle": 0.0,
@@ -267,6 +282,24 @@ def laser_scan_bytes(scan: Scan, log_time_ns: int) -> bytes:
     intensities = _json_numbers(strength, 1.0, 256)
     text = f'{json.dumps(head, separators=(",", ":"))[:-1]},"ranges":[{ranges}],"intensities":[{intensities}]}}'
     return text.encode()
+
+
+def equal_bearings(scan: Scan) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ranges and intensities on ``len(scan)`` equal bearings from 0 rad; ``+inf`` where none returned.
+
+    A sample goes to its nearest bearing (two on one bearing: the later in the revolution wins).
+    For binary messages (ROS 2 bags, Foxglove live), which can carry ``+inf`` (REP 117: no
+    return); JSON cannot, so the recording's ``/scan`` has :func:`laser_scan_bytes`.
+    """
+    n = len(scan)
+    step_rad = 2 * math.pi / n
+    ranges = np.full(n, np.inf, dtype=np.float32)
+    intensities = np.zeros(n, dtype=np.float32)
+    index = np.rint(np.remainder(scan.angle_rad, 2 * math.pi) / step_rad).astype(np.int64) % n
+    ok = scan.valid & np.isfinite(scan.range_m) & (scan.range_m > 0)
+    ranges[index[ok]] = scan.range_m[ok]
+    intensities[index[ok]] = scan.quality[ok]
+    return ranges, intensities, step_rad
 
 
 def raw_scan_json(scan: Scan, _log_time_ns: int) -> dict[str, Any]:
@@ -318,6 +351,56 @@ def grid_json(grid: tuple[np.ndarray, float, tuple[float, float]], log_time_ns: 
     }
 
 
+@dataclass(frozen=True)
+class Transform:
+    """The pose of ``child`` in ``parent`` (x_m, y_m, theta_rad): one edge of the frame tree."""
+
+    parent: str
+    child: str
+    x_m: float
+    y_m: float
+    theta_rad: float
+
+
+def transform_chain(
+    pose: tuple[float, float, float],
+    odometry: tuple[float, float, float],
+    lidar_mount_xy_m: tuple[float, float],
+) -> tuple[Transform, Transform, Transform]:
+    """``map -> odom -> base_link -> laser`` (REP 105) for one instant.
+
+    ``pose`` is the robot in the map, ``odometry`` the robot in the odometry frame, both of the
+    same odometry reading (the odometry task writes them together). ``map -> odom`` is SLAM's
+    correction, taken as ``pose ⊕ odometry⁻¹`` so that the chain gives back exactly the pose
+    that was published (the live ``map_from_odom`` may already be newer than that reading).
+    The lidar sits at its mounting offset with no rotation: the driver has already turned its
+    angles into the robot's frame (``mazebot.io.rplidar``).
+    """
+    from mazebot.slam.posegraph import compose, inverse  # the one home of SE(2) arithmetic
+
+    mx, my, mt = (float(v) for v in compose(pose, inverse(odometry)))
+    return (
+        Transform(MAP_FRAME, ODOM_FRAME, mx, my, mt),
+        Transform(ODOM_FRAME, ROBOT_FRAME, *(float(v) for v in odometry)),
+        Transform(ROBOT_FRAME, LASER_FRAME, float(lidar_mount_xy_m[0]), float(lidar_mount_xy_m[1]), 0.0),
+    )
+
+
+def transform_json(t: Transform, log_time_ns: int) -> dict[str, Any]:
+    return {
+        "timestamp": stamp(log_time_ns),
+        "parent_frame_id": t.parent,
+        "child_frame_id": t.child,
+        "translation": {"x": t.x_m, "y": t.y_m, "z": 0.0},
+        "rotation": yaw_quaternion(t.theta_rad),
+    }
+
+
+def odom_json(pose: tuple[float, float, float], log_time_ns: int) -> dict[str, Any]:
+    """The robot (``base_link``) in the odometry frame: dead reckoning alone."""
+    return {"timestamp": stamp(log_time_ns), "frame_id": ODOM_FRAME, "pose": _pose(*pose)}
+
+
 def log_json(entry: tuple[str, str, str, str, int], log_time_ns: int) -> dict[str, Any]:
     level, name, message, file, line = entry
     return {
@@ -343,6 +426,8 @@ CHANNELS: dict[str, Channel] = {
         Channel("/mazebot/encoders", "mazebot.EncoderTicks", plain_json),
         Channel("/mazebot/motors", "mazebot.MotorCommand", plain_json),
         Channel("/pose", "foxglove.PoseInFrame", pose_json),
+        Channel("/tf", "foxglove.FrameTransform", transform_json),
+        Channel("/odom", "foxglove.PoseInFrame", odom_json),
         Channel("/map", "foxglove.Grid", grid_json),
         Channel("/log", "foxglove.Log", log_json),
         Channel("/mazebot/run_state", "mazebot.RunState", plain_json),

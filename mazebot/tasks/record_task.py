@@ -9,7 +9,9 @@ What goes into the file, and from where:
 - every motor command (``/mazebot/motors``), from a tap on ``motors.set()``/``stop()``;
 - SLAM's steps (``/mazebot/slam``), from an :class:`~mazebot.slam.observed.ObservedSlam`
   observer;
-- pose estimates (``/pose``) at ``[record] pose_hz``, the map (``/map``) every
+- pose estimates (``/pose``) at ``[record] pose_hz``, with the frame tree of the same instant
+  (``/tf``: ``map -> odom -> base_link -> laser``, REP 105) and the dead-reckoned pose
+  (``/odom``), so one Foxglove 3D panel shows scan, pose and map together; the map (``/map``) every
   ``map_period_s`` when it changed, run-state changes and faults (``/mazebot/run_state``,
   ``/log``), by :func:`run`, which polls the shared state;
 - the daemon's log lines (``/log``), from a logging handler.
@@ -30,6 +32,7 @@ from typing import Any
 
 from mazebot.clock import Clock
 from mazebot.io.scan import Scan
+from mazebot.record.schemas import transform_chain
 from mazebot.record.writer import McapRecorder
 from mazebot.slam.slam import LoopClosureResult, OdometrySource, Slam, SlamUpdate
 from mazebot.state import RunState, SharedState
@@ -170,8 +173,28 @@ def publish_stats(state: SharedState, recorder: McapRecorder) -> None:
     out.writer_cpu_s = round(stats.writer_cpu_s, 3)
 
 
-async def run(state: SharedState, tap: RecordingTap, pose_hz: float, map_period_s: float) -> None:
-    """Record pose, map, run-state changes and faults from the shared state, for ever."""
+def put_pose(state: SharedState, tap: RecordingTap, lidar_mount_xy_m: tuple[float, float]) -> None:
+    """``/pose``, and ``/odom`` with ``/tf`` once odometry runs, all stamped with the pose's reading."""
+    p, time_s = state.pose, state.pose_time_s
+    pose = (p.x_m, p.y_m, p.theta_rad)
+    tap.put("/pose", pose, time_s)
+    odo = state.odometry
+    if odo is None:
+        return
+    odometry = (odo.x_m, odo.y_m, odo.theta_rad)
+    tap.put("/odom", odometry, time_s)
+    for transform in transform_chain(pose, odometry, lidar_mount_xy_m):
+        tap.put("/tf", transform, time_s)
+
+
+async def run(
+    state: SharedState,
+    tap: RecordingTap,
+    pose_hz: float,
+    map_period_s: float,
+    lidar_mount_xy_m: tuple[float, float] = (0.0, 0.0),
+) -> None:
+    """Record pose, frames, map, run-state changes and faults from the shared state, for ever."""
     clock = tap.clock
     period_s = 1.0 / pose_hz
     last_state: RunState | None = None
@@ -183,8 +206,7 @@ async def run(state: SharedState, tap: RecordingTap, pose_hz: float, map_period_
         now_s = clock.now_s()
         if state.pose_time_s is not None and state.pose_time_s != last_pose_time:
             last_pose_time = state.pose_time_s
-            p = state.pose
-            tap.put("/pose", (p.x_m, p.y_m, p.theta_rad), state.pose_time_s)
+            put_pose(state, tap, lidar_mount_xy_m)
         if state.run_state is not last_state:
             last_state = state.run_state
             tap.put("/mazebot/run_state", {"time_s": now_s, "state": last_state.value})

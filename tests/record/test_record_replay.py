@@ -40,6 +40,8 @@ MAZE = str(Path(__file__).resolve().parents[2] / "mazebot" / "sim" / "mazes" / "
 EXPECTED_SCHEMAS = {
     "/scan": "foxglove.LaserScan",
     "/pose": "foxglove.PoseInFrame",
+    "/odom": "foxglove.PoseInFrame",
+    "/tf": "foxglove.FrameTransform",
     "/map": "foxglove.Grid",
     "/log": "foxglove.Log",
     "/mazebot/scan_raw": "mazebot.Scan",
@@ -113,6 +115,74 @@ def test_laser_scan_message_follows_the_foxglove_schema(live: LiveRun) -> None:
     assert set(msg["timestamp"]) == {"sec", "nsec"} and msg["timestamp"]["sec"] > 1_600_000_000  # epoch seconds
     assert msg["pose"]["orientation"] == {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
     assert len(msg["ranges"]) == len(msg["intensities"]) > 100
+
+
+def _yaw(q: dict[str, float]) -> float:
+    assert q["x"] == q["y"] == 0.0  # planar: a rotation about z only
+    return 2.0 * math.atan2(q["z"], q["w"])
+
+
+def _se2(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
+    """``a ⊕ b`` written out here, not taken from the code under test."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2])
+
+
+def test_transform_chain_gives_back_every_recorded_pose(live: LiveRun) -> None:
+    """map -> odom -> base_link composes to ``/pose``; odom -> base_link is ``/odom``; laser hangs off base_link."""
+    rec = Recording.open(live.recording)
+    tf: dict[int, dict[tuple[str, str], dict]] = {}
+    odom: dict[int, dict] = {}
+    poses: dict[int, dict] = {}
+    for m in rec.messages(["/tf", "/odom", "/pose"]):
+        if m.topic == "/tf":
+            d = m.data
+            assert m.log_time_ns == d["timestamp"]["sec"] * 1_000_000_000 + d["timestamp"]["nsec"]
+            tf.setdefault(m.log_time_ns, {})[(d["parent_frame_id"], d["child_frame_id"])] = d
+        else:
+            (odom if m.topic == "/odom" else poses)[m.log_time_ns] = m.data
+    assert len(tf) == len(odom) > 50
+    assert set(odom) <= set(poses)
+    corrections = []
+    for t, frames in tf.items():
+        assert set(frames) == {("map", "odom"), ("odom", "base_link"), ("base_link", "laser")}
+        edge = {k: (v["translation"]["x"], v["translation"]["y"], _yaw(v["rotation"])) for k, v in frames.items()}
+        o = odom[t]
+        assert o["frame_id"] == "odom"
+        assert edge[("odom", "base_link")] == pytest.approx(
+            (o["pose"]["position"]["x"], o["pose"]["position"]["y"], _yaw(o["pose"]["orientation"])), abs=1e-12
+        )
+        assert edge[("base_link", "laser")] == (live.config.lidar.mount_x_m, live.config.lidar.mount_y_m, 0.0)
+        x, y, th = _se2(edge[("map", "odom")], edge[("odom", "base_link")])
+        p = poses[t]
+        assert p["frame_id"] == "map"
+        px, py, pth = p["pose"]["position"]["x"], p["pose"]["position"]["y"], _yaw(p["pose"]["orientation"])
+        assert (x, y) == pytest.approx((px, py), abs=1e-9)
+        assert math.remainder(th - pth, math.tau) == pytest.approx(0.0, abs=1e-9)
+        corrections.append(edge[("map", "odom")])
+    # SLAM corrected the wheel odometry (slip, the simulated wheels' errors) during the tour: map -> odom moved
+    drift_m = max(math.hypot(c[0], c[1]) for c in corrections)
+    assert 1e-3 < drift_m < 1.0
+
+
+def test_odom_is_the_dead_reckoning_of_the_recorded_encoder_ticks(live: LiveRun) -> None:
+    """``/odom`` against the recorded tick totals integrated again by the odometry model."""
+    cfg = live.config
+    rec = Recording.open(live.recording)
+    model = DiffDriveOdometry(cfg.encoders.ticks_per_rev, cfg.drive.wheel_diameter_m, cfg.drive.track_width_m)
+    encoder_ns: dict[int, tuple[float, float, float]] = {}  # the integrated pose after each reading, by its time
+    for m in rec.messages(["/mazebot/encoders"]):
+        model.update(m.data["left_ticks"], m.data["right_ticks"])
+        encoder_ns[m.log_time_ns] = (model.pose.x_m, model.pose.y_m, model.pose.theta_rad)
+    matched = 0
+    for m in rec.messages(["/odom"]):
+        expected = encoder_ns.get(m.log_time_ns)
+        if expected is None:
+            continue
+        pos = m.data["pose"]["position"]
+        assert (pos["x"], pos["y"]) == pytest.approx(expected[:2], abs=1e-9)
+        matched += 1
+    assert matched > 50
 
 
 def test_replay_reproduces_the_live_map(live: LiveRun) -> None:

@@ -7,9 +7,10 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from mazebot.io.scan import Scan
-from mazebot.record.schemas import encode, scan_from_json
+from mazebot.record.schemas import encode, scan_from_json, transform_chain
 
 T_NS = 1_700_000_000_250_000_000
 
@@ -26,7 +27,7 @@ def _revolution() -> Scan:
 def test_laser_scan_is_the_revolution_on_equal_bearings_in_millimetres() -> None:
     msg = json.loads(encode("/scan", _revolution(), T_NS))
     assert msg["timestamp"] == {"sec": 1_700_000_000, "nsec": 250_000_000}
-    assert msg["frame_id"] == "base_link" and msg["start_angle"] == 0.0
+    assert msg["frame_id"] == "laser" and msg["start_angle"] == 0.0
     step = 2 * math.pi / 8
     assert msg["end_angle"] == step * 7
     # bin k covers [k step, (k+1) step): 0.1->0, 1.0->1, 2.0->2, 3.0->3, 4.0->5, 4.28->5 (later wins)...
@@ -42,3 +43,21 @@ def test_raw_scan_comes_back_bit_for_bit() -> None:
         a, b = getattr(scan, name), getattr(back, name)
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
     assert back.revolution == 7
+
+
+def test_transform_chain_composes_to_the_pose_and_places_the_lidar() -> None:
+    """map -> odom is what turns the odometry into the pose; the lidar hangs off base_link unrotated."""
+    pose, odometry = (1.0, 2.0, 3.0), (0.4, -0.3, -2.9)  # headings either side of ±π
+    map_odom, odom_base, base_laser = transform_chain(pose, odometry, (0.05, -0.01))
+    assert (map_odom.parent, map_odom.child, odom_base.parent, odom_base.child) == ("map", "odom", "odom", "base_link")
+    assert (base_laser.parent, base_laser.child) == ("base_link", "laser")
+    assert (base_laser.x_m, base_laser.y_m, base_laser.theta_rad) == (0.05, -0.01, 0.0)
+    assert (odom_base.x_m, odom_base.y_m, odom_base.theta_rad) == odometry
+    c, s = math.cos(map_odom.theta_rad), math.sin(map_odom.theta_rad)
+    x = map_odom.x_m + c * odometry[0] - s * odometry[1]
+    y = map_odom.y_m + s * odometry[0] + c * odometry[1]
+    assert (x, y) == (pytest.approx(1.0, abs=1e-12), pytest.approx(2.0, abs=1e-12))
+    assert math.remainder(map_odom.theta_rad + odometry[2] - 3.0, math.tau) == pytest.approx(0.0, abs=1e-12)
+    msg = json.loads(encode("/tf", map_odom, T_NS))
+    assert msg["parent_frame_id"] == "map" and msg["child_frame_id"] == "odom"
+    assert msg["rotation"]["w"] == pytest.approx(math.cos(map_odom.theta_rad / 2))

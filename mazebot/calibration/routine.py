@@ -50,7 +50,8 @@ STILL_REVOLUTIONS = 3  # revolutions merged into one still scan
 PULSE_THROTTLE = 0.4
 PULSE_S = 0.3
 DRIVE_THROTTLE = 0.35
-STRAIGHT_M = 0.5
+STRAIGHT_M = 0.8
+STRAIGHT_RUNS_EACH_WAY = 3
 TURN_THROTTLE = 0.3
 #: Turns in place (direction, angle): a quarter turn first, so the track width is known well
 #: enough for the whole turns after it that their scan match starts close to the answer.
@@ -118,7 +119,11 @@ class Calibrator:
             min_range_m=lidar.min_range_m, max_range_m=min(lidar.max_range_m, 6.0),
             mount_x_m=lidar.mount_x_m, mount_y_m=lidar.mount_y_m,
         )
-        self._icp = IcpParams(max_correspondence_m=0.3, min_correspondence_m=0.03)
+        # refined far below the SLAM's stop steps: a run's length is wanted to a fraction of a millimetre
+        self._icp = IcpParams(
+            max_correspondence_m=0.3, min_correspondence_m=0.03, max_iterations=400,
+            stop_translation_m=1e-5, stop_rotation_rad=1e-5,
+        )
         nominal_m = math.pi * config.drive.wheel_diameter_m / config.encoders.ticks_per_rev
         ratio = config.drive.wheel_diameter_ratio
         self.k_left = nominal_m * 2.0 / (1.0 + ratio)
@@ -326,7 +331,7 @@ class Calibrator:
 
     async def _straight(self, feed: _ScanFeed) -> list[Run]:
         runs = []
-        for direction in (1, -1, 1, -1):
+        for direction in (1, -1) * STRAIGHT_RUNS_EACH_WAY:
             before, c0 = await self._still(feed)
             target_counts = STRAIGHT_M / (0.5 * (self.k_left + self.k_right))
             await self._drive_straight(direction, target_counts)

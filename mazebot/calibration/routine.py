@@ -57,7 +57,7 @@ TURN_THROTTLE = 0.3
 #: enough for the whole turns after it that their scan match starts close to the answer.
 TURNS = ((1, math.pi / 2), (1, math.tau), (-1, math.tau), (1, 2 * math.tau), (-1, 2 * math.tau))
 MIN_POINTS = 60  # a still scan with fewer points sees no walls
-MIN_FITNESS = 0.7
+MIN_FITNESS = 0.6  # share of points matched: a 0.8 m run sees a good part of the room anew
 MAX_RMSE_M = 0.02
 MAX_DISAGREEMENT = 0.15  # encoders (configured sizes) and scans disagree by more: slipping or wrong counts
 MAX_ARC_RESIDUAL = 0.01  # straight runs whose encoder arcs disagree with the scans by more: slipping

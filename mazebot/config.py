@@ -160,7 +160,13 @@ class MotorsConfig(Section):
 class DriveConfig(Section):
     """Geometry and speed limits of the differential drive."""
 
-    wheel_diameter_m: float = Field(0.065, gt=0.01, lt=0.5, description="drive wheel diameter")
+    wheel_diameter_m: float = Field(
+        0.065, gt=0.01, lt=0.5, description="drive wheel diameter (the mean of both when they differ)"
+    )
+    wheel_diameter_ratio: float = Field(
+        1.0, gt=0.8, lt=1.25,
+        description="right wheel diameter over the left one's (UMBmark's E_d; `mazebot calibrate` measures it)",
+    )
     track_width_m: float = Field(
         0.15, gt=0.03, lt=1.0, description="distance between the wheels' contact points"
     )
@@ -388,6 +394,27 @@ class SimConfig(Section):
         1.004, gt=0.9, lt=1.1, description="true right wheel diameter over the configured one"
     )
     slip_std: float = Field(0.01, ge=0, lt=0.5, description="random wheel slip (fraction, per physics step)")
+    # the true robot where it differs from what the other sections say (what `mazebot calibrate` finds)
+    track_width_scale: float = Field(
+        1.0, gt=0.8, lt=1.25, description="true track width over the configured one"
+    )
+    lidar_mount_yaw_error_deg: float = Field(
+        0.0, ge=-45, le=45, description="true lidar mounting yaw minus the configured one"
+    )
+    motor_channels_swapped: bool = Field(
+        False, description="the left wheel's motor is on the configured right channel, and the other way round"
+    )
+    left_motor_reversed: bool = Field(False, description="the left motor is wired the other way than [motors] says")
+    right_motor_reversed: bool = Field(False, description="the right motor is wired the other way than [motors] says")
+    encoder_pins_swapped: bool = Field(
+        False, description="the left wheel's encoder is on the configured right pins, and the other way round"
+    )
+    left_encoder_reversed: bool = Field(
+        False, description="the left encoder counts the other way than [encoders] says"
+    )
+    right_encoder_reversed: bool = Field(
+        False, description="the right encoder counts the other way than [encoders] says"
+    )
     lidar_model: Literal["a1", "a2m8", "a2m12", "a3", "c1", "s2"] = Field(
         "a1", description="which RPLidar the emulator is: its rotation rate, scan modes, sample rates, serial speed"
     )

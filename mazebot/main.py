@@ -302,7 +302,8 @@ async def run_daemon(
         # what must survive a task's restart is built here, outside the tasks: the odometry
         # (the pose must not jump back to the origin), SLAM (the map), planner and control
         odometry = DiffDriveOdometry(
-            config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m
+            config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m,
+            config.drive.wheel_diameter_ratio,
         )
         slam_params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
         if session is not None:  # recorded, saved or resumed

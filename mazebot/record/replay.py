@@ -99,7 +99,9 @@ class Replayer:
         params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
         self.slam = Slam(params, background=True, record_trajectory=True)
         drive = config.drive
-        self.odometry = DiffDriveOdometry(config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
+        self.odometry = DiffDriveOdometry(
+            config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio
+        )
         self.history = OdometryHistory(config.slam.odometry_history_s)
         self.steps = recording.message_counts.get("/mazebot/slam", 0) > 0
         self.result = ReplayResult(self.slam, config, "steps" if self.steps else "sensors")

@@ -33,9 +33,10 @@ from mazebot.sim.world import World
 def physics_params(config: Config) -> PhysicsParams:
     """The simulated robot's physics from the robot's config and its ``[sim]`` section."""
     sim = config.sim
+    ratio = config.drive.wheel_diameter_ratio  # the configured wheels: mean diameter and right/left
     return PhysicsParams(
         wheel_diameter_m=config.drive.wheel_diameter_m,
-        track_width_m=config.drive.track_width_m,
+        track_width_m=config.drive.track_width_m * sim.track_width_scale,
         max_wheel_speed_mps=config.drive.max_wheel_speed_mps,
         motor_time_constant_s=sim.motor_time_constant_s,
         brake_time_constant_s=sim.brake_time_constant_s,
@@ -43,8 +44,8 @@ def physics_params(config: Config) -> PhysicsParams:
         gain_left=sim.gain_left,
         gain_right=sim.gain_right,
         battery_sag=sim.battery_sag,
-        wheel_diameter_left_scale=sim.wheel_diameter_left_scale,
-        wheel_diameter_right_scale=sim.wheel_diameter_right_scale,
+        wheel_diameter_left_scale=sim.wheel_diameter_left_scale * 2.0 / (1.0 + ratio),
+        wheel_diameter_right_scale=sim.wheel_diameter_right_scale * 2.0 * ratio / (1.0 + ratio),
         slip_std=sim.slip_std,
         footprint_radius_m=config.robot.footprint_radius_m,
         rate_hz=sim.physics_rate_hz,
@@ -67,7 +68,7 @@ def lidar_params(config: Config) -> LidarParams:
         dropout=sim.lidar_dropout,
         mount_x_m=lidar.mount_x_m,
         mount_y_m=lidar.mount_y_m,
-        mount_yaw_rad=float(np.deg2rad(lidar.mount_yaw_deg)),
+        mount_yaw_rad=float(np.deg2rad(lidar.mount_yaw_deg + sim.lidar_mount_yaw_error_deg)),
     )
 
 
@@ -98,12 +99,12 @@ class SimulatedRobot:
         # the world process passes a factory that also records the edges it sends to the daemon
         self.pin_factory = pin_factory if pin_factory is not None else MockFactory(pin_class=BoundedHistoryPin)
         enc = config.encoders
-        self.left_signal = QuadratureSignal(
-            self.pin_factory, enc.left_a_pin, enc.left_b_pin, enc.counts_per_rev, idle_high=enc.pull_up
-        )
-        self.right_signal = QuadratureSignal(
-            self.pin_factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev, idle_high=enc.pull_up
-        )
+        left_pins, right_pins = (enc.left_a_pin, enc.left_b_pin), (enc.right_a_pin, enc.right_b_pin)
+        if config.sim.encoder_pins_swapped:
+            left_pins, right_pins = right_pins, left_pins
+        # each wheel's encoder, on the pins it is truly wired to
+        self.left_signal = QuadratureSignal(self.pin_factory, *left_pins, enc.counts_per_rev, idle_high=enc.pull_up)
+        self.right_signal = QuadratureSignal(self.pin_factory, *right_pins, enc.counts_per_rev, idle_high=enc.pull_up)
         self.poses = PoseHistory()
         self.lidar_line: Any = None  # mazebot.sim.backend.SimLidarLine, set by the backend
         self._lidar: Any = None  # an RPLidarEmulator paced by this robot's tick (attach_lidar)
@@ -128,18 +129,22 @@ class SimulatedRobot:
         if dt_s <= 0:
             return
         self.time_s = now_s
-        motors = self.config.motors
+        motors, sim = self.config.motors, self.config.sim
         # The wiring the config's inversion flags correct for: a motor flagged inverted
-        # is mounted mirrored, so its wheel turns forward on a negative throttle.
+        # is mounted mirrored, so its wheel turns forward on a negative throttle; [sim]
+        # may say the true wiring differs (swapped channels, a motor the other way round).
+        left_channel, right_channel = motors.left_channel, motors.right_channel
+        if sim.motor_channels_swapped:
+            left_channel, right_channel = right_channel, left_channel
         self.physics.set_throttle(
-            self._channel_throttle(motors.left_channel, motors.left_invert),
-            self._channel_throttle(motors.right_channel, motors.right_invert),
+            self._channel_throttle(left_channel, motors.left_invert != sim.left_motor_reversed),
+            self._channel_throttle(right_channel, motors.right_invert != sim.right_motor_reversed),
         )
         self.physics.step(dt_s)
         left_rad, right_rad = self.physics.wheel_angle_rad
         enc = self.config.encoders
-        self.left_signal.update(-left_rad if enc.left_invert else left_rad)
-        self.right_signal.update(-right_rad if enc.right_invert else right_rad)
+        self.left_signal.update(-left_rad if enc.left_invert != sim.left_encoder_reversed else left_rad)
+        self.right_signal.update(-right_rad if enc.right_invert != sim.right_encoder_reversed else right_rad)
         self._record(now_s)
 
     def _record(self, now_s: float) -> None:

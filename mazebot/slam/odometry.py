@@ -35,10 +35,15 @@ class DiffDriveOdometry:
         odo.pose.x_m  # ≈ 0.204
     """
 
-    def __init__(self, ticks_per_rev: int, wheel_diameter_m: float, track_width_m: float) -> None:
-        if ticks_per_rev <= 0 or wheel_diameter_m <= 0 or track_width_m <= 0:
-            raise ValueError("ticks_per_rev, wheel_diameter_m and track_width_m must be positive")
+    def __init__(
+        self, ticks_per_rev: int, wheel_diameter_m: float, track_width_m: float, diameter_ratio: float = 1.0
+    ) -> None:
+        if ticks_per_rev <= 0 or wheel_diameter_m <= 0 or track_width_m <= 0 or diameter_ratio <= 0:
+            raise ValueError("ticks_per_rev, wheel_diameter_m, track_width_m and diameter_ratio must be positive")
         self.metres_per_tick = math.pi * wheel_diameter_m / ticks_per_rev
+        # unequal wheels: wheel_diameter_m is their mean, diameter_ratio the right's over the left's
+        self.metres_per_tick_left = self.metres_per_tick * 2.0 / (1.0 + diameter_ratio)
+        self.metres_per_tick_right = self.metres_per_tick * 2.0 * diameter_ratio / (1.0 + diameter_ratio)
         self.track_width_m = track_width_m
         self.pose = OdometryPose()
         self._last: tuple[int, int] | None = None
@@ -48,8 +53,8 @@ class DiffDriveOdometry:
         if self._last is None:
             self._last = (left_ticks, right_ticks)
             return 0.0, 0.0
-        d_left_m = (left_ticks - self._last[0]) * self.metres_per_tick
-        d_right_m = (right_ticks - self._last[1]) * self.metres_per_tick
+        d_left_m = (left_ticks - self._last[0]) * self.metres_per_tick_left
+        d_right_m = (right_ticks - self._last[1]) * self.metres_per_tick_right
         self._last = (left_ticks, right_ticks)
         self.integrate(d_left_m, d_right_m)
         return d_left_m, d_right_m

@@ -30,7 +30,9 @@ async def run(
     Pass ``odometry`` (and keep ``state.odometry_history``) so a restart continues them.
     """
     # a restarted task carries on from the same odometry and history: the pose never jumps
-    odometry = odometry or DiffDriveOdometry(enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m)
+    odometry = odometry or DiffDriveOdometry(
+        enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio
+    )
     history = state.odometry_history or OdometryHistory(history_s)
     state.odometry_history = history
     period_s = 1.0 / enc_cfg.odometry_rate_hz

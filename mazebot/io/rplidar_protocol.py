@@ -30,7 +30,6 @@ is normal life for a lidar, so they resynchronise byte by byte and count what th
 from __future__ import annotations
 
 import enum
-import functools
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -576,9 +575,8 @@ class StandardScanDecoder:
         h = self.HISTORY
         known = np.array(self._steps[-h:], dtype=np.float64)
         hist = np.concatenate([np.full(h - known.size, np.nan), known, step])
-        # window j holds the (up to h) steps accepted before candidate j (an index array:
-        # sliding_window_view's checks cost more than the windows themselves here)
-        win = hist[_window_index(k, h)]
+        # window j holds the (up to h) steps accepted before candidate j
+        win = np.lib.stride_tricks.sliding_window_view(hist, h)[:k]
         fit = self._window_rhythm(win)
         if fit is None:
             everything = np.ones(k, dtype=bool)
@@ -986,15 +984,6 @@ def _find_all(buf: bytes, pattern: bytes) -> list[int]:
         found.append(at)
         at = buf.find(pattern, at + 1)
     return found
-
-
-@functools.lru_cache(maxsize=64)
-def _window_index(k: int, h: int) -> np.ndarray:
-    """Indices (k, h) of the ``k`` windows of ``h`` consecutive values, read-only and kept:
-    a port's reads come in a few sizes, so a few arrays serve them all."""
-    index = np.arange(k)[:, None] + np.arange(h)[None, :]
-    index.setflags(write=False)
-    return index
 
 
 def _row_median(rows: np.ndarray, count: np.ndarray) -> np.ndarray:

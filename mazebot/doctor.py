@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import errno
+import itertools
 import math
 import os
 import shutil
@@ -311,7 +312,7 @@ async def _revolution_checks(lidar: Any, revolutions: int, timeout_s: float) -> 
                         "motor_control)"),
                 Verdict("lidar revolution", "skip", "no full revolution")]
     starts = [s.start_time_s for s in full]
-    periods = [b - a for a, b in zip(starts, starts[1:], strict=False)]
+    periods = [b - a for a, b in itertools.pairwise(starts)]
     period_s = sorted(periods)[len(periods) // 2]
     rate_hz = 1.0 / period_s if period_s > 0 else math.inf
     samples = sorted(len(s) for s in full)[len(full) // 2]

@@ -15,6 +15,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
@@ -88,8 +89,8 @@ async def run_checks(config: Config, parts: Parts) -> list[Verdict]:
             verdicts.append(Verdict("motor driver", "ok", f"{parts.kit_name} answers"))
         except (MazebotError, OSError) as exc:
             verdicts.append(Verdict("motor driver", "FAIL", " ".join(str(exc).split()),
-                                    "seat the HAT, enable I2C (raspi-config) or check [motors] backend and pins"
-                                    if not isinstance(exc, MotorWriteError) else "check the HAT's I2C wiring and power"))
+                                    "" if isinstance(exc, MotorWriteError)  # its message says what to do
+                                    else "seat the HAT, enable I2C (raspi-config) or check [motors] backend and pins"))
         port = check_serial_port(parts.probe, parts.lidar.port)
         verdicts.append(port)
         if port.status == "ok":
@@ -149,6 +150,12 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
         if args.sim_fault not in SIM_FAULTS:
             raise UsageError(f"--sim-fault {args.sim_fault!r}: expected one of {', '.join(SIM_FAULTS)}")
     config = load_config(args.config)
+    if args.log_level:
+        from mazebot.logs import setup_logging
+
+        setup_logging(args.log_level)
+    else:  # the verdict lines say what the drivers' warnings would (a lidar reset, a failed brake)
+        logging.getLogger("mazebot").addHandler(logging.NullHandler())
     verdicts = asyncio.run(doctor(config, sim=args.sim, fault=args.sim_fault))
     if args.json:
         print(json.dumps({"passed": passed(verdicts), "checks": [v.as_json() for v in verdicts]}))
@@ -174,5 +181,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --sim: break one part first (lidar-missing, lidar-silent, lidar-health, lidar-blind, "
                    "lidar-jammed, serial-permission, hat-missing, encoder-dead, encoder-inverted, motors-swapped, "
                    "undervoltage, hot, disk-full, clock-unset)")
+    p.add_argument("--log-level", default=None, choices=["debug", "info", "warning", "error"],
+                   help="show the drivers' log on stderr too (default: only the verdicts)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_doctor)

@@ -41,6 +41,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("run", "mazebot.main", "run the robot (or, with --sim, the simulated robot)"),
     Command("lidar", "mazebot.io.lidar_cli", "talk to the RPLidar or decode its byte stream"),
     Command("motors", "mazebot.io.motors_cli", "direct motor HAT commands"),
+    Command("doctor", "mazebot.doctor_cli", "check every part of the robot, one line each"),
     Command("sim", "mazebot.sim.cli", "parts of the simulator on their own"),
     Command("posegraph", "mazebot.slam.posegraph_cli", "2D pose graphs in g2o format"),
     Command("slam", "mazebot.slam.slam_cli", "run the SLAM offline on recorded data"),

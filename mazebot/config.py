@@ -131,14 +131,28 @@ class EncodersConfig(Section):
 
 
 class MotorsConfig(Section):
-    """Two DC gear motors on the Adafruit DC & Stepper Motor HAT."""
+    """Two DC gear motors on the Adafruit DC & Stepper Motor HAT, or on an H-bridge board on GPIO pins."""
 
-    backend: Literal["motorkit", "fake"] = Field(
-        "motorkit", description="motorkit: the real HAT over I2C; fake: no hardware (tests)"
+    backend: Literal["motorkit", "gpio", "fake"] = Field(
+        "motorkit",
+        description="motorkit: the Adafruit HAT over I2C; gpio: an H-bridge on GPIO pins (L298N, DRV8833, "
+        "TB6612, phase/enable boards); fake: no hardware (tests)",
     )
+    gpio_driver: Literal["in1_in2", "phase_enable"] = Field(
+        "in1_in2",
+        description="gpio: in1_in2: two PWM inputs per motor (L298N, DRV8833, TB6612); phase_enable: a direction "
+        "pin and a PWM enable pin (DRV8835 in PHASE/ENABLE mode, Cytron MDD10A DIR/PWM)",
+    )
+    gpio_motor1_pins: list[BcmPin] = Field(
+        [5, 6],
+        description="gpio: BCM pins of channel 1; in1_in2: IN1, IN2 and, if wired, the enable (ENA, held high); "
+        "phase_enable: PHASE, ENABLE",
+    )
+    gpio_motor2_pins: list[BcmPin] = Field([13, 19], description="gpio: BCM pins of channel 2, as for channel 1")
     i2c_address: int = Field(0x60, ge=0x03, le=0x77, description="I2C address of the HAT")
     pwm_frequency_hz: float = Field(
-        1600.0, ge=24, le=2000, description="PCA9685 PWM frequency (MotorKit's default is 1600 Hz)"
+        1600.0, ge=24, le=2000,
+        description="PWM frequency of the HAT's PCA9685 (MotorKit's default is 1600 Hz) or of the gpio pins"
     )
     left_channel: Literal[1, 2, 3, 4] = Field(1, description="HAT motor terminal of the left wheel")
     right_channel: Literal[1, 2, 3, 4] = Field(
@@ -154,6 +168,18 @@ class MotorsConfig(Section):
     def _channels_distinct(self) -> MotorsConfig:
         if self.left_channel == self.right_channel:
             raise ValueError(f"left and right motors share channel {self.left_channel}")
+        if self.backend == "gpio":
+            if {self.left_channel, self.right_channel} != {1, 2}:
+                raise ValueError('with backend = "gpio" the channels are 1 and 2 (gpio_motor1_pins, gpio_motor2_pins)')
+            counts = (2, 3) if self.gpio_driver == "in1_in2" else (2,)
+            named = (("gpio_motor1_pins", self.gpio_motor1_pins), ("gpio_motor2_pins", self.gpio_motor2_pins))
+            for name, pins in named:
+                if len(pins) not in counts:
+                    wanted = "IN1, IN2 and optionally the enable" if self.gpio_driver == "in1_in2" else "PHASE, ENABLE"
+                    raise ValueError(f"{name} for {self.gpio_driver} takes {wanted}, got {pins}")
+            pins = [*self.gpio_motor1_pins, *self.gpio_motor2_pins]
+            if len(set(pins)) != len(pins):
+                raise ValueError(f"the motors' GPIO pins must all differ, got {pins}")
         return self
 
 
@@ -662,6 +688,17 @@ class Config(BaseModel):
     @property
     def wheel_circumference_m(self) -> float:
         return math.pi * self.drive.wheel_diameter_m
+
+    @model_validator(mode="after")
+    def _motor_pins_free(self) -> Config:
+        if self.motors.backend != "gpio":
+            return self
+        e = self.encoders
+        shared = {*self.motors.gpio_motor1_pins, *self.motors.gpio_motor2_pins} & {
+            e.left_a_pin, e.left_b_pin, e.right_a_pin, e.right_b_pin}
+        if shared:
+            raise ValueError(f"motors.gpio_motor*_pins and the [encoders] pins share GPIO {sorted(shared)}")
+        return self
 
 
 #: The system-wide config file, the one the systemd unit names (``systemd/mazebot.service``).

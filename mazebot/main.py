@@ -80,7 +80,13 @@ def robot_hardware_builder(
         from mazebot.io.rplidar import RPLidar
         from mazebot.io.serial_link import SerialLink
 
-        kit = (open_kit or open_motorkit)(config.motors.i2c_address, config.motors.pwm_frequency_hz)
+        if config.motors.backend == "gpio" and open_kit is None:
+            from mazebot.io.motor_gpio import open_gpio_motorkit
+
+            kit = open_gpio_motorkit(config.motors)  # braked as it opens
+            stack.callback(kit.close)  # after the motors' own close (the stack runs last-in first-out)
+        else:
+            kit = (open_kit or open_motorkit)(config.motors.i2c_address, config.motors.pwm_frequency_hz)
         motors = DifferentialMotors.from_config(config.motors, kit, clock)
         stack.callback(motors.close)
         motors.stop()
@@ -115,7 +121,9 @@ def robot_hardware_builder(
             lidar=lidar,
             encoders=encoders,
             motors=motors,
-            description=f"robot: lidar on {config.lidar.port}, motor HAT at {config.motors.i2c_address:#04x}",
+            description=f"robot: lidar on {config.lidar.port}, "
+            + (f"motor H-bridge on GPIO {config.motors.gpio_motor1_pins} and {config.motors.gpio_motor2_pins}"
+               if config.motors.backend == "gpio" else f"motor HAT at {config.motors.i2c_address:#04x}"),
         )
 
     return build

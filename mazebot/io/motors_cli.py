@@ -29,6 +29,12 @@ def _cmd_stop(args: argparse.Namespace) -> int:
         motors = MotorsConfig()
         print(error_line(f"mazebot: {exc}; stopping the HAT at the default I2C address 0x{motors.i2c_address:02x}"),
               file=sys.stderr)
+    if motors.backend == "gpio":
+        from mazebot.io.motor_gpio import open_gpio_motorkit
+
+        open_gpio_motorkit(motors).close()  # both channels braked, then the pins released
+        print(f"motors stopped (H-bridge on GPIO {motors.gpio_motor1_pins} and {motors.gpio_motor2_pins})")
+        return problem.exit_code if problem is not None else EXIT_OK
     kit = open_motorkit(motors.i2c_address, motors.pwm_frequency_hz)
     for channel in CHANNELS:  # all four: a miswired config must not leave one turning
         getattr(kit, f"motor{channel}").throttle = 0.0
@@ -40,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     motors = sub.add_parser("motors", help="direct motor HAT commands",
                             description="Direct commands to the Adafruit DC & Stepper Motor HAT.")
     msub = motors.add_subparsers(dest="motors_command", required=True, metavar="{stop}")
-    stop = msub.add_parser("stop", help="zero every motor channel of the HAT",
+    stop = msub.add_parser("stop", help="zero every motor channel of the HAT (or of the GPIO H-bridge)",
                            description="Zero all four motor channels of the HAT (the systemd unit runs this "
                                        "after every exit of the daemon). Reads only [motors] of the config.")
     stop.add_argument("--config", default=None, metavar="PATH",

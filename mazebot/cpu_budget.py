@@ -48,6 +48,8 @@ PARTS = (
     "web send per viewer",
     "recording",
     "saving",
+    "zenoh poll",
+    "zenoh publish",
 )
 
 

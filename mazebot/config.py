@@ -12,8 +12,8 @@ the plain values they need.
 from __future__ import annotations
 
 import math
-import re
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal

@@ -82,5 +82,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--record", default=None, metavar="DIR", help="record each robot to DIR/NAME.mcap")
     p.add_argument("--only", action="append", default=None, metavar="NAME",
                    help="with --record: record only this robot (repeatable)")
-    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                   help="log threshold on stderr")
     p.set_defaults(func=_cmd_watch)

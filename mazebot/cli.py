@@ -54,6 +54,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("runs", "mazebot.persist.cli", "list the saved runs (STATE_DIR/runs)"),
     Command("export-map", "mazebot.persist.cli",
             "export a saved run's map: PNG, ROS PGM+YAML, SVG or the cell graph"),
+    Command("watch", "mazebot.fleet.cli", "show every robot on the Zenoh network on one page (needs mazebot[zenoh])"),
     Command("completion", "mazebot.completion_cli", "print a shell completion script (bash or zsh)"),
 )
 

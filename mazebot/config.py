@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -27,6 +28,8 @@ ABSOLUTE_MAX_SPEED_MPS = 0.5
 ABSOLUTE_MAX_YAW_RATE_RADPS = 1.2
 
 ENV_CONFIG = "MAZEBOT_CONFIG"
+#: A robot name: one chunk of a Zenoh key expression, without its wildcards and separators (`*`, `$`, `/`).
+ROBOT_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 
 BcmPin = Annotated[int, Field(ge=0, le=27)]
 
@@ -665,6 +668,46 @@ class PersistConfig(Section):
     save_period_s: float = Field(10.0, gt=0.5, le=3600, description="save this often while running (and at the end)")
 
 
+class ZenohConfig(Section):
+    """A fleet over Zenoh: state under ``mazebot/<robot_name>/...``, start/stop with the PIN (docs/fleet.md).
+
+    Needs the extra (``pip install 'mazebot[zenoh]'``); ``mazebot watch`` on a laptop shows every
+    robot it finds.
+    """
+
+    enabled: bool = Field(False, description="publish on Zenoh (needs the zenoh extra: pip install 'mazebot[zenoh]')")
+    robot_name: str = Field(
+        "", description="this robot's name in the key expressions (letters, digits, - and _); empty: the host name"
+    )
+    mode: Literal["peer", "client"] = Field(
+        "peer", description="peer: meet the others directly (local network); client: only through a router (zenohd)"
+    )
+    connect: list[str] = Field(
+        default_factory=list,
+        description="endpoints to connect to, e.g. [\"tcp/192.168.1.10:7447\"] (a zenohd router on another network)",
+    )
+    listen: list[str] = Field(
+        default_factory=list, description="endpoints to listen on, e.g. [\"tcp/0.0.0.0:7447\"]; empty: Zenoh's default"
+    )
+    multicast_scouting: bool = Field(True, description="find peers and routers on the local network by UDP multicast")
+    pose_hz: float = Field(10.0, gt=0, le=50, description="pose estimates (with covariance) published per second")
+    scan_every: int = Field(1, ge=1, le=100, description="publish every Nth lidar revolution")
+    queue_messages: int = Field(
+        256, ge=8, le=100000, description="messages waiting for the publisher thread; more are dropped and counted"
+    )
+    control_rate_per_s: float = Field(
+        2.0, gt=0, le=100, description="start/stop requests taken per second over Zenoh (all of them together)"
+    )
+    control_burst: int = Field(10, ge=1, le=1000, description="... in bursts of at most this many")
+
+    @field_validator("robot_name")
+    @classmethod
+    def _name_is_one_chunk(cls, name: str) -> str:
+        if name and not ROBOT_NAME.fullmatch(name):
+            raise ValueError(f"{name!r} must be letters, digits, '-' and '_' only (it is one key expression chunk)")
+        return name
+
+
 class Config(BaseModel):
     """The whole configuration file: one section per part of the robot."""
 
@@ -684,6 +727,7 @@ class Config(BaseModel):
     record: RecordConfig = Field(default_factory=RecordConfig)
     foxglove: FoxgloveConfig = Field(default_factory=FoxgloveConfig)
     persist: PersistConfig = Field(default_factory=PersistConfig)
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
 
     @property
     def wheel_circumference_m(self) -> float:

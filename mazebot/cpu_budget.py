@@ -49,6 +49,8 @@ PARTS = (
     "recording",
     "foxglove live",
     "saving",
+    "zenoh poll",
+    "zenoh publish",
 )
 
 

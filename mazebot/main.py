@@ -270,12 +270,15 @@ async def run_daemon(
         state.cpu.started_s = clock.now_s()
         state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
         web_started = False
+        web_runner: Any = None
 
         async def serve() -> None:
+            nonlocal web_runner
             from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
 
             web = await start_web_server(state, config, hardware)
             stack.push_async_callback(web.cleanup)
+            web_runner = web
             log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
 
         if serve_web and getattr(session, "resume", None) is None:
@@ -362,6 +365,8 @@ async def run_daemon(
             await serve()
         elif not serve_web:
             log.info("%s; no web page", hardware.description)
+        if config.zenoh.enabled:
+            _join_the_fleet(config, state, supervisor, web_runner, loop, stack)
         if on_started is not None:
             on_started(hardware, state, supervisor)
         if ready is not None:
@@ -374,6 +379,29 @@ async def run_daemon(
         finally:
             sdnotify.notify("STOPPING=1")
     return EXIT_OK  # pragma: no cover - unreachable, keeps type checkers calm
+
+
+def _join_the_fleet(config: Config, state: SharedState, supervisor: Supervisor, web_runner: Any,
+                    loop: asyncio.AbstractEventLoop, stack: AsyncExitStack) -> None:
+    """Publish on Zenoh (``[zenoh]``, :mod:`mazebot.fleet.robot_link`): the page's packets from its own
+    broadcaster and start/stop checked by its own PIN lockout; without a page, a broadcaster of its own."""
+    from mazebot.fleet.robot_link import start_robot_link
+    from mazebot.web.app import AUTH_KEY, BROADCASTER_KEY
+    from mazebot.web.auth import ControlAuth
+    from mazebot.web.broadcaster import Broadcaster
+    from mazebot.web.server import control_token
+
+    if web_runner is not None:
+        broadcaster, auth = web_runner.app[BROADCASTER_KEY], web_runner.app[AUTH_KEY]
+    else:
+        web = config.web
+        broadcaster = Broadcaster(state, rate_hz=web.broadcast_hz, resync_every=web.resync_every,
+                                  heartbeat_s=web.heartbeat_s, trail_points=web.trail_points)
+        auth = ControlAuth(control_token(config))
+        supervisor.start("zenoh broadcast", broadcaster.run, restart=True)
+    link = start_robot_link(config.zenoh, state, broadcaster, auth, loop)
+    stack.callback(link.close)
+    supervisor.start("zenoh", link.run, restart=True)
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -396,6 +424,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         except ValidationError as exc:
             raise UsageError(f"{flag} {value}: {exc.errors()[0]['msg']}") from None
     setup_logging(args.log_level or config.daemon.log_level)
+    if config.zenoh.enabled:  # before any device is opened: a missing extra is one line, exit 69
+        from mazebot.fleet.session import import_zenoh
+
+        import_zenoh("[zenoh] enabled")
     if args.sim:
         from mazebot.sim.backend import sim_hardware_builder
 

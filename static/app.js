@@ -140,13 +140,15 @@
   }
 
   // ---- the websocket ---------------------------------------------------------------------
+  // the folder the page was served from: "/" on the robot, "/robot/<name>/" on `mazebot watch`
+  const BASE = location.pathname.replace(/[^/]*$/, "");
   let ws = null, retryMs = 500, lastMessageAt = 0, heartbeatS = 10, chain = Promise.resolve(), lastResyncAt = 0;
   let viewToken = false; // the server wants the PIN even to watch
 
   function connect() {
     setConn("connecting");
     const pin = viewToken ? loadPin() : null;
-    const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws" +
+    const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + BASE + "ws" +
       (pin ? "?token=" + encodeURIComponent(pin) : "");
     const sock = new WebSocket(url);
     sock.binaryType = "arraybuffer";
@@ -263,7 +265,7 @@
     setTimeout(() => { pendingCommand = null; updateButton(); }, 1500);
     if (send({ type: cmd, token: pin })) return;
     try { // no websocket right now: the HTTP API does the same
-      const resp = await fetch("/api/" + cmd, { method: "POST", headers: { "X-Mazebot-Token": pin } });
+      const resp = await fetch(BASE + "api/" + cmd, { method: "POST", headers: { "X-Mazebot-Token": pin } });
       const body = await resp.json().catch(() => ({}));
       onReply({ command: cmd, ok: resp.ok, status: resp.status, message: body.error || "" });
     } catch (err) {

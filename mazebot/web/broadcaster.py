@@ -245,6 +245,9 @@ class Broadcaster:
         self._errors_logged: set[str] = set()
         #: extra fields of the ``hello`` message (a replay says so there)
         self.hello_fields: Callable[[], dict[str, Any]] = dict
+        #: called with every packet as it is built, in sequence order, on the loop (the Zenoh
+        #: publisher's queue, :mod:`mazebot.fleet.robot_link`): must only enqueue
+        self.taps: list[Callable[[bytes], None]] = []
 
     # -- viewers -------------------------------------------------------------------------
 
@@ -367,6 +370,8 @@ class Broadcaster:
         )
         if map_reset or too_many or self.seq % self.resync_every == 0:
             packet = self.full_packet()
+            for tap in self.taps:
+                tap(packet)
             for viewer in self.viewers:
                 viewer.needs_full = False
                 viewer.offer(packet, self.full_packet)
@@ -379,6 +384,8 @@ class Broadcaster:
         cells = None if changed_cells is None else self.map.cells_section(changed_cells)
         delta = encode_packet(Packet(KIND_DELTA, self.seq, delta_status, cells))
         self._count(delta)
+        for tap in self.taps:
+            tap(delta)
         for viewer in self.viewers:
             if viewer.needs_full:
                 viewer.needs_full = False

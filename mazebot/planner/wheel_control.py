@@ -42,6 +42,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from mazebot.slam.odometry import wheel_metres_per_tick
+
 
 class DriveMode(enum.StrEnum):
     """What the wheels are doing; a change resets the speed integrals."""
@@ -96,20 +98,30 @@ class WheelSpeedEstimator:
     previous estimate, 0 = none) trades that quantisation noise against lag.
     """
 
-    def __init__(self, metres_per_tick: float, smoothing: float = 0.3) -> None:
-        if metres_per_tick <= 0:
+    def __init__(self, metres_per_tick: float | tuple[float, float], smoothing: float = 0.3) -> None:
+        if isinstance(metres_per_tick, tuple):
+            left, right = metres_per_tick
+        else:
+            left = right = metres_per_tick
+        if left <= 0 or right <= 0:
             raise ValueError(f"metres_per_tick must be positive, got {metres_per_tick}")
         if not 0.0 <= smoothing < 1.0:
             raise ValueError(f"smoothing must be in [0, 1), got {smoothing}")
-        self.metres_per_tick = float(metres_per_tick)
+        self.metres_per_tick = (float(left), float(right))
         self.smoothing = float(smoothing)
         self._last: tuple[int, int, float] | None = None
         self.speed_mps = (0.0, 0.0)
 
     @classmethod
-    def for_wheel(cls, ticks_per_rev: int, wheel_diameter_m: float, smoothing: float = 0.3) -> WheelSpeedEstimator:
-        """An estimator for ``ticks_per_rev`` counted ticks per turn of a wheel of that diameter."""
-        return cls(math.pi * wheel_diameter_m / ticks_per_rev, smoothing)
+    def for_wheel(
+        cls, ticks_per_rev: int, wheel_diameter_m: float, smoothing: float = 0.3, diameter_ratio: float = 1.0
+    ) -> WheelSpeedEstimator:
+        """An estimator for ``ticks_per_rev`` counted ticks per turn of wheels of that mean diameter.
+
+        ``diameter_ratio`` is the right wheel's diameter over the left's, as the odometry
+        takes it (:func:`mazebot.slam.odometry.wheel_metres_per_tick`).
+        """
+        return cls(wheel_metres_per_tick(ticks_per_rev, wheel_diameter_m, diameter_ratio), smoothing)
 
     def update(self, left_ticks: int, right_ticks: int, now_s: float) -> tuple[float, float]:
         """New speeds ``(left, right)`` in m/s; the first call (no interval yet) returns zeros."""
@@ -118,8 +130,8 @@ class WheelSpeedEstimator:
         if last is None or now_s <= last[2]:
             return self.speed_mps
         dt = now_s - last[2]
-        raw_l = (left_ticks - last[0]) * self.metres_per_tick / dt
-        raw_r = (right_ticks - last[1]) * self.metres_per_tick / dt
+        raw_l = (left_ticks - last[0]) * self.metres_per_tick[0] / dt
+        raw_r = (right_ticks - last[1]) * self.metres_per_tick[1] / dt
         a = self.smoothing
         self.speed_mps = (a * self.speed_mps[0] + (1 - a) * raw_l, a * self.speed_mps[1] + (1 - a) * raw_r)
         return self.speed_mps

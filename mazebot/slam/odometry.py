@@ -25,6 +25,20 @@ class OdometryPose:
     distance_m: float = 0.0  # total path length travelled by the axle centre
 
 
+def wheel_metres_per_tick(
+    ticks_per_rev: int, wheel_diameter_m: float, diameter_ratio: float = 1.0
+) -> tuple[float, float]:
+    """Distance (left, right) a wheel's rim travels per counted tick.
+
+    Unequal wheels (UMBmark's E_d, Borenstein and Feng 1996): ``wheel_diameter_m`` is
+    their mean and ``diameter_ratio`` the right's diameter over the left's. The odometry
+    and the wheel speed controller both take their distances from here, so a calibrated
+    ratio drives the wheels at the speeds the odometry will measure.
+    """
+    mean_m = math.pi * wheel_diameter_m / ticks_per_rev
+    return mean_m * 2.0 / (1.0 + diameter_ratio), mean_m * 2.0 * diameter_ratio / (1.0 + diameter_ratio)
+
+
 class DiffDriveOdometry:
     """Integrates wheel ticks into a pose.
 
@@ -41,9 +55,9 @@ class DiffDriveOdometry:
         if ticks_per_rev <= 0 or wheel_diameter_m <= 0 or track_width_m <= 0 or diameter_ratio <= 0:
             raise ValueError("ticks_per_rev, wheel_diameter_m, track_width_m and diameter_ratio must be positive")
         self.metres_per_tick = math.pi * wheel_diameter_m / ticks_per_rev
-        # unequal wheels: wheel_diameter_m is their mean, diameter_ratio the right's over the left's
-        self.metres_per_tick_left = self.metres_per_tick * 2.0 / (1.0 + diameter_ratio)
-        self.metres_per_tick_right = self.metres_per_tick * 2.0 * diameter_ratio / (1.0 + diameter_ratio)
+        self.metres_per_tick_left, self.metres_per_tick_right = wheel_metres_per_tick(
+            ticks_per_rev, wheel_diameter_m, diameter_ratio
+        )
         self.track_width_m = track_width_m
         self.pose = OdometryPose()
         self._last: tuple[int, int] | None = None

@@ -57,7 +57,9 @@ class MotorControl:
         )
         for pid in (self.wheels.left, self.wheels.right):
             pid.latency_s = c.actuation_latency_s
-        self.estimator = WheelSpeedEstimator.for_wheel(config.encoders.ticks_per_rev, d.wheel_diameter_m)
+        self.estimator = WheelSpeedEstimator.for_wheel(
+            config.encoders.ticks_per_rev, d.wheel_diameter_m, diameter_ratio=d.wheel_diameter_ratio
+        )
         # each motor's answer to the throttles written, for the health monitor's weak-motor check
         self.gains = WheelGainEstimator(d.max_wheel_speed_mps, c.motor_deadband, self.period_s, c.actuation_latency_s)
         self._last_tick_s: float | None = None

@@ -237,3 +237,43 @@ def test_a_late_update_starts_the_window_again() -> None:
     assert est.gains[0] is not None
     est.update((0.4, 0.4), (0.0, 0.0), 0.5)
     assert est.gains == (None, None)
+
+
+def test_speed_estimator_takes_the_calibrated_diameter_ratio() -> None:
+    """Unequal wheels: the larger one turns fewer ticks for the same rim speed."""
+    ratio = 1.04
+    est = WheelSpeedEstimator.for_wheel(840, 0.065, smoothing=0.0, diameter_ratio=ratio)
+    est.update(0, 0, 0.0)
+    left, right = est.update(round(840 * ratio), 840, 1.0)  # rims at one speed: the left (smaller) counts more
+    assert left == pytest.approx(right, rel=2e-3)
+    from mazebot.slam.odometry import DiffDriveOdometry
+
+    odo = DiffDriveOdometry(840, 0.065, 0.15, ratio)
+    assert est.metres_per_tick == pytest.approx((odo.metres_per_tick_left, odo.metres_per_tick_right))
+
+
+@pytest.mark.parametrize("told", [False, True])
+def test_unequal_wheels_drive_straight_once_the_ratio_is_known(told: bool) -> None:
+    """True right wheel 4 % larger than the left: equal tick rates curve the robot left.
+
+    Told the ratio (what ``mazebot calibrate`` writes), the speed loop drives equal rim
+    speeds: once the wheels are up to speed (the first second; holding the heading is
+    the planner's job) the heading stays put. Not told, the robot keeps turning by the
+    ratio's arc, d_theta/dt = v (ratio - 1) / track (~0.05 rad/s here).
+    """
+    ratio = 1.04
+    params = PhysicsParams.ideal(
+        wheel_diameter_left_scale=2.0 / (1.0 + ratio), wheel_diameter_right_scale=2.0 * ratio / (1.0 + ratio)
+    )
+    bench = Bench()
+    bench.robot = RobotPhysics(params, open_floor(), (0.0, 0.0, 0.0), np.random.default_rng(0))
+    bench.est = WheelSpeedEstimator.for_wheel(TICKS, 0.065, diameter_ratio=ratio if told else 1.0)
+    headings = []
+    for _ in range(int(3.0 / DT)):
+        bench.step(0.2, 0.0)
+        headings.append(bench.robot.theta_rad)
+    turned_rad = headings[-1] - headings[int(1.0 / DT)]  # over the last 2 s
+    if told:
+        assert abs(turned_rad) < 0.005
+    else:
+        assert turned_rad > 0.08

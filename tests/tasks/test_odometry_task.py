@@ -21,3 +21,16 @@ def test_scalar_compose_is_bit_identical_to_posegraph_compose() -> None:
         want = tuple(float(v) for v in compose(a[:3], a[3:]))
         got = _compose((a[0], a[1], a[2]), float(a[3]), float(a[4]), float(a[5]))
         assert got == want, (a, got, want)
+
+
+def test_the_speed_loop_and_the_odometry_measure_a_tick_alike() -> None:
+    """A calibrated wheel diameter ratio reaches the control loop's wheel speeds as well as the odometry."""
+    from mazebot.config import Config
+    from mazebot.slam.odometry import DiffDriveOdometry
+    from mazebot.tasks.control_task import MotorControl
+
+    config = Config()
+    config.drive.wheel_diameter_ratio = 1.03
+    d = config.drive
+    odo = DiffDriveOdometry(config.encoders.ticks_per_rev, d.wheel_diameter_m, d.track_width_m, d.wheel_diameter_ratio)
+    assert MotorControl(config).estimator.metres_per_tick == (odo.metres_per_tick_left, odo.metres_per_tick_right)

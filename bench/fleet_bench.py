@@ -45,15 +45,20 @@ def _watch_cmd(port: int, endpoints: list[str]) -> list[str]:
     return cmd
 
 
-def _spawn(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
-    """A child process, output discarded (starting one takes a millisecond: fine on the loop here)."""
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=ROOT)
+def _spawn(cmd: list[str], env: dict[str, str] | None = None, nice: int = 0) -> subprocess.Popen[bytes]:
+    """A child process, output discarded (starting one takes a millisecond: fine on the loop here).
+
+    ``nice`` lowers its priority: a watcher that stands for another computer should not take
+    this machine's cores from the robot it watches.
+    """
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=ROOT,
+                            preexec_fn=(lambda: os.nice(nice)) if nice else None)
 
 
 # -- overhead ---------------------------------------------------------------------------------
 
 
-def _overhead_child(zenoh_on: bool, seconds: float, out: Path) -> None:
+def _overhead_child(zenoh_on: bool, seconds: float, out: Path, watcher_nice: int) -> None:
     from mazebot.config import Config
     from mazebot.main import run_daemon
     from mazebot.sim.backend import sim_hardware_builder
@@ -73,7 +78,7 @@ def _overhead_child(zenoh_on: bool, seconds: float, out: Path) -> None:
         async def session() -> None:
             watcher = None
             if zenoh_on:
-                watcher = _spawn(_watch_cmd(unused_port(), [f"tcp/127.0.0.1:{zport}"]))
+                watcher = _spawn(_watch_cmd(unused_port(), [f"tcp/127.0.0.1:{zport}"]), nice=watcher_nice)
             await asyncio.sleep(3.0)  # the watcher's imports and session
             state.commands.put_nowait("start")
             await asyncio.sleep(1.0)
@@ -109,7 +114,8 @@ def overhead(args: argparse.Namespace) -> dict[str, Any]:
             for on in (False, True):
                 out = Path(tmp) / f"run{i}-{int(on)}.json"
                 env = {**os.environ, "XDG_STATE_HOME": tmp}
-                subprocess.run([sys.executable, __file__, "overhead-child", str(int(on)), str(args.seconds), str(out)],
+                subprocess.run([sys.executable, __file__, "overhead-child", str(int(on)), str(args.seconds), str(out),
+                                str(args.watcher_nice)],
                                check=True, env=env, cwd=ROOT)
                 runs.append(json.loads(out.read_text()))
                 r = runs[-1]
@@ -200,7 +206,7 @@ async def _latency(args: argparse.Namespace, tmp: str) -> dict[str, Any]:
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "overhead-child":
-        _overhead_child(sys.argv[2] == "1", float(sys.argv[3]), Path(sys.argv[4]))
+        _overhead_child(sys.argv[2] == "1", float(sys.argv[3]), Path(sys.argv[4]), int(sys.argv[5]))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=["overhead", "latency"])
@@ -208,6 +214,8 @@ def main() -> int:
     ap.add_argument("--robots", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=40.0)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--watcher-nice", type=int, default=0,
+                    help="overhead: nice value of the watcher process (19: it stands for another computer)")
     args = ap.parse_args()
     if args.what == "overhead":
         result = overhead(args)

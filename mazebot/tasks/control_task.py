@@ -87,8 +87,12 @@ class MotorControl:
         stamped), not from a reading of our own: the encoders have one reader, so a
         recording of their readings is exactly what the odometry integrated.
         """
-        stamp, left_ticks, right_ticks = state.wheel_ticks or (now_s, 0, 0)
-        measured = self.estimator.update(left_ticks, right_ticks, stamp)
+        reading = state.wheel_ticks
+        if reading is None:  # no encoder reading yet: no speed either (a made-up zero count would
+            self.estimator.reset()  # turn the first real count into a speed spike)
+            measured = (0.0, 0.0)
+        else:
+            measured = self.estimator.update(*reading)
         state.wheel_speeds_mps = measured
         # state.throttles: what the last tick wrote (zeros if the HAT refused it), what moved the wheels since
         dt_s = None if self._last_tick_s is None else now_s - self._last_tick_s

@@ -34,3 +34,20 @@ def test_the_speed_loop_and_the_odometry_measure_a_tick_alike() -> None:
     d = config.drive
     odo = DiffDriveOdometry(config.encoders.ticks_per_rev, d.wheel_diameter_m, d.track_width_m, d.wheel_diameter_ratio)
     assert MotorControl(config).estimator.metres_per_tick == (odo.metres_per_tick_left, odo.metres_per_tick_right)
+
+
+def test_no_encoder_reading_yet_is_no_speed_not_a_zero_count() -> None:
+    """Encoders that already counted (a restarted task) must not read as a jump from zero ticks."""
+    from mazebot.config import Config
+    from mazebot.state import SharedState
+    from mazebot.tasks.control_task import MotorControl
+
+    control = MotorControl(Config())
+    state = SharedState()
+    control.tick(state, 1.00)  # no reading yet
+    state.wheel_ticks = (1.05, 5000, 5000)
+    control.tick(state, 1.05)
+    assert state.wheel_speeds_mps == (0.0, 0.0)
+    state.wheel_ticks = (1.10, 5010, 5010)
+    control.tick(state, 1.10)
+    assert state.wheel_speeds_mps[0] > 0.0

@@ -92,7 +92,8 @@ class MotorControl:
             self.estimator.reset()  # turn the first real count into a speed spike)
             measured = (0.0, 0.0)
         else:
-            measured = self.estimator.update(*reading)
+            stamp_s, left_ticks, right_ticks = reading
+            measured = self.estimator.update(left_ticks, right_ticks, stamp_s)
         state.wheel_speeds_mps = measured
         # state.throttles: what the last tick wrote (zeros if the HAT refused it), what moved the wheels since
         dt_s = None if self._last_tick_s is None else now_s - self._last_tick_s

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from mazebot.slam.posegraph import compose
 from mazebot.tasks.odometry_task import _compose
@@ -48,6 +49,9 @@ def test_no_encoder_reading_yet_is_no_speed_not_a_zero_count() -> None:
     state.wheel_ticks = (1.05, 5000, 5000)
     control.tick(state, 1.05)
     assert state.wheel_speeds_mps == (0.0, 0.0)
-    state.wheel_ticks = (1.10, 5010, 5010)
+    state.wheel_ticks = (1.10, 5010, 5020)
     control.tick(state, 1.10)
-    assert state.wheel_speeds_mps[0] > 0.0
+    per_tick_m = control.estimator.metres_per_tick[0]
+    smoothing = control.estimator.smoothing
+    want = ((1 - smoothing) * 10 * per_tick_m / 0.05, (1 - smoothing) * 20 * per_tick_m / 0.05)
+    assert state.wheel_speeds_mps == pytest.approx(want)

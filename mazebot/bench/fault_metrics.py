@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from mazebot.bench.metrics import map_metrics, relative_poses
 from mazebot.clock import Clock
 from mazebot.state import RunState, SharedState
 
@@ -195,12 +196,10 @@ def free_kept(before: Any, after: Any, cells: int = KEPT_CELLS) -> float | None:
 
 
 def _first_relocalized(record: Any, begin_rel_s: float) -> float | None:
-    from mazebot.bench.runner import _relative
-
     if not record.true_poses:
         return None
     times = np.asarray(record.times_s, dtype=float)
-    truth = _relative(tuple(record.true_poses[0]), np.asarray(record.true_poses, dtype=float))
+    truth = relative_poses(tuple(record.true_poses[0]), np.asarray(record.true_poses, dtype=float))
     est = np.asarray(record.est_poses, dtype=float)
     err_xy = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
     err_th = np.degrees(np.abs(np.remainder(est[:, 2] - truth[:, 2] + np.pi, 2 * np.pi) - np.pi))
@@ -214,8 +213,6 @@ def _first_relocalized(record: Any, begin_rel_s: float) -> float | None:
 
 def fault_metrics(record: Any, exit_code: int) -> list[dict[str, Any]]:
     """One row per injection (see the module docstring)."""
-    from mazebot.bench.runner import map_metrics
-
     faults: FaultRecord = record.faults
     robot = faults.robot
     start_true = tuple(record.true_poses[0]) if record.true_poses else robot.world.start_pose

@@ -101,7 +101,7 @@ def test_the_robot_explores_a_maze_by_itself_and_comes_back_to_the_start() -> No
 
 
 def test_revisits_count_real_back_tracking_not_swaying_across_a_cell_border() -> None:
-    from mazebot.bench.runner import _revisits
+    from mazebot.bench.metrics import count_revisits
     from mazebot.sim.maze_file import parse_maze
 
     layout = parse_maze("o---o---o---o\n|           |\no---o---o---o\n", 0.3048)
@@ -110,10 +110,10 @@ def test_revisits_count_real_back_tracking_not_swaying_across_a_cell_border() ->
     # down the corridor, swaying +-1 cm across the (0,0)|(1,0) border ten times, on to (2,0)
     sway = [(border_x + (0.01 if k % 2 else -0.01), cy) for k in range(10)]
     ahead = [(cx0 + k * 0.05, cy) for k in range(13)]
-    assert _revisits(layout, np.array([*sway, *ahead])) == 0
+    assert count_revisits(layout, np.array([*sway, *ahead])) == 0
     # back-tracking from (2,0) to (0,0) is two revisits: (1,0) and (0,0)
     back = [(x, cy) for x, _ in reversed(ahead)]
-    assert _revisits(layout, np.array([*ahead, *back])) == 2
+    assert count_revisits(layout, np.array([*ahead, *back])) == 2
 
 
 def test_a_suite_can_be_split_over_processes_by_its_first_seed() -> None:

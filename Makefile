@@ -22,8 +22,12 @@ $(BIN)/.installed: pyproject.toml
 run: $(BIN)/.installed
 	$(BIN)/mazebot run --sim
 
+# ruff (style), lint-imports (the import layers of pyproject.toml), mypy (types; strict on io/,
+# slam/, planner/ and the hardware boundary)
 lint: $(BIN)/.installed
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports
+	$(BIN)/mypy
 
 system-deps:
 	bash tools/system-deps.sh

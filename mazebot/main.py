@@ -24,7 +24,7 @@ from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config
 from mazebot.errors import EXIT_OK, HardwareUnavailable
-from mazebot.hardware import Hardware, HardwareBuilder, lgpio_pin_factory
+from mazebot.hardware import Hardware, HardwareBuilder, LidarActivity, lgpio_pin_factory
 from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor
@@ -47,10 +47,12 @@ def robot_hardware_builder(
 
     async def build(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
         from mazebot.io.encoders import WheelEncoders
+        from mazebot.io.motor_hat import MotorKitLike
         from mazebot.io.motors import DifferentialMotors, open_motorkit
         from mazebot.io.rplidar import RPLidar
         from mazebot.io.serial_link import SerialLink
 
+        kit: MotorKitLike
         if config.motors.backend == "gpio" and open_kit is None:
             from mazebot.io.motor_gpio import open_gpio_motorkit
 
@@ -278,7 +280,7 @@ async def run_daemon(
         from mazebot.tasks.health_task import HealthMonitor
 
         # loop closures (verification, pose-graph optimization, map rebuilds) run here, off the event loop
-        slam_executor = LoopClosureExecutor(config.slam.loop_closure_executor)
+        slam_executor: Executor = LoopClosureExecutor(config.slam.loop_closure_executor)
         stack.callback(slam_executor.shutdown)
         state.auto_resume = config.daemon.auto_resume
         # what must survive a task's restart is built here, outside the tasks: the odometry
@@ -304,7 +306,7 @@ async def run_daemon(
             restart=True,
         )
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
-        lidar_activity = hardware.lidar if hasattr(hardware.lidar, "bytes_waiting") else None
+        lidar_activity = hardware.lidar if isinstance(hardware.lidar, LidarActivity) else None
         monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s, lidar=lidar_activity)
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog

@@ -119,7 +119,8 @@ class FaultRecord:
             await clock.sleep(0.2)
             now_s = clock.now_s()
             ends = [i.end_s for i in injections]
-            if all(e is not None for e in ends) and now_s >= max(ends) + self.recovery_window_s:  # type: ignore[type-var]
+            ended = [e for e in ends if e is not None]
+            if len(ended) == len(ends) and now_s >= max(ended) + self.recovery_window_s:
                 return
             if now_s >= last_due_s + MAX_AFTER_FAULT_S:
                 return

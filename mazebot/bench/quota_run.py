@@ -466,7 +466,7 @@ def _watch(
     stop_sent = False
     result_open = True
     while daemon.exitcode is None or result_open:
-        watched = [daemon.sentinel, report_rx] + ([result_rx] if result_open else [])
+        watched: list[Any] = [daemon.sentinel, report_rx] + ([result_rx] if result_open else [])
         ready = wait(watched, timeout=RSS_PERIOD_S)
         if result_rx in ready and result_open:
             try:

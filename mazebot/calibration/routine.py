@@ -155,6 +155,11 @@ class Calibrator:
             out[output] = -wanted[wheel] if self.wiring.output_reversed[output] else wanted[wheel]
         self.hw.motors.set(out["left"], out["right"])
 
+    def _turned_by(self, sign: float, turned_m: float) -> Callable[[int, int], bool]:
+        """An ``until`` for :meth:`_hold`: the wheels' arcs (ticks times metres per tick) differ by
+        ``turned_m`` in the direction ``sign`` (+1: to the left)."""
+        return lambda dl, dr: sign * (dr * self.k_right - dl * self.k_left) >= turned_m
+
     async def _hold(self, left: float, right: float, until: Callable[[int, int], bool], limit_s: float) -> None:
         start = self._counts()
         t0 = self.clock.now_s()
@@ -289,7 +294,7 @@ class Calibrator:
             sign = -1.0 if error_rad > 0 else 1.0  # turn the other way
             await self._hold(
                 -sign * TURN_THROTTLE, sign * TURN_THROTTLE,
-                until=lambda dl, dr, sign=sign, turned=turned: sign * (dr * self.k_right - dl * self.k_left) >= turned,
+                until=self._turned_by(sign, turned),
                 limit_s=10.0,
             )
 
@@ -374,8 +379,7 @@ class Calibrator:
             turned = angle_rad * self.track_m
             await self._hold(
                 -direction * TURN_THROTTLE, direction * TURN_THROTTLE,
-                until=lambda dl, dr, turned=turned, sign=direction: sign * (dr * self.k_right - dl * self.k_left)
-                >= turned,
+                until=self._turned_by(direction, turned),
                 limit_s=20.0,
             )
             after, c1 = await self._still(feed)

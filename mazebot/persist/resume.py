@@ -123,11 +123,11 @@ class ResumedSlam(ObservedSlam):
         dist = np.hypot(poses[:, 0] - self.guess[0], poses[:, 1] - self.guess[1])
         near = np.flatnonzero(dist <= self.submap_radius_m + self.search_xy_m)
         near = near[np.argsort(dist[near], kind="stable")[: max(p.submap_keyframes, 40)]]
-        if near.size == 0 or prepared.points_match.shape[0] == 0:
+        target = build_target([self.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
+        if target is None or prepared.points_match.shape[0] == 0:  # no keyframe near, or none with points
             log.warning("re-localization: no saved keyframe near the start; continuing from the guess")
             self.initial_pose = compose(self.guess, inverse(odom))
             return Relocalization(self.guess.copy(), False, 0.0, float("inf"), 0)
-        target = build_target([self.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
         steps_xy = (-self.search_xy_m, 0.0, self.search_xy_m)
         steps_th = np.linspace(-self.search_theta_rad, self.search_theta_rad, 7)
         # a corridor leaves ICP free along it: among the acceptable matches the one whose

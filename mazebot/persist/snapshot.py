@@ -25,7 +25,7 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -78,7 +78,7 @@ def take_snapshot(slam: Slam, extra: dict[str, Any] | None = None) -> SlamSnapsh
 
 def _npz(**arrays: np.ndarray) -> bytes:
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez(buffer, **cast(dict[str, Any], arrays))  # numpy's stubs take a keyword for allow_pickle
     return buffer.getvalue()
 
 

@@ -523,7 +523,7 @@ class DynamicWindowPlanner:
         hit = clear < limit
         first_hit = np.where(hit.any(axis=1), np.argmax(hit, axis=1), s_count)
         free_m = np.where(first_hit >= s_count, np.inf, np.maximum(first_hit - 1, 0) * step_len)
-        need_m = self.stopping_distance_m(v)
+        need_m = np.asarray(self.stopping_distance_m(v))
         free_m = self._free_beyond_the_rollout(pts, v, first_hit >= s_count, need_m, free_m, costmap, limit)
         admissible = free_m >= need_m
         turning_in_place = np.abs(v) < 1e-6

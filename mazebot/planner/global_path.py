@@ -210,7 +210,7 @@ class GridCostmap:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.passable.shape  # type: ignore[return-value]
+        return self.passable.shape
 
     def to_cell(self, x_m: float, y_m: float) -> tuple[int, int]:
         """(row, col) of the grid cell holding ``(x_m, y_m)``; may lie off the grid."""

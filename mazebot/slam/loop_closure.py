@@ -231,7 +231,7 @@ def verify(
             if elsewhere and _as_good(other, result, params):
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
     information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
-    return Verdict(candidate, True, "accepted", result.pose.copy(), information, **fit)
+    return Verdict(candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"])
 
 
 def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> bool:

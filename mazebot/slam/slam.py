@@ -699,11 +699,11 @@ class Slam:
         matched = False
         predicted_theta = float(self.ekf.mean[2])
         good_match = match is not None and self.acceptable(match)
-        if good_match:
+        if match is not None and good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if callable(paint):
             paint = bool(paint(match, matched))
-        if paint and good_match and p.estimate_time_offset and self._last_rate is not None:
+        if paint and match is not None and good_match and p.estimate_time_offset and self._last_rate is not None:
             # a turn starting or stopping shows a stamp offset (even when the filter's gate refused the match)
             self.time_offset.observe(float(match.pose[2]) - predicted_theta, rate - self._last_rate)
         self._last_rate = rate

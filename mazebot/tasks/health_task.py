@@ -208,7 +208,7 @@ class HealthMonitor:
             self._weak_streak[side] = self._weak_streak[side] + 1 if weak else 0
             if weak and self._weak_streak[side] >= self.weak_checks:
                 name = ("left", "right")[side]
-                share = 100 * max(0.0, mine) / reference  # type: ignore[operator]
+                share = 100 * max(0.0, mine or 0.0) / (reference or 1.0)  # both known here (weak)
                 self._note(state, "motors", f"the {name} motor gives only {share:.0f} % of the other's speed for "
                            "the same throttle: the wheel control makes up for it; check that motor, its gearbox "
                            "and its wires", now_s)

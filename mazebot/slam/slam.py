@@ -673,7 +673,7 @@ class Slam:
         if offset_s:
             scan = replace(scan, time_s=scan.time_s - offset_s)
         time_s = scan.end_time_s
-        odom = _pose_at(odometry, time_s)
+        odom = odometry_pose_at(odometry, time_s)
         rate = _turn_rate(odometry, time_s)
         self.scans += 1
 
@@ -1118,7 +1118,8 @@ def _turn_rate(odometry: OdometrySource, time_s: float, window_s: float = 0.02) 
     return math.remainder(float(th[1] - th[0]), math.tau) / window_s
 
 
-def _pose_at(odometry: OdometrySource, time_s: float) -> np.ndarray:
+def odometry_pose_at(odometry: OdometrySource, time_s: float) -> np.ndarray:
+    """The odometry pose at ``time_s``, heading wrapped to [-π, π)."""
     x, y, th = odometry.at(np.array([time_s]))
     return np.array([float(np.ravel(x)[0]), float(np.ravel(y)[0]), math.remainder(float(np.ravel(th)[0]), math.tau)])
 

@@ -49,7 +49,7 @@ MIN_PRECISION = 0.9
 RELOC_M = 0.05
 RELOC_DEG = 5.0
 RELOC_HOLD_S = 1.0
-#: Targets of issue 7.
+#: The fault suite's targets (docs/design.md, "The fault suite's targets").
 DETECTED_MAX_MS = 500.0
 MOTORS_ZERO_MAX_MS = 200.0
 RELOCALIZED_MAX_S = 10.0
@@ -278,7 +278,7 @@ def fault_metrics(record: Any, exit_code: int) -> list[dict[str, Any]]:
 
 
 def passed(row: dict[str, Any]) -> bool:
-    """Every number of issue 7 met for this fault."""
+    """Every target of the fault suite met for this fault."""
     ok = row.get("detected_ms") is not None and row["detected_ms"] <= DETECTED_MAX_MS
     if row.get("must_stop"):
         ok &= row.get("motors_zero_ms") is not None and row["motors_zero_ms"] <= MOTORS_ZERO_MAX_MS

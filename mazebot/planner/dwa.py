@@ -8,7 +8,7 @@ limits), rolls each out as a circular arc, discards those on which the robot cou
 stop before an obstacle (*admissible* velocities: ``v ≤ sqrt(2 · dist(v, ω) · v̇_b)``,
 here with the actuation latency added to the stopping distance), and picks the best of
 the rest by a weighted sum of objectives. Fox et al. weigh heading, clearance and
-velocity; following a global path through a maze (seed 000_…, III.C: "distance of the
+velocity; following a global path through a maze (Nayak et al., "2D Autonomous Mapping", III.C: "distance of the
 resulting position to the local goal, and … normal distance from the simulated path to
 the desired global path") this planner scores
 

@@ -2,7 +2,7 @@
 
 Exploring means driving to where something is still unknown until nothing reachable is.
 In a maze the unknowns are **frontier links**: a link of a reachable cell whose state
-(open or wall) is not known yet (seed 000_…, III.C: "this unknown link can be referred to
+(open or wall) is not known yet (Nayak et al., "2D Autonomous Mapping", III.C: "this unknown link can be referred to
 as a frontier for autonomous mapping"). Going to the cell that owns the link lets the
 lidar resolve it. A reachable cell whose inside has not been seen (a dead end looked at
 only through its opening) is a frontier too, so every cell of the maze ends up mapped,

@@ -1,6 +1,6 @@
 """The benchmark harness end to end: the whole daemon on the simulated robot, virtual time.
 
-The smoke suite is what CI runs (issue 3: under two minutes); the exploration run is the
+The smoke suite is what CI runs (under two minutes: docs/design.md, "Budgets"); the exploration run is the
 autonomous stack (planner, DWA, wheel PI, safety layer) on SLAM's map and pose, measured
 against the simulator's ground truth.
 """

@@ -11,7 +11,7 @@ BIN = $(VENV)/bin
 MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data) $(CURDIR)/data)
 export MAZEBOT_DATA
 
-.PHONY: run test lint system-deps data check-install check-lock clean
+.PHONY: run test test-fast lint system-deps data check-install check-lock clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,10 @@ system-deps:
 
 test: system-deps lint
 	$(BIN)/pytest
+
+# the inner loop: the tests not marked slow (closed-loop runs, browser and subprocess tests)
+test-fast: $(BIN)/.installed
+	$(BIN)/pytest -m "not slow"
 
 data:
 	$(PYTHON) tools/fetch_data.py --data $(MAZEBOT_DATA)

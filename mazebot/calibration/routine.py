@@ -32,6 +32,7 @@ from mazebot.calibration.geometry import (
 from mazebot.calibration.progress import Progress
 from mazebot.clock import Clock
 from mazebot.config import Config
+from mazebot.hardware import Hardware
 from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpParams, Target, match_scan
 from mazebot.slam.preprocess import PrepareParams, prepare_scan
@@ -106,9 +107,9 @@ class _ScanFeed:
 
 
 class Calibrator:
-    """Runs the steps on ``hardware`` (a :class:`mazebot.main.Hardware`) with ``config`` as the starting guess."""
+    """Runs the steps on ``hardware`` (a :class:`mazebot.hardware.Hardware`) with ``config`` as the starting guess."""
 
-    def __init__(self, hardware: Any, config: Config, clock: Clock, progress: Progress) -> None:
+    def __init__(self, hardware: Hardware, config: Config, clock: Clock, progress: Progress) -> None:
         self.hw = hardware
         self.config = config
         self.clock = clock

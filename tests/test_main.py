@@ -47,6 +47,7 @@ async def _get_status(port: int) -> dict:
         return await resp.json()
 
 
+@pytest.mark.slow
 async def test_daemon_runs_the_real_drivers_on_the_simulated_robot() -> None:
     port = unused_port()
     ready = asyncio.Event()
@@ -145,6 +146,7 @@ async def test_the_page_is_served_with_the_motors_zeroed_before_slam_and_planner
     assert await asyncio.wait_for(daemon, 10) == 0
 
 
+@pytest.mark.slow
 async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -> None:
     port = unused_port()
     ready = asyncio.Event()
@@ -178,6 +180,7 @@ async def test_a_crashing_task_stops_the_motors_and_the_daemon_keeps_serving() -
     assert await asyncio.wait_for(daemon, 10) == 0
 
 
+@pytest.mark.slow
 async def test_sigterm_zeroes_the_motors_at_once_and_exits_0() -> None:
     port = unused_port()
     ready = asyncio.Event()
@@ -207,6 +210,7 @@ async def test_sigterm_zeroes_the_motors_at_once_and_exits_0() -> None:
     assert all(not w.throttle for w in after[first_stop:])
 
 
+@pytest.mark.slow
 def test_run_sim_serves_the_page_and_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
     port = unused_port()
     t0 = time.monotonic()
@@ -347,6 +351,7 @@ async def test_a_lidar_that_never_answers_exits_69_naming_its_port() -> None:
     _assert_braked(kit)
 
 
+@pytest.mark.slow
 async def test_run_sim_needs_no_hat_no_gpio_and_no_serial_port(monkeypatch: pytest.MonkeyPatch) -> None:
     def forbidden(*args: object, **kwargs: object) -> None:
         raise AssertionError("the simulated run touched a real device")

@@ -51,6 +51,7 @@ def read_png(path: Path) -> tuple[int, int, bytes]:
     return width, height, raw
 
 
+@pytest.mark.slow
 def test_smoke_suite_with_the_scripted_drive_writes_every_key_and_figures_that_open(tmp_path: Path) -> None:
     assert main(["bench", "--suite", "smoke", "--drive", "scripted", "--out", str(tmp_path)]) == 0
     results = json.loads((tmp_path / "results.json").read_text())
@@ -76,6 +77,7 @@ def test_smoke_suite_with_the_scripted_drive_writes_every_key_and_figures_that_o
         assert len(np.unique(pixels.reshape(-1, 3), axis=0)) >= 3  # a picture, not a blank
 
 
+@pytest.mark.slow
 def test_the_robot_explores_a_maze_by_itself_and_comes_back_to_the_start() -> None:
     """Start pressed once; the planner, DWA, wheel PI and safety layer drive on SLAM's estimate."""
     spec = RunSpec(None, (4, 4), seed=3, drive="explore", max_sim_s=300.0)

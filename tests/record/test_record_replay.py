@@ -35,6 +35,8 @@ from mazebot.slam.map_export import read_ros_map
 from mazebot.slam.odometry import DiffDriveOdometry
 from mazebot.slam.slam import SlamParams
 
+pytestmark = pytest.mark.slow  # whole simulated runs recorded and replayed
+
 MAZE = str(Path(__file__).resolve().parents[2] / "mazebot" / "sim" / "mazes" / "minimaze.txt")
 
 EXPECTED_SCHEMAS = {

@@ -25,6 +25,8 @@ from mazebot.record.rosbag_export import export_bag
 from mazebot.record.schemas import equal_bearings, scan_from_json
 from mazebot.run_session import RunSession
 
+pytestmark = pytest.mark.slow  # a whole simulated run recorded first
+
 MAZE = str(Path(__file__).resolve().parents[2] / "mazebot" / "sim" / "mazes" / "minimaze.txt")
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 

@@ -77,6 +77,7 @@ def _gap_around(ends: list[float], at_s: float) -> float:
 
 @pytest.mark.parametrize("fault", ["lidar-unplug", "lidar-stall", "lidar-truncated-descriptor",
                                    "lidar-health-error", "lidar-motor-stop"])
+@pytest.mark.slow
 def test_a_lidar_that_goes_silent_is_silent_long_enough_to_be_seen_and_scans_again(fault: str) -> None:
     ends, stats, injection, line = run_virtual(_lidar_under(fault))
     end_s = injection.end_s - (injection.begin_s - AT_S)  # relative to the start, like ``ends``
@@ -96,6 +97,7 @@ def test_a_lidar_that_goes_silent_is_silent_long_enough_to_be_seen_and_scans_aga
         assert stats.scan_restarts >= 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["lidar-noise", "lidar-bitflip"])
 def test_a_noisy_lidar_line_costs_bytes_not_revolutions(fault: str) -> None:
     ends, stats, _, _ = run_virtual(_lidar_under(fault))

@@ -23,6 +23,8 @@ from typing import Any
 import pytest
 from aiohttp.test_utils import unused_port
 
+pytestmark = pytest.mark.slow  # a real Chromium on the running daemon
+
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e '.[test]')")
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

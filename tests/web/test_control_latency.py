@@ -10,6 +10,7 @@ import asyncio
 from typing import Any
 
 import aiohttp
+import pytest
 from aiohttp.test_utils import unused_port
 
 from mazebot.config import Config
@@ -17,6 +18,8 @@ from mazebot.main import Hardware, run_daemon
 from mazebot.sim.backend import sim_hardware_builder
 from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
+
+pytestmark = pytest.mark.slow  # the daemon on the simulated robot in real time
 
 PIN = "2468"
 

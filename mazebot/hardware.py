@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
     from gpiozero import Factory
@@ -39,10 +39,8 @@ class Lidar(Protocol):
     def scans(self) -> AsyncIterator[Scan]: ...
 
 
-@runtime_checkable
 class LidarActivity(Protocol):
-    """What the health monitor reads to tell a silent lidar from one whose bytes make no revolution
-    (``isinstance`` checks that both names exist: the fakes of the tests have no byte counts)."""
+    """What the health monitor reads to tell a silent lidar from one whose bytes make no revolution."""
 
     @property
     def stats(self) -> LidarStats: ...

@@ -18,7 +18,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import AsyncExitStack
-from typing import Any
+from typing import Any, cast
 
 from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
@@ -306,7 +306,10 @@ async def run_daemon(
             restart=True,
         )
         supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
-        lidar_activity = hardware.lidar if isinstance(hardware.lidar, LidarActivity) else None
+        # hasattr, not isinstance on the Protocol: the recording tap forwards the driver's names through
+        # __getattr__, which Python 3.12's runtime protocol checks no longer look at
+        has_bytes = hasattr(hardware.lidar, "bytes_waiting")  # the tests' fakes count no bytes
+        lidar_activity = cast(LidarActivity, hardware.lidar) if has_bytes else None
         monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s, lidar=lidar_activity)
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog

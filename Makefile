@@ -11,7 +11,7 @@ BIN = $(VENV)/bin
 MAZEBOT_DATA ?= $(firstword $(wildcard $(CURDIR)/../shared/data /work/shared/data) $(CURDIR)/data)
 export MAZEBOT_DATA
 
-.PHONY: run test lint system-deps data check-install check-lock clean
+.PHONY: run test test-fast lint system-deps data check-install check-lock clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,14 +22,22 @@ $(BIN)/.installed: pyproject.toml
 run: $(BIN)/.installed
 	$(BIN)/mazebot run --sim
 
+# ruff (style), lint-imports (the import layers of pyproject.toml), mypy (types; strict on io/,
+# slam/, planner/ and the hardware boundary)
 lint: $(BIN)/.installed
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports
+	$(BIN)/mypy
 
 system-deps:
 	bash tools/system-deps.sh
 
 test: system-deps lint
 	$(BIN)/pytest
+
+# the inner loop: the tests not marked slow (closed-loop runs, browser and subprocess tests)
+test-fast: $(BIN)/.installed
+	$(BIN)/pytest -m "not slow"
 
 data:
 	$(PYTHON) tools/fetch_data.py --data $(MAZEBOT_DATA)

@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--maze", default="mazebot/sim/mazes/minimaze.txt")
     args = parser.parse_args()
-    for module in ("mazebot.persist.session", "mazebot.record.writer", "mazebot.tasks.record_task"):
+    for module in ("mazebot.run_session", "mazebot.record.writer", "mazebot.tasks.record_task"):
         importlib.import_module(module)  # before timing: see the docstring
     cpu: dict[str, list[float]] = {"plain": [], "record": []}
     with tempfile.TemporaryDirectory() as tmp:

@@ -14,7 +14,7 @@ noise and 2 % dropouts, like the simulator's A1M8. Per scan the bench times:
   from ``--keyframes`` (16) keyframes within two cells, 1 cm voxels, started 4 cm / 3
   degrees off;
 - ``grid``: integrating the scan's beams into a 2 cm occupancy grid covering the maze;
-- ``total``: the three together (DESIGN.md budget: median <= 5 ms on this machine).
+- ``total``: the three together (docs/design.md, "Budgets": median <= 5 ms on this machine).
 
 ``target`` (building the kd-tree and normals of a submap) is timed apart, outside
 ``total``: SLAM does it once per keyframe, not once per scan. The table prints median and p99 in milliseconds,

@@ -1,4 +1,4 @@
-"""Stop button -> both motors at zero, pressed hundreds of times on the running daemon (issue 7).
+"""Stop button -> both motors at zero, pressed hundreds of times on the running daemon.
 
 The whole daemon (``run_daemon``: lidar and encoder drivers, SLAM, the planner, the control
 loop, the aiohttp server) runs on the simulated robot in real time. A viewer in another

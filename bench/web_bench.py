@@ -10,7 +10,7 @@ one more viewer.
     .venv/bin/python bench/web_bench.py --viewers 1 --seconds 60 --abuse [--out abused.json]
     .venv/bin/python bench/web_bench.py --compare-abuse 3 --seconds 60 [--pin 0,1] --out abuse.json
 
-``--abuse`` adds the network abuse set of issue 7 from another process: a client flooding
+``--abuse`` adds the network abuse set from another process: a client flooding
 resync requests as fast as it can (reconnecting whenever it is closed for it), 50 clients
 connecting and dropping in a loop (polite closes, vanished TCP connections, half-sent
 handshakes), a client that never reads, and a client sending junk frames (bad JSON, binary,
@@ -398,7 +398,7 @@ def main() -> int:
     ap.add_argument("--maze", default=None)
     ap.add_argument("--browser", action="store_true", help="also open the page in headless Chromium")
     ap.add_argument("--out", default="web_bench.json")
-    ap.add_argument("--abuse", action="store_true", help="also run the network abuse set (issue 7)")
+    ap.add_argument("--abuse", action="store_true", help="also run the network abuse set")
     ap.add_argument("--compare-abuse", type=int, default=0, metavar="N",
                     help="N quiet and N abused runs, alternating, each in a fresh process")
     ap.add_argument("--abuser-nice", type=int, default=0, metavar="N",

@@ -38,7 +38,7 @@ class Command(NamedTuple):
 #: here must equal the ones the modules register (a test keeps them equal).
 COMMANDS: tuple[Command, ...] = (
     Command("config", "mazebot.config_cli", "check or print the configuration"),
-    Command("run", "mazebot.main", "run the robot (or, with --sim, the simulated robot)"),
+    Command("run", "mazebot.run_cli", "run the robot (or, with --sim, the simulated robot)"),
     Command("lidar", "mazebot.io.lidar_cli", "talk to the RPLidar or decode its byte stream"),
     Command("motors", "mazebot.io.motors_cli", "direct motor HAT commands"),
     Command("doctor", "mazebot.doctor_cli", "check every part of the robot, one line each"),

@@ -15,6 +15,7 @@ import math
 import os
 import re
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
@@ -768,7 +769,7 @@ def default_config_path() -> Path | None:
     return next((p for p in config_search_path() if p.is_file()), None)
 
 
-def _describe_error(err: dict[str, Any]) -> str:
+def _describe_error(err: Mapping[str, Any]) -> str:
     path = ".".join(str(p) for p in err["loc"]) or "(top level)"
     kind = err["type"]
     value = err.get("input")
@@ -869,7 +870,7 @@ def render_toml(config: Config | None = None) -> str:
     for name, field in Config.model_fields.items():
         section = getattr(config, name)
         lines.append("")
-        lines.append(f"# {type(section).__doc__.strip().splitlines()[0]}")
+        lines.append(f"# {(type(section).__doc__ or '').strip().splitlines()[0]}")
         lines.append(f"[{name}]")
         for key, sub in type(section).model_fields.items():
             if sub.description:

@@ -34,7 +34,7 @@ T = TypeVar("T")
 #: Calls kept per part for the percentile: minutes of the busiest part (the 50 Hz odometry).
 RECENT_CALLS = 20000
 
-#: The parts of the daemon, in the order a reader follows the data (DESIGN.md, "Data flow").
+#: The parts of the daemon, in the order a reader follows the data (docs/design.md, "Data flow").
 PARTS = (
     "lidar decoding",
     "odometry",

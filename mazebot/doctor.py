@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, Literal
 
-from mazebot.clock import Clock
+from mazebot.clock import Clock, RealClock
+from mazebot.config import LidarConfig
 from mazebot.errors import serial_port_hint
 
 Status = Literal["ok", "warn", "FAIL", "skip"]
@@ -435,3 +436,18 @@ async def motor_checks(motors: Any, encoders: Any, clock: Clock, ticks_per_rev: 
     finally:
         motors.stop()
     return judge_pulses(pulses, ticks_per_rev)
+
+
+@dataclass
+class Parts:
+    """How one doctor run reaches the robot's parts: the real ones or the simulator's."""
+
+    probe: SystemProbe
+    lidar: LidarConfig
+    open_kit: Callable[[], Any]  # the motor board, MotorKit-shaped; raises HardwareUnavailable
+    kit_name: str
+    open_pins: Callable[[], Any]  # the encoders' gpiozero pin factory
+    clock: Clock = field(default_factory=RealClock)
+    link_factory: Callable[[], Any] | None = None
+    state_dir: Path | None = None
+    close_pins: bool = True  # False: the pins belong to someone else (the simulator)

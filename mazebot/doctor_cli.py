@@ -16,34 +16,25 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-from mazebot.clock import Clock, RealClock
-from mazebot.config import Config, LidarConfig, load_config
-from mazebot.doctor import SystemProbe, Verdict, check_serial_port, lidar_checks, motor_checks, passed, system_checks
+from mazebot.config import Config, load_config
+from mazebot.doctor import (
+    Parts,
+    SystemProbe,
+    Verdict,
+    check_serial_port,
+    lidar_checks,
+    motor_checks,
+    passed,
+    system_checks,
+)
 from mazebot.errors import EXIT_OK, MazebotError
 
 #: Exit code when a check failed (EX_UNAVAILABLE would say a device is missing; here any part can fail).
 EXIT_FAILED = 1
-
-
-@dataclass
-class Parts:
-    """How one doctor run reaches the robot's parts: the real ones or the simulator's."""
-
-    probe: SystemProbe
-    lidar: LidarConfig
-    open_kit: Callable[[], Any]  # the motor board, MotorKit-shaped; raises HardwareUnavailable
-    kit_name: str
-    open_pins: Callable[[], Any]  # the encoders' gpiozero pin factory
-    clock: Clock = field(default_factory=RealClock)
-    link_factory: Callable[[], Any] | None = None
-    state_dir: Path | None = None
-    close_pins: bool = True  # False: the pins belong to someone else (the simulator)
 
 
 def _robot_parts(config: Config) -> Parts:
@@ -59,9 +50,9 @@ def _robot_parts(config: Config) -> Parts:
         return open_motorkit(m.i2c_address, m.pwm_frequency_hz)
 
     def open_pins() -> Any:
-        from mazebot.main import _lgpio_factory
+        from mazebot.hardware import lgpio_pin_factory
 
-        return _lgpio_factory()
+        return lgpio_pin_factory()
 
     name = (f"GPIO H-bridge ({m.gpio_driver}) on pins {m.gpio_motor1_pins} and {m.gpio_motor2_pins}"
             if m.backend == "gpio" else f"motor HAT at I2C address {m.i2c_address:#04x}")

@@ -1,6 +1,6 @@
 """The shared in-memory world of the daemon: run state, faults, pose, sensor health.
 
-One writer per piece (see DESIGN.md, "Data flow"): SLAM writes map and pose, the
+One writer per piece (docs/design.md, "The tasks and who writes what"): SLAM writes map and pose, the
 planner writes goal and path, control writes motor commands, the supervisor writes
 faults, and the web layer only reads and posts commands into ``commands``. Everything
 runs on one event loop, so plain attributes are enough; nothing here is touched from

@@ -93,6 +93,7 @@ def _read_all(fd: int, into: list[bytes]) -> None:
         into.append(chunk)
 
 
+@pytest.mark.slow
 def test_a_daemon_under_systemd_writes_each_line_with_its_priority(tmp_path: Path) -> None:
     """``mazebot run --sim`` as systemd starts it (stderr the journal stream): the generated PIN is a
     warning (<4>), start-up lines are info (<6>), and the fault that ends it (its port is taken:

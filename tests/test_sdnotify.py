@@ -79,6 +79,7 @@ async def test_the_watchdog_starves_when_the_control_loop_stops_ticking(notify_s
         await feeder
 
 
+@pytest.mark.slow
 async def test_the_daemon_says_ready_once_it_serves_then_feeds_the_watchdog(notify_socket, monkeypatch) -> None:
     sock, path = notify_socket
     monkeypatch.setenv("NOTIFY_SOCKET", path)

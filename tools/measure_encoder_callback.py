@@ -25,7 +25,7 @@ run interleaved so that they see the same machine load):
    calling a no-op. See ``PY_LGPIO/lgpio_extra.py`` in joan2937/lg.
 
 The Pi estimate printed at the end uses explicit assumptions (``--pi-slowdown``, default
-5×, the pessimistic end of DESIGN.md's 3–5×; ``--gil-share``, default 0.5, the fraction
+5×, the pessimistic end of docs/design.md's 3–5×; ``--gil-share``, default 0.5, the fraction
 of the interpreter the callback thread gets while SLAM and the web server run).
 """
 

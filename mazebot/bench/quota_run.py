@@ -466,7 +466,7 @@ def _watch(
     stop_sent = False
     result_open = True
     while daemon.exitcode is None or result_open:
-        watched = [daemon.sentinel, report_rx] + ([result_rx] if result_open else [])
+        watched: list[Any] = [daemon.sentinel, report_rx] + ([result_rx] if result_open else [])
         ready = wait(watched, timeout=RSS_PERIOD_S)
         if result_rx in ready and result_open:
             try:
@@ -541,7 +541,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
     """The per-run keys of results.json for a two-process run; a metric whose part is missing is None."""
     import numpy as np
 
-    from mazebot.bench.runner import _relative, _revisits, map_metrics
+    from mazebot.bench.metrics import count_revisits, map_metrics, relative_poses
     from mazebot.sim.world_source import make_world
 
     d, w = record.daemon or {}, record.world or {}
@@ -560,7 +560,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         th = np.unwrap(traj[:, 3])
         truth = np.column_stack([np.interp(est[:, 0], traj[:, 0], traj[:, k]) for k in (1, 2)]
                                 + [np.interp(est[:, 0], traj[:, 0], th)])
-        rel = _relative(start, truth)
+        rel = relative_poses(start, truth)
         err = np.hypot(est[:, 1] - rel[:, 0], est[:, 2] - rel[:, 1])
         ate_rms, ate_max = float(np.sqrt(np.mean(err**2))), float(err.max())
     lateness = np.asarray(d.get("lateness_ms") or [], dtype=float)
@@ -597,7 +597,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "map_f1": maps["map_f1"],
         "collisions": w.get("collisions"),
         "path_m": _round(w.get("odometer_m"), 3),
-        "revisits": _revisits(layout, traj[:, 1:3]) if layout is not None and len(traj) else None,
+        "revisits": count_revisits(layout, traj[:, 1:3]) if layout is not None and len(traj) else None,
         "ate_rms_m": _round(ate_rms, 4),
         "ate_max_m": _round(ate_max, 4),
         "control_jitter_ms_p99": _round(float(np.percentile(lateness, 99)), 3) if len(lateness) else None,

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import resource
 import time
 from collections import deque
@@ -39,6 +38,12 @@ from typing import Any
 import numpy as np
 
 from mazebot.bench.fault_metrics import RECOVERY_WINDOW_S, FaultRecord, fault_metrics
+from mazebot.bench.metrics import (
+    count_revisits,
+    false_closures,
+    map_metrics,
+    relative_poses,
+)
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
 from mazebot.bench.virtual_executor import CpuTimedExecutor
 from mazebot.clock import RealClock
@@ -52,11 +57,6 @@ from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
 
 RECORD_PERIOD_S = 0.1
-#: A loop closure this far from the true relative pose is counted as false (a maze cell is 0.3 m).
-FALSE_CLOSURE_M = 0.1
-FALSE_CLOSURE_RAD = 0.1
-#: Cells of the map metrics' truth raster beyond the world's bounds on every side.
-MARGIN_CELLS = 2
 
 
 @dataclass(frozen=True)
@@ -104,127 +104,6 @@ class RunRecord:
     executor: CpuTimedExecutor | None = None  # virtual time: how long the loop waited for the worker
 
 
-def _relative(base: tuple[float, float, float], poses: np.ndarray) -> np.ndarray:
-    """Poses expressed in the frame of ``base`` (the robot's start: the map frame)."""
-    bx, by, bt = base
-    c, s = math.cos(bt), math.sin(bt)
-    dx, dy = poses[:, 0] - bx, poses[:, 1] - by
-    out = np.empty_like(poses)
-    out[:, 0] = c * dx + s * dy
-    out[:, 1] = -s * dx + c * dy
-    out[:, 2] = np.remainder(poses[:, 2] - bt + np.pi, 2 * np.pi) - np.pi
-    return out
-
-
-#: How far (metres) the robot must be inside a cell before :func:`_revisits` counts an entry.
-REVISIT_DEPTH_M = 0.03
-
-
-def _revisits(layout: Any, xy: np.ndarray, depth_m: float = REVISIT_DEPTH_M) -> int:
-    """Cell entries beyond the first visit of each cell, from the true trajectory.
-
-    An entry counts once the robot's centre is more than ``depth_m`` inside the new cell
-    (hysteresis): a robot following a corridor's centre line sways a centimetre or two,
-    and where it passes close to a cell border (turning a corner, braking at a cell
-    centre) every sway across the border would otherwise count as leaving and
-    re-entering a cell, which is no back-tracking at all.
-    """
-    seen: set[tuple[int, int]] = set()
-    last = None
-    count = 0
-    half_m = 0.5 * layout.cell_size_m
-    for x, y in xy:
-        cell = layout.cell_at(float(x), float(y))
-        if cell is None or cell == last:
-            continue
-        cx, cy = layout.cell_center_m(cell)
-        if half_m - max(abs(float(x) - cx), abs(float(y) - cy)) <= depth_m:
-            continue  # at the border: not in the new cell yet
-        if cell in seen:
-            count += 1
-        seen.add(cell)
-        last = cell
-    return count
-
-
-def _to_world(start: tuple[float, float, float], xy: np.ndarray) -> np.ndarray:
-    """Map-frame points (N, 2) in the world frame, the map frame being the start pose."""
-    c, s = math.cos(start[2]), math.sin(start[2])
-    return np.column_stack((start[0] + c * xy[:, 0] - s * xy[:, 1], start[1] + s * xy[:, 0] + c * xy[:, 1]))
-
-
-def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footprint_radius_m: float) -> dict[str, Any]:
-    """``coverage`` and ``map_f1`` (with precision and recall) of SLAM's grid against the world."""
-    from scipy import ndimage
-
-    from mazebot.sim.raster import free_reachable, true_occupancy
-
-    if grid is None or grid.shape[0] == 0:
-        return {"coverage": None, "map_f1": None, "map_precision": None, "map_recall": None}
-    res = grid.resolution_m
-    # the truth raster reaches MARGIN_CELLS beyond the world's bounds: a map cell on the outer
-    # wall whose centre lies just outside them is within the one-cell tolerance, not off the grid
-    bounds, bounds_origin = true_occupancy(world, res)
-    bounds_shape = bounds.shape
-    origin = (bounds_origin[0] - MARGIN_CELLS * res, bounds_origin[1] - MARGIN_CELLS * res)
-    shape = (bounds_shape[0] + 2 * MARGIN_CELLS, bounds_shape[1] + 2 * MARGIN_CELLS)
-    truth, origin = true_occupancy(world, res, origin, shape)
-    reach, _ = free_reachable(world, res, footprint_radius_m, origin, truth.shape)
-    rows, cols = truth.shape
-    # coverage: look every reachable cell centre up in the map
-    rr, cc = np.nonzero(reach)
-    centres = np.column_stack((origin[0] + (cc + 0.5) * res, origin[1] + (rr + 0.5) * res))
-    c, s = math.cos(start[2]), math.sin(start[2])
-    dx, dy = centres[:, 0] - start[0], centres[:, 1] - start[1]
-    in_map = np.column_stack((c * dx + s * dy, -s * dx + c * dy))
-    mr, mc = grid.to_cell(in_map)
-    inside = (mr >= 0) & (mr < grid.shape[0]) & (mc >= 0) & (mc < grid.shape[1])
-    free = grid.known_free_mask()
-    known = np.zeros(len(mr), dtype=bool)
-    known[inside] = free[mr[inside], mc[inside]]
-    coverage = float(known.sum() / max(1, len(known)))
-    # walls: the map's occupied cells rasterized into the world grid
-    er, ec = np.nonzero(grid.occupied_mask())
-    est_xy = _to_world(start, grid.to_world(er, ec))
-    wc = np.floor((est_xy[:, 0] - origin[0]) / res).astype(int)
-    wr = np.floor((est_xy[:, 1] - origin[1]) / res).astype(int)
-    on = (wr >= 0) & (wr < rows) & (wc >= 0) & (wc < cols)
-    est = np.zeros_like(truth)
-    est[wr[on], wc[on]] = True
-    near = ndimage.generate_binary_structure(2, 2)  # one cell, diagonals included
-    truth_near = ndimage.binary_dilation(truth, near)
-    precision = float(truth_near[wr[on], wc[on]].sum() / max(1, len(er)))  # off-grid cells are false
-    visible = truth & ndimage.binary_dilation(reach, near, iterations=2)
-    recall = float((visible & ndimage.binary_dilation(est, near)).sum() / max(1, visible.sum()))
-    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-    return {
-        "coverage": round(coverage, 4),
-        "map_f1": round(f1, 4),
-        "map_precision": round(precision, 4),
-        "map_recall": round(recall, 4),
-    }
-
-
-def false_closures(closures: list, trajectory: list[tuple[float, float, float, float]]) -> int:
-    """Accepted loop closures whose relative pose disagrees with the true trajectory."""
-    if not closures or len(trajectory) < 2:
-        return 0
-    traj = np.asarray(trajectory, dtype=float)
-    t, th = traj[:, 0], np.unwrap(traj[:, 3])
-
-    def true_pose(time_s: float) -> np.ndarray:
-        return np.array([np.interp(time_s, t, traj[:, 1]), np.interp(time_s, t, traj[:, 2]), np.interp(time_s, t, th)])
-
-    count = 0
-    for old_s, new_s, z in closures:
-        a, b = true_pose(old_s), true_pose(new_s)
-        c, s = math.cos(a[2]), math.sin(a[2])
-        d = b[:2] - a[:2]
-        rel = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], math.remainder(b[2] - a[2], math.tau)])
-        err_t = math.hypot(rel[0] - z[0], rel[1] - z[1])
-        err_r = abs(math.remainder(rel[2] - z[2], math.tau))
-        count += err_t > FALSE_CLOSURE_M or err_r > FALSE_CLOSURE_RAD
-    return count
 
 
 def _instrument(
@@ -289,7 +168,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
             readings.append((clock.now_s(), robot.time_s if robot.time_s is not None else clock.now_s()))
             return reading
 
-        hardware.encoders.read = read_and_note
+        hardware.encoders.read = read_and_note  # type: ignore[method-assign]  # the harness's tap on the encoders
         if injector is not None:
             injector.ctx.robot = robot
             assert record.faults is not None
@@ -349,7 +228,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     if spec.record_path:
         from pathlib import Path
 
-        from mazebot.persist.session import RunSession
+        from mazebot.run_session import RunSession
 
         session = RunSession(record_path=Path(spec.record_path))
     daemon = run_daemon(
@@ -374,7 +253,7 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
     truth = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     est = np.asarray(record.est_poses, dtype=float).reshape(-1, 3)
     start = tuple(truth[0]) if len(truth) else robot.world.start_pose
-    truth_rel = _relative(start, truth) if len(truth) else truth
+    truth_rel = relative_poses(start, truth) if len(truth) else truth
     err_xy = np.hypot(*(est[:, :2] - truth_rel[:, :2]).T) if len(truth) else np.zeros(0)
     err_th = np.remainder(est[:, 2] - truth_rel[:, 2] + np.pi, 2 * np.pi) - np.pi if len(truth) else np.zeros(0)
     time_s = record.end_s - record.start_s
@@ -401,7 +280,7 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         # the fraction of the reachable free area the map knows as free
         "coverage": maps["coverage"],
         "collisions": int(robot.physics.collisions),
-        "revisits": _revisits(layout, truth[:, :2]) if layout is not None else None,
+        "revisits": count_revisits(layout, truth[:, :2]) if layout is not None else None,
         # the back-tracking a depth-first tour of every cell (and back to the start) cannot
         # avoid: its cell entries beyond the first; ``revisits`` above it is the excess
         "revisits_dfs": len(dfs_tour(layout)) - len(set(dfs_tour(layout))) if layout is not None else None,

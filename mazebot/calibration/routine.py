@@ -32,6 +32,7 @@ from mazebot.calibration.geometry import (
 from mazebot.calibration.progress import Progress
 from mazebot.clock import Clock
 from mazebot.config import Config
+from mazebot.hardware import Hardware
 from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpParams, Target, match_scan
 from mazebot.slam.preprocess import PrepareParams, prepare_scan
@@ -106,9 +107,9 @@ class _ScanFeed:
 
 
 class Calibrator:
-    """Runs the steps on ``hardware`` (a :class:`mazebot.main.Hardware`) with ``config`` as the starting guess."""
+    """Runs the steps on ``hardware`` (a :class:`mazebot.hardware.Hardware`) with ``config`` as the starting guess."""
 
-    def __init__(self, hardware: Any, config: Config, clock: Clock, progress: Progress) -> None:
+    def __init__(self, hardware: Hardware, config: Config, clock: Clock, progress: Progress) -> None:
         self.hw = hardware
         self.config = config
         self.clock = clock
@@ -154,6 +155,11 @@ class Calibrator:
         for output, wheel in self.wiring.wheel_of_output.items():
             out[output] = -wanted[wheel] if self.wiring.output_reversed[output] else wanted[wheel]
         self.hw.motors.set(out["left"], out["right"])
+
+    def _turned_by(self, sign: float, turned_m: float) -> Callable[[int, int], bool]:
+        """An ``until`` for :meth:`_hold`: the wheels' arcs (ticks times metres per tick) differ by
+        ``turned_m`` in the direction ``sign`` (+1: to the left)."""
+        return lambda dl, dr: sign * (dr * self.k_right - dl * self.k_left) >= turned_m
 
     async def _hold(self, left: float, right: float, until: Callable[[int, int], bool], limit_s: float) -> None:
         start = self._counts()
@@ -289,7 +295,7 @@ class Calibrator:
             sign = -1.0 if error_rad > 0 else 1.0  # turn the other way
             await self._hold(
                 -sign * TURN_THROTTLE, sign * TURN_THROTTLE,
-                until=lambda dl, dr, sign=sign, turned=turned: sign * (dr * self.k_right - dl * self.k_left) >= turned,
+                until=self._turned_by(sign, turned),
                 limit_s=10.0,
             )
 
@@ -374,8 +380,7 @@ class Calibrator:
             turned = angle_rad * self.track_m
             await self._hold(
                 -direction * TURN_THROTTLE, direction * TURN_THROTTLE,
-                until=lambda dl, dr, turned=turned, sign=direction: sign * (dr * self.k_right - dl * self.k_left)
-                >= turned,
+                until=self._turned_by(direction, turned),
                 limit_s=20.0,
             )
             after, c1 = await self._still(feed)

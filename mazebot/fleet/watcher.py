@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import time
@@ -156,7 +157,7 @@ class Fleet:
             keys.every_robot("alive"), self._threadsafe(self._on_alive), history=True))
         for topic in keys.TOPICS:
             self._declared.append(sub(keys.every_robot(topic),
-                                      self._threadsafe(lambda sample, topic=topic: self._on_sample(topic, sample))))
+                                      self._threadsafe(functools.partial(self._on_sample, topic))))
 
     def close(self) -> None:
         for entity in self._declared:

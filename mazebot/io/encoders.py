@@ -23,7 +23,7 @@ loop (read one 16-byte report, ``struct.unpack``, scan the registered callbacks,
 gpiozero's ``LGPIOPin`` wrapper) adds 0.40 µs. The mock's own bookkeeping (0.46 µs per
 edge) is subtracted: it does not exist on the Pi. Total on the Pi's path: about 1.0 µs
 per edge here. Estimate for a Pi 4, assumptions explicit: a core 5× slower (the
-pessimistic end of DESIGN.md's 3–5×) gives 5 µs per edge; the callback thread gets at
+pessimistic end of docs/design.md's 3–5×) gives 5 µs per edge; the callback thread gets at
 most half of the GIL while SLAM and the web server run, so it can follow about
 100 000 edges/s, both wheels together. Latency does not set that limit, throughput
 does: lgpio's C alert thread reads the kernel's line events (level taken from the edge

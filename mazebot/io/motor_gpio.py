@@ -95,8 +95,8 @@ def _device(driver: str, pins: list[int], frequency_hz: float, pin_factory: Any)
         device = PhaseEnableMotor(phase, enable, pwm=True, pin_factory=pin_factory)
         device.enable_device.frequency = frequency_hz
         return device
-    enable = pins[2] if len(pins) == 3 else None
-    device = Motor(pins[0], pins[1], enable=enable, pwm=True, pin_factory=pin_factory)
+    enable_pin = pins[2] if len(pins) == 3 else None
+    device = Motor(pins[0], pins[1], enable=enable_pin, pwm=True, pin_factory=pin_factory)
     device.forward_device.frequency = frequency_hz
     device.backward_device.frequency = frequency_hz
     return device

@@ -51,7 +51,8 @@ def open_motorkit(i2c_address: int, pwm_frequency_hz: float) -> MotorKitLike:
     try:
         from adafruit_motorkit import MotorKit
 
-        return MotorKit(address=i2c_address, pwm_frequency=pwm_frequency_hz)
+        kit: MotorKitLike = MotorKit(address=i2c_address, pwm_frequency=pwm_frequency_hz)
+        return kit
     except (ImportError, OSError, RuntimeError, ValueError, AttributeError) as error:
         reason = " ".join(f"{type(error).__name__}: {error}".split())
         raise HardwareUnavailable(

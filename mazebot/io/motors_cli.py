@@ -42,7 +42,7 @@ def _cmd_stop(args: argparse.Namespace) -> int:
     return problem.exit_code if problem is not None else EXIT_OK
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     motors = sub.add_parser("motors", help="direct motor HAT commands",
                             description="Direct commands to the Adafruit DC & Stepper Motor HAT.")
     msub = motors.add_subparsers(dest="motors_command", required=True, metavar="{stop}")

@@ -36,7 +36,7 @@ import math
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -343,7 +343,8 @@ class RPLidar:
         if not isinstance(self._clock, RealClock):
             timer_task = asyncio.ensure_future(self._clock.sleep(timeout_s))
             try:
-                await asyncio.wait({future, timer_task}, return_when=asyncio.FIRST_COMPLETED)
+                waiters: set[asyncio.Future[Any]] = {future, timer_task}
+                await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
             finally:
                 timer_task.cancel()
             return

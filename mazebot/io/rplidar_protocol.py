@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mazebot.errors import ProtocolError
+from mazebot.errors import ProtocolError as ProtocolError  # re-exported: the emulator catches it from here
 
 # --- requests ------------------------------------------------------------------------
 
@@ -381,7 +381,7 @@ def encode_standard_sample(angle_deg: float, dist_mm: float, quality: int, start
     return encode_standard_samples([angle_deg], [dist_mm], [quality], [start])
 
 
-def _wrap_deg(x: np.ndarray | float) -> np.ndarray | float:
+def _wrap_deg(x: np.ndarray | float) -> np.ndarray:
     """Angle difference folded into [-180, 180)."""
     return (np.asarray(x) + 180.0) % 360.0 - 180.0
 
@@ -964,7 +964,7 @@ class StandardScanDecoder:
         Also says whether the run was cut by the end of the buffer (so more bytes could
         make it longer) rather than by a malformed sample or the limit.
         """
-        idx = []
+        idx: list[int] = []
         p = q
         while len(idx) < limit:
             if p + STANDARD_SAMPLE_LEN > n:
@@ -1411,7 +1411,9 @@ class CapsuleFormat:
         return self.descriptor.dtype
 
 
-def _interpolated(prev: np.ndarray, cur: np.ndarray, start_at: int, inc_num: int, inc_den: int, n: int) -> tuple:
+def _interpolated(
+    prev: np.ndarray, cur: np.ndarray, start_at: int, inc_num: int, inc_den: int, n: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The SDK's raw angles (q16, not wrapped) of the n samples of each capsule ``prev``
     and the increment per sample: the angle from ``prev``'s start to ``cur``'s, q8,
     wrapped once, times ``inc_num`` over ``inc_den`` (C integer division)."""
@@ -1605,7 +1607,7 @@ def _ultra_dense_unpack(prev: np.ndarray, cur: np.ndarray, carry: dict[str, int]
     m = prev.shape[0]
     raw, inc = _interpolated(prev, cur, 8, 1 << 8, 64, 64)  # (diff << 8) / 64
     cab = prev[:, 10:170].reshape(m, 32, 5).astype(np.int64)
-    w = np.empty((m, 64), dtype=np.int64)
+    w: np.ndarray = np.empty((m, 64), dtype=np.int64)
     w[:, 0::2] = (cab[:, :, 0] | (cab[:, :, 1] << 8)) | ((cab[:, :, 4] & 0x0F) << 16)
     w[:, 1::2] = (cab[:, :, 2] | (cab[:, :, 3] << 8)) | ((cab[:, :, 4] >> 4) << 16)
     w = w.reshape(-1)
@@ -1786,7 +1788,8 @@ def decode_mode_conf(conf_type: int, payload: bytes) -> float | int | str:
     if conf_type in (CONF_SCAN_MODE_COUNT, CONF_SCAN_MODE_TYPICAL):
         if len(payload) < 2:
             raise ProtocolError(f"GET_LIDAR_CONF {conf_type:#x}: expected 2 bytes, found {len(payload)}")
-        return struct.unpack_from("<H", payload)[0]
+        value: int = struct.unpack_from("<H", payload)[0]
+        return value
     if conf_type == CONF_SCAN_MODE_NAME:
         return payload.split(b"\0", 1)[0].decode("ascii", errors="replace")
     raise ProtocolError(f"GET_LIDAR_CONF: unknown conf type {conf_type:#x}")

@@ -34,7 +34,7 @@ from mazebot.slam.keyframes import build_target, transform
 from mazebot.slam.observed import ObservedSlam
 from mazebot.slam.posegraph import compose, inverse
 from mazebot.slam.preprocess import prepare_scan
-from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate, _pose_at
+from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate, odometry_pose_at
 
 log = logging.getLogger(__name__)
 
@@ -117,17 +117,17 @@ class ResumedSlam(ObservedSlam):
     def relocalize(self, scan: Scan, odometry: OdometrySource) -> Relocalization:
         """Find the first revolution in the saved map; sets ``initial_pose`` and the submap."""
         p = self.params
-        odom = _pose_at(odometry, scan.end_time_s - self.time_offset.offset_s)
+        odom = odometry_pose_at(odometry, scan.end_time_s - self.time_offset.offset_s)
         prepared = prepare_scan(scan, self._deskew_motion(odometry, odom), p.prepare)
         poses = self.keyframe_poses()
         dist = np.hypot(poses[:, 0] - self.guess[0], poses[:, 1] - self.guess[1])
         near = np.flatnonzero(dist <= self.submap_radius_m + self.search_xy_m)
         near = near[np.argsort(dist[near], kind="stable")[: max(p.submap_keyframes, 40)]]
-        if near.size == 0 or prepared.points_match.shape[0] == 0:
+        target = build_target([self.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
+        if target is None or prepared.points_match.shape[0] == 0:  # no keyframe near, or none with points
             log.warning("re-localization: no saved keyframe near the start; continuing from the guess")
             self.initial_pose = compose(self.guess, inverse(odom))
             return Relocalization(self.guess.copy(), False, 0.0, float("inf"), 0)
-        target = build_target([self.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
         steps_xy = (-self.search_xy_m, 0.0, self.search_xy_m)
         steps_th = np.linspace(-self.search_theta_rad, self.search_theta_rad, 7)
         # a corridor leaves ICP free along it: among the acceptable matches the one whose

@@ -23,9 +23,10 @@ import copy
 import datetime as dt
 import io
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -78,7 +79,7 @@ def take_snapshot(slam: Slam, extra: dict[str, Any] | None = None) -> SlamSnapsh
 
 def _npz(**arrays: np.ndarray) -> bytes:
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez(buffer, **cast(dict[str, Any], arrays))  # numpy's stubs take a keyword for allow_pickle
     return buffer.getvalue()
 
 
@@ -167,13 +168,15 @@ def load_run(run_dir: Path, normal_params: Any = None) -> SavedRun:
     meta_path = run_dir / META_FILE
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        with np.load(run_dir / "grid.npz") as g:
+        # the files are opened here, not by np.load: it leaks its own handle when the archive is
+        # damaged (numpy/lib/_npyio_impl.py, load(): the ExitStack lets go before NpzFile reads it)
+        with open(run_dir / "grid.npz", "rb") as grid_file, np.load(grid_file) as g:
             log_odds = g["log_odds"].astype(np.float32)
             origin_cells = tuple(int(v) for v in g["origin_cells"])
             resolution_m = float(g["resolution_m"])
-        with np.load(run_dir / "keyframes.npz") as k:
+        with open(run_dir / "keyframes.npz", "rb") as keyframes_file, np.load(keyframes_file) as k:
             arrays = {name: k[name] for name in k.files}
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # EOFError: an empty file
         raise UsageError(f"run {run_dir} cannot be read ({type(exc).__name__}: {exc})") from None
     graph = read_g2o(run_dir / "graph.g2o")
     keyframes = []

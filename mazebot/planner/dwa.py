@@ -8,7 +8,7 @@ limits), rolls each out as a circular arc, discards those on which the robot cou
 stop before an obstacle (*admissible* velocities: ``v ≤ sqrt(2 · dist(v, ω) · v̇_b)``,
 here with the actuation latency added to the stopping distance), and picks the best of
 the rest by a weighted sum of objectives. Fox et al. weigh heading, clearance and
-velocity; following a global path through a maze (seed 000_…, III.C: "distance of the
+velocity; following a global path through a maze (Nayak et al., "2D Autonomous Mapping", III.C: "distance of the
 resulting position to the local goal, and … normal distance from the simulated path to
 the desired global path") this planner scores
 
@@ -523,7 +523,7 @@ class DynamicWindowPlanner:
         hit = clear < limit
         first_hit = np.where(hit.any(axis=1), np.argmax(hit, axis=1), s_count)
         free_m = np.where(first_hit >= s_count, np.inf, np.maximum(first_hit - 1, 0) * step_len)
-        need_m = self.stopping_distance_m(v)
+        need_m = np.asarray(self.stopping_distance_m(v))
         free_m = self._free_beyond_the_rollout(pts, v, first_hit >= s_count, need_m, free_m, costmap, limit)
         admissible = free_m >= need_m
         turning_in_place = np.abs(v) < 1e-6

@@ -2,7 +2,7 @@
 
 Exploring means driving to where something is still unknown until nothing reachable is.
 In a maze the unknowns are **frontier links**: a link of a reachable cell whose state
-(open or wall) is not known yet (seed 000_…, III.C: "this unknown link can be referred to
+(open or wall) is not known yet (Nayak et al., "2D Autonomous Mapping", III.C: "this unknown link can be referred to
 as a frontier for autonomous mapping"). Going to the cell that owns the link lets the
 lidar resolve it. A reachable cell whose inside has not been seen (a dead end looked at
 only through its opening) is a frontier too, so every cell of the maze ends up mapped,
@@ -421,7 +421,7 @@ class Explorer:
             if isinstance(key, _RegionKey):
                 self.blacklisted_points_m.remove(key.centroid_m)
             else:
-                self.blacklisted_links.discard(key)  # type: ignore[arg-type]
+                self.blacklisted_links.discard(key)
             target = self._history.get(key)
             if target is not None:  # a fresh start: its counts begin again
                 target.stalled, target.dwelt, target.best_cost = 0, 0, math.inf
@@ -450,7 +450,7 @@ class Explorer:
 
     def _choose_mode(self) -> None:
         if self.mode_setting != "auto":
-            self.mode = self.mode_setting  # type: ignore[assignment]
+            self.mode = self.mode_setting
             return
         if not self.graph.ready:
             self.mode = "frontier"
@@ -496,7 +496,7 @@ class Explorer:
         current = self._target
         keys = {(c.cell, c.side): c for c in candidates}
         if current is not None and current.key in keys:
-            kept = keys[current.key]  # type: ignore[index]
+            kept = keys[current.key]
             if self.strategy.name == "dfs":  # stay on a branch until a newer frontier appears
                 keep = kept.discovered >= choice.discovered
             else:  # switch only for a clearly cheaper target: no dithering between equals

@@ -1,7 +1,7 @@
 """Global paths: shortest routes on the maze's cell graph, and on an inflated grid.
 
 In a maze the global planner works on the cell graph (:mod:`mazebot.planner.maze_graph`):
-every open link joins two cell centres by a straight line (seed 000_…, III.C), so a
+every open link joins two cell centres by a straight line (Nayak et al., "2D Autonomous Mapping", III.C), so a
 route is a list of cells. :func:`shortest_cell_path` is A* (Hart, Nilsson & Raphael
 1968) with the Manhattan heuristic over states (cell, heading), which lets a turn cost
 extra: an in-place turn takes as long as driving a fair part of a cell, and a route
@@ -210,7 +210,7 @@ class GridCostmap:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.passable.shape  # type: ignore[return-value]
+        return self.passable.shape
 
     def to_cell(self, x_m: float, y_m: float) -> tuple[int, int]:
         """(row, col) of the grid cell holding ``(x_m, y_m)``; may lie off the grid."""

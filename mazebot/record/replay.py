@@ -135,12 +135,13 @@ class Replayer:
             pass
         elif data.get("kind") == "update":
             end_s = float(data["scan_end_time_s"])
-            scan = self._pending.pop(end_s, None)
+            pending = self._pending.pop(end_s, None)
             for older in [t for t in self._pending if t < end_s]:  # dropped by the live SLAM
                 del self._pending[older]
-            if scan is None:
+            if pending is None:
                 self.result.missing_scans += 1
                 return done
+            scan = pending
             latest = self.history.latest
             expected = data.get("odometry_latest_s")
             if expected is not None and (latest is None or latest[0] != expected):

@@ -32,7 +32,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -41,7 +41,7 @@ from mazebot.record.reader import Recording, RecordingError
 from mazebot.record.schemas import LASER_FRAME, MAP_FRAME, ODOM_FRAME, ROBOT_FRAME, equal_bearings, scan_from_json
 
 #: rosbag2's metadata version that ROS 2 Jazzy writes and reads (rosbag2_storage/bag_metadata.hpp)
-BAG_VERSION = 8
+BAG_VERSION: Final = 8
 TOPICS = {
     "/scan": "sensor_msgs/msg/LaserScan",
     "/odom": "nav_msgs/msg/Odometry",

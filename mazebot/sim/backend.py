@@ -22,12 +22,12 @@ from typing import Any
 
 from mazebot.clock import Clock
 from mazebot.config import Config
+from mazebot.hardware import Hardware, HardwareBuilder
 from mazebot.io.encoders import WheelEncoders
 from mazebot.io.motors import DifferentialMotors
 from mazebot.io.rplidar import RPLidar
 from mazebot.io.rplidar_models import MODELS
 from mazebot.io.serial_link import ByteLink, memory_link_pair
-from mazebot.main import Hardware, HardwareBuilder
 from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.robot import SimulatedRobot
 from mazebot.sim.world_source import make_world

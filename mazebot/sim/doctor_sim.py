@@ -24,8 +24,7 @@ from typing import Any
 
 from mazebot.clock import RealClock
 from mazebot.config import Config
-from mazebot.doctor import SystemProbe
-from mazebot.doctor_cli import Parts
+from mazebot.doctor import Parts, SystemProbe
 from mazebot.io.rplidar_models import MODELS
 from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.pty_lidar import pty_device

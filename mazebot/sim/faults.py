@@ -318,7 +318,7 @@ class SlowableExecutor(Executor):
             if inner.cancelled():
                 outer.cancel()
             elif inner.exception() is not None:
-                outer.set_exception(inner.exception())  # type: ignore[arg-type]
+                outer.set_exception(inner.exception())
             else:
                 outer.set_result(inner.result())
 

@@ -227,12 +227,13 @@ _FIELDS = ("time_s", "angle_deg", "dist_mm", "quality", "start")
 def concat(parts: Iterable[DeviceSamples]) -> DeviceSamples:
     """Join consecutive sample batches."""
     parts = list(parts)
-    offsets = [s.offset_deg for s in parts]
-    offset = None if any(o is None for o in offsets) else np.concatenate(offsets)  # type: ignore[arg-type]
-    return DeviceSamples(*(np.concatenate([getattr(s, f) for s in parts]) for f in _FIELDS), offset)
+    offsets = [s.offset_deg for s in parts if s.offset_deg is not None]
+    offset = np.concatenate(offsets) if len(offsets) == len(parts) else None
+    fields = {f: np.concatenate([getattr(s, f) for s in parts]) for f in _FIELDS}
+    return DeviceSamples(**fields, offset_deg=offset)
 
 
 def tail(samples: DeviceSamples, begin: int) -> DeviceSamples:
     """The samples from index ``begin`` on."""
     offset = None if samples.offset_deg is None else samples.offset_deg[begin:]
-    return DeviceSamples(*(getattr(samples, f)[begin:] for f in _FIELDS), offset)
+    return DeviceSamples(**{f: getattr(samples, f)[begin:] for f in _FIELDS}, offset_deg=offset)

@@ -30,7 +30,7 @@ import numpy as np
 from mazebot.errors import UsageError
 from mazebot.sim.world import MazeLayout, World, world_from_layout
 
-#: Cell pitch of the robot's own maze (DESIGN.md: 1 ft cells). Contest micromouse mazes
+#: Cell pitch of the robot's own maze (docs/design.md, "The reference robot": 1 ft cells). Contest micromouse mazes
 #: are 0.18 m; pass ``cell_size_m=0.18`` to load one at its true scale.
 DEFAULT_CELL_M = 0.3048
 #: Wall thickness of a micromouse maze, 12 mm.

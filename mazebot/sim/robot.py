@@ -1,6 +1,6 @@
 """The simulated robot: physics, motor HAT, encoder pins and lidar head in one world.
 
-It stands behind the same hardware boundaries as the real robot (DESIGN.md, "Hardware
+It stands behind the same hardware boundaries as the real robot (docs/design.md, "Hardware
 boundaries"): the daemon's motor driver writes throttles into a fake MotorKit, whose
 channels turn the simulated wheels; the wheels' true rotation becomes quadrature edges
 on gpiozero mock pins that the real encoder code counts; the lidar head measures the

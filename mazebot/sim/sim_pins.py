@@ -33,6 +33,7 @@ class BoundedHistoryPin(MockPin):
 
     #: Changes kept in ``states`` (the initial state counts as one).
     HISTORY = 64
+    _state: bool  # MockPin's level (gpiozero has no type information)
 
     def clear_states(self) -> None:
         self._last_change = monotonic()

@@ -31,7 +31,7 @@ LOOP_PASS_S = 1e-6
 DRAIN_EVERY_PASSES = 64
 
 
-class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc, valid-type]
+class _JumpingSelector(selectors.DefaultSelector):
     """A selector that polls without blocking and moves the loop's clock instead."""
 
     def __init__(self, loop_ref: list[VirtualTimeLoop]) -> None:
@@ -109,7 +109,9 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
         if slow is not None and slow.stall_every_s > 0 and slow.stalls_s:
             super().call_at(start_s + slow.stall_every_s, self._stall)
 
-    def call_soon(self, callback: Callable[..., Any], *args: Any, context: Any = None) -> asyncio.Handle:
+    def call_soon(  # type: ignore[override]  # typeshed's signature is generic over the callback's arguments
+        self, callback: Callable[..., Any], *args: Any, context: Any = None
+    ) -> asyncio.Handle:
         """As usual; with a :class:`SlowCpu`, a step of a costly task also moves the clock on."""
         slow = self.slow
         if slow is not None and slow.callback_cost_s > 0:

@@ -6,7 +6,7 @@ wins over the misses of every other beam crossing that cell (:mod:`mazebot.slam.
 So when a wall face lies a few millimetres behind a cell edge, some of the eight or so
 beams that hit it from close by fall short into the free cell in front in nearly every
 scan, and that cell ends up occupied: the wall shows two cells thick and the free space
-stops a cell short of it (the coverage of issue 5 missed exactly those cells).
+stops a cell short of it (the bench's coverage figure missed exactly those cells).
 
 A beam's bearing is precise (the head's angle encoder) and its range is not, so each
 hit is moved *along its own beam* onto the line fitted through its neighbours: the

@@ -156,8 +156,8 @@ def parse_g2o(lines: Iterable[str], source: str = "<g2o>") -> PoseGraph:
     graph = PoseGraph()
     graph.add_vertices(np.array(poses, dtype=np.float64).reshape(-1, 3), vertex_ids)
     index_of_id = {vertex_id: index for index, vertex_id in enumerate(vertex_ids)}
-    ends = np.array([(index_of_id[a], index_of_id[b]) for a, b in edge_ends], dtype=np.intp).reshape(-1, 2)
-    graph.add_edges(ends[:, 0], ends[:, 1], values[:, :3], information)
+    end_rows = np.array([(index_of_id[a], index_of_id[b]) for a, b in edge_ends], dtype=np.intp).reshape(-1, 2)
+    graph.add_edges(end_rows[:, 0], end_rows[:, 1], values[:, :3], information)
     graph.fixed.update(index_of_id[vertex_id] for _, vertex_id in fixes)
     return graph
 

@@ -121,7 +121,7 @@ class OccupancyGrid:
     @property
     def shape(self) -> tuple[int, int]:
         """(rows, cols) of the current array."""
-        return self.log_odds.shape  # type: ignore[return-value]
+        return self.log_odds.shape
 
     @property
     def origin_m(self) -> tuple[float, float]:

@@ -58,6 +58,7 @@ from __future__ import annotations
 import math
 from collections.abc import Generator, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -303,7 +304,7 @@ def match_scan_steps(
     k = max(1, p.candidates if target.oriented else 1)
     weighted = p.range_noise_ratio > 0.0
     converged = False
-    last: tuple = ()
+    last: tuple[Any, ...] = ()
     iterations = 0
     if len(target) == 0 or src.shape[0] == 0:
         return _give_up(prior, 0)

@@ -3,7 +3,7 @@
 A maze is the worst place for loop closure: its corridors are identical, so a scan
 taken in one cell can match another cell's walls perfectly. A false loop closure
 bends the whole map, so every candidate must pass every test below or it is dropped
-(the "strict acceptance" of issue 4; the approach of Olson, "Recognizing places using
+(strict acceptance: the approach of Olson, "Recognizing places using
 spectrally clustered local matches", RAS 2009, and of Cartographer's constraint
 builder: search only where the pose uncertainty allows, then demand a good and
 unambiguous match).
@@ -231,7 +231,7 @@ def verify(
             if elsewhere and _as_good(other, result, params):
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
     information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
-    return Verdict(candidate, True, "accepted", result.pose.copy(), information, **fit)
+    return Verdict(candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"])
 
 
 def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> bool:

@@ -14,7 +14,7 @@ Example::
 from __future__ import annotations
 
 from collections.abc import Generator
-from typing import Protocol
+from typing import Any, Protocol
 
 from mazebot.io.scan import Scan
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, OdometrySource, PaintDecision, Slam, SlamUpdate
@@ -31,7 +31,7 @@ class SlamObserver(Protocol):
 class ObservedSlam(Slam):
     """Slam plus a list of observers called after ``update`` (``update_steps``) and ``apply``."""
 
-    def __init__(self, *args, **kwargs) -> None:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.observers: list[SlamObserver] = []
 

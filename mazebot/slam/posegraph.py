@@ -85,7 +85,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -376,7 +376,8 @@ class PoseGraph:
         identity), symmetric positive semi-definite. Returns the edge index.
         """
         omega = np.eye(3) if information is None else information
-        first = self.add_edges([i], [j], np.reshape(np.asarray(measurement, dtype=np.float64), (1, -1)), [omega])
+        measurements = np.reshape(np.asarray(measurement, dtype=np.float64), (1, -1))
+        first = self.add_edges([i], [j], measurements, np.asarray(omega)[None])
         return int(first)
 
     def add_edges(
@@ -975,7 +976,8 @@ class _NormalEquations:
         np.einsum("mji,mj->mi", b, omega_e, out=grads[1])
         gradient = np.bincount(self.grad_index, weights=grads.reshape(-1), minlength=self.variable_count + 1)
         chi2 = float(np.einsum("mi,mi->", e, omega_e))
-        return h_data, gradient[: self.variable_count], chi2
+        # np.bincount with float weights gives floats (its stubs say integers)
+        return cast(FloatArray, h_data), cast(FloatArray, gradient[: self.variable_count]), chi2
 
     def solve(self, h_data: FloatArray, gradient: FloatArray) -> FloatArray | None:
         """Solve ``H Δ = -b`` (permuted coordinates) with SuperLU; None if ``H`` is singular.

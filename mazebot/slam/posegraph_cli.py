@@ -83,7 +83,7 @@ def _number(value: float) -> str:
     return f"{value:.6g}" if math.isfinite(value) and abs(value) >= 1e6 else f"{value:.4f}"
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     posegraph = sub.add_parser("posegraph", help="2D pose graphs in g2o format")
     psub = posegraph.add_subparsers(dest="posegraph_command", required=True)
     optimize = psub.add_parser(

@@ -380,8 +380,8 @@ def _ambiguous(pose: np.ndarray, fit: ScanFit, rivals: list[tuple[ScanFit, np.nd
 def _in_window(pose: np.ndarray, guess: np.ndarray, params: GuardParams) -> bool:
     """The pose lies in the searched window (with a margin for ICP's last steps)."""
     offset = pose - guess
-    return (math.hypot(offset[0], offset[1]) <= params.search_xy_m + 0.05
-            and abs(wrap_angle(offset[2])) <= params.search_theta_rad + 0.1)
+    return bool(math.hypot(offset[0], offset[1]) <= params.search_xy_m + 0.05
+                and abs(wrap_angle(offset[2])) <= params.search_theta_rad + 0.1)
 
 
 def _search_known_part(
@@ -432,7 +432,7 @@ def _search_known_part(
 
 def _same_pose(a: np.ndarray, b: np.ndarray, params: GuardParams) -> bool:
     """Two found poses are one (ICP from two candidates converging to the same place)."""
-    return math.hypot(a[0] - b[0], a[1] - b[1]) < 2 * params.search_step_m and abs(wrap_angle(a[2] - b[2])) < 0.1
+    return bool(math.hypot(a[0] - b[0], a[1] - b[1]) < 2 * params.search_step_m and abs(wrap_angle(a[2] - b[2])) < 0.1)
 
 
 def _odom_at(odometry: Any, time_s: float) -> np.ndarray:
@@ -530,7 +530,8 @@ class LocalizationGuard:
             return False
         expected = compose(earlier.pose, compose(inverse(earlier.odom), result.odom))
         d = result.pose - expected
-        return math.hypot(d[0], d[1]) <= self.params.confirm_m and abs(wrap_angle(d[2])) <= self.params.confirm_rad
+        return bool(math.hypot(d[0], d[1]) <= self.params.confirm_m
+                    and abs(wrap_angle(d[2])) <= self.params.confirm_rad)
 
     @property
     def search_scale(self) -> float:

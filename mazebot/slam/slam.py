@@ -673,7 +673,7 @@ class Slam:
         if offset_s:
             scan = replace(scan, time_s=scan.time_s - offset_s)
         time_s = scan.end_time_s
-        odom = _pose_at(odometry, time_s)
+        odom = odometry_pose_at(odometry, time_s)
         rate = _turn_rate(odometry, time_s)
         self.scans += 1
 
@@ -699,11 +699,11 @@ class Slam:
         matched = False
         predicted_theta = float(self.ekf.mean[2])
         good_match = match is not None and self.acceptable(match)
-        if good_match:
+        if match is not None and good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if callable(paint):
             paint = bool(paint(match, matched))
-        if paint and good_match and p.estimate_time_offset and self._last_rate is not None:
+        if paint and match is not None and good_match and p.estimate_time_offset and self._last_rate is not None:
             # a turn starting or stopping shows a stamp offset (even when the filter's gate refused the match)
             self.time_offset.observe(float(match.pose[2]) - predicted_theta, rate - self._last_rate)
         self._last_rate = rate
@@ -1118,7 +1118,8 @@ def _turn_rate(odometry: OdometrySource, time_s: float, window_s: float = 0.02) 
     return math.remainder(float(th[1] - th[0]), math.tau) / window_s
 
 
-def _pose_at(odometry: OdometrySource, time_s: float) -> np.ndarray:
+def odometry_pose_at(odometry: OdometrySource, time_s: float) -> np.ndarray:
+    """The odometry pose at ``time_s``, heading wrapped to [-π, π)."""
     x, y, th = odometry.at(np.array([time_s]))
     return np.array([float(np.ravel(x)[0]), float(np.ravel(y)[0]), math.remainder(float(np.ravel(th)[0]), math.tau)])
 

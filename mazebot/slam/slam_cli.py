@@ -37,6 +37,7 @@ import math
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -188,7 +189,7 @@ def run_carmen(
     seed: int = 1,
     max_scans: int | None = None,
     config_path: str | None = None,
-) -> dict:
+) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics."""
     log = read_carmen(log_path)
     if not log.lasers:
@@ -272,7 +273,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     slam = sub.add_parser("slam", help="run the SLAM offline on recorded data")
     ssub = slam.add_subparsers(dest="slam_command", required=True)
     run = ssub.add_parser(

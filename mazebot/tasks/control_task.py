@@ -103,7 +103,8 @@ class MotorControl:
         if state.faults_raised != self._faults_raised_seen:
             # a fault since the last tick stops the wheels, even one already cleared again: a
             # kidnapped robot found again 50 ms after it was lost, between two ticks, kept
-            # driving (tests/bench/test_fault_runs.py; issue 7: motors zero <= 200 ms after it)
+            # driving (tests/bench/test_fault_runs.py; motors zero <= 200 ms after a fault:
+            # docs/design.md, "The fault suite's targets")
             self._faults_raised_seen = state.faults_raised
             moving = False
         command = state.motion_command

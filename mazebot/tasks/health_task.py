@@ -56,7 +56,7 @@ MOTOR_PERIOD_S = 0.05
 OTHER_WHEEL_TICKS = 40
 #: A silent encoder on a driven wheel while the other wheel idles (a pivot about it) is a fault
 #: after this long, without the other wheel's ticks: the idle wheel took 1.1 s to count 40 in the
-#: fault suite's encoder-dead run (said after 1.2 s; issue 7 wants 0.5). A driven wheel starting
+#: fault suite's encoder-dead run (said after 1.2 s; the fault suite wants 0.5, docs/design.md). A driven wheel starting
 #: from rest counts within ~0.1 s (the motor's 0.09 s lag); a wheel pushed against a wall has the
 #: other one driven too, which keeps the old rule.
 OTHER_IDLE_DEAD_S = 0.3
@@ -208,7 +208,7 @@ class HealthMonitor:
             self._weak_streak[side] = self._weak_streak[side] + 1 if weak else 0
             if weak and self._weak_streak[side] >= self.weak_checks:
                 name = ("left", "right")[side]
-                share = 100 * max(0.0, mine) / reference  # type: ignore[operator]
+                share = 100 * max(0.0, mine or 0.0) / (reference or 1.0)  # both known here (weak)
                 self._note(state, "motors", f"the {name} motor gives only {share:.0f} % of the other's speed for "
                            "the same throttle: the wheel control makes up for it; check that motor, its gearbox "
                            "and its wires", now_s)

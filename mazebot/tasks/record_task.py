@@ -31,6 +31,8 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 from mazebot.clock import Clock
+from mazebot.hardware import Encoders, Hardware, Lidar, Motors
+from mazebot.io.encoders import EncoderReading
 from mazebot.io.scan import Scan
 from mazebot.record.schemas import transform_chain
 from mazebot.record.writer import McapRecorder
@@ -74,7 +76,7 @@ class RecordingTap:
 class LidarTap:
     """The lidar driver, with every revolution recorded as it is handed on."""
 
-    def __init__(self, lidar: Any, tap: RecordingTap) -> None:
+    def __init__(self, lidar: Lidar, tap: RecordingTap) -> None:
         self._lidar = lidar
         self._tap = tap
 
@@ -91,11 +93,11 @@ class LidarTap:
 class EncodersTap:
     """The encoder driver, with every reading recorded with the time odometry will use."""
 
-    def __init__(self, encoders: Any, tap: RecordingTap) -> None:
+    def __init__(self, encoders: Encoders, tap: RecordingTap) -> None:
         self._encoders = encoders
         self._tap = tap
 
-    def read(self) -> Any:
+    def read(self) -> EncoderReading:
         reading = self._encoders.read()
         time_s = reading.time_s if getattr(reading, "time_s", None) is not None else self._tap.clock.now_s()
         self._tap.put(
@@ -117,7 +119,7 @@ class EncodersTap:
 class MotorsTap:
     """The motor driver, with every command recorded (a stop is 0, 0)."""
 
-    def __init__(self, motors: Any, tap: RecordingTap) -> None:
+    def __init__(self, motors: Motors, tap: RecordingTap) -> None:
         self._motors = motors
         self._tap = tap
 
@@ -137,7 +139,7 @@ class MotorsTap:
         return getattr(self._motors, name)
 
 
-def tap_hardware(hardware: Any, tap: RecordingTap) -> Any:
+def tap_hardware(hardware: Hardware, tap: RecordingTap) -> Hardware:
     """The same hardware with its lidar, encoders and motors recorded."""
     return dataclasses.replace(
         hardware,

@@ -159,6 +159,7 @@ async def run(
                 if verdict == "lost":
                     trust.distrust()
                     _lost(state, guard, clock)
+                    assert guard.guess is not None  # check() predicted the pose of the revolution it calls lost
                     search = loop.run_in_executor(
                         executor, search_pose, slam, scan, history, guard.guess, guard.params, guard.search_scale
                     )
@@ -286,7 +287,8 @@ def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult, 
     stats = state.slam
     stats.loop_closures = len(slam.closures)
     for record in slam.closures[len(stats.closures) :]:
-        stats.closures.append((record.old_time_s, record.new_time_s, tuple(float(v) for v in record.measurement)))
+        dx, dy, dth = (float(v) for v in record.measurement)
+        stats.closures.append((record.old_time_s, record.new_time_s, (dx, dy, dth)))
     stats.loop_closures_rejected = sum(slam.rejections.values())
     if result.poses is None:
         return

@@ -102,7 +102,7 @@ AUTH_KEY = web.AppKey("auth", ControlAuth)
 BROADCASTER_KEY = web.AppKey("broadcaster", Broadcaster)
 CONNECTIONS_KEY = web.AppKey("connections", ConnectionLimiter)
 #: A replay (``mazebot replay --serve``): what to tell clients about it; absent for a robot.
-REPLAY_KEY = web.AppKey("replay", Callable[[], dict[str, Any]])
+REPLAY_KEY = web.AppKey[Callable[[], dict[str, Any]]]("replay")
 #: The answer to start/stop during a replay: 409 Conflict (there is no robot behind the page).
 REPLAY_COMMAND_STATUS = 409
 

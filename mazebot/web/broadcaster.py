@@ -334,7 +334,7 @@ class Broadcaster:
         last = self._trail_last
         if n and traj[-1] is last:
             return False, []
-        start = None
+        start: int | None = None
         if last is not None:  # the last point sent: the same object, or (rewritten by SLAM) the same place
             for i in range(n - 1, max(-1, n - 1 - self.trail_points), -1):
                 p = traj[i]
@@ -342,7 +342,7 @@ class Broadcaster:
                     start = i + 1
                     break
         reset = start is None
-        if reset:
+        if start is None:
             start = max(0, n - self.trail_points)
         new = [round(float(v), 2) for i in range(start, n) for v in traj[i][:2]]
         self._trail_last = traj[-1] if n else None

@@ -70,7 +70,7 @@ class GridSection:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.codes.shape  # type: ignore[return-value]
+        return self.codes.shape
 
 
 @dataclass(frozen=True)

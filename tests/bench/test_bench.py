@@ -1,6 +1,6 @@
 """The benchmark harness end to end: the whole daemon on the simulated robot, virtual time.
 
-The smoke suite is what CI runs (issue 3: under two minutes); the exploration run is the
+The smoke suite is what CI runs (under two minutes: docs/design.md, "Budgets"); the exploration run is the
 autonomous stack (planner, DWA, wheel PI, safety layer) on SLAM's map and pose, measured
 against the simulator's ground truth.
 """
@@ -51,6 +51,7 @@ def read_png(path: Path) -> tuple[int, int, bytes]:
     return width, height, raw
 
 
+@pytest.mark.slow
 def test_smoke_suite_with_the_scripted_drive_writes_every_key_and_figures_that_open(tmp_path: Path) -> None:
     assert main(["bench", "--suite", "smoke", "--drive", "scripted", "--out", str(tmp_path)]) == 0
     results = json.loads((tmp_path / "results.json").read_text())
@@ -76,6 +77,7 @@ def test_smoke_suite_with_the_scripted_drive_writes_every_key_and_figures_that_o
         assert len(np.unique(pixels.reshape(-1, 3), axis=0)) >= 3  # a picture, not a blank
 
 
+@pytest.mark.slow
 def test_the_robot_explores_a_maze_by_itself_and_comes_back_to_the_start() -> None:
     """Start pressed once; the planner, DWA, wheel PI and safety layer drive on SLAM's estimate."""
     spec = RunSpec(None, (4, 4), seed=3, drive="explore", max_sim_s=300.0)
@@ -101,7 +103,7 @@ def test_the_robot_explores_a_maze_by_itself_and_comes_back_to_the_start() -> No
 
 
 def test_revisits_count_real_back_tracking_not_swaying_across_a_cell_border() -> None:
-    from mazebot.bench.runner import _revisits
+    from mazebot.bench.metrics import count_revisits
     from mazebot.sim.maze_file import parse_maze
 
     layout = parse_maze("o---o---o---o\n|           |\no---o---o---o\n", 0.3048)
@@ -110,10 +112,10 @@ def test_revisits_count_real_back_tracking_not_swaying_across_a_cell_border() ->
     # down the corridor, swaying +-1 cm across the (0,0)|(1,0) border ten times, on to (2,0)
     sway = [(border_x + (0.01 if k % 2 else -0.01), cy) for k in range(10)]
     ahead = [(cx0 + k * 0.05, cy) for k in range(13)]
-    assert _revisits(layout, np.array([*sway, *ahead])) == 0
+    assert count_revisits(layout, np.array([*sway, *ahead])) == 0
     # back-tracking from (2,0) to (0,0) is two revisits: (1,0) and (0,0)
     back = [(x, cy) for x, _ in reversed(ahead)]
-    assert _revisits(layout, np.array([*ahead, *back])) == 2
+    assert count_revisits(layout, np.array([*ahead, *back])) == 2
 
 
 def test_a_suite_can_be_split_over_processes_by_its_first_seed() -> None:

@@ -14,6 +14,8 @@ from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
 from mazebot.sim.faults import FaultSpec
 
+pytestmark = pytest.mark.slow  # whole simulated runs with injected faults
+
 
 def _run(*faults: FaultSpec) -> list[dict]:
     spec = RunSpec(None, (4, 4), 2, "explore", faults=faults, recovery_window_s=6.0, max_sim_s=90.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mazebot.bench.runner import map_metrics
+from mazebot.bench.metrics import map_metrics
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.world import world_from_layout
 from mazebot.slam.grid import OccupancyGrid

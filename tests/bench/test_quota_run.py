@@ -71,6 +71,7 @@ def assert_the_boundary_carried_everything(record: QuotaRecord, m: dict) -> None
     assert gone(record.daemon_pid) and gone(record.world_pid)
 
 
+@pytest.mark.slow
 def test_a_short_two_process_run_reads_the_pty_lidar_counts_the_edges_and_moves_the_wheels() -> None:
     record, m = short_run()
     assert_the_boundary_carried_everything(record, m)
@@ -86,6 +87,7 @@ def _cgroup_unusable() -> str | None:
     return None
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_cgroup_unusable() is not None, reason=str(_cgroup_unusable()))
 def test_inside_a_real_cgroup_the_daemon_is_accounted_throttled_and_the_cgroup_removed() -> None:
     quota = CpuQuota.create(f"mazebot-test-{os.getpid()}", 50.0)
@@ -135,6 +137,7 @@ def session_processes(sid: int) -> list[int]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_cgroup_unusable() is not None, reason=str(_cgroup_unusable()))
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_or_sigterm_to_every_process_ends_them_all_and_removes_the_cgroup(sig: int, tmp_path: Path) -> None:

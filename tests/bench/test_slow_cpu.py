@@ -13,9 +13,13 @@ collision, no fault.
 
 from __future__ import annotations
 
+import pytest
+
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
 from mazebot.sim.virtual_time import PI_CLASS_CPU as SLOW
+
+pytestmark = pytest.mark.slow  # whole simulated runs on a slowed CPU
 
 
 def _outcome(metrics: dict) -> dict:

@@ -19,6 +19,8 @@ from mazebot.config import Config, load_config, render_toml
 from mazebot.sim.robot import physics_params
 from mazebot.sim.truth import same_true_robot
 
+pytestmark = pytest.mark.slow  # calibration runs on the simulated robot
+
 
 def _miswired() -> Config:
     config = Config()

@@ -26,6 +26,8 @@ from mazebot.fleet import keys
 from mazebot.fleet.watcher import RobotMirror
 from mazebot.web.protocol import KIND_DELTA, KIND_FULL, CellsSection, GridSection, Packet, encode_packet
 
+pytestmark = pytest.mark.slow  # daemons and watchers over real Zenoh sessions
+
 PIN = "2468"
 NAMES = ("alpha", "beta")
 

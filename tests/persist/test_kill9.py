@@ -18,10 +18,13 @@ from pathlib import Path
 
 import aiohttp
 import numpy as np
+import pytest
 from aiohttp.test_utils import unused_port
 
 from mazebot.persist.runs import find_run
 from mazebot.persist.snapshot import load_run
+
+pytestmark = pytest.mark.slow  # real daemon processes killed and restarted
 
 
 def _config(tmp_path: Path, port: int) -> Path:

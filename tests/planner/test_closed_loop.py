@@ -47,6 +47,8 @@ from mazebot.sim.room import make_room
 from mazebot.sim.world import World, world_from_layout
 from mazebot.slam.grid import OccupancyGrid
 
+pytestmark = pytest.mark.slow  # closed-loop runs of the simulated robot
+
 RES_M = 0.02
 CELL_M = 0.3048
 TICKS_PER_REV = 840  # 210 lines, x4 decoding: the config default

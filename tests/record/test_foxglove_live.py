@@ -26,6 +26,8 @@ from mazebot.main import _start_foxglove, run_daemon
 from mazebot.sim.backend import sim_hardware_builder
 from mazebot.state import RunState
 
+pytestmark = pytest.mark.slow  # the daemon with a live Foxglove server
+
 CONTROL_TOKEN = "2468"
 SUBPROTOCOL = "foxglove.sdk.v1"
 EXPECTED = {

@@ -25,15 +25,17 @@ from mazebot.errors import UsageError
 from mazebot.persist.export import export_json, export_pgm, export_png, export_svg, three_state
 from mazebot.persist.resume import ResumedSlam
 from mazebot.persist.runs import find_run
-from mazebot.persist.session import RunSession
 from mazebot.persist.snapshot import load_run
 from mazebot.record.reader import Recording
 from mazebot.record.replay import occupied_iou, recorded_config, replay, write_outputs
 from mazebot.record.schemas import scan_from_json
+from mazebot.run_session import RunSession
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.map_export import read_ros_map
 from mazebot.slam.odometry import DiffDriveOdometry
 from mazebot.slam.slam import SlamParams
+
+pytestmark = pytest.mark.slow  # whole simulated runs recorded and replayed
 
 MAZE = str(Path(__file__).resolve().parents[2] / "mazebot" / "sim" / "mazes" / "minimaze.txt")
 

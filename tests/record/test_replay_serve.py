@@ -38,6 +38,8 @@ from mazebot.state import SharedState
 from mazebot.web.app import WebSettings
 from mazebot.web.protocol import KIND_FULL, CellsSection, GridSection, decode_packet, three_state_to_codes
 
+pytestmark = pytest.mark.slow  # a whole simulated run recorded first, then served
+
 MAZE = str(Path(__file__).resolve().parents[2] / "mazebot" / "sim" / "mazes" / "minimaze.txt")
 
 

@@ -20,10 +20,12 @@ from rosbags.typesys import Stores, get_typestore
 
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
-from mazebot.persist.session import RunSession
 from mazebot.record.reader import Recording
 from mazebot.record.rosbag_export import export_bag
 from mazebot.record.schemas import equal_bearings, scan_from_json
+from mazebot.run_session import RunSession
+
+pytestmark = pytest.mark.slow  # a whole simulated run recorded first
 
 MAZE = str(Path(__file__).resolve().parents[2] / "mazebot" / "sim" / "mazes" / "minimaze.txt")
 STORE = get_typestore(Stores.ROS2_HUMBLE)

@@ -11,9 +11,12 @@ results are handed to SLAM at a fixed simulated time after submission
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
+
+pytestmark = pytest.mark.slow  # whole simulated runs, twice
 
 
 def _short_run(seed: int) -> tuple[np.ndarray, int, int]:

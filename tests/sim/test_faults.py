@@ -77,13 +77,15 @@ def _gap_around(ends: list[float], at_s: float) -> float:
 
 @pytest.mark.parametrize("fault", ["lidar-unplug", "lidar-stall", "lidar-truncated-descriptor",
                                    "lidar-health-error", "lidar-motor-stop"])
+@pytest.mark.slow
 def test_a_lidar_that_goes_silent_is_silent_long_enough_to_be_seen_and_scans_again(fault: str) -> None:
     ends, stats, injection, line = run_virtual(_lidar_under(fault))
     end_s = injection.end_s - (injection.begin_s - AT_S)  # relative to the start, like ``ends``
     assert _gap_around(ends, AT_S) > 0.4  # longer than [daemon] lidar_silence_s: the health check faults
     after = [t for t in ends if t > end_s]
     assert after, f"no revolution after {fault} ended"
-    # scanning again within 3 s of the cable going back in (issue 7); a sick device takes a time-out
+    # scanning again within 3 s of the cable going back in (docs/design.md, the fault suite's targets);
+    # a sick device takes a time-out
     # (no data 1 s), an unanswered request (1 s) and a reconnect (0.5 s) before its first new revolution
     assert after[0] - end_s <= (3.0 if fault == "lidar-unplug" else 4.0)
     assert len(after) >= 10  # and keeps scanning
@@ -95,6 +97,7 @@ def test_a_lidar_that_goes_silent_is_silent_long_enough_to_be_seen_and_scans_aga
         assert stats.scan_restarts >= 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["lidar-noise", "lidar-bitflip"])
 def test_a_noisy_lidar_line_costs_bytes_not_revolutions(fault: str) -> None:
     ends, stats, _, _ = run_virtual(_lidar_under(fault))

@@ -46,6 +46,7 @@ def sim_lidar_pty() -> tuple[str, subprocess.Popen[str]]:
         proc.stderr.close()
 
 
+@pytest.mark.slow
 def test_third_party_client_reads_info_health_and_scans(sim_lidar_pty: tuple[str, subprocess.Popen[str]]) -> None:
     rplidar = pytest.importorskip("rplidar", reason="the test extra rplidar-roboticia is not installed")
     path, _proc = sim_lidar_pty

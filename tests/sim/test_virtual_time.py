@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import time
 
 import pytest
 
@@ -16,9 +15,8 @@ def test_an_hour_of_sleeping_takes_no_real_time() -> None:
         await asyncio.sleep(3600)
         return RealClock().now_s()
 
-    wall = time.perf_counter()
+    # on real time this would take an hour: pytest-timeout ([tool.pytest.ini_options] timeout) fails it
     assert run_virtual(sleepy()) == pytest.approx(3600.0, abs=1e-3)  # + a microsecond a loop pass
-    assert time.perf_counter() - wall < 5.0  # generous: it is instantaneous in practice
 
 
 def test_timers_interleave_as_in_real_time() -> None:

@@ -22,6 +22,8 @@ from mazebot.slam import slam as slam_module
 from mazebot.slam.loop_worker import LoopClosureExecutor
 from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams
 
+pytestmark = pytest.mark.slow  # a simulated run's keyframes and a worker process
+
 
 class _FrozenOdometry:
     """The odometry history as SLAM saw it at one scan."""

@@ -15,7 +15,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from mazebot.bench.runner import map_metrics
+from mazebot.bench.metrics import map_metrics
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
 from mazebot.clock import RealClock
 from mazebot.config import Config

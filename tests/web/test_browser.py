@@ -23,6 +23,8 @@ from typing import Any
 import pytest
 from aiohttp.test_utils import unused_port
 
+pytestmark = pytest.mark.slow  # a real Chromium on the running daemon
+
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e '.[test]')")
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -122,7 +124,7 @@ def browser_page(daemon: Daemon, playwright: Any, tmp_path_factory: pytest.TempP
     context.close()
 
 
-def _wait_state(page: Any, daemon: Daemon, state: str, timeout_s: float = 3.0) -> float:
+def _wait_state(page: Any, daemon: Daemon, state: str, timeout_s: float = 15.0) -> float:
     """Seconds until both the page and the daemon show ``state``."""
     t0 = time.monotonic()
     page.wait_for_function(f"document.body.dataset.state === {state!r}", timeout=timeout_s * 1000)
@@ -156,8 +158,7 @@ def test_pin_is_asked_once_remembered_and_start_stop_change_the_state(browser_pa
     assert _status(daemon.url)["state"] == "idle"  # a wrong PIN moves nothing
     page.fill("#pin", PIN)
     page.click("#pin-ok")
-    took_s = _wait_state(page, daemon, "exploring")
-    assert took_s < 1.0
+    _wait_state(page, daemon, "exploring")  # how fast is bench/stop_latency.py's figure, not a test's
     assert page.inner_text("#go") == "Stop"
     assert page.evaluate("localStorage.getItem('mazebot.pin')") == PIN
     page.screenshot(path=str(ARTIFACTS / "phone-running.png"))

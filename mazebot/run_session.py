@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from mazebot.clock import Clock
 from mazebot.config import Config
 from mazebot.errors import UsageError
+from mazebot.hardware import Hardware
 from mazebot.persist.runs import find_run, new_run_dir, runs_root
 from mazebot.state import SharedState
 
@@ -75,7 +76,9 @@ class RunSession:
         meta = {"resumed_from": str(saved.path) if saved else None}
         return cls(run_dir=run_dir, record_path=record_path, resume=saved, meta=meta)
 
-    def open(self, config: Config, clock: Clock, state: SharedState, hardware: Any, stack: AsyncExitStack) -> Any:
+    def open(
+        self, config: Config, clock: Clock, state: SharedState, hardware: Hardware, stack: AsyncExitStack
+    ) -> Hardware:
         """Start the recorder (if any) and return the hardware with its recording taps."""
         if self.record_path is None:
             return hardware

@@ -132,15 +132,24 @@ def _group_by_label(labels: np.ndarray, count: int) -> list[np.ndarray]:
 
 
 def sees(
-    free: np.ndarray, viewpoints: np.ndarray, targets: np.ndarray, min_range_cells: float, max_range_cells: float
+    free: np.ndarray,
+    viewpoints: np.ndarray,
+    targets: np.ndarray,
+    min_range_cells: float,
+    max_range_cells: float,
+    half_width_cells: float = 0.5,
 ) -> np.ndarray:
     """Which viewpoint's lidar would resolve which target cell: a (C, T) boolean array.
 
     ``free`` is the known-free grid; ``viewpoints`` (C, 2) and ``targets`` (T, 2) are
     ``(row, col)`` cells. A target is seen when it lies between ``min_range_cells`` and
-    ``max_range_cells`` (centre to centre) and the straight segment to it, sampled every
-    half cell, crosses only known free cells before reaching it: the lidar's ray in
-    that direction gets there and whatever it finds (free space, a wall) is painted.
+    ``max_range_cells`` (centre to centre) and a strip ``2 * half_width_cells`` wide
+    along the segment to it, sampled every half cell on its centre line and both edges,
+    crosses only known free cells until the last cell and a half before the target: the
+    lidar's ray in that direction gets there and whatever it finds (free space, a wall)
+    is painted. The strip's width keeps out rays that only graze a corner: looking along
+    the edge of a shadow from the line it was cast along resolves nothing new, though a
+    one-cell-wide digital line may slip past the corner.
     """
     v = np.asarray(viewpoints, dtype=np.float64)[:, None, :]
     t = np.asarray(targets, dtype=np.float64)[None, :, :]
@@ -153,13 +162,25 @@ def sees(
     k = np.arange(1, int(steps[in_range].max()))
     frac = k[None, None, :] / steps[..., None]  # (C, T, S); beyond 1 for short segments
     before = frac < 1.0
-    rr = np.rint(v[..., 0, None] + frac * delta[..., 0, None]).astype(np.int64)
-    cc = np.rint(v[..., 1, None] + frac * delta[..., 1, None]).astype(np.int64)
+    rows = v[..., 0, None] + frac * delta[..., 0, None]
+    cols = v[..., 1, None] + frac * delta[..., 1, None]
+    rr, cc = np.rint(rows).astype(np.int64), np.rint(cols).astype(np.int64)
     on_target = (rr == t[..., 0, None]) & (cc == t[..., 1, None])
-    rr = np.clip(rr, 0, free.shape[0] - 1)
-    cc = np.clip(cc, 0, free.shape[1] - 1)
-    clear = (free[rr, cc] | ~before | on_target).all(axis=2)
-    return in_range & clear
+    clear = _free_at(free, rr, cc) | ~before | on_target
+    # the strip's edges, up to a cell and a half short of the target (its neighbours there are unknown)
+    away = (frac * dist[..., None] < dist[..., None] - 1.5) & before
+    unit = delta / np.maximum(dist, 1e-9)[..., None]
+    for side in (-half_width_cells, half_width_cells):
+        er = np.rint(rows - side * unit[..., 1, None]).astype(np.int64)
+        ec = np.rint(cols + side * unit[..., 0, None]).astype(np.int64)
+        clear &= _free_at(free, er, ec) | ~away
+    return in_range & clear.all(axis=2)
+
+
+def _free_at(free: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``free[rows, cols]``, False off the grid."""
+    inside = (rows >= 0) & (rows < free.shape[0]) & (cols >= 0) & (cols < free.shape[1])
+    return free[np.clip(rows, 0, free.shape[0] - 1), np.clip(cols, 0, free.shape[1] - 1)] & inside
 
 
 def viewpoint_candidates(

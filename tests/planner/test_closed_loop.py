@@ -12,7 +12,8 @@ actuation latency.
 
 Run as a script to print the measured figures for a range of seeds::
 
-    .venv/bin/python tests/planner/test_closed_loop.py --kind braided --seeds 1-30 [--strategy dfs] [--map grid] [--mode frontier] [--size 4]
+    .venv/bin/python tests/planner/test_closed_loop.py --kind braided --seeds 1-30 [--strategy dfs] [--map grid]
+        [--mode frontier] [--size 4]
 
 (``--map grid`` builds the map with a real log-odds :class:`OccupancyGrid` from noisy
 ranges instead of revealing the perfect one; ``--kind room`` is the room with cylinders.)

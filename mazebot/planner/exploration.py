@@ -19,11 +19,13 @@ not just its links. Two strategies choose among them:
   skipping the dead ends the lidar has already seen to the end.
 
 A cell maze is recognised by its walls (:attr:`MazeGraph.fit`, the share of wall cells
-on the lattice). Worlds that are not mazes (a room with cylinders) are explored with
-Yamauchi's frontier-based method (Yamauchi 1997, "A frontier-based approach for
-autonomous exploration"): frontier cells are known-free grid cells next to unknown ones,
-grouped into connected regions; the robot drives to the nearest reachable region
-(path cost on the inflated costmap).
+on the lattice). Worlds that are not mazes (a room with cylinders, a maze whose walls
+miss the lattice) are explored with Yamauchi's frontier-based method (Yamauchi 1997, "A
+frontier-based approach for autonomous exploration"): frontier cells are known-free grid
+cells next to unknown ones, grouped into connected regions (:mod:`.frontiers`). The robot
+drives to a *viewpoint* of a region: a cell of the inflated costmap's configuration space
+from which the lidar sees the region's unknown cells beyond its minimum range, the one
+with the best trade of path cost against the unknown cells it sees.
 
 Targets that cannot be resolved (a region the robot cannot reach or see, a link the
 lidar never classifies) are blacklisted once they stop progressing, so nothing traps the
@@ -51,8 +53,16 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
-from scipy import ndimage
 
+from mazebot.planner.frontiers import (
+    Frontier,
+    Viewpoint,
+    best_viewpoint,
+    find_frontiers,
+    frontier_regions,
+    score_bound_m,
+    viewpoint_candidates,
+)
 from mazebot.planner.global_path import (
     GridCostmap,
     cell_costs,
@@ -62,8 +72,20 @@ from mazebot.planner.global_path import (
     shortest_cell_path,
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
-from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
+from mazebot.slam.grid import FREE
 from mazebot.steps import run_steps
+
+__all__ = [
+    "Candidate",
+    "DepthFirstStrategy",
+    "Explorer",
+    "Goal",
+    "NearestFrontierStrategy",
+    "Phase",
+    "Strategy",
+    "frontier_regions",
+    "make_strategy",
+]
 
 
 class Phase(enum.StrEnum):
@@ -189,12 +211,16 @@ class _RegionKey:
 
 @dataclass(frozen=True)
 class _Region:
-    """A reachable frontier region: route cost (metres), goal, centroid, size in cells."""
+    """A reachable frontier region: its viewpoint (route cost in metres, score, gain), goal, centroid, size."""
 
-    cost_m: float
+    view: Viewpoint
     goal_m: tuple[float, float]
     centroid_m: tuple[float, float]
     size: int
+
+    @property
+    def cost_m(self) -> float:
+        return self.view.cost_m
 
 
 @dataclass
@@ -258,10 +284,16 @@ class Explorer:
     either; ``footprint_radius_m``/``clearance_m`` the robot
     for the grid costmap; ``min_frontier_cells`` the smallest frontier region worth a
     visit, ``frontier_wall_margin_cells`` how close to a wall unknown cells are taken
-    for wall (see :func:`frontier_regions`); ``view_radius_m`` how close the robot must
-    come to a frontier region to see into it, ``view_candidates`` how many of the
-    cheapest places within that radius are checked for a line of sight to it;
-    ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped;
+    for wall (see :func:`~mazebot.planner.frontiers.find_frontiers`); ``lidar_min_range_m``
+    the lidar's minimum range (``[lidar] min_range_m``: nothing nearer is ever seen);
+    ``view_radius_m`` how far from a viewpoint the unknown cells it is counted to see may
+    be (a planning range, well inside the lidar's), ``view_candidates`` how many places
+    within that radius are checked for lines of sight to a region, ``view_targets`` to how
+    many of its unknown cells, ``gain_weight_m`` the route metres that seeing e times more
+    unknown cells is worth (see :mod:`.frontiers`); ``region_match_m`` how near a region's
+    centroid must stay to be the same target from tick to tick;
+    ``blacklist_radius_m`` the region around a blacklisted frontier that is skipped, and
+    around a viewpoint that failed to resolve its frontier (a retry looks from elsewhere);
     ``inside_half_m`` how close (along either maze axis) the robot must come to a cell's
     centre for the cell to count as visited, its inside seen (see
     :meth:`MazeGraph.mark_looked_into`).
@@ -287,8 +319,12 @@ class Explorer:
         clearance_m: float = 0.02,
         min_frontier_cells: int = 4,
         frontier_wall_margin_cells: int = 2,
-        view_radius_m: float = 0.3,
-        view_candidates: int = 40,
+        lidar_min_range_m: float = 0.15,
+        view_radius_m: float = 0.9,
+        view_candidates: int = 96,
+        view_targets: int = 16,
+        gain_weight_m: float = 0.3,
+        region_match_m: float = 0.3,
         blacklist_radius_m: float = 0.15,
         inside_half_m: float = 0.075,
     ) -> None:
@@ -317,8 +353,14 @@ class Explorer:
         self.clearance_m = float(clearance_m)
         self.min_frontier_cells = int(min_frontier_cells)
         self.frontier_wall_margin_cells = int(frontier_wall_margin_cells)
+        self.lidar_min_range_m = float(lidar_min_range_m)
+        if view_radius_m <= lidar_min_range_m:
+            raise ValueError(f"view_radius_m ({view_radius_m}) must exceed lidar_min_range_m ({lidar_min_range_m})")
         self.view_radius_m = float(view_radius_m)
         self.view_candidates = int(view_candidates)
+        self.view_targets = int(view_targets)
+        self.gain_weight_m = float(gain_weight_m)
+        self.region_match_m = float(region_match_m)
         self.blacklist_radius_m = float(blacklist_radius_m)
         self.inside_half_m = float(inside_half_m)
 
@@ -331,6 +373,8 @@ class Explorer:
         self._target: _Target | None = None
         self._history: dict[object, _Target] = {}  # every target so far, by key: counts survive a switch
         self._given_up: dict[object, _GivenUp] = {}  # blacklisted targets, by key
+        #: (region centroid, viewpoint) of grid frontiers blacklisted from there: a retry looks from elsewhere
+        self._failed_views_m: list[tuple[tuple[float, float], tuple[float, float]]] = []
         self.travelled_m = 0.0  # the robot's path length so far (from the poses of the ticks)
         self._last_xy_m: tuple[float, float] | None = None
         self._revolutions = 0  # the map's revolution count at this tick
@@ -446,6 +490,7 @@ class Explorer:
         self._discovered.clear()
         self._history.clear()
         self._given_up.clear()
+        self._failed_views_m.clear()
         self._target = None
 
     def _choose_mode(self) -> None:
@@ -534,72 +579,116 @@ class Explorer:
         pose: tuple[float, float, float],
     ) -> Goal | None:
         costmap = self._costmap_for(grid, origin, resolution_m)
-        options = self._frontier_options(grid, costmap, resolution_m, (pose[0], pose[1]))
+        current = self._target
+        anchor = current.key.centroid_m if current is not None and isinstance(current.key, _RegionKey) else None
+        kept_goal = current.position_m if anchor is not None and current is not None else None
+        options = self._frontier_options(grid, costmap, resolution_m, (pose[0], pose[1]), anchor, kept_goal)
         if not options:
             self._target = None
             return None
         self.phase = Phase.EXPLORING
         choice = options[0]
-        current = self._target
         same: _Region | None = None
-        if current is not None and isinstance(current.key, _RegionKey):
-            anchor = current.key.centroid_m
-            same = next((o for o in options if math.dist(o.centroid_m, anchor) < self.view_radius_m), None)
-            if same is not None and same.cost_m <= choice.cost_m + self.switch_margin * self.graph.cell_size_m:
+        if anchor is not None:
+            same = next((o for o in options if math.dist(o.centroid_m, anchor) < self.region_match_m), None)
+            margin_m = self.switch_margin * self.graph.cell_size_m
+            if same is not None and same.view.score_m <= choice.view.score_m + margin_m:
                 choice = same
         key = current.key if current is not None and choice is same else _RegionKey(choice.centroid_m)
         at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
         if self._track(key, choice.goal_m, choice.cost_m, at_goal) is None:
             # just blacklisted (no progress): choose again among the rest
-            return self._frontier_goal(grid, origin, resolution_m, pose) if options[1:] else None
+            return self._frontier_goal(grid, origin, resolution_m, pose)
         path = costmap.plan((pose[0], pose[1]), choice.goal_m)
         waypoints = shortcut(path, costmap) if path else [choice.goal_m]
         cx, cy = choice.centroid_m
         return Goal(
-            Phase.EXPLORING, choice.goal_m, waypoints, [], f"frontier of {choice.size} cells at {cx:.2f}, {cy:.2f}"
+            Phase.EXPLORING,
+            choice.goal_m,
+            waypoints,
+            [],
+            f"frontier of {choice.size} cells at {cx:.2f}, {cy:.2f} (sees {choice.view.gain:.0f} unknown)",
         )
 
     def _frontier_options(
-        self, grid: np.ndarray, costmap: GridCostmap, resolution_m: float, robot_xy_m: tuple[float, float]
+        self,
+        grid: np.ndarray,
+        costmap: GridCostmap,
+        resolution_m: float,
+        robot_xy_m: tuple[float, float],
+        anchor_m: tuple[float, float] | None = None,
+        kept_goal_m: tuple[float, float] | None = None,
     ) -> list[_Region]:
-        """Reachable, non-blacklisted frontier regions, cheapest first (then largest).
+        """Reachable, non-blacklisted frontier regions with their best viewpoints, lowest score first.
 
-        A region's goal is the cheapest-to-reach passable cell within ``view_radius_m``
-        of it that has a clear line of sight (through known free cells) to one of its
-        frontier cells: the inflated robot often cannot stand on the frontier itself
-        (next to a wall), and the nearest place within range may look at it through an
-        obstacle (the far side of a cylinder).
+        Regions are looked at in the order of a lower bound of their score (the cheapest
+        place near them, seeing all their unknown cells) and those that cannot beat the
+        best found so far are skipped, except the current target's (near ``anchor_m``),
+        whose last viewpoint ``kept_goal_m`` is a candidate again so it can be kept.
         """
-        regions = frontier_regions(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
-        if not regions:
+        frontiers = find_frontiers(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
+        if not frontiers:
             return []
         distances = costmap.distances_from(robot_xy_m)
-        reach = np.isfinite(distances) & costmap.passable
-        view_cells = max(1, round(self.view_radius_m / resolution_m))
-        disk = _disk(view_cells)
+        cost_cells = np.where(costmap.passable, distances, np.inf)
         free = grid == FREE
-        options: list[_Region] = []
-        for region in regions:
-            centroid = costmap.to_world(*np.mean(region, axis=0))
+        ranked: list[tuple[float, bool, Frontier, tuple[float, float], np.ndarray]] = []
+        for frontier in frontiers:
+            centroid = costmap.to_world(*frontier.centroid_rc)
             if any(math.dist(centroid, b) < self.blacklist_radius_m for b in self.blacklisted_points_m):
                 continue
-            r0, c0 = np.maximum(region.min(axis=0) - view_cells, 0)
-            r1, c1 = np.minimum(region.max(axis=0) + view_cells + 1, grid.shape)
-            mask = np.zeros((r1 - r0, c1 - c0), dtype=bool)
-            mask[region[:, 0] - r0, region[:, 1] - c0] = True
-            near = ndimage.binary_dilation(mask, structure=disk) & reach[r0:r1, c0:c1]
-            if not near.any():
-                continue  # no passable place within view of it: unreachable for now
-            rows, cols = np.nonzero(near)
-            cost = distances[rows + r0, cols + c0]
-            for k in np.argsort(cost, kind="stable")[: self.view_candidates]:
-                cell = (int(rows[k] + r0), int(cols[k] + c0))
-                if _sees_region(free, cell, region, self.view_radius_m / resolution_m):
-                    goal = costmap.to_world(*cell)
-                    options.append(_Region(float(cost[k]) * resolution_m, goal, centroid, int(region.shape[0])))
-                    break
-        options.sort(key=lambda o: (o.cost_m, -o.size))
+            excluded = self._failed_view_mask(centroid, costmap)
+            candidates = viewpoint_candidates(frontier, cost_cells, resolution_m, self.view_radius_m, excluded)
+            if candidates.shape[0] == 0:
+                continue  # no place within view of it the robot can get to: unreachable for now
+            bound = score_bound_m(frontier, candidates, cost_cells, resolution_m, self.gain_weight_m)
+            is_current = anchor_m is not None and math.dist(centroid, anchor_m) < self.region_match_m
+            ranked.append((bound, is_current, frontier, centroid, candidates))
+        ranked.sort(key=lambda item: (not item[1], item[0]))  # the current target first, then by bound
+        options: list[_Region] = []
+        best = math.inf
+        for bound, is_current, frontier, centroid, candidates in ranked:
+            if not is_current and bound >= best:
+                continue
+            extra = None
+            if is_current and kept_goal_m is not None:
+                cell = costmap.to_cell(*kept_goal_m)
+                extra = cell if costmap.contains(*cell) else None
+            view = best_viewpoint(
+                frontier,
+                candidates,
+                free,
+                cost_cells,
+                resolution_m,
+                self.lidar_min_range_m,
+                self.view_radius_m,
+                self.gain_weight_m,
+                self.view_candidates,
+                self.view_targets,
+                extra,
+                keep_margin_m=self.switch_margin * self.graph.cell_size_m,
+            )
+            if view is None:
+                continue  # nowhere it could be seen from
+            options.append(_Region(view, costmap.to_world(*view.cell), centroid, int(frontier.cells.shape[0])))
+            best = min(best, view.score_m)
+        options.sort(key=lambda o: (o.view.score_m, -o.size))
         return options
+
+    def _failed_view_mask(self, centroid_m: tuple[float, float], costmap: GridCostmap) -> np.ndarray | None:
+        """Cells near viewpoints from which this region (matched by centroid) was already given up on."""
+        views = [v for c, v in self._failed_views_m if math.dist(c, centroid_m) < self.region_match_m]
+        if not views:
+            return None
+        mask = np.zeros(costmap.shape, dtype=bool)
+        radius = self.blacklist_radius_m / costmap.resolution_m
+        for view in views:
+            r, c = costmap.to_cell(*view)
+            r0, r1 = max(0, math.floor(r - radius)), min(costmap.shape[0], math.ceil(r + radius) + 1)
+            c0, c1 = max(0, math.floor(c - radius)), min(costmap.shape[1], math.ceil(c + radius) + 1)
+            rr, cc = np.mgrid[r0:r1, c0:c1]
+            mask[r0:r1, c0:c1] |= (rr - r) ** 2 + (cc - c) ** 2 <= radius**2
+        return mask
 
     # -- returning -----------------------------------------------------------------------
 
@@ -705,63 +794,10 @@ class Explorer:
         )
         if isinstance(key, _RegionKey):
             self.blacklisted_points_m.append(key.centroid_m)
+            self._failed_views_m.append((key.centroid_m, target.position_m))
         else:
             self.blacklisted_links.add(key)  # type: ignore[arg-type]
         self._target = None
-
-
-def frontier_regions(three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2) -> list[np.ndarray]:
-    """Yamauchi's frontier regions: 8-connected groups of free cells that touch unknown ones.
-
-    A free cell is a frontier cell when one of its four neighbours is unknown. Unknown
-    cells within ``wall_margin_cells`` of an occupied cell do not count: in a log-odds
-    map a wall is a band of cells of which some never collect enough hits, and the free
-    cells along it are no gateway to unexplored space (a real opening is wider than the
-    margin, so its middle still counts). Groups smaller than ``min_cells`` (speckle, the
-    pockets behind posts) are dropped. Returns a list of (K, 2) int arrays of
-    ``(row, col)``.
-    """
-    grid = np.asarray(three_state)
-    unknown = grid == UNKNOWN
-    if wall_margin_cells > 0:
-        near_wall = ndimage.binary_dilation(grid == OCCUPIED, iterations=wall_margin_cells)
-        unknown &= ~near_wall
-    touches = np.zeros_like(unknown)
-    touches[1:, :] |= unknown[:-1, :]
-    touches[:-1, :] |= unknown[1:, :]
-    touches[:, 1:] |= unknown[:, :-1]
-    touches[:, :-1] |= unknown[:, 1:]
-    frontier = (grid == FREE) & touches
-    labels, count = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
-    if count == 0:
-        return []
-    rows, cols = np.nonzero(labels)
-    order = np.argsort(labels[rows, cols], kind="stable")
-    rows, cols = rows[order], cols[order]
-    sizes = np.bincount(labels[rows, cols], minlength=count + 1)[1:]
-    splits = np.cumsum(sizes)[:-1]
-    groups = np.split(np.column_stack((rows, cols)), splits)
-    return [g for g in groups if g.shape[0] >= min_cells]
-
-
-def _sees_region(free: np.ndarray, cell: tuple[int, int], region: np.ndarray, max_cells: float) -> bool:
-    """True when a straight line of known free cells joins ``cell`` to a cell of ``region`` in range.
-
-    The lines to the region's cells nearest to ``cell`` (up to eight, within ``max_cells``)
-    are sampled every half cell; every sample must be free.
-    """
-    d = np.hypot(region[:, 0] - cell[0], region[:, 1] - cell[1])
-    order = np.argsort(d)[:8]
-    for k in order:
-        if d[k] > max_cells:
-            break
-        n = max(2, math.ceil(2.0 * d[k]) + 1)
-        t = np.linspace(0.0, 1.0, n)
-        rr = np.round(cell[0] + t * (region[k, 0] - cell[0])).astype(np.int64)
-        cc = np.round(cell[1] + t * (region[k, 1] - cell[1])).astype(np.int64)
-        if free[rr, cc].all():
-            return True
-    return False
 
 
 def _ending_at(waypoints: list[tuple[float, float]], target: tuple[float, float]) -> list[tuple[float, float]]:
@@ -779,11 +815,6 @@ def _known_free_at(
     c = math.floor((pose[0] - origin_m[0]) / resolution_m)
     window = grid[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2]
     return bool(window.size) and bool((window == FREE).any())
-
-
-def _disk(radius_cells: int) -> np.ndarray:
-    r = np.arange(-radius_cells, radius_cells + 1)
-    return (r[:, None] ** 2 + r[None, :] ** 2) <= radius_cells**2
 
 
 def _heading_index(theta_rad: float, frame_angle_rad: float) -> int:

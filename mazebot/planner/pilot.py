@@ -156,6 +156,7 @@ class Pilot:
             max_attempts=p.max_attempts,
             footprint_radius_m=p.footprint_radius_m,
             clearance_m=p.clearance_m,
+            lidar_min_range_m=p.lidar_min_range_m,
         )
 
     def _new_local_planner(self) -> LocalPlanner:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from mazebot.planner.global_path import GridCostmap, cell_costs
 from mazebot.planner.maze_graph import Direction, MazeGraph
 from mazebot.sim.maze_file import parse_maze
 from mazebot.sim.raster import true_occupancy
+from mazebot.sim.raycast import RayCaster
 from mazebot.sim.room import make_room
 from mazebot.sim.world import World, world_from_layout
 
@@ -97,6 +99,19 @@ def known_map(world: World, margin_m: float = 0.3) -> tuple[np.ndarray, tuple[fl
     grid[labels == labels[int((y0 - origin[1]) / RES), int((x0 - origin[0]) / RES)]] = 0
     grid[occupied] = 100
     return grid, origin
+
+
+def lidar_rays_into(world: World, xy_m: tuple[float, float], hidden: Callable[[float, float], bool]) -> int:
+    """How many of a lidar's 360 rays from ``xy_m`` in the true ``world`` end in the ``hidden`` part.
+
+    Rays whose return is within the lidar's 0.15 m minimum range see nothing; a ray
+    without a return counts to 4 m (the SLAM grid's free range).
+    """
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    ranges = RayCaster.for_world(world).cast(np.array(xy_m), angles, 12.0)
+    reach = np.minimum(ranges, 4.0)
+    ends = zip(xy_m[0] + reach * np.cos(angles), xy_m[1] + reach * np.sin(angles), strict=True)
+    return sum(1 for (x, y), r in zip(ends, ranges, strict=True) if r >= 0.15 and hidden(x, y))
 
 
 def t_maze() -> tuple[World, np.ndarray, tuple[float, float]]:
@@ -275,7 +290,7 @@ def test_a_room_is_explored_by_frontiers_with_a_visible_reachable_goal() -> None
     costmap = GridCostmap(partial, origin, RES)
     r, c = costmap.to_cell(*goal.target_m)
     assert costmap.passable[r, c]
-    assert goal.target_m[0] > 0.6  # near the unseen half
+    assert lidar_rays_into(room, goal.target_m, lambda x, y: x > 1.0 + RES) >= 20  # it sees into the unseen half
     for a, b in zip(goal.waypoints_m, goal.waypoints_m[1:], strict=False):
         assert costmap.segment_passable(a, b)
     # everything seen: home, and done there
@@ -345,7 +360,7 @@ def test_a_frontier_given_up_near_the_start_does_not_end_the_run() -> None:
         goal = explorer.update(grid, (0.0, 0.0), RES, pose, revolutions=revs(now))
     assert explorer.blacklisted_points_m  # the near patch was given up ...
     assert goal is not None and goal.phase is Phase.EXPLORING  # ... and the far one is next
-    assert goal.target_m[0] > 1.2
+    assert float(goal.reason.split(" at ")[1].split(",")[0]) > 1.5, goal.reason
 
 
 def test_a_frontier_that_keeps_vanishing_is_still_blacklisted_in_the_end() -> None:
@@ -431,8 +446,9 @@ def test_standing_at_a_target_counts_map_revolutions_not_ticks() -> None:
 
 
 def test_a_blacklisted_target_is_tried_again_before_the_run_ends() -> None:
-    # the only unknown left cannot be resolved from where the robot stands: given up, tried
-    # again (nothing else is left), and only after max_attempts does the robot go home
+    # the only unknown left is never resolved (the map does not change): given up, tried
+    # again (nothing else is left) from another place, and only after max_attempts does
+    # the robot go home. The robot gets to each goal at once here.
     grid = _room_with_patches((slice(20, 26), slice(20, 26)))
     start = (0.2, 0.2)
     explorer = Explorer(start_xy_m=start, mode="frontier", dwell_revolutions=4, max_attempts=3)
@@ -440,16 +456,21 @@ def test_a_blacklisted_target_is_tried_again_before_the_run_ends() -> None:
     assert first is not None and first.phase is Phase.EXPLORING
     pose = (*first.target_m, 0.0)
     phases = []
+    places = {first.target_m}
     for revolutions in range(1, 60):
         goal = explorer.update(grid, (0.0, 0.0), RES, pose, revolutions=revolutions)
         assert goal is not None
         phases.append(goal.phase)
         if goal.phase is not Phase.EXPLORING:  # home (the patch is next to the start: done at once)
             break
+        places.add(goal.target_m)
+        pose = (*goal.target_m, 0.0)
     blacklists = [e for e in explorer.events if e.startswith("blacklisted")]
     assert len(blacklists) == 3 and "attempt 3 of 3, given up" in blacklists[-1], blacklists
     assert phases[-1] is not Phase.EXPLORING and phases.count(Phase.EXPLORING) == len(phases) - 1
     assert len(phases) > 3 * 4  # each attempt had its dwell
+    # each attempt looked from a place of its own, away from those that had failed
+    assert len(places) == 3 and min(math.dist(a, b) for a, b in itertools.combinations(places, 2)) >= 0.15
 
 
 def test_a_blacklisted_target_is_tried_again_once_the_robot_has_driven_elsewhere() -> None:
@@ -483,6 +504,6 @@ def test_a_maze_is_not_done_while_the_grid_has_a_reachable_frontier() -> None:
         assert goal is not None
         if check:
             assert goal.phase is Phase.EXPLORING and goal.reason.startswith("frontier of"), goal
-            assert goal.target_m[0] > 1.2 * CELL  # towards the hidden east part, within view of it
+            assert lidar_rays_into(world, goal.target_m, lambda x, y: x > 2.5 * CELL + RES) >= 5  # within view of it
         else:
             assert goal.phase is Phase.RETURNING

@@ -1,0 +1,283 @@
+"""Grid frontiers, and the poses from which the robot's lidar can look into them.
+
+Yamauchi's frontier-based exploration (Yamauchi 1997, "A frontier-based approach for
+autonomous exploration", CIRA): a *frontier cell* is a known-free cell of the occupancy
+grid next to an unknown one; 8-connected frontier cells form a *frontier*; driving to a
+frontier lets the sensor see the unknown space beyond it. Yamauchi's robot drove onto
+the frontier itself. Ours cannot always, and it would not help when it could:
+
+- the robot is a disc of ``footprint_radius_m`` that keeps ``clearance_m`` from walls:
+  it can stand only on the passable cells of the inflated costmap
+  (:class:`~mazebot.planner.global_path.GridCostmap`, the configuration space of
+  Lozano-Pérez 1983), and in a 1 ft corridor that is a band a few centimetres wide
+  down its middle, never next to a wall where the frontier often is;
+- the lidar drops every return closer than its minimum range (0.15 m on an A1M8,
+  Slamtec datasheet), and with it everything the ray crossed: a frontier within that
+  range of the robot stays unknown however long the robot stands there.
+
+So a frontier is only *reachable* through a **viewpoint**: a passable cell the robot can
+drive to (a finite path cost) from which a straight ray of known free cells reaches the
+frontier's unknown cells at a range between the lidar's minimum range and the planning
+view radius. A lidar ray in that direction crosses the unknown cell whatever it holds
+(free: it passes on; a wall: it stops there) and resolves it. The number of the
+frontier's unknown cells a viewpoint sees is its **information gain**. Viewpoints are
+ranked by gain and path cost together, as González-Baños and Latombe ("Navigation
+strategies for exploring indoor environments", IJRR 21(10), 2002) rank candidate poses
+by ``gain * exp(-lambda * cost)``: here as a score in metres,
+``cost_m - gain_weight_m * ln(gain)``, lower is better (``gain_weight_m`` is 1/lambda: the
+route metres a gain ``e`` times larger is worth).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
+
+_FOUR = ((1, 0), (-1, 0), (0, 1), (0, -1))
+
+
+@dataclass(frozen=True)
+class Frontier:
+    """One frontier: its free ``cells`` and the ``unknown`` cells they border ((K, 2) ``(row, col)`` arrays).
+
+    ``unknown`` is what the lidar has to see for the frontier to be resolved.
+    """
+
+    cells: np.ndarray
+    unknown: np.ndarray
+
+    @property
+    def centroid_rc(self) -> tuple[float, float]:
+        """The mean ``(row, col)`` of its free cells."""
+        mean = self.cells.mean(axis=0)
+        return (float(mean[0]), float(mean[1]))
+
+
+@dataclass(frozen=True)
+class Viewpoint:
+    """A place to look at a frontier from: a grid ``cell``, its path ``cost_m`` from the robot,
+    the unknown cells it sees (``gain``, estimated from a sample) and its ``score_m``."""
+
+    cell: tuple[int, int]
+    cost_m: float
+    gain: float
+    score_m: float
+
+
+def frontier_unknowns(three_state: np.ndarray, wall_margin_cells: int = 2) -> np.ndarray:
+    """The unknown cells that count for frontiers: a boolean grid.
+
+    Unknown cells within ``wall_margin_cells`` of an occupied cell do not count: in a
+    log-odds map a wall is a band of cells of which some never collect enough hits, and
+    the free cells along it are no gateway to unexplored space (a real opening is wider
+    than the margin, so its middle still counts).
+    """
+    grid = np.asarray(three_state)
+    unknown = grid == UNKNOWN
+    if wall_margin_cells > 0:
+        unknown &= ~ndimage.binary_dilation(grid == OCCUPIED, iterations=wall_margin_cells)
+    return unknown
+
+
+def find_frontiers(three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2) -> list[Frontier]:
+    """Yamauchi's frontiers: 8-connected groups of free cells with an unknown 4-neighbour.
+
+    Unknown cells next to walls do not count (see :func:`frontier_unknowns`); groups
+    smaller than ``min_cells`` (speckle, the pockets behind posts) are dropped. Each
+    frontier carries the unknown cells its free cells touch.
+    """
+    grid = np.asarray(three_state)
+    unknown = frontier_unknowns(grid, wall_margin_cells)
+    touches = np.zeros_like(unknown)
+    touches[1:, :] |= unknown[:-1, :]
+    touches[:-1, :] |= unknown[1:, :]
+    touches[:, 1:] |= unknown[:, :-1]
+    touches[:, :-1] |= unknown[:, 1:]
+    frontier = (grid == FREE) & touches
+    labels, count = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
+    if count == 0:
+        return []
+    cells = _group_by_label(labels, count)
+    # each unknown cell goes to the frontier of a free 4-neighbour (the first one found)
+    owner = np.zeros(grid.shape, dtype=labels.dtype)
+    rows, cols = grid.shape
+    for dr, dc in _FOUR:
+        neighbour = np.zeros_like(labels)
+        neighbour[max(0, -dr) : rows - max(0, dr), max(0, -dc) : cols - max(0, dc)] = labels[
+            max(0, dr) : rows - max(0, -dr), max(0, dc) : cols - max(0, -dc)
+        ]
+        take = unknown & (owner == 0) & (neighbour > 0)
+        owner[take] = neighbour[take]
+    unknown_cells = _group_by_label(owner, count)
+    return [Frontier(c, u) for c, u in zip(cells, unknown_cells, strict=True) if c.shape[0] >= min_cells]
+
+
+def frontier_regions(three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2) -> list[np.ndarray]:
+    """The free cells of each frontier of :func:`find_frontiers`: a list of (K, 2) ``(row, col)`` arrays."""
+    return [f.cells for f in find_frontiers(three_state, min_cells, wall_margin_cells)]
+
+
+def _group_by_label(labels: np.ndarray, count: int) -> list[np.ndarray]:
+    """The ``(row, col)`` cells of each label 1..count, as a list of (K, 2) arrays (K may be 0)."""
+    rows, cols = np.nonzero(labels)
+    order = np.argsort(labels[rows, cols], kind="stable")
+    rows, cols = rows[order], cols[order]
+    sizes = np.bincount(labels[rows, cols], minlength=count + 1)[1:]
+    return np.split(np.column_stack((rows, cols)), np.cumsum(sizes)[:-1])
+
+
+def sees(
+    free: np.ndarray,
+    viewpoints: np.ndarray,
+    targets: np.ndarray,
+    min_range_cells: float,
+    max_range_cells: float,
+    half_width_cells: float = 0.5,
+) -> np.ndarray:
+    """Which viewpoint's lidar would resolve which target cell: a (C, T) boolean array.
+
+    ``free`` is the known-free grid; ``viewpoints`` (C, 2) and ``targets`` (T, 2) are
+    ``(row, col)`` cells. A target is seen when it lies between ``min_range_cells`` and
+    ``max_range_cells`` (centre to centre) and a strip ``2 * half_width_cells`` wide
+    along the segment to it, sampled every half cell on its centre line and both edges,
+    crosses only known free cells until the last cell and a half before the target: the
+    lidar's ray in that direction gets there and whatever it finds (free space, a wall)
+    is painted. The strip's width keeps out rays that only graze a corner: looking along
+    the edge of a shadow from the line it was cast along resolves nothing new, though a
+    one-cell-wide digital line may slip past the corner.
+    """
+    v = np.asarray(viewpoints, dtype=np.float64)[:, None, :]
+    t = np.asarray(targets, dtype=np.float64)[None, :, :]
+    delta = t - v  # (C, T, 2)
+    dist = np.hypot(delta[..., 0], delta[..., 1])
+    in_range = (dist >= min_range_cells) & (dist <= max_range_cells)
+    if not in_range.any():
+        return in_range
+    steps = np.maximum(np.ceil(2.0 * dist), 1.0)  # samples every half cell
+    k = np.arange(1, int(steps[in_range].max()))
+    frac = k[None, None, :] / steps[..., None]  # (C, T, S); beyond 1 for short segments
+    before = frac < 1.0
+    rows = v[..., 0, None] + frac * delta[..., 0, None]
+    cols = v[..., 1, None] + frac * delta[..., 1, None]
+    rr, cc = np.rint(rows).astype(np.int64), np.rint(cols).astype(np.int64)
+    on_target = (rr == t[..., 0, None]) & (cc == t[..., 1, None])
+    clear = _free_at(free, rr, cc) | ~before | on_target
+    # the strip's edges, up to a cell and a half short of the target (its neighbours there are unknown)
+    away = (frac * dist[..., None] < dist[..., None] - 1.5) & before
+    unit = delta / np.maximum(dist, 1e-9)[..., None]
+    for side in (-half_width_cells, half_width_cells):
+        er = np.rint(rows - side * unit[..., 1, None]).astype(np.int64)
+        ec = np.rint(cols + side * unit[..., 0, None]).astype(np.int64)
+        clear &= _free_at(free, er, ec) | ~away
+    return in_range & clear.all(axis=2)
+
+
+def _free_at(free: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``free[rows, cols]``, False off the grid."""
+    inside = (rows >= 0) & (rows < free.shape[0]) & (cols >= 0) & (cols < free.shape[1])
+    return free[np.clip(rows, 0, free.shape[0] - 1), np.clip(cols, 0, free.shape[1] - 1)] & inside
+
+
+def viewpoint_candidates(
+    frontier: Frontier,
+    cost_cells: np.ndarray,
+    resolution_m: float,
+    view_radius_m: float,
+    excluded: np.ndarray | None = None,
+) -> np.ndarray:
+    """The reachable cells within ``view_radius_m`` of ``frontier``'s unknown cells, cheapest first: (C, 2).
+
+    ``cost_cells`` is the path cost (cell lengths) from the robot to every cell, inf
+    where the robot cannot stand or get to (``GridCostmap.distances_from`` masked by
+    ``passable``); ``excluded`` (a boolean grid) masks cells that already failed to
+    resolve this frontier.
+    """
+    targets = frontier.unknown
+    if targets.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    radius = view_radius_m / resolution_m
+    r0, c0 = np.maximum(targets.min(axis=0) - math.ceil(radius), 0)
+    r1, c1 = np.minimum(targets.max(axis=0) + math.ceil(radius) + 1, cost_cells.shape)
+    window = np.isfinite(cost_cells[r0:r1, c0:c1])
+    if excluded is not None:
+        window &= ~excluded[r0:r1, c0:c1]
+    if not window.any():
+        return np.zeros((0, 2), dtype=np.int64)
+    mask = np.zeros(window.shape, dtype=bool)
+    mask[targets[:, 0] - r0, targets[:, 1] - c0] = True
+    near = ndimage.distance_transform_edt(~mask) <= radius
+    rows, cols = np.nonzero(window & near)
+    candidates = np.column_stack((rows + r0, cols + c0))
+    order = np.argsort(cost_cells[candidates[:, 0], candidates[:, 1]], kind="stable")
+    return candidates[order]
+
+
+def score_bound_m(frontier: Frontier, candidates: np.ndarray, cost_cells: np.ndarray, resolution_m: float,
+                  gain_weight_m: float) -> float:
+    """A lower bound of :func:`best_viewpoint`'s score: the cheapest candidate seeing every unknown cell.
+
+    Frontiers are evaluated in the order of their bounds, and those whose bound is no
+    better than the best score found so far are skipped (branch and bound).
+    """
+    if candidates.shape[0] == 0 or frontier.unknown.shape[0] == 0:
+        return math.inf
+    cheapest_m = float(cost_cells[candidates[0, 0], candidates[0, 1]]) * resolution_m
+    return cheapest_m - gain_weight_m * math.log(frontier.unknown.shape[0])
+
+
+def best_viewpoint(
+    frontier: Frontier,
+    candidates: np.ndarray,
+    free: np.ndarray,
+    cost_cells: np.ndarray,
+    resolution_m: float,
+    min_range_m: float,
+    view_radius_m: float,
+    gain_weight_m: float,
+    max_candidates: int = 96,
+    max_targets: int = 16,
+    extra: tuple[int, int] | None = None,
+    keep_margin_m: float = 0.0,
+) -> Viewpoint | None:
+    """The lowest-score viewpoint of ``frontier`` among ``candidates``, or None when none sees it.
+
+    ``candidates`` come from :func:`viewpoint_candidates` (cheapest first); at most
+    ``max_candidates`` of them, evenly spread over their costs, are checked, plus
+    ``extra`` (the viewpoint chosen last tick), which is kept while it still sees the
+    frontier and scores within ``keep_margin_m`` of the best (the goal does not hop
+    between equals as the robot moves). Each is checked against
+    up to ``max_targets`` of the unknown cells, evenly spread, and its gain scaled up to
+    all of them. A lidar return must lie beyond ``min_range_m`` plus one cell (the range
+    to the far side of a wall cell is not its centre's).
+    """
+    targets = frontier.unknown
+    if candidates.shape[0] > max_candidates:
+        candidates = candidates[_spread(candidates.shape[0], max_candidates)]
+    if extra is not None and np.isfinite(cost_cells[extra]):
+        candidates = np.vstack((candidates, np.array([extra], dtype=candidates.dtype)))
+    if candidates.shape[0] == 0 or targets.shape[0] == 0:
+        return None
+    sample = targets[_spread(targets.shape[0], max_targets)] if targets.shape[0] > max_targets else targets
+    seen = sees(free, candidates, sample, min_range_m / resolution_m + 1.0, view_radius_m / resolution_m).sum(axis=1)
+    ok = seen > 0
+    if not ok.any():
+        return None
+    gain = seen[ok] * (targets.shape[0] / sample.shape[0])
+    cost_m = cost_cells[candidates[ok, 0], candidates[ok, 1]] * resolution_m
+    score = cost_m - gain_weight_m * np.log(gain)
+    k = int(np.argmin(score))
+    kept = extra is not None and ok[-1] and (candidates[-1, 0], candidates[-1, 1]) == extra
+    if kept and score[-1] <= score[k] + keep_margin_m:
+        k = score.size - 1
+    cell = (int(candidates[ok][k, 0]), int(candidates[ok][k, 1]))
+    return Viewpoint(cell, float(cost_m[k]), float(gain[k]), float(score[k]))
+
+
+def _spread(n: int, k: int) -> np.ndarray:
+    """``k`` (or fewer) indices spread evenly over ``0 .. n-1``, both ends included."""
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))

@@ -219,8 +219,8 @@ class GridCostmap:
             math.floor((x_m - self.origin_m[0]) / self.resolution_m),
         )
 
-    def to_world(self, row: int, col: int) -> tuple[float, float]:
-        """Map coordinates (metres) of a grid cell's centre."""
+    def to_world(self, row: float, col: float) -> tuple[float, float]:
+        """Map coordinates (metres) of a grid cell's centre (or of a fractional row and column)."""
         return (
             self.origin_m[0] + (col + 0.5) * self.resolution_m,
             self.origin_m[1] + (row + 0.5) * self.resolution_m,

@@ -14,7 +14,6 @@ imperfections of ``[sim]``: motor lag and mismatch, unequal wheels, slip, lidar 
 from __future__ import annotations
 
 import math
-
 from collections.abc import Callable
 from typing import Any
 

@@ -234,6 +234,11 @@ class PlannerConfig(Section):
         "auto", description="maze cells, grid frontiers (any world), or auto: maze when the walls fit a lattice"
     )
     cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
+    cell_size_search: float = Field(
+        0.05, ge=0, le=0.2,
+        description="the true pitch is measured from the walls within this share of cell_size_m (mazes built "
+        "by hand are off by a few %); 0: exactly cell_size_m",
+    )
     wall_thickness_m: float = Field(0.012, gt=0, lt=0.1, description="maze wall thickness")
     goal_tolerance_m: float = Field(0.06, gt=0.01, lt=0.3, description="this close to a goal counts as arrived")
     progress_revolutions: int = Field(

@@ -1,0 +1,159 @@
+"""The maze's lattice measured from the walls seen: its pitch, where its lines lie, whether it fits.
+
+A maze built by hand is not the lattice of the configured cell size: the pitch is off
+by a few per cent (a 0.29 m or 0.32 m maze configured as 1 ft), and a lattice of the
+wrong pitch puts the far walls cells away from its lines. So the pitch is measured, in
+two steps, from wall positions along the two grid axes (``u`` for walls whose normal
+is along u, ``v`` likewise), the grid's direction being known:
+
+1. **Periodogram.** The positions are binned (a histogram per axis), and for every
+   candidate pitch ``p`` within ``search`` of the nominal one the magnitudes of the
+   Fourier coefficients ``|Σ h(x) e^{2πi x / p}|`` of both axes are summed: lines that
+   lie on a lattice of pitch ``p`` add in phase. This is the projection-profile /
+   spectral method of estimating a grid's period (e.g. the "periodogram" of Lomb and
+   Scargle for unevenly sampled data; here the samples are wall positions).
+2. **Least squares.** Each position within ``tolerance_m`` of a line of the best
+   candidate is assigned that line's index ``k``; ``x = φ_axis + k p`` is solved for the
+   pitch and the two phases together (weighted), twice.
+
+Whether the walls fit a lattice at all: a lattice is *measured* only when each axis
+has walls on at least ``min_lines`` distinct lines (two lines fit any pitch: a room's
+opposite walls are no evidence of a lattice), and it *fits* when, besides, at least
+``min_fit`` of the wall weight lies within ``tolerance_m`` of a line. Callers switch their
+lattice priors off when it does not (:mod:`mazebot.slam.wall_lattice`,
+:mod:`mazebot.planner.maze_graph`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PitchFit:
+    """A lattice fitted to wall positions (metres, along the grid's u and v axes).
+
+    ``pitch_m`` the spacing of the lines (the nominal one when not ``measured``);
+    ``phase_m`` where the lines lie along u and v, modulo the pitch; ``fit`` the share of
+    the wall weight within the tolerance of a line; ``lines`` how many distinct lines
+    have walls on them, per axis; ``measured`` enough lines on both axes to measure the
+    pitch; ``fits`` measured and ``fit`` at least the minimum.
+    """
+
+    pitch_m: float
+    phase_m: tuple[float, float]
+    fit: float
+    lines: tuple[int, int]
+    measured: bool
+    fits: bool
+
+
+def fit_pitch(
+    u_m: np.ndarray,
+    u_weight: np.ndarray,
+    v_m: np.ndarray,
+    v_weight: np.ndarray,
+    nominal_m: float,
+    search: float = 0.05,
+    tolerance_m: float = 0.015,
+    min_lines: int = 3,
+    min_line_weight: float = 5.0,
+    min_fit: float = 0.8,
+    bin_m: float = 0.002,
+    step_m: float = 0.0002,
+) -> PitchFit:
+    """The lattice (module docstring) of walls at ``u_m`` / ``v_m`` (weights ``*_weight``), pitch near ``nominal_m``.
+
+    ``search`` is the largest relative difference from ``nominal_m`` looked at (0: the
+    pitch is taken as given and only the phases, the fit and the lines are measured).
+    """
+    axes = [_histogram(np.asarray(x, float).ravel(), np.asarray(w, float).ravel(), bin_m)
+            for x, w in ((u_m, u_weight), (v_m, v_weight))]
+    total = sum(float(h.sum()) for _, h in axes)
+    if total <= 0:
+        return PitchFit(nominal_m, (0.0, 0.0), 0.0, (0, 0), False, False)
+    pitch = nominal_m
+    if search > 0:
+        count = max(3, 2 * math.ceil(search * nominal_m / step_m) + 1)
+        candidates = nominal_m * (1.0 + np.linspace(-search, search, count))
+        score = np.zeros(count)
+        for x, h in axes:
+            if h.size:
+                score += np.abs(np.exp(2j * np.pi * x[None, :] / candidates[:, None]) @ h)
+        best = int(np.argmax(score))
+        pitch = float(candidates[best])
+        if 0 < best < count - 1:  # parabola through the peak and its neighbours
+            a, b, c = score[best - 1], score[best], score[best + 1]
+            denom = a - 2 * b + c
+            if denom < 0:
+                pitch += float(0.5 * (a - c) / denom) * float(candidates[1] - candidates[0])
+    phases = [_phase(x, h, pitch) for x, h in axes]
+    if search > 0:
+        for _ in range(2):
+            pitch, phases = _least_squares(axes, pitch, phases, tolerance_m)
+        pitch = float(np.clip(pitch, nominal_m * (1 - search), nominal_m * (1 + search)))
+    inside = 0.0
+    lines = []
+    for (x, h), phase in zip(axes, phases, strict=True):
+        k = np.round((x - phase) / pitch)
+        near = np.abs(x - phase - k * pitch) <= tolerance_m
+        inside += float(h[near].sum())
+        per_line: dict[int, float] = {}
+        for kk, hh in zip(k[near].astype(int).tolist(), h[near].tolist(), strict=True):
+            per_line[kk] = per_line.get(kk, 0.0) + hh
+        lines.append(sum(1 for weight in per_line.values() if weight >= min_line_weight))
+    fit = inside / total
+    measured = min(lines) >= min_lines
+    wrapped = tuple(float(np.remainder(p, pitch)) for p in phases)
+    return PitchFit(float(pitch), (wrapped[0], wrapped[1]), fit, (lines[0], lines[1]), measured,
+                    measured and fit >= min_fit)
+
+
+def _histogram(x: np.ndarray, w: np.ndarray, bin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bin centres and weights of the occupied bins (positions to ``bin_m``: the sums stay small)."""
+    if x.size == 0:
+        return np.zeros(0), np.zeros(0)
+    index = np.floor(x / bin_m).astype(np.int64)
+    keys, inverse = np.unique(index, return_inverse=True)
+    weight = np.bincount(inverse, weights=w, minlength=keys.size)
+    keep = weight > 0
+    return (keys[keep] + 0.5) * bin_m, weight[keep]
+
+
+def _phase(x: np.ndarray, h: np.ndarray, pitch_m: float) -> float:
+    """Weighted circular mean of ``x`` modulo ``pitch_m``."""
+    z = np.sum(h * np.exp(2j * np.pi * x / pitch_m)) if x.size else 0.0
+    return float(np.angle(z) / (2 * np.pi) * pitch_m) if abs(z) > 0 else 0.0
+
+
+def _least_squares(
+    axes: list[tuple[np.ndarray, np.ndarray]], pitch_m: float, phases: list[float], tolerance_m: float
+) -> tuple[float, list[float]]:
+    """One weighted least-squares step of ``x = φ_axis + k p`` over the positions near a line."""
+    rows, targets, weights = [], [], []
+    observable = False
+    for axis, ((x, h), phase) in enumerate(zip(axes, phases, strict=True)):
+        k = np.round((x - phase) / pitch_m)
+        near = np.abs(x - phase - k * pitch_m) <= tolerance_m
+        if not near.any():
+            continue
+        observable |= bool(np.ptp(k[near]) > 0)
+        a = np.zeros((int(near.sum()), 3))
+        a[:, 0] = k[near]
+        a[:, 1 + axis] = 1.0
+        rows.append(a)
+        targets.append(x[near])
+        weights.append(h[near])
+    if not observable:  # one line per axis at most: the pitch is not observable
+        return pitch_m, phases
+    a, b, w = np.vstack(rows), np.concatenate(targets), np.sqrt(np.concatenate(weights))
+    used = [i for i in (1, 2) if a[:, i].any()]
+    a = a[:, [0, *used]]
+    sol, *_ = np.linalg.lstsq(a * w[:, None], b * w, rcond=None)
+    out = list(phases)
+    for j, i in enumerate(used):
+        out[i - 1] = float(sol[1 + j])
+    return float(sol[0]), out

@@ -235,7 +235,7 @@ class PlannerConfig(Section):
     )
     cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
     cell_size_search: float = Field(
-        0.05, ge=0, le=0.2,
+        0.08, ge=0, le=0.2,
         description="the true pitch is measured from the walls within this share of cell_size_m (mazes built "
         "by hand are off by a few %); 0: exactly cell_size_m",
     )

@@ -212,8 +212,11 @@ def estimate_frame(
     w_v = weight * (across_u < math.sin(math.radians(25)))
     c, s = math.cos(angle), math.sin(angle)
     if pitch_search > 0:
+        # both faces of a wall pooled: a grid cell's quantisation (a resolution step) is noisier than the
+        # half thickness between a wall's faces, and once explored most walls are mapped from both sides
         u0, v0 = c * xy[:, 0] + s * xy[:, 1], -s * xy[:, 0] + c * xy[:, 1]
-        pitch = fit_pitch(u0[w_u > 0], w_u[w_u > 0], v0[w_v > 0], w_v[w_v > 0], cell_size_m, search=pitch_search,
+        classes = [(u0[w_u > 0], w_u[w_u > 0], 0), (v0[w_v > 0], w_v[w_v > 0], 1)]
+        pitch = fit_pitch(classes, cell_size_m, search=pitch_search,
                           tolerance_m=max(line_tolerance_m, 2.0 * resolution_m))
         if pitch.measured:
             cell_size_m = pitch.pitch_m

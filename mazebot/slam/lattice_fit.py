@@ -13,8 +13,10 @@ is along u, ``v`` likewise), the grid's direction being known:
    spectral method of estimating a grid's period (e.g. the "periodogram" of Lomb and
    Scargle for unevenly sampled data; here the samples are wall positions).
 2. **Least squares.** Each position within ``tolerance_m`` of a line of the best
-   candidate is assigned that line's index ``k``; ``x = φ_axis + k p`` is solved for the
-   pitch and the two phases together (weighted), twice.
+   candidate is assigned that line's index ``k``; ``x = φ_class + k p`` is solved for the
+   pitch and every class's phase together (weighted), twice.
+
+Each kind of face is a class of its own, with its own phase (:func:`fit_pitch`).
 
 Whether the walls fit a lattice at all: a lattice is *measured* only when each axis
 has walls on at least ``min_lines`` distinct lines (two lines fit any pitch: a room's
@@ -52,27 +54,33 @@ class PitchFit:
 
 
 def fit_pitch(
-    u_m: np.ndarray,
-    u_weight: np.ndarray,
-    v_m: np.ndarray,
-    v_weight: np.ndarray,
+    classes: list[tuple[np.ndarray, np.ndarray, int]],
     nominal_m: float,
     search: float = 0.05,
     tolerance_m: float = 0.015,
     min_lines: int = 3,
     min_line_weight: float = 5.0,
+    min_line_share: float = 0.03,
     min_fit: float = 0.8,
     bin_m: float = 0.002,
     step_m: float = 0.0002,
 ) -> PitchFit:
-    """The lattice (module docstring) of walls at ``u_m`` / ``v_m`` (weights ``*_weight``), pitch near ``nominal_m``.
+    """The lattice (module docstring) of wall positions near pitch ``nominal_m``.
 
-    ``search`` is the largest relative difference from ``nominal_m`` looked at (0: the
-    pitch is taken as given and only the phases, the fit and the lines are measured).
+    ``classes`` are ``(positions_m, weights, axis)``: wall positions along axis 0 (u) or 1
+    (v) of the grid, one class per kind of face with its own phase. A face seen from its
+    ``+u`` side lies half a wall thickness above its line, one seen from ``−u`` half below:
+    pooled, the walls east of a robot (seen from the west) and those west of it would pull
+    the pitch short by a wall thickness over the span. ``search`` is the largest relative
+    difference from ``nominal_m`` looked at (0: the pitch is taken as given and only the
+    phases, the fit and the lines are measured). A line counts when at least
+    ``min_line_weight`` and ``min_line_share`` of its class's weight lie on it (the few
+    points of a post's or a leg's round side are no wall); an axis's lines are those of
+    its class that has most.
     """
-    axes = [_histogram(np.asarray(x, float).ravel(), np.asarray(w, float).ravel(), bin_m)
-            for x, w in ((u_m, u_weight), (v_m, v_weight))]
-    total = sum(float(h.sum()) for _, h in axes)
+    hists = [(*_histogram(np.asarray(x, float).ravel(), np.asarray(w, float).ravel(), bin_m), int(axis))
+             for x, w, axis in classes]
+    total = sum(float(h.sum()) for _, h, _ in hists)
     if total <= 0:
         return PitchFit(nominal_m, (0.0, 0.0), 0.0, (0, 0), False, False)
     pitch = nominal_m
@@ -80,7 +88,7 @@ def fit_pitch(
         count = max(3, 2 * math.ceil(search * nominal_m / step_m) + 1)
         candidates = nominal_m * (1.0 + np.linspace(-search, search, count))
         score = np.zeros(count)
-        for x, h in axes:
+        for x, h, _ in hists:
             if h.size:
                 score += np.abs(np.exp(2j * np.pi * x[None, :] / candidates[:, None]) @ h)
         best = int(np.argmax(score))
@@ -90,26 +98,38 @@ def fit_pitch(
             denom = a - 2 * b + c
             if denom < 0:
                 pitch += float(0.5 * (a - c) / denom) * float(candidates[1] - candidates[0])
-    phases = [_phase(x, h, pitch) for x, h in axes]
+    pairs = [(x, h) for x, h, _ in hists]
+    phases = [_phase(x, h, pitch) for x, h in pairs]
     if search > 0:
         for _ in range(2):
-            pitch, phases = _least_squares(axes, pitch, phases, tolerance_m)
+            pitch, phases = _least_squares(pairs, pitch, phases, tolerance_m)
         pitch = float(np.clip(pitch, nominal_m * (1 - search), nominal_m * (1 + search)))
     inside = 0.0
-    lines = []
-    for (x, h), phase in zip(axes, phases, strict=True):
+    lines = [0, 0]
+    axis_phase: list[list[tuple[float, float]]] = [[], []]
+    for (x, h, axis), phase in zip(hists, phases, strict=True):
+        if not h.size:
+            continue
         k = np.round((x - phase) / pitch)
         near = np.abs(x - phase - k * pitch) <= tolerance_m
         inside += float(h[near].sum())
         per_line: dict[int, float] = {}
         for kk, hh in zip(k[near].astype(int).tolist(), h[near].tolist(), strict=True):
             per_line[kk] = per_line.get(kk, 0.0) + hh
-        lines.append(sum(1 for weight in per_line.values() if weight >= min_line_weight))
+        least = max(min_line_weight, min_line_share * float(h.sum()))
+        lines[axis] = max(lines[axis], sum(1 for weight in per_line.values() if weight >= least))
+        axis_phase[axis].append((phase, float(h.sum())))
     fit = inside / total
     measured = min(lines) >= min_lines
-    wrapped = tuple(float(np.remainder(p, pitch)) for p in phases)
+    wrapped = tuple(_mean_phase(items, pitch) for items in axis_phase)
     return PitchFit(float(pitch), (wrapped[0], wrapped[1]), fit, (lines[0], lines[1]), measured,
                     measured and fit >= min_fit)
+
+
+def _mean_phase(items: list[tuple[float, float]], pitch_m: float) -> float:
+    """The weighted circular mean of the classes' phases of one axis (where its walls' centre lines lie)."""
+    z = sum(w * np.exp(2j * np.pi * phase / pitch_m) for phase, w in items) if items else 0.0
+    return float(np.remainder(np.angle(z) / (2 * np.pi) * pitch_m, pitch_m)) if abs(z) > 0 else 0.0
 
 
 def _histogram(x: np.ndarray, w: np.ndarray, bin_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -130,30 +150,33 @@ def _phase(x: np.ndarray, h: np.ndarray, pitch_m: float) -> float:
 
 
 def _least_squares(
-    axes: list[tuple[np.ndarray, np.ndarray]], pitch_m: float, phases: list[float], tolerance_m: float
+    classes: list[tuple[np.ndarray, np.ndarray]], pitch_m: float, phases: list[float], tolerance_m: float
 ) -> tuple[float, list[float]]:
-    """One weighted least-squares step of ``x = φ_axis + k p`` over the positions near a line."""
-    rows, targets, weights = [], [], []
+    """One weighted least-squares step of ``x = φ_class + k p`` over the positions near a line."""
+    n = len(classes)
+    rows, targets, weights, used = [], [], [], []
     observable = False
-    for axis, ((x, h), phase) in enumerate(zip(axes, phases, strict=True)):
+    for index, ((x, h), phase) in enumerate(zip(classes, phases, strict=True)):
+        if not x.size:
+            continue
         k = np.round((x - phase) / pitch_m)
         near = np.abs(x - phase - k * pitch_m) <= tolerance_m
         if not near.any():
             continue
         observable |= bool(np.ptp(k[near]) > 0)
-        a = np.zeros((int(near.sum()), 3))
+        a = np.zeros((int(near.sum()), 1 + n))
         a[:, 0] = k[near]
-        a[:, 1 + axis] = 1.0
+        a[:, 1 + index] = 1.0
         rows.append(a)
         targets.append(x[near])
         weights.append(h[near])
-    if not observable:  # one line per axis at most: the pitch is not observable
+        used.append(index)
+    if not observable:  # one line per class at most: the pitch is not observable
         return pitch_m, phases
     a, b, w = np.vstack(rows), np.concatenate(targets), np.sqrt(np.concatenate(weights))
-    used = [i for i in (1, 2) if a[:, i].any()]
-    a = a[:, [0, *used]]
+    a = a[:, [0, *(1 + i for i in used)]]
     sol, *_ = np.linalg.lstsq(a * w[:, None], b * w, rcond=None)
     out = list(phases)
     for j, i in enumerate(used):
-        out[i - 1] = float(sol[1 + j])
+        out[i] = float(sol[1 + j])
     return float(sol[0]), out

@@ -18,14 +18,14 @@ def test_the_pitch_and_angle_are_measured_not_assumed(pitch_m: float, angle_deg:
     build = HandBuild(pitch_error_max=0.0, maze_angle_rad=math.radians(angle_deg), clutter=0)
     world = hand_built_world(layout, build, seed)
     grid, origin = perfect_map(world)
-    estimate = estimate_frame(grid, origin, RES, CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.05)
+    estimate = estimate_frame(grid, origin, RES, CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.08)
     assert estimate is not None
     # the true mean pitch: the least-squares slope of the jittered rows of posts
     assert estimate.frame.cell_size_m == pytest.approx(world.maze.cell_size_m, abs=0.002)
     assert abs(math.degrees(math.remainder(estimate.frame.angle_rad - math.radians(angle_deg), math.pi / 2))) < 0.3
     assert estimate.fit > 0.95
     # the graph on it is the maze: every link of every cell as built
-    graph = MazeGraph(cell_size_m=CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.05)
+    graph = MazeGraph(cell_size_m=CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.08)
     graph.update(grid, origin, RES)
     assert graph.cell_size_m == pytest.approx(world.maze.cell_size_m, abs=0.002)
     # cell (0, 0) holds the start; the maze's axes may come out turned by a multiple of 90 degrees
@@ -43,6 +43,6 @@ def test_without_the_search_a_wrong_pitch_does_not_fit() -> None:
     world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=0.3, clutter=0), 1)
     grid, origin = perfect_map(world)
     assumed = estimate_frame(grid, origin, RES, CELL, anchor_xy_m=world.start_pose[:2])
-    measured = estimate_frame(grid, origin, RES, CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.05)
+    measured = estimate_frame(grid, origin, RES, CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.08)
     assert assumed is not None and measured is not None
     assert assumed.fit < 0.9 < 0.95 < measured.fit

@@ -46,3 +46,36 @@ def test_without_the_search_a_wrong_pitch_does_not_fit() -> None:
     measured = estimate_frame(grid, origin, RES, CELL, anchor_xy_m=world.start_pose[:2], pitch_search=0.08)
     assert assumed is not None and measured is not None
     assert assumed.fit < 0.9 < 0.95 < measured.fit
+
+
+SEARCH = 0.08  # [planner] cell_size_search
+
+
+@pytest.mark.parametrize(("pitch_m", "mode"), [(0.29, "maze"), (0.32, "maze"), (0.40, "frontier")])
+def test_where_the_cell_graph_does_not_fit_exploration_falls_back_to_grid_frontiers(pitch_m: float, mode: str) -> None:
+    """A maze a few per cent off the configured pitch is still a cell maze; one 30 % off is not (nor a room)."""
+    from mazebot.planner.exploration import Explorer
+    from tests.planner.test_exploration import known_map, revs
+
+    layout = generate_maze(6, 6, 4, kind="braided", cell_size_m=pitch_m)
+    world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=0.4, clutter=0), 4)
+    grid, origin = known_map(world)
+    explorer = Explorer(MazeGraph(cell_size_m=CELL, anchor_xy_m=world.start_pose[:2], pitch_search=SEARCH),
+                        start_xy_m=world.start_pose[:2])
+    explorer.update(grid, origin, RES, world.start_pose, revolutions=revs(0.0))
+    assert explorer.mode == mode
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3])
+def test_a_room_is_no_maze_whatever_pitch_is_looked_for(seed: int) -> None:
+    from mazebot.planner.exploration import Explorer
+    from mazebot.sim.room import make_room
+    from tests.planner.test_exploration import known_map, revs
+
+    room = make_room(2.0, 1.2, cylinders=4, seed=seed, footprint_radius_m=0.09)
+    grid, origin = known_map(room)
+    explorer = Explorer(MazeGraph(cell_size_m=CELL, anchor_xy_m=room.start_pose[:2], pitch_search=SEARCH),
+                        start_xy_m=room.start_pose[:2])
+    explorer.update(grid, origin, RES, room.start_pose, revolutions=revs(0.0))
+    assert explorer.mode == "frontier"
+    assert explorer.graph.cell_size_m == CELL  # two walls a side measure no pitch: the configured one stands

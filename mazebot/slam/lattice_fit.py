@@ -18,10 +18,10 @@ is along u, ``v`` likewise), the grid's direction being known:
 
 Each kind of face is a class of its own, with its own phase (:func:`fit_pitch`).
 
-Whether the walls fit a lattice at all: a lattice is *measured* only when each axis
-has walls on at least ``min_lines`` distinct lines (two lines fit any pitch: a room's
-opposite walls are no evidence of a lattice), and it *fits* when, besides, at least
-``min_fit`` of the wall weight lies within ``tolerance_m`` of a line. Callers switch their
+Whether the walls fit a lattice at all: the pitch is *measured* once one axis has
+walls on at least ``min_lines`` distinct lines (two lines fit any pitch: a room's
+opposite walls are no evidence of a lattice), and the lattice *fits* when both axes
+have, and at least ``min_fit`` of the wall weight lies within ``tolerance_m`` of a line. Callers switch their
 lattice priors off when it does not (:mod:`mazebot.slam.wall_lattice`,
 :mod:`mazebot.planner.maze_graph`).
 """
@@ -38,11 +38,11 @@ import numpy as np
 class PitchFit:
     """A lattice fitted to wall positions (metres, along the grid's u and v axes).
 
-    ``pitch_m`` the spacing of the lines (the nominal one when not ``measured``);
+    ``pitch_m`` the spacing of the lines (the nominal one when no axis measures it);
     ``phase_m`` where the lines lie along u and v, modulo the pitch; ``fit`` the share of
     the wall weight within the tolerance of a line; ``lines`` how many distinct lines
-    have walls on them, per axis; ``measured`` enough lines on both axes to measure the
-    pitch; ``fits`` measured and ``fit`` at least the minimum.
+    have walls on them, per axis; ``measured`` enough lines on one axis to measure the
+    pitch; ``fits`` enough lines on both and ``fit`` at least the minimum.
     """
 
     pitch_m: float
@@ -120,10 +120,10 @@ def fit_pitch(
         lines[axis] = max(lines[axis], sum(1 for weight in per_line.values() if weight >= least))
         axis_phase[axis].append((phase, float(h.sum())))
     fit = inside / total
-    measured = min(lines) >= min_lines
+    measured = max(lines) >= min_lines
     wrapped = tuple(_mean_phase(items, pitch) for items in axis_phase)
     return PitchFit(float(pitch), (wrapped[0], wrapped[1]), fit, (lines[0], lines[1]), measured,
-                    measured and fit >= min_fit)
+                    min(lines) >= min_lines and fit >= min_fit)
 
 
 def _mean_phase(items: list[tuple[float, float]], pitch_m: float) -> float:

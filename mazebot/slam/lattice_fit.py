@@ -33,6 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The periodogram's first pass steps this many fine steps at a time.
+COARSE_STEPS = 5
+
 
 @dataclass(frozen=True)
 class PitchFit:
@@ -85,15 +88,17 @@ def fit_pitch(
         return PitchFit(nominal_m, (0.0, 0.0), 0.0, (0, 0), False, False)
     pitch = nominal_m
     if search > 0:
-        count = max(3, 2 * math.ceil(search * nominal_m / step_m) + 1)
-        candidates = nominal_m * (1.0 + np.linspace(-search, search, count))
-        score = np.zeros(count)
-        for x, h, _ in hists:
-            if h.size:
-                score += np.abs(np.exp(2j * np.pi * x[None, :] / candidates[:, None]) @ h)
+        # coarse then fine: the peak is p^2 / 2L wide (9 mm for walls spread over 5 m), so steps of
+        # COARSE_STEPS fine steps find it, and the fine steps around it place it
+        lo, hi = nominal_m * (1.0 - search), nominal_m * (1.0 + search)
+        coarse = _periodogram(hists, np.linspace(lo, hi, max(3, math.ceil((hi - lo) / (COARSE_STEPS * step_m)) + 1)))
+        centre = coarse[0][int(np.argmax(coarse[1]))]
+        span = COARSE_STEPS * step_m
+        candidates, score = _periodogram(hists, np.linspace(max(lo, centre - span), min(hi, centre + span),
+                                                              2 * COARSE_STEPS + 1))
         best = int(np.argmax(score))
         pitch = float(candidates[best])
-        if 0 < best < count - 1:  # parabola through the peak and its neighbours
+        if 0 < best < len(candidates) - 1:  # parabola through the peak and its neighbours
             a, b, c = score[best - 1], score[best], score[best + 1]
             denom = a - 2 * b + c
             if denom < 0:
@@ -130,6 +135,17 @@ def _mean_phase(items: list[tuple[float, float]], pitch_m: float) -> float:
     """The weighted circular mean of the classes' phases of one axis (where its walls' centre lines lie)."""
     z = sum(w * np.exp(2j * np.pi * phase / pitch_m) for phase, w in items) if items else 0.0
     return float(np.remainder(np.angle(z) / (2 * np.pi) * pitch_m, pitch_m)) if abs(z) > 0 else 0.0
+
+
+def _periodogram(
+    hists: list[tuple[np.ndarray, np.ndarray, int]], candidates: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(candidates, score)``: the summed magnitudes of every class's Fourier coefficient at each pitch."""
+    score = np.zeros(candidates.size)
+    for x, h, _ in hists:
+        if h.size:
+            score += np.abs(np.exp(2j * np.pi * x[None, :] / candidates[:, None]) @ h)
+    return candidates, score
 
 
 def _histogram(x: np.ndarray, w: np.ndarray, bin_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -487,8 +487,11 @@ class LoopClosureJob:
         self.lattice_fit = fit
         if not fit.fits:
             return None
-        # the pitch to a tenth of a millimetre: the keyframes' faces, measured at it, stay cached between jobs
-        lattice = replace(lattice, pitch_m=round(fit.pitch_m, 4))
+        # the pitch to a tenth of a millimetre: the keyframes' faces, measured at it, stay cached between jobs;
+        # and a prior is worth no more than the walls lie on the lattice (a maze built by hand: boards
+        # millimetres off their lines)
+        std_m = max(lattice.std_m, math.ceil(fit.line_rms_m * 1000.0) / 1000.0)
+        lattice = replace(lattice, pitch_m=round(fit.pitch_m, 4), std_m=std_m)
         faces = [self.keyframes[k].lattice_faces(float(self.poses[k, 2]) - reference, lattice) for k in index]
         rows, target, weight, line = lattice_priors(self.poses[index], faces, self.poses[0, :2], reference, lattice)
         if not len(rows):

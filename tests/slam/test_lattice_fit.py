@@ -51,6 +51,16 @@ def test_keyframes_measure_a_pitch_and_angle_they_were_not_told(cast_scan, pitch
     assert fit is not None and fit.fits
     assert fit.pitch_m == pytest.approx(world.maze.cell_size_m, abs=0.002)
     assert abs(math.degrees(math.remainder(result.wall_reference_rad - math.radians(17.0), math.pi / 2))) < 0.3
+    assert fit.line_rms_m > 0.002  # boards off their lines: the priors trust the lattice that much less
+
+
+def test_on_a_perfect_lattice_the_lines_lie_on_it(maze_world, cast_scan) -> None:
+    truth = route_poses(maze_world)
+    keyframes = [keyframe_at(maze_world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    fit = chain_job(keyframes, truth, CONFIGURED).run().lattice_fit
+    assert fit is not None and fit.fits
+    assert fit.pitch_m == pytest.approx(0.3048, abs=0.0005)
+    assert fit.line_rms_m < 0.002  # below the configured trust (5 mm): the exact maze's priors are today's
 
 
 def test_a_room_turns_the_lattice_priors_off(cast_scan) -> None:

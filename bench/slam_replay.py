@@ -87,7 +87,9 @@ def replay_once(
     Returns the per-scan and per-job thread CPU, the SLAM, and its live estimates
     ``(time_s, x, y, theta)`` after every update (what the daemon publishes).
     """
-    params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
+    params = SlamParams.from_config(
+        config.slam, config.lidar, config.planner.cell_size_m, config.planner.cell_size_search
+    )
     slam = Slam(params, background=True, record_trajectory=False)
     update_s, job_s, estimates = [], [], []
     pending: tuple[float, Any] | None = None  # (merge time, result) of the job in flight

@@ -235,6 +235,11 @@ class PlannerConfig(Section):
         "auto", description="maze cells, grid frontiers (any world), or auto: maze when the walls fit a lattice"
     )
     cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
+    cell_size_search: float = Field(
+        0.08, ge=0, le=0.2,
+        description="the true pitch is measured from the walls within this share of cell_size_m (mazes built "
+        "by hand are off by a few %); 0: exactly cell_size_m",
+    )
     wall_thickness_m: float = Field(0.012, gt=0, lt=0.1, description="maze wall thickness")
     goal_tolerance_m: float = Field(0.06, gt=0.01, lt=0.3, description="this close to a goal counts as arrived")
     progress_revolutions: int = Field(
@@ -400,6 +405,40 @@ class SimConfig(Section):
     seed: int = Field(1, ge=0, description="seed of the maze generator and of every noise source")
     cell_size_m: float = Field(0.3048, gt=0.1, le=2.0, description="maze cell size (1 ft)")
     wall_thickness_m: float = Field(0.012, gt=0.001, le=0.1, description="maze wall thickness")
+    maze_build: Literal["exact", "hand"] = Field(
+        "exact",
+        description="exact: walls on a perfect lattice of cell_size_m; hand: built from boards by hand "
+        "(the hand_* keys below: pitch, offsets, turns, gaps, thickness, angle, clutter)",
+    )
+    hand_pitch_error_max: float = Field(
+        0.03, ge=0, lt=0.2, description="hand: the true pitch is cell_size_m times 1 + uniform(-this, this)"
+    )
+    hand_line_jitter_m: float = Field(
+        0.005, ge=0, lt=0.05, description="hand: each row or column of posts off its place by uniform(-this, this)"
+    )
+    hand_wall_offset_std_m: float = Field(
+        0.004, ge=0, lt=0.03, description="hand: each wall board off the line between its posts (std, across)"
+    )
+    hand_wall_turn_std_deg: float = Field(0.7, ge=0, lt=5, description="hand: each wall board turned (std)")
+    hand_post_gap_min_m: float = Field(0.002, ge=0, lt=0.05, description="hand: gap between a board and a post ...")
+    hand_post_gap_max_m: float = Field(0.006, ge=0, lt=0.05, description="... up to this (uniform, per end)")
+    hand_wall_thickness_min_m: float = Field(
+        0.006, gt=0.001, le=0.05, description="hand: board thickness, uniform per board from this ..."
+    )
+    hand_wall_thickness_max_m: float = Field(0.020, gt=0.001, le=0.05, description="... to this")
+    hand_post_size_m: float = Field(0.012, gt=0.001, le=0.05, description="hand: side of the square posts")
+    hand_maze_angle_deg: float = Field(
+        -1.0, ge=-1, lt=360, description="hand: the whole maze turned by this in the world (-1: random, seeded)"
+    )
+    hand_start_heading_std_deg: float = Field(
+        3.0, ge=0, le=45, description="hand: the robot put down this far (std) off the start cell's axis"
+    )
+    hand_clutter: int = Field(
+        3, ge=0, le=20,
+        description="hand: table legs (small discs) standing in cell corners; a floor cable is below the "
+        "lidar's plane and not modelled",
+    )
+    hand_clutter_diameter_m: float = Field(0.02, gt=0.002, le=0.05, description="hand: a table leg's diameter")
     room_width_m: float = Field(2.0, gt=0.5, le=20, description="room world: inside width")
     room_height_m: float = Field(1.2, gt=0.5, le=20, description="room world: inside depth")
     room_cylinders: int = Field(4, ge=0, le=50, description="room world: cylindrical posts placed at random")
@@ -424,6 +463,17 @@ class SimConfig(Section):
         1.004, gt=0.9, lt=1.1, description="true right wheel diameter over the configured one"
     )
     slip_std: float = Field(0.01, ge=0, lt=0.5, description="random wheel slip (fraction, per physics step)")
+    turn_slip: float = Field(
+        0.0, ge=0, lt=0.5, description="share of the wheels' turning the body loses (tyres scrub in turns)"
+    )
+    backlash_deg: float = Field(
+        0.0, ge=0, le=20, description="gearbox play: the motor (and its encoder) turns this far before the wheel does"
+    )
+    robot_build: Literal["exact", "cheap"] = Field(
+        "exact",
+        description="cheap: a robot of cheap parts, for keys not set in this file (20-line encoders, wheels 3 % "
+        "apart, 5 % slip in turns, 3 deg of gearbox backlash; see CHEAP_ROBOT in config.py)",
+    )
     # the true robot where it differs from what the other sections say (what `mazebot calibrate` finds)
     track_width_scale: float = Field(
         1.0, gt=0.8, lt=1.25, description="true track width over the configured one"
@@ -451,6 +501,14 @@ class SimConfig(Section):
     lidar_rev_jitter: float = Field(0.03, ge=0, lt=0.5, description="relative jitter of the rotation rate")
     lidar_range_noise: float = Field(0.01, ge=0, lt=0.2, description="range noise std as a fraction of range")
     lidar_dropout: float = Field(0.02, ge=0, lt=1, description="probability that a sample has no return")
+
+    @model_validator(mode="after")
+    def _hand_ranges(self) -> SimConfig:
+        if self.hand_post_gap_min_m > self.hand_post_gap_max_m:
+            raise ValueError("hand_post_gap_min_m must not exceed hand_post_gap_max_m")
+        if self.hand_wall_thickness_min_m > self.hand_wall_thickness_max_m:
+            raise ValueError("hand_wall_thickness_min_m must not exceed hand_wall_thickness_max_m")
+        return self
 
 
 class SlamConfig(Section):
@@ -709,6 +767,19 @@ class ZenohConfig(Section):
         return name
 
 
+#: ``[sim] robot_build = "cheap"``: a robot of cheap parts. A 20-slot encoder disc on each wheel
+#: shaft (the kits' optical interrupters); wheels 3 % apart in diameter (moulded tyres); tyres
+#: that scrub 5 % of the turn away in place; and the few degrees of play of a plastic gearbox
+#: between the motor and the wheel.
+CHEAP_ROBOT: dict[tuple[str, str], object] = {
+    ("encoders", "counts_per_rev"): 20,
+    ("sim", "wheel_diameter_left_scale"): 0.985,
+    ("sim", "wheel_diameter_right_scale"): 1.015,
+    ("sim", "turn_slip"): 0.05,
+    ("sim", "backlash_deg"): 3.0,
+}
+
+
 class Config(BaseModel):
     """The whole configuration file: one section per part of the robot."""
 
@@ -733,6 +804,21 @@ class Config(BaseModel):
     @property
     def wheel_circumference_m(self) -> float:
         return math.pi * self.drive.wheel_diameter_m
+
+    @model_validator(mode="after")
+    def _robot_build_preset(self) -> Config:
+        """``[sim] robot_build = "cheap"``: the :data:`CHEAP_ROBOT` values for every key the file did not set.
+
+        The encoders belong to the robot, not only to the simulator: the daemon must count
+        the cheap robot's 20 lines right, so the preset fills ``[encoders]`` too.
+        """
+        if self.sim.robot_build != "cheap":
+            return self
+        for (section_name, key), value in CHEAP_ROBOT.items():
+            section = getattr(self, section_name)
+            if key not in section.model_fields_set:
+                section.__dict__[key] = value  # no re-validation: the values are in range by construction
+        return self
 
     @model_validator(mode="after")
     def _motor_pins_free(self) -> Config:

@@ -214,3 +214,13 @@ def test_run_with_a_bad_config_has_no_traceback(tmp_path: Path) -> None:
                           capture_output=True, text=True, check=False, timeout=60)
     assert proc.returncode == 78
     assert proc.stderr == f"mazebot: {bad}: web.port: True is not allowed: Input should be a valid integer\n"
+
+
+def test_cheap_robot_preset_fills_the_keys_the_file_left_unset() -> None:
+    cheap = parse_config({"sim": {"robot_build": "cheap"}})
+    assert cheap.encoders.counts_per_rev == 20
+    assert cheap.sim.turn_slip == 0.05 and cheap.sim.backlash_deg == 3.0
+    assert cheap.sim.wheel_diameter_right_scale / cheap.sim.wheel_diameter_left_scale == pytest.approx(1.0305, abs=1e-4)
+    mine = parse_config({"encoders": {"counts_per_rev": 48}, "sim": {"robot_build": "cheap", "turn_slip": 0.1}})
+    assert mine.encoders.counts_per_rev == 48 and mine.sim.turn_slip == 0.1 and mine.sim.backlash_deg == 3.0
+    assert parse_config({}).sim.turn_slip == 0.0 and parse_config({}).encoders.counts_per_rev == 210

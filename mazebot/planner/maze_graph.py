@@ -13,8 +13,11 @@ This module builds that graph from the three-state grid SLAM publishes (−1 unk
    for the same angle; Bigün & Granlund 1987); the cell phase along each axis is the
    circular mean of the wall positions of that family modulo the cell size; then a few
    least-squares steps fit angle and phases so the walls lie on the lattice lines
-   (point-to-line ICP against the lattice). Cell (0, 0) is the cell holding the start
-   pose.
+   (point-to-line ICP against the lattice). With ``pitch_search`` the pitch itself is
+   measured from the walls too (:func:`mazebot.slam.lattice_fit.fit_pitch`: a maze built
+   by hand is a few per cent off the configured cell size), once the walls show enough
+   lattice lines; until then the configured one stands. Cell (0, 0) is the cell holding
+   the start pose.
 
 2. **Links** (:meth:`MazeGraph.update`). Each boundary between neighbouring cells is
    sampled along its middle part (the posts at its ends are left out) and a little to
@@ -45,6 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
+from mazebot.slam.lattice_fit import fit_pitch
 
 Cell = tuple[int, int]
 """A maze cell ``(i, j)``: ``i`` counts cells along the maze's u axis, ``j`` along v."""
@@ -170,6 +174,7 @@ def estimate_frame(
     prior_angle_rad: float | None = None,
     line_tolerance_m: float = 0.03,
     min_support: int = 20,
+    pitch_search: float = 0.0,
 ) -> FrameEstimate | None:
     """The maze lattice that best explains the occupied cells, or None without enough walls.
 
@@ -179,7 +184,9 @@ def estimate_frame(
     closest to ``prior_angle_rad`` is returned (in (−45°, 45°] without a prior), so cell
     indices do not swap axes between updates. ``line_tolerance_m`` is how far a wall
     cell may lie from a lattice line and still count for ``fit``; fewer than
-    ``min_support`` wall cells give None.
+    ``min_support`` wall cells give None. ``pitch_search`` (a share of ``cell_size_m``,
+    0: none) is how far from ``cell_size_m`` the pitch is looked for; the frame's
+    ``cell_size_m`` is the pitch found (``cell_size_m`` while the walls do not measure it).
     """
     occupied = np.asarray(three_state) == OCCUPIED
     rows, cols = np.nonzero(occupied)
@@ -204,6 +211,15 @@ def estimate_frame(
     w_u = weight * (across_u > math.cos(math.radians(25)))
     w_v = weight * (across_u < math.sin(math.radians(25)))
     c, s = math.cos(angle), math.sin(angle)
+    if pitch_search > 0:
+        # both faces of a wall pooled: a grid cell's quantisation (a resolution step) is noisier than the
+        # half thickness between a wall's faces, and once explored most walls are mapped from both sides
+        u0, v0 = c * xy[:, 0] + s * xy[:, 1], -s * xy[:, 0] + c * xy[:, 1]
+        classes = [(u0[w_u > 0], w_u[w_u > 0], 0), (v0[w_v > 0], w_v[w_v > 0], 1)]
+        pitch = fit_pitch(classes, cell_size_m, search=pitch_search,
+                          tolerance_m=max(line_tolerance_m, 2.0 * resolution_m))
+        if pitch.measured:
+            cell_size_m = pitch.pitch_m
     phase_u = _circular_phase(c * xy[:, 0] + s * xy[:, 1], w_u, cell_size_m)
     phase_v = _circular_phase(-s * xy[:, 0] + c * xy[:, 1], w_v, cell_size_m)
 
@@ -364,7 +380,9 @@ class MazeGraph:
     share of them the map must know for the cell to count as seen; ``cell_kept_m`` how
     far a re-estimated frame may move the cells and still keep what was learnt about
     them (the seen shares); ``frame`` a fixed
-    frame (then never re-estimated), e.g. for tests or a maze whose placement is known.
+    frame (then never re-estimated), e.g. for tests or a maze whose placement is known;
+    ``pitch_search`` how far (a share of ``cell_size_m``) the true pitch is looked for
+    (:func:`estimate_frame`): ``cell_size_m`` then follows the frame's measured pitch.
     """
 
     def __init__(
@@ -382,6 +400,7 @@ class MazeGraph:
         interior_seen_min: float = 0.9,
         cell_kept_m: float = 0.05,
         frame: MazeFrame | None = None,
+        pitch_search: float = 0.0,
     ) -> None:
         if cell_size_m <= 0:
             raise ValueError(f"cell_size_m must be positive, got {cell_size_m}")
@@ -390,6 +409,8 @@ class MazeGraph:
         if samples_along < 2:
             raise ValueError(f"samples_along must be at least 2, got {samples_along}")
         self.cell_size_m = float(cell_size_m)
+        self.nominal_cell_size_m = float(cell_size_m)
+        self.pitch_search = float(pitch_search)
         self.wall_thickness_m = float(wall_thickness_m)
         self.anchor_xy_m = (float(anchor_xy_m[0]), float(anchor_xy_m[1]))
         self.post_margin = float(post_margin)
@@ -470,7 +491,8 @@ class MazeGraph:
         prior = None if self.frame is None else self.frame.angle_rad
         tolerance = max(1.5 * resolution_m, self.wall_thickness_m)
         estimate = estimate_frame(
-            grid, grid_origin_m, resolution_m, self.cell_size_m, self.anchor_xy_m, prior, line_tolerance_m=tolerance
+            grid, grid_origin_m, resolution_m, self.nominal_cell_size_m, self.anchor_xy_m, prior,
+            line_tolerance_m=tolerance, pitch_search=self.pitch_search,
         )
         if estimate is None:
             return False
@@ -478,10 +500,12 @@ class MazeGraph:
         self.fit = estimate.fit
         old = self.frame
         self.frame = estimate.frame
+        self.cell_size_m = estimate.frame.cell_size_m
         if old is None:
             return True
         moved = np.hypot(*np.subtract(old.origin_m, estimate.frame.origin_m))
-        return bool(abs(old.angle_rad - estimate.frame.angle_rad) > 1e-9 or moved > 1e-9)
+        resized = abs(old.cell_size_m - estimate.frame.cell_size_m)
+        return bool(abs(old.angle_rad - estimate.frame.angle_rad) > 1e-9 or moved > 1e-9 or resized > 1e-9)
 
     def _cells_kept(self, old: MazeFrame, new: MazeFrame) -> bool:
         """True when every covered cell lies within ``cell_kept_m`` of where ``old`` put it.
@@ -493,9 +517,8 @@ class MazeGraph:
         if self._core is None:
             return False
         lo_i, hi_i, lo_j, hi_j = self._core
-        c = self.cell_size_m
-        corners_uv = np.array([[lo_i, lo_j], [hi_i + 1, lo_j], [lo_i, hi_j + 1], [hi_i + 1, hi_j + 1]], dtype=float) * c
-        moved = np.hypot(*(old.to_map(corners_uv) - new.to_map(corners_uv)).T)
+        corners = np.array([[lo_i, lo_j], [hi_i + 1, lo_j], [lo_i, hi_j + 1], [hi_i + 1, hi_j + 1]], dtype=float)
+        moved = np.hypot(*(old.to_map(corners * old.cell_size_m) - new.to_map(corners * new.cell_size_m)).T)
         return bool(moved.max() < self.cell_kept_m)
 
     def _resize(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> None:

@@ -54,6 +54,7 @@ class PilotParams:
     strategy: str
     mode: str
     cell_size_m: float
+    cell_size_search: float
     wall_thickness_m: float
     goal_tolerance_m: float
     progress_revolutions: int
@@ -88,6 +89,7 @@ class PilotParams:
             strategy=p.strategy,
             mode=p.mode,
             cell_size_m=p.cell_size_m,
+            cell_size_search=p.cell_size_search,
             wall_thickness_m=p.wall_thickness_m,
             goal_tolerance_m=p.goal_tolerance_m,
             progress_revolutions=p.progress_revolutions,
@@ -143,7 +145,12 @@ class Pilot:
 
     def _new_explorer(self, start_xy_m: tuple[float, float]) -> Explorer:
         p = self.params
-        graph = MazeGraph(cell_size_m=p.cell_size_m, wall_thickness_m=p.wall_thickness_m, anchor_xy_m=start_xy_m)
+        graph = MazeGraph(
+            cell_size_m=p.cell_size_m,
+            wall_thickness_m=p.wall_thickness_m,
+            anchor_xy_m=start_xy_m,
+            pitch_search=p.cell_size_search,
+        )
         return Explorer(
             graph,
             strategy=p.strategy,

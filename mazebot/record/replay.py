@@ -96,7 +96,9 @@ class Replayer:
     ) -> None:
         self.recording = recording
         self.config = config = recorded_config(recording)
-        params = SlamParams.from_config(config.slam, config.lidar, config.planner.cell_size_m)
+        params = SlamParams.from_config(
+            config.slam, config.lidar, config.planner.cell_size_m, config.planner.cell_size_search
+        )
         self.slam = Slam(params, background=True, record_trajectory=True)
         drive = config.drive
         self.odometry = DiffDriveOdometry(

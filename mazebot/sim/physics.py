@@ -24,6 +24,12 @@ Model, per wheel (left and right alike):
 3. Ground travel of the wheel: its true surface travel ``Δφ · r_true`` (``r_true`` is
    the nominal radius times the per-side diameter scale), times ``1 + ε`` with ``ε`` a
    random slip fraction. Slip changes how far the body moves, never the wheel angle.
+   With ``backlash_rad`` of play between the encoder's shaft and the wheel (a cheap
+   gearbox, a loose hub) the wheel follows the shaft only once the play is taken up:
+   after every reversal the encoder counts up to ``backlash_rad`` the wheel never turned.
+4. Turn scrub: tyres scrub sideways when the robot turns, so the body turns
+   ``1 − turn_slip · |d_r − d_l| / (|d_r| + |d_l|)`` of what the wheels' travel says
+   (the whole ``turn_slip`` in place, nothing driving straight).
 
 Body, from the two ground travels ``d_l, d_r`` of a sub-step (Siegwart, Nourbakhsh &
 Scaramuzza, *Introduction to Autonomous Mobile Robots*, 2nd ed., section 5.2.4)::
@@ -119,6 +125,10 @@ class PhysicsParams:
     # Standard deviation of the random slip fraction, per wheel and per sub-step at
     # rate_hz: the ground travel of a wheel is its surface travel times (1 + N(0, slip_std)).
     slip_std: float = 0.01
+    # Play (radians of wheel rotation) between the encoder's shaft and the wheel, and the
+    # share of an in-place turn lost to scrubbing tyres (see the module docstring, 3 and 4).
+    backlash_rad: float = 0.0
+    turn_slip: float = 0.0
     # Radius of a circle, centred on the axle midpoint, that holds the whole robot.
     footprint_radius_m: float = 0.09
     # Internal integration rate in Hz; step() sub-steps at least this finely.
@@ -151,6 +161,11 @@ class PhysicsParams:
             )
         if self.slip_std < 0:
             raise ValueError(f"physics parameter slip_std must be >= 0, got {self.slip_std!r}")
+        if self.backlash_rad < 0 or not 0.0 <= self.turn_slip < 1.0:
+            raise ValueError(
+                f"physics parameters backlash_rad must be >= 0 and turn_slip in [0, 1), "
+                f"got {self.backlash_rad!r}, {self.turn_slip!r}"
+            )
         if self.rate_hz < 200:
             raise ValueError(
                 f"physics parameter rate_hz must be >= 200 to resolve the motor lag, "
@@ -290,6 +305,9 @@ class RobotPhysics:
         self._rate_right_rad_s = 0.0
         self._angle_left_rad = 0.0
         self._angle_right_rad = 0.0
+        # where each wheel stands within the play of its shaft: wheel angle minus shaft angle
+        self._play_left_rad = 0.0
+        self._play_right_rad = 0.0
         self._body_speed_mps = 0.0
         self._body_rate_rad_s = 0.0
         self._collisions = 0
@@ -441,6 +459,7 @@ class RobotPhysics:
 
         radius_l, radius_r = self._radius_left_m * self.grip[0], self._radius_right_m * self.grip[1]
         inv_track_per_m = 1.0 / p.track_width_m
+        half_play = 0.5 * p.backlash_rad
         rate_l, rate_r = self._rate_left_rad_s, self._rate_right_rad_s
         fraction = ds = dtheta = 0.0
         for slip_l, slip_r in slip.tolist():
@@ -451,12 +470,20 @@ class RobotPhysics:
             rate_r = target_r + (rate_r - target_r) * decay_r
             self._angle_left_rad += dphi_l
             self._angle_right_rad += dphi_r
+            if half_play > 0.0:  # the wheel moves only once the shaft has taken up the play
+                play_l = min(max(self._play_left_rad - dphi_l, -half_play), half_play)
+                play_r = min(max(self._play_right_rad - dphi_r, -half_play), half_play)
+                dphi_l += play_l - self._play_left_rad
+                dphi_r += play_r - self._play_right_rad
+                self._play_left_rad, self._play_right_rad = play_l, play_r
 
             # 2. Body: ground travel of each wheel, then the exact arc.
             d_l = dphi_l * radius_l * slip_l
             d_r = dphi_r * radius_r * slip_r
             ds = 0.5 * (d_r + d_l)
             dtheta = (d_r - d_l) * inv_track_per_m
+            if p.turn_slip > 0.0 and dtheta != 0.0:
+                dtheta *= 1.0 - p.turn_slip * abs(d_r - d_l) / (abs(d_r) + abs(d_l))
             half = 0.5 * dtheta
             chord = ds if abs(half) < 1e-9 else ds * math.sin(half) / half
             heading = self._theta_rad + half

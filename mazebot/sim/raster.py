@@ -10,9 +10,12 @@ Grids are indexed ``grid[row, col]``; row 0 is the southern row and cell (row, c
 spans ``origin + (col, row) * resolution`` to one resolution step further (the
 orientation of ROS ``map_server`` data, origin bottom-left).
 
-Walls are filled by the even-odd rule from the world's segments, which works because
-the worlds built in :mod:`mazebot.sim` store closed outlines (see
-:mod:`mazebot.sim.world`); an open polyline is drawn as a line of touched cells only.
+Walls are filled by the non-zero winding rule from the world's segments, which works
+because the worlds built in :mod:`mazebot.sim` store closed outlines with the solid on
+their left (see :mod:`mazebot.sim.world`): a point inside is wound round once, or more
+where the boards and posts of a hand-built maze (:mod:`mazebot.sim.hand_maze`) overlap,
+which the even-odd rule would count as free. An open polyline is drawn as a line of
+touched cells only.
 """
 
 from __future__ import annotations
@@ -63,24 +66,25 @@ def true_occupancy(
     if rule not in ("touch", "centre"):
         raise ValueError(f"rule must be 'touch' or 'centre', got {rule!r}")
     origin, (rows, cols) = grid_frame(world, resolution_m, origin_m, shape)
-    grid = _even_odd_fill(world.segments, resolution_m, origin, rows, cols)
+    grid = _winding_fill(world.segments, resolution_m, origin, rows, cols)
     if rule == "touch":
         _draw_segments(grid, world.segments, resolution_m, origin)
     _draw_circles(grid, world.circles, resolution_m, origin, touch=rule == "touch")
     return grid, origin
 
 
-def _even_odd_fill(segments: np.ndarray, res: float, origin: tuple[float, float], rows: int, cols: int) -> np.ndarray:
-    """Cells whose centre is inside the closed outlines (even-odd rule), all rows at once.
+def _winding_fill(segments: np.ndarray, res: float, origin: tuple[float, float], rows: int, cols: int) -> np.ndarray:
+    """Cells whose centre is inside the closed outlines (non-zero winding rule), all rows at once.
 
     Each non-horizontal segment crossing the horizontal line through a row of centres
-    flips the inside/outside state of every centre east of the crossing; the flips are
-    accumulated in a difference array and a cumulative sum gives the parity. A segment
-    counts for ``ymin <= y < ymax`` so a shared vertex is crossed exactly once.
+    adds its winding (+1 going south, −1 going north: solid on the left) to every centre
+    east of the crossing; the steps are accumulated in a difference array and a
+    cumulative sum gives the winding number, non-zero inside. A segment counts for
+    ``ymin <= y < ymax`` so a shared vertex is crossed exactly once.
     """
     ox, oy = origin
     segs = segments[segments[:, 1] != segments[:, 3]]
-    flips = np.zeros((rows, cols + 1), dtype=np.uint8)  # parity survives uint8 wrap-around
+    flips = np.zeros((rows, cols + 1), dtype=np.int32)
     if segs.shape[0]:
         y_rows = oy + (np.arange(rows) + 0.5) * res  # (R,)
         y_lo = np.minimum(segs[:, 1], segs[:, 3])
@@ -99,8 +103,9 @@ def _even_odd_fill(segments: np.ndarray, res: float, origin: tuple[float, float]
         x_cross = s[:, 0] + (y - s[:, 1]) * (s[:, 2] - s[:, 0]) / (s[:, 3] - s[:, 1])
         # first column whose centre lies east of the crossing
         col = np.floor((x_cross - ox) / res - 0.5).astype(np.int64) + 1
-        np.add.at(flips, (row_index, col.clip(0, cols)), 1)
-    return (np.cumsum(flips, axis=1, dtype=np.uint8)[:, :cols] & 1).astype(bool)
+        winding = np.where(s[:, 3] < s[:, 1], 1, -1).astype(np.int32)
+        np.add.at(flips, (row_index, col.clip(0, cols)), winding)
+    return np.cumsum(flips, axis=1)[:, :cols] != 0
 
 
 def _open_cell_range(lo: float, hi: float, o: float, res: float, n: int) -> tuple[int, int]:

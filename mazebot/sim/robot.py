@@ -13,6 +13,7 @@ imperfections of ``[sim]``: motor lag and mismatch, unequal wheels, slip, lidar 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -47,6 +48,8 @@ def physics_params(config: Config) -> PhysicsParams:
         wheel_diameter_left_scale=sim.wheel_diameter_left_scale * 2.0 / (1.0 + ratio),
         wheel_diameter_right_scale=sim.wheel_diameter_right_scale * 2.0 * ratio / (1.0 + ratio),
         slip_std=sim.slip_std,
+        backlash_rad=math.radians(sim.backlash_deg),
+        turn_slip=sim.turn_slip,
         footprint_radius_m=config.robot.footprint_radius_m,
         rate_hz=sim.physics_rate_hz,
     )

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from mazebot.config import Config
 from mazebot.errors import UsageError
+from mazebot.sim.hand_maze import HandBuild, hand_built_world
 from mazebot.sim.maze_file import load_maze
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.room import make_room
@@ -33,10 +34,16 @@ def make_world(config: Config, maze_path: str | None, seed: int | None, size: tu
             raise UsageError("give either --maze or --seed/--size, not both")
         if not Path(path).is_file():
             raise UsageError(f"maze file {path} not found")
-        return load_maze(path, cell_size_m=sim.cell_size_m, wall_thickness_m=sim.wall_thickness_m)
+        world = load_maze(path, cell_size_m=sim.cell_size_m, wall_thickness_m=sim.wall_thickness_m)
+        if sim.maze_build == "hand":
+            assert world.maze is not None
+            maze_seed = sim.seed if seed is None else seed
+            return hand_built_world(world.maze, HandBuild.from_sim(sim), maze_seed, name=f"hand-{world.name}")
+        return world
     width, height = size or (sim.maze_width, sim.maze_height)
     maze_seed = sim.seed if seed is None else seed
     layout = generate_maze(width, height, maze_seed, kind=sim.maze_kind, cell_size_m=sim.cell_size_m)
-    return world_from_layout(
-        layout, wall_thickness_m=sim.wall_thickness_m, name=f"{sim.maze_kind}-{width}x{height}-seed{maze_seed}"
-    )
+    name = f"{sim.maze_kind}-{width}x{height}-seed{maze_seed}"
+    if sim.maze_build == "hand":
+        return hand_built_world(layout, HandBuild.from_sim(sim), maze_seed, name=f"hand-{name}")
+    return world_from_layout(layout, wall_thickness_m=sim.wall_thickness_m, name=name)

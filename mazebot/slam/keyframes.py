@@ -138,10 +138,14 @@ class Keyframe:
 
         ``psi_rad`` is the keyframe's heading on the wall grid; the faces are measured again
         only if it has changed by more than :data:`LATTICE_REMEASURE_RAD` since (the
-        cached offsets follow smaller changes to first order).
+        cached offsets follow smaller changes to first order) or the pitch has.
         """
         cached = self._lattice
-        if cached is None or abs(math.remainder(psi_rad - cached.psi_rad, math.tau)) > LATTICE_REMEASURE_RAD:
+        if (
+            cached is None
+            or cached.pitch_m != params.pitch_m
+            or abs(math.remainder(psi_rad - cached.psi_rad, math.tau)) > LATTICE_REMEASURE_RAD
+        ):
             points, normals = self.surface()
             cached = measure_faces(points, normals, self.sensor_xy, psi_rad, params)
             self._lattice = cached

@@ -50,6 +50,7 @@ Example::
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import Counter
@@ -65,11 +66,18 @@ from mazebot.slam.endpoint_smoothing import EndpointSmoothing
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
+from mazebot.slam.lattice_fit import PitchFit, fit_pitch
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
 from mazebot.slam.wall_lattice import LatticeParams, lattice_priors
 from mazebot.steps import run_steps
+
+log = logging.getLogger(__name__)
+
+#: At most about this many keyframes, evenly spread, measure the lattice's pitch (the walls
+#: repeat from keyframe to keyframe; more only costs time in every optimization).
+LATTICE_FIT_KEYFRAMES = 200
 
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
@@ -162,17 +170,23 @@ class SlamParams:
     lattice: LatticeParams | None = None
 
     @classmethod
-    def from_config(cls, slam: Any, lidar: Any, cell_size_m: float | None = None) -> SlamParams:
+    def from_config(
+        cls, slam: Any, lidar: Any, cell_size_m: float | None = None, cell_size_search: float = 0.0
+    ) -> SlamParams:
         """From the ``[slam]`` and ``[lidar]`` config sections (plain values only from here on).
 
         ``cell_size_m`` is the maze's cell size (``[planner] cell_size_m``): with it, and
         ``wall_lattice`` and ``wall_prior`` on, the keyframes' wall faces are tied to the
-        lattice of that pitch (:mod:`mazebot.slam.wall_lattice`).
+        lattice of that pitch (:mod:`mazebot.slam.wall_lattice`), or of the pitch measured
+        within ``cell_size_search`` of it (``[planner] cell_size_search``).
         """
         lattice = None
         if cell_size_m is not None and slam.wall_lattice and slam.wall_prior:
             lattice = LatticeParams(
-                pitch_m=cell_size_m, std_m=slam.wall_lattice_std_m, gate_m=slam.wall_lattice_gate_m
+                pitch_m=cell_size_m,
+                pitch_search=cell_size_search,
+                std_m=slam.wall_lattice_std_m,
+                gate_m=slam.wall_lattice_gate_m,
             )
         return cls(
             lattice=lattice,
@@ -285,6 +299,7 @@ class LoopClosureResult:
     moved_m: float = 0.0
     turned_rad: float = 0.0
     wall_reference_rad: float | None = None  # the wall grid's direction estimated with the poses
+    lattice_fit: PitchFit | None = None  # the lattice the walls were fitted to (None: not looked for)
     cpu_s: float = 0.0  # thread CPU time the job took (where it ran: a thread or a worker process)
 
 
@@ -308,6 +323,7 @@ class LoopClosureJob:
     # keyframe 0's wall direction in its own frame, averaged at rest, and how tightly it ties the wall vertex
     anchor_wall: tuple[float, float] | None = None  # (direction_rad, std_rad); None: keyframe 0 is no anchor
     rebuild_anyway: bool = False  # rebuild the grid however little the keyframes moved (the end of exploration)
+    lattice_fit: PitchFit | None = None  # set by the run: the lattice the walls were fitted to
 
     def __call__(self) -> LoopClosureResult:
         """The job as a callable, so any executor runs it (``loop.run_in_executor(executor, job)``)."""
@@ -374,7 +390,9 @@ class LoopClosureJob:
         if self.rebuild_anyway or moved > p.rebuild_threshold_m or turned > p.rebuild_threshold_rad:
             grid = p.grid.new_grid()
             grid.rebuild(kf.rays(poses[k]) for k, kf in enumerate(self.keyframes))
-        return LoopClosureResult(verdicts, poses, grid, optimization, moved, turned, wall_reference)
+        return LoopClosureResult(
+            verdicts, poses, grid, optimization, moved, turned, wall_reference, lattice_fit=self.lattice_fit
+        )
 
     def _wall_priors(
         self,
@@ -465,6 +483,15 @@ class LoopClosureJob:
         """
         lattice = self.params.lattice
         assert lattice is not None
+        fit = self._lattice_fit(index, reference, lattice)
+        self.lattice_fit = fit
+        if not fit.fits:
+            return None
+        # the pitch to a tenth of a millimetre: the keyframes' faces, measured at it, stay cached between jobs;
+        # and a prior is worth no more than the walls lie on the lattice (a maze built by hand: boards
+        # millimetres off their lines)
+        std_m = max(lattice.std_m, math.ceil(fit.line_rms_m * 1000.0) / 1000.0)
+        lattice = replace(lattice, pitch_m=round(fit.pitch_m, 4), std_m=std_m)
         faces = [self.keyframes[k].lattice_faces(float(self.poses[k, 2]) - reference, lattice) for k in index]
         rows, target, weight, line = lattice_priors(self.poses[index], faces, self.poses[0, :2], reference, lattice)
         if not len(rows):
@@ -474,6 +501,38 @@ class LoopClosureJob:
         info = np.zeros((len(rows), 3, 3))
         info[:, 0, 0], info[:, 1, 1] = weight[:, 0], weight[:, 1]
         return crossing, index[rows], np.column_stack((target, np.zeros(len(rows)))), info
+
+    def _lattice_fit(self, index: np.ndarray, reference: float, lattice: LatticeParams) -> PitchFit:
+        """The lattice of the faces keyframes ``index`` see (:func:`mazebot.slam.lattice_fit.fit_pitch`).
+
+        Every keyframe's surface points within ``lattice.max_range_m`` of its lidar, in the
+        map frame turned onto the wall grid (``reference``), split by the side their normal
+        faces (+u, −u, +v, −v: the classes of :data:`mazebot.slam.wall_lattice.FACE_CLASSES`):
+        the positions of the walls' faces across themselves.
+        """
+        cos_tol = math.cos(lattice.normal_tolerance_rad)
+        parts: list[list[np.ndarray]] = [[], [], [], []]  # faces seen from +u, -u, +v, -v: each its own phase
+        for k in index[:: max(1, len(index) // LATTICE_FIT_KEYFRAMES)]:
+            kf = self.keyframes[int(k)]
+            pts, nrm = kf.surface()
+            near = np.hypot(pts[:, 0] - kf.sensor_xy[0], pts[:, 1] - kf.sensor_xy[1]) <= lattice.max_range_m
+            pts, nrm = pts[near].astype(np.float64), nrm[near].astype(np.float64)
+            x, y, theta = self.poses[int(k)]
+            c, s = math.cos(theta - reference), math.sin(theta - reference)
+            cr, sr = math.cos(reference), math.sin(reference)
+            # the keyframe's origin on the grid's axes, then its points turned by its heading on the grid
+            u0, v0 = cr * x + sr * y, -sr * x + cr * y
+            u = u0 + c * pts[:, 0] - s * pts[:, 1]
+            v = v0 + s * pts[:, 0] + c * pts[:, 1]
+            nu = c * nrm[:, 0] - s * nrm[:, 1]
+            nv = s * nrm[:, 0] + c * nrm[:, 1]
+            for part, position, normal in ((0, u, nu), (1, u, -nu), (2, v, nv), (3, v, -nv)):
+                parts[part].append(position[normal >= cos_tol])
+        classes = []
+        for part, found in enumerate(parts):
+            positions = np.concatenate(found) if found else np.zeros(0)
+            classes.append((positions, np.ones(positions.size), part // 2))
+        return fit_pitch(classes, lattice.pitch_m, search=lattice.pitch_search, tolerance_m=lattice.fit_tolerance_m)
 
 
 @dataclass(frozen=True)
@@ -561,6 +620,8 @@ class Slam:
         self._keyframes_since_optimization = 0
         self._pending_candidates: list[Candidate] = []
         self.wall_reference_rad: float | None = None  # the maze's wall grid in the map frame (mod 90°)
+        self.lattice_fit: PitchFit | None = None  # the last lattice the walls were fitted to
+        self._lattice_on: bool | None = None  # whether the lattice priors are on, once looked for
         # keyframe 0's revolutions at rest, and the wall directions (robot frame) of those that show a grid
         self._anchor_revolutions = 0
         self._anchor_walls: list[float] = []
@@ -774,6 +835,21 @@ class Slam:
         """
         return run_steps(self.apply_steps(result))
 
+    def _note_lattice(self, fit: PitchFit | None) -> None:
+        """Keep the lattice fit, and log when the lattice priors switch on or off (once per switch)."""
+        if fit is None:
+            return
+        self.lattice_fit = fit
+        if fit.fits == self._lattice_on:
+            return
+        if fit.fits:
+            log.info("walls fit a lattice of pitch %.4f m (%d x %d lines, %.0f %% of the faces): lattice priors on",
+                     fit.pitch_m, fit.lines[0], fit.lines[1], 100 * fit.fit)
+        elif self._lattice_on is None or fit.measured:
+            log.info("walls do not fit a lattice (%d x %d lines, %.0f %% of the faces on one): lattice priors off",
+                     fit.lines[0], fit.lines[1], 100 * fit.fit)
+        self._lattice_on = fit.fits
+
     def apply_steps(self, result: LoopClosureResult) -> Generator[None, None, bool]:
         """:meth:`apply` in stages (as :meth:`update_steps`): the new submap and the late keyframes' rays.
 
@@ -790,6 +866,7 @@ class Slam:
             self.closures.append(
                 ClosureRecord(c.old, c.new, self.keyframes[c.old].time_s, self.keyframes[c.new].time_s, v.measurement)
             )
+        self._note_lattice(result.lattice_fit)
         if result.poses is None:
             return False
         if result.wall_reference_rad is not None:

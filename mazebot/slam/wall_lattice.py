@@ -21,9 +21,14 @@ ordinary edge from the wall vertex (its heading the grid's direction, its positi
 crossing of the lattice's lines, estimated with the poses) to the keyframe, whose
 information covers only the lattice axes it measured.
 
-A world whose walls do not fit the pitch (a room, a maze of another cell size) shows
-it: the faces of one class then do not agree on an offset across keyframes, and that
-class gives no prior (:data:`MIN_CONSISTENCY`). Curved things (posts of a room) give
+The pitch itself is measured from the keyframes' faces
+(:func:`mazebot.slam.lattice_fit.fit_pitch`, within ``pitch_search`` of the configured
+cell size: a maze built by hand is a few per cent off it), and so are the lattice's
+direction (the wall vertex) and its lines (the offsets). A world whose walls do not fit
+a lattice (a room: its opposite walls fit any pitch, nothing between them) turns the
+priors off as a whole; and where some faces do not fit, the faces of one class do not
+agree on an offset across keyframes, and that class gives no prior
+(:data:`MIN_CONSISTENCY`). Curved things (posts of a room) give
 no face: a class needs points along a straight stretch (``min_extent_m``).
 """
 
@@ -47,6 +52,8 @@ class LatticeParams:
     """How keyframe wall faces become lattice priors."""
 
     pitch_m: float = 0.3048  # the maze's cell size: the spacing of the lattice lines
+    pitch_search: float = 0.0  # the true pitch is measured within this share of pitch_m (0: pitch_m exactly)
+    fit_tolerance_m: float = 0.02  # a face this close to a lattice line fits it (boards offset, posts set out by hand)
     std_m: float = 0.005  # trust in one keyframe's face offset (one class)
     gate_m: float = 0.04  # a face farther than this from the lattice (at the current estimate) is ignored
     normal_tolerance_rad: float = 0.26  # a point's normal within this of a lattice axis belongs to its class
@@ -70,6 +77,7 @@ class LatticeFaces:
     offset_m: np.ndarray
     arm_m: np.ndarray
     count: np.ndarray
+    pitch_m: float = 0.0  # the pitch the faces were measured at
 
     def at(self, psi_rad: float) -> np.ndarray:
         """The offsets (4,) at grid heading ``psi_rad`` (first order in the change of heading)."""
@@ -107,7 +115,7 @@ def measure_faces(
         # d(u)/dψ = −v and d(v)/dψ = u for a point turned by ψ
         arm[k] = float(-along[keep].mean()) if axis == 0 else float(along[keep].mean())
         count[k] = kept
-    return LatticeFaces(psi_rad, offset, arm, count)
+    return LatticeFaces(psi_rad, offset, arm, count, pitch)
 
 
 def lattice_priors(

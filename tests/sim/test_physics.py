@@ -323,3 +323,32 @@ def test_invalid_commands_and_parameters_are_rejected_with_the_value() -> None:
         PhysicsParams(deadband=1.0)
     with pytest.raises(ValueError, match="footprint"):
         make_robot(world=make_world(segments=[[0.05, -1.0, 0.05, 1.0]]))
+
+
+def test_scrubbing_tyres_lose_their_share_of_an_in_place_turn_and_none_of_a_straight_run() -> None:
+    exact, scrub = make_robot(PhysicsParams.ideal()), make_robot(PhysicsParams.ideal(turn_slip=0.05))
+    for robot in (exact, scrub):
+        robot.set_throttle(-0.5, 0.5)
+        robot.step(0.5)
+    assert scrub.wheel_angle_rad == exact.wheel_angle_rad  # the encoders count the same
+    assert scrub.theta_rad == pytest.approx(0.95 * exact.theta_rad, rel=1e-9)
+    straight = make_robot(PhysicsParams.ideal(turn_slip=0.05))
+    straight.set_throttle(0.5, 0.5)
+    straight.step(0.5)
+    assert straight.theta_rad == 0.0 and straight.x_m > 0.05
+
+
+def test_backlash_counts_play_the_wheel_never_turned_after_a_reversal() -> None:
+    play_rad = math.radians(3.0)
+    p = PhysicsParams.ideal(backlash_rad=play_rad)
+    robot, exact = make_robot(p), make_robot(PhysicsParams.ideal())
+    for throttle in (0.5, -0.5):
+        for r in (robot, exact):
+            r.set_throttle(throttle, throttle)
+            r.step(0.6)
+            r.set_throttle(0.0, 0.0)
+            r.step(1.0)
+    # the same shaft rotations; the wheels lost the play once at the start (half) and once at the reversal
+    assert robot.wheel_angle_rad == pytest.approx(exact.wheel_angle_rad, abs=1e-12)
+    radius_m = 0.5 * p.wheel_diameter_m
+    assert robot.x_m - exact.x_m == pytest.approx(-0.5 * play_rad * radius_m + play_rad * radius_m, abs=1e-9)

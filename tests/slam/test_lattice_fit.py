@@ -1,0 +1,83 @@
+"""The lattice's pitch and direction measured from keyframes' walls; a room turns the lattice priors off."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mazebot.sim.hand_maze import HandBuild, hand_built_world
+from mazebot.sim.maze_generator import generate_maze
+from mazebot.sim.room import make_room
+from mazebot.slam.lattice_fit import fit_pitch
+from mazebot.slam.posegraph import relative_pose
+from mazebot.slam.slam import LoopClosureJob, SlamParams
+from mazebot.slam.wall_lattice import LatticeParams
+from tests.slam.test_wall_lattice import keyframe_at, route_poses
+
+CONFIGURED = LatticeParams(pitch_m=0.3048, pitch_search=0.08)
+
+
+def chain_job(keyframes, poses, lattice: LatticeParams | None) -> LoopClosureJob:
+    """An optimization of the chain of ``poses`` as its scan matches saw it, the wall direction from keyframe 0."""
+    count = len(poses)
+    ei, ej = np.arange(count - 1), np.arange(1, count)
+    info = np.tile(np.diag([1 / 0.005**2, 1 / 0.005**2, 1 / 0.01**2]), (count - 1, 1, 1))
+    direction, _, _ = keyframes[0].wall_direction()  # measured, not told
+    return LoopClosureJob(
+        candidates=[],
+        keyframes=keyframes,
+        poses=poses.copy(),
+        integrated_poses=poses.copy(),
+        edges=(ei, ej, relative_pose(poses[ei], poses[ej]), info),
+        params=SlamParams(lattice=lattice),
+        wall_reference_rad=math.remainder(direction + float(poses[0, 2]), math.pi / 2),
+        optimize_anyway=True,
+        anchor_wall=(direction, 0.01),  # as loose as any keyframe: the direction from all the walls
+    )
+
+
+@pytest.mark.parametrize("pitch_m", [0.29, 0.32])
+def test_keyframes_measure_a_pitch_and_angle_they_were_not_told(cast_scan, pitch_m: float) -> None:
+    layout = generate_maze(6, 6, seed=3, kind="braided", cell_size_m=pitch_m)
+    world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=math.radians(17.0)), 3)
+    truth = route_poses(world)
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    for kf, pose in zip(keyframes, truth, strict=True):
+        kf.pose = pose.copy()
+    result = chain_job(keyframes, truth, CONFIGURED).run()
+    fit = result.lattice_fit
+    assert fit is not None and fit.fits
+    assert fit.pitch_m == pytest.approx(world.maze.cell_size_m, abs=0.002)
+    assert abs(math.degrees(math.remainder(result.wall_reference_rad - math.radians(17.0), math.pi / 2))) < 0.3
+    assert fit.line_rms_m > 0.002  # boards off their lines: the priors trust the lattice that much less
+
+
+def test_on_a_perfect_lattice_the_lines_lie_on_it(maze_world, cast_scan) -> None:
+    truth = route_poses(maze_world)
+    keyframes = [keyframe_at(maze_world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    fit = chain_job(keyframes, truth, CONFIGURED).run().lattice_fit
+    assert fit is not None and fit.fits
+    assert fit.pitch_m == pytest.approx(0.3048, abs=0.0005)
+    assert fit.line_rms_m < 0.002  # below the configured trust (5 mm): the exact maze's priors are today's
+
+
+def test_a_room_turns_the_lattice_priors_off(cast_scan) -> None:
+    room = make_room(2.0, 1.2, cylinders=4, seed=0, footprint_radius_m=0.09)
+    rng = np.random.default_rng(1)
+    poses = np.column_stack((rng.uniform(0.2, 1.8, 12), rng.uniform(0.2, 1.0, 12), rng.uniform(-3, 3, 12)))
+    keyframes = [keyframe_at(room, cast_scan, k, p, seed=k) for k, p in enumerate(poses)]
+    result = chain_job(keyframes, poses, CONFIGURED).run()
+    assert result.lattice_fit is not None and not result.lattice_fit.measured and not result.lattice_fit.fits
+    # and without the lattice's edges the job is the one without a lattice at all
+    plain = chain_job(keyframes, poses, None).run()
+    assert np.allclose(result.poses, plain.poses, atol=1e-9)
+
+
+def test_two_lines_fit_any_pitch_so_they_measure_none() -> None:
+    u = np.repeat([0.0, 2.0], 200)
+    v = np.repeat([0.0, 1.2], 200)
+    fit = fit_pitch([(u, np.ones(u.size), 0), (v, np.ones(v.size), 1)], 0.3048, search=0.08)
+    assert fit.lines == (1, 1) or max(fit.lines) <= 2
+    assert not fit.measured and not fit.fits

@@ -143,10 +143,10 @@ def hand_geometry(layout: MazeLayout, build: HandBuild, seed: int) -> HandGeomet
     pieces: list[tuple[int, int, int]] = []  # (axis, line index, span index): a board along axis
     for jv in range(layout.height + 1):  # boards along u on row of posts jv
         flags = layout.walls_south_edge if jv == 0 else layout.walls_north[jv - 1]
-        pieces += [(0, jv, i) for i in np.flatnonzero(flags)]
+        pieces += [(0, jv, int(i)) for i in np.flatnonzero(flags)]
     for iu in range(layout.width + 1):  # boards along v on column of posts iu
         flags = layout.walls_west_edge if iu == 0 else layout.walls_east[:, iu - 1]
-        pieces += [(1, iu, i) for i in np.flatnonzero(flags)]
+        pieces += [(1, iu, int(i)) for i in np.flatnonzero(flags)]
     n = len(pieces)
     offset = _clipped_normal(rng, build.wall_offset_std_m, n)
     turn = _clipped_normal(rng, build.wall_turn_std_rad, n)
@@ -161,8 +161,8 @@ def hand_geometry(layout: MazeLayout, build: HandBuild, seed: int) -> HandGeomet
         centre_along, across = 0.5 * (a + b), across_lines[line] + offset[k]
         cu, cv = (centre_along, across) if axis == 0 else (across, centre_along)
         boards[k] = (cu, cv, axis, offset[k], turn[k], thickness[k], b - a)
-    iu, jv = np.meshgrid(np.arange(layout.width + 1), np.arange(layout.height + 1), indexing="ij")
-    posts = np.column_stack((lines_u[iu.ravel()], lines_v[jv.ravel()]))
+    post_u, post_v = np.meshgrid(np.arange(layout.width + 1), np.arange(layout.height + 1), indexing="ij")
+    posts = np.column_stack((lines_u[post_u.ravel()], lines_v[post_v.ravel()]))
     return HandGeometry(pitch, angle, lines_u, lines_v, boards, gaps, posts, _clutter(rng, layout, build, lines_u,
                                                                                       lines_v, half_post))
 

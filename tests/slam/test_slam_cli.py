@@ -164,3 +164,20 @@ def test_log_odometry_follows_file_order_when_stamps_repeat() -> None:
     ])
     odo = log_odometry(parse_carmen(text.splitlines()))
     np.testing.assert_array_equal(odo[:, 0], [1.0, 3.0])
+
+
+def test_slam_run_with_systematic_odometry(
+    intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "tiny.log"
+    log.write_text("\n".join(_tiny_log(intel_log_path, 30, rounded=False)) + "\n", encoding="utf-8")
+    code = main(["slam", "run", "--carmen", str(log), "--odom-model", "systematic", "--odom-systematic",
+                 "0.03,0.05,0.01,0.003", "--seed", "2", "--out", str(tmp_path / "o")])
+    assert code == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats["odom_model"] == "systematic" and stats["odom_noise"] is None
+    assert set(stats["odom_systematic"]) == {"left_scale", "right_scale", "track_scale", "initial_bias_rad_per_m"}
+    assert stats["error_odometry"]["rms_m"] > 0.05  # the odometry is off, SLAM is run on it
+    assert main(["slam", "run", "--carmen", str(log), "--odom-systematic", "0.01,0.02,0.005,0.002",
+                 "--out", str(tmp_path / "p")]) == 2
+    assert "--odom-systematic needs --odom-model systematic" in capsys.readouterr().err

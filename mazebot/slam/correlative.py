@@ -203,11 +203,11 @@ def correlative_match(
     pose0 = np.asarray(initial_pose, dtype=np.float64).reshape(3)
     res = table.resolution_m
     step = heading_step_rad(src, sensor_xy, res) if theta_step_rad is None else float(theta_step_rad)
-    n_theta = int(math.floor(window_theta_rad / step + 1e-9)) if step > 0 else 0
+    n_theta = math.floor(window_theta_rad / step + 1e-9) if step > 0 else 0
     # headings in the order of their distance from the initial one: ties keep the smaller turn
     k = np.array([0] + [s * i for i in range(1, n_theta + 1) for s in (1, -1)], dtype=np.float64)
     thetas = pose0[2] + k * step
-    w = int(math.floor(window_xy_m / res + 1e-9))
+    w = math.floor(window_xy_m / res + 1e-9)
     side = 2 * w + 1
     candidates = len(thetas) * side * side
     if src.shape[0] == 0:

@@ -56,7 +56,7 @@ class CorrelativeParams:
 
     resolution_m: float = 0.03
     sigma_m: float = 0.04
-    window_xy_m: float = 0.3
+    window_xy_m: float = 0.12
     window_theta_rad: float = 0.35
     levels: int = 2
     max_range_m: float = 4.0

@@ -21,9 +21,11 @@ is a candidate when its distance to ``n`` is below ``search_radius_m + sigma_sca
 
 **Verification** (:func:`verify`). ICP of the new keyframe's points against a submap of
 the keyframes around ``i`` (``i ± submap_half_width``), in ``i``'s frame, started at the
-prior relative pose, or with ``search`` at the best pose of a branch-and-bound
-correlative search over a window about it (:func:`search_start`,
-:mod:`mazebot.slam.correlative`). Accepted only if
+prior relative pose; with ``search``, a match that fails there (no convergence, few
+correspondences, a low inlier ratio, a high residual) is tried once more from the best
+pose of a branch-and-bound correlative search over a window about the prior
+(:func:`search_start`, :mod:`mazebot.slam.correlative`): a closure accepted without the
+search is accepted with it too. Accepted only if
 
 1. ICP converged with at least ``min_correspondences`` matches, an inlier ratio
    (``fitness``) of at least ``min_fitness`` and a point-to-line RMS of at most
@@ -201,7 +203,31 @@ def verify(
     """Run the acceptance tests of the module docstring; ``target`` is in ``candidate.old``'s frame."""
     if target is None or len(target) == 0:
         return _reject(candidate, "empty submap", "no points around the candidate")
+    verdict = _verify_from(candidate.prior, candidate, target, source_xy, sensor_xy, icp, params)
+    if verdict.accepted or verdict.reason not in RESCUED or params.search is None:
+        return verdict
+    # ICP from the prior found no good match: start it where the branch-and-bound search says
     start = search_start(candidate.prior, target, source_xy, sensor_xy, params.search)
+    if np.allclose(start, candidate.prior):
+        return verdict
+    return _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params)
+
+
+#: Rejections of a match that failed (not of a good match that was inconsistent or ambiguous):
+#: only these are tried again from the correlative search's pose.
+RESCUED = frozenset({"no convergence", "few correspondences", "low inlier ratio", "high residual"})
+
+
+def _verify_from(
+    start: np.ndarray,
+    candidate: Candidate,
+    target: Target,
+    source_xy: np.ndarray,
+    sensor_xy: np.ndarray,
+    icp: IcpParams,
+    params: LoopClosureParams,
+) -> Verdict:
+    """The tests of :func:`verify` on ICP started at ``start`` (always judged against ``candidate.prior``)."""
     result = match_scan(target, source_xy, start, icp, sensor_xy=sensor_xy)
     fit = dict(fitness=result.fitness, rmse_m=result.rmse_m)
     # 1. a good match

@@ -118,9 +118,11 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
             min_std_m=0.05,
             min_std_rad=0.02,
             max_range_m=None,
-            search=replace(search, window_xy_m=1.5, window_theta_rad=0.2, levels=5),
+            search=None
+            if base.loop.search is None
+            else replace(search, window_xy_m=1.5, window_theta_rad=0.2, levels=5),
         ),
-        correlative=search,
+        correlative=None if base.correlative is None else search,  # [slam] correlative = false turns both off
         corr_turn_rad=0.3,
         corr_disagree_m=0.15,
         corr_disagree_rad=0.05,

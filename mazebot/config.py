@@ -588,7 +588,7 @@ class SlamConfig(Section):
     loop_information_scale: float = Field(0.1, gt=0, le=1, description="scale of a loop closure's ICP information")
     # correlative scan matching (Olson, ICRA 2009) before ICP where the prediction is uncertain
     correlative: bool = Field(
-        True, description="search a window of poses before ICP after turns, poor or disputed matches, re-localization"
+        True, description="search a window of poses before ICP where its match failed, or after re-localization"
     )
     corr_resolution_m: float = Field(0.03, gt=0.001, le=1, description="cell of the correlative likelihood table")
     corr_sigma_m: float = Field(0.04, gt=0, le=1, description="smoothing of that table (std of a point's position)")
@@ -600,14 +600,6 @@ class SlamConfig(Section):
     corr_max_range_m: float = Field(4.0, gt=0, description="the search uses scan points this close to the lidar ...")
     corr_max_points: int = Field(200, ge=10, description="... at most this many of them")
     corr_min_score: float = Field(0.35, ge=0, le=1, description="a search scoring less found nothing (0..1)")
-    corr_margin: float = Field(
-        0.05, ge=0, le=1, description="the search's match replaces ICP's from the prediction if it scores more by this"
-    )
-    corr_turn_rad: float = Field(0.5, gt=0, description="search once the odometry has turned this much since the last")
-    corr_disagree_m: float = Field(
-        0.05, gt=0, description="search when ICP moved the prediction farther than this ..."
-    )
-    corr_disagree_rad: float = Field(0.05, gt=0, description="... or turned it more than this")
     loop_corr_window_m: float = Field(
         0.1, ge=0, le=10, description="loop closure: branch-and-bound window about the prior, x and y (0: ICP only) ..."
     )

@@ -138,10 +138,6 @@ class SlamParams:
     retry_headings_rad: tuple[float, ...] = (0.05, -0.05, 0.1, -0.1)  # ICP restarts when a match fails
     # the correlative search before ICP where the prediction is uncertain (None: ICP and its retries alone)
     correlative: CorrelativeParams | None = field(default_factory=CorrelativeParams)
-    corr_margin: float = 0.05  # the search's match wins over ICP's from the prediction by this much score
-    corr_turn_rad: float = 0.5  # search once the odometry turned this much since the last search ...
-    corr_disagree_m: float = 0.05  # ... or ICP moved the prediction farther than this ...
-    corr_disagree_rad: float = 0.05  # ... or turned it more than this
     match_information_scale: float = 0.5
     keyframe_distance_m: float = 0.10
     keyframe_angle_rad: float = 0.2
@@ -273,10 +269,6 @@ class SlamParams:
             max_match_rmse_m=slam.icp_max_rmse_m,
             retry_headings_rad=tuple(slam.icp_retry_headings_rad),
             correlative=correlative if slam.correlative else None,
-            corr_margin=slam.corr_margin,
-            corr_turn_rad=slam.corr_turn_rad,
-            corr_disagree_m=slam.corr_disagree_m,
-            corr_disagree_rad=slam.corr_disagree_rad,
             match_information_scale=slam.icp_information_scale,
             keyframe_distance_m=slam.keyframe_distance_m,
             keyframe_angle_rad=slam.keyframe_angle_rad,
@@ -581,7 +573,6 @@ class Slam:
         self.matched_scans = 0
         self.searches = 0  # correlative searches run (sequential matches)
         self.searches_won = 0  # ... whose match replaced ICP's from the prediction
-        self._turned_since_search = 0.0  # odometry turn (rad) since the last correlative search
         self._search_due = False  # the next match searches (the robot was just re-localized)
         # per-edge variances of the sequential chain (loop closure search radius)
         self._edge_var_xy: list[float] = []
@@ -718,7 +709,6 @@ class Slam:
         else:
             raw_increment = relative_pose(self._last_odom, odom)
             self.ekf.predict(self.calibration.correct(raw_increment))
-            self._turned_since_search += abs(float(raw_increment[2]))
         self._last_odom = odom
 
         # 2. de-skew: every sample into the robot frame at the end of the revolution
@@ -1015,36 +1005,28 @@ class Slam:
         return match if best is None else best
 
     def _search_wanted(self, match: IcpResult, guess: np.ndarray) -> bool:
-        """Is the prediction uncertain? Just re-localized, turned a lot since the last search, a poor or disputed match.
+        """Is the prediction in doubt? ICP from it found no acceptable match, or the robot was just re-localized.
 
-        "Disputed": ICP moved the prediction farther than ``corr_disagree_m`` / turned it
-        more than ``corr_disagree_rad`` (the odometry and the scan disagree, so one of them
-        is wrong). A good prediction runs no search: the cost stays ICP's.
+        An acceptable match from the prediction is never overridden: on the Intel log
+        (seed 1, first 200 scans) letting a search that scored better by 0.05 replace it
+        after turns and large ICP corrections took 3 of 115 searches and left the
+        trajectory 0.67 m RMS off, against 0.08 m without (a building's doors and
+        corridors offer alignments that fit a sparse scan as well as the right one).
         """
-        p = self.params
-        moved = match.pose - guess
-        disputed = (
-            math.hypot(float(moved[0]), float(moved[1])) > p.corr_disagree_m
-            or abs(math.remainder(float(moved[2]), math.tau)) > p.corr_disagree_rad
-        )
-        turned = self._turned_since_search >= p.corr_turn_rad
-        return self._search_due or turned or disputed or not self.acceptable(match)
+        return self._search_due or not self.acceptable(match)
 
     def _search_steps(
         self, prepared: PreparedScan, guess: np.ndarray, match: IcpResult
     ) -> Generator[None, None, IcpResult]:
-        """The correlative search about ``guess``, ICP refining its best pose; the better of that and ``match``.
+        """The correlative search about ``guess``, ICP refining its best pose; that match if ``match`` failed.
 
-        The search's pose wins only if its refined match is acceptable and explains the
-        scan clearly better on the likelihood table (by ``corr_margin``) than ICP's match
-        from the prediction, or that one was not acceptable: in a corridor both fit
-        equally, and the prediction's position along it is kept.
+        The search's match replaces ICP's from the prediction only if that one is not
+        acceptable and the refined one is (see :meth:`_search_wanted`).
         """
         p = self.params
         search = p.correlative
         assert search is not None and self.target is not None
         self.searches += 1
-        self._turned_since_search = 0.0
         self._search_due = False
         src = select_points(prepared.points_match, prepared.sensor_xy, search)
         crop = (guess[:2], search.max_range_m + search.window_xy_m + 3.0 * search.sigma_m + 0.5)
@@ -1058,15 +1040,8 @@ class Slam:
         )
         if not self.acceptable(refined):
             return match
-        if self.acceptable(match):
-            apart = refined.pose - match.pose
-            if math.hypot(float(apart[0]), float(apart[1])) < search.resolution_m and abs(
-                math.remainder(float(apart[2]), math.tau)
-            ) < 0.01:
-                return match  # the same alignment
-            ours, theirs = table.score(np.array([match.pose, refined.pose]), src)
-            if theirs <= ours + p.corr_margin:
-                return match
+        if self.acceptable(match):  # re-localized and the prediction fits: it stays
+            return match
         self.searches_won += 1
         return refined
 

@@ -81,9 +81,8 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
-    for the sequential match, searched every 0.3 rad of turning (the scans of these logs are
-    up to 20° apart) and whenever ICP moved the prediction by more than 0.15 m or 0.05 rad;
-    loop closures search ±1.5 m / ±0.2 rad about the prior (the correction allowed).
+    for a sequential match that failed from the prediction; loop closures that failed from
+    the prior search ±1.5 m / ±0.2 rad about it (the correction allowed).
     """
     search = CorrelativeParams(
         resolution_m=0.05, sigma_m=0.1, window_xy_m=0.5, window_theta_rad=0.52, levels=3,
@@ -123,9 +122,6 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
             else replace(search, window_xy_m=1.5, window_theta_rad=0.2, levels=5),
         ),
         correlative=None if base.correlative is None else search,  # [slam] correlative = false turns both off
-        corr_turn_rad=0.3,
-        corr_disagree_m=0.15,
-        corr_disagree_rad=0.05,
         grid=GridParams(resolution_m=0.05, max_free_range_m=20.0),
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match

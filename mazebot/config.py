@@ -645,6 +645,25 @@ class SlamConfig(Section):
         2.0, ge=0, description="verify a loop closure with the points this close to the lidar (0: all)"
     )
     loop_information_scale: float = Field(0.1, gt=0, le=1, description="scale of a loop closure's ICP information")
+    # correlative scan matching (Olson, ICRA 2009) before ICP where the prediction is uncertain
+    correlative: bool = Field(
+        True, description="search a window of poses before ICP where its match failed, or after re-localization"
+    )
+    corr_resolution_m: float = Field(0.03, gt=0.001, le=1, description="cell of the correlative likelihood table")
+    corr_sigma_m: float = Field(0.04, gt=0, le=1, description="smoothing of that table (std of a point's position)")
+    corr_window_m: float = Field(
+        0.12, ge=0, le=5, description="sequential search: half-width in x and y (under half a maze cell) ..."
+    )
+    corr_window_rad: float = Field(0.35, ge=0, le=3.2, description="... and in heading")
+    corr_levels: int = Field(2, ge=0, le=8, description="branch-and-bound levels of the sequential search")
+    corr_max_range_m: float = Field(4.0, gt=0, description="the search uses scan points this close to the lidar ...")
+    corr_max_points: int = Field(200, ge=10, description="... at most this many of them")
+    corr_min_score: float = Field(0.35, ge=0, le=1, description="a search scoring less found nothing (0..1)")
+    loop_corr_window_m: float = Field(
+        0.1, ge=0, le=10, description="loop closure: branch-and-bound window about the prior, x and y (0: ICP only) ..."
+    )
+    loop_corr_window_rad: float = Field(0.15, ge=0, le=3.2, description="... and heading")
+    loop_corr_levels: int = Field(3, ge=0, le=8, description="branch-and-bound levels of the loop-closure search")
     rebuild_threshold_m: float = Field(
         0.01, ge=0, description="rebuild the map when optimization moved a keyframe farther than this ..."
     )

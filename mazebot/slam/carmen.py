@@ -22,6 +22,7 @@ Intel log serves as ground truth for scan matching. Other messages (``PARAM``,
 
 from __future__ import annotations
 
+import gzip
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -134,15 +135,28 @@ def parse_carmen(
     return log
 
 
+#: The first two bytes of every gzip member (RFC 1952, section 2.3.1).
+GZIP_MAGIC = b"\x1f\x8b"
+
+
 def read_carmen(path: str | Path, **kwargs: float) -> CarmenLog:
-    """Read a CARMEN log file; see :func:`parse_carmen`."""
+    """Read a CARMEN log file, plain or gzip-compressed; see :func:`parse_carmen`.
+
+    A log is gzip when its name ends in ``.gz`` or its first bytes are gzip's magic
+    number (the Radish logs are distributed as ``*.log.gz``).
+    """
     path = Path(path)
     try:
+        with path.open("rb") as raw:
+            compressed = path.suffix == ".gz" or raw.read(2) == GZIP_MAGIC
+        if compressed:
+            with gzip.open(path, "rt", encoding="utf-8", errors="replace") as f:
+                return parse_carmen(f, source=str(path), **kwargs)
         with path.open(encoding="utf-8", errors="replace") as f:
             return parse_carmen(f, source=str(path), **kwargs)
     except FileNotFoundError:
         raise CarmenLogError(f"CARMEN log {path} not found") from None
-    except OSError as error:
+    except (OSError, EOFError) as error:  # gzip.BadGzipFile is an OSError; a cut-off member an EOFError
         raise CarmenLogError(f"CARMEN log {path} cannot be read ({error})") from None
 
 

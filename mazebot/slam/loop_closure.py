@@ -21,7 +21,11 @@ is a candidate when its distance to ``n`` is below ``search_radius_m + sigma_sca
 
 **Verification** (:func:`verify`). ICP of the new keyframe's points against a submap of
 the keyframes around ``i`` (``i ± submap_half_width``), in ``i``'s frame, started at the
-prior relative pose. Accepted only if
+prior relative pose; with ``search``, a match that fails there (no convergence, few
+correspondences, a low inlier ratio, a high residual) is tried once more from the best
+pose of a branch-and-bound correlative search over a window about the prior
+(:func:`search_start`, :mod:`mazebot.slam.correlative`): a closure accepted without the
+search is accepted with it too. Accepted only if
 
 1. ICP converged with at least ``min_correspondences`` matches, an inlier ratio
    (``fitness``) of at least ``min_fitness`` and a point-to-line RMS of at most
@@ -46,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
 from mazebot.slam.ekf import rotate_information
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
 from mazebot.slam.posegraph import relative_pose, wrap_angle
@@ -77,6 +82,8 @@ class LoopClosureParams:
     min_std_m: float = 0.005  # floor of the chain's position std in the consistency test
     min_std_rad: float = 0.005  # floor of the chain's heading std
     max_range_m: float | None = 2.0  # verify with points this close to the new keyframe's lidar (None: all)
+    # branch and bound over this window about the prior before ICP (None: ICP from the prior alone)
+    search: CorrelativeParams | None = None
 
 
 @dataclass(frozen=True)
@@ -196,7 +203,32 @@ def verify(
     """Run the acceptance tests of the module docstring; ``target`` is in ``candidate.old``'s frame."""
     if target is None or len(target) == 0:
         return _reject(candidate, "empty submap", "no points around the candidate")
-    result = match_scan(target, source_xy, candidate.prior, icp, sensor_xy=sensor_xy)
+    verdict = _verify_from(candidate.prior, candidate, target, source_xy, sensor_xy, icp, params)
+    if verdict.accepted or verdict.reason not in RESCUED or params.search is None:
+        return verdict
+    # ICP from the prior found no good match: start it where the branch-and-bound search says
+    start = search_start(candidate.prior, target, source_xy, sensor_xy, params.search)
+    if np.allclose(start, candidate.prior):
+        return verdict
+    return _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params)
+
+
+#: Rejections of a match that failed (not of a good match that was inconsistent or ambiguous):
+#: only these are tried again from the correlative search's pose.
+RESCUED = frozenset({"no convergence", "few correspondences", "low inlier ratio", "high residual"})
+
+
+def _verify_from(
+    start: np.ndarray,
+    candidate: Candidate,
+    target: Target,
+    source_xy: np.ndarray,
+    sensor_xy: np.ndarray,
+    icp: IcpParams,
+    params: LoopClosureParams,
+) -> Verdict:
+    """The tests of :func:`verify` on ICP started at ``start`` (always judged against ``candidate.prior``)."""
+    result = match_scan(target, source_xy, start, icp, sensor_xy=sensor_xy)
     fit = dict(fitness=result.fitness, rmse_m=result.rmse_m)
     # 1. a good match
     if not result.converged:
@@ -232,6 +264,32 @@ def verify(
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
     information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
     return Verdict(candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"])
+
+
+def search_start(
+    prior: np.ndarray,
+    target: Target,
+    source_xy: np.ndarray,
+    sensor_xy: np.ndarray,
+    search: CorrelativeParams | None,
+) -> np.ndarray:
+    """Where ICP starts: the best pose of a branch-and-bound search about the prior, or the prior itself.
+
+    A prior that drifted by more than ICP's basin (half a metre after a long loop in a
+    building) makes ICP miss a closure that is there (Hess et al., ICRA 2016, section V:
+    the closure search over a window). The search only picks the start; every test of
+    :func:`verify` still judges the ICP result against the prior, so a window wider than
+    ``max_correction_m`` cannot let a larger correction through. A search that scores
+    below ``min_score`` leaves the prior.
+    """
+    prior = np.asarray(prior, dtype=np.float64)
+    if search is None or (search.window_xy_m <= 0 and search.window_theta_rad <= 0):
+        return prior
+    src = select_points(source_xy, sensor_xy, search)
+    crop = (prior[:2], search.max_range_m + search.window_xy_m + 3.0 * search.sigma_m + 0.5)
+    table = LikelihoodTable(target.points, search.resolution_m, search.sigma_m, search.levels, crop=crop)
+    found = correlative_match(table, src, prior, search.window_xy_m, search.window_theta_rad, sensor_xy)
+    return found.pose if found.score >= search.min_score else prior
 
 
 def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> bool:

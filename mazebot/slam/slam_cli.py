@@ -22,7 +22,11 @@ odometry pose of each laser message). ``--odom-noise SX,STH`` instead derives it
 log's (corrected) poses: every increment between two scans gets Gaussian noise with
 standard deviation ``SX`` per metre travelled on each axis and ``STH`` radians per metre
 travelled plus per radian turned on the heading, drawn from ``--seed``; the Intel log's
-ODOM lines are all zero, so this is how it gets realistic odometry.
+ODOM lines are all zero, so this is how it gets realistic odometry. ``--odom-model
+systematic`` adds what white noise lacks, the errors of real wheels: a scale error per
+wheel, a track-width error and a heading bias that drifts
+(:mod:`mazebot.slam.odometry_errors`). Logs may be gzip-compressed (``*.log.gz``), and
+their stamps may repeat (rounded): scans are taken in file order.
 
 The maze defaults of ``[slam]`` suit a 1 ft maze and an A1; a building scanned by a SICK
 LMS (1° beams, ~0.7 m between scans, 80 m range) needs coarser ones: see
@@ -44,8 +48,10 @@ import numpy as np
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.slam.carmen import CarmenLog, read_carmen
+from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
 from mazebot.slam.map_export import write_map_png, write_ros_map
+from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
 from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
 from mazebot.slam.slam import GridParams, Slam, SlamParams
 
@@ -73,7 +79,16 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
     - no wall prior: the maze's walls lie on one right-angle grid, this building's do not
       (a diagonal north-east corner, and the inner corridors are bowed in the log's own
       corrected poses), so the prior bent headings towards a grid that is not there.
+
+    The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
+    10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
+    for a sequential match that failed from the prediction; loop closures that failed from
+    the prior search ±1.5 m / ±0.2 rad about it (the correction allowed).
     """
+    search = CorrelativeParams(
+        resolution_m=0.05, sigma_m=0.1, window_xy_m=0.5, window_theta_rad=0.52, levels=3,
+        max_range_m=10.0, max_points=250, min_score=0.3,
+    )
     motion = base.motion
     if odom_noise is not None:
         sx, sth = odom_noise
@@ -103,7 +118,11 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
             min_std_m=0.05,
             min_std_rad=0.02,
             max_range_m=None,
+            search=None
+            if base.loop.search is None
+            else replace(search, window_xy_m=1.5, window_theta_rad=0.2, levels=5),
         ),
+        correlative=None if base.correlative is None else search,  # [slam] correlative = false turns both off
         grid=GridParams(resolution_m=0.05, max_free_range_m=20.0),
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match
@@ -146,17 +165,41 @@ def noisy_odometry(
 
 
 def log_odometry(log: CarmenLog) -> np.ndarray:
-    """The log's own odometry at each laser message: ``ODOM`` interpolated, else the laser's odometry pose."""
+    """The log's own odometry at each laser message: ``ODOM`` interpolated, else the laser's odometry pose.
+
+    ``ODOM`` poses are interpolated in time between the messages around each laser
+    message; where the stamps do not increase (logs whose stamps were rounded, like the
+    Radish ones), time says nothing, and each laser message takes the last ``ODOM``
+    before it in the file.
+    """
     times = np.array([r.timestamp_s for r in log.lasers])
     odom = [o for o in log.odometry if np.any(o.pose)]
     if len(odom) >= 2:
         t = np.array([o.timestamp_s for o in odom])
         p = np.array([o.pose for o in odom])
-        th = np.unwrap(p[:, 2])
-        return np.column_stack(
-            (np.interp(times, t, p[:, 0]), np.interp(times, t, p[:, 1]), wrap_angle(np.interp(times, t, th)))
-        )
+        if np.all(np.diff(t) > 0):
+            th = np.unwrap(p[:, 2])
+            return np.column_stack(
+                (np.interp(times, t, p[:, 0]), np.interp(times, t, p[:, 1]), wrap_angle(np.interp(times, t, th)))
+            )
+        lines = np.array([o.line_number for o in odom])
+        before = np.searchsorted(lines, [r.line_number for r in log.lasers]) - 1
+        return p[np.maximum(before, 0)]
     return np.array([r.odom_pose for r in log.lasers]).reshape(-1, 3)
+
+
+def slam_clock(times_s: np.ndarray) -> np.ndarray:
+    """Strictly increasing times for SLAM from a log's stamps, which may repeat or step back.
+
+    A few of the Intel log's messages step back by ~0.1 s; the Radish logs' stamps are
+    rounded to six significant digits, so consecutive scans often share one. Each scan
+    gets at least a millisecond after the previous one (SLAM only needs the order: the
+    laser-log settings neither de-skew nor estimate a time offset).
+    """
+    clock = np.asarray(times_s, dtype=np.float64).copy()
+    for k in range(1, len(clock)):
+        clock[k] = max(clock[k], clock[k - 1] + 1e-3)
+    return clock
 
 
 def _parse_noise(text: str | None) -> tuple[float, float] | None:
@@ -189,20 +232,32 @@ def run_carmen(
     seed: int = 1,
     max_scans: int | None = None,
     config_path: str | None = None,
+    systematic: SystematicOdometryModel | None = None,
 ) -> dict[str, Any]:
-    """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics."""
+    """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
+
+    ``systematic`` (the ``systematic`` odometry model): odometry from the log's poses
+    with per-wheel scale errors, a track-width error and a drifting heading bias, plus
+    ``odom_noise`` as white noise (:mod:`mazebot.slam.odometry_errors`).
+    """
     log = read_carmen(log_path)
     if not log.lasers:
         raise UsageError(f"{log_path}: no laser messages (FLASER, RLASER or ROBOTLASER1)")
     lasers = log.lasers[:max_scans] if max_scans else log.lasers
     reference = np.array([r.pose for r in lasers]).reshape(-1, 3)
     times = np.array([r.timestamp_s for r in lasers])
-    if odom_noise is not None:
+    drawn = None
+    filter_noise = odom_noise
+    if systematic is not None:
+        white = odom_noise or (0.0, 0.0)
+        odometry, drawn, _ = systematic_odometry(reference, systematic, white, np.random.default_rng(seed))
+        filter_noise = systematic.effective_noise(white)
+    elif odom_noise is not None:
         odometry = noisy_odometry(reference, odom_noise[0], odom_noise[1], np.random.default_rng(seed))
     else:
         odometry = log_odometry(log)[: len(lasers)]
     config = load_config(config_path)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), odom_noise)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), filter_noise)
     # the map frame: the log's frame, anchored at its first pose; odometry starts there too
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
     slam = Slam(params, initial_pose=np.zeros(3))
@@ -210,10 +265,7 @@ def run_carmen(
     online = np.zeros_like(reference)
     scan_ms = []
     wall0 = time.perf_counter()
-    # SLAM needs increasing times; a few of the Intel log's messages step back by ~0.1 s
-    clock = times.copy()
-    for k in range(1, len(clock)):
-        clock[k] = max(clock[k], clock[k - 1] + 1e-3)
+    clock = slam_clock(times)
     for k, record in enumerate(lasers):
         history.append(clock[k], *odometry[k])
         scan = record.to_scan()
@@ -242,7 +294,13 @@ def run_carmen(
         "keyframes": len(slam.keyframes),
         "loop_closures": len(slam.closures),
         "loop_closures_rejected": sum(slam.rejections.values()),
+        "rejections": dict(slam.rejections.most_common()),
+        "searches": slam.searches,
+        "searches_won": slam.searches_won,
         "odom_noise": None if odom_noise is None else list(odom_noise),
+        "odom_model": "log" if odom_noise is None and systematic is None else
+        ("systematic" if systematic is not None else "white"),
+        "odom_systematic": None if drawn is None else {k: round(v, 6) for k, v in vars(drawn).items()},
         "seed": seed,
         "error": _trajectory_error(final, reference),
         "error_online": _trajectory_error(online, reference),
@@ -266,8 +324,11 @@ def _positive_int(text: str) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    if args.odom_systematic is not None and args.odom_model != "systematic":
+        raise UsageError("--odom-systematic needs --odom-model systematic")
+    systematic = parse_systematic(args.odom_systematic) if args.odom_model == "systematic" else None
     stats = run_carmen(
-        args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config
+        args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -282,13 +343,32 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Run the SLAM on a CARMEN log (FLASER/RLASER/ROBOTLASER1 + ODOM) and compare its trajectory "
         "with the poses the log carries.",
     )
-    run.add_argument("--carmen", required=True, metavar="LOG", help="CARMEN log file")
+    run.add_argument("--carmen", required=True, metavar="LOG", help="CARMEN log file (plain, or gzip: *.gz)")
     run.add_argument(
         "--odom-noise",
         metavar="SX,STH",
         default=None,
         help="derive odometry from the log's poses with this noise: SX m per m travelled, STH rad per m and per rad "
         "(e.g. 0.05,0.05); default: the log's own odometry",
+    )
+    defaults = SystematicOdometryModel()
+    run.add_argument(
+        "--odom-model",
+        choices=("white", "systematic"),
+        default="white",
+        help="white: --odom-noise alone (independent per scan); systematic: the odometry of a differential drive "
+        "whose wheels and track width are off (a scale error per wheel: distance scale, and heading drift on "
+        "straights and in turns) with a heading bias that drifts as a random walk, all drawn from --seed, "
+        "plus --odom-noise as white noise (default: white)",
+    )
+    run.add_argument(
+        "--odom-systematic",
+        metavar="WHEEL,TRACK,BIAS,WALK",
+        default=None,
+        help="standard deviations of the systematic model: per-wheel scale, track-width scale, heading bias in "
+        "rad/m, its random walk in rad/m per sqrt(m) travelled (default "
+        f"{defaults.wheel_scale_std},{defaults.track_scale_std},{defaults.bias_rad_per_m_std},"
+        f"{defaults.bias_walk_rad_per_m_per_sqrt_m}; nominal track {defaults.track_width_m} m)",
     )
     run.add_argument("--seed", type=int, default=1, help="seed of the odometry noise (default 1)")
     run.add_argument("--max-scans", type=_positive_int, default=None, metavar="N", help="only the first N scans")

@@ -97,3 +97,87 @@ def test_range_noise_weighting_comes_from_the_config_and_is_off_for_laser_logs()
     params = SlamParams.from_config(config.slam, config.lidar)
     assert params.icp.range_noise_ratio == 0.01 and params.icp.noise_floor_m == 0.003
     assert laser_log_params(params, None).icp.range_noise_ratio == 0.0
+
+
+def _tiny_log(intel_log_path: Path, scans: int, rounded: bool) -> list[str]:
+    """The first ``scans`` FLASER lines of the Intel log; ``rounded``: every stamp one value (as the Radish logs')."""
+    lines = []
+    for line in intel_log_path.read_text(encoding="utf-8").splitlines():
+        tokens = line.split()
+        if tokens and tokens[0] == "FLASER":
+            n = int(tokens[1])
+            if rounded:
+                tokens[2 + n + 6] = tokens[-1] = "21.0199"  # ipc and logger stamps, equal for every scan
+            lines.append(" ".join(tokens))
+            if len(lines) == scans:
+                break
+    return lines
+
+
+def test_slam_run_reads_a_gzip_log_with_rounded_stamps(
+    intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import gzip
+
+    original = tmp_path / "original.log"
+    original.write_text("\n".join(_tiny_log(intel_log_path, 40, rounded=False)) + "\n", encoding="utf-8")
+    plain = tmp_path / "tiny.log"
+    plain.write_text("\n".join(_tiny_log(intel_log_path, 40, rounded=True)) + "\n", encoding="utf-8")
+    packed = tmp_path / "tiny.log.gz"
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    no_suffix = tmp_path / "tiny_gz"  # gzip recognized by its magic number too
+    no_suffix.write_bytes(packed.read_bytes())
+    results = []
+    for path in (original, plain, packed, no_suffix):
+        code = main(["slam", "run", "--carmen", str(path), "--odom-noise", "0.05,0.05", "--seed", "1",
+                     "--out", str(tmp_path / ("out_" + path.name.replace(".", "_")))])
+        assert code == 0
+        results.append(json.loads(capsys.readouterr().out))
+    assert all(r["scans"] == 40 for r in results)
+    # the same trajectory from the gzip logs, and with every stamp rounded to one value as with the real ones
+    assert results[0]["error"] == results[1]["error"] == results[2]["error"] == results[3]["error"]
+    assert results[2]["error"]["rms_m"] < 0.5 * results[2]["error_odometry"]["rms_m"]
+    rows = np.loadtxt(tmp_path / "out_tiny_log_gz" / "trajectory.txt")
+    np.testing.assert_allclose(rows[:, 0], 21.0199)  # the log's own (rounded) stamps are written back
+
+
+def test_a_broken_gzip_log_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import gzip
+
+    cut = tmp_path / "cut.log.gz"
+    cut.write_bytes(gzip.compress(b"FLASER 3 1 1 1 0 0 0 0 0 0 1.0 host 1.0\n" * 50)[:-20])
+    assert main(["slam", "run", "--carmen", str(cut), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "cut.log.gz cannot be read" in err and "\n" not in err
+
+
+def test_log_odometry_follows_file_order_when_stamps_repeat() -> None:
+    from mazebot.slam.carmen import parse_carmen
+    from mazebot.slam.slam_cli import log_odometry
+
+    text = "\n".join([
+        "ODOM 1 0 0 0 0 0 5.0 h 5.0",
+        "FLASER 3 1 1 1 0 0 0 0 0 0 5.0 h 5.0",
+        "ODOM 2 0 0 0 0 0 5.0 h 5.0",
+        "ODOM 3 0 0 0 0 0 5.0 h 5.0",
+        "FLASER 3 1 1 1 0 0 0 0 0 0 5.0 h 5.0",
+    ])
+    odo = log_odometry(parse_carmen(text.splitlines()))
+    np.testing.assert_array_equal(odo[:, 0], [1.0, 3.0])
+
+
+def test_slam_run_with_systematic_odometry(
+    intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "tiny.log"
+    log.write_text("\n".join(_tiny_log(intel_log_path, 30, rounded=False)) + "\n", encoding="utf-8")
+    code = main(["slam", "run", "--carmen", str(log), "--odom-model", "systematic", "--odom-systematic",
+                 "0.03,0.05,0.01,0.003", "--seed", "2", "--out", str(tmp_path / "o")])
+    assert code == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats["odom_model"] == "systematic" and stats["odom_noise"] is None
+    assert set(stats["odom_systematic"]) == {"left_scale", "right_scale", "track_scale", "initial_bias_rad_per_m"}
+    assert stats["error_odometry"]["rms_m"] > 0.05  # the odometry is off, SLAM is run on it
+    assert main(["slam", "run", "--carmen", str(log), "--odom-systematic", "0.01,0.02,0.005,0.002",
+                 "--out", str(tmp_path / "p")]) == 2
+    assert "--odom-systematic needs --odom-model systematic" in capsys.readouterr().err

@@ -140,7 +140,7 @@ class LikelihoodTable:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.tables[0].shape  # type: ignore[return-value]
+        return self.tables[0].shape
 
     def score(self, poses: np.ndarray, source_xy: np.ndarray) -> np.ndarray:
         """Scores (K,) of the source points (N, 2, robot frame) at poses (K, 3) on the fine table."""

@@ -360,6 +360,13 @@ class _MotionCommand:
         self.v_mps, self.w_radps, self.mode, self.time_s = v_mps, w_radps, mode, time_s
 
 
+class _ScanStamp:
+    __slots__ = ("end_time_s",)
+
+    def __init__(self, end_time_s: float) -> None:
+        self.end_time_s = end_time_s
+
+
 class _TickRing:
     """``control_lateness_ms`` of the child: the lateness waits for the tick's CPU and throttles."""
 
@@ -448,6 +455,11 @@ class ChildView:
                 self.pose_then = (float(whole[4]), float(whole[5]), float(whole[6])) if whole[3] else None
         if odo_then is not None and odo_then[0] == self.scan_time_s:
             self.pose_then = odo_then[1]  # computed with the odometry history of now, as the thread does
+
+    @property
+    def latest_scan(self) -> _ScanStamp | None:
+        """What an idle tick reads of the latest scan: its end time (the lidar's age counts on)."""
+        return None if self.scan_time_s is None else _ScanStamp(self.scan_time_s)
 
     # the SharedState calls _tick_once and _write make (through ``post``)
     def note(self, source: str, message: str, time_s: float) -> None:

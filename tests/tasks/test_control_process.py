@@ -200,16 +200,21 @@ def test_a_main_process_gone_or_hung_leaves_the_wheels_braked_within_the_ttl(how
     try:
         assert report_rx.poll(60.0), "the main side did not start its control process"
         child_pid = report_rx.recv()
-        writes = _read_throttles(motor_rx, time.monotonic() + 1.0)
-        assert any(t for _, _, t in writes), "the wheels were not driven"
+        deadline = time.monotonic() + 30.0  # the child's start imports numpy: slow on a busy machine
+        while time.monotonic() < deadline and not any(t for _, _, t in _read_throttles(motor_rx,
+                                                                                       time.monotonic() + 0.2)):
+            pass
+        assert time.monotonic() < deadline, "the wheels were not driven"
         os.kill(main.pid, signal.SIGKILL if how == "killed" else signal.SIGSTOP)
         gone_s = time.monotonic()
         after = _read_throttles(motor_rx, gone_s + 2.0)
         ttl_s = Config().control.command_ttl_ticks * Config().daemon.control_period_s
-        last = {channel: (t_s, throttle) for t_s, channel, throttle in after}
-        assert set(last) == {1, 2} and all(throttle == 0.0 for _, throttle in last.values())
-        # braked within the command's time-to-live (plus a period and the machine's slack)
-        braked_s = max(t_s for t_s, _ in last.values()) - gone_s
+        last = {channel: throttle for _, channel, throttle in after}
+        assert set(last) == {1, 2} and all(throttle == 0.0 for throttle in last.values())
+        # braked within the command's time-to-live (plus a period and the machine's slack): the
+        # last write that drove came no later
+        driving = [t_s for t_s, _, throttle in after if throttle]
+        braked_s = (max(driving) if driving else gone_s) - gone_s
         assert braked_s <= ttl_s + 0.3, braked_s
         if how == "killed":  # its parent gone, the child brakes and exits
             deadline = time.monotonic() + 3.0
@@ -217,7 +222,7 @@ def test_a_main_process_gone_or_hung_leaves_the_wheels_braked_within_the_ttl(how
                 time.sleep(0.05)
             assert not _alive(child_pid)
     finally:
-        if how == "hung":
+        if main.exitcode is None:
             os.kill(main.pid, signal.SIGKILL)
             os.kill(main.pid, signal.SIGCONT)
         main.join(5.0)
@@ -257,7 +262,8 @@ async def test_a_dead_child_is_a_control_fault_braked_and_restarted() -> None:
             await asyncio.sleep(0.01)
 
     try:
-        await until(lambda: len(children()) == 1 and len(state.control_lateness_ms) >= 3)
+        # the fork server's first start imports numpy: slow on a busy machine
+        await until(lambda: len(children()) == 1 and len(state.control_lateness_ms) >= 3, 60.0)
         first = children()[0].pid
         assert heartbeat.last_tick_s > time.monotonic() - 1.0  # the systemd watchdog sees its ticks
         os.kill(first, signal.SIGKILL)
@@ -267,9 +273,9 @@ async def test_a_dead_child_is_a_control_fault_braked_and_restarted() -> None:
         assert min(s for s in motors.stops if s >= killed_s) - killed_s < 0.5
         fault = next(f for f in state.faults if f.source == "control")
         assert "control process" in fault.message and "exit code -9" in fault.message
-        await until(lambda: [p.pid for p in children()] not in ([], [first]))  # a new child
+        await until(lambda: [p.pid for p in children()] not in ([], [first]), 30.0)  # a new child
         ticks = len(state.control_lateness_ms)
-        await until(lambda: len(state.control_lateness_ms) > ticks + 3)  # and it ticks
+        await until(lambda: len(state.control_lateness_ms) > ticks + 3, 30.0)  # and it ticks
     finally:
         supervisor.request_stop("test over")
         await supervisor.wait()

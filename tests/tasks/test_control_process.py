@@ -73,10 +73,9 @@ def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
         x_m, left_ticks, right_ticks = 0.0, 0, 0
         for k in range(120):
             now_s = 100.0 + k * period_s
-            if k % 2 == 0:  # the planner: 10 Hz, fresh commands (none after tick 80: they go stale)
-                if k < 80:
-                    state.motion_command = MotionRequest(0.2, 0.1 * math.sin(k / 10), "drive", now_s)
-            if k % 4 == 0:  # a revolution: the wall 0.6 m ahead, then closer as the robot drives
+            if k % 2 == 0 and k < 80:  # the planner: 10 Hz, fresh commands (none after tick 80: they go stale)
+                state.motion_command = MotionRequest(0.2, 0.1 * math.sin(k / 10), "drive", now_s)
+            if k % 4 == 0:  # a revolution: a wall ahead coming closer, then gone
                 state.latest_scan = _wall_scan(0.5 - 0.008 * k if k < 60 else 2.0, now_s - 0.01)
             if k == 50:
                 state.raise_fault("lidar", "a test fault", now_s)

@@ -321,6 +321,12 @@ class DaemonConfig(Section):
         description="on the real clock, tick the motor control loop on a thread of its own, so a due tick "
         "never waits for a revolution's SLAM or a planner tick to yield",
     )
+    control_process: bool = Field(
+        False,
+        description="on the real clock, run the motor control loop in a process of its own (its own interpreter "
+        "lock: a due tick never waits for the main process), where the motor driver can be opened there; "
+        "else the thread",
+    )
     auto_resume: bool = Field(
         False, description="resume a run by itself when the fault that stopped it clears; default: press start"
     )

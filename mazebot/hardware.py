@@ -82,6 +82,9 @@ class Hardware:
     description: str
     extra_tasks: list[tuple[str, TaskFactory]] = field(default_factory=list)
     sim: Any = None
+    #: opens these motors' kit again in another process (picklable; the control process's
+    #: driver), or None where only this process can drive them (the in-process simulator, GPIO lines)
+    motor_kit_opener: Callable[[], Any] | None = None
 
 
 HardwareBuilder = Callable[["Config", "Clock", AsyncExitStack], Awaitable[Hardware]]

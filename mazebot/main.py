@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gc
 import importlib
 import logging
@@ -90,10 +91,14 @@ def robot_hardware_builder(
         await stack.enter_async_context(lidar)
         await lidar.stop()  # a lidar left scanning by a killed daemon answers nothing else
         await lidar.get_health()  # HardwareUnavailable, naming the port, when it stays silent
+        opener = None
+        if config.motors.backend == "motorkit" and open_kit is None:  # a second MotorKit on the same I2C HAT
+            opener = functools.partial(open_motorkit, config.motors.i2c_address, config.motors.pwm_frequency_hz)
         return Hardware(
             lidar=lidar,
             encoders=encoders,
             motors=motors,
+            motor_kit_opener=opener,
             description=f"robot: lidar on {config.lidar.port}, "
             + (f"motor H-bridge on GPIO {config.motors.gpio_motor1_pins} and {config.motors.gpio_motor2_pins}"
                if config.motors.backend == "gpio" else f"motor HAT at {config.motors.i2c_address:#04x}"),
@@ -319,10 +324,26 @@ async def run_daemon(
         if autonomous:
             supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms), restart=True)
         control = control_task.MotorControl(config)
-        control_thread = config.daemon.control_thread and _on_the_monotonic_clock(clock, loop)
-        supervisor.start(
-            "control", lambda: control_task.run(motors, state, heartbeat, control, thread=control_thread), restart=True
-        )
+        real_time = _on_the_monotonic_clock(clock, loop)
+        if config.daemon.control_process and real_time and hardware.motor_kit_opener is not None:
+            from mazebot.tasks import control_process
+
+            link = control_process.ControlLink.create(config)
+            stack.callback(link.close)  # after the tasks are gone (the stack runs last-in first-out)
+            stack.callback(setattr, state, "control_link", None)
+            state.control_link = link
+            opener = hardware.motor_kit_opener
+            supervisor.start(
+                "control", lambda: control_process.run(link, motors, state, heartbeat, config, opener), restart=True
+            )
+        else:
+            if config.daemon.control_process and real_time:
+                log.info("the control loop runs on a thread: these motors can only be driven from this process")
+            control_thread = config.daemon.control_thread and real_time
+            supervisor.start(
+                "control", lambda: control_task.run(motors, state, heartbeat, control, thread=control_thread),
+                restart=True,
+            )
         watchdog_s = sdnotify.watchdog_period_s()  # systemd's WatchdogSec, when it set one
         if watchdog_s is not None:
             silence_s = max(watchdog_s / 2, 10 * config.daemon.control_period_s)

@@ -13,7 +13,7 @@ import asyncio
 import enum
 from collections import deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from mazebot.cpu_budget import CpuBudget
 
@@ -224,6 +224,16 @@ class SharedState:
     planner_events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=5000))
     # --- written by the recorder and the run saver (mazebot.tasks.record_task, persist_task) ---
     record: RecordStats = field(default_factory=RecordStats)
+    #: the control process's shared memory (:class:`mazebot.tasks.control_process.ControlLink`) while
+    #: the control loop runs in a process of its own: the fields it reads are mirrored into it as
+    #: they are assigned (:meth:`__setattr__`), so every writer reaches the child at once
+    control_link: Any = None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)
+        link = self.__dict__.get("control_link")
+        if link is not None and name in link.MIRRORED:
+            link.mirror(self, name)
 
     def raise_fault(self, source: str, message: str, time_s: float, *, latched: bool = False) -> None:
         """Record a fault (one per source: the newest) and move to FAULT.

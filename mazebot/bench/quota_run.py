@@ -104,7 +104,7 @@ async def _run_daemon(
 ) -> dict[str, Any]:
     from mazebot.clock import RealClock
     from mazebot.main import Hardware, robot_hardware_builder, run_daemon
-    from mazebot.sim.remote_devices import GpioEdgeThread, PipeMotorKit
+    from mazebot.sim.remote_devices import GpioEdgeThread, PipeKitOpener, PipeMotorKit
     from mazebot.sim.world_process import encoder_pins
     from mazebot.state import RunState, SharedState
     from mazebot.tasks.supervisor import Supervisor
@@ -120,6 +120,7 @@ async def _run_daemon(
 
     async def build(config: Any, clock: Any, stack: contextlib.AsyncExitStack) -> Hardware:
         hardware = await robot_builder(config, clock, stack)
+        hardware.motor_kit_opener = PipeKitOpener(motor_tx)  # the control process writes the world's motors too
         gpio.start()  # the encoders listen now: the edges start arriving
         stack.callback(gpio.stop)
         return hardware

@@ -255,6 +255,7 @@ class DifferentialMotors:
         command_ttl_s: float = 0.3,
         clock: Clock,
         loop: asyncio.AbstractEventLoop | None = None,
+        ttl_guarded: bool = False,
     ) -> None:
         for name, channel in (("left_channel", left_channel), ("right_channel", right_channel)):
             if channel not in CHANNELS:
@@ -272,7 +273,8 @@ class DifferentialMotors:
         self._loop = loop
         self._ttl_handle: asyncio.TimerHandle | None = None
         self._closed = False
-        self._warned_no_loop = False
+        # ``ttl_guarded``: no event loop here, a TtlGuard thread enforces the TTL (the control process)
+        self._warned_no_loop = ttl_guarded
         self.last_command: MotorCommand | None = None
         self.write_errors = 0
         self.last_error: MotorWriteError | None = None  # for a supervisor to poll
@@ -290,6 +292,7 @@ class DifferentialMotors:
         clock: Clock,
         *,
         loop: asyncio.AbstractEventLoop | None = None,
+        ttl_guarded: bool = False,
     ) -> DifferentialMotors:
         """Build from the ``[motors]`` section; ``kit`` comes from :func:`open_motorkit`
         or is a :class:`FakeMotorKit` (``backend = "fake"``)."""
@@ -302,6 +305,7 @@ class DifferentialMotors:
             command_ttl_s=cfg.command_ttl_s,
             clock=clock,
             loop=loop,
+            ttl_guarded=ttl_guarded,
         )
 
     @property

@@ -52,6 +52,24 @@ class PipeMotorKit(FakeMotorKit):
             raise OSError(f"motor{channel}: the simulated motor HAT is gone ({exc})") from exc
 
 
+class PipeKitOpener:
+    """Opens a :class:`PipeMotorKit` on ``motor_tx`` in whichever process calls it (picklable).
+
+    The control process (:mod:`mazebot.tasks.control_process`) gets the pipe's end this way
+    and writes the world's motors itself; both processes may write: each throttle is one
+    message of a few bytes, one ``write`` to the pipe, and pipe writes of up to ``PIPE_BUF``
+    bytes are never interleaved (POSIX ``write(2)``).
+    """
+
+    def __init__(self, motor_tx: Connection) -> None:
+        self.motor_tx = motor_tx
+
+    def __call__(self) -> PipeMotorKit:
+        from mazebot.clock import RealClock
+
+        return PipeMotorKit(self.motor_tx, RealClock())
+
+
 class GpioEdgeThread(threading.Thread):
     """Drives the world's encoder edges onto this process's mock pins, on a thread of its own.
 

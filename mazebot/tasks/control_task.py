@@ -121,17 +121,7 @@ class MotorControl:
 
     def _drive(self, state: SharedState, command, measured: tuple[float, float], now_s: float) -> tuple[float, float]:
         v, w, mode = command.v_mps, command.w_radps, DriveMode(command.mode)
-        scan = state.latest_scan
-        points, scan_time_s = None, None
-        if scan is not None:
-            scan_time_s = scan.end_time_s
-            if self._scan_cache is None or self._scan_cache[0] != id(scan):
-                self._scan_cache = (
-                    id(scan),
-                    scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, *self.lidar_range_m,
-                                      mount_xy_m=self.lidar_mount_xy_m),
-                )
-            points = moved_since_scan(self._scan_cache[1], scan_time_s, state)
+        points, scan_time_s = self.scan_points(state)
         verdict = self.safety.check(now_s, v, w, command.time_s, points, scan_time_s)
         if verdict.stop:
             if verdict.reason != state.safety_stop:
@@ -141,6 +131,23 @@ class MotorControl:
             v, w, mode = 0.0, 0.0, DriveMode.STOP
         out = self.wheels.update(v, w, mode, measured, self.period_s)
         return out.left_throttle, out.right_throttle
+
+    def scan_points(self, state: SharedState) -> tuple[np.ndarray | None, float | None]:
+        """The latest revolution's returns in the robot frame of now, and its end time (None: no scan yet).
+
+        The control process (:mod:`mazebot.tasks.control_process`) gets them from shared
+        memory instead, prepared the same way by the daemon's main process.
+        """
+        scan = state.latest_scan
+        if scan is None:
+            return None, None
+        if self._scan_cache is None or self._scan_cache[0] != id(scan):
+            self._scan_cache = (
+                id(scan),
+                scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, *self.lidar_range_m,
+                                  mount_xy_m=self.lidar_mount_xy_m),
+            )
+        return moved_since_scan(self._scan_cache[1], scan.end_time_s, state), scan.end_time_s
 
 
 #: While the control loop runs on its own thread, the interpreter hands the GIL to a thread

@@ -1,0 +1,287 @@
+"""The motor control loop in a process of its own (``[daemon] control_process``, the real clock).
+
+Real processes and real shared memory: the child makes the decisions ``MotorControl.tick``
+makes on the same inputs; a main process that hangs or dies leaves the wheels braked
+within the command's time-to-live; a child that dies is a ``control`` fault, the motors
+are braked from the main process and a new child starts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import multiprocessing
+import os
+import signal
+import time
+from multiprocessing.connection import Connection
+
+import numpy as np
+import pytest
+
+from mazebot.clock import RealClock
+from mazebot.config import Config
+from mazebot.io.scan import Scan
+from mazebot.sdnotify import ControlHeartbeat
+from mazebot.sim.remote_devices import PipeKitOpener
+from mazebot.sim.world_process import decode_throttle
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.odometry import OdometryPose
+from mazebot.state import MotionRequest, RunState, SharedState
+from mazebot.tasks import control_process
+from mazebot.tasks.control_process import ChildView, ControlLink
+from mazebot.tasks.control_task import MotorControl
+from mazebot.tasks.supervisor import Supervisor
+
+
+def _wall_scan(distance_m: float, time_s: float) -> Scan:
+    """A revolution with a straight wall ``distance_m`` ahead (and nothing elsewhere)."""
+    angle = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    ahead = np.abs(angle) < 0.6
+    rng = np.where(ahead, distance_m / np.cos(np.where(ahead, angle, 0.0)), 0.0)
+    return Scan(angle, rng, np.full(360, 40, np.uint8), np.linspace(time_s - 0.18, time_s, 360), rng > 0)
+
+
+class Recorder:
+    """Main-process motors: remembers each brake."""
+
+    def __init__(self) -> None:
+        self.stops: list[float] = []
+
+    def stop(self) -> None:
+        self.stops.append(time.monotonic())
+
+    def set(self, left: float, right: float) -> None:  # the main process never drives in this mode
+        raise AssertionError("the main process drove the motors")
+
+
+def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
+    """Step by step through real shared memory: driving, a wall coming closer (the collision
+    guard), odometry moving since the scan, a fault, a stale command, a stop."""
+    config = Config()
+    link = ControlLink.create(config)
+    child_link = ControlLink.attach(link.name)
+    try:
+        state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0, auto_resume=True)
+        state.odometry_history = OdometryHistory(3.0)
+        state.control_link = link
+        link.publish_all(state)  # what was set before the link (the child's start does the same)
+        view = ChildView(child_link)
+        reference, child = MotorControl(config), control_process._child_control(config, view)
+        period_s = config.daemon.control_period_s
+        outputs, stops = [], set()
+        x_m, left_ticks, right_ticks = 0.0, 0, 0
+        for k in range(120):
+            now_s = 100.0 + k * period_s
+            if k % 2 == 0 and k < 80:  # the planner: 10 Hz, fresh commands (none after tick 80: they go stale)
+                state.motion_command = MotionRequest(0.2, 0.1 * math.sin(k / 10), "drive", now_s)
+            if k % 4 == 0:  # a revolution: a wall ahead coming closer, then gone
+                state.latest_scan = _wall_scan(0.5 - 0.008 * k if k < 60 else 2.0, now_s - 0.01)
+            if k == 50:
+                state.raise_fault("lidar", "a test fault", now_s)
+            if k == 55:
+                state.clear_faults("lidar")
+            if k == 110:
+                state.stopping = True
+            x_m += 0.01
+            left_ticks += 9 + k % 3
+            right_ticks += 10
+            state.odometry_history.append(now_s, x_m, 0.0, 0.0)
+            state.odometry = OdometryPose(x_m, 0.0, 0.0)
+            state.wheel_ticks = (now_s, left_ticks, right_ticks)
+            expected = reference.tick(state, now_s)
+            state.throttles = expected
+            view.refresh()
+            got = child.tick(view, now_s)
+            view.throttles = got
+            assert got == expected, f"tick {k}"
+            assert view.wheel_speeds_mps == state.wheel_speeds_mps and view.wheel_gains == state.wheel_gains
+            assert view.safety_stop == state.safety_stop and view.safety_stops == state.safety_stops
+            outputs.append(got)
+            stops.add(state.safety_stop.split(":")[0])
+        # every branch was taken: driving, the guard's emergency stop, the stale command
+        assert any(abs(left) > 0.05 for left, _ in outputs)
+        assert outputs[-1] == (0.0, 0.0)
+        assert "stale command" in stops and stops - {"", "stale command"}, stops  # and the guard's
+    finally:
+        state.control_link = None
+        child_link.close()
+        link.close()
+
+
+def _read_throttles(motor_rx: Connection, until_s: float) -> list[tuple[float, int, float | None]]:
+    out = []
+    while time.monotonic() < until_s:
+        if not motor_rx.poll(0.05):
+            continue
+        try:
+            channel, throttle = decode_throttle(motor_rx.recv_bytes())
+        except EOFError:
+            break
+        out.append((time.monotonic(), channel, throttle))
+    return out
+
+
+def test_the_real_child_writes_what_motor_control_decides() -> None:
+    """A child process on its own clock: its ticks (time, throttles) replayed through
+    ``MotorControl.tick`` on the same inputs give the same throttles, and they reach the motors."""
+    config = Config()
+    link = ControlLink.create(config)
+    motor_rx, motor_tx = multiprocessing.Pipe(duplex=False)
+    state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
+    state.control_link = link
+    command = MotionRequest(0.0, 0.8, "turn", time.monotonic())  # turning in place: the guard allows it
+    state.motion_command = command
+    link.publish_all(state)
+    child, stop_tx = control_process.start_child(link, config, PipeKitOpener(motor_tx), "warning")
+    try:
+        writes, ticks = [], []
+        deadline = time.monotonic() + 30.0  # the fork server's first start imports numpy: slow on a busy machine
+        while len(ticks) < 20 and time.monotonic() < deadline:
+            writes += _read_throttles(motor_rx, time.monotonic() + 0.1)
+            ticks += link.new_ticks()
+    finally:
+        stop_tx.send_bytes(b"stop")
+        child.join(5.0)
+        state.control_link = None
+        link.close()
+    assert child.exitcode == 0
+    assert len(ticks) >= 12
+    reference = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
+    reference.motion_command = command
+    control = MotorControl(config)
+    for time_s, _late_ms, _cpu_s, left, right in ticks:
+        expected = control.tick(reference, time_s)
+        reference.throttles = expected
+        assert (left, right) == expected
+    assert any(left != 0.0 for _, _, _, left, _ in ticks)  # it turned, then the command went stale
+    assert ticks[-1][3:] == (0.0, 0.0)
+    driven = [t for _, _, t in writes if t]
+    assert driven and writes[-1][2] == 0.0  # the motors got them; the last write is a brake
+
+
+def _main_side(motor_tx: Connection, report_tx: Connection) -> None:
+    """A daemon's main process in small: the link, a planner that keeps the robot turning, the child."""
+
+    async def main() -> None:
+        from mazebot.io.motors import DifferentialMotors
+        from mazebot.sim.remote_devices import PipeMotorKit
+
+        config = Config()
+        link = ControlLink.create(config)
+        state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
+        state.control_link = link
+        motors = DifferentialMotors.from_config(config.motors, PipeMotorKit(motor_tx), RealClock())
+        task = asyncio.create_task(control_process.run(link, motors, state, ControlHeartbeat(RealClock()), config,
+                                                       PipeKitOpener(motor_tx)))
+        sent = False
+        while True:
+            state.motion_command = MotionRequest(0.0, 0.8, "turn", time.monotonic())
+            children = [p for p in multiprocessing.active_children() if p.name == "mazebot-control"]
+            if children and not sent:
+                report_tx.send(children[0].pid)
+                sent = True
+            await asyncio.sleep(0.02)
+            assert not task.done()
+
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("how", ["killed", "hung"])
+def test_a_main_process_gone_or_hung_leaves_the_wheels_braked_within_the_ttl(how: str) -> None:
+    ctx = multiprocessing.get_context("spawn")
+    motor_rx, motor_tx = ctx.Pipe(duplex=False)
+    report_rx, report_tx = ctx.Pipe(duplex=False)
+    main = ctx.Process(target=_main_side, args=(motor_tx, report_tx))  # not daemonic: it has a child
+    main.start()
+    motor_tx.close()
+    report_tx.close()
+    try:
+        assert report_rx.poll(60.0), "the main side did not start its control process"
+        child_pid = report_rx.recv()
+        deadline = time.monotonic() + 30.0  # the child's start imports numpy: slow on a busy machine
+        while time.monotonic() < deadline and not any(t for _, _, t in _read_throttles(motor_rx,
+                                                                                       time.monotonic() + 0.2)):
+            pass
+        assert time.monotonic() < deadline, "the wheels were not driven"
+        os.kill(main.pid, signal.SIGKILL if how == "killed" else signal.SIGSTOP)
+        gone_s = time.monotonic()
+        after = _read_throttles(motor_rx, gone_s + 2.0)
+        ttl_s = Config().control.command_ttl_ticks * Config().daemon.control_period_s
+        last = {channel: throttle for _, channel, throttle in after}
+        assert set(last) == {1, 2} and all(throttle == 0.0 for throttle in last.values())
+        # braked within the command's time-to-live (plus a period and the machine's slack): the
+        # last write that drove came no later
+        driving = [t_s for t_s, _, throttle in after if throttle]
+        braked_s = (max(driving) if driving else gone_s) - gone_s
+        assert braked_s <= ttl_s + 0.3, braked_s
+        if how == "killed":  # its parent gone, the child brakes and exits
+            deadline = time.monotonic() + 3.0
+            while time.monotonic() < deadline and _alive(child_pid):
+                time.sleep(0.05)
+            assert not _alive(child_pid)
+    finally:
+        if main.exitcode is None:
+            os.kill(main.pid, signal.SIGKILL)
+            os.kill(main.pid, signal.SIGCONT)
+        main.join(5.0)
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and _alive(child_pid):
+            time.sleep(0.05)
+        assert not _alive(child_pid)  # a hung parent killed: the child follows
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+async def test_a_dead_child_is_a_control_fault_braked_and_restarted() -> None:
+    config = Config()
+    link = ControlLink.create(config)
+    motor_rx, motor_tx = multiprocessing.Pipe(duplex=False)
+    state = SharedState(run_state=RunState.IDLE)
+    state.control_link = link
+    motors = Recorder()
+    supervisor = Supervisor(state, motors, RealClock(), exit_on_fault=False, restart_min_s=0.2)
+    heartbeat = ControlHeartbeat(RealClock())
+    supervisor.start("control", lambda: control_process.run(link, motors, state, heartbeat, config,
+                                                            PipeKitOpener(motor_tx)), restart=True)
+
+    def children() -> list[multiprocessing.process.BaseProcess]:
+        return [p for p in multiprocessing.active_children() if p.name == "mazebot-control"]
+
+    async def until(condition, timeout_s: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            assert time.monotonic() < deadline, "condition not met in time"
+            await asyncio.sleep(0.01)
+
+    try:
+        # the fork server's first start imports numpy: slow on a busy machine
+        await until(lambda: len(children()) == 1 and len(state.control_lateness_ms) >= 3, 60.0)
+        first = children()[0].pid
+        assert heartbeat.last_tick_s > time.monotonic() - 1.0  # the systemd watchdog sees its ticks
+        os.kill(first, signal.SIGKILL)
+        killed_s = time.monotonic()
+        await until(lambda: any(f.source == "control" for f in state.faults), 2.0)
+        assert any(s >= killed_s for s in motors.stops)  # braked from the main process
+        assert min(s for s in motors.stops if s >= killed_s) - killed_s < 0.5
+        fault = next(f for f in state.faults if f.source == "control")
+        assert "control process" in fault.message and "exit code -9" in fault.message
+        await until(lambda: [p.pid for p in children()] not in ([], [first]), 30.0)  # a new child
+        ticks = len(state.control_lateness_ms)
+        await until(lambda: len(state.control_lateness_ms) > ticks + 3, 30.0)  # and it ticks
+    finally:
+        supervisor.request_stop("test over")
+        await supervisor.wait()
+        state.control_link = None
+        link.close()
+    assert children() == []  # stopped means stopped: the child braked and exited
+    writes = []
+    while motor_rx.poll(0):
+        writes.append(decode_throttle(motor_rx.recv_bytes()))
+    assert writes and writes[-1][1] == 0.0

@@ -24,7 +24,7 @@ hot path.
   ticks (time, lateness, CPU, throttles) and a ring of notes and faults, which the
   coroutine :func:`run` turns into ``state`` updates on the main loop at the control rate.
 
-The child makes the same decisions as the coroutine and the thread (``control_task._tick_once``
+The child makes the same decisions as the coroutine and the thread (``control_task.tick_once``
 and :class:`~mazebot.tasks.control_task.MotorControl`) on a view of those inputs. It is
 started from the multiprocessing fork server (a single-threaded process started afresh,
 so a fork never catches a lock held by one of the daemon's threads, and the numpy and
@@ -463,7 +463,7 @@ class ChildView:
         """What an idle tick reads of the latest scan: its end time (the lidar's age counts on)."""
         return None if self.scan_time_s is None else _ScanStamp(self.scan_time_s)
 
-    # the SharedState calls _tick_once and _write make (through ``post``)
+    # the SharedState calls tick_once and _write make (through ``post``)
     def note(self, source: str, message: str, time_s: float) -> None:
         self._link.push_note("note", time_s, source, message)
 
@@ -497,7 +497,7 @@ def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], st
     from mazebot.clock import RealClock
     from mazebot.io.motors import DifferentialMotors, TtlGuard
     from mazebot.logs import setup_logging
-    from mazebot.tasks.control_task import _call, _tick_once
+    from mazebot.tasks.control_task import call_now, tick_once
 
     stopping = []
     for sig in (signal.SIGINT, signal.SIGTERM):  # brake and leave, unless whoever started us ignores them
@@ -518,7 +518,7 @@ def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], st
             view.refresh()
             now_s = time.monotonic()
             view.tick_time_s = now_s
-            next_tick_s = _tick_once(motors, view, control, meter, now_s, next_tick_s, _call)  # type: ignore[arg-type]
+            next_tick_s = tick_once(motors, view, control, meter, now_s, next_tick_s, call_now)  # type: ignore[arg-type]
             ticks += 1
             link.write_output(ticks, now_s, view, control)
             # sleeping on the stop pipe: a message or its end (the main process is gone) wakes us at once

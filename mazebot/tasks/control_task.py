@@ -161,11 +161,12 @@ THREAD_JOIN_S = 1.0
 Post = Callable[..., object]
 
 
-def _call(fn: Callable[..., object], *args: object) -> None:
+def call_now(fn: Callable[..., object], *args: object) -> None:
+    """The ``post`` of a loop that runs on the event loop's own thread: call at once."""
     fn(*args)
 
 
-def _tick_once(
+def tick_once(
     motors, state: SharedState, control: MotorControl, meter, now_s: float, next_tick_s: float, post: Post
 ) -> float:
     """One period of the loop at ``now_s`` (due at ``next_tick_s``); returns when the next is due.
@@ -214,7 +215,7 @@ async def run(motors, state: SharedState, clock: Clock, control: MotorControl, *
         return
     next_tick_s = clock.now_s()
     while True:
-        next_tick_s = _tick_once(motors, state, control, meter, clock.now_s(), next_tick_s, _call)
+        next_tick_s = tick_once(motors, state, control, meter, clock.now_s(), next_tick_s, call_now)
         await clock.sleep(next_tick_s - clock.now_s())
 
 
@@ -242,7 +243,7 @@ async def _run_on_thread(motors, state: SharedState, clock: Clock, control: Moto
             next_tick_s = time.monotonic()
             while not stop.is_set():
                 now_s = time.monotonic()
-                next_tick_s = _tick_once(motors, state, control, meter, now_s, next_tick_s, post)
+                next_tick_s = tick_once(motors, state, control, meter, now_s, next_tick_s, post)
                 if beats:
                     clock.last_tick_s = now_s  # type: ignore[attr-defined]
                 stop.wait(max(0.0, next_tick_s - time.monotonic()))
@@ -266,10 +267,10 @@ async def _run_on_thread(motors, state: SharedState, clock: Clock, control: Moto
                 motors.stop()
 
 
-def _write(motors, state: SharedState, left: float, right: float, now_s: float, post: Post = _call) -> None:
+def _write(motors, state: SharedState, left: float, right: float, now_s: float, post: Post = call_now) -> None:
     """Write the throttles; a HAT that fails is a fault that clears on the next good write.
 
-    The fault's bookkeeping goes through ``post`` (see :func:`_tick_once`); the throttles
+    The fault's bookkeeping goes through ``post`` (see :func:`tick_once`); the throttles
     written are the control loop's own field.
     """
     try:

@@ -4,7 +4,7 @@
 # glibc 2.36, so manylinux_2_28 wheels), wheels only (nothing compiles on the Pi).
 # Left out: what Adafruit Blinka requires for other boards and never imports for the
 # motor HAT on a Pi (FTDI and Binho USB adapters, pulseio, CircuitPython's HTTP types);
-# BENCHMARKS.md "Dependencies on the Pi" has the sizes and the check. The README's
+# docs/benchmarks-history.md "Dependencies on the Pi" has the sizes and the check. The README's
 # deployment installs it with `pip install --no-deps --require-hashes -r requirements-pi.txt`.
 #
 #   tools/lock-pi.sh           write requirements-pi.txt (newest versions today)

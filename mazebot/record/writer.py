@@ -11,7 +11,7 @@ The queue is a ``collections.deque`` that nobody is woken for: the writer thread
 it in batches, every ``flush_period_s`` or as soon as it is half full. A
 ``queue.Queue`` woke the thread for every one of the ~100 messages a second, and each
 wake-up took the interpreter lock from the event loop (a forced switch); that alone cost
-more CPU than encoding the messages (BENCHMARKS.md, "Recording overhead").
+more CPU than encoding the messages (docs/benchmarks-history.md, "Recording overhead").
 
 Size cap and rotation: when the current file reaches ``max_bytes`` it is finished (its
 summary and index written, so it is a complete MCAP file on its own) and the next one

@@ -11,6 +11,7 @@ Routes::
     GET  /map.png          the map as an image
     GET  /map.pgm          the map for ROS map_server, with
     GET  /map.yaml         its YAML
+    GET  /api/setup, POST /api/jog, GET /api/doctor   the setup view (mazebot.web.setup)
 """
 
 from __future__ import annotations
@@ -521,6 +522,7 @@ def create_app(
     static_dir: Path = DEFAULT_STATIC_DIR,
     settings: WebSettings | None = None,
     replay: Callable[[], dict[str, Any]] | None = None,
+    state_dir: Path | None = None,
 ) -> web.Application:
     """Build the web application for one daemon's shared state.
 
@@ -556,6 +558,9 @@ def create_app(
     app.router.add_get("/map.png", get_map_png)
     app.router.add_get("/map.pgm", get_map_pgm)
     app.router.add_get("/map.yaml", get_map_yaml)
+    from mazebot.web import setup  # the setup view: raw scan, wheels, jog, doctor
+
+    setup.add_routes(app, state_dir)
     app.router.add_static("/static/", static_dir, follow_symlinks=False)
     app.cleanup_ctx.append(_broadcast_ctx)
     app.on_shutdown.append(_close_websockets)

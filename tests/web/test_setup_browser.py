@@ -88,8 +88,10 @@ def test_jogging_needs_the_pin_and_stops_on_release(page, daemon) -> None:
     assert driven["encoders"]["left_ticks"] > before["left_ticks"] + 20
     assert driven["encoders"]["right_ticks"] > before["right_ticks"] + 20
     assert driven["throttles"] == [0.0, 0.0]
-    time.sleep(0.3)
-    assert _setup(daemon.url)["encoders"] == driven["encoders"]  # released: nothing turns any more
+    time.sleep(0.5)
+    rest = _setup(daemon.url)["encoders"]
+    for side in ("left_ticks", "right_ticks"):  # released: nothing turns any more (a wheel at rest on an
+        assert abs(rest[side] - driven["encoders"][side]) <= 2  # edge of its encoder may flicker by a tick)
     assert page.evaluate("localStorage.getItem('mazebot.pin')") == PIN
     assert page.errors == []  # type: ignore[attr-defined]
 

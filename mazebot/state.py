@@ -172,6 +172,10 @@ class SharedState:
     #: it only while the run state is moving, only while it is fresh, and only when no
     #: ``motion_command`` is set.
     throttle_command: tuple[float, float, float] | None = None
+    #: (left, right) throttle and the clock time it was sent: the setup page's hold-to-run jog
+    #: (``mazebot.web.setup``); the control task applies it only while the robot is not running
+    #: and not in a fault, and only while it is younger than ``[motors] command_ttl_s``
+    jog_command: tuple[float, float, float] | None = None
     #: the planner's body-velocity command (written by the planner task, read by control)
     motion_command: MotionRequest | None = None
     #: measured wheel surface speeds (left, right), m/s, written by the control task

@@ -31,7 +31,7 @@ from mazebot.planner.dwa import scan_points_robot
 from mazebot.planner.pilot import moved_since_scan
 from mazebot.planner.safety import CollisionGuard, ControlWatchdog, SafetyLayer
 from mazebot.planner.wheel_control import DriveMode, WheelController, WheelGainEstimator, WheelSpeedEstimator
-from mazebot.state import SharedState
+from mazebot.state import RunState, SharedState
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ class MotorControl:
     def __init__(self, config: Config) -> None:
         c, d = config.control, config.drive
         self.period_s = config.daemon.control_period_s
+        self.jog_ttl_s = config.motors.command_ttl_s
         self.wheels = WheelController(
             track_width_m=d.track_width_m,
             max_wheel_speed_mps=d.max_wheel_speed_mps,
@@ -109,6 +110,10 @@ class MotorControl:
         direct = state.throttle_command
         if moving and direct is not None and now_s - direct[2] <= STALE_PERIODS * self.period_s:
             return direct[0], direct[1]
+        jog = state.jog_command
+        if (jog is not None and not moving and not state.run_state.moving and state.run_state is not RunState.FAULT
+                and 0.0 <= now_s - jog[2] <= self.jog_ttl_s):
+            return jog[0], jog[1]  # hold-to-run from the setup page: stale after the command time-to-live
         return 0.0, 0.0
 
     def _drive(self, state: SharedState, command, measured: tuple[float, float], now_s: float) -> tuple[float, float]:

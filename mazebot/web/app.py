@@ -12,6 +12,7 @@ Routes::
     GET  /map.pgm          the map for ROS map_server, with
     GET  /map.yaml         its YAML
     GET  /map.zip          both of one snapshot, for download (mazebot-map-DATE-TIME.pgm + .yaml)
+    GET  /api/setup, POST /api/jog, GET /api/doctor   the setup view (mazebot.web.setup)
 """
 
 from __future__ import annotations
@@ -534,6 +535,7 @@ def create_app(
     static_dir: Path = DEFAULT_STATIC_DIR,
     settings: WebSettings | None = None,
     replay: Callable[[], dict[str, Any]] | None = None,
+    state_dir: Path | None = None,
 ) -> web.Application:
     """Build the web application for one daemon's shared state.
 
@@ -570,6 +572,9 @@ def create_app(
     app.router.add_get("/map.pgm", get_map_pgm)
     app.router.add_get("/map.yaml", get_map_yaml)
     app.router.add_get("/map.zip", get_map_zip)
+    from mazebot.web import setup  # the setup view: raw scan, wheels, jog, doctor
+
+    setup.add_routes(app, state_dir)
     app.router.add_static("/static/", static_dir, follow_symlinks=False)
     app.cleanup_ctx.append(_broadcast_ctx)
     app.on_shutdown.append(_close_websockets)

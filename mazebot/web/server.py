@@ -40,7 +40,7 @@ def control_token(config: Config) -> str:
 async def start_web_server(state: SharedState, config: Config, hardware: Any = None) -> web.AppRunner:
     """Serve the page on ``[web] host:port``; the caller owns ``runner.cleanup()``."""
     settings = WebSettings.from_config(config.web, control_token(config))
-    app = create_app(state, settings=settings)
+    app = create_app(state, settings=settings, state_dir=resolve_state_dir(config.daemon.state_dir))
     runner = web.AppRunner(app, handle_signals=False, access_log=None, shutdown_timeout=2.0)
     await runner.setup()
     site = web.TCPSite(runner, config.web.host, config.web.port)

@@ -20,13 +20,14 @@ from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
 from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
-from mazebot.config import Config, load_config
+from mazebot.config import Config, default_config_path, load_config
 from mazebot.errors import EXIT_OK, HardwareUnavailable, UsageError
 from mazebot.logs import setup_logging
 from mazebot.sdnotify import ControlHeartbeat
@@ -239,6 +240,7 @@ async def run_daemon(
     autonomous: bool = True,
     session: Any = None,
     instrument: Callable[[Any, Executor], Executor] | None = None,
+    config_path: Path | None = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
 
@@ -247,7 +249,8 @@ async def run_daemon(
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     ``session`` (a :class:`mazebot.persist.session.RunSession`) records, saves or resumes the run.
     ``instrument(slam, executor)`` returns the executor SLAM is to use (the fault injector's
-    way to reach the compute: :mod:`mazebot.sim.faults`).
+    way to reach the compute: :mod:`mazebot.sim.faults`). ``config_path`` is the file ``config``
+    came from: a calibration confirmed on the setup page replaces it.
     """
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
@@ -276,7 +279,7 @@ async def run_daemon(
             nonlocal web_runner
             from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
 
-            web = await start_web_server(state, config, hardware)
+            web = await start_web_server(state, config, hardware, config_path)
             stack.push_async_callback(web.cleanup)
             web_runner = web
             log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
@@ -446,7 +449,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     session = RunSession.from_options(config, record=args.record, resume=args.resume)
     with contextlib.suppress(KeyboardInterrupt):
-        return asyncio.run(run_daemon(config, builder, session=session))
+        config_path = Path(args.config) if args.config else default_config_path()
+        return asyncio.run(run_daemon(config, builder, session=session, config_path=config_path))
     return EXIT_OK
 
 

@@ -176,6 +176,9 @@ class SharedState:
     #: (``mazebot.web.setup``); the control task applies it only while the robot is not running
     #: and not in a fault, and only while it is younger than ``[motors] command_ttl_s``
     jog_command: tuple[float, float, float] | None = None
+    #: a calibration from the setup page drives the wheels through ``jog_command`` (written by
+    #: ``mazebot.calibration.on_daemon``): the health monitor does not judge the wiring meanwhile
+    calibrating: bool = False
     #: the planner's body-velocity command (written by the planner task, read by control)
     motion_command: MotionRequest | None = None
     #: measured wheel surface speeds (left, right), m/s, written by the control task

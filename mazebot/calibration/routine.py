@@ -209,8 +209,7 @@ class Calibrator:
     async def run(self) -> CalibrationResult:
         feed = _ScanFeed(self.hw.lidar)
         try:
-            home, _ = await self._still(feed)
-            wiring, pulses = await self._step("wiring", self._wiring(feed))
+            wiring, pulses, home = await self._step("wiring", self._wiring(feed))
             deadband, speed = await self._step("ramp", self._ramp())
             await self._step("ramp", self._face(feed, home))
             runs = await self._step("straight", self._straight(feed))
@@ -246,7 +245,10 @@ class Calibrator:
         self.progress.update(name, "done")
         return result
 
-    async def _wiring(self, feed: _ScanFeed) -> tuple[Wiring, list[Pulse]]:
+    async def _wiring(self, feed: _ScanFeed) -> tuple[Wiring, list[Pulse], np.ndarray]:
+        """One forward pulse of each motor output, back and forth; also the starting view (``home``),
+        the first still scan, so that no walls in view fails this first step."""
+        home, _ = await self._still(feed)
         pulses = []
         for output in ("left", "right"):
             before, c0 = await self._still(feed)
@@ -268,7 +270,7 @@ class Calibrator:
             wheel_of_encoder=wiring.wheel_of_encoder,
             encoder_reversed=wiring.encoder_reversed,
         )
-        return wiring, pulses
+        return wiring, pulses, home
 
     async def _face(self, feed: _ScanFeed, home: np.ndarray) -> None:
         """Turn back to the heading of the first still scan (the ramp spun the robot round)."""

@@ -13,6 +13,7 @@ Routes::
     GET  /map.yaml         its YAML
     GET  /map.zip          both of one snapshot, for download (mazebot-map-DATE-TIME.pgm + .yaml)
     GET  /api/setup, POST /api/jog, GET /api/doctor   the setup view (mazebot.web.setup)
+    GET, POST /api/calibration[/stop|/write]           calibration from the setup view (mazebot.web.calibration)
 """
 
 from __future__ import annotations
@@ -536,13 +537,16 @@ def create_app(
     settings: WebSettings | None = None,
     replay: Callable[[], dict[str, Any]] | None = None,
     state_dir: Path | None = None,
+    calibration: Any = None,
 ) -> web.Application:
     """Build the web application for one daemon's shared state.
 
     Without ``settings`` control needs a random token nobody knows (control is locked).
     ``replay`` marks the state as a recording played back (``mazebot replay --serve``): it
     returns what clients are told (``replay`` in ``hello`` and ``/api/status``), and start
-    and stop are refused with 409.
+    and stop are refused with 409. ``calibration`` (a
+    :class:`mazebot.calibration.on_daemon.PageCalibration`) lets the setup view calibrate the
+    daemon's devices; without it the calibration routes answer that there is none.
     """
     settings = settings if settings is not None else WebSettings(control_token=secrets.token_hex(16))
     app = web.Application(client_max_size=64 * 1024, middlewares=[compress_assets])
@@ -572,9 +576,9 @@ def create_app(
     app.router.add_get("/map.pgm", get_map_pgm)
     app.router.add_get("/map.yaml", get_map_yaml)
     app.router.add_get("/map.zip", get_map_zip)
-    from mazebot.web import setup  # the setup view: raw scan, wheels, jog, doctor
+    from mazebot.web import setup  # the setup view: raw scan, wheels, jog, doctor, calibration
 
-    setup.add_routes(app, state_dir)
+    setup.add_routes(app, state_dir, calibration)
     app.router.add_static("/static/", static_dir, follow_symlinks=False)
     app.cleanup_ctx.append(_broadcast_ctx)
     app.on_shutdown.append(_close_websockets)

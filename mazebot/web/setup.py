@@ -5,6 +5,7 @@ Routes::
     GET  /api/setup    the latest raw revolution (angles, ranges), encoder counts, wheel speeds
     POST /api/jog      {"left": t, "right": t}: drive for one command time-to-live (PIN, robot not running)
     GET  /api/doctor   the doctor's checks that move nothing (power, temperature, space, clock, lidar)
+    ...  /api/calibration   calibration from the page (mazebot.web.calibration)
 
 Jogging is enforced here and in the control task, never trusted to the page: a jog needs
 the PIN (the same :class:`~mazebot.web.auth.ControlAuth` as start/stop), is refused while
@@ -35,14 +36,22 @@ SCAN_POINTS_MAX: Final = 720
 STATE_DIR_KEY = web.AppKey("setup_state_dir", Path)
 
 
+def calibration_running(application: web.Application) -> bool:
+    from mazebot.web.calibration import running
+
+    return running(application)
+
+
 def _app() -> Any:  # the web.app module, imported late (it imports this one)
     from mazebot.web import app
 
     return app
 
 
-def jog_refusal(run_state: RunState) -> str | None:
+def jog_refusal(run_state: RunState, calibrating: bool = False) -> str | None:
     """Why the wheels may not be jogged now; None when they may."""
+    if calibrating:
+        return "a calibration drives the wheels: stop it before jogging"
     if run_state.moving:
         return f"the robot is {run_state.value}: stop the run before jogging"
     if run_state is RunState.FAULT:
@@ -58,7 +67,7 @@ async def get_setup(request: web.Request) -> web.Response:
     scan = state.latest_scan
     body: dict[str, Any] = {
         "state": state.run_state.value,
-        "jog_refused": jog_refusal(state.run_state),
+        "jog_refused": jog_refusal(state.run_state, calibration_running(request.app)),
         "jog_max_throttle": JOG_MAX_THROTTLE,
         "encoders": {"left_ticks": state.sensors.encoder_ticks_left, "right_ticks": state.sensors.encoder_ticks_right,
                      "invalid_transitions": state.sensors.encoder_invalid_transitions},
@@ -95,6 +104,8 @@ async def post_jog(request: web.Request) -> web.Response:
     if not (math.isfinite(left) and math.isfinite(right)):
         return web.json_response({"error": "throttles must be finite numbers"}, status=400)
     state = request.app[app.STATE_KEY]
+    if calibration_running(request.app):  # the calibration is the one writer of the jog request meanwhile
+        return web.json_response({"error": jog_refusal(state.run_state, True)}, status=409)
     if (refusal := jog_refusal(state.run_state)) is not None:
         state.jog_command = None
         return web.json_response({"error": refusal}, status=409)
@@ -125,7 +136,11 @@ async def get_doctor(request: web.Request) -> web.Response:
     return web.json_response({"checks": [v.as_json() for v in verdicts]}, headers={"Cache-Control": "no-store"})
 
 
-def add_routes(application: web.Application, state_dir: Path | None = None) -> None:
+def add_routes(application: web.Application, state_dir: Path | None = None, calibration: Any = None) -> None:
+    """The setup view's routes, and its calibration's (:mod:`mazebot.web.calibration`)."""
+    from mazebot.web import calibration as calibration_routes
+
+    calibration_routes.add_routes(application, calibration)
     application.router.add_get("/api/setup", get_setup)
     application.router.add_post("/api/jog", post_jog)
     application.router.add_get("/api/doctor", get_doctor)

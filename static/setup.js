@@ -1,6 +1,8 @@
-// mazebot setup view: the raw lidar revolution as a polar plot (D3), the wheels, hold-to-run jog buttons
-// and the doctor's checks (mazebot/web/setup.py). Jogging is made safe on the server: a jog is a request
-// that goes stale after the motors' command time-to-live, so this page re-sends it while a button is held.
+// mazebot setup view: the raw lidar revolution as a polar plot (D3), the wheels, hold-to-run jog buttons,
+// the doctor's checks (mazebot/web/setup.py) and the calibration (mazebot/web/calibration.py). Jogging is
+// made safe on the server: a jog is a request that goes stale after the motors' command time-to-live, so
+// this page re-sends it while a button is held. A calibration runs on the robot; this page polls it, and
+// the robot stops it when the polls stop (a lost connection, a closed page).
 (function () {
   "use strict";
   const PIN_KEY = "mazebot.pin"; // the same PIN the start/stop button remembers (app.js)
@@ -21,6 +23,7 @@
     pinInput.value = pinInput.value || loadPin();
     refresh();
     poll = setInterval(refresh, POLL_MS);
+    pollCalibration();
   }
   function close() {
     stopJog();
@@ -61,7 +64,22 @@
       `revolution ${scan.revolution}: ${scan.valid} of ${scan.samples} samples valid, farthest ${far.toFixed(2)} m`;
   }
 
-  async function sendJog(left, right) {
+  // One jog request at a time, each sent after the answer to the one before: with several connections
+  // a browser may deliver two requests in either order, and a drive request overtaking the release's
+  // zero would drive the wheels for another time-to-live after the button was let go.
+  let jogChain = Promise.resolve(true);
+  let jogBusy = false;
+  function sendJog(left, right) {
+    jogChain = jogChain.then(() => postJog(left, right));
+    return jogChain;
+  }
+
+  async function postJog(left, right) {
+    jogBusy = true;
+    try { return await postJogNow(left, right); } finally { jogBusy = false; }
+  }
+
+  async function postJogNow(left, right) {
     const pin = pinInput.value;
     try {
       const resp = await fetch("/api/jog", {
@@ -83,7 +101,7 @@
     button.classList.add("held");
     $("jog-status").textContent = "driving: release to stop";
     sendJog(left, right);
-    jogTimer = setInterval(() => sendJog(left, right), JOG_RESEND_MS);
+    jogTimer = setInterval(() => { if (!jogBusy) sendJog(left, right); }, JOG_RESEND_MS);
   }
   function stopJog(sendZero = true) {
     const was = jogTimer !== null;
@@ -112,6 +130,117 @@
       }
     } catch { list.textContent = "no connection to the robot"; }
   }
+
+  // --- calibration --------------------------------------------------------------------------------------
+  const CALIB_POLL_MS = 500; // the robot stops a calibration whose page is silent for 3 s (on_daemon.py)
+  let calibId = null;
+  let calibTimer = null;
+
+  async function calibPost(path, body) {
+    const pin = pinInput.value;
+    try {
+      const resp = await fetch(path, {
+        method: "POST", headers: { "Content-Type": "application/json", "X-Mazebot-Token": pin },
+        body: JSON.stringify(body || {}),
+      });
+      const data = await resp.json();
+      if (resp.ok) savePin(pin);
+      else $("calib-status").textContent = data.error || `refused (${resp.status})`;
+      return resp.ok ? data : null;
+    } catch {
+      $("calib-status").textContent = "no connection to the robot";
+      return null;
+    }
+  }
+
+  function renderCalibration(run) {
+    const box = $("calib");
+    box.dataset.status = run ? run.status : "idle";
+    const running = !!run && run.status === "running";
+    $("calib-start").hidden = running;
+    $("calib-stop").hidden = !running;
+    if (!run) return;
+    const list = $("calib-steps");
+    list.textContent = "";
+    run.steps.forEach((step) => {
+      const li = document.createElement("li");
+      li.dataset.step = step.name;
+      li.dataset.state = step.state;
+      const b = document.createElement("b");
+      b.textContent = step.state;
+      li.append(b, ` ${step.title}`);
+      const figures = Object.entries(step.measured)
+        .filter(([, v]) => typeof v === "number")
+        .map(([k, v]) => `${k} ${v}`).join(", ");
+      const detail = [step.detail, figures].filter(Boolean).join(" · ");
+      if (detail) {
+        const small = document.createElement("small");
+        small.textContent = detail;
+        li.append(small);
+      }
+      list.append(li);
+    });
+    const done = run.steps.filter((s) => s.state === "done").length;
+    const status = {
+      running: `step ${Math.min(done + 1, run.steps.length)} of ${run.steps.length}: keep clear of the robot`,
+      done: run.diff.length ? "finished: check the changes, then write them" : run.reason,
+      failed: `failed in step ${run.failed_step || "?"}: nothing was written`,
+      stopped: `stopped (${run.reason}): the motors are off, nothing was written`,
+      written: run.reason,
+    }[run.status];
+    $("calib-status").textContent = status || run.status;
+    const rows = $("calib-diff-rows");
+    rows.textContent = "";
+    for (const d of run.diff) {
+      const tr = document.createElement("tr");
+      for (const text of [d.key, JSON.stringify(d.old), "→", JSON.stringify(d.new)]) {
+        const td = document.createElement("td");
+        td.textContent = text;
+        tr.append(td);
+      }
+      rows.append(tr);
+    }
+    const finished = run.status === "done" || run.status === "written";
+    $("calib-diff").hidden = !finished || run.diff.length === 0;
+    $("calib-write").hidden = run.status !== "done" || run.diff.length === 0;
+    const png = $("calib-png");
+    if (finished && png.hidden) { png.src = `/api/calibration.png?id=${encodeURIComponent(run.id || "")}`; }
+    png.hidden = !finished;
+  }
+
+  async function pollCalibration() {
+    try {
+      const resp = await fetch(`/api/calibration?id=${encodeURIComponent(calibId || "")}`, { cache: "no-store" });
+      if (!resp.ok) return;
+      const body = await resp.json();
+      if (!body.available) { $("calib-start").disabled = true; $("calib-status").textContent = body.why; return; }
+      renderCalibration(body.run);
+      if (!body.run || body.run.status !== "running") { clearInterval(calibTimer); calibTimer = null; }
+    } catch { $("calib-status").textContent = "no connection to the robot"; }
+  }
+
+  function followCalibration() {
+    clearInterval(calibTimer);
+    calibTimer = setInterval(pollCalibration, CALIB_POLL_MS);
+  }
+
+  async function startCalibration() {
+    $("calib-png").hidden = true;
+    const run = await calibPost("/api/calibration");
+    if (!run) return;
+    calibId = run.id;
+    renderCalibration(run);
+    followCalibration();
+  }
+
+  async function writeCalibration() {
+    const run = await calibPost("/api/calibration/write", { id: calibId });
+    if (run) renderCalibration(run);
+  }
+
+  $("calib-start").addEventListener("click", startCalibration);
+  $("calib-stop").addEventListener("click", async () => { await calibPost("/api/calibration/stop"); pollCalibration(); });
+  $("calib-write").addEventListener("click", writeCalibration);
 
   $("setup-open").addEventListener("click", open);
   $("setup-close").addEventListener("click", close);

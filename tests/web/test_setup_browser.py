@@ -1,6 +1,7 @@
 """The setup view in a real browser (headless Debian Chromium, Playwright) against a real
-``mazebot run --sim``: the polar plot fills in, a held jog button turns the wheels only with the
-PIN, and releasing it stops them. Screenshots go to tests/web/artifacts/."""
+``mazebot run --sim --room``: the polar plot fills in, a held jog button turns the wheels only with
+the PIN, and releasing it stops them; a calibration started from the page shows its steps one by
+one, and its Stop button stops the motors and writes nothing. Screenshots go to tests/web/artifacts/."""
 
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ def _setup(url: str) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     d = Daemon(tmp_path_factory.mktemp("setup-daemon"))
+    with d.config.open("a") as config:  # the room: calibration needs 0.8 m straight runs, a maze cell has 0.3
+        config.write('[sim]\nworld = "room"\n')
     d.start()
     yield d
     d.stop()
@@ -90,8 +93,8 @@ def test_jogging_needs_the_pin_and_stops_on_release(page, daemon) -> None:
     assert driven["throttles"] == [0.0, 0.0]
     time.sleep(0.5)
     rest = _setup(daemon.url)["encoders"]
-    for side in ("left_ticks", "right_ticks"):  # released: nothing turns any more (a wheel at rest on an
-        assert abs(rest[side] - driven["encoders"][side]) <= 2  # edge of its encoder may flicker by a tick)
+    for side in ("left_ticks", "right_ticks"):  # released: nothing turns any more (the page sends one jog
+        assert rest[side] == driven["encoders"][side]  # at a time, so no drive request overtakes the release)
     assert page.evaluate("localStorage.getItem('mazebot.pin')") == PIN
     assert page.errors == []  # type: ignore[attr-defined]
 
@@ -102,4 +105,29 @@ def test_the_doctor_results_are_listed(page, daemon) -> None:
     text = page.inner_text("#doctor")
     assert "free space" in text and "lidar revolution" in text and "clock" in text
     page.screenshot(path=str(ARTIFACTS / "phone-setup-doctor.png"), full_page=True)
+    assert page.errors == []  # type: ignore[attr-defined]
+
+
+def test_a_calibration_shows_its_steps_and_stops_from_the_page(page, daemon) -> None:
+    config_before = daemon.config.read_text()
+    page.fill("#setup-pin", PIN)
+    page.click("#calib-start")
+    page.wait_for_selector("#calib[data-status='running']")
+    assert [page.get_attribute(f"#calib-steps li:nth-child({i})", "data-step") for i in range(1, 6)] == [
+        "wiring", "ramp", "straight", "turns", "yaw"]
+    # the first step finds the wiring with a pulse of each motor, then the throttle ramp begins
+    page.wait_for_selector("#calib-steps li[data-step='wiring'][data-state='done']", timeout=90_000)
+    assert "left wheel: motor output" in page.inner_text("#calib-steps li[data-step='wiring']")
+    page.wait_for_selector("#calib-steps li[data-step='ramp'][data-state='running']", timeout=30_000)
+    assert "step 2 of 5" in page.inner_text("#calib-status")
+    page.screenshot(path=str(ARTIFACTS / "phone-setup-calibration.png"), full_page=True)
+    page.click("#calib-stop")
+    page.wait_for_selector("#calib[data-status='stopped']", timeout=10_000)
+    assert "stopped from the page" in page.inner_text("#calib-steps li[data-step='ramp']")
+    assert "nothing was written" in page.inner_text("#calib-status")
+    assert page.is_visible("#calib-start") and not page.is_visible("#calib-write")
+    time.sleep(0.3)  # a control tick or two
+    assert _setup(daemon.url)["throttles"] == [0.0, 0.0]
+    assert daemon.config.read_text() == config_before
+    assert not daemon.config.with_name("config.toml.bak").exists()
     assert page.errors == []  # type: ignore[attr-defined]

@@ -41,11 +41,17 @@ from mazebot.state import RunState, SharedState
 log = logging.getLogger(__name__)
 
 #: The page polls the calibration's state every 0.5 s; silent for this long, it is gone
-#: (a phone that lost the Wi-Fi, a closed tab) and the calibration stops.
+#: (a phone that lost the Wi-Fi, a closed tab) and the calibration stops. The silence is
+#: counted in the watch's periods that ran, each at most :data:`WATCH_STEP_MAX_S`, as the
+#: control task counts a command's age in the ticks that ran: when the daemon itself could
+#: not run (a starved core), the page's polls wait unread in the socket, and that is no
+#: silence of the page's. (A stalled daemon stops the wheels anyway: its jog request goes
+#: stale in the control task after ``[motors] command_ttl_s``.)
 PAGE_SILENCE_S: Final = 3.0
 #: How often the watch over a running calibration looks at its reasons to stop, and how
 #: often the lidar facade looks for a new revolution (a revolution takes ~0.1 s or more).
 WATCH_PERIOD_S: Final = 0.05
+WATCH_STEP_MAX_S: Final = 2 * WATCH_PERIOD_S
 LIDAR_POLL_S: Final = 0.02
 
 RunStatus = Literal["running", "done", "failed", "stopped", "written"]
@@ -121,9 +127,9 @@ class CalibrationRun:
 
     id: str
     progress: Progress
-    last_seen_s: float
     run_state: RunState  # the robot's run state when it started: any change stops it
     status: RunStatus = "running"
+    silent_s: float = 0.0  # since the page's last poll, in watch periods that ran (PAGE_SILENCE_S)
     reason: str = ""  # why it failed or stopped; where it was written
     stop_request: str | None = None
     diff: list[tuple[str, Any, Any]] = field(default_factory=list)
@@ -195,7 +201,7 @@ class PageCalibration:
         from mazebot.calibration.routine import STEPS
 
         assert self.refusal() is None
-        run = CalibrationRun(secrets.token_urlsafe(12), Progress(STEPS), self.clock.now_s(), self.state.run_state)
+        run = CalibrationRun(secrets.token_urlsafe(12), Progress(STEPS), self.state.run_state)
         self.run = run
         self.state.calibrating = True
         self._task = asyncio.create_task(self._calibrate(run), name="calibration")
@@ -207,7 +213,7 @@ class PageCalibration:
         run = self.run
         if run is None or run_id != run.id:
             return None
-        run.last_seen_s = self.clock.now_s()
+        run.silent_s = 0.0
         return run
 
     def stop(self, reason: str) -> bool:
@@ -230,9 +236,8 @@ class PageCalibration:
             if state.run_state is RunState.FAULT and state.active_fault is not None:
                 return f"a fault: {state.active_fault.message}"
             return f"the robot went from {run.run_state.value} to {state.run_state.value} (start or stop pressed)"
-        silent_s = self.clock.now_s() - run.last_seen_s
-        if silent_s > PAGE_SILENCE_S:
-            return f"the page was not heard from for {silent_s:.1f} s (lost connection?)"
+        if run.silent_s > PAGE_SILENCE_S:
+            return f"the page was not heard from for {run.silent_s:.1f} s (lost connection?)"
         return None
 
     async def _calibrate(self, run: CalibrationRun) -> None:
@@ -243,7 +248,11 @@ class PageCalibration:
         routine = asyncio.create_task(Calibrator(devices, self.config, self.clock, run.progress).run(),
                                       name="calibration-routine")
         try:
+            watched_s = self.clock.now_s()
             while not routine.done():
+                now_s = self.clock.now_s()
+                run.silent_s += min(max(0.0, now_s - watched_s), WATCH_STEP_MAX_S)
+                watched_s = now_s
                 reason = self.why_stop(run)
                 if reason is not None:
                     self.state.jog_command = None

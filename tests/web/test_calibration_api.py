@@ -246,11 +246,15 @@ def test_a_stop_from_the_page_stops_the_motors_at_once(tmp_path: Path) -> None:
     assert run["steps"][0]["state"] == "done" and "stopped from the page" in run["steps"][1]["detail"]
 
 
-def test_a_page_that_goes_silent_stops_the_calibration(tmp_path: Path) -> None:
+def test_a_page_that_goes_silent_stops_the_calibration_and_a_stalled_daemon_does_not(tmp_path: Path) -> None:
     config = _config(tmp_path, unused_port())
 
     async def vanish(robot: Robot, run_id: str) -> None:
         await robot.follow(run_id, lambda r: r["current_step"] == "ramp")
+        # the daemon could not run for twice the silence allowed (a starved core): the page's polls wait
+        # in the socket meanwhile, so that is no silence of the page's (the virtual clock jumps, nothing runs)
+        asyncio.get_running_loop().advance(2 * PAGE_SILENCE_S)
+        assert (await robot.poll(run_id))["run"]["status"] == "running"
         await asyncio.sleep(PAGE_SILENCE_S + 0.2)  # the page is gone: no polls
         assert robot.state.jog_command is None  # stopped, without anyone asking
         await asyncio.sleep(2 * config.daemon.control_period_s)

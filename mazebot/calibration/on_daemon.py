@@ -302,9 +302,13 @@ class PageCalibration:
         log.info("calibration %s%s", status, f": {reason}" if reason else "")
 
     def write(self, run_id: str | None) -> CalibrationRun:
-        """Write the confirmed result (``run_id`` must be the finished run's): the config atomically
-        with a backup, the report beside the run files. CalibrationError when there is nothing to write."""
-        from mazebot.calibration.result import report_json, write_calibrated_config
+        """Write the confirmed result (``run_id`` must be the finished run's): the report and a copy of
+        the new config in ``report_dir/calibration``, then the config file atomically with a backup.
+        CalibrationError when there is nothing to write, or when the config file cannot be written
+        (under the systemd unit ``/etc/mazebot`` is read-only to the daemon): the message names the
+        copy and the command that installs it."""
+        from mazebot.calibration.result import config_to_write, report_json, write_calibrated_config
+        from mazebot.config import render_toml
         from mazebot.files import write_atomic
 
         run = self.run
@@ -315,11 +319,20 @@ class PageCalibration:
         if run.status != "done" or run.new_config is None:
             raise CalibrationError(f"the calibration {run.status}: there is nothing to write")
         target = (self.config_path or Path("config.toml")).absolute()
-        backup = write_calibrated_config(target, self.config, run.new_config, sim=self.sim)
+        copy = None
         if self.report_dir is not None:
             report = self.report_dir / "calibration"
             write_atomic(report / "calibration.json", report_json(run.result, run.diff, run.progress.as_json()))
             write_atomic(report / "calibration.png", run.report_png or b"")
+            copy = write_atomic(report / "config.toml",
+                                render_toml(config_to_write(self.config, run.new_config, sim=self.sim)).encode())
+        try:
+            backup = write_calibrated_config(target, self.config, run.new_config, sim=self.sim)
+        except OSError as error:
+            where = "" if copy is None else (
+                f"; the calibrated config is in {copy}: install it with "
+                f"`sudo cp -b --suffix=.bak {copy} {target}` and restart mazebot")
+            raise CalibrationError(f"cannot write {target} ({error.strerror or error}){where}") from None
         run.status, run.written_to = "written", str(target)
         run.backup = None if backup is None else str(backup)
         run.reason = f"written to {target}: restart mazebot to drive with it"

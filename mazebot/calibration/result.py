@@ -51,18 +51,21 @@ def config_diff(old: Config, new: Config) -> list[tuple[str, Any, Any]]:
     return changes
 
 
+def config_to_write(old: Config, new: Config, *, sim: bool) -> Config:
+    """The calibrated config as it is written: for the simulated robot, ``[sim]`` rewritten to
+    describe the same true robot against the new values (:func:`mazebot.sim.truth.same_true_robot`),
+    so the next run drives the robot that was calibrated."""
+    if not sim:
+        return new
+    from mazebot.sim.truth import same_true_robot
+
+    return same_true_robot(old, new)
+
+
 def write_calibrated_config(target: Path, old: Config, new: Config, *, sim: bool) -> Path | None:
-    """Write ``new`` over ``target`` atomically, the file it replaces kept as ``target.bak`` first;
-    returns the backup's path (None when there was no file to keep).
-
-    For the simulated robot, ``[sim]`` is rewritten to describe the same true robot against
-    the new values (:func:`mazebot.sim.truth.same_true_robot`), so the next run drives the
-    robot that was calibrated.
-    """
-    if sim:
-        from mazebot.sim.truth import same_true_robot
-
-        new = same_true_robot(old, new)
+    """Write ``new`` (:func:`config_to_write`) over ``target`` atomically, the file it replaces kept
+    as ``target.bak`` first; returns the backup's path (None when there was no file to keep)."""
+    new = config_to_write(old, new, sim=sim)
     backup = target.with_name(target.name + ".bak")
     kept = None
     if target.is_file():

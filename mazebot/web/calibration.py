@@ -107,8 +107,9 @@ async def post_calibration_write(request: web.Request) -> web.Response:
         run = calibration.write(body.get("id"))
     except CalibrationError as error:
         return web.json_response({"error": str(error)}, status=409)
-    except OSError as error:
-        return web.json_response({"error": f"cannot write the config: {error.strerror or error}"}, status=500)
+    except OSError as error:  # the state directory itself (the report)
+        return web.json_response({"error": f"cannot write the calibration report: {error.strerror or error}"},
+                                 status=500)
     return web.json_response(run.as_json())
 
 

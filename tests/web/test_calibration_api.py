@@ -277,3 +277,52 @@ def test_a_start_on_the_map_page_stops_the_calibration(tmp_path: Path) -> None:
 
     run, _ = _failing(tmp_path, config, press_start)
     assert run["status"] == "stopped" and "exploring" in run["reason"]
+
+
+def _finished_run(page: Any, config: Config) -> str:
+    """A run as a finished calibration leaves it: the result of the issue's miswired robot, by hand."""
+    from mazebot.calibration.geometry import Geometry, Wiring
+    from mazebot.calibration.on_daemon import CalibrationRun
+    from mazebot.calibration.progress import Progress
+    from mazebot.calibration.result import calibrated_config, config_diff, report_png
+    from mazebot.calibration.routine import STEPS, CalibrationResult
+    from mazebot.state import RunState
+
+    wiring = Wiring({"left": "right", "right": "left"}, {"left": False, "right": False},
+                    {"left": "left", "right": "right"}, {"left": True, "right": False})
+    k_m = 0.065 * 3.141592653589793 / config.encoders.ticks_per_rev
+    result = CalibrationResult(wiring, Geometry(k_m * 1.03, k_m * 1.02, 0.159, 0.001), 3.0,
+                               {"left": 0.1, "right": 0.1}, {"left": 0.3, "right": 0.3})
+    run = CalibrationRun("r1", Progress(STEPS), RunState.IDLE, status="done", result=result)
+    run.new_config = calibrated_config(config, result)
+    run.diff = config_diff(config, run.new_config)
+    run.report_png = report_png(result)
+    page.run = run
+    return run.id
+
+
+def test_a_config_the_daemon_may_not_write_leaves_a_copy_and_says_how_to_install_it(tmp_path: Path) -> None:
+    """Under the systemd unit /etc/mazebot is read-only to the daemon (ProtectSystem=strict)."""
+    from mazebot.calibration.geometry import CalibrationError
+    from mazebot.calibration.on_daemon import PageCalibration
+
+    config = Config()
+    blocked = tmp_path / "etc-mazebot"
+    blocked.write_text("a file where the config's folder should be")  # no write can go there, even as root
+    page = PageCalibration(SharedState(), config, blocked / "config.toml", sim=False, report_dir=tmp_path / "state")
+    run_id = _finished_run(page, config)
+    with pytest.raises(CalibrationError, match=r"cannot write .*sudo cp -b --suffix=\.bak") as error:
+        page.write(run_id)
+    copy = tmp_path / "state" / "calibration" / "config.toml"
+    assert str(copy) in str(error.value)
+    assert load_config(copy).motors.left_channel == 2  # the copy is the calibrated config
+    assert page.run is not None and page.run.status == "done"  # still there to write once it can be
+    # where it may write: the config atomically, the old one kept
+    target = tmp_path / "config.toml"
+    target.write_text(render_toml(config))
+    page.config_path = target
+    assert page.write(run_id).status == "written"
+    assert load_config(target).encoders.left_invert and (tmp_path / "config.toml.bak").read_text() == render_toml(
+        config)
+    with pytest.raises(CalibrationError, match="already written"):
+        page.write(run_id)

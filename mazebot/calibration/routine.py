@@ -345,8 +345,9 @@ class Calibrator:
             encoder_m, scan_m = abs(guess[0]), math.hypot(pose[0], pose[1])
             if abs(encoder_m / max(scan_m, 1e-6) - 1.0) > MAX_DISAGREEMENT:
                 raise CalibrationError(
-                    f"encoders say {encoder_m:.3f} m, the lidar {scan_m:.3f} m: the floor slips or "
-                    "[encoders] counts_per_rev / [drive] wheel_diameter_m are far off"
+                    f"encoders say {encoder_m:.3f} m, the lidar {scan_m:.3f} m: the floor slips, the robot "
+                    "ran into something (it needs 1 m free ahead), or [encoders] counts_per_rev / "
+                    "[drive] wheel_diameter_m are far off"
                 )
             runs.append(run)
             self.scans.append(before)

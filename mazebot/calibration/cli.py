@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate", help=HELP,
         description="Put the robot in an open space (walls within a few metres, 1 m free ahead: the straight "
-                    "runs go 0.8 m out and back). It pulses each motor, ramps the throttle, drives straight and turns in place, "
+                    "runs go 0.8 m out and back). It pulses each motor, ramps the throttle, drives straight and "
+                    "turns in place, "
                     "measuring each motion by scan matching, and prints the config changes. "
                     "With --sim, the simulated robot in the room world (its true wiring and sizes are [sim] keys).",
     )

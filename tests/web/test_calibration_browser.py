@@ -23,6 +23,9 @@ daemon, page = _setup_test.daemon, _setup_test.page  # module-scoped fixtures: a
 
 def test_a_whole_calibration_on_the_page_shows_the_changes_and_writes_them_when_confirmed(page, daemon) -> None:
     config_before = daemon.config.read_text()
+    page.click("#setup-open")
+    page.wait_for_selector("#setup:not([hidden])")
+    page.wait_for_function("document.querySelectorAll('#polar circle.hit').length > 50", timeout=10_000)
     page.fill("#setup-pin", PIN)
     page.click("#calib-start")
     page.wait_for_selector("#calib[data-status='running']")

@@ -308,12 +308,16 @@ class Calibrator:
             throttle = round(throttle + (0.005 if len(deadband) < 2 else 0.05), 3)
             t0 = self.clock.now_s()
             start = None
-            while self.clock.now_s() - t0 < hold_s:
-                if start is None and self.clock.now_s() - t0 >= hold_s - measure_s:
-                    start = (self._counts(), self.clock.now_s())
+            # held for hold_s, the last measure_s of it measured; a loop that stalled past the window's
+            # start (a starved core) begins the window when it runs again, so it is measure_s long all the same
+            while True:
+                now_s = self.clock.now_s()
+                if start is None and now_s - t0 >= hold_s - measure_s:
+                    start = (self._counts(), now_s)
+                if start is not None and now_s - start[1] >= measure_s:
+                    break
                 self._set(-throttle, throttle)
                 await self.clock.sleep(TICK_S)
-            assert start is not None
             (l0, r0), s0 = start
             l1, r1 = self._counts()
             dt_s = self.clock.now_s() - s0

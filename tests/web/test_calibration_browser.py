@@ -5,12 +5,19 @@ against a real ``mazebot run --sim --room`` of its own, its robot where the room
 from __future__ import annotations
 
 import importlib.util
+import os
 from pathlib import Path
 
 import pytest
 
 from mazebot.config import load_config
 
+if not os.environ.get("MAZEBOT_BROWSER_CALIBRATION"):
+    # ~100 s of a real-time simulated daemon: on a shared, starved machine its control loop stalls for
+    # tenths of a second at a time and the run's figures (or its page's polls) suffer; the same whole run
+    # is tested on virtual time in test_calibration_api.py, and the page's steps in test_setup_browser.py
+    pytest.skip("a whole calibration in the browser: set MAZEBOT_BROWSER_CALIBRATION=1 to run it",
+                allow_module_level=True)
 pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e '.[test]')")
 
 # the daemon and the page of the setup view's browser test (it skips without Chromium)

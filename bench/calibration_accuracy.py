@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import sys
 
-from mazebot.calibration.cli import run_calibration
 from mazebot.calibration.progress import Progress
 from mazebot.calibration.result import calibrated_config
 from mazebot.calibration.routine import STEPS
+from mazebot.calibration_cli import run_calibration
 from mazebot.config import Config
 
 

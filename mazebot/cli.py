@@ -45,7 +45,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("sim", "mazebot.sim.cli", "parts of the simulator on their own"),
     Command("posegraph", "mazebot.slam.posegraph_cli", "2D pose graphs in g2o format"),
     Command("slam", "mazebot.slam.slam_cli", "run the SLAM offline on recorded data"),
-    Command("calibrate", "mazebot.calibration.cli",
+    Command("calibrate", "mazebot.calibration_cli",
             "measure wiring, wheel sizes, track width and lidar yaw with the lidar as the ruler"),
     Command("bench", "mazebot.bench.cli", "measure whole simulated runs against ground truth"),
     Command("export-bag", "mazebot.record.cli", "write a recording (MCAP) as a ROS 2 bag (rosbag2, CDR)"),

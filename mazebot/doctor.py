@@ -323,7 +323,11 @@ async def _revolution_checks(lidar: Any, revolutions: int, timeout_s: float) -> 
                               "check its motor supply")
     else:
         verdict_rot = Verdict("lidar rotation", "ok", rotation)
-    scan = full[-1]
+    return [verdict_rot, judge_revolution(full[-1])]
+
+
+def judge_revolution(scan: Any) -> Verdict:
+    """One revolution's plausibility: the share of invalid samples and the ranges seen."""
     n = max(1, len(scan))
     valid = int(scan.valid.sum())
     invalid = 1.0 - valid / n
@@ -332,12 +336,10 @@ async def _revolution_checks(lidar: Any, revolutions: int, timeout_s: float) -> 
               if valid else "no valid sample at all")
     see = "clean the lidar's window, and see that nothing covers it; walls must be within its range"
     if invalid > INVALID_FAIL:
-        verdict_rev = Verdict("lidar revolution", "FAIL", detail, see)
-    elif invalid > INVALID_WARN:
-        verdict_rev = Verdict("lidar revolution", "warn", detail, see)
-    else:
-        verdict_rev = Verdict("lidar revolution", "ok", detail)
-    return [verdict_rot, verdict_rev]
+        return Verdict("lidar revolution", "FAIL", detail, see)
+    if invalid > INVALID_WARN:
+        return Verdict("lidar revolution", "warn", detail, see)
+    return Verdict("lidar revolution", "ok", detail)
 
 
 # --- motors and encoders ----------------------------------------------------------------

@@ -19,6 +19,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import AsyncExitStack
+from pathlib import Path
 from typing import Any, cast
 
 from mazebot import sdnotify
@@ -217,6 +218,7 @@ async def run_daemon(
     autonomous: bool = True,
     session: Any = None,
     instrument: Callable[[Any, Executor], Executor] | None = None,
+    config_path: Path | None = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
 
@@ -225,7 +227,8 @@ async def run_daemon(
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     ``session`` (a :class:`mazebot.run_session.RunSession`) records, saves or resumes the run.
     ``instrument(slam, executor)`` returns the executor SLAM is to use (the fault injector's
-    way to reach the compute: :mod:`mazebot.sim.faults`).
+    way to reach the compute: :mod:`mazebot.sim.faults`). ``config_path`` is the file ``config``
+    came from: a calibration confirmed on the setup page replaces it.
     """
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
@@ -254,7 +257,7 @@ async def run_daemon(
             nonlocal web_runner
             from mazebot.web.server import start_web_server  # aiohttp: ~0.3-1 s to import, unused by benchmarks
 
-            web = await start_web_server(state, config, hardware)
+            web = await start_web_server(state, config, hardware, config_path)
             stack.push_async_callback(web.cleanup)
             web_runner = web
             log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)

@@ -10,10 +10,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+from pathlib import Path
 
 from pydantic import ValidationError
 
-from mazebot.config import load_config
+from mazebot.config import default_config_path, load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.logs import setup_logging
 from mazebot.main import open_robot_hardware, run_daemon
@@ -60,8 +61,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from mazebot.run_session import RunSession
 
     session = RunSession.from_options(config, record=args.record, resume=args.resume)
+    config_path = Path(args.config) if args.config else default_config_path()  # a confirmed calibration replaces it
     with contextlib.suppress(KeyboardInterrupt):
-        return asyncio.run(run_daemon(config, builder, session=session))
+        return asyncio.run(run_daemon(config, builder, session=session, config_path=config_path))
     return EXIT_OK
 
 

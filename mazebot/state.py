@@ -41,6 +41,11 @@ class RunState(enum.StrEnum):
         """The states in which the wheels may turn."""
         return self in (RunState.EXPLORING, RunState.RETURNING)
 
+    @property
+    def jog_allowed(self) -> bool:
+        """The states in which the setup page's hold-to-run jog may turn the wheels."""
+        return not self.moving and self is not RunState.FAULT
+
 
 @dataclass(frozen=True)
 class MotionRequest:
@@ -172,6 +177,13 @@ class SharedState:
     #: it only while the run state is moving, only while it is fresh, and only when no
     #: ``motion_command`` is set.
     throttle_command: tuple[float, float, float] | None = None
+    #: (left, right) throttle and the clock time it was sent: the setup page's hold-to-run jog
+    #: (``mazebot.web.setup``); the control task applies it only while the robot is not running
+    #: and not in a fault, and only while it is younger than ``[motors] command_ttl_s``
+    jog_command: tuple[float, float, float] | None = None
+    #: a calibration from the setup page drives the wheels through ``jog_command`` (written by
+    #: ``mazebot.calibration.on_daemon``): the health monitor does not judge the wiring meanwhile
+    calibrating: bool = False
     #: the planner's body-velocity command (written by the planner task, read by control)
     motion_command: MotionRequest | None = None
     #: measured wheel surface speeds (left, right), m/s, written by the control task

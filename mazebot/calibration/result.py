@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from mazebot.calibration.routine import CalibrationResult
-from mazebot.config import Config
+from mazebot.config import Config, render_toml
+from mazebot.files import write_atomic
 from mazebot.png import encode_png
 
 
@@ -47,6 +49,30 @@ def config_diff(old: Config, new: Config) -> list[tuple[str, Any, Any]]:
         a, b = getattr(old, section).model_dump(), getattr(new, section).model_dump()
         changes += [(f"{section}.{k}", a[k], b[k]) for k in a if a[k] != b[k]]
     return changes
+
+
+def config_to_write(old: Config, new: Config, *, sim: bool) -> Config:
+    """The calibrated config as it is written: for the simulated robot, ``[sim]`` rewritten to
+    describe the same true robot against the new values (:func:`mazebot.calibration.sim_section.same_true_robot`),
+    so the next run drives the robot that was calibrated."""
+    if not sim:
+        return new
+    from mazebot.calibration.sim_section import same_true_robot
+
+    return same_true_robot(old, new)
+
+
+def write_calibrated_config(target: Path, old: Config, new: Config, *, sim: bool) -> Path | None:
+    """Write ``new`` (:func:`config_to_write`) over ``target`` atomically, the file it replaces kept
+    as ``target.bak`` first; returns the backup's path (None when there was no file to keep)."""
+    new = config_to_write(old, new, sim=sim)
+    backup = target.with_name(target.name + ".bak")
+    kept = None
+    if target.is_file():
+        write_atomic(backup, target.read_bytes())
+        kept = backup
+    write_atomic(target, render_toml(new).encode())
+    return kept
 
 
 def report_json(result: CalibrationResult, diff: list[tuple[str, Any, Any]], steps: list[dict[str, Any]]) -> bytes:

@@ -13,9 +13,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -32,7 +32,7 @@ from mazebot.calibration.geometry import (
 from mazebot.calibration.progress import Progress
 from mazebot.clock import Clock
 from mazebot.config import Config
-from mazebot.hardware import Hardware
+from mazebot.hardware import Motors
 from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpParams, Target, match_scan
 from mazebot.slam.preprocess import PrepareParams, prepare_scan
@@ -106,10 +106,32 @@ class _ScanFeed:
             await self._task
 
 
-class Calibrator:
-    """Runs the steps on ``hardware`` (a :class:`mazebot.hardware.Hardware`) with ``config`` as the starting guess."""
+class _TickCounter(Protocol):
+    def read(self) -> Any: ...  # a reading with the wheels' ``left`` and ``right`` counts
 
-    def __init__(self, hardware: Hardware, config: Config, clock: Clock, progress: Progress) -> None:
+
+class _ScanSource(Protocol):
+    def scans(self) -> AsyncIterator[Scan]: ...
+
+
+class CalibrationDevices(Protocol):
+    """What the calibration drives and reads: a :class:`mazebot.hardware.Hardware`, or the
+    daemon's devices behind its shared state (:class:`mazebot.calibration.on_daemon.DaemonDevices`)."""
+
+    @property
+    def motors(self) -> Motors: ...
+
+    @property
+    def encoders(self) -> _TickCounter: ...
+
+    @property
+    def lidar(self) -> _ScanSource: ...
+
+
+class Calibrator:
+    """Runs the steps on ``hardware`` with ``config`` as the starting guess."""
+
+    def __init__(self, hardware: CalibrationDevices, config: Config, clock: Clock, progress: Progress) -> None:
         self.hw = hardware
         self.config = config
         self.clock = clock
@@ -215,8 +237,7 @@ class Calibrator:
     async def run(self) -> CalibrationResult:
         feed = _ScanFeed(self.hw.lidar)
         try:
-            home, _ = await self._still(feed)
-            wiring, pulses = await self._step("wiring", self._wiring(feed))
+            wiring, pulses, home = await self._step("wiring", self._wiring(feed))
             deadband, speed = await self._step("ramp", self._ramp())
             await self._step("ramp", self._face(feed, home))
             runs = await self._step("straight", self._straight(feed))
@@ -252,7 +273,10 @@ class Calibrator:
         self.progress.update(name, "done")
         return result
 
-    async def _wiring(self, feed: _ScanFeed) -> tuple[Wiring, list[Pulse]]:
+    async def _wiring(self, feed: _ScanFeed) -> tuple[Wiring, list[Pulse], np.ndarray]:
+        """One forward pulse of each motor output, back and forth; also the starting view (``home``),
+        the first still scan, so that no walls in view fails this first step."""
+        home, _ = await self._still(feed)
         pulses = []
         for output in ("left", "right"):
             before, c0 = await self._still(feed)
@@ -274,7 +298,7 @@ class Calibrator:
             wheel_of_encoder=wiring.wheel_of_encoder,
             encoder_reversed=wiring.encoder_reversed,
         )
-        return wiring, pulses
+        return wiring, pulses, home
 
     async def _face(self, feed: _ScanFeed, home: np.ndarray) -> None:
         """Turn back to the heading of the first still scan (the ramp spun the robot round)."""
@@ -312,12 +336,16 @@ class Calibrator:
             throttle = round(throttle + (0.005 if len(deadband) < 2 else 0.05), 3)
             t0 = self.clock.now_s()
             start = None
-            while self.clock.now_s() - t0 < hold_s:
-                if start is None and self.clock.now_s() - t0 >= hold_s - measure_s:
-                    start = (self._counts(), self.clock.now_s())
+            # held for hold_s, the last measure_s of it measured; a loop that stalled past the window's
+            # start (a starved core) begins the window when it runs again, so it is measure_s long all the same
+            while True:
+                now_s = self.clock.now_s()
+                if start is None and now_s - t0 >= hold_s - measure_s:
+                    start = (self._counts(), now_s)
+                if start is not None and now_s - start[1] >= measure_s:
+                    break
                 self._set(-throttle, throttle)
                 await self.clock.sleep(TICK_S)
-            assert start is not None
             (l0, r0), s0 = start
             l1, r1 = self._counts()
             dt_s = self.clock.now_s() - s0
@@ -349,8 +377,9 @@ class Calibrator:
             encoder_m, scan_m = abs(guess[0]), math.hypot(pose[0], pose[1])
             if abs(encoder_m / max(scan_m, 1e-6) - 1.0) > MAX_DISAGREEMENT:
                 raise CalibrationError(
-                    f"encoders say {encoder_m:.3f} m, the lidar {scan_m:.3f} m: the floor slips or "
-                    "[encoders] counts_per_rev / [drive] wheel_diameter_m are far off"
+                    f"encoders say {encoder_m:.3f} m, the lidar {scan_m:.3f} m: the floor slips, the robot "
+                    "ran into something (it needs 1 m free ahead), or [encoders] counts_per_rev / "
+                    "[drive] wheel_diameter_m are far off"
                 )
             runs.append(run)
             self.scans.append(before)

@@ -26,7 +26,8 @@ from pathlib import Path
 from aiohttp import WSMsgType, web
 
 from mazebot.fleet.watcher import Fleet, RobotMirror
-from mazebot.web.app import DEFAULT_STATIC_DIR, TOKEN_HEADER
+from mazebot.web.access import TOKEN_HEADER
+from mazebot.web.app import DEFAULT_STATIC_DIR
 from mazebot.web.auth import origin_allowed
 from mazebot.web.broadcaster import Viewer
 from mazebot.web.limits import MessageLimiter

@@ -13,8 +13,9 @@ writes, makes it even; a reader retries while it is odd or changed, and after a 
 keeps its previous copy, so neither side ever waits for the other). No pickling on the
 hot path.
 
-- main -> child: the planner's motion command, the direct throttle command, the run
-  state's ``moving``, ``stopping``, ``faults_raised``, the wheel ticks with their stamp and
+- main -> child: the planner's motion command, the direct throttle command, the setup
+  page's jog request, the run state's ``moving`` and ``jog_allowed``, ``stopping``,
+  ``faults_raised``, the wheel ticks with their stamp and
   the odometry poses (now, and at the latest scan's end), the latest scan's robot-frame
   points with its end time. :class:`SharedState` mirrors each of these fields into the
   link as it is assigned (``SharedState.control_link``), so every writer is covered and
@@ -98,7 +99,8 @@ class _Layout:
 
         self.command = block(1 + 5)  # seq; present, v, w, mode, time
         self.throttle = block(1 + 4)  # seq; present, left, right, time
-        self.run = block(1 + 3)  # seq; moving, stopping, faults_raised
+        self.run = block(1 + 4)  # seq; moving, stopping, faults_raised, jog allowed
+        self.jog = block(1 + 4)  # seq; present, left, right, time
         self.odometry = block(1 + 13)  # seq; ticks present, stamp, left, right; pose present, x, y, th;
         #                                 history present, then-time, x, y, th
         self.scan = block(1 + 7 + 2 * MAX_SCAN_POINTS)  # seq; present, end time, n, then present, x, y, th; points
@@ -156,7 +158,8 @@ class ControlLink:
 
     #: the SharedState fields mirrored into the link as they are assigned
     MIRRORED = frozenset(
-        {"motion_command", "throttle_command", "run_state", "stopping", "faults_raised", "wheel_ticks", "latest_scan"}
+        {"motion_command", "throttle_command", "jog_command", "run_state", "stopping", "faults_raised", "wheel_ticks",
+         "latest_scan"}
     )
 
     def __init__(self, shm: SharedMemory, owner: bool, config: Config | None = None) -> None:
@@ -168,7 +171,8 @@ class ControlLink:
         self._bytes = np.ndarray((LAYOUT.size * 8,), dtype=np.uint8, buffer=shm.buf)
         self.command = _Seqlock(slots, LAYOUT.command, 6)
         self.throttle = _Seqlock(slots, LAYOUT.throttle, 5)
-        self.run = _Seqlock(slots, LAYOUT.run, 4)
+        self.run = _Seqlock(slots, LAYOUT.run, 5)
+        self.jog = _Seqlock(slots, LAYOUT.jog, 5)
         self.odometry = _Seqlock(slots, LAYOUT.odometry, 14)
         self.scan = _Seqlock(slots, LAYOUT.scan, 8 + 2 * MAX_SCAN_POINTS)
         self.output = _Seqlock(slots, LAYOUT.output, 11 + SAFETY_TEXT_BYTES // 8)
@@ -199,7 +203,8 @@ class ControlLink:
         shm, self._shm = self._shm, None
         if shm is None:
             return
-        del self._slots, self._bytes, self.command, self.throttle, self.run, self.odometry, self.scan, self.output
+        del self._slots, self._bytes, self.command, self.throttle, self.jog, self.run, self.odometry, self.scan
+        del self.output
         shm.close()
         if self._owner:
             with contextlib.suppress(FileNotFoundError):
@@ -216,8 +221,12 @@ class ControlLink:
         elif name == "throttle_command":
             t = state.throttle_command
             self.throttle.write([0.0] * 4 if t is None else [1.0, t[0], t[1], t[2]])
+        elif name == "jog_command":
+            j = state.jog_command
+            self.jog.write([0.0] * 4 if j is None else [1.0, j[0], j[1], j[2]])
         elif name in ("run_state", "stopping", "faults_raised"):
-            self.run.write([float(state.run_state.moving), float(state.stopping), float(state.faults_raised)])
+            self.run.write([float(state.run_state.moving), float(state.stopping), float(state.faults_raised),
+                            float(state.run_state.jog_allowed)])
         elif name == "wheel_ticks":
             self._write_odometry(state)
         elif name == "latest_scan":
@@ -225,7 +234,7 @@ class ControlLink:
 
     def publish_all(self, state: SharedState) -> None:
         """Every block from ``state`` as it is now (a new child starts from these)."""
-        for name in ("motion_command", "throttle_command", "run_state", "latest_scan", "wheel_ticks"):
+        for name in ("motion_command", "throttle_command", "jog_command", "run_state", "latest_scan", "wheel_ticks"):
             self.mirror(state, name)
 
     def _poses(self, state: SharedState, scan_time_s: float) -> list[float]:
@@ -348,6 +357,7 @@ class _RunState:
 
     def __init__(self) -> None:
         self.moving = False
+        self.jog_allowed = False
 
 
 class _Fault:
@@ -411,6 +421,7 @@ class ChildView:
         self.faults_raised = 0
         self.motion_command: _MotionCommand | None = None
         self.throttle_command: tuple[float, float, float] | None = None
+        self.jog_command: tuple[float, float, float] | None = None
         self.wheel_ticks: tuple[float, int, int] | None = None
         self.wheel_speeds_mps = (0.0, 0.0)
         self.wheel_gains: tuple[float | None, float | None] = (None, None)
@@ -431,6 +442,7 @@ class ChildView:
         run = link.run.read()
         if run is not None:
             self.run_state.moving, self.stopping, self.faults_raised = bool(run[0]), bool(run[1]), int(run[2])
+            self.run_state.jog_allowed = bool(run[3])
         c = link.command.read()
         if c is not None:
             self.motion_command = (_MotionCommand(float(c[1]), float(c[2]), _MODES[int(c[3])].value, float(c[4]))
@@ -438,6 +450,9 @@ class ChildView:
         t = link.throttle.read()
         if t is not None:
             self.throttle_command = (float(t[1]), float(t[2]), float(t[3])) if t[0] else None
+        j = link.jog.read()
+        if j is not None:
+            self.jog_command = (float(j[1]), float(j[2]), float(j[3])) if j[0] else None
         o = link.odometry.read()
         odo_then: tuple[float, tuple[float, float, float]] | None = None
         if o is not None:

@@ -45,6 +45,7 @@ class MotorControl:
     def __init__(self, config: Config) -> None:
         c, d = config.control, config.drive
         self.period_s = config.daemon.control_period_s
+        self.jog_ttl_s = config.motors.command_ttl_s
         self.wheels = WheelController(
             track_width_m=d.track_width_m,
             max_wheel_speed_mps=d.max_wheel_speed_mps,
@@ -117,6 +118,10 @@ class MotorControl:
         direct = state.throttle_command
         if moving and direct is not None and now_s - direct[2] <= STALE_PERIODS * self.period_s:
             return direct[0], direct[1]
+        jog = state.jog_command
+        if (jog is not None and not moving and state.run_state.jog_allowed and not state.stopping
+                and 0.0 <= now_s - jog[2] <= self.jog_ttl_s):
+            return jog[0], jog[1]  # hold-to-run from the setup page: stale after the command time-to-live
         return 0.0, 0.0
 
     def _drive(self, state: SharedState, command, measured: tuple[float, float], now_s: float) -> tuple[float, float]:

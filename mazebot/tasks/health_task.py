@@ -191,7 +191,7 @@ class HealthMonitor:
         speed in the config) out of it; when the other wheel barely turns, its last gain
         (``REFERENCE_AGE_S``) stands in for it.
         """
-        if state.faults:
+        if state.faults or state.calibrating:  # a calibration's pulses and ramps are no weak motor either
             self._fault_seen_s = now_s
         if self._fault_seen_s is not None and now_s - self._fault_seen_s < FAULT_SETTLE_S:
             self._weak_streak = [0, 0]
@@ -248,6 +248,12 @@ class HealthMonitor:
 
     def _check_encoders(self, state: SharedState, now_s: float) -> None:
         last_s, self._encoders_checked_s = self._encoders_checked_s, now_s
+        if state.calibrating:
+            # the wiring is what the calibration is finding out: a motor output whose encoder does not
+            # count is what its pulses look for (and a failed step says so); stretches begin afresh after
+            for wheel in self._wheels:
+                wheel.driven_at_s = None
+            return
         step_s = 0.0 if last_s is None else min(max(0.0, now_s - last_s), PERIOD_S)
         ticks = (state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
         for side, (wheel, name) in enumerate(zip(self._wheels, ("left", "right"), strict=True)):

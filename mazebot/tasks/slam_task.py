@@ -150,6 +150,11 @@ async def run(
             if next_scan in done:
                 scan = next_scan.result()
                 next_scan = None
+                if state.calibrating:
+                    # the setup page's calibration measures what the odometry assumes (wiring, wheel sizes,
+                    # track width): its motions would paint walls where they are not, and lose the robot.
+                    # Afterwards the guard finds the robot in the map again, as after a kidnap.
+                    continue
                 history = await _odometry_covering(state, clock, scan.end_time_s)
                 if history is None or search is not None:
                     continue  # no odometry yet, or a search for the robot is under way

@@ -12,6 +12,8 @@ Routes::
     GET  /map.pgm          the map for ROS map_server, with
     GET  /map.yaml         its YAML
     GET  /map.zip          both of one snapshot, for download (mazebot-map-DATE-TIME.pgm + .yaml)
+    GET  /api/setup, POST /api/jog, GET /api/doctor   the setup view (mazebot.web.setup)
+    GET, POST /api/calibration[/stop|/write]           calibration from the setup view (mazebot.web.calibration)
 """
 
 from __future__ import annotations
@@ -38,14 +40,26 @@ from mazebot.clock import RealClock
 from mazebot.errors import MazebotError
 from mazebot.state import SharedState
 from mazebot.web import map_images
-from mazebot.web.auth import ControlAuth, client_key, origin_allowed
+from mazebot.web.access import (
+    AUTH_KEY,
+    REPLAY_COMMAND_STATUS,
+    REPLAY_KEY,
+    SETTINGS_KEY,
+    STATE_KEY,
+    WebSettings,
+    auth_message,
+    authorize_command,
+    check_origin,
+    check_view,
+    replay_refusal,
+)
+from mazebot.web.auth import ControlAuth, client_key
 from mazebot.web.broadcaster import Broadcaster, Viewer
 from mazebot.web.limits import ConnectionLimiter, MessageLimiter
 from mazebot.web.protocol import PROTOCOL_VERSION, ProtocolError, parse_client_message, server_message
 
 log = logging.getLogger(__name__)
 
-TOKEN_HEADER = "X-Mazebot-Token"
 #: Close codes of the websocket beyond the standard ones: 4000 + the HTTP status.
 CLOSE_UNAUTHORIZED = 4401
 #: How long a close waits for the client's close frame (RFC 6455 §7.1.1), reading what it sends meanwhile.
@@ -55,56 +69,9 @@ FLOODER_CLOSE_FRAME_S = 1.0
 CLOSE_FORBIDDEN = 4403
 
 
-@dataclass(frozen=True)
-class WebSettings:
-    """What the web layer needs from ``[web]``, as plain values (see :class:`mazebot.config.WebConfig`).
-
-    ``broadcast_hz = 0`` starts no broadcast task (tests call ``Broadcaster.tick()``).
-    """
-
-    control_token: str
-    broadcast_hz: float = 5.0
-    resync_every: int = 50
-    view_open: bool = True
-    allowed_origins: tuple[str, ...] = ()
-    send_queue_packets: int = 8
-    max_message_bytes: int = 4096
-    heartbeat_s: float = 10.0
-    trail_points: int = 1000
-    message_rate_per_s: float = 20.0
-    message_burst: int = 40
-    connect_rate_per_s: float = 5.0
-    connect_burst: int = 20
-
-    @classmethod
-    def from_config(cls, web_config: Any, control_token: str) -> WebSettings:
-        return cls(
-            control_token=control_token,
-            broadcast_hz=web_config.broadcast_hz,
-            resync_every=web_config.resync_every,
-            view_open=web_config.view_open,
-            allowed_origins=tuple(web_config.allowed_origins),
-            send_queue_packets=web_config.send_queue_packets,
-            max_message_bytes=web_config.max_message_bytes,
-            heartbeat_s=web_config.heartbeat_s,
-            trail_points=web_config.trail_points,
-            message_rate_per_s=web_config.message_rate_per_s,
-            message_burst=web_config.message_burst,
-            connect_rate_per_s=web_config.connect_rate_per_s,
-            connect_burst=web_config.connect_burst,
-        )
-
-
-STATE_KEY = web.AppKey("state", SharedState)
 STATIC_DIR_KEY = web.AppKey("static_dir", Path)
-SETTINGS_KEY = web.AppKey("settings", WebSettings)
-AUTH_KEY = web.AppKey("auth", ControlAuth)
 BROADCASTER_KEY = web.AppKey("broadcaster", Broadcaster)
 CONNECTIONS_KEY = web.AppKey("connections", ConnectionLimiter)
-#: A replay (``mazebot replay --serve``): what to tell clients about it; absent for a robot.
-REPLAY_KEY = web.AppKey[Callable[[], dict[str, Any]]]("replay")
-#: The answer to start/stop during a replay: 409 Conflict (there is no robot behind the page).
-REPLAY_COMMAND_STATUS = 409
 
 
 @dataclass
@@ -193,58 +160,6 @@ def status_json(
     }
 
 
-# -- access -------------------------------------------------------------------------------
-
-
-def _presented_token(request: web.Request) -> str | None:
-    token = request.headers.get(TOKEN_HEADER)
-    if token is None:
-        auth = request.headers.get("Authorization", "")
-        if auth.lower().startswith("bearer "):
-            token = auth[7:].strip()
-    if token is None:
-        token = request.query.get("token")
-    return token
-
-
-_AUTH_MESSAGES = {
-    401: "a PIN is needed: send it in the X-Mazebot-Token header",
-    403: "wrong PIN",
-    429: "too many wrong PINs from this address; try again in {retry_s} s",
-}
-
-
-def _auth_message(status: int, retry_after_s: float = 0.0) -> str:
-    return _AUTH_MESSAGES[status].format(retry_s=math.ceil(retry_after_s))
-
-
-def _auth_error(request: web.Request, status: int) -> web.Response:
-    headers = None
-    retry_s = 0.0
-    if status == 401:
-        headers = {"WWW-Authenticate": 'Bearer realm="mazebot"'}
-    elif status == 429:
-        retry_s = request.app[AUTH_KEY].retry_after_s(request.remote or "?")
-        headers = {"Retry-After": str(math.ceil(retry_s))}
-    return web.json_response({"error": _auth_message(status, retry_s)}, status=status, headers=headers)
-
-
-def _check_origin(request: web.Request) -> None:
-    settings = request.app[SETTINGS_KEY]
-    if not origin_allowed(request.headers.get("Origin"), request.host, settings.allowed_origins):
-        raise web.HTTPForbidden(
-            text=f"origin {request.headers.get('Origin')!r} may not use this robot; add it to [web] allowed_origins"
-        )
-
-
-def _check_view(request: web.Request) -> web.Response | None:
-    """None if the request may watch; else the error response."""
-    if request.app[SETTINGS_KEY].view_open:
-        return None
-    status = request.app[AUTH_KEY].check(_presented_token(request), request.remote or "?")
-    return None if status == 200 else _auth_error(request, status)
-
-
 #: Why aiohttp closes a socket on a bad frame, in words for the client.
 _FRAME_CLOSE_REASONS: dict[int, str] = {
     WSCloseCode.MESSAGE_TOO_BIG: "message larger than {limit} bytes",
@@ -286,21 +201,13 @@ async def get_index(request: web.Request) -> web.FileResponse:
 
 
 async def get_status(request: web.Request) -> web.Response:
-    if (denied := _check_view(request)) is not None:
+    if (denied := check_view(request)) is not None:
         return denied
     viewers = len(request.app[BROADCASTER_KEY].viewers)
     body = status_json(request.app[STATE_KEY], viewers, _network_json(request.app))
     if (replay := request.app.get(REPLAY_KEY)) is not None:
         body["replay"] = replay()
     return web.json_response(body)
-
-
-def _replay_refusal(app: web.Application, command: str) -> str | None:
-    """Why ``command`` cannot be done when the page shows a replay; None for a robot."""
-    replay = app.get(REPLAY_KEY)
-    if replay is None:
-        return None
-    return f"this page shows a replay of {replay()['file']}: there is no robot to {command}"
 
 
 def _network_json(app: web.Application) -> dict[str, Any]:
@@ -318,13 +225,8 @@ def _queue_command(state: SharedState, command: str) -> bool:
 
 
 async def _post_command(request: web.Request, command: str) -> web.Response:
-    _check_origin(request)
-    if (refusal := _replay_refusal(request.app, command)) is not None:
-        return web.json_response({"error": refusal}, status=REPLAY_COMMAND_STATUS)
-    status = request.app[AUTH_KEY].check(_presented_token(request), request.remote or "?")
-    if status != 200:
-        log.warning("refused %s from %s (%d)", command, request.remote, status)
-        return _auth_error(request, status)
+    if (refused := authorize_command(request, command)) is not None:
+        return refused
     if not _queue_command(request.app[STATE_KEY], command):
         return web.json_response({"error": "too many commands queued; try again"}, status=503)
     return web.json_response({"accepted": command})
@@ -350,7 +252,7 @@ _MAP_FILES: dict[str, tuple[str, str | None, Callable[[map_images.MapSnapshot], 
 
 async def _map_response(request: web.Request, kind: str) -> web.Response:
     """One map file of one snapshot; ``?download`` (and always the zip) asks the browser to save it."""
-    if (denied := _check_view(request)) is not None:
+    if (denied := check_view(request)) is not None:
         return denied
     grid = request.app[STATE_KEY].map
     if grid is None:
@@ -382,7 +284,7 @@ async def get_map_zip(request: web.Request) -> web.Response:
 
 async def get_ws(request: web.Request) -> web.WebSocketResponse:
     """The live websocket: packets out, start/stop/resync in (docs/protocol.md)."""
-    _check_origin(request)
+    check_origin(request)
     app = request.app
     settings = app[SETTINGS_KEY]
     remote = request.remote or "?"
@@ -406,7 +308,7 @@ async def get_ws(request: web.Request) -> web.WebSocketResponse:
     if not settings.view_open:
         status = app[AUTH_KEY].check(request.query.get("token"), remote)
         if status != 200:
-            text = _auth_message(status, app[AUTH_KEY].retry_after_s(remote))
+            text = auth_message(status, app[AUTH_KEY].retry_after_s(remote))
             await ws.send_str(server_message("error", status=status, message=text))
             await ws.close(code=4000 + status, message=text.encode())
             return ws
@@ -483,14 +385,14 @@ def _on_client_text(app: web.Application, viewer: Viewer, text: str) -> None:
     if msg.type == "resync":
         broadcaster.resync(viewer)
         return
-    if (refusal := _replay_refusal(app, msg.type)) is not None:
+    if (refusal := replay_refusal(app, msg.type)) is not None:
         broadcaster.reply(viewer, server_message("reply", command=msg.type, ok=False,
                                                  status=REPLAY_COMMAND_STATUS, message=refusal))
         return
     status = app[AUTH_KEY].check(msg.token, viewer.remote)
     if status != 200:
         log.warning("refused %s from %s over the websocket (%d)", msg.type, viewer.remote, status)
-        text = _auth_message(status, app[AUTH_KEY].retry_after_s(viewer.remote))
+        text = auth_message(status, app[AUTH_KEY].retry_after_s(viewer.remote))
         broadcaster.reply(viewer, server_message("reply", command=msg.type, ok=False, status=status, message=text))
         return
     if not _queue_command(app[STATE_KEY], msg.type):
@@ -534,13 +436,17 @@ def create_app(
     static_dir: Path = DEFAULT_STATIC_DIR,
     settings: WebSettings | None = None,
     replay: Callable[[], dict[str, Any]] | None = None,
+    state_dir: Path | None = None,
+    calibration: Any = None,
 ) -> web.Application:
     """Build the web application for one daemon's shared state.
 
     Without ``settings`` control needs a random token nobody knows (control is locked).
     ``replay`` marks the state as a recording played back (``mazebot replay --serve``): it
     returns what clients are told (``replay`` in ``hello`` and ``/api/status``), and start
-    and stop are refused with 409.
+    and stop are refused with 409. ``calibration`` (a
+    :class:`mazebot.calibration.on_daemon.PageCalibration`) lets the setup view calibrate the
+    daemon's devices; without it the calibration routes answer that there is none.
     """
     settings = settings if settings is not None else WebSettings(control_token=secrets.token_hex(16))
     app = web.Application(client_max_size=64 * 1024, middlewares=[compress_assets])
@@ -570,6 +476,9 @@ def create_app(
     app.router.add_get("/map.pgm", get_map_pgm)
     app.router.add_get("/map.yaml", get_map_yaml)
     app.router.add_get("/map.zip", get_map_zip)
+    from mazebot.web import setup  # the setup view: raw scan, wheels, jog, doctor, calibration
+
+    setup.add_routes(app, state_dir, calibration)
     app.router.add_static("/static/", static_dir, follow_symlinks=False)
     app.cleanup_ctx.append(_broadcast_ctx)
     app.on_shutdown.append(_close_websockets)

@@ -7,6 +7,7 @@ import errno
 import logging
 import socket
 import time
+from pathlib import Path
 from typing import Any
 
 from aiohttp import web
@@ -37,10 +38,23 @@ def control_token(config: Config) -> str:
     return token
 
 
-async def start_web_server(state: SharedState, config: Config, hardware: Any = None) -> web.AppRunner:
-    """Serve the page on ``[web] host:port``; the caller owns ``runner.cleanup()``."""
+async def start_web_server(
+    state: SharedState, config: Config, hardware: Any = None, config_path: Path | None = None
+) -> web.AppRunner:
+    """Serve the page on ``[web] host:port``; the caller owns ``runner.cleanup()``.
+
+    With ``hardware`` (the daemon's devices) the setup view can calibrate them; a confirmed
+    calibration replaces ``config_path`` (the file the daemon was started with).
+    """
     settings = WebSettings.from_config(config.web, control_token(config))
-    app = create_app(state, settings=settings)
+    state_dir = resolve_state_dir(config.daemon.state_dir)
+    calibration = None
+    if hardware is not None:
+        from mazebot.calibration.on_daemon import PageCalibration
+
+        calibration = PageCalibration(state, config, config_path, sim=getattr(hardware, "sim", None) is not None,
+                                      report_dir=state_dir)
+    app = create_app(state, settings=settings, state_dir=state_dir, calibration=calibration)
     runner = web.AppRunner(app, handle_signals=False, access_log=None, shutdown_timeout=2.0)
     await runner.setup()
     site = web.TCPSite(runner, config.web.host, config.web.port)

@@ -9,15 +9,15 @@ from pathlib import Path
 
 import pytest
 
-from mazebot.calibration.cli import run_calibration
 from mazebot.calibration.geometry import CalibrationError, Pulse, Run, deduce_wiring, solve_geometry, yaw_error_rad
 from mazebot.calibration.progress import Progress
 from mazebot.calibration.result import calibrated_config, config_diff
 from mazebot.calibration.routine import STEPS
+from mazebot.calibration.sim_section import same_true_robot
+from mazebot.calibration_cli import run_calibration
 from mazebot.cli import main
 from mazebot.config import Config, load_config, render_toml
 from mazebot.sim.robot import physics_params
-from mazebot.sim.truth import same_true_robot
 
 pytestmark = pytest.mark.slow  # calibration runs on the simulated robot
 
@@ -85,12 +85,21 @@ def test_a_wheel_that_does_not_turn_stops_the_calibration_and_writes_nothing(tmp
     assert not (tmp_path / "config.toml.bak").exists() and not (tmp_path / "report").exists()
 
 
-def test_no_walls_in_view_stops_the_calibration() -> None:
+def test_no_walls_in_view_stops_the_calibration_in_its_first_step_and_writes_nothing(tmp_path: Path,
+                                                                                    capsys) -> None:
     config = Config()
     config.lidar.max_range_m = 0.16  # every wall of the room is farther than the lidar reaches
     progress = Progress(STEPS)
     with pytest.raises(CalibrationError, match="no walls in view"):
         run_calibration(config, progress, sim=True)
+    assert [s["state"] for s in progress.as_json()] == ["failed"] + ["pending"] * 4  # the wiring step says it
+    path = tmp_path / "config.toml"
+    path.write_text(render_toml(config))
+    code = main(["calibrate", "--sim", "--write", "--config", str(path), "--out", str(tmp_path / "report")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1 and "step 'wiring' failed" in err[0] and "no walls in view" in err[0]
+    assert path.read_text() == render_toml(config) and not (tmp_path / "config.toml.bak").exists()
+    assert not (tmp_path / "report").exists()
 
 
 def test_calibrate_write_keeps_a_backup_and_the_same_simulated_robot(tmp_path: Path, capsys) -> None:

@@ -110,6 +110,55 @@ def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
         link.close()
 
 
+def test_the_child_jogs_as_motor_control_does_and_never_while_stopping_or_in_a_fault() -> None:
+    """The setup page's hold-to-run jog through real shared memory: applied while idle and
+    fresh, dropped when stale, in a fault, during a run, and once the daemon stops."""
+    config = Config()
+    link = ControlLink.create(config)
+    child_link = ControlLink.attach(link.name)
+    try:
+        state = SharedState(run_state=RunState.IDLE, started_at_s=0.0)
+        state.control_link = link
+        link.publish_all(state)
+        view = ChildView(child_link)
+        reference, child = MotorControl(config), control_process._child_control(config, view)
+        period_s = config.daemon.control_period_s
+        outputs = []
+        for k in range(100):
+            now_s = 50.0 + k * period_s
+            if k < 20 or 40 <= k < 90:  # held: a fresh request every tick
+                state.jog_command = (0.3, -0.3, now_s)
+            if k == 50:
+                state.raise_fault("lidar", "a test fault", now_s)
+            if k == 60:
+                state.clear_faults("lidar")
+                state.run_state = RunState.IDLE
+            if k == 70:
+                state.run_state = RunState.EXPLORING
+            if k == 75:
+                state.run_state = RunState.STOPPED
+            if k == 85:
+                state.stopping = True
+            expected = reference.tick(state, now_s)
+            state.throttles = expected
+            view.refresh()
+            got = child.tick(view, now_s)
+            view.throttles = got
+            assert got == expected, f"tick {k}"
+            outputs.append(got)
+        jogged = [k for k, (left, right) in enumerate(outputs) if (left, right) == (0.3, -0.3)]
+        assert 0 in jogged and 45 in jogged and 80 in jogged  # held while idle, and again after the stop
+        ttl_ticks = math.ceil(config.motors.command_ttl_s / period_s)
+        assert all(outputs[k] == (0.0, 0.0) for k in range(20 + ttl_ticks + 1, 40))  # released: stale
+        assert all(outputs[k] == (0.0, 0.0) for k in range(50, 60))  # a fault
+        assert all(outputs[k] == (0.0, 0.0) for k in range(70, 75))  # a run
+        assert all(outputs[k] == (0.0, 0.0) for k in range(86, 100))  # the daemon stopping
+    finally:
+        state.control_link = None
+        child_link.close()
+        link.close()
+
+
 def _read_throttles(motor_rx: Connection, until_s: float) -> list[tuple[float, int, float | None]]:
     out = []
     while time.monotonic() < until_s:

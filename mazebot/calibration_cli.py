@@ -17,8 +17,9 @@ HELP = "measure wiring, wheel sizes, track width and lidar yaw with the lidar as
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate", help=HELP,
-        description="Put the robot in an open space (walls within a few metres, 0.6 m free ahead and "
-                    "behind). It pulses each motor, ramps the throttle, drives straight and turns in place, "
+        description="Put the robot in an open space (walls within a few metres, 1 m free ahead: the straight "
+                    "runs go 0.8 m out and back). It pulses each motor, ramps the throttle, drives straight and "
+                    "turns in place, "
                     "measuring each motion by scan matching, and prints the config changes. "
                     "With --sim, the simulated robot in the room world (its true wiring and sizes are [sim] keys).",
     )
@@ -32,9 +33,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from mazebot.calibration.progress import Progress
-    from mazebot.calibration.result import calibrated_config, config_diff, report_json, report_png
+    from mazebot.calibration.result import (
+        calibrated_config,
+        config_diff,
+        report_json,
+        report_png,
+        write_calibrated_config,
+    )
     from mazebot.calibration.routine import STEPS
-    from mazebot.config import default_config_path, load_config, render_toml
+    from mazebot.config import default_config_path, load_config
     from mazebot.files import write_atomic
 
     path = Path(args.config) if args.config else default_config_path()
@@ -52,15 +59,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"report: {out / 'calibration.json'}, {out / 'calibration.png'}")
     if args.write:
         target = path or Path("config.toml")
-        if args.sim:
-            from mazebot.sim.truth import same_true_robot
-
-            new = same_true_robot(config, new)
-        backup = target.with_name(target.name + ".bak")
-        if target.is_file():
-            write_atomic(backup, target.read_bytes())
-        write_atomic(target, render_toml(new).encode())
-        print(f"written: {target}" + (f" (the old one: {backup})" if backup.is_file() else ""))
+        backup = write_calibrated_config(target, config, new, sim=args.sim)
+        print(f"written: {target}" + (f" (the old one: {backup})" if backup is not None else ""))
     return EXIT_OK
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.calibration.geometry import Run
 from mazebot.calibration.routine import CalibrationResult
 from mazebot.config import Config, render_toml
 from mazebot.files import write_atomic
@@ -98,8 +99,25 @@ def report_json(result: CalibrationResult, diff: list[tuple[str, Any, Any]], ste
     return (json.dumps(doc, indent=2) + "\n").encode()
 
 
+def run_ends(runs: list[Run]) -> np.ndarray:
+    """Each run's end pose ``(x_m, y_m, theta_rad)`` in the frame of the first run's start.
+
+    A run's displacement is measured by scan matching in the frame of its own start, so the
+    runs are chained (each end composed onto the previous one) to draw them where the robot was.
+    """
+    x_m = y_m = theta_rad = 0.0
+    ends = np.zeros((len(runs), 3))
+    for i, run in enumerate(runs):
+        c, s = math.cos(theta_rad), math.sin(theta_rad)
+        x_m, y_m = x_m + c * run.x_m - s * run.y_m, y_m + s * run.x_m + c * run.y_m
+        theta_rad += run.theta_rad
+        ends[i] = x_m, y_m, theta_rad
+    return ends
+
+
 def report_png(result: CalibrationResult, size_px: int = 480, extent_m: float = 4.0) -> bytes:
-    """The still scans before the runs (grey) and each straight run's end (red) and turn's end (blue)."""
+    """The still scan before the runs (grey), the start (green), and where each straight run
+    (red) and each turn in place (blue) ended, the runs chained from the start."""
     img = np.full((size_px, size_px, 3), 255, np.uint8)
     scale = size_px / extent_m
     centre = size_px // 2
@@ -115,8 +133,7 @@ def report_png(result: CalibrationResult, size_px: int = 480, extent_m: float = 
 
     for points in result.scans[:1]:
         plot(points, (90, 90, 90))
-    ends = [(r.x_m, r.y_m, r.kind) for r in result.runs]
-    for x, y, kind in ends:
-        plot(np.array([[x, y]]), (200, 30, 30) if kind == "straight" else (30, 60, 200), radius=3)
     plot(np.zeros((1, 2)), (0, 150, 0), radius=4)
+    for run, end in zip(result.runs, run_ends(result.runs), strict=True):
+        plot(end[None, :2], (200, 30, 30) if run.kind == "straight" else (30, 60, 200), radius=3)
     return encode_png(img)

@@ -7,11 +7,12 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mazebot.calibration.geometry import CalibrationError, Pulse, Run, deduce_wiring, solve_geometry, yaw_error_rad
 from mazebot.calibration.progress import Progress
-from mazebot.calibration.result import calibrated_config, config_diff
+from mazebot.calibration.result import calibrated_config, config_diff, run_ends
 from mazebot.calibration.routine import STEPS
 from mazebot.calibration.sim_section import same_true_robot
 from mazebot.calibration_cli import run_calibration
@@ -159,3 +160,13 @@ def test_wiring_names_each_wheel_from_the_pivot() -> None:
     assert wiring.encoder_reversed == {"left": True, "right": False}
     with pytest.raises(CalibrationError, match="no encoder counted"):
         deduce_wiring([Pulse("left", 3, 0, 0.02, 0.0, -0.3)])
+
+
+def test_the_report_chains_the_runs_from_the_start() -> None:
+    # each run is measured in the frame of its own start: forward then back ends where it began,
+    # and a quarter turn then a straight run ends to the side
+    runs = [Run("straight", 3000, 3000, 0.8, 0.0, 0.0), Run("straight", -3000, -3000, -0.8, 0.0, 0.0),
+            Run("turn", -500, 500, 0.0, 0.0, math.pi / 2), Run("straight", 1000, 1000, 0.3, 0.0, 0.0)]
+    ends = run_ends(runs)
+    assert ends[:, :2] == pytest.approx(np.array([[0.8, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.3]]), abs=1e-12)
+    assert ends[-1, 2] == pytest.approx(math.pi / 2)

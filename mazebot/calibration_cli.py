@@ -46,7 +46,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     path = Path(args.config) if args.config else default_config_path()
     config = load_config(path)
-    progress = Progress(STEPS, on_change=lambda step: _print_step(progress, step))
+    printed: dict[str, tuple[str, str]] = {}
+    progress = Progress(STEPS, on_change=lambda step: _print_step(progress, step, printed))
     result = run_calibration(config, progress, sim=args.sim)
     new = calibrated_config(config, result)
     diff = config_diff(config, new)
@@ -64,7 +65,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _print_step(progress: Any, step: Any) -> None:
+def _print_step(progress: Any, step: Any, printed: dict[str, tuple[str, str]]) -> None:
+    """One line per change of a step's state or detail (a new figure alone is in the report)."""
+    if printed.get(step.name) == (step.state, step.detail):
+        return
+    printed[step.name] = (step.state, step.detail)
     n, total = progress.index(step.name), len(progress.steps)
     line = f"[{n}/{total}] {step.title}: {step.state}"
     if step.detail:

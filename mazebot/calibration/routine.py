@@ -238,8 +238,7 @@ class Calibrator:
         feed = _ScanFeed(self.hw.lidar)
         try:
             wiring, pulses, home = await self._step("wiring", self._wiring(feed))
-            deadband, speed = await self._step("ramp", self._ramp())
-            await self._step("ramp", self._face(feed, home))
+            deadband, speed = await self._step("ramp", self._ramp_then_face(feed, home))
             runs = await self._step("straight", self._straight(feed))
             runs = await self._step("turns", self._turns(feed, runs))
             geometry = solve_geometry(runs)
@@ -299,6 +298,16 @@ class Calibrator:
             encoder_reversed=wiring.encoder_reversed,
         )
         return wiring, pulses, home
+
+    async def _ramp_then_face(
+        self, feed: _ScanFeed, home: np.ndarray,
+    ) -> tuple[dict[str, float], dict[str, float]]:
+        """The ramp, then the turn back to the starting heading: one step, as the user sees it."""
+        deadband, speed = await self._ramp()
+        self.progress.update("ramp", detail="turning back to the starting heading")
+        await self._face(feed, home)
+        self.progress.update("ramp", detail=f"deadband left {deadband['left']:.3f}, right {deadband['right']:.3f}")
+        return deadband, speed
 
     async def _face(self, feed: _ScanFeed, home: np.ndarray) -> None:
         """Turn back to the heading of the first still scan (the ramp spun the robot round)."""
@@ -435,7 +444,8 @@ class Calibrator:
 
     async def _yaw(self, runs: list[Run]) -> float:
         error_deg = math.degrees(yaw_error_rad(runs))
-        self.progress.update("yaw", yaw_error_deg=round(error_deg, 3))
+        self.progress.update("yaw", detail=f"the lidar points {error_deg:+.2f}° off the direction of travel",
+                             yaw_error_deg=round(error_deg, 3))
         return error_deg
 
 

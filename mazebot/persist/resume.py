@@ -33,8 +33,7 @@ from mazebot.slam.icp import IcpResult, match_scan
 from mazebot.slam.keyframes import build_target, transform
 from mazebot.slam.observed import ObservedSlam
 from mazebot.slam.posegraph import compose, inverse
-from mazebot.slam.preprocess import prepare_scan
-from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate, odometry_pose_at
+from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate
 
 log = logging.getLogger(__name__)
 
@@ -117,8 +116,7 @@ class ResumedSlam(ObservedSlam):
     def relocalize(self, scan: Scan, odometry: OdometrySource) -> Relocalization:
         """Find the first revolution in the saved map; sets ``initial_pose`` and the submap."""
         p = self.params
-        odom = odometry_pose_at(odometry, scan.end_time_s - self.time_offset.offset_s)
-        prepared = prepare_scan(scan, self._deskew_motion(odometry, odom), p.prepare)
+        prepared, odom = self.prepare(scan, odometry)
         poses = self.keyframe_poses()
         dist = np.hypot(poses[:, 0] - self.guess[0], poses[:, 1] - self.guess[1])
         near = np.flatnonzero(dist <= self.submap_radius_m + self.search_xy_m)

@@ -54,7 +54,6 @@ from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpResult, match_scan
 from mazebot.slam.keyframes import build_target, transform
 from mazebot.slam.posegraph import compose, inverse, wrap_angle
-from mazebot.slam.preprocess import prepare_scan
 
 log = logging.getLogger(__name__)
 
@@ -298,8 +297,7 @@ def search_pose(
             refine=round(params.refine * scale),
         )
     p = slam.params
-    odom = _odom_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
-    prepared = prepare_scan(scan, slam._deskew_motion(odometry, odom), p.prepare)
+    prepared, odom = slam.prepare(scan, odometry)
     guess = np.asarray(guess, dtype=np.float64)
     if prepared.points_full.shape[0] < params.min_known_hits or not slam.keyframes:
         return SearchResult(None, odom, None, None, 0, guess)

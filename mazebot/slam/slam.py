@@ -754,12 +754,8 @@ class Slam:
         (``update = yield from super().update_steps(scan, odometry, paint=paint)``).
         """
         p = self.params
-        # the lidar's stamps are late by the time offset: the samples were taken earlier
-        offset_s = self.time_offset.offset_s
-        if offset_s:
-            scan = replace(scan, time_s=scan.time_s - offset_s)
-        time_s = scan.end_time_s
-        odom = odometry_pose_at(odometry, time_s)
+        prepared, odom = self.prepare(scan, odometry)
+        time_s = prepared.time_s
         rate = _turn_rate(odometry, time_s)
         self.scans += 1
 
@@ -772,8 +768,7 @@ class Slam:
             self.ekf.predict(self.calibration.correct(raw_increment))
         self._last_odom = odom
 
-        # 2. de-skew: every sample into the robot frame at the end of the revolution
-        prepared = prepare_scan(scan, self._deskew_motion(odometry, odom), p.prepare)
+        # 2. de-skew: every sample into the robot frame at the end of the revolution (done above)
         yield
 
         # 3. match against the local submap, from the prediction (and from turned guesses if that fails)
@@ -1135,6 +1130,21 @@ class Slam:
             icp_info = self._last_match.information * p.match_information_scale
             info = info + rotate_information(icp_info, float(self.ekf.mean[2]))
         return 0.5 * (info + info.T)
+
+    def prepare(self, scan: Scan, odometry: OdometrySource) -> tuple[PreparedScan, np.ndarray]:
+        """The revolution filtered and de-skewed into the robot frame at its end, and the
+        odometry pose at that end: every step that reads a revolution (the update,
+        re-localization, resuming a saved run) prepares it here, the same way.
+
+        The lidar's stamps are late by the learned time offset (the samples were taken
+        earlier), so they are shifted before the odometry is read at them: at the unshifted
+        stamps a turn that starts or stops within the revolution is spread over the wrong samples.
+        """
+        offset_s = self.time_offset.offset_s
+        if offset_s:
+            scan = replace(scan, time_s=scan.time_s - offset_s)
+        odom = odometry_pose_at(odometry, scan.end_time_s)
+        return prepare_scan(scan, self._deskew_motion(odometry, odom), self.params.prepare), odom
 
     def _deskew_motion(self, odometry: OdometrySource, end_odom: np.ndarray) -> PoseAtTime:
         """``pose_at_time`` for de-skew: odometry poses in the frame of the scan's end, heading calibrated."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -204,3 +205,38 @@ def test_resume_continues_from_the_saved_pose_in_the_saved_map(
     turned = wrap_angle(update.pose[2] - found.pose[2])  # what the resumed run measured of the turn
     assert abs(math.degrees(turned - 5 * TURN_RAD)) < 0.5
 
+
+
+def test_a_robot_that_starts_to_turn_in_its_first_revolution_is_found_with_the_lidars_stamps_shifted(
+    world: World, mapped: tuple[Slam, np.ndarray], tmp_path: Path
+) -> None:
+    # The lidar's stamps are late by 0.1 s against the odometry's, and the robot starts to turn
+    # half-way through the revolution. Re-localization must de-skew the revolution at the shifted
+    # stamps, as SLAM's own update does: at the unshifted ones the odometry says the turn began
+    # before the first sample, and the samples are spread over twice the true turn.
+    slam, true_end = mapped
+    _save(slam, tmp_path)
+    saved = load_run(tmp_path)
+    start = np.asarray(world.start_pose, dtype=np.float64)
+    offset_s, rate_radps, turn_from_s = 0.1, 1.0, 0.5 * PERIOD_S
+    params = replace(_params(), lidar_time_offset_s=offset_s, estimate_time_offset=False)
+    resumed = ResumedSlam(params, saved, guess=tuple(saved.meta["pose"]), background=False,
+                          record_trajectory=False)
+    history = OdometryHistory(horizon_s=30.0)
+    for t in np.arange(0.0, PERIOD_S + 0.3, 0.005):
+        history.append(float(t), 0.0, 0.0, rate_radps * max(0.0, float(t) - turn_from_s))
+    n = 360
+    beam_s = (np.arange(n) + 1) * (PERIOD_S / n)  # each beam's true time
+    turned = rate_radps * np.maximum(0.0, beam_s - turn_from_s)
+    angles = np.linspace(-np.pi, np.pi, n, endpoint=False)
+    origins = np.tile(true_end[:2], (n, 1))
+    ranges = cast_rays(origins, angles + true_end[2] + turned, world.segments, world.circles, 12.0)
+    valid = np.isfinite(ranges)
+    scan = Scan(angle_rad=angles, range_m=np.where(valid, ranges, 0.0), quality=np.where(valid, 47, 0).astype(np.uint8),
+                time_s=beam_s + offset_s, valid=valid)  # stamped late
+    resumed.update(scan, history)
+    found = resumed.relocalization
+    assert found is not None and found.accepted
+    truth = relative_pose(start, compose(true_end, np.array([0.0, 0.0, turned[-1]])))
+    assert math.hypot(*(found.pose[:2] - truth[:2])) < 0.02
+    assert abs(math.degrees(wrap_angle(found.pose[2] - truth[2]))) < 0.5

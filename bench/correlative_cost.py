@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from mazebot.config import load_config
+from mazebot.geometry import transform_points as transform
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import world_from_layout
 from mazebot.slam.carmen import read_carmen
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
-from mazebot.slam.keyframes import transform
 from mazebot.slam.slam import SlamParams
 from mazebot.slam.slam_cli import laser_log_params
 

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.geometry import relative_pose
+
 #: A loop closure this far from the true relative pose is counted as false (a maze cell is 0.3 m).
 FALSE_CLOSURE_M = 0.1
 FALSE_CLOSURE_RAD = 0.1
@@ -21,14 +23,7 @@ MARGIN_CELLS = 2
 
 def relative_poses(base: tuple[float, float, float], poses: np.ndarray) -> np.ndarray:
     """Poses expressed in the frame of ``base`` (the robot's start: the map frame)."""
-    bx, by, bt = base
-    c, s = math.cos(bt), math.sin(bt)
-    dx, dy = poses[:, 0] - bx, poses[:, 1] - by
-    out = np.empty_like(poses)
-    out[:, 0] = c * dx + s * dy
-    out[:, 1] = -s * dx + c * dy
-    out[:, 2] = np.remainder(poses[:, 2] - bt + np.pi, 2 * np.pi) - np.pi
-    return out
+    return relative_pose(np.asarray(base, dtype=np.float64), poses)
 
 
 #: How far (metres) the robot must be inside a cell before :func:`count_revisits` counts an entry.

@@ -27,10 +27,11 @@ import numpy as np
 from scipy import ndimage
 
 from mazebot.errors import UsageError
+from mazebot.geometry import transform_points
 from mazebot.io.scan import Scan
 from mazebot.persist.snapshot import SavedRun, saved_grid
 from mazebot.slam.icp import IcpResult, match_scan
-from mazebot.slam.keyframes import build_target, transform
+from mazebot.slam.keyframes import build_target
 from mazebot.slam.observed import ObservedSlam
 from mazebot.slam.posegraph import compose, inverse
 from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate
@@ -134,7 +135,7 @@ class ResumedSlam(ObservedSlam):
         hits = prepared.points_full
 
         def on_walls(pose: np.ndarray) -> float:
-            rows, cols = self.grid.to_cell(transform(pose, hits))
+            rows, cols = self.grid.to_cell(transform_points(pose, hits))
             inside = (rows >= 0) & (rows < walls.shape[0]) & (cols >= 0) & (cols < walls.shape[1])
             return float(walls[rows[inside], cols[inside]].sum()) / max(1, hits.shape[0])
 

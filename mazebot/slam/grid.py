@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mazebot.geometry import transform_points
+
 UNKNOWN = -1
 FREE = 0
 OCCUPIED = 100
@@ -338,8 +340,8 @@ class OccupancyGrid:
 
         def rays_of(kf: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             pose = np.asarray(kf[0], dtype=np.float64)
-            ends = _transform(pose, np.asarray(kf[1], dtype=np.float64).reshape(-1, 2))
-            origins = None if len(kf) < 4 else _transform(pose, np.asarray(kf[3], dtype=np.float64).reshape(-1, 2))
+            ends = transform_points(pose, kf[1])
+            origins = None if len(kf) < 4 else transform_points(pose, kf[3])
             return self._rays(pose, ends, np.asarray(kf[2], dtype=bool), origins)
 
         # Two passes: the extent first, then the rays, one keyframe at a time. Holding every
@@ -371,11 +373,3 @@ def _xy_bounds(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     x, y = xy[:, 0], xy[:, 1]
     return np.array((x.min(), y.min())), np.array((x.max(), y.max()))
-
-
-def _transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) from a frame at ``pose`` (x_m, y_m, theta_rad) into its parent frame."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    return np.column_stack(
-        (c * points_xy[:, 0] - s * points_xy[:, 1] + pose[0], s * points_xy[:, 0] + c * points_xy[:, 1] + pose[1])
-    )

@@ -63,6 +63,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mazebot.geometry import transform_points
 from mazebot.steps import run_steps
 
 #: ICP iterations between two stages of :func:`match_scan_steps` (about a millisecond here, four on a Pi 4).
@@ -208,8 +209,8 @@ class Target:
         all_pts, all_view = [], []
         for pose, pts, sensor in scans:
             pose = np.asarray(pose, dtype=np.float64)
-            world = _transform(pose, np.asarray(pts, dtype=np.float64))
-            view = _transform(pose, np.asarray(sensor, dtype=np.float64).reshape(1, 2))
+            world = transform_points(pose, np.asarray(pts, dtype=np.float64))
+            view = transform_points(pose, np.asarray(sensor, dtype=np.float64).reshape(1, 2))
             all_pts.append(world)
             all_view.append(np.broadcast_to(view, world.shape))
         if not all_pts:
@@ -487,12 +488,4 @@ def _give_up(prior: np.ndarray, iterations: int, fitness: float = 0.0) -> IcpRes
         degenerate=True,
         weak_direction=None,
         correspondences=0,
-    )
-
-
-def _transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) from a frame at ``pose`` into its parent frame."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    return np.column_stack(
-        (c * points_xy[:, 0] - s * points_xy[:, 1] + pose[0], s * points_xy[:, 0] + c * points_xy[:, 1] + pose[1])
     )

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mazebot.geometry import relative_pose
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
@@ -300,20 +301,6 @@ class KeyframeSelector:
         self.last = np.array(pose, dtype=np.float64).reshape(3)
 
 
-def transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) from the frame at ``pose`` into its parent frame."""
-    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
-    return np.column_stack((c * p[:, 0] - s * p[:, 1] + pose[0], s * p[:, 0] + c * p[:, 1] + pose[1]))
-
-
-def rotate(theta_rad: float, vectors_xy: np.ndarray) -> np.ndarray:
-    """Directions (N, 2) rotated by ``theta_rad``."""
-    c, s = math.cos(theta_rad), math.sin(theta_rad)
-    v = np.asarray(vectors_xy, dtype=np.float64).reshape(-1, 2)
-    return np.column_stack((c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]))
-
-
 def build_target(
     keyframes: Sequence[Keyframe],
     voxel_m: float,
@@ -349,9 +336,9 @@ def build_target_steps(
     pose_rows = []
     for k in kept:
         pose = keyframes[k].pose if poses is None else np.asarray(poses[k], dtype=np.float64)
-        pose_rows.append(pose if base is None else _relative(base, pose))
+        pose_rows.append(pose if base is None else relative_pose(base, pose))
     pose_arr = np.array(pose_rows, dtype=np.float64).reshape(-1, 3)
-    # math.cos/sin, as transform() and rotate() use, so the result is the same to the bit
+    # math.cos/sin, as geometry.transform_points() uses, so the result is the same to the bit
     cos = np.array([math.cos(float(t)) for t in pose_arr[:, 2]])
     sin = np.array([math.sin(float(t)) for t in pose_arr[:, 2]])
     sensors = np.array([keyframes[k].sensor_xy for k in kept], dtype=np.float64).reshape(-1, 2)
@@ -382,9 +369,3 @@ def build_target_steps(
     first = voxel_downsample(points, voxel_m)
     yield
     return Target(points[first], views[first], normals[first])
-
-
-def _relative(base: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    c, s = math.cos(float(base[2])), math.sin(float(base[2]))
-    dx, dy = float(pose[0] - base[0]), float(pose[1] - base[1])
-    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(float(pose[2] - base[2]), math.tau)])

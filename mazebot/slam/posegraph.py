@@ -93,6 +93,7 @@ from scipy.sparse import csc_matrix, csgraph, csr_matrix
 from scipy.sparse.linalg import splu
 
 from mazebot.errors import UsageError
+from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
 
 __all__ = [
     "Edge",
@@ -121,63 +122,7 @@ class PoseGraphError(UsageError):
     """The graph cannot be optimized as given (unanchored vertices, bad indices, singular system)."""
 
 
-# --------------------------------------------------------------------------- SE(2) helpers
-
-
-def wrap_angle(angle_rad: npt.ArrayLike) -> FloatArray:
-    """Wrap angles to [-π, π) radians, element-wise.
-
-    Residual angles must be wrapped, or a heading error of +179° vs -179° would look like
-    358° instead of 2°.
-    """
-    return np.remainder(np.asarray(angle_rad, dtype=np.float64) + np.pi, TWO_PI) - np.pi
-
-
-def compose(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
-    """Pose composition ``a ⊕ b`` on (..., 3) arrays of (x_m, y_m, theta_rad); broadcasts.
-
-    ``b`` is expressed in the frame of ``a``; the result is in ``a``'s parent frame:
-    ``v2t(a) · v2t(b)`` in homogeneous matrices.
-    """
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    cos_a = np.cos(a[..., 2])
-    sin_a = np.sin(a[..., 2])
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
-    out[..., 0] = a[..., 0] + cos_a * b[..., 0] - sin_a * b[..., 1]
-    out[..., 1] = a[..., 1] + sin_a * b[..., 0] + cos_a * b[..., 1]
-    out[..., 2] = wrap_angle(a[..., 2] + b[..., 2])
-    return out
-
-
-def inverse(a: npt.ArrayLike) -> FloatArray:
-    """Pose inverse ``a⁻¹`` on (..., 3) arrays, so that ``compose(a, inverse(a)) == 0``."""
-    a = np.asarray(a, dtype=np.float64)
-    cos_a = np.cos(a[..., 2])
-    sin_a = np.sin(a[..., 2])
-    out = np.empty_like(a)
-    out[..., 0] = -cos_a * a[..., 0] - sin_a * a[..., 1]
-    out[..., 1] = sin_a * a[..., 0] - cos_a * a[..., 1]
-    out[..., 2] = wrap_angle(-a[..., 2])
-    return out
-
-
-def relative_pose(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
-    """Pose of ``b`` seen from ``a``: ``a⁻¹ ⊕ b`` on (..., 3) arrays; broadcasts.
-
-    This is the measurement model of an edge: ``ẑ_ij = relative_pose(x_i, x_j)``.
-    """
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    cos_a = np.cos(a[..., 2])
-    sin_a = np.sin(a[..., 2])
-    dx = b[..., 0] - a[..., 0]
-    dy = b[..., 1] - a[..., 1]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
-    out[..., 0] = cos_a * dx + sin_a * dy
-    out[..., 1] = -sin_a * dx + cos_a * dy
-    out[..., 2] = wrap_angle(b[..., 2] - a[..., 2])
-    return out
+# --------------------------------------------------------------------------- edges
 
 
 def edge_residuals(vertices: FloatArray, edge_i: IntArray, edge_j: IntArray, measurements: FloatArray) -> FloatArray:

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from mazebot.geometry import transform_points
 from mazebot.io.scan import Scan
 
 #: Pose look-up: sample times (s) -> (x_m, y_m, theta_rad) arrays in any fixed frame
@@ -139,13 +140,6 @@ class PreparedScan:
             hit=b.hit,
             origins=transform_points(pose, b.origins),
         )
-
-
-def transform_points(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) from a frame at ``pose`` (x_m, y_m, theta_rad) into its parent frame."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
-    return np.column_stack((c * p[:, 0] - s * p[:, 1] + pose[0], s * p[:, 0] + c * p[:, 1] + pose[1]))
 
 
 def impulse_mask(range_m: np.ndarray, window: int, abs_m: float, rel: float, circular: bool) -> np.ndarray:

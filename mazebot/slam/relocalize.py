@@ -50,9 +50,10 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from mazebot.geometry import transform_points
 from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpResult, match_scan
-from mazebot.slam.keyframes import build_target, transform
+from mazebot.slam.keyframes import build_target
 from mazebot.slam.posegraph import compose, inverse, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -343,7 +344,7 @@ def _search_whole_view(
         match = match_scan(target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy)
         if not match.converged or not _in_window(match.pose, guess, params):
             continue  # ICP slid out of the searched window: not what was searched for
-        fit = scan_fit(slam.grid, transform(match.pose, prepared.points_full), params.free_margin_cells)
+        fit = scan_fit(slam.grid, transform_points(match.pose, prepared.points_full), params.free_margin_cells)
         if fit.contradiction > params.found_max_contradiction:
             continue  # contradicts the map
         rivals.append((fit, match.pose))
@@ -405,13 +406,13 @@ def _search_known_part(
     kept: list[tuple[int, IcpResult, ScanFit]] = []
     rivals: list[tuple[ScanFit, np.ndarray]] = []  # every plausible pose, for the ambiguity test
     for _, start in candidates:
-        known, _, _ = hit_classes(slam.grid, transform(start, prepared.points_match), params.free_margin_cells)
+        known, _, _ = hit_classes(slam.grid, transform_points(start, prepared.points_match), params.free_margin_cells)
         if int(known.sum()) < p.icp.min_correspondences:
             continue
         match = match_scan(target, prepared.points_match[known], start, p.icp, sensor_xy=prepared.sensor_xy)
         if not match.converged or not _in_window(match.pose, guess, params):
             continue
-        fit = scan_fit(slam.grid, transform(match.pose, prepared.points_full), params.free_margin_cells)
+        fit = scan_fit(slam.grid, transform_points(match.pose, prepared.points_full), params.free_margin_cells)
         if fit.contradiction <= params.found_max_contradiction:
             rivals.append((fit, match.pose))
         if (match.degenerate or match.fitness < params.partial_min_fitness or match.rmse_m > p.max_match_rmse_m

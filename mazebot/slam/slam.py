@@ -60,6 +60,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from mazebot.geometry import transform_points
 from mazebot.io.scan import Scan
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
 from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffsetCalibration, rotate_information
@@ -817,7 +818,7 @@ class Slam:
         # 6. update the grid with the scan's rays at the corrected pose
         if paint:
             ends, hit, origins = rays
-            self.grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
+            self.grid.integrate(pose, transform_points(pose, ends), hit, transform_points(pose, origins))
         if keyframe is not None:
             yield
 
@@ -909,7 +910,7 @@ class Slam:
         for kf in self.keyframes[count:]:  # added while the job ran
             yield
             pose, ends, hit, origins = kf.rays()
-            grid.integrate(pose, _transform(pose, ends), hit, _transform(pose, origins))
+            grid.integrate(pose, transform_points(pose, ends), hit, transform_points(pose, origins))
         for kf in self.keyframes:
             kf.integrated_pose = kf.pose.copy()
         grid.generation = self.grid.generation + 1
@@ -1284,9 +1285,3 @@ def odometry_pose_at(odometry: OdometrySource, time_s: float) -> np.ndarray:
     """The odometry pose at ``time_s``, heading wrapped to [-π, π)."""
     x, y, th = odometry.at(np.array([time_s]))
     return np.array([float(np.ravel(x)[0]), float(np.ravel(y)[0]), math.remainder(float(np.ravel(th)[0]), math.tau)])
-
-
-def _transform(pose: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
-    return np.column_stack((c * p[:, 0] - s * p[:, 1] + pose[0], s * p[:, 0] + c * p[:, 1] + pose[1]))

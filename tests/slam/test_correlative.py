@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mazebot.geometry import transform_points as transform
 from mazebot.sim.world import World, rectangles_outline
 from mazebot.slam.carmen import read_carmen
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
 from mazebot.slam.icp import IcpParams, Target, match_scan
-from mazebot.slam.keyframes import transform
 
 #: The largest offsets the issue asks for: ±0.5 m on each axis and ±30°.
 OFFSETS = [(0.5, -0.5, 30.0), (-0.5, 0.5, -30.0), (0.45, 0.3, -25.0), (-0.3, -0.45, 20.0), (0.0, 0.5, 30.0)]

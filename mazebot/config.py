@@ -28,9 +28,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic.fields import FieldInfo
 
 from mazebot.errors import ConfigError
-from mazebot.slam_config import FLAT_KEYS, SlamConfig
+from mazebot.slam_config import FLAT_KEYS, MAZE_CELL_M, SlamConfig
 
-__all__ = ["SlamConfig"]  # defined with its nested sections in mazebot.slam_config, a part of this config
+__all__ = ["MAZE_CELL_M", "SlamConfig"]  # defined in mazebot.slam_config with the [slam] sections, part of this config
 
 #: Absolute speed limits of the robot; the configured limits may not exceed them.
 ABSOLUTE_MAX_SPEED_MPS = 0.5
@@ -242,7 +242,11 @@ class PlannerConfig(Section):
     mode: Literal["auto", "maze", "frontier"] = Field(
         "auto", description="maze cells, grid frontiers (any world), or auto: maze when the walls fit a lattice"
     )
-    cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
+    cell_size_m: float = Field(
+        MAZE_CELL_M, gt=0.1, lt=2.0,
+        description="maze cell size (wall pitch), 1 ft; [sim] cell_size_m and slam.loop.ambiguity_shift_m follow "
+        "it unless set",
+    )
     cell_size_search: float = Field(
         0.08, ge=0, le=0.2,
         description="the true pitch is measured from the walls within this share of cell_size_m (mazes built "
@@ -417,7 +421,9 @@ class SimConfig(Section):
     maze_width: int = Field(6, ge=2, le=32, description="generated maze width in cells")
     maze_height: int = Field(6, ge=2, le=32, description="generated maze height in cells")
     seed: int = Field(1, ge=0, description="seed of the maze generator and of every noise source")
-    cell_size_m: float = Field(0.3048, gt=0.1, le=2.0, description="maze cell size (1 ft)")
+    cell_size_m: float = Field(
+        MAZE_CELL_M, gt=0.1, le=2.0, description="maze cell size; unless set, [planner] cell_size_m (1 ft)"
+    )
     wall_thickness_m: float = Field(0.012, gt=0.001, le=0.1, description="maze wall thickness")
     maze_build: Literal["exact", "hand"] = Field(
         "exact",
@@ -722,6 +728,21 @@ def _migrate(data: dict[str, Any], source: str) -> dict[str, Any]:
     return {**data, "slam": slam}
 
 
+def _one_maze_pitch(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with the maze's pitch as one key, ``[planner] cell_size_m``: the simulated maze's cells and
+    the loop closures' ambiguity shift (one cell) follow it unless the file sets them."""
+    planner = data.get("planner")
+    pitch = planner.get("cell_size_m") if isinstance(planner, dict) else None
+    if pitch is None:
+        return data
+    sim, slam = data.get("sim", {}), data.get("slam", {})
+    loop = slam.get("loop", {}) if isinstance(slam, dict) else None
+    if not isinstance(sim, dict) or not isinstance(loop, dict):
+        return data  # validation names the section that is not a table
+    loop = {"ambiguity_shift_m": pitch, **loop}
+    return {**data, "sim": {"cell_size_m": pitch, **sim}, "slam": {**slam, "loop": loop}}
+
+
 def _describe_error(err: Mapping[str, Any]) -> str:
     path = ".".join(str(p) for p in err["loc"]) or "(top level)"
     kind = err["type"]
@@ -747,9 +768,10 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
     """Validate a parsed TOML document; raise ConfigError with one line per problem.
 
     Keys of the old flat ``[slam]`` layout are moved to their sections first
-    (:data:`mazebot.slam_config.FLAT_KEYS`), with a :class:`DeprecatedKeyWarning` each.
+    (:data:`mazebot.slam_config.FLAT_KEYS`), with a :class:`DeprecatedKeyWarning` each, and
+    the keys that follow ``[planner] cell_size_m`` are filled in (:func:`_one_maze_pitch`).
     """
-    data = _migrate(data, source)
+    data = _one_maze_pitch(_migrate(data, source))
     try:
         # strict: TOML has real types, so "8080" or true for a port is a mistake, not a port; in JSON
         # mode, because pydantic's Python strict mode takes only instances for the nested dataclass sections

@@ -26,6 +26,10 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
+#: The maze's wall pitch, 1 ft (docs/design.md, "The reference robot"): the default of
+#: ``[planner] cell_size_m``, the one key for it; ``mazebot.config`` derives the others from that key.
+MAZE_CELL_M = 0.3048
+
 #: Unknown keys in a nested section are an error, as in every other section.
 _FORBID = ConfigDict(extra="forbid")
 
@@ -203,7 +207,8 @@ class LoopSection:
         "accept: the correction moves at most this far ..."))] = 0.10
     max_correction_rad: Annotated[float, Field(gt=0, description="... and turns at most this much")] = 0.15
     ambiguity_shift_m: Annotated[float, Field(ge=0, description=(
-        "retry ICP this far off (one cell); another good fit there rejects (0: off)"))] = 0.3048
+        "retry ICP this far off (one cell: [planner] cell_size_m unless set); another good fit there rejects "
+        "(0: off)"))] = MAZE_CELL_M
     ambiguity_tolerance_m: Annotated[float, Field(gt=0, description=(
         "a retry ending farther than this from the match is another fit"))] = 0.05
     ambiguity_fitness_ratio: Annotated[float, Field(gt=0, le=1, description=(

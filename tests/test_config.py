@@ -305,3 +305,13 @@ def test_a_recorded_config_of_the_old_layout_loads_without_warnings() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert config_from_json(json.dumps(_old_layout_file())) == Config()
+
+
+def test_the_maze_pitch_is_one_key() -> None:
+    """``[planner] cell_size_m`` is the maze's pitch; the simulated maze and the loop closures' shift follow it."""
+    config = parse_config({"planner": {"cell_size_m": 0.25}})
+    assert config.sim.cell_size_m == 0.25 and config.slam.loop.ambiguity_shift_m == 0.25
+    config = parse_config({"planner": {"cell_size_m": 0.25}, "sim": {"cell_size_m": 0.3},
+                           "slam": {"loop": {"ambiguity_shift_m": 0.0}}})
+    assert config.sim.cell_size_m == 0.3 and config.slam.loop.ambiguity_shift_m == 0.0
+    assert Config().sim.cell_size_m == Config().planner.cell_size_m == Config().slam.loop.ambiguity_shift_m

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.config import MAZE_CELL_M
 from mazebot.persist.runs import write_atomic
 from mazebot.persist.snapshot import SavedRun
 from mazebot.png import encode_png
@@ -193,7 +194,7 @@ def cell_graph(saved: SavedRun, cell_size_m: float | None = None) -> dict[str, A
     meta = saved.meta
     cfg = meta.get("config") if isinstance(meta.get("config"), dict) else {}
     if cell_size_m is None:
-        cell_size_m = float(cfg.get("sim", {}).get("cell_size_m", 0.3048)) if cfg else 0.3048
+        cell_size_m = float(cfg.get("sim", {}).get("cell_size_m", MAZE_CELL_M)) if cfg else MAZE_CELL_M
     graph = MazeGraph(cell_size_m=cell_size_m)
     graph.update(three_state(saved), origin_m(saved), saved.resolution_m)
     out: dict[str, Any] = {

@@ -50,10 +50,12 @@ def three_state(saved: SavedRun) -> np.ndarray:
     """The saved map as -1 unknown / 0 free / 100 occupied (row 0 south), with the configured thresholds."""
     occupied = float(np.log(0.75 / 0.25))
     free = float(np.log(0.25 / 0.75))
-    cfg = saved.meta.get("config", {}).get("slam", {}) if isinstance(saved.meta.get("config"), dict) else {}
-    if "occupied_prob" in cfg and "free_prob" in cfg:
-        occupied = math.log(cfg["occupied_prob"] / (1 - cfg["occupied_prob"]))
-        free = math.log(cfg["free_prob"] / (1 - cfg["free_prob"]))
+    slam = saved.meta.get("config", {}).get("slam", {}) if isinstance(saved.meta.get("config"), dict) else {}
+    # [slam.grid], or the flat grid_* keys of a run saved before the sections
+    grid = slam.get("grid") or {k.removeprefix("grid_"): v for k, v in slam.items() if k.startswith("grid_")}
+    if "occupied_prob" in grid and "free_prob" in grid:
+        occupied = math.log(grid["occupied_prob"] / (1 - grid["occupied_prob"]))
+        free = math.log(grid["free_prob"] / (1 - grid["free_prob"]))
     out = np.full(saved.log_odds.shape, UNKNOWN, dtype=np.int8)
     out[saved.log_odds > occupied] = OCCUPIED
     out[saved.log_odds < free] = FREE

@@ -47,9 +47,12 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from mazebot.config import MAZE_CELL_M
+from mazebot.config import MAZE_CELL_M, PlannerConfig
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
 from mazebot.slam.lattice_fit import fit_pitch
+
+# the defaults below are the config's, each written once in mazebot.config
+_PLANNER = PlannerConfig()
 
 Cell = tuple[int, int]
 """A maze cell ``(i, j)``: ``i`` counts cells along the maze's u axis, ``j`` along v."""
@@ -389,7 +392,7 @@ class MazeGraph:
     def __init__(
         self,
         cell_size_m: float = MAZE_CELL_M,
-        wall_thickness_m: float = 0.012,
+        wall_thickness_m: float = _PLANNER.wall_thickness_m,
         anchor_xy_m: tuple[float, float] = (0.0, 0.0),
         post_margin: float = 0.2,
         samples_along: int = 9,

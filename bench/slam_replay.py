@@ -35,7 +35,7 @@ import numpy as np
 
 from mazebot.bench.cli import SIM_S_PER_CELL
 from mazebot.bench.runner import RunSpec, _relative, run_one
-from mazebot.config import load_config
+from mazebot.config import load_config, parse_config
 from mazebot.slam import slam as slam_module
 from mazebot.slam.slam import Slam, SlamParams
 
@@ -87,9 +87,7 @@ def replay_once(
     Returns the per-scan and per-job thread CPU, the SLAM, and its live estimates
     ``(time_s, x, y, theta)`` after every update (what the daemon publishes).
     """
-    params = SlamParams.from_config(
-        config.slam, config.lidar, config.planner.cell_size_m, config.planner.cell_size_search
-    )
+    params = SlamParams.from_config(config.slam, config.lidar, config.planner)
     slam = Slam(params, background=True, record_trajectory=False)
     update_s, job_s, estimates = [], [], []
     pending: tuple[float, Any] | None = None  # (merge time, result) of the job in flight
@@ -139,15 +137,18 @@ def digest(slam: Slam) -> str:
 
 
 def configured(settings: list[str]) -> Any:
-    """The default config with ``section.key=value`` settings (TOML values) applied."""
-    config = load_config(None)
+    """The default config with ``section.key=value`` settings (TOML values, nested sections dotted) applied."""
+    data: dict[str, Any] = {}
     for setting in settings:
         name, _, text = setting.partition("=")
-        section, _, key = name.partition(".")
-        if not key or not text:
+        *path, key = name.split(".")
+        if not path or not text:
             raise SystemExit(f"--set wants section.key=value, got {setting!r}")
-        setattr(getattr(config, section), key, tomllib.loads(f"v = {text}")["v"])
-    return config
+        table = data
+        for part in path:
+            table = table.setdefault(part, {})
+        table[key] = tomllib.loads(f"v = {text}")["v"]
+    return parse_config(data, "--set")
 
 
 def replay(path: str, repeat: int, latency_s: float, settings: list[str]) -> None:
@@ -189,7 +190,7 @@ def main() -> None:
                      help="merge each loop-closure job this long (scan time) after it was made; "
                      "0: at once (the digest's reference); the daemon's bench uses 1.0")
     rep.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                     help="a config value for the replayed SLAM (TOML syntax), e.g. slam.submap_keyframes=30")
+                     help="a config value for the replayed SLAM (TOML syntax), e.g. slam.keyframes.submap_keyframes=30")
     args = parser.parse_args()
     if args.command == "capture":
         capture(args.seed, args.size, args.out)

@@ -18,8 +18,9 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from mazebot.errors import EXIT_OK, MazebotError
 
@@ -105,13 +106,28 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _warning_line(
+    message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None, line: Any = None
+) -> None:
+    """A warning meant for the user (``FutureWarning``: a config key renamed) as one line, like the errors."""
+    if issubclass(category, FutureWarning):
+        print(f"mazebot: warning: {message}", file=sys.stderr)
+    else:
+        _show_warning(message, category, filename, lineno, file, line)
+
+
+_show_warning = warnings.showwarning
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(command_name(argv))
     args = parser.parse_args(argv)
     args.argv = argv
     try:
-        return int(args.func(args))
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line
+            return int(args.func(args))
     except MazebotError as exc:
         from mazebot.logs import error_line
 

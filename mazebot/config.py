@@ -11,18 +11,26 @@ the plain values they need.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 import os
 import re
 import tomllib
+import typing
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic.fields import FieldInfo
 
 from mazebot.errors import ConfigError
+from mazebot.slam_config import FLAT_KEYS, MAZE_CELL_M, SlamConfig
+
+__all__ = ["MAZE_CELL_M", "SlamConfig"]  # defined in mazebot.slam_config with the [slam] sections, part of this config
 
 #: Absolute speed limits of the robot; the configured limits may not exceed them.
 ABSOLUTE_MAX_SPEED_MPS = 0.5
@@ -234,7 +242,11 @@ class PlannerConfig(Section):
     mode: Literal["auto", "maze", "frontier"] = Field(
         "auto", description="maze cells, grid frontiers (any world), or auto: maze when the walls fit a lattice"
     )
-    cell_size_m: float = Field(0.3048, gt=0.1, lt=2.0, description="maze cell size (wall pitch), 1 ft")
+    cell_size_m: float = Field(
+        MAZE_CELL_M, gt=0.1, lt=2.0,
+        description="maze cell size (wall pitch), 1 ft; [sim] cell_size_m and slam.loop.ambiguity_shift_m follow "
+        "it unless set",
+    )
     cell_size_search: float = Field(
         0.08, ge=0, le=0.2,
         description="the true pitch is measured from the walls within this share of cell_size_m (mazes built "
@@ -409,7 +421,9 @@ class SimConfig(Section):
     maze_width: int = Field(6, ge=2, le=32, description="generated maze width in cells")
     maze_height: int = Field(6, ge=2, le=32, description="generated maze height in cells")
     seed: int = Field(1, ge=0, description="seed of the maze generator and of every noise source")
-    cell_size_m: float = Field(0.3048, gt=0.1, le=2.0, description="maze cell size (1 ft)")
+    cell_size_m: float = Field(
+        MAZE_CELL_M, gt=0.1, le=2.0, description="maze cell size; unless set, [planner] cell_size_m (1 ft)"
+    )
     wall_thickness_m: float = Field(0.012, gt=0.001, le=0.1, description="maze wall thickness")
     maze_build: Literal["exact", "hand"] = Field(
         "exact",
@@ -514,205 +528,6 @@ class SimConfig(Section):
             raise ValueError("hand_post_gap_min_m must not exceed hand_post_gap_max_m")
         if self.hand_wall_thickness_min_m > self.hand_wall_thickness_max_m:
             raise ValueError("hand_wall_thickness_min_m must not exceed hand_wall_thickness_max_m")
-        return self
-
-
-class SlamConfig(Section):
-    """SLAM: scan preparation, odometry filter, ICP, keyframes, loop closure, occupancy grid."""
-
-    scan_queue_size: int = Field(2, ge=1, le=32, description="revolutions waiting for SLAM; the oldest is dropped")
-    odometry_history_s: float = Field(
-        3.0, ge=0.5, le=60, description="odometry kept for de-skew and the filter (time-stamped poses)"
-    )
-    # scan preparation
-    max_range_m: float = Field(
-        8.0, gt=0.2, le=40, description="farther returns only clear space (never matched, never a wall)"
-    )
-    median_window: int = Field(3, ge=1, le=15, description="samples in the running median of impulse rejection (odd)")
-    impulse_abs_m: float = Field(
-        0.05, ge=0, description="a sample this far plus impulse_rel from its median is a spike"
-    )
-    impulse_rel: float = Field(0.05, ge=0, description="relative part of the spike threshold")
-    voxel_m: float = Field(0.025, gt=0.001, le=0.5, description="point spacing of a scan for matching")
-    # odometry filter (EKF)
-    odom_var_xy_m2_per_m: float = Field(
-        4e-4, gt=0, description="odometry position variance growth per metre travelled (each axis)"
-    )
-    odom_var_theta_rad2_per_m: float = Field(1e-4, gt=0, description="odometry heading variance per metre travelled")
-    odom_var_theta_rad2_per_rad: float = Field(
-        2.5e-3, gt=0, description="odometry heading variance per radian turned"
-    )
-    odom_calibration: bool = Field(
-        True, description="learn the odometry's heading bias (unequal wheels, track width) from scan matches"
-    )
-    odom_calibration_memory_scans: float = Field(
-        1000.0, ge=10, description="scans the heading calibration remembers (exponential forgetting)"
-    )
-    lidar_time_offset_s: float = Field(
-        0.0, ge=-0.05, le=0.1, description="how late the lidar's time stamps are against the odometry's (start value)"
-    )
-    estimate_time_offset: bool = Field(
-        True, description="learn that offset online from how scan matches disagree with odometry when turns start"
-    )
-    filter_gate_chi2: float = Field(
-        16.27, gt=0, description="refuse a scan match this unlikely under the prediction (chi2, 3 dof)"
-    )
-    # scan matching (ICP)
-    icp_max_iterations: int = Field(150, ge=1, le=1000, description="ICP iterations at most")
-    icp_converged_m: float = Field(0.01, gt=0, description="ICP converged: last step below this ...")
-    icp_converged_rad: float = Field(0.01, gt=0, description="... and below this rotation")
-    icp_stop_m: float = Field(5e-4, gt=0, description="ICP refines until its step is below this ...")
-    icp_stop_rad: float = Field(5e-4, gt=0, description="... and this rotation")
-    icp_max_correspondence_m: float = Field(0.3, gt=0, description="first distance gate of ICP correspondences")
-    icp_min_correspondence_m: float = Field(0.05, gt=0, description="the adaptive gate never shrinks below this")
-    icp_degeneracy_ratio: float = Field(
-        0.02, ge=0, lt=1, description="eigenvalue ratio below which a direction counts as unobservable"
-    )
-    icp_min_fitness: float = Field(0.5, ge=0, le=1, description="share of points matched for the filter to use a match")
-    icp_max_rmse_m: float = Field(0.03, gt=0, description="... and at most this point-to-line residual")
-    icp_retry_headings_rad: list[float] = Field(
-        [0.05, -0.05, 0.1, -0.1], description="when a match fails, retry ICP from the prediction turned by these"
-    )
-    icp_information_scale: float = Field(
-        0.5, gt=0, le=1, description="scale of ICP's information matrix (ICP is optimistic about itself)"
-    )
-    icp_range_noise_ratio: float = Field(
-        0.0,
-        ge=0,
-        lt=0.3,
-        description="weight ICP residuals by the lidar's range noise, std / range (A1: 0.01; 0: all points alike)",
-    )
-    icp_noise_floor_m: float = Field(
-        0.002, gt=0, description="... plus this std that does not grow with range (submap pose errors)"
-    )
-    normal_neighbours: int = Field(10, ge=3, le=50, description="neighbours for surface normals")
-    normal_radius_m: float = Field(0.1, gt=0, description="neighbours farther than this do not count for a normal")
-    # keyframes, local submap, pose graph
-    keyframe_distance_m: float = Field(0.10, gt=0, description="a scan becomes a keyframe after this much travel ...")
-    keyframe_angle_rad: float = Field(0.2, gt=0, description="... or this much turn (11°: eight in a 90° turn)")
-    submap_keyframes: int = Field(20, ge=1, le=500, description="recent keyframes in the local submap ICP matches")
-    submap_radius_m: float = Field(
-        0.5, ge=0, description="older keyframes this close to the robot join the local submap (0: only recent ones)"
-    )
-    submap_near_keyframes: int = Field(20, ge=0, le=500, description="at most this many older keyframes, nearest first")
-    submap_voxel_m: float = Field(0.01, gt=0.001, le=0.5, description="point spacing of the local submap")
-    submap_update_m: float = Field(
-        0.05, ge=0, description="rebuild the local submap at a keyframe this far from the last rebuild ..."
-    )
-    submap_update_keyframes: int = Field(4, ge=1, description="... or after this many keyframes")
-    optimize_iterations: int = Field(30, ge=1, le=500, description="Levenberg-Marquardt iterations per optimization")
-    wall_prior: bool = Field(
-        True, description="walls meet at right angles (a maze): each keyframe's walls give a weak heading prior"
-    )
-    wall_prior_std_rad: float = Field(0.01, gt=0, description="trust in one keyframe's wall direction")
-    wall_min_strength: float = Field(
-        0.6, ge=0, le=1, description="use a keyframe only if its wall normals are this aligned to a right-angle grid"
-    )
-    anchor_revolutions: int = Field(
-        20, ge=1, le=100, description="revolutions at rest keyframe 0, the map's anchor, measures its walls over"
-    )
-    wall_anchor_std_rad: float = Field(
-        0.001, gt=0, description="trust in the anchor's wall direction (it fixes the wall grid of the whole map)"
-    )
-    wall_lattice: bool = Field(
-        True,
-        description="walls lie on a square lattice of the planner's cell size: each keyframe's wall faces "
-        "give a weak position prior (needs wall_prior)",
-    )
-    wall_lattice_std_m: float = Field(0.005, gt=0, description="trust in one keyframe's wall faces on the lattice")
-    wall_lattice_gate_m: float = Field(
-        0.04, gt=0, description="a face farther than this from its lattice line is not used for the prior"
-    )
-    optimize_every_keyframes: int = Field(
-        20, ge=1, description="optimize the pose graph this often even without a loop closure (wall priors)"
-    )
-    # loop closure
-    loop_search_radius_m: float = Field(0.25, gt=0, description="look for loop closures at least this close ...")
-    loop_max_search_radius_m: float = Field(1.0, gt=0, description="... and never farther than this")
-    loop_sigma_scale: float = Field(3.0, ge=0, description="search radius grows by this many std of the drift")
-    loop_min_keyframe_gap: int = Field(40, ge=2, description="a candidate is at least this many keyframes old")
-    loop_submap_half_width: int = Field(6, ge=0, le=100, description="candidate submap: keyframes i-k .. i+k")
-    loop_attempt_every: int = Field(3, ge=1, description="look for loop closures every this many keyframes")
-    loop_min_fitness: float = Field(0.8, ge=0, le=1, description="accept: at least this share of points matched")
-    loop_max_rmse_m: float = Field(0.012, gt=0, description="accept: point-to-line RMS at most this")
-    loop_min_correspondences: int = Field(40, ge=3, description="accept: at least this many matched points")
-    loop_accept_degenerate: bool = Field(False, description="accept matches that leave a direction unconstrained")
-    loop_gate_chi2: float = Field(11.34, gt=0, description="accept: correction consistent with odometry (chi2, 3 dof)")
-    loop_max_correction_m: float = Field(0.10, gt=0, description="accept: the correction moves at most this far ...")
-    loop_max_correction_rad: float = Field(0.15, gt=0, description="... and turns at most this much")
-    loop_ambiguity_shift_m: float = Field(
-        0.3048, ge=0, description="retry ICP this far off (one cell); another good fit there rejects (0: off)"
-    )
-    loop_ambiguity_fitness_ratio: float = Field(
-        0.85, gt=0, le=1, description="that other fit counts if its inlier ratio is this share of the match's ..."
-    )
-    loop_ambiguity_rmse_ratio: float = Field(4.0, ge=1, description="... and its residual at most this many times")
-    loop_max_range_m: float = Field(
-        2.0, ge=0, description="verify a loop closure with the points this close to the lidar (0: all)"
-    )
-    loop_information_scale: float = Field(0.1, gt=0, le=1, description="scale of a loop closure's ICP information")
-    # correlative scan matching (Olson, ICRA 2009) before ICP where the prediction is uncertain
-    correlative: bool = Field(
-        True, description="search a window of poses before ICP where its match failed, or after re-localization"
-    )
-    corr_resolution_m: float = Field(0.03, gt=0.001, le=1, description="cell of the correlative likelihood table")
-    corr_sigma_m: float = Field(0.04, gt=0, le=1, description="smoothing of that table (std of a point's position)")
-    corr_window_m: float = Field(
-        0.12, ge=0, le=5, description="sequential search: half-width in x and y (under half a maze cell) ..."
-    )
-    corr_window_rad: float = Field(0.35, ge=0, le=3.2, description="... and in heading")
-    corr_levels: int = Field(2, ge=0, le=8, description="branch-and-bound levels of the sequential search")
-    corr_max_range_m: float = Field(4.0, gt=0, description="the search uses scan points this close to the lidar ...")
-    corr_max_points: int = Field(200, ge=10, description="... at most this many of them")
-    corr_min_score: float = Field(0.35, ge=0, le=1, description="a search scoring less found nothing (0..1)")
-    loop_corr_window_m: float = Field(
-        0.1, ge=0, le=10, description="loop closure: branch-and-bound window about the prior, x and y (0: ICP only) ..."
-    )
-    loop_corr_window_rad: float = Field(0.15, ge=0, le=3.2, description="... and heading")
-    loop_corr_levels: int = Field(3, ge=0, le=8, description="branch-and-bound levels of the loop-closure search")
-    rebuild_threshold_m: float = Field(
-        0.01, ge=0, description="rebuild the map when optimization moved a keyframe farther than this ..."
-    )
-    rebuild_threshold_rad: float = Field(0.005, ge=0, description="... or turned one more than this")
-    loop_closure_executor: Literal["process", "thread"] = Field(
-        "process",
-        description="run loop-closure jobs in a worker process (a core of its own) or a thread of the daemon",
-    )
-    # occupancy grid
-    grid_resolution_m: float = Field(0.02, gt=0.001, le=1, description="occupancy grid cell size")
-    grid_l_hit: float = Field(0.85, gt=0, description="log-odds added to a cell a beam ends in")
-    grid_l_miss: float = Field(-0.4, lt=0, description="log-odds added to a cell a beam crosses")
-    grid_l_min: float = Field(-5.0, lt=0, description="lowest log-odds of a cell")
-    grid_l_max: float = Field(5.0, gt=0, description="highest log-odds of a cell")
-    grid_occupied_prob: float = Field(
-        0.75, ge=0.5, lt=1, description="a cell above this probability is a wall (0.75: two hits, not one stray)"
-    )
-    grid_free_prob: float = Field(0.25, gt=0, le=0.5, description="a cell below this probability is free")
-    map_max_range_m: float = Field(
-        1.2, ge=0, description="farther hits clear space but mark no wall (range noise grows with range; 0: no limit)"
-    )
-    map_smooth_endpoints: bool = Field(
-        True, description="move each hit along its beam onto the line through its neighbours before mapping it"
-    )
-    range_noise_rel: float = Field(
-        0.01, ge=0, lt=0.3, description="the lidar's range noise, std as a fraction of the range (A1: about 1 %)"
-    )
-    grid_max_free_range_m: float = Field(4.0, gt=0, description="no-return beams clear space this far")
-    map_hit_depth_m: float = Field(
-        0.006,
-        ge=0,
-        le=0.05,
-        description="a hit marks the cell this far behind the wall's face (under the wall thickness)",
-    )
-
-    @model_validator(mode="after")
-    def _consistent(self) -> SlamConfig:
-        if self.median_window % 2 == 0:
-            raise ValueError(f"median_window must be odd, got {self.median_window}")
-        if self.icp_min_correspondence_m > self.icp_max_correspondence_m:
-            raise ValueError("icp_min_correspondence_m must not exceed icp_max_correspondence_m")
-        if self.loop_search_radius_m > self.loop_max_search_radius_m:
-            raise ValueError("loop_search_radius_m must not exceed loop_max_search_radius_m")
         return self
 
 
@@ -880,11 +695,59 @@ def default_config_path() -> Path | None:
     return next((p for p in config_search_path() if p.is_file()), None)
 
 
+class DeprecatedKeyWarning(FutureWarning):
+    """A config file uses a key of an older layout; it still works, under its new name."""
+
+
+def _migrate(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """``data`` with the flat ``[slam]`` keys of the old layout moved to their nested sections.
+
+    One :class:`DeprecatedKeyWarning` per moved key names the old and the new key. A key
+    given both ways is an error: which one was meant is not for us to guess.
+    """
+    slam = data.get("slam")
+    if not isinstance(slam, dict) or not any(key in FLAT_KEYS for key in slam):
+        return data
+    slam = {key: (dict(value) if isinstance(value, dict) else value) for key, value in slam.items()}
+    for old in [key for key in slam if key in FLAT_KEYS]:
+        section, key = FLAT_KEYS[old].split(".")
+        table = slam.setdefault(section, {})
+        if not isinstance(table, dict):
+            continue  # validation names the section that is not a table
+        if key in table:
+            raise ConfigError(
+                f"{source}: slam.{old} and slam.{section}.{key} are the same key: keep slam.{section}.{key}"
+            )
+        table[key] = slam.pop(old)
+        warnings.warn(
+            f"{source}: slam.{old} is now slam.{section}.{key} (the old name still works; "
+            "`mazebot config defaults` shows the new layout)",
+            DeprecatedKeyWarning,
+            stacklevel=3,
+        )
+    return {**data, "slam": slam}
+
+
+def _one_maze_pitch(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with the maze's pitch as one key, ``[planner] cell_size_m``: the simulated maze's cells and
+    the loop closures' ambiguity shift (one cell) follow it unless the file sets them."""
+    planner = data.get("planner")
+    pitch = planner.get("cell_size_m") if isinstance(planner, dict) else None
+    if pitch is None:
+        return data
+    sim, slam = data.get("sim", {}), data.get("slam", {})
+    loop = slam.get("loop", {}) if isinstance(slam, dict) else None
+    if not isinstance(sim, dict) or not isinstance(loop, dict):
+        return data  # validation names the section that is not a table
+    loop = {"ambiguity_shift_m": pitch, **loop}
+    return {**data, "sim": {"cell_size_m": pitch, **sim}, "slam": {**slam, "loop": loop}}
+
+
 def _describe_error(err: Mapping[str, Any]) -> str:
     path = ".".join(str(p) for p in err["loc"]) or "(top level)"
     kind = err["type"]
     value = err.get("input")
-    if kind == "extra_forbidden":
+    if kind in ("extra_forbidden", "unexpected_keyword_argument"):
         return f"{path}: unknown key (value {value!r}); check the spelling against `mazebot config defaults`"
     if kind == "missing":
         return f"{path}: required key is missing"
@@ -902,12 +765,33 @@ def _problems(exc: ValidationError, source: str, prefix: str = "") -> ConfigErro
 
 
 def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
-    """Validate a parsed TOML document; raise ConfigError with one line per problem."""
+    """Validate a parsed TOML document; raise ConfigError with one line per problem.
+
+    Keys of the old flat ``[slam]`` layout are moved to their sections first
+    (:data:`mazebot.slam_config.FLAT_KEYS`), with a :class:`DeprecatedKeyWarning` each, and
+    the keys that follow ``[planner] cell_size_m`` are filled in (:func:`_one_maze_pitch`).
+    """
+    data = _one_maze_pitch(_migrate(data, source))
     try:
-        # strict: TOML has real types, so "8080" or true for a port is a mistake, not a port
-        return Config.model_validate(data, strict=True)
+        # strict: TOML has real types, so "8080" or true for a port is a mistake, not a port; in JSON
+        # mode, because pydantic's Python strict mode takes only instances for the nested dataclass sections
+        text = json.dumps(data, default=str)
+    except ValueError as exc:  # a float nan or inf, which no section takes
+        raise ConfigError(f"{source}: {exc}") from None
+    try:
+        return Config.model_validate_json(text, strict=True)
     except ValidationError as exc:
         raise _problems(exc, source) from None
+
+
+def config_from_json(text: str, source: str = "<config>") -> Config:
+    """A config saved as JSON (``Config.model_dump_json``: recordings, saved runs), of any layout.
+
+    An old layout is moved to the new one without warnings: a recording is not the user's file to fix.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecatedKeyWarning)
+        return parse_config(json.loads(text), source)
 
 
 def read_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -978,14 +862,39 @@ def render_toml(config: Config | None = None) -> str:
         "# mazebot configuration. Every key is optional; these are the defaults.",
         "# Check a file with `mazebot config check PATH`.",
     ]
-    for name, field in Config.model_fields.items():
-        section = getattr(config, name)
-        lines.append("")
-        lines.append(f"# {(type(section).__doc__ or '').strip().splitlines()[0]}")
-        lines.append(f"[{name}]")
-        for key, sub in type(section).model_fields.items():
-            if sub.description:
-                lines.append(f"# {sub.description}")
-            lines.append(f"{key} = {_toml_value(getattr(section, key))}")
-        del field
+    for name in Config.model_fields:
+        lines.extend(_render_section(name, getattr(config, name)))
     return "\n".join(lines) + "\n"
+
+
+def _section_fields(section: object) -> dict[str, Any]:
+    """The fields (pydantic ``FieldInfo``) of a section: a model, or a dataclass with pydantic metadata."""
+    if isinstance(section, BaseModel):
+        return dict(type(section).model_fields)
+    hints = typing.get_type_hints(type(section), include_extras=True)
+    infos = {}
+    for f in dataclasses.fields(section):  # type: ignore[arg-type]
+        metadata = getattr(hints[f.name], "__metadata__", ())
+        infos[f.name] = next((m for m in metadata if isinstance(m, FieldInfo)), FieldInfo())
+    return infos
+
+
+def _is_section(value: object) -> bool:
+    return isinstance(value, BaseModel) or (dataclasses.is_dataclass(value) and not isinstance(value, type))
+
+
+def _render_section(name: str, section: object) -> list[str]:
+    """``[name]`` with its keys, each after its description, then its nested sections as ``[name.sub]``."""
+    lines = ["", f"# {(type(section).__doc__ or '').strip().splitlines()[0]}", f"[{name}]"]
+    nested = []
+    for key, info in _section_fields(section).items():
+        value = getattr(section, key)
+        if _is_section(value):
+            nested.append((key, value))
+            continue
+        if info.description:
+            lines.append(f"# {info.description}")
+        lines.append(f"{key} = {_toml_value(value)}")
+    for key, value in nested:
+        lines.extend(_render_section(f"{name}.{key}", value))
+    return lines

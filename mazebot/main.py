@@ -297,9 +297,7 @@ async def run_daemon(
             config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m,
             config.drive.wheel_diameter_ratio,
         )
-        slam_params = SlamParams.from_config(
-            config.slam, config.lidar, config.planner.cell_size_m, config.planner.cell_size_search
-        )
+        slam_params = SlamParams.from_config(config.slam, config.lidar, config.planner)
         if session is not None:  # recorded, saved or resumed
             slam = session.make_slam(slam_params)
         else:

@@ -224,3 +224,94 @@ def test_cheap_robot_preset_fills_the_keys_the_file_left_unset() -> None:
     mine = parse_config({"encoders": {"counts_per_rev": 48}, "sim": {"robot_build": "cheap", "turn_slip": 0.1}})
     assert mine.encoders.counts_per_rev == 48 and mine.sim.turn_slip == 0.1 and mine.sim.backlash_deg == 3.0
     assert parse_config({}).sim.turn_slip == 0.0 and parse_config({}).encoders.counts_per_rev == 210
+
+
+def _old_layout_file() -> dict[str, object]:
+    """Every key of the flat ``[slam]`` layout, at its default."""
+    from mazebot.slam_config import FLAT_KEYS
+
+    defaults = Config().slam
+    flat: dict[str, object] = {}
+    for old, new in FLAT_KEYS.items():
+        section, key = new.split(".")
+        value = getattr(getattr(defaults, section), key)
+        flat[old] = list(value) if isinstance(value, tuple) else value
+    return {"slam": flat}
+
+
+def test_a_flat_slam_key_still_loads_with_one_warning_naming_old_and_new(tmp_path: Path) -> None:
+    from mazebot.config import DeprecatedKeyWarning
+
+    path = tmp_path / "old.toml"
+    path.write_text("[slam]\nmax_range_m = 7.0\nicp_max_iterations = 40\n")
+    with pytest.warns(DeprecatedKeyWarning) as caught:
+        config = load_config(path)
+    assert config.slam.prepare.max_range_m == 7.0 and config.slam.icp.max_iterations == 40
+    assert sorted(str(w.message).split(" (")[0] for w in caught) == [
+        f"{path}: slam.icp_max_iterations is now slam.icp.max_iterations",
+        f"{path}: slam.max_range_m is now slam.prepare.max_range_m",
+    ]
+
+
+def test_every_old_slam_key_has_a_new_place() -> None:
+    from mazebot.config import DeprecatedKeyWarning
+    from mazebot.slam_config import FLAT_KEYS
+
+    assert len(FLAT_KEYS) + 9 == 94  # the flat layout had 94 keys; nine kept their place in [slam]
+    with pytest.warns(DeprecatedKeyWarning) as caught:
+        assert parse_config(_old_layout_file()) == Config()
+    assert len(caught) == len(FLAT_KEYS)
+
+
+def test_an_old_key_and_its_new_one_together_are_an_error() -> None:
+    with pytest.raises(ConfigError, match=r"slam.max_range_m and slam.prepare.max_range_m"):
+        parse_config({"slam": {"max_range_m": 7.0, "prepare": {"max_range_m": 6.0}}})
+
+
+def test_bad_keys_in_nested_sections_name_their_dotted_path() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config({"slam": {"icp": {"max_iterationz": 3, "max_iterations": "3"}, "loop": {"min_fitness": 2.0}}})
+    problems = info.value.problems
+    assert len(problems) == 3
+    assert any("slam.icp.max_iterationz: unknown key" in p for p in problems)
+    assert any("slam.icp.max_iterations: '3' is not allowed" in p for p in problems)
+    assert any("slam.loop.min_fitness: 2.0 is not allowed" in p for p in problems)
+
+
+def test_defaults_print_the_nested_slam_sections(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["config", "defaults"]) == 0
+    out = capsys.readouterr().out
+    for section in ("prepare", "icp", "loop", "grid", "keyframes", "search", "lattice"):
+        assert f"\n[slam.{section}]\n" in out
+    assert "icp_max_iterations" not in out
+
+
+def test_config_check_shows_the_renamed_key_on_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "old.toml"
+    path.write_text("[slam]\ngrid_resolution_m = 0.03\n")
+    proc = subprocess.run([sys.executable, "-m", "mazebot", "config", "check", str(path)],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 0 and proc.stdout == "ok\n"
+    assert proc.stderr == (f"mazebot: warning: {path}: slam.grid_resolution_m is now slam.grid.resolution_m "
+                           "(the old name still works; `mazebot config defaults` shows the new layout)\n")
+
+
+def test_a_recorded_config_of_the_old_layout_loads_without_warnings() -> None:
+    import json
+    import warnings
+
+    from mazebot.config import config_from_json
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert config_from_json(json.dumps(_old_layout_file())) == Config()
+
+
+def test_the_maze_pitch_is_one_key() -> None:
+    """``[planner] cell_size_m`` is the maze's pitch; the simulated maze and the loop closures' shift follow it."""
+    config = parse_config({"planner": {"cell_size_m": 0.25}})
+    assert config.sim.cell_size_m == 0.25 and config.slam.loop.ambiguity_shift_m == 0.25
+    config = parse_config({"planner": {"cell_size_m": 0.25}, "sim": {"cell_size_m": 0.3},
+                           "slam": {"loop": {"ambiguity_shift_m": 0.0}}})
+    assert config.sim.cell_size_m == 0.3 and config.slam.loop.ambiguity_shift_m == 0.0
+    assert Config().sim.cell_size_m == Config().planner.cell_size_m == Config().slam.loop.ambiguity_shift_m

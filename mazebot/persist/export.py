@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.config import MAZE_CELL_M
 from mazebot.persist.runs import write_atomic
 from mazebot.persist.snapshot import SavedRun
 from mazebot.png import encode_png
@@ -49,10 +50,12 @@ def three_state(saved: SavedRun) -> np.ndarray:
     """The saved map as -1 unknown / 0 free / 100 occupied (row 0 south), with the configured thresholds."""
     occupied = float(np.log(0.75 / 0.25))
     free = float(np.log(0.25 / 0.75))
-    cfg = saved.meta.get("config", {}).get("slam", {}) if isinstance(saved.meta.get("config"), dict) else {}
-    if "occupied_prob" in cfg and "free_prob" in cfg:
-        occupied = math.log(cfg["occupied_prob"] / (1 - cfg["occupied_prob"]))
-        free = math.log(cfg["free_prob"] / (1 - cfg["free_prob"]))
+    slam = saved.meta.get("config", {}).get("slam", {}) if isinstance(saved.meta.get("config"), dict) else {}
+    # [slam.grid], or the flat grid_* keys of a run saved before the sections
+    grid = slam.get("grid") or {k.removeprefix("grid_"): v for k, v in slam.items() if k.startswith("grid_")}
+    if "occupied_prob" in grid and "free_prob" in grid:
+        occupied = math.log(grid["occupied_prob"] / (1 - grid["occupied_prob"]))
+        free = math.log(grid["free_prob"] / (1 - grid["free_prob"]))
     out = np.full(saved.log_odds.shape, UNKNOWN, dtype=np.int8)
     out[saved.log_odds > occupied] = OCCUPIED
     out[saved.log_odds < free] = FREE
@@ -193,7 +196,7 @@ def cell_graph(saved: SavedRun, cell_size_m: float | None = None) -> dict[str, A
     meta = saved.meta
     cfg = meta.get("config") if isinstance(meta.get("config"), dict) else {}
     if cell_size_m is None:
-        cell_size_m = float(cfg.get("sim", {}).get("cell_size_m", 0.3048)) if cfg else 0.3048
+        cell_size_m = float(cfg.get("sim", {}).get("cell_size_m", MAZE_CELL_M)) if cfg else MAZE_CELL_M
     graph = MazeGraph(cell_size_m=cell_size_m)
     graph.update(three_state(saved), origin_m(saved), saved.resolution_m)
     out: dict[str, Any] = {

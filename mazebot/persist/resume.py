@@ -77,7 +77,8 @@ class ResumedSlam(ObservedSlam):
         super().__init__(params, **kwargs)
         if abs(saved.resolution_m - self.grid.resolution_m) > 1e-12:
             raise UsageError(
-                f"run {saved.path} has {saved.resolution_m} m cells but [slam] asks for {self.grid.resolution_m} m"
+                f"run {saved.path} has {saved.resolution_m} m cells but slam.grid.resolution_m asks for "
+                f"{self.grid.resolution_m} m"
             )
         self.guess = np.asarray(guess, dtype=np.float64)
         self.search_xy_m = search_xy_m

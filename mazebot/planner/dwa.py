@@ -49,9 +49,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mazebot.config import ControlConfig, DriveConfig, LidarConfig, PlannerConfig, RobotConfig
 from mazebot.planner.wheel_control import DriveMode, HeadingAligner
 from mazebot.slam.grid import OCCUPIED
 from mazebot.steps import run_steps
+
+# the defaults below are the config's, each written once in mazebot.config
+_CONTROL = ControlConfig()
+_DRIVE = DriveConfig()
+_LIDAR = LidarConfig()
+_PLANNER = PlannerConfig()
+_ROBOT = RobotConfig()
 
 XY = tuple[float, float]
 
@@ -66,8 +74,8 @@ def scan_points_robot(
     angle_rad: np.ndarray,
     range_m: np.ndarray,
     valid: np.ndarray | None = None,
-    min_range_m: float = 0.15,
-    max_range_m: float = 12.0,
+    min_range_m: float = _LIDAR.min_range_m,
+    max_range_m: float = _LIDAR.max_range_m,
     mount_xy_m: XY = (0.0, 0.0),
 ) -> np.ndarray:
     """Valid scan returns as points (N, 2) in the robot frame (metres).
@@ -136,8 +144,8 @@ class LocalCostmap:
         scan_points: np.ndarray,
         map_points: np.ndarray | None = None,
         map_point_radius_m: float = 0.0,
-        footprint_radius_m: float = 0.09,
-        clearance_m: float = 0.02,
+        footprint_radius_m: float = _ROBOT.footprint_radius_m,
+        clearance_m: float = _ROBOT.clearance_m,
     ) -> None:
         self.scan_points = np.asarray(scan_points, dtype=np.float64).reshape(-1, 2)
         self.map_points = np.zeros((0, 2)) if map_points is None else np.asarray(map_points, np.float64).reshape(-1, 2)
@@ -305,20 +313,20 @@ class DynamicWindowPlanner:
 
     def __init__(
         self,
-        max_speed_mps: float = 0.3,
+        max_speed_mps: float = _DRIVE.max_speed_mps,
         min_speed_mps: float = 0.0,
-        max_yaw_rate_radps: float = 1.2,
-        max_accel_mps2: float = 0.6,
-        max_yaw_accel_radps2: float = 3.0,
-        brake_decel_mps2: float = 0.6,
-        footprint_radius_m: float = 0.09,
-        clearance_m: float = 0.02,
+        max_yaw_rate_radps: float = _DRIVE.max_yaw_rate_radps,
+        max_accel_mps2: float = _DRIVE.max_accel_mps2,
+        max_yaw_accel_radps2: float = _DRIVE.max_yaw_accel_radps2,
+        brake_decel_mps2: float = _CONTROL.brake_decel_mps2,
+        footprint_radius_m: float = _ROBOT.footprint_radius_m,
+        clearance_m: float = _ROBOT.clearance_m,
         window_s: float = 0.2,
         latency_s: float = 0.25,
-        horizon_s: float = 1.2,
+        horizon_s: float = _PLANNER.horizon_s,
         step_m: float = 0.01,
         safety_margin_m: float = 0.01,
-        stop_margin_m: float = 0.03,
+        stop_margin_m: float = _CONTROL.stop_margin_m,
         v_samples: int = 7,
         w_samples: int = 15,
         w_progress: float = 1.0,
@@ -623,12 +631,12 @@ class LocalPlanner:
         align_enter_rad: float = math.radians(70.0),
         align_lookahead_m: float = 0.1,
         align_timeout_s: float = 8.0,
-        stuck_timeout_s: float = 4.0,
+        stuck_timeout_s: float = _PLANNER.stuck_timeout_s,
         stuck_progress_m: float = 0.03,
         blocked_timeout_s: float = 0.6,
         escape_m: float = 0.06,
         escape_speed_mps: float = 0.06,
-        max_recoveries: int = 3,
+        max_recoveries: int = _PLANNER.max_recoveries,
     ) -> None:
         self.dwa = dwa or DynamicWindowPlanner()
         # the turn is re-decided once per planner period: predict the heading that far ahead

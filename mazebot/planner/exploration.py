@@ -54,6 +54,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from mazebot.config import PlannerConfig, RobotConfig
 from mazebot.planner.frontiers import (
     Frontier,
     Viewpoint,
@@ -74,6 +75,10 @@ from mazebot.planner.global_path import (
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
 from mazebot.slam.grid import FREE
 from mazebot.steps import run_steps
+
+# the defaults below are the config's, each written once in mazebot.config
+_PLANNER = PlannerConfig()
+_ROBOT = RobotConfig()
 
 __all__ = [
     "Candidate",
@@ -302,21 +307,21 @@ class Explorer:
     def __init__(
         self,
         graph: MazeGraph | None = None,
-        strategy: Strategy | str = "nearest",
-        mode: Literal["auto", "maze", "frontier"] = "auto",
+        strategy: Strategy | str = _PLANNER.strategy,
+        mode: Literal["auto", "maze", "frontier"] = _PLANNER.mode,
         start_xy_m: tuple[float, float] = (0.0, 0.0),
         maze_fit_min: float = 0.96,
         maze_fit_hysteresis: float = 0.04,
         turn_cost_cells: float = 0.5,
         switch_margin: float = 1.0,
-        goal_tolerance_m: float = 0.06,
-        progress_revolutions: int = 110,
-        dwell_revolutions: int = 16,
-        retry_after_m: float = 0.9,
-        max_attempts: int = 3,
+        goal_tolerance_m: float = _PLANNER.goal_tolerance_m,
+        progress_revolutions: int = _PLANNER.progress_revolutions,
+        dwell_revolutions: int = _PLANNER.dwell_revolutions,
+        retry_after_m: float = _PLANNER.retry_after_m,
+        max_attempts: int = _PLANNER.max_attempts,
         map_check: bool = True,
-        footprint_radius_m: float = 0.09,
-        clearance_m: float = 0.02,
+        footprint_radius_m: float = _ROBOT.footprint_radius_m,
+        clearance_m: float = _ROBOT.clearance_m,
         min_frontier_cells: int = 4,
         frontier_wall_margin_cells: int = 2,
         lidar_min_range_m: float = 0.15,

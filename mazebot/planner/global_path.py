@@ -28,7 +28,11 @@ from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from mazebot.config import RobotConfig
 from mazebot.slam.grid import FREE, OCCUPIED
+
+# the defaults below are the config's, each written once in mazebot.config
+_ROBOT = RobotConfig()
 
 Cell = tuple[int, int]
 Neighbours = Callable[[Cell], Iterable[Cell]]
@@ -183,8 +187,8 @@ class GridCostmap:
         three_state: np.ndarray,
         origin_m: tuple[float, float],
         resolution_m: float,
-        footprint_radius_m: float = 0.09,
-        clearance_m: float = 0.02,
+        footprint_radius_m: float = _ROBOT.footprint_radius_m,
+        clearance_m: float = _ROBOT.clearance_m,
         wall_cost: float = 4.0,
         wall_decay_m: float = 0.05,
         unknown_is_free: bool = False,

@@ -47,8 +47,12 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from mazebot.config import MAZE_CELL_M, PlannerConfig
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN
 from mazebot.slam.lattice_fit import fit_pitch
+
+# the defaults below are the config's, each written once in mazebot.config
+_PLANNER = PlannerConfig()
 
 Cell = tuple[int, int]
 """A maze cell ``(i, j)``: ``i`` counts cells along the maze's u axis, ``j`` along v."""
@@ -169,7 +173,7 @@ def estimate_frame(
     three_state: np.ndarray,
     grid_origin_m: tuple[float, float],
     resolution_m: float,
-    cell_size_m: float = 0.3048,
+    cell_size_m: float = MAZE_CELL_M,
     anchor_xy_m: tuple[float, float] = (0.0, 0.0),
     prior_angle_rad: float | None = None,
     line_tolerance_m: float = 0.03,
@@ -387,8 +391,8 @@ class MazeGraph:
 
     def __init__(
         self,
-        cell_size_m: float = 0.3048,
-        wall_thickness_m: float = 0.012,
+        cell_size_m: float = MAZE_CELL_M,
+        wall_thickness_m: float = _PLANNER.wall_thickness_m,
         anchor_xy_m: tuple[float, float] = (0.0, 0.0),
         post_margin: float = 0.2,
         samples_along: int = 9,

@@ -38,6 +38,12 @@ from typing import Generic, TypeVar
 
 import numpy as np
 
+from mazebot.config import ControlConfig, RobotConfig
+
+# the defaults below are the config's, each written once in mazebot.config
+_CONTROL = ControlConfig()
+_ROBOT = RobotConfig()
+
 T = TypeVar("T")
 
 
@@ -90,10 +96,10 @@ class CollisionGuard:
 
     def __init__(
         self,
-        footprint_radius_m: float = 0.09,
+        footprint_radius_m: float = _ROBOT.footprint_radius_m,
         margin_m: float = 0.03,
         side_margin_m: float = 0.0,
-        brake_decel_mps2: float = 0.6,
+        brake_decel_mps2: float = _CONTROL.brake_decel_mps2,
         latency_s: float = 0.1,
         min_speed_mps: float = 0.005,
     ) -> None:
@@ -181,7 +187,7 @@ class ControlWatchdog:
     the planner starts again from rest on the next).
     """
 
-    def __init__(self, deadline_s: float = 0.1) -> None:
+    def __init__(self, deadline_s: float = _CONTROL.deadline_s) -> None:
         if deadline_s <= 0:
             raise ValueError(f"deadline_s must be positive, got {deadline_s}")
         self.deadline_s = float(deadline_s)
@@ -286,8 +292,8 @@ class SafetyLayer:
         self,
         guard: CollisionGuard | None = None,
         watchdog: ControlWatchdog | None = None,
-        command_ttl_ticks: int = 10,
-        scan_timeout_ticks: int = 20,
+        command_ttl_ticks: int = _CONTROL.command_ttl_ticks,
+        scan_timeout_ticks: int = _CONTROL.scan_timeout_ticks,
     ) -> None:
         if command_ttl_ticks < 1 or scan_timeout_ticks < 1:
             raise ValueError(f"need ticks >= 1, got {command_ttl_ticks} and {scan_timeout_ticks}")

@@ -42,7 +42,12 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from mazebot.config import ControlConfig, DriveConfig
 from mazebot.slam.odometry import wheel_metres_per_tick
+
+# the defaults below are the config's, each written once in mazebot.config
+_CONTROL = ControlConfig()
+_DRIVE = DriveConfig()
 
 
 class DriveMode(enum.StrEnum):
@@ -62,7 +67,9 @@ class DiffDriveKinematics:
     (0.125, 0.275)
     """
 
-    def __init__(self, track_width_m: float = 0.15, max_wheel_speed_mps: float = 0.6) -> None:
+    def __init__(
+        self, track_width_m: float = _DRIVE.track_width_m, max_wheel_speed_mps: float = _DRIVE.max_wheel_speed_mps
+    ) -> None:
         if track_width_m <= 0 or max_wheel_speed_mps <= 0:
             raise ValueError(
                 f"track_width_m and max_wheel_speed_mps must be positive, got {track_width_m}, {max_wheel_speed_mps}"
@@ -165,9 +172,9 @@ class WheelPid:
         kp: float = 0.5,
         ki: float = 4.0,
         kd: float = 0.0,
-        max_wheel_speed_mps: float = 0.6,
+        max_wheel_speed_mps: float = _DRIVE.max_wheel_speed_mps,
         deadband: float = 0.08,
-        integral_limit: float = 0.3,
+        integral_limit: float = _CONTROL.integral_limit,
         zero_speed_mps: float = 1e-3,
         reference_tau_s: float = 0.16,
         latency_s: float = 0.0,
@@ -308,7 +315,7 @@ class WheelGainEstimator:
 
     def __init__(
         self,
-        max_wheel_speed_mps: float = 0.6,
+        max_wheel_speed_mps: float = _DRIVE.max_wheel_speed_mps,
         deadband: float = 0.08,
         period_s: float = 0.05,
         latency_s: float = 0.05,
@@ -414,14 +421,14 @@ class WheelController:
 
     def __init__(
         self,
-        track_width_m: float = 0.15,
-        max_wheel_speed_mps: float = 0.6,
+        track_width_m: float = _DRIVE.track_width_m,
+        max_wheel_speed_mps: float = _DRIVE.max_wheel_speed_mps,
         deadband: float = 0.08,
         kp: float = 0.5,
         ki: float = 4.0,
         kd: float = 0.0,
-        integral_limit: float = 0.3,
-        max_wheel_accel_mps2: float = 1.0,
+        integral_limit: float = _CONTROL.integral_limit,
+        max_wheel_accel_mps2: float = _CONTROL.max_wheel_accel_mps2,
         max_wheel_decel_mps2: float = 2.0,
     ) -> None:
         self.kinematics = DiffDriveKinematics(track_width_m, max_wheel_speed_mps)
@@ -503,7 +510,7 @@ class HeadingAligner:
         self,
         tolerance_rad: float = math.radians(4.0),
         reengage_rad: float = math.radians(8.0),
-        max_yaw_rate_radps: float = 1.2,
+        max_yaw_rate_radps: float = _DRIVE.max_yaw_rate_radps,
         min_yaw_rate_radps: float = 0.4,
         yaw_decel_radps2: float = 3.0,
         latency_s: float = 0.05,

@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from mazebot.config import Config
+from mazebot.config import Config, config_from_json
+from mazebot.errors import ConfigError
 from mazebot.io.scan import Scan
 from mazebot.record.reader import RecordedMessage, Recording, RecordingError
 from mazebot.record.schemas import scan_from_json
@@ -61,8 +62,8 @@ class ReplayResult:
 
 def recorded_config(recording: Recording) -> Config:
     try:
-        return Config.model_validate_json(recording.metadata["config"])
-    except (KeyError, ValueError) as exc:
+        return config_from_json(recording.metadata["config"], str(recording.path))
+    except (KeyError, ValueError, ConfigError) as exc:
         raise RecordingError(f"{recording.path}: the recorded configuration cannot be read ({exc})") from None
 
 
@@ -96,9 +97,7 @@ class Replayer:
     ) -> None:
         self.recording = recording
         self.config = config = recorded_config(recording)
-        params = SlamParams.from_config(
-            config.slam, config.lidar, config.planner.cell_size_m, config.planner.cell_size_search
-        )
+        params = SlamParams.from_config(config.slam, config.lidar, config.planner)
         self.slam = Slam(params, background=True, record_trajectory=True)
         drive = config.drive
         self.odometry = DiffDriveOdometry(

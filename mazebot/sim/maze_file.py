@@ -27,12 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from mazebot.config import MAZE_CELL_M
 from mazebot.errors import UsageError
 from mazebot.sim.world import MazeLayout, World, world_from_layout
 
 #: Cell pitch of the robot's own maze (docs/design.md, "The reference robot": 1 ft cells). Contest micromouse mazes
 #: are 0.18 m; pass ``cell_size_m=0.18`` to load one at its true scale.
-DEFAULT_CELL_M = 0.3048
+DEFAULT_CELL_M = MAZE_CELL_M
 #: Wall thickness of a micromouse maze, 12 mm.
 DEFAULT_WALL_M = 0.012
 

@@ -18,6 +18,7 @@ from typing import Literal
 
 import numpy as np
 
+from mazebot.config import MAZE_CELL_M
 from mazebot.sim.world import MazeLayout
 
 MazeKind = Literal["perfect", "braided", "rooms"]
@@ -95,7 +96,7 @@ def generate_maze(
     height: int,
     seed: int,
     kind: MazeKind = "perfect",
-    cell_size_m: float = 0.3048,
+    cell_size_m: float = MAZE_CELL_M,
     braid_fraction: float = 0.5,
     room_count: int = 1,
     room_size: int = 3,

@@ -41,33 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-
-@dataclass(frozen=True)
-class CorrelativeParams:
-    """A correlative search; distances in metres, angles in radians.
-
-    ``window_xy_m`` / ``window_theta_rad`` are half-widths about the initial pose;
-    ``levels`` the branch-and-bound table levels above the fine one (block ``2^levels``
-    cells at the top). Points farther than ``max_range_m`` from the lidar are left out
-    (they would set a heading step too fine for the near ones), and at most
-    ``max_points`` of the rest are used, evenly spread. ``min_score`` is the score below
-    which the search found nothing worth trusting.
-    """
-
-    resolution_m: float = 0.03
-    sigma_m: float = 0.04
-    window_xy_m: float = 0.12
-    window_theta_rad: float = 0.35
-    levels: int = 2
-    max_range_m: float = 4.0
-    max_points: int = 200
-    min_score: float = 0.35
-
-    def __post_init__(self) -> None:
-        if not (self.resolution_m > 0 and self.sigma_m > 0 and self.max_range_m > 0):
-            raise ValueError("resolution_m, sigma_m and max_range_m must be positive")
-        if self.window_xy_m < 0 or self.window_theta_rad < 0 or self.levels < 0 or self.max_points < 1:
-            raise ValueError("windows and levels must not be negative, max_points at least 1")
+from mazebot.slam_config import CorrelativeParams as CorrelativeParams  # the [slam.search] section
 
 
 @dataclass(frozen=True)

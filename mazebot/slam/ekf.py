@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
+from mazebot.slam_config import MotionSection
 
 
 class OdometryHistory:
@@ -130,12 +131,8 @@ class OdometryHistory:
 
 
 @dataclass(frozen=True)
-class MotionNoise:
-    """Odometry noise of the motion model, as variance growth per metre and per radian."""
-
-    xy_m2_per_m: float = 4e-4  # (2 cm)² per metre travelled, each axis
-    theta_rad2_per_m: float = 1e-4  # (0.01 rad)² per metre travelled
-    theta_rad2_per_rad: float = 2.5e-3  # (0.05 rad)² per radian turned
+class MotionNoise(MotionSection):
+    """Odometry noise of the motion model (the ``[slam.motion]`` section), with its covariance."""
 
     def covariance(self, increment: np.ndarray) -> np.ndarray:
         """``M`` (3×3) of an increment (dx, dy, dθ), in the robot frame at its start."""

@@ -27,28 +27,9 @@ would move the endpoint far along the beam), or when the move would exceed
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-
-@dataclass(frozen=True)
-class EndpointSmoothing:
-    """Settings of :func:`smooth_endpoints`; distances in metres."""
-
-    half_window: int = 4  # neighbouring samples on each side, in scan order
-    radius_m: float = 0.1  # neighbours farther than this from the hit do not count
-    min_neighbours: int = 5  # points (the hit included) needed for a line
-    max_line_spread: float = 0.1  # smallest / largest eigenvalue of a usable neighbourhood
-    min_cos_incidence: float = 0.3  # beams more grazing than ~73° keep their range
-    max_shift_m: float = 0.03  # never move an endpoint farther than this
-
-    def __post_init__(self) -> None:
-        if self.half_window < 1 or self.radius_m <= 0 or self.min_neighbours < 3:
-            raise ValueError(
-                f"need half_window >= 1, radius_m > 0 and min_neighbours >= 3, got {self.half_window}, "
-                f"{self.radius_m}, {self.min_neighbours}"
-            )
+from mazebot.slam_config import EndpointSmoothing as EndpointSmoothing  # the [slam.smoothing] section
 
 
 def smooth_endpoints(

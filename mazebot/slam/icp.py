@@ -64,48 +64,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mazebot.geometry import transform_points
+from mazebot.slam_config import IcpParams as IcpParams  # the [slam.icp] section is ICP's parameters
 from mazebot.steps import run_steps
 
 #: ICP iterations between two stages of :func:`match_scan_steps` (about a millisecond here, four on a Pi 4).
 ITERATIONS_PER_STAGE = 4
-
-
-@dataclass(frozen=True)
-class IcpParams:
-    """ICP settings; distances in metres, angles in radians."""
-
-    max_iterations: int = 150  # seed: at most 150 iterations
-    converged_translation_m: float = 0.01  # seed: a step below 1 cm ...
-    converged_rotation_rad: float = 0.01  # ... and 0.01 rad counts as converged
-    stop_translation_m: float = 5e-4  # keep refining until the step is this small
-    stop_rotation_rad: float = 5e-4
-    max_correspondence_m: float = 0.3  # initial distance gate (about the initial pose error)
-    min_correspondence_m: float = 0.05  # the gate never shrinks below this
-    candidates: int = 16  # nearest neighbours searched when the nearest faces away from the lidar
-    robust_scale_min_m: float = 0.01  # floor of the Cauchy kernel's scale (unweighted; see robust_scale_min_sigma)
-    degeneracy_ratio: float = 0.02  # eigenvalue / largest eigenvalue below this: unobservable
-    sigma_min_m: float = 0.005  # floor of the residual std used for the information matrix (unweighted)
-    min_correspondences: int = 10  # fewer matches than this: give up, keep the prior
-    # range noise std / range of the lidar (A1M8: ~0.01): residuals weighted by 1/σ²; 0: all points alike
-    range_noise_ratio: float = 0.0
-    noise_floor_m: float = 0.002  # the part of each residual's std that does not grow with range
-    robust_scale_min_sigma: float = 2.0  # floor of the Cauchy scale on normalized residuals (in σ)
-    min_variance_factor: float = 1.0  # the information never trusts the points more than the noise model
-
-    def __post_init__(self) -> None:
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
-        if not 0.0 < self.min_correspondence_m <= self.max_correspondence_m:
-            raise ValueError(
-                f"need 0 < min_correspondence_m <= max_correspondence_m, got "
-                f"{self.min_correspondence_m}, {self.max_correspondence_m}"
-            )
-        if not 0.0 <= self.degeneracy_ratio < 1.0:
-            raise ValueError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio}")
-        if self.range_noise_ratio < 0.0:
-            raise ValueError(f"range_noise_ratio must be at least 0, got {self.range_noise_ratio}")
-        if self.range_noise_ratio > 0.0 and self.noise_floor_m <= 0.0:
-            raise ValueError(f"noise_floor_m must be positive with range noise weighting, got {self.noise_floor_m}")
 
 
 @dataclass(frozen=True)

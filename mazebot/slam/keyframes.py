@@ -32,21 +32,12 @@ from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
 from mazebot.slam.wall_lattice import LatticeFaces, LatticeParams, measure_faces
+from mazebot.slam_config import NormalParams as NormalParams  # the [slam.normals] section
 from mazebot.steps import run_steps
 
 #: A keyframe's wall faces are measured again when its heading on the wall grid changed by more
 #: than this (a few millimetres at the farthest face used, 1.2 m; smaller changes are followed to first order).
 LATTICE_REMEASURE_RAD = 0.005
-
-
-@dataclass(frozen=True)
-class NormalParams:
-    """Normal estimation of keyframe points (see :func:`mazebot.slam.icp.estimate_normals`)."""
-
-    neighbours: int = 10
-    radius_m: float = 0.1
-    max_line_spread: float = 0.2
-    smooth: bool = True  # move each point onto the line fitted through its neighbours (see smooth_onto_lines)
 
 
 @dataclass

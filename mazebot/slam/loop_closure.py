@@ -54,34 +54,16 @@ from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correla
 from mazebot.slam.ekf import rotate_information
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
 from mazebot.slam.posegraph import relative_pose, wrap_angle
+from mazebot.slam_config import LoopSection
 
 
 @dataclass(frozen=True)
-class LoopClosureParams:
-    """Search and acceptance thresholds; distances in metres, angles in radians."""
+class LoopClosureParams(LoopSection):
+    """Search and acceptance thresholds (the ``[slam.loop]`` section) and the correlative search about the prior.
 
-    search_radius_m: float = 0.25  # always search this close, whatever the uncertainty
-    max_search_radius_m: float = 1.0  # never search farther than this
-    sigma_scale: float = 3.0  # search radius grows by this many chain standard deviations
-    min_keyframe_gap: int = 40  # candidates are at least this many keyframes older than the new one
-    submap_half_width: int = 6  # the candidate's submap: keyframes i - k .. i + k
-    attempt_every: int = 3  # look for loop closures every this many new keyframes
-    max_candidates: int = 1  # candidates verified per attempt (nearest first)
-    min_fitness: float = 0.8  # share of the scan's points matched
-    max_rmse_m: float = 0.012  # point-to-line RMS of the matched points
-    min_correspondences: int = 40
-    accept_degenerate: bool = False  # accept matches that leave a direction unconstrained
-    gate_chi2: float = 11.34  # χ²(3) 99 %: correction against chain + ICP covariance
-    max_correction_m: float = 0.10  # the correction may move the new keyframe at most this far ...
-    max_correction_rad: float = 0.15  # ... and turn it at most this much
-    ambiguity_shift_m: float = 0.3048  # restart ICP this far off the prior (one maze cell)
-    ambiguity_tolerance_m: float = 0.05  # a restart ending farther than this from the match is another fit
-    ambiguity_fitness_ratio: float = 0.85  # ... and it fits as well if its inlier ratio is this share of the match's
-    ambiguity_rmse_ratio: float = 4.0  # ... and its residual at most this many times the match's
-    information_scale: float = 0.1  # ICP information is optimistic; scale it for the graph edge
-    min_std_m: float = 0.005  # floor of the chain's position std in the consistency test
-    min_std_rad: float = 0.005  # floor of the chain's heading std
-    max_range_m: float | None = 2.0  # verify with points this close to the new keyframe's lidar (None: all)
+    ``max_range_m`` None: verify with every point (``0`` in the config).
+    """
+
     # branch and bound over this window about the prior before ICP (None: ICP from the prior alone)
     search: CorrelativeParams | None = None
 

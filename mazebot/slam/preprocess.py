@@ -42,8 +42,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from mazebot.config import LidarConfig
 from mazebot.geometry import transform_points
 from mazebot.io.scan import Scan
+from mazebot.slam_config import PrepareSection
+
+_LIDAR = LidarConfig()  # the lidar's defaults, written once in [lidar]
 
 #: Pose look-up: sample times (s) -> (x_m, y_m, theta_rad) arrays in any fixed frame
 #: (the odometry frame). :meth:`mazebot.sim.lidar_samples.PoseHistory.at` has this shape.
@@ -51,29 +55,24 @@ PoseAtTime = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
-class PrepareParams:
-    """Parameters of :func:`prepare_scan`; defaults fit the RPLidar A1M8 in a 1 ft maze."""
+class PrepareParams(PrepareSection):
+    """Parameters of :func:`prepare_scan`: the ``[slam.prepare]`` section and the lidar's range and mounting.
 
-    min_range_m: float = 0.15  # A1M8 datasheet minimum
-    max_range_m: float = 12.0  # farther valid returns become no-return beams
-    median_window: int = 3  # samples in the running median (odd, >= 3)
-    impulse_abs_m: float = 0.05  # a sample further than this ...
-    impulse_rel: float = 0.05  # ... plus this fraction of the median from its local median is a spike
-    circular: bool = True  # the scan is a full turn: the first and last samples are neighbours
-    voxel_size_m: float = 0.025  # matching point spacing
-    mount_x_m: float = 0.0  # lidar centre ahead of the axle centre
-    mount_y_m: float = 0.0  # lidar centre left of the axle centre
+    The lidar's values default to ``[lidar]``'s; ``from_config`` in ``mazebot.slam.slam``
+    fills in the configured ones.
+    """
+
+    min_range_m: float = _LIDAR.min_range_m
+    mount_x_m: float = _LIDAR.mount_x_m  # lidar centre ahead of the axle centre
+    mount_y_m: float = _LIDAR.mount_y_m  # lidar centre left of the axle centre
     # robot-frame angle (CCW) of the lidar's 0 mark; leave 0 for scans from mazebot.io.rplidar,
     # whose angles already include the configured mount yaw
     mount_yaw_rad: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.median_window < 1 or self.median_window % 2 == 0:
-            raise ValueError(f"median_window must be odd and positive, got {self.median_window}")
+        super().__post_init__()
         if not 0.0 <= self.min_range_m < self.max_range_m:
             raise ValueError(f"need 0 <= min_range_m < max_range_m, got {self.min_range_m}, {self.max_range_m}")
-        if self.voxel_size_m <= 0:
-            raise ValueError(f"voxel_size_m must be positive, got {self.voxel_size_m}")
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,7 @@ robot's map pose at any later time is ``map_from_odom ⊕ odometry``.
 
 Example::
 
-    slam = Slam(SlamParams.from_config(config.slam, config.lidar))
+    slam = Slam(SlamParams.from_config(config.slam, config.lidar, config.planner))
     update = slam.update(scan, odometry_history)     # one revolution
     update.pose, update.covariance, slam.grid.three_state()
 """
@@ -60,6 +60,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from mazebot.config import LidarConfig, PlannerConfig
 from mazebot.geometry import transform_points
 from mazebot.io.scan import Scan
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
@@ -73,6 +74,19 @@ from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, fin
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
 from mazebot.slam.wall_lattice import LatticeParams, lattice_priors
+from mazebot.slam_config import (
+    FACADE_SECTIONS,
+    FilterSection,
+    GraphSection,
+    GridSection,
+    KeyframeSection,
+    MapSection,
+    MatchingSection,
+    SlamConfig,
+    WallSection,
+    as_params,
+    section_values,
+)
 from mazebot.steps import run_steps
 
 log = logging.getLogger(__name__)
@@ -96,212 +110,86 @@ class OdometrySource(Protocol):
 
 
 @dataclass(frozen=True)
-class GridParams:
-    """Occupancy grid settings (see :class:`mazebot.slam.grid.OccupancyGrid`)."""
-
-    resolution_m: float = 0.02
-    l_hit: float = 0.85
-    l_miss: float = -0.4
-    l_min: float = -5.0
-    l_max: float = 5.0
-    occupied_prob: float = 0.75  # above l_hit's 0.70: a wall takes two hits, a stray noisy return stays unknown
-    free_prob: float = 0.25
-    max_free_range_m: float = 4.0
+class GridParams(GridSection):
+    """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`)."""
 
     def new_grid(self) -> OccupancyGrid:
-        return OccupancyGrid(
-            resolution_m=self.resolution_m,
-            l_hit=self.l_hit,
-            l_miss=self.l_miss,
-            l_min=self.l_min,
-            l_max=self.l_max,
-            occupied_prob=self.occupied_prob,
-            free_prob=self.free_prob,
-            max_free_range_m=self.max_free_range_m,
-        )
+        return OccupancyGrid(**section_values(self))
+
+
+def _daemon_default(part: str) -> Any:
+    """The default of one of :class:`SlamParams`' nested parts: the daemon's, built from the default config."""
+    return lambda: getattr(SlamParams.from_config(SlamConfig(), LidarConfig(), PlannerConfig()), part)
 
 
 @dataclass(frozen=True)
-class SlamParams:
-    """Everything :class:`Slam` is tuned by; ``from_config`` builds it from ``[slam]`` and ``[lidar]``."""
+class SlamParams(FilterSection, MatchingSection, KeyframeSection, GraphSection, WallSection, MapSection):
+    """Everything :class:`Slam` is tuned by: the ``[slam]`` config and what it takes from ``[lidar]`` and ``[planner]``.
 
-    prepare: PrepareParams = field(default_factory=PrepareParams)
-    icp: IcpParams = field(default_factory=IcpParams)
-    normals: NormalParams = field(default_factory=NormalParams)
-    motion: MotionNoise = field(default_factory=MotionNoise)
-    loop: LoopClosureParams = field(default_factory=LoopClosureParams)
-    grid: GridParams = field(default_factory=GridParams)
-    map_max_range_m: float | None = 1.2  # farther hits only clear space in the grid (None: no limit)
+    The façade's own values are the fields of the ``[slam.filter]``, ``[slam.matching]``,
+    ``[slam.keyframes]``, ``[slam.graph]``, ``[slam.walls]`` and ``[slam.map]`` sections
+    side by side; the steps' parameters are the other sections. ``SlamParams()`` is the
+    daemon's SLAM with the default config; ``from_config`` builds it from any config.
+    """
+
+    prepare: PrepareParams = field(default_factory=_daemon_default("prepare"))
+    icp: IcpParams = field(default_factory=_daemon_default("icp"))
+    normals: NormalParams = field(default_factory=_daemon_default("normals"))
+    motion: MotionNoise = field(default_factory=_daemon_default("motion"))
+    loop: LoopClosureParams = field(default_factory=_daemon_default("loop"))
+    grid: GridParams = field(default_factory=_daemon_default("grid"))
     # hits moved along their beams onto their local wall line before mapping (None: as measured)
-    map_smoothing: EndpointSmoothing | None = field(default_factory=EndpointSmoothing)
-    range_noise_rel: float = 0.01  # the lidar's range noise (std / range): far hits clear up to 3 std short
-    map_hit_depth_m: float = 0.0  # a hit marks the cell this far behind the wall's face (keyframes.map_rays)
-    filter_gate_chi2: float = 16.27
-    calibrate_heading: bool = True  # learn the odometry's heading bias online (see ekf.HeadingCalibration)
-    calibration_memory_scans: float = 1000.0
-    lidar_time_offset_s: float = 0.0  # how late the lidar's stamps are against the odometry's (initial value)
-    estimate_time_offset: bool = True  # learn that offset online (see ekf.TimeOffsetCalibration)
-    initial_std: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)  # of the start pose: m, m, rad
-    min_match_fitness: float = 0.5  # the filter ignores matches with a lower inlier ratio ...
-    max_match_rmse_m: float = 0.03  # ... or a larger point-to-line residual
-    retry_headings_rad: tuple[float, ...] = (0.05, -0.05, 0.1, -0.1)  # ICP restarts when a match fails
+    map_smoothing: EndpointSmoothing | None = field(default_factory=_daemon_default("map_smoothing"))
     # the correlative search before ICP where the prediction is uncertain (None: ICP and its retries alone)
-    correlative: CorrelativeParams | None = field(default_factory=CorrelativeParams)
-    match_information_scale: float = 0.5
-    keyframe_distance_m: float = 0.10
-    keyframe_angle_rad: float = 0.2
-    submap_keyframes: int = 20  # the most recent keyframes are always in the local submap ...
-    submap_radius_m: float = 0.5  # ... with older ones within this distance of the robot (0: none) ...
-    submap_near_keyframes: int = 20  # ... at most this many of them, nearest first
-    submap_voxel_m: float = 0.01
-    submap_update_m: float = 0.05  # rebuild the submap for a keyframe this far from the last rebuild ...
-    submap_update_keyframes: int = 4  # ... or after this many keyframes (in-place turns see the same walls)
-    optimize_iterations: int = 30
-    wall_prior: bool = True  # the maze's walls meet at right angles: a heading prior for every keyframe
-    wall_prior_std_rad: float = 0.01  # how much one keyframe's wall direction is trusted
-    wall_min_strength: float = 0.6  # only keyframes whose normals mostly lie on a right-angle grid ...
-    wall_min_normals: int = 40  # ... with at least this many normals ...
-    wall_max_deviation_rad: float = 0.087  # ... and within this of the reference grid count
-    # keyframe 0 measures the walls over this many revolutions at rest, the map's anchor (1: the first scan alone)
-    anchor_revolutions: int = 20
-    anchor_still_m: float = 0.002  # the robot stands still while the odometry moved less than this ...
-    anchor_still_rad: float = 0.002  # ... and turned less than this since keyframe 0
-    wall_anchor_std_rad: float = 0.001  # how much the anchor's (averaged) wall direction is trusted
-    optimize_every_keyframes: int = 20  # optimize (wall priors) this often even without a loop closure
-    rebuild_threshold_m: float = 0.01
-    rebuild_threshold_rad: float = 0.005
+    correlative: CorrelativeParams | None = field(default_factory=_daemon_default("correlative"))
     # the walls lie on a square lattice of this pitch: a position prior per keyframe (None: no lattice)
-    lattice: LatticeParams | None = None
+    lattice: LatticeParams | None = field(default_factory=_daemon_default("lattice"))
 
     @classmethod
-    def from_config(
-        cls, slam: Any, lidar: Any, cell_size_m: float | None = None, cell_size_search: float = 0.0
-    ) -> SlamParams:
-        """From the ``[slam]`` and ``[lidar]`` config sections (plain values only from here on).
+    def from_config(cls, slam: SlamConfig, lidar: LidarConfig, planner: PlannerConfig | None = None) -> SlamParams:
+        """From the ``[slam]``, ``[lidar]`` and ``[planner]`` config sections (plain values only from here on).
 
-        ``cell_size_m`` is the maze's cell size (``[planner] cell_size_m``): with it, and
-        ``wall_lattice`` and ``wall_prior`` on, the keyframes' wall faces are tied to the
-        lattice of that pitch (:mod:`mazebot.slam.wall_lattice`), or of the pitch measured
-        within ``cell_size_search`` of it (``[planner] cell_size_search``).
+        Each section carries over field by field; what is built here is only what one
+        section takes from another or what a switch turns off. Without ``planner`` (a laser
+        log, not a maze) there is no wall lattice; with it, and ``wall_lattice`` and
+        ``walls.wall_prior`` on, the keyframes' wall faces are tied to the lattice of its
+        cell size, or of the pitch measured within ``cell_size_search`` of it.
         """
         lattice = None
-        if cell_size_m is not None and slam.wall_lattice and slam.wall_prior:
-            lattice = LatticeParams(
-                pitch_m=cell_size_m,
-                pitch_search=cell_size_search,
-                std_m=slam.wall_lattice_std_m,
-                gate_m=slam.wall_lattice_gate_m,
+        if planner is not None and slam.wall_lattice and slam.walls.wall_prior:
+            lattice = as_params(
+                LatticeParams, slam.lattice, pitch_m=planner.cell_size_m, pitch_search=planner.cell_size_search
             )
-        correlative = CorrelativeParams(
-            resolution_m=slam.corr_resolution_m,
-            sigma_m=slam.corr_sigma_m,
-            window_xy_m=slam.corr_window_m,
-            window_theta_rad=slam.corr_window_rad,
-            levels=slam.corr_levels,
-            max_range_m=slam.corr_max_range_m,
-            max_points=slam.corr_max_points,
-            min_score=slam.corr_min_score,
-        )
+        loop_search = None
+        if slam.loop_corr_window_m > 0 or slam.loop_corr_window_rad > 0:
+            loop_search = replace(
+                slam.search,
+                window_xy_m=slam.loop_corr_window_m,
+                window_theta_rad=slam.loop_corr_window_rad,
+                levels=slam.loop_corr_levels,
+            )
+        facade = {name: v for part in FACADE_SECTIONS for name, v in section_values(getattr(slam, part)).items()}
+        facade["map_max_range_m"] = slam.map.map_max_range_m or None
+        loop = as_params(LoopClosureParams, replace(slam.loop, max_range_m=slam.loop.max_range_m or None),
+                         search=loop_search)
         return cls(
-            lattice=lattice,
-            prepare=PrepareParams(
+            **facade,
+            prepare=as_params(
+                PrepareParams,
+                replace(slam.prepare, max_range_m=min(slam.prepare.max_range_m, lidar.max_range_m)),
                 min_range_m=lidar.min_range_m,
-                max_range_m=min(slam.max_range_m, lidar.max_range_m),
-                median_window=slam.median_window,
-                impulse_abs_m=slam.impulse_abs_m,
-                impulse_rel=slam.impulse_rel,
-                voxel_size_m=slam.voxel_m,
                 mount_x_m=lidar.mount_x_m,
                 mount_y_m=lidar.mount_y_m,
                 mount_yaw_rad=0.0,  # the driver already turned the angles into the robot frame
             ),
-            icp=IcpParams(
-                max_iterations=slam.icp_max_iterations,
-                converged_translation_m=slam.icp_converged_m,
-                converged_rotation_rad=slam.icp_converged_rad,
-                stop_translation_m=slam.icp_stop_m,
-                stop_rotation_rad=slam.icp_stop_rad,
-                max_correspondence_m=slam.icp_max_correspondence_m,
-                min_correspondence_m=slam.icp_min_correspondence_m,
-                degeneracy_ratio=slam.icp_degeneracy_ratio,
-                range_noise_ratio=slam.icp_range_noise_ratio,
-                noise_floor_m=slam.icp_noise_floor_m,
-            ),
-            normals=NormalParams(neighbours=slam.normal_neighbours, radius_m=slam.normal_radius_m),
-            motion=MotionNoise(
-                xy_m2_per_m=slam.odom_var_xy_m2_per_m,
-                theta_rad2_per_m=slam.odom_var_theta_rad2_per_m,
-                theta_rad2_per_rad=slam.odom_var_theta_rad2_per_rad,
-            ),
-            loop=LoopClosureParams(
-                search_radius_m=slam.loop_search_radius_m,
-                max_search_radius_m=slam.loop_max_search_radius_m,
-                sigma_scale=slam.loop_sigma_scale,
-                min_keyframe_gap=slam.loop_min_keyframe_gap,
-                submap_half_width=slam.loop_submap_half_width,
-                attempt_every=slam.loop_attempt_every,
-                min_fitness=slam.loop_min_fitness,
-                max_rmse_m=slam.loop_max_rmse_m,
-                min_correspondences=slam.loop_min_correspondences,
-                accept_degenerate=slam.loop_accept_degenerate,
-                gate_chi2=slam.loop_gate_chi2,
-                max_correction_m=slam.loop_max_correction_m,
-                max_correction_rad=slam.loop_max_correction_rad,
-                ambiguity_shift_m=slam.loop_ambiguity_shift_m,
-                ambiguity_fitness_ratio=slam.loop_ambiguity_fitness_ratio,
-                ambiguity_rmse_ratio=slam.loop_ambiguity_rmse_ratio,
-                information_scale=slam.loop_information_scale,
-                max_range_m=slam.loop_max_range_m or None,
-                search=replace(
-                    correlative,
-                    window_xy_m=slam.loop_corr_window_m,
-                    window_theta_rad=slam.loop_corr_window_rad,
-                    levels=slam.loop_corr_levels,
-                )
-                if slam.loop_corr_window_m > 0 or slam.loop_corr_window_rad > 0
-                else None,
-            ),
-            grid=GridParams(
-                resolution_m=slam.grid_resolution_m,
-                l_hit=slam.grid_l_hit,
-                l_miss=slam.grid_l_miss,
-                l_min=slam.grid_l_min,
-                l_max=slam.grid_l_max,
-                occupied_prob=slam.grid_occupied_prob,
-                free_prob=slam.grid_free_prob,
-                max_free_range_m=slam.grid_max_free_range_m,
-            ),
-            map_max_range_m=slam.map_max_range_m or None,
-            map_smoothing=EndpointSmoothing() if slam.map_smooth_endpoints else None,
-            range_noise_rel=slam.range_noise_rel,
-            map_hit_depth_m=slam.map_hit_depth_m,
-            filter_gate_chi2=slam.filter_gate_chi2,
-            calibrate_heading=slam.odom_calibration,
-            calibration_memory_scans=slam.odom_calibration_memory_scans,
-            lidar_time_offset_s=slam.lidar_time_offset_s,
-            estimate_time_offset=slam.estimate_time_offset,
-            min_match_fitness=slam.icp_min_fitness,
-            max_match_rmse_m=slam.icp_max_rmse_m,
-            retry_headings_rad=tuple(slam.icp_retry_headings_rad),
-            correlative=correlative if slam.correlative else None,
-            match_information_scale=slam.icp_information_scale,
-            keyframe_distance_m=slam.keyframe_distance_m,
-            keyframe_angle_rad=slam.keyframe_angle_rad,
-            submap_keyframes=slam.submap_keyframes,
-            submap_radius_m=slam.submap_radius_m,
-            submap_near_keyframes=slam.submap_near_keyframes,
-            submap_voxel_m=slam.submap_voxel_m,
-            submap_update_m=slam.submap_update_m,
-            submap_update_keyframes=slam.submap_update_keyframes,
-            optimize_iterations=slam.optimize_iterations,
-            wall_prior=slam.wall_prior,
-            wall_prior_std_rad=slam.wall_prior_std_rad,
-            wall_min_strength=slam.wall_min_strength,
-            anchor_revolutions=slam.anchor_revolutions,
-            wall_anchor_std_rad=slam.wall_anchor_std_rad,
-            optimize_every_keyframes=slam.optimize_every_keyframes,
-            rebuild_threshold_m=slam.rebuild_threshold_m,
-            rebuild_threshold_rad=slam.rebuild_threshold_rad,
+            icp=slam.icp,
+            normals=slam.normals,
+            motion=as_params(MotionNoise, slam.motion),
+            loop=loop,
+            grid=as_params(GridParams, slam.grid),
+            map_smoothing=slam.smoothing if slam.map_smooth_endpoints else None,
+            correlative=slam.search if slam.correlative else None,
+            lattice=lattice,
         )
 
 
@@ -599,7 +487,7 @@ class Slam:
 
     Example::
 
-        slam = Slam(SlamParams.from_config(cfg.slam, cfg.lidar))
+        slam = Slam(SlamParams.from_config(cfg.slam, cfg.lidar, cfg.planner))
         for scan in scans:
             update = slam.update(scan, odometry_history)
         slam.pose, slam.grid.three_state(), slam.keyframe_poses()

@@ -123,6 +123,7 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
             else replace(search, window_xy_m=1.5, window_theta_rad=0.2, levels=5),
         ),
         correlative=None if base.correlative is None else search,  # [slam] correlative = false turns both off
+        lattice=None,  # no maze: no wall lattice
         grid=GridParams(resolution_m=0.05, max_free_range_m=20.0),
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match

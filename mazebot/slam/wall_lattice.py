@@ -39,6 +39,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mazebot.config import PlannerConfig
+from mazebot.slam_config import LatticeSection
+
+_PLANNER = PlannerConfig()  # the maze's pitch, written once in [planner]
+
 #: Classes of wall faces: (axis 0 = u / 1 = v, sign of the face normal along it).
 FACE_CLASSES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))
 
@@ -48,19 +53,16 @@ MIN_CONSISTENCY = 0.9
 
 
 @dataclass(frozen=True)
-class LatticeParams:
-    """How keyframe wall faces become lattice priors."""
+class LatticeParams(LatticeSection):
+    """How keyframe wall faces become lattice priors: the ``[slam.lattice]`` section and the maze's pitch.
 
-    pitch_m: float = 0.3048  # the maze's cell size: the spacing of the lattice lines
-    pitch_search: float = 0.0  # the true pitch is measured within this share of pitch_m (0: pitch_m exactly)
-    fit_tolerance_m: float = 0.02  # a face this close to a lattice line fits it (boards offset, posts set out by hand)
-    std_m: float = 0.005  # trust in one keyframe's face offset (one class)
-    gate_m: float = 0.04  # a face farther than this from the lattice (at the current estimate) is ignored
-    normal_tolerance_rad: float = 0.26  # a point's normal within this of a lattice axis belongs to its class
-    inlier_m: float = 0.01  # a point within this of its class's offset counts
-    min_points: int = 10  # a class needs this many inlier points ...
-    min_extent_m: float = 0.05  # ... spread this far along the face
-    max_range_m: float = 1.2  # points farther from the lidar are too noisy to say where a face is
+    The pitch is the planner's cell size (``[planner] cell_size_m``, the one key for the
+    maze's 1 ft), measured within ``pitch_search`` of it (``[planner] cell_size_search``;
+    0: exactly ``pitch_m``).
+    """
+
+    pitch_m: float = _PLANNER.cell_size_m
+    pitch_search: float = _PLANNER.cell_size_search
 
 
 @dataclass(frozen=True)

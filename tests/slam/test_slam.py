@@ -271,7 +271,7 @@ def test_a_map_started_at_rest_is_not_turned_about_the_start(loop_maze: World) -
     _, _, trajectory = tour(loop_maze, config, seed=2, slam=slam, still_s=4.0)
     rotation_deg = _map_rotation_deg(slam, trajectory, np.array(loop_maze.start_pose))
     assert abs(rotation_deg) < 0.05, rotation_deg
-    assert slam.anchor_revolutions == config.slam.anchor_revolutions
+    assert slam.anchor_revolutions == config.slam.walls.anchor_revolutions
 
 
 def test_keyframe_0_measures_the_walls_over_the_revolutions_at_rest(maze_world: World, cast_scan) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -90,10 +91,9 @@ def test_missing_log_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
 
 
 def test_range_noise_weighting_comes_from_the_config_and_is_off_for_laser_logs() -> None:
-    """The maze's A1 has range-proportional noise (``icp_range_noise_ratio``); a SICK's does not grow with range."""
+    """The maze's A1 has range-proportional noise (``icp.range_noise_ratio``); a SICK's does not grow with range."""
     config = load_config(None)
-    config.slam.icp_range_noise_ratio = 0.01
-    config.slam.icp_noise_floor_m = 0.003
+    config.slam.icp = replace(config.slam.icp, range_noise_ratio=0.01, noise_floor_m=0.003)
     params = SlamParams.from_config(config.slam, config.lidar)
     assert params.icp.range_noise_ratio == 0.01 and params.icp.noise_floor_m == 0.003
     assert laser_log_params(params, None).icp.range_noise_ratio == 0.0

@@ -14,7 +14,7 @@ from mazebot.slam.wall_lattice import FACE_CLASSES, LatticeParams, lattice_prior
 
 CELL_M = 0.3048
 WALL_M = 0.012
-PARAMS = LatticeParams(pitch_m=CELL_M)
+PARAMS = LatticeParams(pitch_m=CELL_M, pitch_search=0.0)  # the exact pitch (the daemon measures it within 8 %)
 
 # a walk through the 6x6 maze fixture's cells (col, row), each a neighbour of the one before
 ROUTE = [(0, 0), (0, 1), (0, 2), (1, 2), (1, 1), (2, 1), (2, 2), (2, 3), (3, 3), (3, 2), (4, 2), (4, 3)]
@@ -110,7 +110,7 @@ def test_the_priors_say_where_drifted_keyframes_belong_on_the_lattice(maze_world
 
 def test_walls_off_the_pitch_give_no_prior(maze_world, cast_scan):
     truth = route_poses(maze_world)
-    other = LatticeParams(pitch_m=0.25)  # the config says 25 cm cells; this maze's are 1 ft
+    other = LatticeParams(pitch_m=0.25, pitch_search=0.0)  # the config says 25 cm cells; this maze's are 1 ft
     keyframes = [keyframe_at(maze_world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
     faces = [kf.lattice_faces(float(p[2]), other) for kf, p in zip(keyframes, truth, strict=True)]
     rows, _, _, _ = lattice_priors(truth, faces, truth[0, :2], 0.0, other)

@@ -1,0 +1,519 @@
+"""The ``[slam]`` section of ``config.toml``: its nested sections are the SLAM's parameter objects.
+
+Each nested section (``[slam.icp]``, ``[slam.loop]``, ``[slam.grid]`` ...) is the frozen
+dataclass the algorithm that reads it takes, defined once here with its defaults, units,
+ranges and descriptions, as in KISS-ICP's ``config/config.py``: ``IcpParams()`` is the
+daemon's ICP, and the config holds an ``IcpParams``. The constraints are pydantic
+``Field`` metadata, checked when a config file is parsed (``mazebot.config``); an
+algorithm builds its parameters in code without validation, as plain dataclasses.
+
+A section whose algorithm needs behaviour of its own (``GridParams.new_grid``) or values
+from another section (the lidar's range and mounting, the maze's pitch) is subclassed
+beside the algorithm, adding only those; :func:`as_params` turns the config's section
+into that subclass, field by field, without a mapping written by hand.
+
+Until this layout, every ``[slam]`` key was flat (``icp_max_iterations``); :data:`FLAT_KEYS`
+says where each one went, and ``mazebot.config`` moves an old file's keys there with a
+warning.
+
+This module imports only pydantic: ``mazebot.config`` (and ``mazebot motors stop``) loads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Annotated, Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field
+
+#: The maze's wall pitch, 1 ft (docs/design.md, "The reference robot"): the default of
+#: ``[planner] cell_size_m``, the one key for it; ``mazebot.config`` derives the others from that key.
+MAZE_CELL_M = 0.3048
+
+#: Unknown keys in a nested section are an error, as in every other section.
+_FORBID = ConfigDict(extra="forbid")
+
+
+@dataclass(frozen=True)
+class PrepareSection:
+    """Scan preparation: impulse rejection, range limit and thinning (``mazebot.slam.preprocess``).
+
+    The lidar's own range and mounting come from ``[lidar]``
+    (:class:`mazebot.slam.preprocess.PrepareParams` adds them).
+    """
+
+    __pydantic_config__ = _FORBID
+
+    max_range_m: Annotated[float, Field(gt=0.2, le=40, description=(
+        "farther returns only clear space (never matched, never a wall); at most [lidar] max_range_m"))] = 8.0
+    median_window: Annotated[int, Field(ge=1, le=15, description=(
+        "samples in the running median of impulse rejection (odd)"))] = 3
+    impulse_abs_m: Annotated[float, Field(ge=0, description=(
+        "a sample this far plus impulse_rel of its median from its median is a spike"))] = 0.05
+    impulse_rel: Annotated[float, Field(ge=0, description="relative part of the spike threshold")] = 0.05
+    circular: Annotated[bool, Field(description=(
+        "a scan is a full turn: its first and last samples are neighbours"))] = True
+    voxel_size_m: Annotated[float, Field(gt=0.001, le=0.5, description="point spacing of a scan for matching")] = 0.025
+
+    def __post_init__(self) -> None:
+        if self.median_window < 1 or self.median_window % 2 == 0:
+            raise ValueError(f"median_window must be odd and positive, got {self.median_window}")
+        if self.voxel_size_m <= 0:
+            raise ValueError(f"voxel_size_m must be positive, got {self.voxel_size_m}")
+
+
+@dataclass(frozen=True)
+class MotionSection:
+    """Odometry noise of the EKF's motion model, as variance growth per metre and per radian."""
+
+    __pydantic_config__ = _FORBID
+
+    xy_m2_per_m: Annotated[float, Field(gt=0, description=(
+        "odometry position variance growth per metre travelled, each axis ((2 cm)² per m)"))] = 4e-4
+    theta_rad2_per_m: Annotated[float, Field(gt=0, description=(
+        "odometry heading variance per metre travelled ((0.01 rad)² per m)"))] = 1e-4
+    theta_rad2_per_rad: Annotated[float, Field(gt=0, description=(
+        "odometry heading variance per radian turned ((0.05 rad)² per rad)"))] = 2.5e-3
+
+
+@dataclass(frozen=True)
+class IcpParams:
+    """Point-to-line ICP (``mazebot.slam.icp``); distances in metres, angles in radians."""
+
+    __pydantic_config__ = _FORBID
+
+    max_iterations: Annotated[int, Field(ge=1, le=1000, description="ICP iterations at most")] = 150
+    converged_translation_m: Annotated[float, Field(gt=0, description=(
+        "ICP converged: last step below this ..."))] = 0.01
+    converged_rotation_rad: Annotated[float, Field(gt=0, description="... and below this rotation")] = 0.01
+    stop_translation_m: Annotated[float, Field(gt=0, description=(
+        "ICP refines until its step is below this ..."))] = 5e-4
+    stop_rotation_rad: Annotated[float, Field(gt=0, description="... and this rotation")] = 5e-4
+    max_correspondence_m: Annotated[float, Field(gt=0, description=(
+        "first distance gate of ICP correspondences (about the initial pose error)"))] = 0.3
+    min_correspondence_m: Annotated[float, Field(gt=0, description=(
+        "the adaptive gate never shrinks below this"))] = 0.05
+    candidates: Annotated[int, Field(ge=1, le=128, description=(
+        "nearest neighbours searched when the nearest faces away from the lidar"))] = 16
+    robust_scale_min_m: Annotated[float, Field(gt=0, description=(
+        "floor of the Cauchy kernel's scale (unweighted residuals)"))] = 0.01
+    degeneracy_ratio: Annotated[float, Field(ge=0, lt=1, description=(
+        "eigenvalue ratio below which a direction counts as unobservable"))] = 0.02
+    sigma_min_m: Annotated[float, Field(gt=0, description=(
+        "floor of the residual std used for the information matrix (unweighted)"))] = 0.005
+    min_correspondences: Annotated[int, Field(ge=3, description=(
+        "fewer matches than this: give up, keep the prior"))] = 10
+    range_noise_ratio: Annotated[float, Field(ge=0, lt=0.3, description=(
+        "weight ICP residuals by the lidar's range noise, std / range (A1: 0.01; 0: all points alike)"))] = 0.0
+    noise_floor_m: Annotated[float, Field(gt=0, description=(
+        "... plus this std that does not grow with range (submap pose errors)"))] = 0.002
+    robust_scale_min_sigma: Annotated[float, Field(gt=0, description=(
+        "floor of the Cauchy scale on normalized residuals, in std"))] = 2.0
+    min_variance_factor: Annotated[float, Field(gt=0, description=(
+        "the information never trusts the points more than the noise model"))] = 1.0
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be at least 1, got {self.max_iterations}")
+        if not 0.0 < self.min_correspondence_m <= self.max_correspondence_m:
+            raise ValueError(
+                f"need 0 < min_correspondence_m <= max_correspondence_m, got "
+                f"{self.min_correspondence_m}, {self.max_correspondence_m}"
+            )
+        if not 0.0 <= self.degeneracy_ratio < 1.0:
+            raise ValueError(f"degeneracy_ratio must be in [0, 1), got {self.degeneracy_ratio}")
+        if self.range_noise_ratio < 0.0:
+            raise ValueError(f"range_noise_ratio must be at least 0, got {self.range_noise_ratio}")
+        if self.range_noise_ratio > 0.0 and self.noise_floor_m <= 0.0:
+            raise ValueError(f"noise_floor_m must be positive with range noise weighting, got {self.noise_floor_m}")
+
+
+@dataclass(frozen=True)
+class NormalParams:
+    """Surface normals of keyframe points (``mazebot.slam.icp.estimate_normals``)."""
+
+    __pydantic_config__ = _FORBID
+
+    neighbours: Annotated[int, Field(ge=3, le=50, description="neighbours for surface normals")] = 10
+    radius_m: Annotated[float, Field(gt=0, description=(
+        "neighbours farther than this do not count for a normal"))] = 0.1
+    max_line_spread: Annotated[float, Field(gt=0, le=1, description=(
+        "smallest / largest eigenvalue of a neighbourhood that is a line"))] = 0.2
+    smooth: Annotated[bool, Field(description=(
+        "move each point onto the line fitted through its neighbours"))] = True
+
+
+@dataclass(frozen=True)
+class CorrelativeParams:
+    """A correlative search (Olson, ICRA 2009); distances in metres, angles in radians.
+
+    ``window_xy_m`` / ``window_theta_rad`` are half-widths about the initial pose;
+    ``levels`` the branch-and-bound table levels above the fine one (block ``2^levels``
+    cells at the top). Points farther than ``max_range_m`` from the lidar are left out
+    (they would set a heading step too fine for the near ones), and at most
+    ``max_points`` of the rest are used, evenly spread. ``min_score`` is the score below
+    which the search found nothing worth trusting.
+    """
+
+    __pydantic_config__ = _FORBID
+
+    resolution_m: Annotated[float, Field(gt=0.001, le=1, description="cell of the correlative likelihood table")] = 0.03
+    sigma_m: Annotated[float, Field(gt=0, le=1, description=(
+        "smoothing of that table (std of a point's position)"))] = 0.04
+    window_xy_m: Annotated[float, Field(ge=0, le=5, description=(
+        "sequential search: half-width in x and y (under half a maze cell) ..."))] = 0.12
+    window_theta_rad: Annotated[float, Field(ge=0, le=3.2, description="... and in heading")] = 0.35
+    levels: Annotated[int, Field(ge=0, le=8, description="branch-and-bound levels of the sequential search")] = 2
+    max_range_m: Annotated[float, Field(gt=0, description=(
+        "the search uses scan points this close to the lidar ..."))] = 4.0
+    max_points: Annotated[int, Field(ge=10, description="... at most this many of them")] = 200
+    min_score: Annotated[float, Field(ge=0, le=1, description="a search scoring less found nothing (0..1)")] = 0.35
+
+    def __post_init__(self) -> None:
+        if not (self.resolution_m > 0 and self.sigma_m > 0 and self.max_range_m > 0):
+            raise ValueError("resolution_m, sigma_m and max_range_m must be positive")
+        if self.window_xy_m < 0 or self.window_theta_rad < 0 or self.levels < 0 or self.max_points < 1:
+            raise ValueError("windows and levels must not be negative, max_points at least 1")
+
+
+@dataclass(frozen=True)
+class LoopSection:
+    """Loop closure: candidate search and acceptance tests (``mazebot.slam.loop_closure``).
+
+    The correlative search about the prior is the ``[slam.search]`` one with the loop
+    window of ``[slam] loop_corr_*`` (:class:`mazebot.slam.loop_closure.LoopClosureParams`
+    adds it).
+    """
+
+    __pydantic_config__ = _FORBID
+
+    search_radius_m: Annotated[float, Field(gt=0, description="look for loop closures at least this close ...")] = 0.25
+    max_search_radius_m: Annotated[float, Field(gt=0, description="... and never farther than this")] = 1.0
+    sigma_scale: Annotated[float, Field(ge=0, description=(
+        "search radius grows by this many std of the drift"))] = 3.0
+    min_keyframe_gap: Annotated[int, Field(ge=2, description="a candidate is at least this many keyframes old")] = 40
+    submap_half_width: Annotated[int, Field(ge=0, le=100, description=(
+        "candidate submap: keyframes i-k .. i+k"))] = 6
+    attempt_every: Annotated[int, Field(ge=1, description="look for loop closures every this many keyframes")] = 3
+    max_candidates: Annotated[int, Field(ge=1, description="candidates verified per attempt (nearest first)")] = 1
+    min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
+    max_rmse_m: Annotated[float, Field(gt=0, description="accept: point-to-line RMS at most this")] = 0.012
+    min_correspondences: Annotated[int, Field(ge=3, description="accept: at least this many matched points")] = 40
+    accept_degenerate: Annotated[bool, Field(description=(
+        "accept matches that leave a direction unconstrained"))] = False
+    gate_chi2: Annotated[float, Field(gt=0, description=(
+        "accept: correction consistent with odometry (chi2, 3 dof; 11.34: 99 %)"))] = 11.34
+    max_correction_m: Annotated[float, Field(gt=0, description=(
+        "accept: the correction moves at most this far ..."))] = 0.10
+    max_correction_rad: Annotated[float, Field(gt=0, description="... and turns at most this much")] = 0.15
+    ambiguity_shift_m: Annotated[float, Field(ge=0, description=(
+        "retry ICP this far off (one cell: [planner] cell_size_m unless set); another good fit there rejects "
+        "(0: off)"))] = MAZE_CELL_M
+    ambiguity_tolerance_m: Annotated[float, Field(gt=0, description=(
+        "a retry ending farther than this from the match is another fit"))] = 0.05
+    ambiguity_fitness_ratio: Annotated[float, Field(gt=0, le=1, description=(
+        "that other fit counts if its inlier ratio is this share of the match's ..."))] = 0.85
+    ambiguity_rmse_ratio: Annotated[float, Field(ge=1, description=(
+        "... and its residual at most this many times"))] = 4.0
+    information_scale: Annotated[float, Field(gt=0, le=1, description=(
+        "scale of a loop closure's ICP information"))] = 0.1
+    min_std_m: Annotated[float, Field(gt=0, description=(
+        "floor of the chain's position std in the consistency test"))] = 0.005
+    min_std_rad: Annotated[float, Field(gt=0, description="floor of the chain's heading std")] = 0.005
+    max_range_m: Annotated[float | None, Field(ge=0, description=(
+        "verify a loop closure with the points this close to the lidar (0: all)"))] = 2.0
+
+    def __post_init__(self) -> None:
+        if self.search_radius_m > self.max_search_radius_m:
+            raise ValueError("search_radius_m must not exceed max_search_radius_m")
+
+
+@dataclass(frozen=True)
+class GridSection:
+    """The occupancy grid's cells and log-odds (``mazebot.slam.grid``)."""
+
+    __pydantic_config__ = _FORBID
+
+    resolution_m: Annotated[float, Field(gt=0.001, le=1, description="occupancy grid cell size")] = 0.02
+    l_hit: Annotated[float, Field(gt=0, description="log-odds added to a cell a beam ends in")] = 0.85
+    l_miss: Annotated[float, Field(lt=0, description="log-odds added to a cell a beam crosses")] = -0.4
+    l_min: Annotated[float, Field(lt=0, description="lowest log-odds of a cell")] = -5.0
+    l_max: Annotated[float, Field(gt=0, description="highest log-odds of a cell")] = 5.0
+    occupied_prob: Annotated[float, Field(ge=0.5, lt=1, description=(
+        "a cell above this probability is a wall (0.75: two hits, not one stray)"))] = 0.75
+    free_prob: Annotated[float, Field(gt=0, le=0.5, description="a cell below this probability is free")] = 0.25
+    max_free_range_m: Annotated[float, Field(gt=0, description="no-return beams clear space this far")] = 4.0
+
+
+@dataclass(frozen=True)
+class LatticeSection:
+    """Wall-lattice position priors (``mazebot.slam.wall_lattice``); the pitch is ``[planner] cell_size_m``."""
+
+    __pydantic_config__ = _FORBID
+
+    fit_tolerance_m: Annotated[float, Field(gt=0, description=(
+        "a face this close to a lattice line fits it (boards offset, posts set out by hand)"))] = 0.02
+    std_m: Annotated[float, Field(gt=0, description="trust in one keyframe's wall faces on the lattice")] = 0.005
+    gate_m: Annotated[float, Field(gt=0, description=(
+        "a face farther than this from its lattice line is not used for the prior"))] = 0.04
+    normal_tolerance_rad: Annotated[float, Field(gt=0, description=(
+        "a point's normal within this of a lattice axis belongs to its class"))] = 0.26
+    inlier_m: Annotated[float, Field(gt=0, description="a point within this of its class's offset counts")] = 0.01
+    min_points: Annotated[int, Field(ge=1, description="a class needs this many inlier points ...")] = 10
+    min_extent_m: Annotated[float, Field(ge=0, description="... spread this far along the face")] = 0.05
+    max_range_m: Annotated[float, Field(gt=0, description=(
+        "points farther from the lidar are too noisy to say where a face is"))] = 1.2
+
+
+@dataclass(frozen=True)
+class EndpointSmoothing:
+    """Hits moved along their beams onto their local wall line (``mazebot.slam.endpoint_smoothing``)."""
+
+    __pydantic_config__ = _FORBID
+
+    half_window: Annotated[int, Field(ge=1, description="neighbouring samples on each side, in scan order")] = 4
+    radius_m: Annotated[float, Field(gt=0, description="neighbours farther than this from the hit do not count")] = 0.1
+    min_neighbours: Annotated[int, Field(ge=3, description="points (the hit included) needed for a line")] = 5
+    max_line_spread: Annotated[float, Field(gt=0, description=(
+        "smallest / largest eigenvalue of a usable neighbourhood"))] = 0.1
+    min_cos_incidence: Annotated[float, Field(ge=0, le=1, description=(
+        "beams more grazing than this (0.3: ~73°) keep their range"))] = 0.3
+    max_shift_m: Annotated[float, Field(ge=0, description="never move an endpoint farther than this")] = 0.03
+
+    def __post_init__(self) -> None:
+        if self.half_window < 1 or self.radius_m <= 0 or self.min_neighbours < 3:
+            raise ValueError(
+                f"need half_window >= 1, radius_m > 0 and min_neighbours >= 3, got {self.half_window}, "
+                f"{self.radius_m}, {self.min_neighbours}"
+            )
+
+
+# The façade's own parameters: SlamParams (mazebot.slam.slam) is these sections' fields side by side.
+
+
+@dataclass(frozen=True)
+class FilterSection:
+    """The pose filter (EKF) and its online calibrations (``mazebot.slam.ekf``)."""
+
+    __pydantic_config__ = _FORBID
+
+    filter_gate_chi2: Annotated[float, Field(gt=0, description=(
+        "refuse a scan match this unlikely under the prediction (chi2, 3 dof)"))] = 16.27
+    calibrate_heading: Annotated[bool, Field(description=(
+        "learn the odometry's heading bias (unequal wheels, track width) from scan matches"))] = True
+    calibration_memory_scans: Annotated[float, Field(ge=10, description=(
+        "scans the heading calibration remembers (exponential forgetting)"))] = 1000.0
+    lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
+        "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
+    estimate_time_offset: Annotated[bool, Field(description=(
+        "learn that offset online from how scan matches disagree with odometry when turns start"))] = True
+    initial_std: Annotated[tuple[float, float, float], Field(description=(
+        "std of the start pose: m, m, rad"))] = (1e-3, 1e-3, 1e-3)
+
+
+@dataclass(frozen=True)
+class MatchingSection:
+    """Which scan matches the filter uses, and how much it trusts them."""
+
+    __pydantic_config__ = _FORBID
+
+    min_match_fitness: Annotated[float, Field(ge=0, le=1, description=(
+        "share of points matched for the filter to use a match ..."))] = 0.5
+    max_match_rmse_m: Annotated[float, Field(gt=0, description="... and at most this point-to-line residual")] = 0.03
+    retry_headings_rad: Annotated[tuple[float, ...], Field(description=(
+        "when a match fails, retry ICP from the prediction turned by these"))] = (0.05, -0.05, 0.1, -0.1)
+    match_information_scale: Annotated[float, Field(gt=0, le=1, description=(
+        "scale of ICP's information matrix (ICP is optimistic about itself)"))] = 0.5
+
+
+@dataclass(frozen=True)
+class KeyframeSection:
+    """Keyframes and the local submap ICP matches against (``mazebot.slam.keyframes``)."""
+
+    __pydantic_config__ = _FORBID
+
+    keyframe_distance_m: Annotated[float, Field(gt=0, description=(
+        "a scan becomes a keyframe after this much travel ..."))] = 0.10
+    keyframe_angle_rad: Annotated[float, Field(gt=0, description=(
+        "... or this much turn (11°: eight in a 90° turn)"))] = 0.2
+    submap_keyframes: Annotated[int, Field(ge=1, le=500, description=(
+        "recent keyframes in the local submap ICP matches"))] = 20
+    submap_radius_m: Annotated[float, Field(ge=0, description=(
+        "older keyframes this close to the robot join the local submap (0: only recent ones)"))] = 0.5
+    submap_near_keyframes: Annotated[int, Field(ge=0, le=500, description=(
+        "at most this many older keyframes, nearest first"))] = 20
+    submap_voxel_m: Annotated[float, Field(gt=0.001, le=0.5, description="point spacing of the local submap")] = 0.01
+    submap_update_m: Annotated[float, Field(ge=0, description=(
+        "rebuild the local submap at a keyframe this far from the last rebuild ..."))] = 0.05
+    submap_update_keyframes: Annotated[int, Field(ge=1, description=(
+        "... or after this many keyframes (in-place turns see the same walls)"))] = 4
+
+
+@dataclass(frozen=True)
+class GraphSection:
+    """The pose graph's optimization and the map rebuilds after it (``mazebot.slam.posegraph``)."""
+
+    __pydantic_config__ = _FORBID
+
+    optimize_iterations: Annotated[int, Field(ge=1, le=500, description=(
+        "Levenberg-Marquardt iterations per optimization"))] = 30
+    optimize_every_keyframes: Annotated[int, Field(ge=1, description=(
+        "optimize the pose graph this often even without a loop closure (wall priors)"))] = 20
+    rebuild_threshold_m: Annotated[float, Field(ge=0, description=(
+        "rebuild the map when optimization moved a keyframe farther than this ..."))] = 0.01
+    rebuild_threshold_rad: Annotated[float, Field(ge=0, description="... or turned one more than this")] = 0.005
+
+
+@dataclass(frozen=True)
+class WallSection:
+    """Right-angle wall priors and the map's anchor (``mazebot.slam.slam``)."""
+
+    __pydantic_config__ = _FORBID
+
+    wall_prior: Annotated[bool, Field(description=(
+        "walls meet at right angles (a maze): each keyframe's walls give a weak heading prior"))] = True
+    wall_prior_std_rad: Annotated[float, Field(gt=0, description="trust in one keyframe's wall direction")] = 0.01
+    wall_min_strength: Annotated[float, Field(ge=0, le=1, description=(
+        "use a keyframe only if its wall normals are this aligned to a right-angle grid ..."))] = 0.6
+    wall_min_normals: Annotated[int, Field(ge=1, description="... with at least this many normals ...")] = 40
+    wall_max_deviation_rad: Annotated[float, Field(gt=0, description=(
+        "... and within this of the reference grid"))] = 0.087
+    anchor_revolutions: Annotated[int, Field(ge=1, le=100, description=(
+        "revolutions at rest keyframe 0, the map's anchor, measures its walls over"))] = 20
+    anchor_still_m: Annotated[float, Field(ge=0, description=(
+        "the robot stands still while the odometry moved less than this ..."))] = 0.002
+    anchor_still_rad: Annotated[float, Field(ge=0, description=(
+        "... and turned less than this since keyframe 0"))] = 0.002
+    wall_anchor_std_rad: Annotated[float, Field(gt=0, description=(
+        "trust in the anchor's wall direction (it fixes the wall grid of the whole map)"))] = 0.001
+
+
+@dataclass(frozen=True)
+class MapSection:
+    """What a revolution paints into the occupancy grid."""
+
+    __pydantic_config__ = _FORBID
+
+    map_max_range_m: Annotated[float | None, Field(ge=0, description=(
+        "farther hits clear space but mark no wall (range noise grows with range; 0: no limit)"))] = 1.2
+    range_noise_rel: Annotated[float, Field(ge=0, lt=0.3, description=(
+        "the lidar's range noise, std as a fraction of the range (A1: about 1 %)"))] = 0.01
+    map_hit_depth_m: Annotated[float, Field(ge=0, le=0.05, description=(
+        "a hit marks the cell this far behind the wall's face (under the wall thickness)"))] = 0.006
+
+
+#: The sections whose fields :class:`mazebot.slam.slam.SlamParams` holds side by side.
+FACADE_SECTIONS = ("filter", "matching", "keyframes", "graph", "walls", "map")
+
+
+class SlamConfig(BaseModel):
+    """SLAM: scan preparation, odometry filter, ICP, keyframes, loop closure, occupancy grid."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, defer_build=True)
+
+    scan_queue_size: int = Field(2, ge=1, le=32, description="revolutions waiting for SLAM; the oldest is dropped")
+    odometry_history_s: float = Field(
+        3.0, ge=0.5, le=60, description="odometry kept for de-skew and the filter (time-stamped poses)"
+    )
+    loop_closure_executor: Literal["process", "thread"] = Field(
+        "process",
+        description="run loop-closure jobs in a worker process (a core of its own) or a thread of the daemon",
+    )
+    correlative: bool = Field(
+        True, description="search a window of poses ([slam.search]) before ICP where its match failed, "
+        "or after re-localization"
+    )
+    loop_corr_window_m: float = Field(
+        0.1, ge=0, le=10,
+        description="loop closure: branch-and-bound window about the prior, x and y (0 and 0: ICP only) ...",
+    )
+    loop_corr_window_rad: float = Field(0.15, ge=0, le=3.2, description="... and heading")
+    loop_corr_levels: int = Field(3, ge=0, le=8, description="branch-and-bound levels of the loop-closure search")
+    map_smooth_endpoints: bool = Field(
+        True, description="move each hit along its beam onto the line through its neighbours ([slam.smoothing])"
+    )
+    wall_lattice: bool = Field(
+        True,
+        description="walls lie on a square lattice of the planner's cell size: each keyframe's wall faces "
+        "give a weak position prior ([slam.lattice]; needs walls.wall_prior)",
+    )
+    prepare: PrepareSection = Field(default_factory=PrepareSection)
+    filter: FilterSection = Field(default_factory=FilterSection)
+    motion: MotionSection = Field(default_factory=MotionSection)
+    icp: IcpParams = Field(default_factory=IcpParams)
+    normals: NormalParams = Field(default_factory=NormalParams)
+    matching: MatchingSection = Field(default_factory=MatchingSection)
+    search: CorrelativeParams = Field(default_factory=CorrelativeParams)
+    keyframes: KeyframeSection = Field(default_factory=KeyframeSection)
+    graph: GraphSection = Field(default_factory=GraphSection)
+    walls: WallSection = Field(default_factory=WallSection)
+    lattice: LatticeSection = Field(default_factory=LatticeSection)
+    loop: LoopSection = Field(default_factory=LoopSection)
+    grid: GridSection = Field(default_factory=GridSection)
+    map: MapSection = Field(default_factory=MapSection)
+    smoothing: EndpointSmoothing = Field(default_factory=EndpointSmoothing)
+
+
+_T = TypeVar("_T")
+
+
+def section_values(section: object) -> dict[str, Any]:
+    """A section's fields by name (shallow: nested dataclasses stay objects)."""
+    return {f.name: getattr(section, f.name) for f in fields(section)}  # type: ignore[arg-type]
+
+
+def as_params(cls: type[_T], section: object, **derived: Any) -> _T:
+    """The algorithm's parameter object ``cls`` from its config ``section``, plus the ``derived`` values.
+
+    ``cls`` is the section's class or a subclass of it that adds behaviour or values taken
+    from elsewhere (``derived``); the section's fields carry over by name.
+    """
+    return cls(**section_values(section), **derived)
+
+
+def _moved(prefix: str, section: str, names: str) -> dict[str, str]:
+    return {f"{prefix}{name}": f"{section}.{name}" for name in names.split()}
+
+
+#: Every flat ``[slam]`` key of the old layout and where it lives now (``slam.`` left out).
+FLAT_KEYS: dict[str, str] = {
+    "max_range_m": "prepare.max_range_m",
+    **_moved("", "prepare", "median_window impulse_abs_m impulse_rel"),
+    "voxel_m": "prepare.voxel_size_m",
+    "odom_var_xy_m2_per_m": "motion.xy_m2_per_m",
+    "odom_var_theta_rad2_per_m": "motion.theta_rad2_per_m",
+    "odom_var_theta_rad2_per_rad": "motion.theta_rad2_per_rad",
+    "odom_calibration": "filter.calibrate_heading",
+    "odom_calibration_memory_scans": "filter.calibration_memory_scans",
+    **_moved("", "filter", "lidar_time_offset_s estimate_time_offset filter_gate_chi2"),
+    "icp_max_iterations": "icp.max_iterations",
+    "icp_converged_m": "icp.converged_translation_m",
+    "icp_converged_rad": "icp.converged_rotation_rad",
+    "icp_stop_m": "icp.stop_translation_m",
+    "icp_stop_rad": "icp.stop_rotation_rad",
+    **_moved("icp_", "icp", "max_correspondence_m min_correspondence_m degeneracy_ratio range_noise_ratio "
+             "noise_floor_m"),
+    "icp_min_fitness": "matching.min_match_fitness",
+    "icp_max_rmse_m": "matching.max_match_rmse_m",
+    "icp_retry_headings_rad": "matching.retry_headings_rad",
+    "icp_information_scale": "matching.match_information_scale",
+    "normal_neighbours": "normals.neighbours",
+    "normal_radius_m": "normals.radius_m",
+    **_moved("", "keyframes", "keyframe_distance_m keyframe_angle_rad submap_keyframes submap_radius_m "
+             "submap_near_keyframes submap_voxel_m submap_update_m submap_update_keyframes"),
+    **_moved("", "graph", "optimize_iterations optimize_every_keyframes rebuild_threshold_m rebuild_threshold_rad"),
+    **_moved("", "walls", "wall_prior wall_prior_std_rad wall_min_strength anchor_revolutions wall_anchor_std_rad"),
+    "wall_lattice_std_m": "lattice.std_m",
+    "wall_lattice_gate_m": "lattice.gate_m",
+    **_moved("loop_", "loop", "search_radius_m max_search_radius_m sigma_scale min_keyframe_gap submap_half_width "
+             "attempt_every min_fitness max_rmse_m min_correspondences accept_degenerate gate_chi2 max_correction_m "
+             "max_correction_rad ambiguity_shift_m ambiguity_fitness_ratio ambiguity_rmse_ratio max_range_m "
+             "information_scale"),
+    "corr_resolution_m": "search.resolution_m",
+    "corr_sigma_m": "search.sigma_m",
+    "corr_window_m": "search.window_xy_m",
+    "corr_window_rad": "search.window_theta_rad",
+    **_moved("corr_", "search", "levels max_range_m max_points min_score"),
+    **_moved("grid_", "grid", "resolution_m l_hit l_miss l_min l_max occupied_prob free_prob max_free_range_m"),
+    **_moved("", "map", "map_max_range_m range_noise_rel map_hit_depth_m"),
+}

@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 from mazebot.config import ControlConfig, DriveConfig, LidarConfig, PlannerConfig, RobotConfig
 from mazebot.planner.wheel_control import DriveMode, HeadingAligner
 from mazebot.slam.grid import OCCUPIED
-from mazebot.steps import run_steps
+from mazebot.steps import all_at_once_method
 
 # the defaults below are the config's, each written once in mazebot.config
 _CONTROL = ControlConfig()
@@ -491,21 +491,6 @@ class DynamicWindowPlanner:
         y = np.where(straight, 0.0, v / w_safe * (1.0 - np.cos(w_safe * t)))
         return np.stack((x, y), axis=-1)
 
-    def plan(
-        self,
-        pose: tuple[float, float, float],
-        velocity: tuple[float, float],
-        costmap: LocalCostmap,
-        path: PathTrack,
-        v_cap_mps: float | None = None,
-    ) -> DwaChoice:
-        """The best admissible velocity for the robot at map ``pose`` moving at ``velocity``.
-
-        ``velocity`` is the measured ``(v_mps, w_radps)``; ``path`` the global path
-        (map frame), whose :attr:`PathTrack.progress_m` is where the robot is along it.
-        """
-        return run_steps(self.plan_steps(pose, velocity, costmap, path, v_cap_mps))
-
     def plan_steps(
         self,
         pose: tuple[float, float, float],
@@ -564,6 +549,15 @@ class DynamicWindowPlanner:
             return DwaChoice(0.0, 0.0, True, rollouts)
         best = int(np.argmax(score))
         return DwaChoice(float(v[best]), float(w[best]), False, rollouts)
+
+    plan = all_at_once_method(
+        plan_steps,
+        """The best admissible velocity for the robot at map ``pose`` moving at ``velocity``.
+
+        ``velocity`` is the measured ``(v_mps, w_radps)``; ``path`` the global path
+        (map frame), whose :attr:`PathTrack.progress_m` is where the robot is along it.
+        """,
+    )
 
 
 # -- the local planner ---------------------------------------------------------------------
@@ -688,21 +682,6 @@ class LocalPlanner:
         self._align_target = None
         self.aligner.reset()
 
-    def step(
-        self,
-        pose: tuple[float, float, float],
-        velocity: tuple[float, float],
-        scan_points: np.ndarray,
-        map_points: np.ndarray | None,
-        map_point_radius_m: float,
-        now_s: float,
-        wall_points: np.ndarray | None = None,
-    ) -> MotionCommand:
-        """The command for this tick (see :meth:`step_steps`)."""
-        return run_steps(
-            self.step_steps(pose, velocity, scan_points, map_points, map_point_radius_m, now_s, wall_points)
-        )
-
     def step_steps(
         self,
         pose: tuple[float, float, float],
@@ -778,6 +757,8 @@ class LocalPlanner:
             return self._begin_recovery(pose, velocity, costmap, now_s, choice)
         mode = DriveMode.DRIVE if not choice.blocked else DriveMode.STOP
         return MotionCommand(choice.v_mps, choice.w_radps, mode, self.status, choice=choice)
+
+    step = all_at_once_method(step_steps, "The command for this tick.")
 
     # -- stuck detection and recovery ----------------------------------------------------
 

@@ -74,7 +74,7 @@ from mazebot.planner.global_path import (
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
 from mazebot.slam.grid import FREE
-from mazebot.steps import run_steps
+from mazebot.steps import all_at_once_method
 
 # the defaults below are the config's, each written once in mazebot.config
 _PLANNER = PlannerConfig()
@@ -389,24 +389,6 @@ class Explorer:
 
     # -- the tick ------------------------------------------------------------------------
 
-    def update(
-        self,
-        three_state: np.ndarray,
-        grid_origin_m: tuple[float, float],
-        resolution_m: float,
-        pose: tuple[float, float, float],
-        revolutions: int | None = None,
-    ) -> Goal | None:
-        """Read the map, choose the next goal; None only when there is nothing to do yet.
-
-        ``pose`` is the robot's map-frame ``(x_m, y_m, theta_rad)``; ``revolutions`` the
-        count of lidar revolutions painted into the map so far (SLAM's), the clock of the
-        blacklisting (None: count this explorer's updates instead). Returns a goal in
-        every phase (in DONE: stay at the start); None before the map holds anything to
-        plan on.
-        """
-        return run_steps(self.update_steps(three_state, grid_origin_m, resolution_m, pose, revolutions))
-
     def update_steps(
         self,
         three_state: np.ndarray,
@@ -441,6 +423,18 @@ class Explorer:
         if goal is None:
             goal = self._return_goal(grid, grid_origin_m, resolution_m, pose)
         return goal
+
+    update = all_at_once_method(
+        update_steps,
+        """Read the map, choose the next goal; None only when there is nothing to do yet.
+
+        ``pose`` is the robot's map-frame ``(x_m, y_m, theta_rad)``; ``revolutions`` the
+        count of lidar revolutions painted into the map so far (SLAM's), the clock of the
+        blacklisting (None: count this explorer's updates instead). Returns a goal in
+        every phase (in DONE: stay at the start); None before the map holds anything to
+        plan on.
+        """,
+    )
 
     def _explore_goal(
         self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float, pose: tuple[float, float, float]

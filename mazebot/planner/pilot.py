@@ -41,7 +41,7 @@ from mazebot.planner.maze_graph import MazeGraph
 from mazebot.planner.safety import reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
-from mazebot.steps import run_steps
+from mazebot.steps import all_at_once_method
 
 log = logging.getLogger(__name__)
 
@@ -199,14 +199,6 @@ class Pilot:
         if self.plan(state, now_s):
             self.drive(state, now_s)
 
-    def plan(self, state: SharedState, now_s: float) -> bool:
-        """The goal half of a tick: map → maze graph → goal → path. True when :meth:`drive` should follow.
-
-        The two halves are separate so the planner task can let the event loop run in
-        between (the control loop's ticks must not wait for a whole planner tick).
-        """
-        return run_steps(self.plan_steps(state, now_s))
-
     def plan_steps(self, state: SharedState, now_s: float) -> Generator[None, None, bool]:
         """:meth:`plan` in stages (:mod:`mazebot.steps`): the map's three states, the maze graph, the goal.
 
@@ -259,9 +251,14 @@ class Pilot:
         self._drive_inputs = (three, grid.origin_m, grid.resolution_m, goal.target_m)
         return True
 
-    def drive(self, state: SharedState, now_s: float) -> None:
-        """The motion half of a tick: the DWA along the path on the latest scan, map and pose."""
-        run_steps(self.drive_steps(state, now_s))
+    plan = all_at_once_method(
+        plan_steps,
+        """The goal half of a tick: map → maze graph → goal → path. True when :meth:`drive` should follow.
+
+        The two halves are separate so the planner task can let the event loop run in
+        between (the control loop's ticks must not wait for a whole planner tick).
+        """,
+    )
 
     def drive_steps(self, state: SharedState, now_s: float) -> Generator[None, None, None]:
         """:meth:`drive` in stages (:mod:`mazebot.steps`): the planner task lets the loop run between them.
@@ -299,6 +296,10 @@ class Pilot:
             self.explorer.report_unreachable()
             self._note_events(state, now_s, None, pose)
         state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
+
+    drive = all_at_once_method(
+        drive_steps, "The motion half of a tick: the DWA along the path on the latest scan, map and pose."
+    )
 
     def _note_events(
         self, state: SharedState, now_s: float, reason: str | None, pose: tuple[float, float, float]

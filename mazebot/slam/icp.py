@@ -65,7 +65,7 @@ from scipy.spatial import cKDTree
 
 from mazebot.geometry import transform_points
 from mazebot.slam_config import IcpParams as IcpParams  # the [slam.icp] section is ICP's parameters
-from mazebot.steps import run_steps
+from mazebot.steps import all_at_once
 
 #: ICP iterations between two stages of :func:`match_scan_steps` (about a millisecond here, four on a Pi 4).
 ITERATIONS_PER_STAGE = 4
@@ -230,22 +230,6 @@ def estimate_normals(
     return normals, good
 
 
-def match_scan(
-    target: Target,
-    source_xy: np.ndarray,
-    initial_pose: np.ndarray,
-    params: IcpParams | None = None,
-    sensor_xy: np.ndarray | None = None,
-    prior_pose: np.ndarray | None = None,
-) -> IcpResult:
-    """Align ``source_xy`` (N, 2, robot frame) to ``target``, starting at ``initial_pose``.
-
-    ``sensor_xy`` (2,) is the lidar centre in the robot frame (for the facing test);
-    ``prior_pose`` (default ``initial_pose``) is what unobservable directions keep.
-    """
-    return run_steps(match_scan_steps(target, source_xy, initial_pose, params, sensor_xy, prior_pose))
-
-
 def match_scan_steps(
     target: Target,
     source_xy: np.ndarray,
@@ -371,6 +355,16 @@ def match_scan_steps(
         weak_direction=weak_direction,
         correspondences=int(count),
     )
+
+
+match_scan = all_at_once(
+    match_scan_steps,
+    """Align ``source_xy`` (N, 2, robot frame) to ``target``, starting at ``initial_pose``.
+
+    ``sensor_xy`` (2,) is the lidar centre in the robot frame (for the facing test);
+    ``prior_pose`` (default ``initial_pose``) is what unobservable directions keep.
+    """,
+)
 
 
 def _associate(

@@ -33,7 +33,7 @@ from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
 from mazebot.slam.wall_lattice import LatticeFaces, LatticeParams, measure_faces
 from mazebot.slam_config import NormalParams as NormalParams  # the [slam.normals] section
-from mazebot.steps import run_steps
+from mazebot.steps import all_at_once
 
 #: A keyframe's wall faces are measured again when its heading on the wall grid changed by more
 #: than this (a few millimetres at the farthest face used, 1.2 m; smaller changes are followed to first order).
@@ -292,26 +292,6 @@ class KeyframeSelector:
         self.last = np.array(pose, dtype=np.float64).reshape(3)
 
 
-def build_target(
-    keyframes: Sequence[Keyframe],
-    voxel_m: float,
-    frame: np.ndarray | None = None,
-    poses: Sequence[np.ndarray] | None = None,
-    clip: tuple[np.ndarray, float] | None = None,
-) -> Target | None:
-    """The union of the keyframes' points and normals as an ICP target, one point per voxel.
-
-    Points are expressed in the map frame, or in the frame of pose ``frame`` if given
-    (loop closure matches in the candidate keyframe's frame). ``poses`` overrides the
-    keyframes' own poses (a snapshot taken for a background job). ``clip`` ``(centre (2,),
-    radius_m)`` keeps only points that close to a centre (in the output frame). None if empty.
-
-    All keyframes are moved in one vectorized pass (each point with its keyframe's cosine,
-    sine and translation), the same arithmetic as :func:`transform` point by point.
-    """
-    return run_steps(build_target_steps(keyframes, voxel_m, frame, poses, clip))
-
-
 def build_target_steps(
     keyframes: Sequence[Keyframe],
     voxel_m: float,
@@ -360,3 +340,17 @@ def build_target_steps(
     first = voxel_downsample(points, voxel_m)
     yield
     return Target(points[first], views[first], normals[first])
+build_target = all_at_once(
+    build_target_steps,
+    """The union of the keyframes' points and normals as an ICP target, one point per voxel.
+
+    Points are expressed in the map frame, or in the frame of pose ``frame`` if given
+    (loop closure matches in the candidate keyframe's frame). ``poses`` overrides the
+    keyframes' own poses (a snapshot taken for a background job). ``clip`` ``(centre (2,),
+    radius_m)`` keeps only points that close to a centre (in the output frame). None if empty.
+
+    All keyframes are moved in one vectorized pass (each point with its keyframe's cosine,
+    sine and translation), the same arithmetic as :func:`transform` point by point.
+    """,
+)
+

@@ -87,7 +87,7 @@ from mazebot.slam_config import (
     as_params,
     section_values,
 )
-from mazebot.steps import run_steps
+from mazebot.steps import all_at_once_method
 
 log = logging.getLogger(__name__)
 
@@ -610,24 +610,6 @@ class Slam:
 
     # -- the method ----------------------------------------------------------------------
 
-    def update(
-        self,
-        scan: Scan,
-        odometry: OdometrySource,
-        *,
-        paint: bool | PaintDecision = True,
-    ) -> SlamUpdate:
-        """Process one revolution; ``odometry`` gives odometry poses at any recent time.
-
-        ``paint=False`` (the odometry is known bad: a wheel slips, an encoder was dead, the robot
-        was just found again): the revolution only localizes the robot against the map as it is.
-        No keyframe, no grid update, and no calibration learnt from the bad odometry: a revolution
-        de-skewed and predicted with wrong wheel motion would put its walls in the wrong place.
-        A callable decides once the revolution is matched: ``paint(match, matched)`` (the SLAM task
-        asks whether ICP had to move the odometry's prediction far, i.e. a wheel slips right now).
-        """
-        return run_steps(self.update_steps(scan, odometry, paint=paint))
-
     def update_steps(
         self, scan: Scan, odometry: OdometrySource, *, paint: bool | PaintDecision = True
     ) -> Generator[None, None, SlamUpdate]:
@@ -736,13 +718,18 @@ class Slam:
             map_rebuilt=rebuilt,
         )
 
-    def apply(self, result: LoopClosureResult) -> bool:
-        """Merge a finished loop-closure job; returns True if the grid was replaced.
+    update = all_at_once_method(
+        update_steps,
+        """Process one revolution; ``odometry`` gives odometry poses at any recent time.
 
-        Keyframes added while the job ran keep their pose relative to the newest
-        keyframe of the snapshot, so the whole recent trajectory follows the correction.
-        """
-        return run_steps(self.apply_steps(result))
+        ``paint=False`` (the odometry is known bad: a wheel slips, an encoder was dead, the robot
+        was just found again): the revolution only localizes the robot against the map as it is.
+        No keyframe, no grid update, and no calibration learnt from the bad odometry: a revolution
+        de-skewed and predicted with wrong wheel motion would put its walls in the wrong place.
+        A callable decides once the revolution is matched: ``paint(match, matched)`` (the SLAM task
+        asks whether ICP had to move the odometry's prediction far, i.e. a wheel slips right now).
+        """,
+    )
 
     def _note_lattice(self, fit: PitchFit | None) -> None:
         """Keep the lattice fit, and log when the lattice priors switch on or off (once per switch)."""
@@ -805,6 +792,15 @@ class Slam:
         grid.take_dirty()  # clients reload the whole map on a new generation
         self.grid = grid
         return True
+
+    apply = all_at_once_method(
+        apply_steps,
+        """Merge a finished loop-closure job; returns True if the grid was replaced.
+
+        Keyframes added while the job ran keep their pose relative to the newest
+        keyframe of the snapshot, so the whole recent trajectory follows the correction.
+        """,
+    )
 
     def relocalized(self, pose: np.ndarray, odom: np.ndarray) -> None:
         """The robot was found at map ``pose`` when the odometry read ``odom`` (:mod:`mazebot.slam.relocalize`).
@@ -927,15 +923,6 @@ class Slam:
         p = self.params
         return match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
 
-    def _match(self, prepared: PreparedScan) -> IcpResult:
-        """ICP from the prediction; if that match is not acceptable, from the prediction turned by each retry angle.
-
-        A poor odometry heading (a wheel slipping in a turn, a metre between the scans of a
-        laser log) can put ICP in the wrong basin; the best acceptable retry (lowest
-        residual) wins, else the first result stands.
-        """
-        return run_steps(self._match_steps(prepared))
-
     def _match_steps(self, prepared: PreparedScan) -> Generator[None, None, IcpResult]:
         """:meth:`_match`, yielding before each retry (a scan that needs them costs up to five ICP runs).
 
@@ -964,6 +951,16 @@ class Slam:
             if self.acceptable(retry) and (best is None or retry.rmse_m < best.rmse_m):
                 best = retry
         return match if best is None else best
+
+    _match = all_at_once_method(
+        _match_steps,
+        """ICP from the prediction; if that match is not acceptable, from the prediction turned by each retry angle.
+
+        A poor odometry heading (a wheel slipping in a turn, a metre between the scans of a
+        laser log) can put ICP in the wrong basin; the best acceptable retry (lowest
+        residual) wins, else the first result stands.
+        """,
+    )
 
     def _search_wanted(self, match: IcpResult, guess: np.ndarray) -> bool:
         """Is the prediction in doubt? ICP from it found no acceptable match, or the robot was just re-localized.
@@ -1047,10 +1044,6 @@ class Slam:
 
         return pose_at
 
-    def _rebuild_target(self) -> None:
-        """The local submap: the recent keyframes, and older ones close to the newest (KISS-ICP's local map)."""
-        run_steps(self._rebuild_target_steps())
-
     def _rebuild_target_steps(self) -> Generator[None, None, None]:
         """:meth:`_rebuild_target` in stages: the new keyframes' surfaces one by one, then the submap.
 
@@ -1077,6 +1070,11 @@ class Slam:
         self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0
+
+    _rebuild_target = all_at_once_method(
+        _rebuild_target_steps,
+        "The local submap: the recent keyframes, and older ones close to the newest (KISS-ICP's local map).",
+    )
 
     def final_job(self) -> LoopClosureJob | None:
         """The whole graph optimized once more and the grid rebuilt from it: for the end of an exploration.

@@ -10,6 +10,13 @@ encoder-quantised wheel speeds, the safety layer in front of the motors, and the
 physics (unmatched motors, slip, deadband, motor lag) with one control period of
 actuation latency.
 
+The maze test runs the daemon's own parts (:func:`run_daemon_exploration`): a
+:class:`~mazebot.planner.pilot.Pilot` and a :class:`~mazebot.tasks.control_task.MotorControl`
+built from the default :class:`~mazebot.config.Config` as ``mazebot/main.py`` builds them,
+talking through the shared state; a default changed in the config is what it drives
+with. The room and frontier tests wire the explorer, DWA and wheel control by hand
+(:func:`run_exploration`), to vary what the config does not (the mode, the latency).
+
 Run as a script to print the measured figures for a range of seeds::
 
     .venv/bin/python tests/planner/test_closed_loop.py --kind braided --seeds 1-30 [--strategy dfs] [--map grid]
@@ -29,6 +36,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from mazebot.config import Config
+from mazebot.io.scan import Scan
 from mazebot.planner.dwa import (
     DynamicWindowPlanner,
     LocalPlanner,
@@ -38,6 +47,7 @@ from mazebot.planner.dwa import (
 )
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import Direction, LinkState, MazeGraph
+from mazebot.planner.pilot import Pilot, PilotParams
 from mazebot.planner.safety import SafetyLayer, reframe_points
 from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
 from mazebot.sim.maze_generator import generate_maze
@@ -47,6 +57,8 @@ from mazebot.sim.raycast import RayCaster
 from mazebot.sim.room import make_room
 from mazebot.sim.world import World, world_from_layout
 from mazebot.slam.grid import OccupancyGrid
+from mazebot.state import Pose2D, RunState, SharedState
+from mazebot.tasks.control_task import MotorControl
 
 pytestmark = pytest.mark.slow  # closed-loop runs of the simulated robot
 
@@ -258,6 +270,105 @@ def run_exploration(
     )
 
 
+def run_daemon_exploration(
+    world: World, seed: int = 0, time_limit_s: float = 300.0, config: Config | None = None, map_source: str = "truth"
+) -> RunResult:
+    """:func:`run_exploration` with the daemon's own planner and control, built from ``config`` as it builds them.
+
+    The planner is a :class:`Pilot` from :meth:`PilotParams.from_config` ticked at its
+    configured rate, the wheels a :class:`MotorControl` (wheel PI, encoder speeds, safety
+    layer) at the control period, and they talk through a :class:`SharedState` as the
+    planner and control tasks do: pose, map and scan in, ``motion_command`` between them,
+    ``run_state`` out. So a default the daemon uses is the one this run uses. SLAM is
+    the same ground-truth stand-in (true pose; the revealed map, or a :class:`LidarMap`
+    with ``map_source="grid"``); the throttles reach the motors after the configured
+    actuation latency.
+    """
+    config = config if config is not None else Config()
+    rng = np.random.default_rng(seed)
+    physics = RobotPhysics(PhysicsParams(), world, world.start_pose, rng)
+    start_xy = (world.start_pose[0], world.start_pose[1])
+    truth = RevealedMap(world)
+    planner_map: RevealedMap | LidarMap = truth if map_source == "truth" else LidarMap(np.random.default_rng(seed + 1))
+    caster = RayCaster.for_world(world)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+
+    pilot = Pilot(PilotParams.from_config(config))
+    control = MotorControl(config)
+    planner_every = round(pilot.params.period_s / PHYSICS_DT_S)
+    control_every = round(control.period_s / PHYSICS_DT_S)
+    pending = [(0.0, 0.0)] * round(config.control.actuation_latency_s / control.period_s)
+    ticks_per_rev = config.encoders.ticks_per_rev
+    lidar = config.lidar
+    mount_xy = np.array([lidar.mount_x_m, lidar.mount_y_m])
+    lidar_yaw_rad = math.radians(lidar.mount_yaw_deg)
+
+    state = SharedState()
+    state.run_state = RunState.EXPLORING
+    state.started_at_s = 0.0
+    state.slam.anchored = True  # the stand-in's map needs no anchoring at rest
+    # what the pilot reads of the map is three_state(), origin_m and resolution_m: the grid's face
+    state.map = planner_map.grid if isinstance(planner_map, LidarMap) else truth  # type: ignore[assignment]
+    still_since = 0.0
+    longest_still = 0.0
+    statuses: dict[str, int] = {}
+    step = 0
+    while physics.time_s < time_limit_s and state.run_state is not RunState.DONE:
+        now = physics.time_s
+        pose = physics.pose
+        state.pose = Pose2D(*pose)
+        if step % planner_every == 0:  # a revolution, then the planner task's tick on it
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            lidar_xy = np.array(pose[:2]) + np.array([[c, -s], [s, c]]) @ mount_xy
+            ranges = caster.cast(lidar_xy, angles + pose[2] + lidar_yaw_rad, lidar.max_range_m)
+            seen_from = (float(lidar_xy[0]), float(lidar_xy[1]))
+            truth.reveal(seen_from, angles + pose[2] + lidar_yaw_rad, ranges)
+            if planner_map is not truth:
+                planner_map.reveal(seen_from, angles + pose[2] + lidar_yaw_rad, ranges)
+            state.slam.scans += 1
+            hit = np.isfinite(ranges)
+            state.latest_scan = Scan(
+                angle_rad=angles.copy(),
+                range_m=np.where(hit, ranges, 0.0),
+                quality=np.where(hit, 15, 0).astype(np.uint8),
+                time_s=np.full(angles.size, now),
+                valid=hit,
+                revolution=state.slam.scans,
+            )
+            pilot.tick(state, now)
+            status = pilot.local.status.value
+            statuses[status] = statuses.get(status, 0) + 1
+        if step % control_every == 0:  # the control task's tick, on the encoders' latest counts
+            left_rad, right_rad = physics.wheel_angle_rad
+            state.wheel_ticks = (now, *(math.floor(a / math.tau * ticks_per_rev) for a in (left_rad, right_rad)))
+            throttles = control.tick(state, now)
+            state.throttles = throttles
+            pending.append(throttles)
+            physics.set_throttle(*pending.pop(0))
+        physics.step(PHYSICS_DT_S)
+        step += 1
+        body_v, body_w = physics.body_velocity
+        if abs(body_v) > 0.01 or abs(body_w) > 0.05:
+            still_since = physics.time_s
+        longest_still = max(longest_still, physics.time_s - still_since)
+
+    reachable, _ = free_reachable(world, RES_M, 0.09, truth.origin_m, truth.known.shape)
+    coverage = float((reachable & truth.known).sum() / reachable.sum())
+    return RunResult(
+        done=state.run_state is RunState.DONE,
+        time_s=physics.time_s,
+        path_m=physics.odometer_m,
+        collisions=physics.collisions,
+        safety_stops=control.safety.stops,
+        longest_still_s=longest_still,
+        coverage=coverage,
+        explorer=pilot.explorer,
+        final_xy_m=(physics.x_m, physics.y_m),
+        start_xy_m=start_xy,
+        statuses=statuses,
+    )
+
+
 def maze_world(seed: int, kind: str = "braided", size: int = 6) -> World:
     return world_from_layout(generate_maze(size, size, seed, kind), 0.012)  # type: ignore[arg-type]
 
@@ -285,8 +396,11 @@ def links_match_truth(result: RunResult, world: World) -> list[str]:
 def test_explores_a_6x6_maze_and_returns_without_touching_a_wall(
     seed: int, kind: str, strategy: str, map_source: str
 ) -> None:
+    """The daemon's pilot and motor control from the default config (only the strategy chosen here)."""
     world = maze_world(seed, kind)
-    result = run_exploration(world, seed=seed, time_limit_s=300.0, strategy=strategy, map_source=map_source)
+    config = Config()
+    config.planner.strategy = strategy  # type: ignore[assignment]
+    result = run_daemon_exploration(world, seed=seed, time_limit_s=300.0, config=config, map_source=map_source)
     assert result.done, f"not done after {result.time_s:.0f} s: {result.statuses}"
     assert result.collisions == 0
     assert links_match_truth(result, world) == []  # every cell explored, every link right

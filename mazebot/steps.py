@@ -34,6 +34,7 @@ import asyncio
 import functools
 import inspect
 import time
+import typing
 from collections.abc import Callable, Generator
 from typing import Concatenate, ParamSpec, TypeVar
 
@@ -67,12 +68,27 @@ def _plain_doc(summary: str | None, staged_ref: str) -> str:
     return how if not summary else f"{inspect.cleandoc(summary)}\n\n{how}"
 
 
+def _result_annotation(annotation: object) -> object:
+    """``T`` of a ``Generator[None, None, T]`` return annotation (a string under postponed evaluation)."""
+    if isinstance(annotation, str):
+        prefix, suffix = "Generator[None, None, ", "]"
+        if annotation.startswith(prefix) and annotation.endswith(suffix):
+            return annotation[len(prefix) : -len(suffix)]
+        return inspect.Signature.empty
+    args = typing.get_args(annotation)
+    return args[2] if len(args) == 3 else inspect.Signature.empty
+
+
 def _named(plain: Callable[..., object], staged: Callable[..., object], doc: str) -> None:
-    """Name ``plain`` after ``staged`` without its suffix, keep its signature for ``help()``."""
-    functools.update_wrapper(plain, staged)  # __wrapped__: inspect.signature shows the staged one's
+    """Name ``plain`` after ``staged`` without its suffix; ``help()`` shows its parameters and its result."""
+    functools.update_wrapper(plain, staged)
     plain.__name__ = _plain_name(staged)
     plain.__qualname__ = staged.__qualname__.removesuffix(_SUFFIX)
     plain.__doc__ = doc
+    signature = inspect.signature(staged)
+    plain.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        return_annotation=_result_annotation(signature.return_annotation)
+    )
 
 
 def all_at_once(

@@ -161,6 +161,48 @@ class RunResult:
         return self.path_m / self.time_s if self.time_s > 0 else 0.0
 
 
+@dataclass
+class StillClock:
+    """The longest time the robot stood still so far (the explorer should never hold it up for long)."""
+
+    since_s: float = 0.0
+    longest_s: float = 0.0
+
+    def update(self, physics: RobotPhysics) -> None:
+        body_v, body_w = physics.body_velocity
+        if abs(body_v) > 0.01 or abs(body_w) > 0.05:
+            self.since_s = physics.time_s
+        self.longest_s = max(self.longest_s, physics.time_s - self.since_s)
+
+
+def finished(
+    world: World,
+    physics: RobotPhysics,
+    truth: RevealedMap,
+    still: StillClock,
+    *,
+    done: bool,
+    safety_stops: int,
+    explorer: Explorer,
+    statuses: dict[str, int],
+) -> RunResult:
+    """The run's figures: the robot's, and the coverage measured on the revealed truth."""
+    reachable, _ = free_reachable(world, RES_M, 0.09, truth.origin_m, truth.known.shape)
+    return RunResult(
+        done=done,
+        time_s=physics.time_s,
+        path_m=physics.odometer_m,
+        collisions=physics.collisions,
+        safety_stops=safety_stops,
+        longest_still_s=still.longest_s,
+        coverage=float((reachable & truth.known).sum() / reachable.sum()),
+        explorer=explorer,
+        final_xy_m=(physics.x_m, physics.y_m),
+        start_xy_m=(world.start_pose[0], world.start_pose[1]),
+        statuses=statuses,
+    )
+
+
 def run_exploration(
     world: World,
     seed: int = 0,
@@ -200,8 +242,7 @@ def run_exploration(
     scan_time = 0.0
     scan_pose = physics.pose
     measured = (0.0, 0.0)
-    still_since = 0.0
-    longest_still = 0.0
+    still = StillClock()
     statuses: dict[str, int] = {}
     done = False
     step = 0
@@ -248,25 +289,10 @@ def run_exploration(
             physics.set_throttle(*pending.pop(0))
         physics.step(PHYSICS_DT_S)
         step += 1
-        body_v, body_w = physics.body_velocity
-        if abs(body_v) > 0.01 or abs(body_w) > 0.05:
-            still_since = physics.time_s
-        longest_still = max(longest_still, physics.time_s - still_since)
+        still.update(physics)
 
-    reachable, _ = free_reachable(world, RES_M, 0.09, truth.origin_m, truth.known.shape)
-    coverage = float((reachable & truth.known).sum() / reachable.sum())
-    return RunResult(
-        done=done,
-        time_s=physics.time_s,
-        path_m=physics.odometer_m,
-        collisions=physics.collisions,
-        safety_stops=safety.stops,
-        longest_still_s=longest_still,
-        coverage=coverage,
-        explorer=explorer,
-        final_xy_m=(physics.x_m, physics.y_m),
-        start_xy_m=start_xy,
-        statuses=statuses,
+    return finished(
+        world, physics, truth, still, done=done, safety_stops=safety.stops, explorer=explorer, statuses=statuses
     )
 
 
@@ -287,7 +313,6 @@ def run_daemon_exploration(
     config = config if config is not None else Config()
     rng = np.random.default_rng(seed)
     physics = RobotPhysics(PhysicsParams(), world, world.start_pose, rng)
-    start_xy = (world.start_pose[0], world.start_pose[1])
     truth = RevealedMap(world)
     planner_map: RevealedMap | LidarMap = truth if map_source == "truth" else LidarMap(np.random.default_rng(seed + 1))
     caster = RayCaster.for_world(world)
@@ -309,8 +334,7 @@ def run_daemon_exploration(
     state.slam.anchored = True  # the stand-in's map needs no anchoring at rest
     # what the pilot reads of the map is three_state(), origin_m and resolution_m: the grid's face
     state.map = planner_map.grid if isinstance(planner_map, LidarMap) else truth  # type: ignore[assignment]
-    still_since = 0.0
-    longest_still = 0.0
+    still = StillClock()
     statuses: dict[str, int] = {}
     step = 0
     while physics.time_s < time_limit_s and state.run_state is not RunState.DONE:
@@ -347,24 +371,11 @@ def run_daemon_exploration(
             physics.set_throttle(*pending.pop(0))
         physics.step(PHYSICS_DT_S)
         step += 1
-        body_v, body_w = physics.body_velocity
-        if abs(body_v) > 0.01 or abs(body_w) > 0.05:
-            still_since = physics.time_s
-        longest_still = max(longest_still, physics.time_s - still_since)
+        still.update(physics)
 
-    reachable, _ = free_reachable(world, RES_M, 0.09, truth.origin_m, truth.known.shape)
-    coverage = float((reachable & truth.known).sum() / reachable.sum())
-    return RunResult(
-        done=state.run_state is RunState.DONE,
-        time_s=physics.time_s,
-        path_m=physics.odometer_m,
-        collisions=physics.collisions,
-        safety_stops=control.safety.stops,
-        longest_still_s=longest_still,
-        coverage=coverage,
-        explorer=pilot.explorer,
-        final_xy_m=(physics.x_m, physics.y_m),
-        start_xy_m=start_xy,
+    done = state.run_state is RunState.DONE
+    return finished(
+        world, physics, truth, still, done=done, safety_stops=control.safety.stops, explorer=pilot.explorer,
         statuses=statuses,
     )
 

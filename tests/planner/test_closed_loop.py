@@ -20,10 +20,11 @@ with. The room and frontier tests wire the explorer, DWA and wheel control by ha
 Run as a script to print the measured figures for a range of seeds::
 
     .venv/bin/python tests/planner/test_closed_loop.py --kind braided --seeds 1-30 [--strategy dfs] [--map grid]
-        [--mode frontier] [--size 4]
+        [--mode frontier] [--size 4] [--daemon]
 
 (``--map grid`` builds the map with a real log-odds :class:`OccupancyGrid` from noisy
-ranges instead of revealing the perfect one; ``--kind room`` is the room with cylinders.)
+ranges instead of revealing the perfect one; ``--kind room`` is the room with cylinders;
+``--daemon`` drives with the daemon's parts from the default config.)
 """
 
 from __future__ import annotations
@@ -462,6 +463,7 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--mode", default="auto", choices=["auto", "maze", "frontier"])
     parser.add_argument("--size", type=int, default=6, help="maze cells per side")
     parser.add_argument("--seeds", default="1-3", help="first-last (inclusive)")
+    parser.add_argument("--daemon", action="store_true", help="the daemon's Pilot and MotorControl from the config")
     args = parser.parse_args(argv)
     first, _, last = args.seeds.partition("-")
     rows = []
@@ -470,7 +472,12 @@ def main(argv: list[str]) -> None:
             world = make_room(2.0, 1.2, cylinders=4, seed=seed, footprint_radius_m=0.09)
         else:
             world = maze_world(seed, args.kind, args.size)
-        r = run_exploration(world, seed=seed, strategy=args.strategy, mode=args.mode, map_source=args.map_source)
+        if args.daemon:
+            config = Config()
+            config.planner.strategy, config.planner.mode = args.strategy, args.mode
+            r = run_daemon_exploration(world, seed=seed, config=config, map_source=args.map_source)
+        else:
+            r = run_exploration(world, seed=seed, strategy=args.strategy, mode=args.mode, map_source=args.map_source)
         wrong = len(links_match_truth(r, world)) if world.maze is not None else 0
         rows.append((r.done, r.time_s, r.path_m, r.collisions, r.coverage, wrong, r.longest_still_s))
         print(

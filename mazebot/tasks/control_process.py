@@ -47,6 +47,7 @@ import contextlib
 import logging
 import math
 import multiprocessing
+import os
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -61,6 +62,7 @@ from mazebot.errors import MazebotError
 from mazebot.planner.safety import reframe_points
 from mazebot.planner.wheel_control import DriveMode
 from mazebot.state import SharedState
+from mazebot.tasks.priority import raise_priority
 
 log = logging.getLogger(__name__)
 
@@ -519,6 +521,9 @@ def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], st
         if signal.getsignal(sig) is not signal.SIG_IGN:
             signal.signal(sig, lambda *_: stopping.append(True))
     setup_logging(log_level)
+    # before the driver's threads start, so they inherit it
+    got = raise_priority(config.daemon.control_rt_priority, config.daemon.control_nice)
+    log.info("control process %d scheduled with %s", os.getpid(), got)
     link = ControlLink.attach(link_name)
     motors = DifferentialMotors.from_config(config.motors, kit_opener(), RealClock(), ttl_guarded=True)
     guard = TtlGuard(motors)  # this process's own loop hangs: its driver still brakes

@@ -123,3 +123,46 @@ def test_a_cgroup_that_cannot_be_made_says_so_and_leaves_nothing_behind(tmp_path
         CpuQuota.create("taken", 25.0, root=root)
     assert (root / "cpu" / "taken").is_dir()  # not ours: left alone
     assert not (root / "cpuacct" / "taken").exists()
+
+
+def test_v1_with_real_time_groups_sets_a_tenth_of_the_quota_aside_as_real_time_runtime(tmp_path: Path) -> None:
+    root = v1_root(tmp_path)
+    (root / "cpu" / "cpu.rt_runtime_us").write_text("950000\n")  # the kernel has real-time group scheduling
+    with CpuQuota.create("rt", 25.0, root=root) as group:
+        d = root / "cpu" / "rt"
+        # 2.5 ms in 10 ms: 2.25 ms fair, 0.25 ms per 10 ms = 2.5 ms per 100 ms real-time; never more than the quota
+        assert (d / "cpu.cfs_quota_us").read_text() == "2250"
+        assert (d / "cpu.rt_period_us").read_text() == "100000"
+        assert (d / "cpu.rt_runtime_us").read_text() == "2500"
+        assert group.rt_runtime_us == 2500
+        fair_share = int((d / "cpu.cfs_quota_us").read_text()) / 10_000
+        assert fair_share + group.rt_runtime_us / 100_000 == pytest.approx(0.25)
+
+
+def test_v1_without_real_time_groups_keeps_the_whole_quota_fair(tmp_path: Path) -> None:
+    root = v1_root(tmp_path)
+    with CpuQuota.create("fair", 25.0, root=root) as group:
+        d = root / "cpu" / "fair"
+        assert (d / "cpu.cfs_quota_us").read_text() == "2500"
+        assert not (d / "cpu.rt_runtime_us").exists()
+        assert group.rt_runtime_us == 0
+
+
+def test_a_refused_real_time_runtime_leaves_the_whole_quota_fair(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    from mazebot.bench import cgroup
+
+    root = v1_root(tmp_path)
+    (root / "cpu" / "cpu.rt_runtime_us").write_text("950000\n")
+    real_write = cgroup._write
+
+    def write(path: Path, text: str) -> None:
+        if path.name == "cpu.rt_runtime_us":  # the parent's real-time runtime is all given away
+            raise OSError(errno.EBUSY, "Device or resource busy")
+        real_write(path, text)
+
+    monkeypatch.setattr(cgroup, "_write", write)
+    with CpuQuota.create("busy", 25.0, root=root) as group:
+        assert (root / "cpu" / "busy" / "cpu.cfs_quota_us").read_text() == "2500"
+        assert group.rt_runtime_us == 0

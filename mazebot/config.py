@@ -322,7 +322,7 @@ class DaemonConfig(Section):
         "never waits for a revolution's SLAM or a planner tick to yield",
     )
     control_process: bool = Field(
-        False,
+        True,
         description="on the real clock, run the motor control loop in a process of its own (its own interpreter "
         "lock: a due tick never waits for the main process), where the motor driver can be opened there; "
         "else the thread",

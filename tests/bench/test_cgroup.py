@@ -6,10 +6,12 @@ what is read back; ``tests/bench/test_quota_run.py`` runs the real thing (as roo
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import pytest
 
+from mazebot.bench import cgroup
 from mazebot.bench.cgroup import PERIOD_US, CpuQuota, quota_us
 from mazebot.errors import HardwareUnavailable
 
@@ -148,11 +150,9 @@ def test_v1_without_real_time_groups_keeps_the_whole_quota_fair(tmp_path: Path) 
         assert group.rt_runtime_us == 0
 
 
-def test_a_refused_real_time_runtime_leaves_the_whole_quota_fair(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import errno
-
-    from mazebot.bench import cgroup
-
+def test_a_refused_real_time_runtime_leaves_the_whole_quota_fair(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     root = v1_root(tmp_path)
     (root / "cpu" / "cpu.rt_runtime_us").write_text("950000\n")
     real_write = cgroup._write

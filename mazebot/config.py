@@ -334,10 +334,23 @@ class DaemonConfig(Section):
         "never waits for a revolution's SLAM or a planner tick to yield",
     )
     control_process: bool = Field(
-        False,
+        True,
         description="on the real clock, run the motor control loop in a process of its own (its own interpreter "
         "lock: a due tick never waits for the main process), where the motor driver can be opened there; "
         "else the thread",
+    )
+    control_rt_priority: int = Field(
+        10,
+        ge=0,
+        le=99,
+        description="SCHED_FIFO priority of the control process, so a due tick runs ahead of SLAM and the planner "
+        "(needs CAP_SYS_NICE or systemd's LimitRTPRIO=; refused, it falls back to control_nice); 0: not asked",
+    )
+    control_nice: int = Field(
+        -10,
+        ge=-20,
+        le=0,
+        description="nice value of the control process when SCHED_FIFO is refused (needs LimitNICE=); 0: not asked",
     )
     auto_resume: bool = Field(
         False, description="resume a run by itself when the fault that stopped it clears; default: press start"

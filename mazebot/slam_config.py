@@ -411,7 +411,13 @@ class SlamConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, defer_build=True)
 
-    scan_queue_size: int = Field(2, ge=1, le=32, description="revolutions waiting for SLAM; the oldest is dropped")
+    scan_queue_size: int = Field(
+        8,
+        ge=1,
+        le=32,
+        description="revolutions waiting for SLAM (8: 1.5 s of an A1's, inside the odometry history); beyond, "
+        "the oldest is dropped",
+    )
     odometry_history_s: float = Field(
         3.0, ge=0.5, le=60, description="odometry kept for de-skew and the filter (time-stamped poses)"
     )

@@ -33,6 +33,17 @@ def test_the_unit_notifies_is_watched_restarts_runs_unprivileged_and_stops_the_m
     assert service["StateDirectory"] == "mazebot"
 
 
+def test_the_unit_lets_the_control_process_be_real_time_within_bounds() -> None:
+    from mazebot.config import DaemonConfig
+
+    service = _unit()["Service"]
+    assert service["RestrictRealtime"] == "no"  # yes would refuse sched_setscheduler(SCHED_FIFO)
+    assert int(service["LimitRTPRIO"]) >= DaemonConfig().control_rt_priority > 0
+    assert service["LimitRTTIME"]  # a runaway real-time loop is killed
+    assert int(service["LimitNICE"]) <= DaemonConfig().control_nice
+    assert service["CapabilityBoundingSet"] == ""  # the rlimits do it, no capability needed
+
+
 def test_the_udev_rule_names_the_cp2102_adapter_dev_rplidar() -> None:
     rule = (SYSTEMD / "99-mazebot-rplidar.rules").read_text()
     line = next(x for x in rule.splitlines() if x and not x.startswith("#"))

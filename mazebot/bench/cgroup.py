@@ -46,6 +46,17 @@ from mazebot.errors import HardwareUnavailable
 PERIOD_US = 10_000
 #: The kernel refuses a quota below 1 ms (sched-bwc.rst: "the minimum quota allowed is 1ms").
 MIN_QUOTA_US = 1_000
+#: The share of the quota set aside as real-time runtime on a v1 hierarchy with real-time
+#: group scheduling (the control process's ``SCHED_FIFO``); the fair share is the rest, so the
+#: two together never exceed the quota.
+RT_SHARE = 0.1
+#: At least this share of one core becomes real-time runtime (the control process needs ~1.2 %
+#: of a core here, in bursts: at 15 % a tenth of the quota, 1.5 %, left its ticks waiting for the
+#: next real-time period).
+RT_MIN_OF_CORE = 0.03
+#: The real-time period: long enough that a control tick (under a millisecond) fits in one
+#: period's runtime at any quota the benchmark is run at.
+RT_PERIOD_US = 100_000
 #: How long removing the cgroup waits for its last processes to exit before killing them.
 DRAIN_TIMEOUT_S = 3.0
 
@@ -75,6 +86,31 @@ def quota_us(percent: float | None, period_us: int = PERIOD_US) -> int | None:
     return max(MIN_QUOTA_US, round(period_us * percent / 100.0))
 
 
+def split_quota_us(quota: int | None, period_us: int = PERIOD_US,
+                   rt_share: float = RT_SHARE) -> tuple[int | None, int]:
+    """``(fair quota per period_us, real-time runtime per RT_PERIOD_US)`` for a group whose tasks may be real-time.
+
+    With real-time group scheduling (``CONFIG_RT_GROUP_SCHED``; kernel documentation,
+    ``scheduler/sched-rt-group.rst``) a real-time task in a group with no real-time runtime
+    may not be made real-time at all, and one in a group with runtime is limited by it and
+    not by the fair quota. So the quota is split: ``rt_share`` of it becomes real-time
+    runtime, the rest stays the fair quota, and the group can never use more than the
+    quota. Without a limit (``quota`` None) the real-time runtime is ``rt_share`` of the
+    real-time period.
+
+    At least ``RT_MIN_OF_CORE`` of one core is set aside, and at most half the quota.
+
+    >>> split_quota_us(5000)
+    (4500, 5000)
+    >>> split_quota_us(2500)
+    (2200, 3000)
+    """
+    if quota is None:
+        return None, round(RT_PERIOD_US * rt_share)
+    rt_per_period = min(max(round(quota * rt_share), round(period_us * RT_MIN_OF_CORE)), quota // 2)
+    return max(MIN_QUOTA_US, quota - rt_per_period), round(rt_per_period * RT_PERIOD_US / period_us)
+
+
 def _read_keyed(path: Path) -> dict[str, int]:
     """A flat-keyed cgroup file (``key value`` per line) as a dict."""
     out: dict[str, int] = {}
@@ -101,6 +137,7 @@ class CpuQuota:
 
     def __init__(self, version: int, cpu_dir: Path, acct_dir: Path, percent: float | None) -> None:
         self.version = version
+        self.rt_runtime_us = 0  # real-time runtime per RT_PERIOD_US set aside (v1 with real-time groups)
         self.cpu_dir = cpu_dir
         self.acct_dir = acct_dir
         self.percent = percent
@@ -147,6 +184,8 @@ class CpuQuota:
             else:
                 for d in group.dirs:
                     group._mkdir(d)
+                if (cpu_parent / "cpu.rt_runtime_us").is_file():  # real-time group scheduling
+                    quota = group._set_aside_rt(quota, period_us)
                 # the period first: a quota is checked against the period in force
                 _write(group.cpu_dir / "cpu.cfs_period_us", str(period_us))
                 _write(group.cpu_dir / "cpu.cfs_quota_us", str(-1 if quota is None else quota))
@@ -157,6 +196,22 @@ class CpuQuota:
                 f"cannot set up the CPU quota cgroup {group.cpu_dir}: {exc.strerror or exc}{hint}"
             ) from None
         return group
+
+    def _set_aside_rt(self, quota: int | None, period_us: int) -> int | None:
+        """Give the group real-time runtime out of ``quota``; returns the fair quota left.
+
+        Best effort: a parent whose real-time runtime is all given away refuses the write
+        (``EBUSY``, ``EINVAL``), and then the group keeps the whole quota as fair share and
+        its tasks stay under the fair scheduler (the control process says so in its log).
+        """
+        fair, rt_us = split_quota_us(quota, period_us)
+        try:
+            _write(self.cpu_dir / "cpu.rt_period_us", str(RT_PERIOD_US))
+            _write(self.cpu_dir / "cpu.rt_runtime_us", str(rt_us))
+        except OSError:
+            return quota
+        self.rt_runtime_us = rt_us
+        return fair
 
     def _mkdir(self, d: Path) -> None:
         d.mkdir()

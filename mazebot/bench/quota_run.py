@@ -116,11 +116,12 @@ async def _run_daemon(
     kit = PipeMotorKit(motor_tx, clock)
     factory = GpioEdgeThread.pin_factory()
     gpio = GpioEdgeThread(edge_rx, factory, encoder_pins(config))
+    opener = PipeKitOpener(motor_tx)
     robot_builder = robot_hardware_builder(open_kit=lambda address, frequency: kit, make_pin_factory=lambda: factory)
 
     async def build(config: Any, clock: Any, stack: contextlib.AsyncExitStack) -> Hardware:
         hardware = await robot_builder(config, clock, stack)
-        hardware.motor_kit_opener = PipeKitOpener(motor_tx)  # the control process writes the world's motors too
+        hardware.motor_kit_opener = opener  # the control process writes the world's motors too
         gpio.start()  # the encoders listen now: the edges start arriving
         stack.callback(gpio.stop)
         return hardware
@@ -199,7 +200,7 @@ async def _run_daemon(
         "encoder_invalid_transitions": state.sensors.encoder_invalid_transitions,
         "encoder_ticks": run["encoders"],
         "gpio_edges": gpio.edges,
-        "motor_writes": kit.writes_sent,
+        "motor_writes": kit.writes_sent + opener.writes_sent,  # this process's and the control process's
         "est": run["est"],
         "planner_events": list(state.planner_events),
         "map": state.map,

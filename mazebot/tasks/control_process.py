@@ -47,6 +47,7 @@ import contextlib
 import logging
 import math
 import multiprocessing
+import os
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -61,6 +62,7 @@ from mazebot.errors import MazebotError
 from mazebot.planner.safety import reframe_points
 from mazebot.planner.wheel_control import DriveMode
 from mazebot.state import SharedState
+from mazebot.tasks.priority import raise_priority
 
 log = logging.getLogger(__name__)
 
@@ -509,17 +511,27 @@ def _child_control(config: Config, view: ChildView) -> Any:
 def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], stop_rx: Connection,
                log_level: str) -> None:
     """The control process: tick until told to stop, or until the main process is gone; brake on every way out."""
+    stopping = []
+    # first of all, before the imports below take their time: a Ctrl-C to the whole process group
+    # (a terminal's) while this process starts must stop it quietly, not as a KeyboardInterrupt
+    for sig in (signal.SIGINT, signal.SIGTERM):  # brake and leave, unless whoever started us ignores them
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, lambda *_: stopping.append(True))
     from mazebot.clock import RealClock
     from mazebot.io.motors import DifferentialMotors, TtlGuard
     from mazebot.logs import setup_logging
     from mazebot.tasks.control_task import call_now, tick_once
 
-    stopping = []
-    for sig in (signal.SIGINT, signal.SIGTERM):  # brake and leave, unless whoever started us ignores them
-        if signal.getsignal(sig) is not signal.SIG_IGN:
-            signal.signal(sig, lambda *_: stopping.append(True))
     setup_logging(log_level)
-    link = ControlLink.attach(link_name)
+    # before the driver's threads start, so they inherit it
+    got = raise_priority(config.daemon.control_rt_priority, config.daemon.control_nice)
+    log.info("control process %d scheduled with %s", os.getpid(), got)
+    try:
+        link = ControlLink.attach(link_name)
+    except FileNotFoundError:  # the daemon stopped (and removed the link) before we got here: no motor was touched
+        log.info("control process %d: the daemon stopped before it started", os.getpid())
+        stop_rx.close()
+        return
     motors = DifferentialMotors.from_config(config.motors, kit_opener(), RealClock(), ttl_guarded=True)
     guard = TtlGuard(motors)  # this process's own loop hangs: its driver still brakes
     guard.start()

@@ -6,10 +6,12 @@ what is read back; ``tests/bench/test_quota_run.py`` runs the real thing (as roo
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import pytest
 
+from mazebot.bench import cgroup
 from mazebot.bench.cgroup import PERIOD_US, CpuQuota, quota_us
 from mazebot.errors import HardwareUnavailable
 
@@ -123,3 +125,50 @@ def test_a_cgroup_that_cannot_be_made_says_so_and_leaves_nothing_behind(tmp_path
         CpuQuota.create("taken", 25.0, root=root)
     assert (root / "cpu" / "taken").is_dir()  # not ours: left alone
     assert not (root / "cpuacct" / "taken").exists()
+
+
+@pytest.mark.parametrize(("percent", "fair_us", "rt_us"), [
+    (50.0, 4500, 5000),  # a tenth of the quota: 0.5 ms per 10 ms = 5 ms per 100 ms real-time
+    (25.0, 2200, 3000),  # a tenth would be 2.5 % of a core: the 3 % floor
+    (15.0, 1200, 3000),
+])
+def test_v1_with_real_time_groups_sets_part_of_the_quota_aside_as_real_time_runtime(
+    tmp_path: Path, percent: float, fair_us: int, rt_us: int
+) -> None:
+    root = v1_root(tmp_path)
+    (root / "cpu" / "cpu.rt_runtime_us").write_text("950000\n")  # the kernel has real-time group scheduling
+    with CpuQuota.create("rt", percent, root=root) as group:
+        d = root / "cpu" / "rt"
+        assert (d / "cpu.cfs_quota_us").read_text() == str(fair_us)
+        assert (d / "cpu.rt_period_us").read_text() == "100000"
+        assert (d / "cpu.rt_runtime_us").read_text() == str(rt_us)
+        assert group.rt_runtime_us == rt_us
+        fair_share = int((d / "cpu.cfs_quota_us").read_text()) / 10_000
+        assert fair_share + group.rt_runtime_us / 100_000 == pytest.approx(percent / 100)  # never more than the quota
+
+
+def test_v1_without_real_time_groups_keeps_the_whole_quota_fair(tmp_path: Path) -> None:
+    root = v1_root(tmp_path)
+    with CpuQuota.create("fair", 25.0, root=root) as group:
+        d = root / "cpu" / "fair"
+        assert (d / "cpu.cfs_quota_us").read_text() == "2500"
+        assert not (d / "cpu.rt_runtime_us").exists()
+        assert group.rt_runtime_us == 0
+
+
+def test_a_refused_real_time_runtime_leaves_the_whole_quota_fair(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = v1_root(tmp_path)
+    (root / "cpu" / "cpu.rt_runtime_us").write_text("950000\n")
+    real_write = cgroup._write
+
+    def write(path: Path, text: str) -> None:
+        if path.name == "cpu.rt_runtime_us":  # the parent's real-time runtime is all given away
+            raise OSError(errno.EBUSY, "Device or resource busy")
+        real_write(path, text)
+
+    monkeypatch.setattr(cgroup, "_write", write)
+    with CpuQuota.create("busy", 25.0, root=root) as group:
+        assert (root / "cpu" / "busy" / "cpu.cfs_quota_us").read_text() == "2500"
+        assert group.rt_runtime_us == 0

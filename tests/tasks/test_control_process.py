@@ -340,3 +340,26 @@ async def test_a_dead_child_is_a_control_fault_braked_and_restarted() -> None:
     while motor_rx.poll(0):
         writes.append(decode_throttle(motor_rx.recv_bytes()))
     assert writes and writes[-1][1] == 0.0
+
+
+def test_a_child_that_starts_after_the_daemon_stopped_leaves_quietly_without_touching_a_motor() -> None:
+    """A Ctrl-C right after start: the main process removed the link before the child attached to it."""
+    link = ControlLink.create(Config())
+    name = link.name
+    link.close()  # the owner unlinks it
+    opened: list[bool] = []
+
+    def opener() -> None:
+        opened.append(True)
+        raise AssertionError("no motor driver may be opened")
+
+    stop_rx, stop_tx = multiprocessing.Pipe(duplex=False)
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        control_process.child_main(name, Config(), opener, stop_rx, "warning")  # returns, raises nothing
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+        stop_tx.close()
+    assert opened == []
+    assert stop_rx.closed

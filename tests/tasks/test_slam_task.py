@@ -290,3 +290,22 @@ async def test_a_loop_closure_is_not_merged_while_the_search_for_the_lost_robot_
             await task
     assert guard.accepted == ["accepted after 0 merges"]  # the search's answer first, then the merge
     assert fake.applied_on == [threading.current_thread().name] and state.slam.map_rebuilds == 1
+
+
+async def test_the_default_queue_holds_a_burst_of_revolutions_that_the_odometry_history_still_covers() -> None:
+    """SLAM busy for a few revolutions (a keyframe, a loop closure merged, a throttled CPU) loses none of them.
+
+    A dropped revolution leaves a longer gap for the odometry to bridge before the next match;
+    a queued one is matched later, from the odometry history, which must still reach back to it.
+    """
+    config = Config()
+    state = SharedState()
+    state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
+    revolution_s = 1.0 / 5.5  # an A1's standard scan
+    burst = 6  # ~1.1 s of SLAM falling behind
+    scans = [_static_scan(1.0 + revolution_s * k, np.zeros(3)) for k in range(burst)]
+    await lidar_task.run(FakeLidar(scans), state)
+    assert state.slam.scans_dropped == 0
+    assert state.scans.qsize() == burst
+    oldest_age_s = config.slam.scan_queue_size * revolution_s
+    assert oldest_age_s < config.slam.odometry_history_s

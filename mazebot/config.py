@@ -651,6 +651,9 @@ class SlamConfig(Section):
         2.0, ge=0, description="verify a loop closure with the points this close to the lidar (0: all)"
     )
     loop_information_scale: float = Field(0.1, gt=0, le=1, description="scale of a loop closure's ICP information")
+    loop_dcs_phi: float = Field(
+        11.34, ge=0, description="dynamic covariance scaling: a closure whose chi2 exceeds this loses weight (0: off)"
+    )
     # correlative scan matching (Olson, ICRA 2009) before ICP where the prediction is uncertain
     correlative: bool = Field(
         True, description="search a window of poses before ICP where its match failed, or after re-localization"
@@ -665,6 +668,16 @@ class SlamConfig(Section):
     corr_max_range_m: float = Field(4.0, gt=0, description="the search uses scan points this close to the lidar ...")
     corr_max_points: int = Field(200, ge=10, description="... at most this many of them")
     corr_min_score: float = Field(0.35, ge=0, le=1, description="a search scoring less found nothing (0..1)")
+    corr_uncertain_std_m: float = Field(
+        0.05, gt=0, description="search also when the prediction's position std exceeds this (m) ..."
+    )
+    corr_uncertain_std_rad: float = Field(0.035, gt=0, description="... or its heading std this (rad)")
+    corr_window_sigmas: float = Field(
+        3.0, gt=0, description="that search's half-widths: this many prediction stds (at most corr_window_*)"
+    )
+    corr_override_score: float = Field(
+        0.05, ge=0, le=1, description="its match replaces an acceptable ICP match scoring this much less (0..1)"
+    )
     loop_corr_window_m: float = Field(
         0.1, ge=0, le=10, description="loop closure: branch-and-bound window about the prior, x and y (0: ICP only) ..."
     )

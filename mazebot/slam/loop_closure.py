@@ -79,6 +79,8 @@ class LoopClosureParams:
     ambiguity_fitness_ratio: float = 0.85  # ... and it fits as well if its inlier ratio is this share of the match's
     ambiguity_rmse_ratio: float = 4.0  # ... and its residual at most this many times the match's
     information_scale: float = 0.1  # ICP information is optimistic; scale it for the graph edge
+    # dynamic covariance scaling of closures in the optimization (robust_closures; 0: plain least squares)
+    dcs_phi: float = 11.34
     min_std_m: float = 0.005  # floor of the chain's position std in the consistency test
     min_std_rad: float = 0.005  # floor of the chain's heading std
     max_range_m: float | None = 2.0  # verify with points this close to the new keyframe's lidar (None: all)

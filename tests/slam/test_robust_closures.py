@@ -19,7 +19,7 @@ def _loop_graph(rng: np.random.Generator, wrong_shift_m: float) -> tuple[np.ndar
     """A robot driving twice round a 4 m square (one pose every 0.5 m); noisy chain, true closures, one wrong."""
     side = 8
     truth = []
-    for lap in range(2):
+    for _lap in range(2):
         for edge in range(4):
             for k in range(side):
                 heading = edge * np.pi / 2
@@ -53,14 +53,15 @@ def _loop_graph(rng: np.random.Generator, wrong_shift_m: float) -> tuple[np.ndar
     guess = [truth[0]]
     for u in noisy:
         c, s = np.cos(guess[-1][2]), np.sin(guess[-1][2])
-        guess.append(np.array([guess[-1][0] + c * u[0] - s * u[1], guess[-1][1] + s * u[0] + c * u[1], guess[-1][2] + u[2]]))
+        last = guess[-1]
+        guess.append(np.array([last[0] + c * u[0] - s * u[1], last[1] + s * u[0] + c * u[1], last[2] + u[2]]))
     edges = (np.array(ei), np.array(ej), np.array(z), np.array(omega))
     closure = np.array([j - i > 1 for i, j in zip(ei, ej, strict=True)])
     return truth, edges, closure, np.array(guess)
 
 
 def test_a_wrong_closure_bends_plain_least_squares_but_not_dcs() -> None:
-    truth, edges, closure, guess = _loop_graph(np.random.default_rng(3), wrong_shift_m=1.0)
+    _, edges, closure, guess = _loop_graph(np.random.default_rng(3), wrong_shift_m=1.0)
     plain = PoseGraph()
     plain.add_vertices(guess)
     plain.add_edges(*edges)
@@ -77,7 +78,7 @@ def test_a_wrong_closure_bends_plain_least_squares_but_not_dcs() -> None:
 
 
 def test_without_a_wrong_closure_dcs_is_one_plain_optimization() -> None:
-    truth, edges, closure, guess = _loop_graph(np.random.default_rng(4), wrong_shift_m=0.0)
+    _, edges, closure, guess = _loop_graph(np.random.default_rng(4), wrong_shift_m=0.0)
     plain = PoseGraph()
     plain.add_vertices(guess)
     plain.add_edges(*edges)

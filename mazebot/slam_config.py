@@ -217,6 +217,9 @@ class LoopSection:
         "... and its residual at most this many times"))] = 4.0
     information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of a loop closure's ICP information"))] = 0.1
+    dcs_phi: Annotated[float, Field(ge=0, description=(
+        "dynamic covariance scaling (Agarwal et al., ICRA 2013): a closure whose chi2 exceeds this loses "
+        "weight in the optimization (0: plain least squares)"))] = 11.34
     min_std_m: Annotated[float, Field(gt=0, description=(
         "floor of the chain's position std in the consistency test"))] = 0.005
     min_std_rad: Annotated[float, Field(gt=0, description="floor of the chain's heading std")] = 0.005
@@ -324,6 +327,14 @@ class MatchingSection:
         "when a match fails, retry ICP from the prediction turned by these"))] = (0.05, -0.05, 0.1, -0.1)
     match_information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of ICP's information matrix (ICP is optimistic about itself)"))] = 0.5
+    # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
+    corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
+        "search also when the prediction's position std exceeds this ..."))] = 0.05
+    corr_uncertain_std_rad: Annotated[float, Field(gt=0, description="... or its heading std this")] = 0.035
+    corr_window_sigmas: Annotated[float, Field(gt=0, description=(
+        "that search's half-widths: this many prediction stds (at most the search's own window)"))] = 3.0
+    corr_override_score: Annotated[float, Field(ge=0, le=1, description=(
+        "its match replaces an acceptable ICP match scoring this much less on the likelihood table"))] = 0.05
 
 
 @dataclass(frozen=True)

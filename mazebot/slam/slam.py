@@ -73,6 +73,7 @@ from mazebot.slam.lattice_fit import PitchFit, fit_pitch
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+from mazebot.slam.robust_closures import optimize_dcs
 from mazebot.slam.wall_lattice import LatticeParams, lattice_priors
 from mazebot.slam_config import (
     FACADE_SECTIONS,
@@ -212,6 +213,7 @@ class LoopClosureResult:
     wall_reference_rad: float | None = None  # the wall grid's direction estimated with the poses
     lattice_fit: PitchFit | None = None  # the lattice the walls were fitted to (None: not looked for)
     cpu_s: float = 0.0  # thread CPU time the job took (where it ran: a thread or a worker process)
+    downweighted: int = 0  # loop closures in the graph whose robust weight fell below 0.1 (robust_closures)
 
 
 @dataclass
@@ -272,27 +274,31 @@ class LoopClosureJob:
         accepted = [v for v in verdicts if v.accepted]
         if not accepted and not self.optimize_anyway:
             return LoopClosureResult(verdicts)
-        # optimize the graph with the new constraints (first keyframe fixed)
-        graph = PoseGraph()
-        graph.add_vertices(self.poses)
+        # optimize the graph with the new constraints (first keyframe fixed), loop closures robust
+        count = self.poses.shape[0]
         ei, ej, z, omega = self.edges
-        if len(ei):
-            graph.add_edges(ei, ej, z, omega)
+        parts: list[tuple[np.ndarray, ...]] = [(ei, ej, z, omega)]
         if accepted:
-            graph.add_edges(
-                [v.candidate.old for v in accepted],
-                [v.candidate.new for v in accepted],
+            parts.append((
+                np.array([v.candidate.old for v in accepted], dtype=np.intp),
+                np.array([v.candidate.new for v in accepted], dtype=np.intp),
                 np.array([v.measurement for v in accepted]),
                 np.array([v.information for v in accepted]),
-            )
-        count = self.poses.shape[0]
+            ))
+        vertices = self.poses
         priors = self._wall_priors()
         if priors is not None:  # vertex ``count``: the wall grid's direction, estimated with the poses
-            graph.add_vertices(priors[0])
-            graph.add_edges(*priors[1:])
-        optimization = graph.optimize(max_iterations=p.optimize_iterations, method="lm")
-        wall_reference = None if priors is None else _wrap_quarter(float(graph.vertices[count, 2]))
-        poses = graph.vertices[:count].copy()
+            vertices = np.vstack([self.poses, priors[0]])
+            parts.append(tuple(np.asarray(a) for a in priors[1:]))
+        edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
+        ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
+        closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k
+        robust = optimize_dcs(
+            vertices, (ai, aj, edges[2], edges[3]), closure, p.loop.dcs_phi, max_iterations=p.optimize_iterations
+        )
+        optimization = robust.optimization
+        wall_reference = None if priors is None else _wrap_quarter(float(robust.vertices[count, 2]))
+        poses = robust.vertices[:count].copy()
         # rebuild the grid from the optimized keyframes if any moved noticeably
         delta = relative_pose(self.integrated_poses, poses)
         moved = float(np.max(np.hypot(delta[:, 0], delta[:, 1])))
@@ -302,7 +308,15 @@ class LoopClosureJob:
             grid = p.grid.new_grid()
             grid.rebuild(kf.rays(poses[k]) for k, kf in enumerate(self.keyframes))
         return LoopClosureResult(
-            verdicts, poses, grid, optimization, moved, turned, wall_reference, lattice_fit=self.lattice_fit
+            verdicts,
+            poses,
+            grid,
+            optimization,
+            moved,
+            turned,
+            wall_reference,
+            lattice_fit=self.lattice_fit,
+            downweighted=int(np.sum(robust.weights < 0.1)),
         )
 
     def _wall_priors(
@@ -521,6 +535,7 @@ class Slam:
         self.matched_scans = 0
         self.searches = 0  # correlative searches run (sequential matches)
         self.searches_won = 0  # ... whose match replaced ICP's from the prediction
+        self.closures_downweighted = 0  # loop closures the last optimization all but switched off
         self._search_due = False  # the next match searches (the robot was just re-localized)
         # per-edge variances of the sequential chain (loop closure search radius)
         self._edge_var_xy: list[float] = []
@@ -765,6 +780,7 @@ class Slam:
         self._note_lattice(result.lattice_fit)
         if result.poses is None:
             return False
+        self.closures_downweighted = result.downweighted
         if result.wall_reference_rad is not None:
             self.wall_reference_rad = result.wall_reference_rad
         count = result.poses.shape[0]
@@ -963,33 +979,75 @@ class Slam:
     )
 
     def _search_wanted(self, match: IcpResult, guess: np.ndarray) -> bool:
-        """Is the prediction in doubt? ICP from it found no acceptable match, or the robot was just re-localized.
+        """Is the prediction in doubt? ICP from it failed, the robot was just re-localized, or it is uncertain.
 
-        An acceptable match from the prediction is never overridden: on the Intel log
-        (seed 1, first 200 scans) letting a search that scored better by 0.05 replace it
-        after turns and large ICP corrections took 3 of 115 searches and left the
-        trajectory 0.67 m RMS off, against 0.08 m without (a building's doors and
-        corridors offer alignments that fit a sparse scan as well as the right one).
+        Uncertain: the filter's standard deviation after the odometry step exceeds
+        ``corr_uncertain_std_m`` / ``corr_uncertain_std_rad`` (a metre between two scans of a
+        laser log, a long in-place turn): ICP's basin is then narrower than the prediction's
+        error, and ICP settles in whichever local optimum is nearest, often a wall one
+        door over or a few degrees off.
         """
-        return self._search_due or not self.acceptable(match)
+        return self._search_due or not self.acceptable(match) or self._prediction_uncertain()
+
+    def _prediction_uncertain(self) -> bool:
+        p = self.params
+        cov = self.ekf.covariance
+        return bool(
+            math.sqrt(max(cov[0, 0], cov[1, 1])) > p.corr_uncertain_std_m
+            or math.sqrt(cov[2, 2]) > p.corr_uncertain_std_rad
+        )
+
+    def _search_window(self, failed: bool) -> tuple[float, float]:
+        """Half-widths (m, rad) of the search: the whole window after a failure or re-localization,
+        else ``corr_window_sigmas`` standard deviations of the prediction (no larger than the whole).
+
+        A window fitted to the prediction's uncertainty holds the true pose (at 3σ, nearly
+        always) and few of the look-alikes a building offers farther away: Olson (ICRA 2009)
+        searches the motion model's support, not a fixed box.
+        """
+        p = self.params
+        search = p.correlative
+        assert search is not None
+        if failed:
+            return search.window_xy_m, search.window_theta_rad
+        cov = self.ekf.covariance
+        k = p.corr_window_sigmas
+        xy = min(search.window_xy_m, k * math.sqrt(max(cov[0, 0], cov[1, 1])))
+        theta = min(search.window_theta_rad, k * math.sqrt(cov[2, 2]))
+        return xy, theta
 
     def _search_steps(
         self, prepared: PreparedScan, guess: np.ndarray, match: IcpResult
     ) -> Generator[None, None, IcpResult]:
-        """The correlative search about ``guess``, ICP refining its best pose; that match if ``match`` failed.
+        """The correlative search about ``guess``, ICP refining its best pose; which of the two matches stands.
 
-        The search's match replaces ICP's from the prediction only if that one is not
-        acceptable and the refined one is (see :meth:`_search_wanted`).
+        - ICP from the prediction failed: the refined match, if acceptable.
+        - Re-localized and the prediction's match is acceptable: it stays.
+        - The prediction was only uncertain and both matches are acceptable: the refined one
+          replaces ICP's if it scores ``corr_override_score`` more on the likelihood table (at
+          least as well when ICP's left the window: it wandered beyond the prediction's
+          uncertainty), ICP rates it better on at least one of inlier ratio and residual, and
+          the refined match is not degenerate (a corridor does not fix the position along it).
+          The window is the prediction's own uncertainty, so the search cannot pick a
+          look-alike far from where the odometry says the robot is. On the Intel log a fixed
+          ±0.5 m window with the table's score alone replaced good matches by a corridor one
+          door over; the score alone over the fitted window let a match 5° off win in the long
+          corridor at the end (0.05 noise, seed 3: 1.23 m max error); asking ICP to rate it
+          better on both measures kept wrong alignments at 0.1 noise (seed 1, 300 scans:
+          3.7 m RMS against 0.18 m with one).
         """
         p = self.params
         search = p.correlative
         assert search is not None and self.target is not None
         self.searches += 1
+        relocalized = self._search_due
         self._search_due = False
+        failed = not self.acceptable(match)
+        window_xy, window_theta = self._search_window(failed or relocalized)
         src = select_points(prepared.points_match, prepared.sensor_xy, search)
-        crop = (guess[:2], search.max_range_m + search.window_xy_m + 3.0 * search.sigma_m + 0.5)
+        crop = (guess[:2], search.max_range_m + window_xy + 3.0 * search.sigma_m + 0.5)
         table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, search.levels, crop=crop)
-        found = correlative_match(table, src, guess, search.window_xy_m, search.window_theta_rad, prepared.sensor_xy)
+        found = correlative_match(table, src, guess, window_xy, window_theta, prepared.sensor_xy)
         if found.score < search.min_score:
             return match
         yield
@@ -998,10 +1056,26 @@ class Slam:
         )
         if not self.acceptable(refined):
             return match
-        if self.acceptable(match):  # re-localized and the prediction fits: it stays
+        if failed:
+            self.searches_won += 1
+            return refined
+        if relocalized:  # re-localized and the prediction fits: it stays
             return match
-        self.searches_won += 1
-        return refined
+        delta = refined.pose - match.pose
+        if math.hypot(delta[0], delta[1]) < 2.0 * search.resolution_m and abs(wrap_angle(delta[2])) < 0.01:
+            return match  # the same alignment
+        scores = table.score(np.array([match.pose, refined.pose]), src)
+        off = match.pose - guess
+        outside = math.hypot(off[0], off[1]) > window_xy * math.sqrt(2.0) or abs(wrap_angle(off[2])) > window_theta
+        margin = 0.0 if outside else p.corr_override_score
+        # and ICP does not disagree: more inliers or a smaller residual (a wall one door over or a
+        # corridor's length fits the table about as well, but rarely ICP too); and the refined match
+        # pins every direction: in a corridor the table cannot say where along it the robot is
+        icp_better = (refined.fitness >= match.fitness or refined.rmse_m <= match.rmse_m) and not refined.degenerate
+        if scores[1] >= scores[0] + margin and icp_better:
+            self.searches_won += 1
+            return refined
+        return match
 
     def _sequential_information(self, z: np.ndarray, odom: np.ndarray) -> np.ndarray:
         """Information of the edge previous keyframe → this one: odometry plus, if matched, ICP.

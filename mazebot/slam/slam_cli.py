@@ -296,6 +296,7 @@ def run_carmen(
         "loop_closures": len(slam.closures),
         "loop_closures_rejected": sum(slam.rejections.values()),
         "rejections": dict(slam.rejections.most_common()),
+        "loop_closures_downweighted": slam.closures_downweighted,
         "searches": slam.searches,
         "searches_won": slam.searches_won,
         "odom_noise": None if odom_noise is None else list(odom_noise),

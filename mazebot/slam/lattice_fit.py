@@ -142,8 +142,13 @@ def fit_pitch(
 
 
 def _mean_phase(items: list[tuple[float, float]], pitch_m: float) -> float:
-    """The weighted circular mean of the classes' phases of one axis (where its walls' centre lines lie)."""
-    z = sum(w * np.exp(2j * np.pi * phase / pitch_m) for phase, w in items) if items else 0.0
+    """The circular mean of the classes' phases of one axis (where its walls' centre lines lie).
+
+    Each class that saw faces counts once, however many points it has: the faces seen from
+    +u lie half a board above the centre line, those seen from -u half below, and a mean
+    weighted by their points would lean towards the side seen more (up to half a board).
+    """
+    z = sum(np.exp(2j * np.pi * phase / pitch_m) for phase, w in items if w > 0) if items else 0.0
     return float(np.remainder(np.angle(z) / (2 * np.pi) * pitch_m, pitch_m)) if abs(z) > 0 else 0.0
 
 
@@ -220,8 +225,10 @@ def cell_offset_on_lattice(
     a 1 ft maze's walls happen to fall near cell centres). The phases are the fit's,
     along the grid axes ``u``, ``v`` turned by ``reference_rad`` from the map's: only
     when the lattice fits and is so nearly square to the map that its farthest line
-    (``pitch_m`` times its lines away) moves less than a quarter of a cell by the turn.
-    None otherwise: the cells stay where they are.
+    (``pitch_m`` times its lines away) moves less than a quarter of a cell by the turn,
+    and only when a line lies more than a quarter of a cell off the centres of the cells
+    as they are (a 1 ft maze's, 2.4 mm off, keeps its grid). None otherwise: the cells stay
+    where they are.
     """
     if fit is None or not fit.fits or reference_rad is None:
         return None
@@ -229,5 +236,8 @@ def cell_offset_on_lattice(
     span_m = fit.pitch_m * max(fit.lines)
     if abs(turn) * span_m >= resolution_m / 4:
         return None
-    return (float(np.remainder(fit.phase_m[0] - resolution_m / 2, resolution_m)),
-            float(np.remainder(fit.phase_m[1] - resolution_m / 2, resolution_m)))
+    offset = np.remainder(np.asarray(fit.phase_m) - resolution_m / 2, resolution_m)
+    off_centre = np.abs(np.remainder(offset + resolution_m / 2, resolution_m) - resolution_m / 2)
+    if np.all(off_centre <= resolution_m / 4):
+        return None  # the lines already run near the centres of the cells as they are: leave them
+    return (float(offset[0]), float(offset[1]))

@@ -107,3 +107,16 @@ def test_a_maze_whose_walls_miss_the_lattice_turns_the_priors_off_and_says_so_on
             slam._note_lattice(replace(fit, measured=bool(k % 2)))
     off = [r for r in caplog.records if "lattice priors off" in r.getMessage()]
     assert len(off) == 1
+
+
+def test_the_lines_lie_between_the_faces_seen_from_both_sides_however_unequally_seen() -> None:
+    """Boards 12 mm thick on lines at 0.10 + 0.30 k m: ten times more points on their +u faces
+    than on their -u faces, and the axis's lines are still the boards' centre lines."""
+    k = np.arange(6) * 0.30
+    plus_u = np.repeat(0.106 + k, 1000)
+    minus_u = np.repeat(0.094 + k, 100)
+    v = np.repeat(0.05 + k, 300)
+    fit = fit_pitch([(plus_u, np.ones(plus_u.size), 0), (minus_u, np.ones(minus_u.size), 0),
+                     (v + 0.006, np.ones(v.size), 1), (v - 0.006, np.ones(v.size), 1)], 0.30, search=0.0)
+    assert math.remainder(fit.phase_m[0] - 0.10, 0.30) == pytest.approx(0.0, abs=0.0015)
+    assert math.remainder(fit.phase_m[1] - 0.05, 0.30) == pytest.approx(0.0, abs=0.0015)

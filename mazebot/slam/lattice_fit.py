@@ -226,9 +226,9 @@ def cell_offset_on_lattice(
     along the grid axes ``u``, ``v`` turned by ``reference_rad`` from the map's: only
     when the lattice fits and is so nearly square to the map that its farthest line
     (``pitch_m`` times its lines away) moves less than a quarter of a cell by the turn,
-    and only when a line lies more than a quarter of a cell off the centres of the cells
-    as they are (a 1 ft maze's, 2.4 mm off, keeps its grid). None otherwise: the cells stay
-    where they are.
+    and along an axis only where its lines lie more than a quarter of a cell off the centres
+    of the cells as they are (a 1 ft maze's, 2.4 mm off, keeps its grid). None when neither
+    axis moves.
     """
     if fit is None or not fit.fits or reference_rad is None:
         return None
@@ -238,6 +238,7 @@ def cell_offset_on_lattice(
         return None
     offset = np.remainder(np.asarray(fit.phase_m) - resolution_m / 2, resolution_m)
     off_centre = np.abs(np.remainder(offset + resolution_m / 2, resolution_m) - resolution_m / 2)
-    if np.all(off_centre <= resolution_m / 4):
-        return None  # the lines already run near the centres of the cells as they are: leave them
+    offset[off_centre <= resolution_m / 4] = 0.0  # lines near the centres of the cells as they are: leave them
+    if not offset.any():
+        return None
     return (float(offset[0]), float(offset[1]))

@@ -63,7 +63,8 @@ def three_state(saved: SavedRun) -> np.ndarray:
 
 
 def origin_m(saved: SavedRun) -> tuple[float, float]:
-    return (saved.origin_cells[0] * saved.resolution_m, saved.origin_cells[1] * saved.resolution_m)
+    return (saved.origin_cells[0] * saved.resolution_m + saved.cell_offset_m[0],
+            saved.origin_cells[1] * saved.resolution_m + saved.cell_offset_m[1])
 
 
 def export_pgm(saved: SavedRun, out: Path) -> list[Path]:

@@ -57,6 +57,7 @@ class SlamSnapshot:
     scans: int
     wall_reference_rad: float | None
     extra: dict[str, Any] = field(default_factory=dict)
+    cell_offset_m: tuple[float, float] = (0.0, 0.0)  # the grid's cell corners modulo the resolution
 
 
 def take_snapshot(slam: Slam, extra: dict[str, Any] | None = None) -> SlamSnapshot:
@@ -74,6 +75,7 @@ def take_snapshot(slam: Slam, extra: dict[str, Any] | None = None) -> SlamSnapsh
         scans=slam.scans,
         wall_reference_rad=slam.wall_reference_rad,
         extra=dict(extra or {}),
+        cell_offset_m=(float(grid.cell_offset_m[0]), float(grid.cell_offset_m[1])),
     )
 
 
@@ -113,7 +115,8 @@ def keyframes_npz(snapshot: SlamSnapshot) -> bytes:
 
 def save_snapshot(snapshot: SlamSnapshot, run_dir: Path, saved_at: dt.datetime | None = None) -> None:
     """Write every file of the run folder (atomically each; ``meta.json`` last)."""
-    origin = (snapshot.origin_cells[0] * snapshot.resolution_m, snapshot.origin_cells[1] * snapshot.resolution_m)
+    origin = (snapshot.origin_cells[0] * snapshot.resolution_m + snapshot.cell_offset_m[0],
+              snapshot.origin_cells[1] * snapshot.resolution_m + snapshot.cell_offset_m[1])
     write_atomic(run_dir / "map.pgm", encode_pgm(snapshot.three_state))
     write_atomic(run_dir / "map.yaml", encode_yaml(snapshot.resolution_m, origin, "map.pgm").encode())
     write_atomic(
@@ -122,6 +125,7 @@ def save_snapshot(snapshot: SlamSnapshot, run_dir: Path, saved_at: dt.datetime |
             log_odds=snapshot.log_odds,
             origin_cells=np.array(snapshot.origin_cells, dtype=np.int64),
             resolution_m=np.array(snapshot.resolution_m),
+            cell_offset_m=np.array(snapshot.cell_offset_m, dtype=np.float64),
         ),
     )
     write_atomic(run_dir / "graph.g2o", "".join(format_g2o(snapshot.graph)).encode())
@@ -157,6 +161,7 @@ class SavedRun:
     log_odds: np.ndarray
     origin_cells: tuple[int, int]
     resolution_m: float
+    cell_offset_m: tuple[float, float] = (0.0, 0.0)  # runs saved before the grid could shift: none
 
     @property
     def trajectory_xy(self) -> np.ndarray:
@@ -174,6 +179,8 @@ def load_run(run_dir: Path, normal_params: Any = None) -> SavedRun:
             log_odds = g["log_odds"].astype(np.float32)
             origin_cells = tuple(int(v) for v in g["origin_cells"])
             resolution_m = float(g["resolution_m"])
+            offset = g["cell_offset_m"] if "cell_offset_m" in g.files else np.zeros(2)
+            cell_offset_m = (float(offset[0]), float(offset[1]))
         with open(run_dir / "keyframes.npz", "rb") as keyframes_file, np.load(keyframes_file) as k:
             arrays = {name: k[name] for name in k.files}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # EOFError: an empty file
@@ -202,7 +209,8 @@ def load_run(run_dir: Path, normal_params: Any = None) -> SavedRun:
         )
     if len(graph) != len(keyframes):
         raise UsageError(f"run {run_dir}: graph.g2o has {len(graph)} poses but keyframes.npz {len(keyframes)}")
-    return SavedRun(run_dir, meta, keyframes, graph, log_odds, origin_cells, resolution_m)  # type: ignore[arg-type]
+    return SavedRun(run_dir, meta, keyframes, graph, log_odds, origin_cells,  # type: ignore[arg-type]
+                    resolution_m, cell_offset_m)
 
 
 def saved_grid(saved: SavedRun, like: OccupancyGrid) -> OccupancyGrid:
@@ -211,6 +219,7 @@ def saved_grid(saved: SavedRun, like: OccupancyGrid) -> OccupancyGrid:
     grid._clear()
     grid.log_odds = saved.log_odds.copy()
     grid._origin_cells = saved.origin_cells
+    grid.cell_offset_m = saved.cell_offset_m
     grid._touched = np.zeros(grid.log_odds.shape, dtype=bool)
     grid._reported = grid.three_state()
     return grid

@@ -20,8 +20,11 @@ endpoint's cell and everything after it is not marked free.
 The array grows: when a scan reaches past its edge it is reallocated with a margin,
 content kept at the same world coordinates. Frame: ``grid[row, col]``, row 0 south,
 column 0 west, cell (row, col) spanning ``origin + (col, row) * resolution`` — the ROS
-``map_server`` orientation. The origin is always a multiple of the resolution, so cell
-boundaries never move between reallocations or rebuilds.
+``map_server`` orientation. The origin is a multiple of the resolution plus the grid's
+``cell_offset_m``, so cell boundaries never move between reallocations; a rebuild may
+shift them by a fraction of a cell (:meth:`OccupancyGrid.rebuild`): a maze's thin walls
+then lie along cell centres rather than on the boundaries, where each would blacken two
+cells and take a cell's width of free space from the corridor beside it.
 
 For the websocket deltas, :meth:`OccupancyGrid.take_dirty` returns the cells whose
 three-state value (-1 unknown, 0 free, 100 occupied) changed since the previous call;
@@ -110,6 +113,7 @@ class OccupancyGrid:
         self.margin_m = float(margin_m)
         self.trace_step = float(trace_step)
         self.generation = 0
+        self.cell_offset_m = (0.0, 0.0)  # where the cells' corners lie, modulo the resolution (rebuild)
         self._clear()
 
     def _clear(self) -> None:
@@ -128,11 +132,12 @@ class OccupancyGrid:
     @property
     def origin_m(self) -> tuple[float, float]:
         """World (x, y) in metres of the south-west corner of cell (0, 0)."""
-        return (self._origin_cells[0] * self.resolution_m, self._origin_cells[1] * self.resolution_m)
+        return (self._origin_cells[0] * self.resolution_m + self.cell_offset_m[0],
+                self._origin_cells[1] * self.resolution_m + self.cell_offset_m[1])
 
     def to_cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rows, cols) int64 of the cells holding world points ``xy`` (N, 2); may be off the grid."""
-        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2) - np.asarray(self.cell_offset_m)
         col = np.floor(p[:, 0] / self.resolution_m).astype(np.int64) - self._origin_cells[0]
         row = np.floor(p[:, 1] / self.resolution_m).astype(np.int64) - self._origin_cells[1]
         return row, col
@@ -191,8 +196,9 @@ class OccupancyGrid:
         self._ensure_contains(np.concatenate((starts, ends)))
         # beams in continuous cell units of the current array: (col, row) = xy / res - origin
         origin = np.array(self._origin_cells, dtype=np.float64)
-        start_c = starts / self.resolution_m - origin
-        end_c = ends / self.resolution_m - origin
+        offset = np.asarray(self.cell_offset_m)
+        start_c = (starts - offset) / self.resolution_m - origin
+        end_c = (ends - offset) / self.resolution_m - origin
         end_cell = np.floor(end_c).astype(np.int64)
         free_c, free_r = self._trace_free(start_c, end_c, end_cell, hit, drop_hit_cells=False)
         hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
@@ -285,6 +291,7 @@ class OccupancyGrid:
         """Grow the array (with ``margin_m`` on each side) so every point lies on it."""
         res = self.resolution_m
         xy_lo, xy_hi = _xy_bounds(xy)
+        xy_lo, xy_hi = xy_lo - np.asarray(self.cell_offset_m), xy_hi - np.asarray(self.cell_offset_m)
         lo = np.floor(xy_lo / res).astype(np.int64)  # (col, row) in the lattice
         hi = np.floor(xy_hi / res).astype(np.int64)
         rows, cols = self.shape
@@ -326,7 +333,9 @@ class OccupancyGrid:
         reported[changed] = values
         return DirtyCells(changed // max(cols, 1), changed % max(cols, 1), values, self.generation)
 
-    def rebuild(self, keyframes: Iterable[Sequence[np.ndarray]]) -> None:
+    def rebuild(
+        self, keyframes: Iterable[Sequence[np.ndarray]], cell_offset_m: tuple[float, float] | None = None
+    ) -> None:
         """Recompute the grid from scratch, e.g. after a loop closure moved the poses.
 
         Each keyframe is ``(pose (3,), endpoints (N, 2), hit_mask (N,))`` or with a fourth
@@ -334,7 +343,8 @@ class OccupancyGrid:
         beams of :meth:`mazebot.slam.preprocess.PreparedScan.beams`); without origins
         beams start at the pose's position. The array is sized once for all keyframes;
         ``generation`` increments and the next :meth:`take_dirty` reports only later
-        changes (clients reload the full map).
+        changes (clients reload the full map). ``cell_offset_m`` moves the cells' corners to
+        that place modulo the resolution (None: where they were).
         """
         keyframes = list(keyframes)
 
@@ -354,6 +364,10 @@ class OccupancyGrid:
                 corners += [both.min(axis=0), both.max(axis=0)]
         generation = self.generation
         self._clear()
+        if cell_offset_m is not None:
+            res = self.resolution_m
+            self.cell_offset_m = (float(np.remainder(cell_offset_m[0], res)),
+                                  float(np.remainder(cell_offset_m[1], res)))
         if corners:  # size the array once for all keyframes
             self._ensure_contains(np.array(corners))
         for kf in keyframes:

@@ -69,7 +69,7 @@ from mazebot.slam.endpoint_smoothing import EndpointSmoothing
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
-from mazebot.slam.lattice_fit import PitchFit, fit_pitch
+from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice, fit_pitch
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
@@ -306,7 +306,8 @@ class LoopClosureJob:
         grid = None
         if self.rebuild_anyway or moved > p.rebuild_threshold_m or turned > p.rebuild_threshold_rad:
             grid = p.grid.new_grid()
-            grid.rebuild(kf.rays(poses[k]) for k, kf in enumerate(self.keyframes))
+            offset = cell_offset_on_lattice(self.lattice_fit, self.wall_reference_rad, grid.resolution_m)
+            grid.rebuild((kf.rays(poses[k]) for k, kf in enumerate(self.keyframes)), cell_offset_m=offset)
         return LoopClosureResult(
             verdicts,
             poses,
@@ -836,7 +837,7 @@ class Slam:
     def rebuild_map(self) -> OccupancyGrid:
         """Rebuild the grid from every keyframe at its current pose (offline tools, at the end)."""
         grid = self.params.grid.new_grid()
-        grid.rebuild(kf.rays() for kf in self.keyframes)
+        grid.rebuild((kf.rays() for kf in self.keyframes), cell_offset_m=self.grid.cell_offset_m)
         for kf in self.keyframes:
             kf.integrated_pose = kf.pose.copy()
         grid.generation = self.grid.generation + 1

@@ -27,6 +27,8 @@ import time
 from collections import deque
 from concurrent.futures import Executor
 
+import numpy as np
+
 from mazebot.clock import Clock
 from mazebot.io.scan import Scan
 from mazebot.slam.ekf import OdometryHistory
@@ -47,6 +49,8 @@ ODOMETRY_WAIT_S = 0.1
 ODOMETRY_FAULTS = frozenset({"encoders", "localization"})
 #: Revolutions in a row that fit the odometry (matched, no slip) before SLAM paints again.
 TRUSTED_AFTER = 5
+#: A revolution during which the wheel odometry moved less than this (metres, radians) was at rest.
+AT_REST_M, AT_REST_RAD = 0.002, 0.005
 
 
 class OdometryTrust:
@@ -58,22 +62,33 @@ class OdometryTrust:
     suite). Such revolutions only localize the robot (:meth:`Slam.update` with ``paint=False``)
     until ``TRUSTED_AFTER`` in a row were matched by ICP without a slip and no odometry fault
     is up.
+
+    After a slip, revolutions at rest count too, matched or not: wheels that do not turn
+    cannot slip. Without that, a slip could stop the map for good: the robot drives on into
+    walls the map does not hold yet, ICP then fits no revolution (the submap lacks what the
+    scan sees, residuals of 6-9 cm), none is painted, no keyframe brings the new walls in,
+    and the explorer waits at rest for a target the map never resolves. Not after a fault
+    or a re-localization (:meth:`distrust`): there the pose itself is in doubt.
     """
 
     def __init__(self, trusted_after: int = TRUSTED_AFTER) -> None:
         self.trusted_after = trusted_after
         self.clean = trusted_after  # revolutions in a row that fit the odometry
         self.held_back = 0  # revolutions not painted, in all
+        self.rest_heals = True  # the last distrust was a slip: revolutions at rest count as clean
 
     def distrust(self) -> None:
         """The odometry is known bad from now on (a fault, a re-localization)."""
         self.clean = 0
+        self.rest_heals = False
 
-    def observe(self, state: SharedState, slipped: bool, matched: bool) -> bool:
+    def observe(self, state: SharedState, slipped: bool, matched: bool, at_rest: bool = False) -> bool:
         """One revolution's verdict: paint it (True) or localize only."""
-        if slipped or any(f.source in ODOMETRY_FAULTS for f in state.faults):
+        faulted = any(f.source in ODOMETRY_FAULTS for f in state.faults)
+        if slipped or faulted:
             self.clean = 0
-        elif matched:  # an unmatched revolution proves nothing either way
+            self.rest_heals = not faulted
+        elif matched or (at_rest and self.rest_heals):  # an unmatched revolution in motion proves nothing
             self.clean = min(self.clean + 1, self.trusted_after)
         trusted = self.clean >= self.trusted_after
         self.held_back += not trusted
@@ -174,10 +189,12 @@ async def run(
                 predicted = guard.guess
                 slip: list[tuple[float, float] | None] = [None]
 
-                def paint(match, matched: bool, predicted=predicted, slip=slip) -> bool:
+                at_rest = _at_rest(history, scan)
+
+                def paint(match, matched: bool, predicted=predicted, slip=slip, at_rest=at_rest) -> bool:
                     if predicted is not None and match is not None and slam.acceptable(match):
                         slip[0] = guard.slipped(predicted, match.pose)  # the lidar's pose, before the filter
-                    return trust.observe(state, slip[0] is not None, matched)
+                    return trust.observe(state, slip[0] is not None, matched, at_rest)
 
                 await asyncio.sleep(0)  # the guard's check and the update are two stretches, not one
                 cpu_s = [0.0]
@@ -217,6 +234,14 @@ async def run(
             next_scan.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await next_scan
+
+
+def _at_rest(history: OdometryHistory, scan: Scan) -> bool:
+    """Whether the wheel odometry stood still over the revolution (``AT_REST_M``, ``AT_REST_RAD``)."""
+    x, y, th = history.at(np.array([scan.start_time_s, scan.end_time_s]))
+    x, y, th = np.ravel(x), np.ravel(y), np.ravel(th)
+    turned = abs(math.remainder(float(th[1] - th[0]), math.tau))
+    return bool(math.hypot(float(x[1] - x[0]), float(y[1] - y[0])) < AT_REST_M and turned < AT_REST_RAD)
 
 
 def _lost(state: SharedState, guard: LocalizationGuard, clock: Clock) -> None:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -9,6 +12,7 @@ from scipy import ndimage
 from mazebot.sim.raster import true_occupancy
 from mazebot.sim.world import World
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
+from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 
 RES_M = 0.02
 
@@ -225,3 +229,39 @@ def test_bad_arguments_are_refused() -> None:
     grid = OccupancyGrid()
     with pytest.raises(ValueError, match="hit_mask"):
         grid.integrate(np.zeros(3), np.zeros((3, 2)), np.ones(2, bool))
+
+
+def test_cells_shifted_by_a_rebuild_keep_every_point_in_its_cell() -> None:
+    grid = OccupancyGrid(resolution_m=0.02)
+    sensor = np.array([0.05, 0.05, 0.0])
+    ends = np.array([[1.0, 0.05], [0.05, 1.0], [-0.7, -0.3]])
+    grid.rebuild([(sensor, ends - sensor[:2], np.ones(3, dtype=bool))], cell_offset_m=(0.0234, -0.0047))
+    assert grid.cell_offset_m == pytest.approx((0.0034, 0.0153))
+    corner = np.asarray(grid.origin_m) - grid.cell_offset_m  # a whole number of cells
+    assert np.round(corner / 0.02) * 0.02 == pytest.approx(corner, abs=1e-9)
+    rows, cols = grid.to_cell(ends)
+    assert np.abs(grid.to_world(rows, cols) - ends).max() <= 0.01 + 1e-9
+    assert grid.occupied_mask()[rows, cols].all()  # the hits landed in the cells to_cell names
+
+
+def test_a_thin_wall_on_a_cell_boundary_blackens_two_cells_and_one_once_the_cells_follow_the_lattice() -> None:
+    """A 12 mm board along x = 0.16 m, seen from both sides: on cells whose boundary it lies on
+    it is two cells thick; on cells centred on it (the offset the lattice gives), one."""
+    ys = np.linspace(-0.2, 0.2, 41)
+    west = [(np.array([0.0, 0.0, 0.0]), np.column_stack((np.full(ys.size, 0.154), ys)), np.ones(ys.size, bool))]
+    east = [(np.array([0.32, 0.0, 0.0]), np.column_stack((np.full(ys.size, -0.154), ys)), np.ones(ys.size, bool))]
+    fit = PitchFit(0.32, (0.16, 0.16), 1.0, (6, 6), True, True)
+    for offset, thickness in ((None, 2), (cell_offset_on_lattice(fit, 0.0, 0.02), 1)):
+        grid = OccupancyGrid(resolution_m=0.02)
+        grid.rebuild(west + east, cell_offset_m=offset)
+        rows, cols = np.nonzero(grid.occupied_mask())
+        xs = np.unique(np.round(grid.to_world(rows, cols)[:, 0], 4))
+        assert len(xs) == thickness
+    assert cell_offset_on_lattice(fit, math.radians(1.0), 0.02) is None  # lines turned across the cells
+    assert cell_offset_on_lattice(replace(fit, fits=False), 0.0, 0.02) is None
+
+
+def test_lines_near_the_centres_of_the_cells_as_they_are_leave_the_cells_there() -> None:
+    fit = PitchFit(0.3048, (0.1524, 0.1524), 1.0, (6, 6), True, True)  # a 1 ft maze from its start cell
+    assert cell_offset_on_lattice(fit, 0.0, 0.02) is None
+    assert cell_offset_on_lattice(replace(fit, phase_m=(0.1524, 0.161)), 0.0, 0.02) == pytest.approx((0.0, 0.011))

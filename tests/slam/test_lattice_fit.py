@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.room import make_room
 from mazebot.slam.lattice_fit import fit_pitch
 from mazebot.slam.posegraph import relative_pose
-from mazebot.slam.slam import LoopClosureJob, SlamParams
+from mazebot.slam.slam import LoopClosureJob, Slam, SlamParams
 from mazebot.slam.wall_lattice import LatticeParams
 from tests.slam.test_wall_lattice import keyframe_at, route_poses
 
@@ -81,3 +83,40 @@ def test_two_lines_fit_any_pitch_so_they_measure_none() -> None:
     fit = fit_pitch([(u, np.ones(u.size), 0), (v, np.ones(v.size), 1)], 0.3048, search=0.08)
     assert fit.lines == (1, 1) or max(fit.lines) <= 2
     assert not fit.measured and not fit.fits
+
+
+def test_a_maze_whose_walls_miss_the_lattice_turns_the_priors_off_and_says_so_once(cast_scan, caplog) -> None:
+    """A maze of 0.40 m cells configured as 1 ft: its walls lie on no lattice within the pitch
+    search, so the job adds no lattice edge (its poses are the plain job's) and SLAM logs the
+    switch once, however many jobs report it."""
+    layout = generate_maze(6, 6, seed=3, kind="braided", cell_size_m=0.40)
+    world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=0.0, clutter=0), 3)
+    truth = route_poses(world)
+    rng = np.random.default_rng(2)
+    drifted = truth + np.column_stack((np.cumsum(rng.normal(0, 0.004, (len(truth), 2)), axis=0),
+                                       np.zeros(len(truth))))
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    result = chain_job(keyframes, drifted, CONFIGURED).run()
+    fit = result.lattice_fit
+    assert fit is not None and not fit.fits
+    plain = chain_job(keyframes, drifted, None).run()
+    assert np.allclose(result.poses, plain.poses, atol=1e-9)
+    slam = Slam(SlamParams(lattice=CONFIGURED))
+    with caplog.at_level(logging.INFO, logger="mazebot.slam.slam"):
+        for k in range(4):  # with three lines on an axis or without: no lattice either way
+            slam._note_lattice(replace(fit, measured=bool(k % 2)))
+    off = [r for r in caplog.records if "lattice priors off" in r.getMessage()]
+    assert len(off) == 1
+
+
+def test_the_lines_lie_between_the_faces_seen_from_both_sides_however_unequally_seen() -> None:
+    """Boards 12 mm thick on lines at 0.10 + 0.30 k m: ten times more points on their +u faces
+    than on their -u faces, and the axis's lines are still the boards' centre lines."""
+    k = np.arange(6) * 0.30
+    plus_u = np.repeat(0.106 + k, 1000)
+    minus_u = np.repeat(0.094 + k, 100)
+    v = np.repeat(0.05 + k, 300)
+    fit = fit_pitch([(plus_u, np.ones(plus_u.size), 0), (minus_u, np.ones(minus_u.size), 0),
+                     (v + 0.006, np.ones(v.size), 1), (v - 0.006, np.ones(v.size), 1)], 0.30, search=0.0)
+    assert math.remainder(fit.phase_m[0] - 0.10, 0.30) == pytest.approx(0.0, abs=0.0015)
+    assert math.remainder(fit.phase_m[1] - 0.05, 0.30) == pytest.approx(0.0, abs=0.0015)

@@ -44,8 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mazebot.geometry import wrap_angle
 from mazebot.slam.g2o import read_g2o
-from mazebot.slam.posegraph import OptimizeResult, PoseGraph, wrap_angle
+from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 
 DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
 GRAPHS = ("input_M3500_g2o", "input_MITb_g2o")

@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
+from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.io.scan import Scan
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import world_from_layout
 from mazebot.slam.ekf import OdometryHistory
-from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
 from mazebot.slam.relocalize import LocalizationGuard, search_pose
 from mazebot.slam.slam import Slam, SlamParams
 

@@ -27,13 +27,12 @@ import numpy as np
 from scipy import ndimage
 
 from mazebot.errors import UsageError
-from mazebot.geometry import transform_points
+from mazebot.geometry import compose, inverse, transform_points
 from mazebot.io.scan import Scan
 from mazebot.persist.snapshot import SavedRun, saved_grid
 from mazebot.slam.icp import IcpResult, match_scan
 from mazebot.slam.keyframes import build_target
 from mazebot.slam.observed import ObservedSlam
-from mazebot.slam.posegraph import compose, inverse
 from mazebot.slam.slam import OdometrySource, PaintDecision, SlamUpdate
 
 log = logging.getLogger(__name__)

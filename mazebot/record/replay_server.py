@@ -33,9 +33,9 @@ from typing import Any
 from aiohttp import web
 
 from mazebot.errors import HardwareUnavailable
+from mazebot.geometry import compose
 from mazebot.record.reader import Recording
 from mazebot.record.replay import TOPICS, Replayer, ReplayResult
-from mazebot.slam.posegraph import compose
 from mazebot.state import RunState, SharedState
 from mazebot.web.app import WebSettings, create_app
 

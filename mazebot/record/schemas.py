@@ -376,7 +376,7 @@ def transform_chain(
     The lidar sits at its mounting offset with no rotation: the driver has already turned its
     angles into the robot's frame (``mazebot.io.rplidar``).
     """
-    from mazebot.slam.posegraph import compose, inverse  # the one home of SE(2) arithmetic
+    from mazebot.geometry import compose, inverse  # the one home of SE(2) arithmetic
 
     mx, my, mt = (float(v) for v in compose(pose, inverse(odometry)))
     return (

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
+from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.slam_config import MotionSection
 
 

@@ -50,10 +50,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mazebot.geometry import relative_pose, wrap_angle
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
 from mazebot.slam.ekf import rotate_information
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
-from mazebot.slam.posegraph import relative_pose, wrap_angle
 from mazebot.slam_config import LoopSection
 
 

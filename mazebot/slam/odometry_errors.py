@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mazebot.errors import UsageError
-from mazebot.slam.posegraph import compose, relative_pose
+from mazebot.geometry import compose, relative_pose
 
 
 @dataclass(frozen=True)

@@ -50,11 +50,10 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from mazebot.geometry import transform_points
+from mazebot.geometry import compose, inverse, transform_points, wrap_angle
 from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpResult, match_scan
 from mazebot.slam.keyframes import build_target
-from mazebot.slam.posegraph import compose, inverse, wrap_angle
 
 log = logging.getLogger(__name__)
 

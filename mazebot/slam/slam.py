@@ -61,7 +61,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from mazebot.config import LidarConfig, PlannerConfig
-from mazebot.geometry import transform_points
+from mazebot.geometry import compose, inverse, relative_pose, transform_points, wrap_angle
 from mazebot.io.scan import Scan
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
 from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffsetCalibration, rotate_information
@@ -71,7 +71,7 @@ from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice, fit_pitch
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
-from mazebot.slam.posegraph import OptimizeResult, PoseGraph, compose, inverse, relative_pose, wrap_angle
+from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
 from mazebot.slam.wall_lattice import LatticeParams, lattice_priors

@@ -47,12 +47,12 @@ import numpy as np
 
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
+from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.slam.carmen import CarmenLog, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
 from mazebot.slam.map_export import write_map_png, write_ros_map
 from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
-from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
 from mazebot.slam.slam import GridParams, Slam, SlamParams
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from mazebot.errors import MazebotError
+from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.io.scan import Scan
 from mazebot.persist.resume import ResumedSlam
 from mazebot.persist.snapshot import load_run, save_snapshot, take_snapshot
@@ -23,7 +24,6 @@ from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import World, world_from_layout
 from mazebot.slam.ekf import OdometryHistory
-from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
 from mazebot.slam.slam import Slam, SlamParams
 
 PERIOD_S = 1 / 5.5

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.slam.ekf import (
     HeadingCalibration,
     MotionNoise,
@@ -15,7 +16,6 @@ from mazebot.slam.ekf import (
     TimeOffsetCalibration,
     rotate_information,
 )
-from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
 
 
 def test_history_interpolates_unwrapped_heading_and_forgets_old_poses() -> None:

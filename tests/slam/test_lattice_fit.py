@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from mazebot.geometry import relative_pose
 from mazebot.sim.hand_maze import HandBuild, hand_built_world
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.room import make_room
 from mazebot.slam.lattice_fit import fit_pitch
-from mazebot.slam.posegraph import relative_pose
 from mazebot.slam.slam import LoopClosureJob, Slam, SlamParams
 from mazebot.slam.wall_lattice import LatticeParams
 from tests.slam.test_wall_lattice import keyframe_at, route_poses

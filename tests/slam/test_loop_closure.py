@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from mazebot.geometry import compose, relative_pose
 from mazebot.io.scan import Scan
 from mazebot.sim.world import World, rectangles_outline
 from mazebot.slam.icp import IcpParams
@@ -18,7 +19,6 @@ from mazebot.slam.loop_closure import (
     find_candidates,
     verify,
 )
-from mazebot.slam.posegraph import compose, relative_pose
 from mazebot.slam.preprocess import PrepareParams, prepare_scan
 
 CELL_M = 0.3048

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mazebot.errors import UsageError
+from mazebot.geometry import relative_pose, wrap_angle
 from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
-from mazebot.slam.posegraph import relative_pose, wrap_angle
 
 
 def _straight(steps: int, step_m: float = 0.5) -> np.ndarray:

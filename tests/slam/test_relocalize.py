@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
+from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.slam.ekf import OdometryHistory
-from mazebot.slam.posegraph import compose, relative_pose, wrap_angle
 from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
 from mazebot.slam.slam import Slam, SlamParams
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mazebot.slam.posegraph import PoseGraph, relative_pose
+from mazebot.geometry import relative_pose
+from mazebot.slam.posegraph import PoseGraph
 from mazebot.slam.robust_closures import dcs_weights, optimize_dcs
 
 

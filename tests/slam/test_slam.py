@@ -19,6 +19,7 @@ from mazebot.bench.metrics import map_metrics
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
 from mazebot.clock import RealClock
 from mazebot.config import Config
+from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
 from mazebot.io.encoders import WheelEncoders
 from mazebot.io.motors import DifferentialMotors
 from mazebot.io.scan import Scan
@@ -29,7 +30,6 @@ from mazebot.sim.world import World, world_from_layout
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.keyframes import KeyframeSelector
 from mazebot.slam.odometry import DiffDriveOdometry
-from mazebot.slam.posegraph import compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.slam import Slam, SlamParams, SlamUpdate
 
 STEP_S = 0.01

@@ -11,9 +11,9 @@ import pytest
 
 from mazebot.cli import main
 from mazebot.config import load_config
+from mazebot.geometry import wrap_angle
 from mazebot.slam.carmen import read_carmen
 from mazebot.slam.map_export import read_ros_map
-from mazebot.slam.posegraph import wrap_angle
 from mazebot.slam.slam import SlamParams
 from mazebot.slam.slam_cli import laser_log_params, noisy_odometry
 
@@ -66,7 +66,7 @@ def test_noisy_odometry_has_the_asked_noise() -> None:
     # a straight 1 m per step drive: per step, std SX per metre on each axis, STH per (m + rad) on heading
     reference = np.column_stack((np.arange(2001.0), np.zeros(2001), np.zeros(2001)))
     odo = noisy_odometry(reference, 0.05, 0.02, np.random.default_rng(1))
-    from mazebot.slam.posegraph import relative_pose
+    from mazebot.geometry import relative_pose
 
     steps = relative_pose(odo[:-1], odo[1:])
     assert np.std(steps[:, 0]) == pytest.approx(0.05, rel=0.1)

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from mazebot.geometry import relative_pose
 from mazebot.slam.keyframes import Keyframe
-from mazebot.slam.posegraph import relative_pose
 from mazebot.slam.slam import LoopClosureJob, SlamParams
 from mazebot.slam.wall_lattice import FACE_CLASSES, LatticeParams, lattice_priors, measure_faces
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mazebot.slam.posegraph import compose
+from mazebot.geometry import compose
 from mazebot.tasks.odometry_task import _compose
 
 

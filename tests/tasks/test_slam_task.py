@@ -15,6 +15,7 @@ import pytest
 
 from mazebot.clock import RealClock
 from mazebot.config import Config
+from mazebot.geometry import compose
 from mazebot.io.encoders import EncoderReading
 from mazebot.io.scan import Scan
 from mazebot.sim.maze_generator import generate_maze
@@ -22,7 +23,6 @@ from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import world_from_layout
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.posegraph import compose
 from mazebot.slam.preprocess import PrepareParams
 from mazebot.slam.slam import LoopClosureResult, SlamParams, SlamUpdate
 from mazebot.state import RunState, SharedState

@@ -206,7 +206,6 @@ def test_resume_continues_from_the_saved_pose_in_the_saved_map(
     assert abs(math.degrees(turned - 5 * TURN_RAD)) < 0.5
 
 
-
 def test_a_robot_that_starts_to_turn_in_its_first_revolution_is_found_with_the_lidars_stamps_shifted(
     world: World, mapped: tuple[Slam, np.ndarray], tmp_path: Path
 ) -> None:

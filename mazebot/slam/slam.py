@@ -641,12 +641,14 @@ class Slam:
         (``update = yield from super().update_steps(scan, odometry, paint=paint)``).
         """
         p = self.params
+        # 1. de-skew: every sample into the robot frame at the end of the revolution, at the
+        # lidar's stamps shifted by the learned offset; the odometry pose at that end
         prepared, odom = self.prepare(scan, odometry)
         time_s = prepared.time_s
         rate = _turn_rate(odometry, time_s)
         self.scans += 1
 
-        # 1. predict: the odometry increment since the last scan moves the filter
+        # 2. predict: the odometry increment since the last scan moves the filter
         raw_increment = None
         if self._last_odom is None:
             self.ekf.reset(compose(self.initial_pose, odom), self.ekf.covariance)
@@ -654,8 +656,6 @@ class Slam:
             raw_increment = relative_pose(self._last_odom, odom)
             self.ekf.predict(self.calibration.correct(raw_increment))
         self._last_odom = odom
-
-        # 2. de-skew: every sample into the robot frame at the end of the revolution (done above)
         yield
 
         # 3. match against the local submap, from the prediction (and from turned guesses if that fails)

@@ -54,6 +54,7 @@ from mazebot.geometry import compose, inverse, transform_points, wrap_angle
 from mazebot.io.scan import Scan
 from mazebot.slam.icp import IcpResult, match_scan
 from mazebot.slam.keyframes import build_target
+from mazebot.slam.slam import odometry_pose_at
 
 log = logging.getLogger(__name__)
 
@@ -433,11 +434,6 @@ def _same_pose(a: np.ndarray, b: np.ndarray, params: GuardParams) -> bool:
     return bool(math.hypot(a[0] - b[0], a[1] - b[1]) < 2 * params.search_step_m and abs(wrap_angle(a[2] - b[2])) < 0.1)
 
 
-def _odom_at(odometry: Any, time_s: float) -> np.ndarray:
-    x, y, th = odometry.at(np.array([time_s]))
-    return np.array([float(x[0]), float(y[0]), float(th[0])])
-
-
 class LocalizationGuard:
     """Holds revolutions that do not fit the map back from SLAM and says when the robot is lost.
 
@@ -462,7 +458,7 @@ class LocalizationGuard:
 
     def predicted_pose(self, slam: Any, scan: Scan, odometry: Any) -> np.ndarray:
         """Where the odometry says the robot is at the revolution's end, in the map frame."""
-        odom = _odom_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
+        odom = odometry_pose_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
         return compose(slam.map_from_odom, odom)
 
     def check(self, slam: Any, scan: Scan, odometry: Any) -> str:

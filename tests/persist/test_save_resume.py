@@ -19,7 +19,7 @@ from mazebot.errors import MazebotError
 from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.io.scan import Scan
 from mazebot.persist.resume import ResumedSlam
-from mazebot.persist.snapshot import load_run, save_snapshot, take_snapshot
+from mazebot.persist.snapshot import SavedRun, load_run, save_snapshot, take_snapshot
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import World, world_from_layout
@@ -80,6 +80,13 @@ def mapped(world: World) -> tuple[Slam, np.ndarray]:
 
 def _save(slam: Slam, run_dir: Path) -> None:
     save_snapshot(take_snapshot(slam), run_dir)
+
+
+def _saved_run(mapped: tuple[Slam, np.ndarray], run_dir: Path) -> tuple[SavedRun, np.ndarray]:
+    """The mapped run saved in ``run_dir`` and loaded back; and the true final world pose."""
+    slam, true_end = mapped
+    _save(slam, run_dir)
+    return load_run(run_dir), true_end
 
 
 def test_a_saved_map_and_pose_graph_load_back_equal(mapped: tuple[Slam, np.ndarray], tmp_path: Path) -> None:
@@ -163,9 +170,7 @@ def test_a_graph_that_disagrees_with_the_keyframes_is_one_line(mapped: tuple[Sla
 def test_resume_continues_from_the_saved_pose_in_the_saved_map(
     world: World, mapped: tuple[Slam, np.ndarray], tmp_path: Path
 ) -> None:
-    slam, true_end = mapped
-    _save(slam, tmp_path)
-    saved = load_run(tmp_path)
+    saved, true_end = _saved_run(mapped, tmp_path)
     saved_pose = np.asarray(saved.meta["pose"])
     start = np.asarray(world.start_pose, dtype=np.float64)
     # the truth in the map frame (the first run's start pose), where the first run stopped
@@ -213,9 +218,7 @@ def test_a_robot_that_starts_to_turn_in_its_first_revolution_is_found_with_the_l
     # half-way through the revolution. Re-localization must de-skew the revolution at the shifted
     # stamps, as SLAM's own update does: at the unshifted ones the odometry says the turn began
     # before the first sample, and the samples are spread over twice the true turn.
-    slam, true_end = mapped
-    _save(slam, tmp_path)
-    saved = load_run(tmp_path)
+    saved, true_end = _saved_run(mapped, tmp_path)
     start = np.asarray(world.start_pose, dtype=np.float64)
     offset_s, rate_radps, turn_from_s = 0.1, 1.0, 0.5 * PERIOD_S
     params = replace(_params(), lidar_time_offset_s=offset_s, estimate_time_offset=False)

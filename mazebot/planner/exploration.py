@@ -384,6 +384,10 @@ class Explorer:
         self._last_xy_m: tuple[float, float] | None = None
         self._revolutions = 0  # the map's revolution count at this tick
         self._costmap: GridCostmap | None = None
+        #: route costs (:func:`cell_costs`) by (start cell, heading), while the graph's links stay the same:
+        #: the robot spends about a second in a cell, five planner ticks on the same links and start
+        self._route_costs: dict[tuple[Cell, int | None], dict[Cell, float]] = {}
+        self._route_costs_version = -1
         #: what happened to targets since the caller last emptied it (blacklists, with why)
         self.events: list[str] = []
 
@@ -514,7 +518,7 @@ class Explorer:
         if float(np.abs(uv_m).max()) <= self.inside_half_m:  # well inside, not just across the border
             graph.mark_looked_into(robot)  # been there: nothing more to see inside it
         heading = _heading_index(pose[2], frame.angle_rad)
-        costs = cell_costs(graph.open_neighbours, robot, heading, self.turn_cost_cells)
+        costs = self._costs_from(robot, heading)
         links: list[tuple[Cell, Direction | None]] = []
         for cell in sorted(costs):
             links.extend((cell, side) for side in graph.unknown_sides(cell))
@@ -533,7 +537,7 @@ class Explorer:
         self.phase = Phase.EXPLORING
 
         def distances_from(cell: Cell) -> dict[Cell, float]:
-            return cell_costs(graph.open_neighbours, cell, None, self.turn_cost_cells)
+            return self._costs_from(cell, None)
 
         start_cell = frame.cell_of(*self.start_xy_m)
         choice = self.strategy.choose(candidates, distances_from, start_cell)
@@ -562,6 +566,21 @@ class Explorer:
             cells,
             f"{what} ({self.strategy.name})",
         )
+
+    def _costs_from(self, cell: Cell, heading: int | None) -> dict[Cell, float]:
+        """:func:`cell_costs` from ``cell`` facing ``heading`` over the graph's open links (read only).
+
+        The same dict again while the links have not changed (``MazeGraph.links_version``).
+        """
+        graph = self.graph
+        if self._route_costs_version != graph.links_version:
+            self._route_costs.clear()
+            self._route_costs_version = graph.links_version
+        key = (cell, heading)
+        costs = self._route_costs.get(key)
+        if costs is None:
+            costs = self._route_costs[key] = cell_costs(graph.open_neighbours, cell, heading, self.turn_cost_cells)
+        return costs
 
     # -- frontier mode -------------------------------------------------------------------
 

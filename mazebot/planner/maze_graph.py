@@ -86,6 +86,8 @@ class Direction(enum.IntEnum):
 
 
 _STEPS: dict[Direction, Cell] = {Direction.E: (1, 0), Direction.N: (0, 1), Direction.W: (-1, 0), Direction.S: (0, -1)}
+#: The sides in the order ``Direction`` iterates (a tuple: iterating an enum class is slow in a hot loop).
+_DIRECTIONS: tuple[Direction, ...] = tuple(Direction)
 
 
 class LinkState(enum.IntEnum):
@@ -94,6 +96,10 @@ class LinkState(enum.IntEnum):
     UNKNOWN = 0
     OPEN = 1
     WALL = 2
+
+
+#: ``LinkState(v)`` by value: an index instead of the enum's constructor on the planner's hot path.
+_LINK_STATES: tuple[LinkState, ...] = tuple(LinkState(v) for v in range(len(LinkState)))
 
 
 class CellKind(enum.StrEnum):
@@ -437,8 +443,17 @@ class MazeGraph:
         self._east = np.zeros((0, 0), dtype=np.int8)
         self._north = np.zeros((0, 0), dtype=np.int8)
         self._seen = np.zeros((0, 0), dtype=np.float32)  # known share of each cell's interior
-        self._adjacency: dict[Cell, list[Cell]] | None = None  # open_neighbours of every cell, until the next update
+        self._adjacency: dict[Cell, list[Cell]] | None = None  # open_neighbours of every cell, until the links change
         self._samples = _SampleCells()  # where the link and interior samples fall in the grid, while that holds
+        #: Counts the changes of the links or of the covered range: what a reader may key its own caches on
+        #: (route costs, reachable cells). An update that reclassifies every link to the same states keeps it.
+        self.links_version = 0
+        # Read-side copies of the arrays as Python lists (one index costs less than a numpy element),
+        # and answers per cell, all kept while the links stay as they are (the seen shares: until an update)
+        self._link_rows: tuple[list[list[int]], list[list[int]]] | None = None
+        self._unknown_sides: dict[Cell, tuple[Direction, ...]] = {}
+        self._reachable: dict[Cell, frozenset[Cell]] = {}
+        self._seen_rows: list[list[float]] | None = None
 
     # -- building ------------------------------------------------------------------------
 
@@ -482,7 +497,18 @@ class MazeGraph:
                 new[forgotten] = before[forgotten]
             for j, i in zip(*np.nonzero(new != before), strict=True):
                 changed.append(((int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(new[j, i]))))
-        self._adjacency = None
+        self._seen_rows = None
+        same_links = (
+            (self._i0, self._j0) == (old_i0, old_j0)
+            and np.array_equal(self._east, old_east)
+            and np.array_equal(self._north, old_north)
+        )
+        if not same_links:  # what is read off the links is a pure function of the arrays and their origin
+            self.links_version += 1
+            self._adjacency = None
+            self._link_rows = None
+            self._unknown_sides.clear()
+            self._reachable.clear()
         return GraphUpdate(changed, frame_changed)
 
     def _refresh_frame(self, grid: np.ndarray, grid_origin_m: tuple[float, float], resolution_m: float) -> bool:
@@ -645,10 +671,12 @@ class MazeGraph:
             i, direction = i - 1, Direction.E
         elif direction is Direction.S:
             j, direction = j - 1, Direction.N
-        array = self._east if direction is Direction.E else self._north
+        if self._link_rows is None:
+            self._link_rows = (self._east.tolist(), self._north.tolist())
+        rows = self._link_rows[0] if direction is Direction.E else self._link_rows[1]
         r, q = j - self._j0, i - self._i0
-        if 0 <= r < array.shape[0] and 0 <= q < array.shape[1]:
-            return LinkState(int(array[r, q]))
+        if 0 <= r < len(rows) and 0 <= q < len(rows[r]):
+            return _LINK_STATES[rows[r][q]]
         return LinkState.UNKNOWN
 
     def link_between(self, a: Cell, b: Cell) -> LinkState:
@@ -695,13 +723,18 @@ class MazeGraph:
 
     def unknown_sides(self, cell: Cell) -> list[Direction]:
         """Sides of ``cell`` whose link is still unknown."""
-        return [d for d in Direction if self.link(cell, d) is LinkState.UNKNOWN]
+        sides = self._unknown_sides.get(cell)
+        if sides is None:
+            sides = self._unknown_sides[cell] = tuple(d for d in _DIRECTIONS if self.link(cell, d) is LinkState.UNKNOWN)
+        return list(sides)
 
     def interior_seen(self, cell: Cell) -> float:
         """Share of the inside of ``cell`` the map knows, 0 to 1 (0 outside the range)."""
+        if self._seen_rows is None:
+            self._seen_rows = self._seen.tolist()  # the float32 shares as Python floats, as float() gives them
         r, q = cell[1] - self._j0, cell[0] - self._i0
-        if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
-            return float(self._seen[r, q])
+        if 0 <= r < len(self._seen_rows) and 0 <= q < len(self._seen_rows[r]):
+            return self._seen_rows[r][q]
         return 0.0
 
     def mark_looked_into(self, cell: Cell) -> None:
@@ -714,6 +747,7 @@ class MazeGraph:
         r, q = cell[1] - self._j0, cell[0] - self._i0
         if 0 <= r < self._seen.shape[0] and 0 <= q < self._seen.shape[1]:
             self._seen[r, q] = 1.0
+            self._seen_rows = None
 
     def needs_look(self, cell: Cell) -> bool:
         """True when less than ``interior_seen_min`` of the cell's inside is known."""
@@ -749,7 +783,10 @@ class MazeGraph:
         return False
 
     def reachable(self, start: Cell) -> set[Cell]:
-        """Cells connected to ``start`` through open links (breadth-first)."""
+        """Cells connected to ``start`` through open links (breadth-first; kept while the links stay)."""
+        kept = self._reachable.get(start)
+        if kept is not None:
+            return set(kept)
         seen = {start}
         queue = deque([start])
         while queue:
@@ -758,6 +795,7 @@ class MazeGraph:
                 if nxt not in seen:
                     seen.add(nxt)
                     queue.append(nxt)
+        self._reachable[start] = frozenset(seen)
         return seen
 
     def frontier_links(self, start: Cell) -> list[tuple[Cell, Direction | None]]:

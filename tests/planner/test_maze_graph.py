@@ -389,6 +389,40 @@ def test_a_known_link_is_not_forgotten_when_its_wall_fades_but_changes_when_the_
     assert graph.link((1, 1), Direction.S) is LinkState.OPEN
 
 
+def test_what_is_read_off_the_links_follows_a_link_that_changes_and_is_kept_while_none_does() -> None:
+    # unknown sides, reachable cells, neighbours and wall outlines are kept per state of the
+    # links: an update to the same links keeps them, one that opens a wall must refresh them all
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    graph.update(grid, origin, RES)
+    version = graph.links_version
+    centre = (1.5 * CELL, 1.0 * CELL)  # on the wall south of (1, 1)
+    walls_before = graph.wall_points_m(centre, 0.05)
+    assert walls_before.shape[0] > 0
+    assert graph.reachable((0, 0)) == {(0, 0), (0, 1), (1, 1), (2, 1), (2, 0)}
+    sides = {cell: graph.unknown_sides(cell) for cell in graph.cells()}
+    graph.update(grid.copy(), origin, RES)  # the same map again
+    assert graph.links_version == version
+    assert {cell: graph.unknown_sides(cell) for cell in graph.cells()} == sides
+    opened = grid.copy()
+    r = int((1 * CELL - origin[1]) / RES)
+    c0, c1 = int((1 * CELL - origin[0]) / RES), int((2 * CELL - origin[0]) / RES)
+    opened[r - 2 : r + 2, c0 + 1 : c1 - 1] = 0  # the wall between (1, 0) and (1, 1) is gone
+    graph.update(opened, origin, RES)
+    assert graph.links_version > version
+    assert graph.link((1, 1), Direction.S) is LinkState.OPEN
+    assert (1, 0) in graph.open_neighbours((1, 1))
+    assert (1, 0) in graph.reachable((0, 0))
+    fresh = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    fresh.update(opened, origin, RES)
+    assert {cell: graph.unknown_sides(cell) for cell in graph.cells()} == {
+        cell: fresh.unknown_sides(cell) for cell in fresh.cells()
+    }
+    assert graph.wall_points_m(centre, 0.05).shape[0] < walls_before.shape[0]
+    assert np.array_equal(graph.wall_points_m(centre, 0.3), fresh.wall_points_m(centre, 0.3))
+
+
 def test_sample_cells_follow_the_grid_values_and_refresh_when_the_grid_moves() -> None:
     """The kept sample indices read what a fresh lookup reads, on new values and on a moved or grown grid."""
     from mazebot.planner.maze_graph import _SampleCells

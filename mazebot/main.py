@@ -324,7 +324,7 @@ async def run_daemon(
         pilot = Pilot(PilotParams.from_config(config))
         if autonomous:
             supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms), restart=True)
-        control = control_task.MotorControl(config)
+        control = control_task.MotorControl.from_config(config)
         real_time = _on_the_monotonic_clock(clock, loop)
         if config.daemon.control_process and real_time and hardware.motor_kit_opener is not None:
             from mazebot.tasks import control_process

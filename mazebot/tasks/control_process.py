@@ -505,7 +505,7 @@ def _child_control(config: Config, view: ChildView) -> Any:
                 return view.scan_points, view.scan_time_s
             return reframe_points(view.scan_points, view.pose_then, view.pose_now), view.scan_time_s
 
-    return ProcessMotorControl(config)
+    return ProcessMotorControl.from_config(config)
 
 
 def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], stop_rx: Connection,

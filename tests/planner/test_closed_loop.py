@@ -320,7 +320,7 @@ def run_daemon_exploration(
     angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
 
     pilot = Pilot(PilotParams.from_config(config))
-    control = MotorControl(config)
+    control = MotorControl.from_config(config)
     planner_every = round(pilot.params.period_s / PHYSICS_DT_S)
     control_every = round(control.period_s / PHYSICS_DT_S)
     pending = [(0.0, 0.0)] * round(config.control.actuation_latency_s / control.period_s)

@@ -324,7 +324,7 @@ async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_t
     config = Config()
     state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
     motors = Motors()
-    control = control_task.MotorControl(config)
+    control = control_task.MotorControl.from_config(config)
     loop = asyncio.get_running_loop()
     state.motion_command = MotionRequest(0.0, 0.5, "turn", loop.time() + 3600)  # turning in place: always allowed
     task = asyncio.create_task(control_task.run(motors, state, RealClock(), control, thread=thread))
@@ -439,7 +439,7 @@ async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> No
 def test_a_fault_raised_and_cleared_between_two_control_ticks_still_stops_the_wheels_for_one() -> None:
     # the kidnap of tests/bench/test_fault_runs.py: the robot was found again 40 ms after it was
     # lost, the control task never saw the fault, and the wheels drove on for 8.6 s
-    control = control_task.MotorControl(Config())
+    control = control_task.MotorControl.from_config(Config())
     state = SharedState(run_state=RunState.EXPLORING, auto_resume=True)
     state.throttle_command = (0.3, 0.3, 100.0)
     assert control.tick(state, 100.0) == (0.3, 0.3)

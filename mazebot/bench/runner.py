@@ -50,7 +50,7 @@ from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.errors import UsageError
 from mazebot.main import Hardware, run_daemon
-from mazebot.sim.backend import sim_hardware_builder
+from mazebot.sim.backend import sim_hardware_builder, simulated_robot
 from mazebot.sim.faults import FaultInjector, FaultSpec
 from mazebot.sim.virtual_time import SlowCpu, run_virtual
 from mazebot.state import RunState, SharedState
@@ -183,7 +183,7 @@ class BenchHarness:
     def on_started(self, hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         """The daemon is up: the harness's tasks start beside its own."""
         self.hardware, self.state, self.supervisor = hardware, state, supervisor
-        self.robot = robot = hardware.sim
+        self.robot = robot = simulated_robot(hardware)
         driver = self._scripted_driver() if self.spec.drive == "scripted" else None
         self.record.hardware, self.record.state, self.record.driver = hardware, state, driver
         self.record.start_s = self.clock.now_s()
@@ -281,7 +281,7 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
     """The per-run keys of results.json."""
     hw, state = record.hardware, record.state
     assert hw is not None and state is not None
-    robot = hw.sim
+    robot = simulated_robot(hw)
     layout = robot.world.maze
     truth = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     est = np.asarray(record.est_poses, dtype=float).reshape(-1, 3)

@@ -6,9 +6,9 @@ its unit in its name, and ``mazebot config defaults`` renders these models (with
 descriptions as comments) into a complete default file.
 
 Algorithms never receive this object: a section is the parameter object of the part it
-names (the SLAM's nested ``[slam.*]`` sections, :mod:`mazebot.slam_config`; the pilot's and
-the control tick's sections, :class:`mazebot.planner.pilot.PilotParams` and
-:class:`mazebot.tasks.control_task.MotorControlParams`), so each default is written once, here.
+names (the SLAM's nested ``[slam.*]`` sections, :mod:`mazebot.slam_config`; the sections
+:class:`mazebot.planner.pilot.PilotParams` and :class:`mazebot.tasks.control_task.MotorControl`
+take), so each default is written once, here.
 
 Why one module of ~750 lines: it is the schema of one file, ``config.toml``, in the file's
 order, with its one loader (search path, old keys migrated, errors naming the key) and its

@@ -3,8 +3,9 @@
 The harness's own knobs (which world, which maze, how a hand-built maze errs, how the
 robot's parts are imperfect, which lidar the emulator is), apart from the product's
 sections in :mod:`mazebot.config`, of which it is one: the daemon's tasks never read it;
-the simulator, the benchmark and the commands that start them (``--sim``) do. :data:`CHEAP_ROBOT` is the preset ``robot_build =
-"cheap"`` applies to the other sections too (:class:`mazebot.config.Config` fills it in).
+the simulator, the benchmark and the commands that start them (``--sim``) do.
+:data:`CHEAP_ROBOT` is the preset ``robot_build = "cheap"`` applies to the other sections
+too (:class:`mazebot.config.Config` fills it in).
 """
 
 from __future__ import annotations

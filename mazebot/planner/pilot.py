@@ -23,14 +23,13 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Generator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from mazebot.config import (
     Config,
     ControlConfig,
-    DaemonConfig,
     DriveConfig,
     LidarConfig,
     PlannerConfig,
@@ -54,10 +53,6 @@ from mazebot.steps import all_at_once_method
 log = logging.getLogger(__name__)
 
 
-def _daemon_control_period_s() -> float:
-    return DaemonConfig().control_period_s
-
-
 @dataclass(frozen=True)
 class PilotParams:
     """The configuration sections the pilot reads, as they are: each value and its default defined once.
@@ -66,15 +61,15 @@ class PilotParams:
     ``[drive]``; its footprint ``[robot]``; the stopping distance ``[control]`` (braking, the
     emergency stop's margin, the motors' reaction); the lidar's range and mount ``[lidar]``;
     and the control period of ``[daemon]`` (braking can start one control tick later).
-    ``PilotParams()`` is the default configuration's; :meth:`from_config` picks a loaded one's.
+    :meth:`from_config` picks them from a loaded configuration (``Config()``: the defaults).
     """
 
-    planner: PlannerConfig = field(default_factory=PlannerConfig)
-    drive: DriveConfig = field(default_factory=DriveConfig)
-    robot: RobotConfig = field(default_factory=RobotConfig)
-    control: ControlConfig = field(default_factory=ControlConfig)
-    lidar: LidarConfig = field(default_factory=LidarConfig)
-    control_period_s: float = field(default_factory=_daemon_control_period_s)
+    planner: PlannerConfig
+    drive: DriveConfig
+    robot: RobotConfig
+    control: ControlConfig
+    lidar: LidarConfig
+    control_period_s: float
 
     @classmethod
     def from_config(cls, config: Config) -> PilotParams:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,9 +25,8 @@ from mazebot.slam.posegraph import (
     relative_pose,
     wrap_angle,
 )
+from tests.data_paths import POSEGRAPHS
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-POSEGRAPHS = DATA_DIR / "posegraphs"
 #: GTSAM 4.3 Levenberg-Marquardt results on this machine, from data/README.md
 GTSAM_CHI2 = {"input_M3500_g2o": 137.91, "input_MITb_g2o": 770.24}
 

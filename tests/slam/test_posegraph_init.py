@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +23,8 @@ from mazebot.slam.posegraph import (
     rotation_information,
     wrap_angle,
 )
+from tests.data_paths import POSEGRAPHS
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-POSEGRAPHS = DATA_DIR / "posegraphs"
 #: GTSAM 4.3 Levenberg-Marquardt from the files' own initial guess, from data/README.md
 GTSAM_CHI2 = {"input_M3500_g2o": 137.91, "input_MITb_g2o": 770.24}
 

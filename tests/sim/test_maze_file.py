@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -38,16 +37,6 @@ SAMPLE_FILES = [
 def _normalise(text: str) -> str:
     return "\n".join(line.rstrip() for line in text.splitlines()).strip("\n") + "\n"
 
-
-def _reachable(layout: MazeLayout, start: tuple[int, int]) -> set[tuple[int, int]]:
-    seen = {start}
-    queue = deque([start])
-    while queue:
-        for n in layout.neighbours(queue.popleft()):
-            if n not in seen:
-                seen.add(n)
-                queue.append(n)
-    return seen
 
 
 @needs_mazes
@@ -97,7 +86,7 @@ def test_japan2013_start_goal_and_pose() -> None:
     x, y, theta = world.start_pose
     assert (x, y) == pytest.approx((0.1524, 0.1524))
     assert theta == pytest.approx(math.pi / 2)  # the start cell opens to the north only
-    assert len(_reachable(layout, layout.start_cell)) == 256
+    assert len(layout.reachable()) == 256
     assert 100 < world.segments.shape[0] < 600  # merged runs: a few hundred, not thousands
 
 
@@ -109,7 +98,7 @@ def test_training_maze_without_s_starts_in_the_south_west_corner() -> None:
     assert world.maze.goal_cells == ()
     assert world.start_pose[2] == pytest.approx(math.pi / 2)
     # the 5x5 active area is walled off from the open frame around it
-    assert len(_reachable(world.maze, (0, 0))) == 25
+    assert len(world.maze.reachable((0, 0))) == 25
 
 
 @needs_mazes
@@ -244,4 +233,4 @@ def test_default_6x6_is_a_demo_maze() -> None:
     assert layout.start_cell == (0, 0)
     assert layout.open_sides((0, 0)) == ["N"]
     assert layout.goal_cells == ((2, 2), (3, 2), (2, 3), (3, 3))
-    assert len(_reachable(layout, (0, 0))) == 36
+    assert len(layout.reachable((0, 0))) == 36

@@ -330,6 +330,7 @@ def test_real_graph_reaches_gtsam_chi2(name: str, method: str) -> None:
 
 
 def run_cli(argv: list[str]) -> int:
+    """``mazebot posegraph ...`` without the command line's error handling: a failure raises."""
     parser = argparse.ArgumentParser(prog="mazebot")
     posegraph_cli.register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

@@ -4,7 +4,6 @@ plain LM stalls, the real graphs, and the CLI's ``--init``."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
@@ -12,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mazebot.slam import posegraph_cli
 from mazebot.slam.g2o import read_g2o, write_g2o
 from mazebot.slam.posegraph import (
     PoseGraph,
@@ -24,6 +22,7 @@ from mazebot.slam.posegraph import (
     wrap_angle,
 )
 from tests.data_paths import POSEGRAPHS
+from tests.slam.test_posegraph import run_cli
 
 #: GTSAM 4.3 Levenberg-Marquardt from the files' own initial guess, from data/README.md
 GTSAM_CHI2 = {"input_M3500_g2o": 137.91, "input_MITb_g2o": 770.24}
@@ -259,13 +258,6 @@ def test_m3500_initialized_reaches_the_gtsam_optimum() -> None:
 
 
 # --------------------------------------------------------------------------- CLI
-
-
-def run_cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="mazebot")
-    posegraph_cli.register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 def test_cli_init_orientations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -5,7 +5,6 @@ plain LM stalls, the real graphs, and the CLI's ``--init``."""
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from mazebot.slam.posegraph import (
     wrap_angle,
 )
 from tests.data_paths import POSEGRAPHS
-from tests.slam.test_posegraph import run_cli
+from tests.slam.test_posegraph import lap_trajectory, run_cli
 
 #: GTSAM 4.3 Levenberg-Marquardt from the files' own initial guess, from data/README.md
 GTSAM_CHI2 = {"input_M3500_g2o": 137.91, "input_MITb_g2o": 770.24}
@@ -104,21 +103,6 @@ def test_rotation_information_is_the_marginal_of_the_rotation() -> None:
 
 
 # --------------------------------------------------------------------------- poor initial guesses
-
-
-def lap_trajectory(laps: int = 3, width_m: float = 4.0, height_m: float = 3.0, step_m: float = 0.5) -> np.ndarray:
-    """Ground-truth poses driving ``laps`` times around a rectangle, turning 90° at corners."""
-    poses = []
-    x, y, theta = 0.0, 0.0, 0.0
-    for _ in range(laps):
-        for side in (width_m, height_m, width_m, height_m):
-            for _ in range(round(side / step_m)):
-                poses.append((x, y, theta))
-                x += step_m * math.cos(theta)
-                y += step_m * math.sin(theta)
-            theta = float(wrap_angle(theta + math.pi / 2))
-    poses.append((x, y, theta))
-    return np.array(poses)
 
 
 def lap_graph(seed: int) -> tuple[PoseGraph, np.ndarray]:

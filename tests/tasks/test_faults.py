@@ -344,15 +344,21 @@ async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_t
 # -- SLAM: a scan that cannot be processed -----------------------------------------------
 
 
-async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -> None:
+def _slam_of_a_robot_at_rest(until_s: float) -> tuple[SharedState, SlamParams, Slam]:
+    """An exploring robot's state whose odometry stands still from 0 to ``until_s``, and the
+    daemon's SLAM (default config) to run on it."""
     config = Config()
     state = SharedState(run_state=RunState.EXPLORING)
     history = OdometryHistory()
     history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(100.0, 0.0, 0.0, 0.0)
+    history.append(until_s, 0.0, 0.0, 0.0)
     state.odometry_history = history
     params = SlamParams.from_config(config.slam, config.lidar)
-    slam = Slam(params, background=True, record_trajectory=False)
+    return state, params, Slam(params, background=True, record_trajectory=False)
+
+
+async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -> None:
+    state, params, slam = _slam_of_a_robot_at_rest(100.0)
     real_update = slam.update_steps  # what the SLAM task calls
     calls: list[int] = []
 
@@ -398,14 +404,7 @@ def test_bouncing_encoders_are_said_once_in_a_while_not_every_check() -> None:
 async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> None:
     import threading
 
-    config = Config()
-    state = SharedState(run_state=RunState.EXPLORING)
-    history = OdometryHistory()
-    history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(1e6, 0.0, 0.0, 0.0)
-    state.odometry_history = history
-    params = SlamParams.from_config(config.slam, config.lidar)
-    slam = Slam(params, background=True, record_trajectory=False)
+    state, params, slam = _slam_of_a_robot_at_rest(1e6)
     real_update = slam.update_steps  # what the SLAM task calls
     release = threading.Event()
 

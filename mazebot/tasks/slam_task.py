@@ -127,14 +127,8 @@ class SlamTask:
     :meth:`on_run_state` starts the final rebuild once the exploration is over.
     """
 
-    def __init__(
-        self,
-        state: SharedState,
-        clock: Clock,
-        slam: Slam,
-        executor: Executor | None = None,
-        guard: LocalizationGuard | None = None,
-    ) -> None:
+    def __init__(self, state: SharedState, clock: Clock, slam: Slam, executor: Executor | None = None,
+                 guard: LocalizationGuard | None = None) -> None:
         self.state, self.clock, self.slam, self.executor = state, clock, slam, executor
         self.guard = guard or LocalizationGuard()
         self.trust = OdometryTrust()

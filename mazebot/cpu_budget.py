@@ -29,6 +29,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from mazebot.steps import timed_stages
+
 T = TypeVar("T")
 
 #: Calls kept per part for the percentile: minutes of the busiest part (the 50 Hz odometry).
@@ -90,20 +92,11 @@ class PartMeter:
 
         Only the stages' own CPU counts, not what the loop did between them.
         """
-        spent_s = 0.0
+        spent_s = [0.0]
         try:
-            while True:
-                start_s = time.thread_time()
-                try:
-                    next(steps)
-                except StopIteration as stop:
-                    spent_s += time.thread_time() - start_s
-                    return stop.value
-                spent_s += time.thread_time() - start_s
-                yield
+            return (yield from timed_stages(steps, spent_s))
         finally:
-            steps.close()
-            self.add(spent_s)
+            self.add(spent_s[0])
 
     def summary(self, robot_s: float | None) -> dict[str, Any]:
         """CPU ms per robot-second over the whole life, p50/p99 ms of the recent calls."""

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from mazebot.clock import Clock
     from mazebot.config import Config
     from mazebot.io.encoders import EncoderReading
+    from mazebot.io.motor_hat import MotorKitLike
     from mazebot.io.rplidar import LidarStats
     from mazebot.io.scan import Scan
 
@@ -72,8 +73,9 @@ class Hardware:
 
     ``extra_tasks`` are tasks the backend itself needs (the simulator's physics);
     ``description`` is one line for the log and the status page. ``sim`` is the simulated
-    robot when there is one (ground truth for the page and the bench); the product never
-    looks inside it, which is why it stays untyped here (typing it would import the simulator).
+    robot when there is one (ground truth for the harness): the product never looks inside
+    it, so here it is just an ``object``; the harness gets it back with its type from
+    :func:`mazebot.sim.backend.simulated_robot` (naming the type here would import the simulator).
     """
 
     lidar: Lidar
@@ -81,10 +83,10 @@ class Hardware:
     motors: Motors
     description: str
     extra_tasks: list[tuple[str, TaskFactory]] = field(default_factory=list)
-    sim: Any = None
+    sim: object | None = None
     #: opens these motors' kit again in another process (picklable; the control process's
     #: driver), or None where only this process can drive them (the in-process simulator, GPIO lines)
-    motor_kit_opener: Callable[[], Any] | None = None
+    motor_kit_opener: Callable[[], MotorKitLike] | None = None
 
 
 HardwareBuilder = Callable[["Config", "Clock", AsyncExitStack], Awaitable[Hardware]]

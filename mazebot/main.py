@@ -20,7 +20,7 @@ from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import AsyncExitStack
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Protocol, cast
 
 from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
@@ -31,12 +31,48 @@ from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor
 
+if TYPE_CHECKING:
+    from aiohttp.web import AppRunner
+    from gpiozero import Factory
+
+    from mazebot.io.motor_hat import MotorKitLike
+    from mazebot.io.serial_link import SerialLink
+    from mazebot.record.foxglove_live import FoxgloveLive
+    from mazebot.slam.slam import Slam, SlamParams
+
 log = logging.getLogger("mazebot")
 
 
+class Session(Protocol):
+    """What the daemon asks of a run session (:class:`mazebot.run_session.RunSession`: record, save, resume).
+
+    A protocol rather than the class: the session sits beside the daemon in the import layers,
+    and either may change without the other importing it.
+    """
+
+    @property
+    def resume(self) -> object | None:
+        """The saved run this one continues, if any."""
+
+    def open(self, config: Config, clock: Clock, state: SharedState, hardware: Hardware,
+             stack: AsyncExitStack) -> Hardware:
+        """The hardware with the session's recording taps in front of it."""
+
+    def make_slam(self, params: SlamParams) -> Slam:
+        """The daemon's SLAM: fresh, or the saved run's."""
+
+    def start_tasks(self, config: Config, clock: Clock, state: SharedState, supervisor: Supervisor,
+                    slam: Slam) -> None:
+        """The session's own tasks (recording, saving)."""
+
+
+#: ``run_daemon``'s hook on SLAM's compute: given the daemon's Slam and executor, the executor to use.
+Instrument = Callable[["Slam", Executor], Executor]
+
+
 def robot_hardware_builder(
-    open_kit: Callable[[int, float], Any] | None = None,
-    make_pin_factory: Callable[[], Any] = lgpio_pin_factory,
+    open_kit: Callable[[int, float], MotorKitLike] | None = None,
+    make_pin_factory: Callable[[], Factory] = lgpio_pin_factory,
 ) -> HardwareBuilder:
     """The real robot's devices, opened in the order that keeps the wheels stoppable.
 
@@ -49,7 +85,6 @@ def robot_hardware_builder(
 
     async def build(config: Config, clock: Clock, stack: AsyncExitStack) -> Hardware:
         from mazebot.io.encoders import WheelEncoders
-        from mazebot.io.motor_hat import MotorKitLike
         from mazebot.io.motors import DifferentialMotors, open_motorkit
         from mazebot.io.rplidar import RPLidar
         from mazebot.io.serial_link import SerialLink
@@ -108,11 +143,11 @@ def robot_hardware_builder(
     return build
 
 
-def _once(link: Any, config: Config) -> Callable[[], Awaitable[Any]]:
+def _once(link: SerialLink, config: Config) -> Callable[[], Awaitable[SerialLink]]:
     """A link factory that hands out ``link`` first, then opens the port anew (reconnects)."""
     first = [link]
 
-    async def factory() -> Any:
+    async def factory() -> SerialLink:
         from mazebot.io.serial_link import SerialLink
 
         return first.pop() if first else await SerialLink.open(config.lidar.port, config.lidar.baudrate)
@@ -174,7 +209,9 @@ def _on_the_monotonic_clock(clock: Clock, loop: asyncio.AbstractEventLoop) -> bo
     return isinstance(clock, RealClock) and abs(loop.time() - time.monotonic()) <= 0.5
 
 
-def _guard_motors_from_a_thread(motors: Any, clock: Clock, loop: asyncio.AbstractEventLoop, stack: Any) -> None:
+def _guard_motors_from_a_thread(
+    motors: object, clock: Clock, loop: asyncio.AbstractEventLoop, stack: AsyncExitStack
+) -> None:
     """Brake from a thread when the event loop hangs (:class:`mazebot.io.motors.TtlGuard`).
 
     Only where the loop runs on the monotonic clock: a virtual-time loop's clock is not
@@ -189,7 +226,7 @@ def _guard_motors_from_a_thread(motors: Any, clock: Clock, loop: asyncio.Abstrac
     stack.callback(guard.close)
 
 
-def _start_foxglove(config: Config, stack: AsyncExitStack) -> Any:
+def _start_foxglove(config: Config, stack: AsyncExitStack) -> FoxgloveLive | None:
     """The Foxglove live server when ``[foxglove] enabled`` (its SDK imported only then), else None."""
     if not config.foxglove.enabled:
         return None
@@ -216,8 +253,8 @@ async def run_daemon(
     state: SharedState | None = None,
     on_started: Callable[[Hardware, SharedState, Supervisor], None] | None = None,
     autonomous: bool = True,
-    session: Any = None,
-    instrument: Callable[[Any, Executor], Executor] | None = None,
+    session: Session | None = None,
+    instrument: Instrument | None = None,
     config_path: Path | None = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
@@ -251,7 +288,7 @@ async def run_daemon(
         state.cpu.started_s = clock.now_s()
         state.scans = asyncio.Queue(maxsize=config.slam.scan_queue_size)
         web_started = False
-        web_runner: Any = None
+        web_runner: AppRunner | None = None
 
         async def serve() -> None:
             nonlocal web_runner
@@ -262,7 +299,7 @@ async def run_daemon(
             web_runner = web
             log.info("%s; web page on http://%s:%d/", hardware.description, config.web.host, config.web.port)
 
-        if serve_web and getattr(session, "resume", None) is None:
+        if serve_web and (session is None or session.resume is None):
             # The page first, the SLAM and planner imports (most of start-up) after: the motors
             # are open and zeroed already, and a start pressed meanwhile waits in the command
             # queue until the tasks that act on it run. (A resumed run serves its saved map from
@@ -324,7 +361,7 @@ async def run_daemon(
         pilot = Pilot(PilotParams.from_config(config))
         if autonomous:
             supervisor.start("planner", lambda: planner_task.run(state, clock, pilot, state.planner_ms), restart=True)
-        control = control_task.MotorControl(config)
+        control = control_task.MotorControl.from_config(config)
         real_time = _on_the_monotonic_clock(clock, loop)
         if config.daemon.control_process and real_time and hardware.motor_kit_opener is not None:
             from mazebot.tasks import control_process
@@ -381,7 +418,7 @@ async def run_daemon(
     return EXIT_OK  # pragma: no cover - unreachable, keeps type checkers calm
 
 
-def _join_the_fleet(config: Config, state: SharedState, supervisor: Supervisor, web_runner: Any,
+def _join_the_fleet(config: Config, state: SharedState, supervisor: Supervisor, web_runner: AppRunner | None,
                     loop: asyncio.AbstractEventLoop, stack: AsyncExitStack) -> None:
     """Publish on Zenoh (``[zenoh]``, :mod:`mazebot.fleet.robot_link`): the page's packets from its own
     broadcaster and start/stop checked by its own PIN lockout; without a page, a broadcaster of its own."""

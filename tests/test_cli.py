@@ -132,12 +132,18 @@ def _all_zero(kit: FakeMotorKit) -> bool:
     return all(getattr(kit, f"motor{c}").throttle == 0.0 for c in (1, 2, 3, 4))
 
 
+def _motors_stop(tmp_path: Path, toml: str | None) -> int:
+    """``mazebot motors stop --config`` on a file holding ``toml`` (None: a file that does not exist)."""
+    cfg = tmp_path / ("config.toml" if toml is not None else "nope.toml")
+    if toml is not None:
+        cfg.write_text(toml)
+    return main(["motors", "stop", "--config", str(cfg)])
+
+
 def test_motors_stop_zeroes_all_four_channels_at_the_configured_address(
     hat: list[tuple[int, float, FakeMotorKit]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    cfg = tmp_path / "config.toml"
-    cfg.write_text("[motors]\ni2c_address = 0x61\npwm_frequency_hz = 1000.0\n")
-    assert main(["motors", "stop", "--config", str(cfg)]) == 0
+    assert _motors_stop(tmp_path, "[motors]\ni2c_address = 0x61\npwm_frequency_hz = 1000.0\n") == 0
     assert [(a, f) for a, f, _ in hat] == [(0x61, 1000.0)]
     assert _all_zero(hat[0][2])
     assert capsys.readouterr().out == "motors stopped (HAT at I2C address 0x61)\n"
@@ -146,18 +152,14 @@ def test_motors_stop_zeroes_all_four_channels_at_the_configured_address(
 def test_a_mistake_outside_motors_does_not_keep_motors_stop_from_zeroing_the_hat(
     hat: list[tuple[int, float, FakeMotorKit]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    cfg = tmp_path / "config.toml"
-    cfg.write_text("[motors]\ni2c_address = 0x61\n\n[slam]\nnot_a_key = 1\n")
-    assert main(["motors", "stop", "--config", str(cfg)]) == 0
+    assert _motors_stop(tmp_path, "[motors]\ni2c_address = 0x61\n\n[slam]\nnot_a_key = 1\n") == 0
     assert hat[0][0] == 0x61 and _all_zero(hat[0][2])
 
 
 def test_an_unusable_motors_section_still_zeroes_the_hat_at_the_default_address_then_exits_78(
     hat: list[tuple[int, float, FakeMotorKit]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    cfg = tmp_path / "config.toml"
-    cfg.write_text("[motors]\ni2c_address = 'sixty'\n")
-    assert main(["motors", "stop", "--config", str(cfg)]) == 78
+    assert _motors_stop(tmp_path, "[motors]\ni2c_address = 'sixty'\n") == 78
     assert hat[0][0] == 0x60 and _all_zero(hat[0][2])
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
@@ -167,7 +169,7 @@ def test_an_unusable_motors_section_still_zeroes_the_hat_at_the_default_address_
 def test_motors_stop_on_a_missing_config_file_still_zeroes_the_hat(
     hat: list[tuple[int, float, FakeMotorKit]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["motors", "stop", "--config", str(tmp_path / "nope.toml")]) == 78
+    assert _motors_stop(tmp_path, None) == 78
     assert hat[0][0] == 0x60 and _all_zero(hat[0][2])
     assert "nope.toml: config file not found" in capsys.readouterr().err
 

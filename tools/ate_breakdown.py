@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import pickle
 from typing import Any
 
 import numpy as np
+from kept_run import add_keep_options, kept_or_new
 
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
@@ -162,17 +162,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=13)
     ap.add_argument("--size", type=int, default=16, help="generated maze cells per side")
     ap.add_argument("--maze", help="a maze file instead of a generated maze")
-    ap.add_argument("--dump", help="keep the run in this pickle")
-    ap.add_argument("--load", help="analyse a kept run instead of running one")
+    add_keep_options(ap)
     args = ap.parse_args()
-    if args.load:
-        with open(args.load, "rb") as f:
-            run = pickle.load(f)
-    else:
-        run = run_and_capture(args.seed, args.size, args.maze)
-        if args.dump:
-            with open(args.dump, "wb") as f:
-                pickle.dump(run, f)
+    run = kept_or_new(args, lambda: run_and_capture(args.seed, args.size, args.maze))
     report(run)
 
 

@@ -26,10 +26,10 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
-import pickle
 from typing import Any
 
 import numpy as np
+from kept_run import add_keep_options, kept_or_new
 
 from mazebot.bench.runner import RunSpec, map_metrics, run_one
 from mazebot.config import load_config
@@ -220,17 +220,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=6)
     ap.add_argument("--drive", choices=("explore", "scripted"), default="explore")
     ap.add_argument("--config", help="config file (default: the usual search)")
-    ap.add_argument("--dump", help="keep the run in this pickle")
-    ap.add_argument("--load", help="analyse a kept run instead of running one")
+    add_keep_options(ap)
     args = ap.parse_args()
-    if args.load:
-        with open(args.load, "rb") as f:
-            run = pickle.load(f)
-    else:
-        run = run_and_capture(args.seed, args.drive, args.size, args.config)
-        if args.dump:
-            with open(args.dump, "wb") as f:
-                pickle.dump(run, f)
+    run = kept_or_new(args, lambda: run_and_capture(args.seed, args.drive, args.size, args.config))
     m = run["metrics"]
     print(f"run: coverage {m['coverage']}, F1 {m['map_f1']}, ATE rms {m['ate_rms_m']} max {m['ate_max_m']}, "
           f"keyframes {len(run['keyframes'])}")

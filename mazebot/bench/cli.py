@@ -53,15 +53,7 @@ def time_limit_s(maze_path: str) -> float:
     either cut the large mazes short (and call them not done) or let a stuck small run go on.
     Cells are counted from the start cell: training mazes sit small inside a 16x16 frame.
     """
-    layout = read_maze_layout(maze_path)
-    seen = {layout.start_cell}
-    todo = [layout.start_cell]
-    while todo:
-        for nxt in layout.neighbours(todo.pop()):
-            if nxt not in seen:
-                seen.add(nxt)
-                todo.append(nxt)
-    return max(900.0, SIM_S_PER_CELL * len(seen))
+    return max(900.0, SIM_S_PER_CELL * len(read_maze_layout(maze_path).reachable()))
 
 
 def parse_size(text: str) -> tuple[int, int]:

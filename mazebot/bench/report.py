@@ -12,6 +12,7 @@ import numpy as np
 from mazebot import files
 from mazebot.bench.png import Canvas, write_png
 from mazebot.bench.runner import RunRecord
+from mazebot.sim.backend import simulated_robot
 from mazebot.sim.raster import true_occupancy
 
 #: Keys aggregated in the summary (median over runs, ignoring nulls).
@@ -49,7 +50,7 @@ def write_partial(out_dir: Path, metrics: list[dict[str, Any]], command: str, pl
 def trajectory_figure(record: RunRecord, path: Path) -> None:
     """True walls (grey), true trajectory (blue), estimated trajectory (red), in world frame."""
     assert record.hardware is not None
-    world = record.hardware.sim.world
+    world = simulated_robot(record.hardware).world
     canvas = Canvas(world.bounds_m, pixels_per_m=400)
     occ, origin = true_occupancy(world, 0.01)
     canvas.paint_mask(occ, origin, 0.01, (150, 150, 150))
@@ -74,7 +75,7 @@ def map_figure(record: RunRecord, path: Path) -> bool:
     grid = record.state.map
     if grid is None or grid.shape[0] == 0:
         return False
-    world = record.hardware.sim.world
+    world = simulated_robot(record.hardware).world
     truth = np.asarray(record.true_poses).reshape(-1, 3)
     start = truth[0] if len(truth) else np.asarray(world.start_pose, dtype=float)
     canvas = Canvas(world.bounds_m, pixels_per_m=200)

@@ -50,7 +50,7 @@ from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.errors import UsageError
 from mazebot.main import Hardware, run_daemon
-from mazebot.sim.backend import sim_hardware_builder
+from mazebot.sim.backend import sim_hardware_builder, simulated_robot
 from mazebot.sim.faults import FaultInjector, FaultSpec
 from mazebot.sim.virtual_time import SlowCpu, run_virtual
 from mazebot.state import RunState, SharedState
@@ -125,102 +125,9 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     """Run one simulated mission and return its metrics and the raw record (for figures)."""
     if spec.drive not in ("scripted", "explore"):
         raise UsageError(f"--drive must be scripted or explore, got {spec.drive!r}")
-    config = config.model_copy(deep=True)
-    config.sim.seed = spec.seed
-    config.sim.world = spec.world  # type: ignore[assignment]
-    config.daemon.exit_on_fault = not spec.faults
-    if spec.faults:  # the run must survive them and go on by itself once they clear
-        config.daemon.auto_resume = True
-    record = RunRecord()
-    clock = RealClock()
-    period_s = config.daemon.control_period_s
-    injector = FaultInjector(list(spec.faults), None, clock, seed=spec.seed) if spec.faults else None
-    if injector is not None:
-        record.faults = FaultRecord(injector, recovery_window_s=spec.recovery_window_s)
-
-    def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
-        robot = hardware.sim
-        layout = robot.world.maze
-        driver: ScriptedDriver | None = None
-        if spec.drive == "scripted":
-            if layout is None:
-                raise UsageError(f"--drive scripted needs a maze world, {robot.world.name} has no cells")
-            tour = straighten(dfs_tour(layout))
-            driver = ScriptedDriver(
-                [layout.cell_center_m(c) for c in tour[1:]],
-                robot.physics,
-                speed_mps=config.drive.max_speed_mps * 0.8,
-                yaw_rate_radps=config.drive.max_yaw_rate_radps * 0.8,
-                track_width_m=config.drive.track_width_m,
-                full_throttle_mps=config.drive.max_wheel_speed_mps,
-                deadband=config.sim.deadband,
-            )
-        record.hardware, record.state, record.driver = hardware, state, driver
-        record.start_s = clock.now_s()
-
-        # Which simulated instant each encoder reading shows: the simulator steps every
-        # [sim] step_period_s, so a reading can be up to one step older than the clock.
-        readings: deque[tuple[float, float]] = deque(maxlen=64)  # (clock time, sim time)
-        read_encoders = hardware.encoders.read
-
-        def read_and_note() -> Any:
-            reading = read_encoders()
-            readings.append((clock.now_s(), robot.time_s if robot.time_s is not None else clock.now_s()))
-            return reading
-
-        hardware.encoders.read = read_and_note  # type: ignore[method-assign]  # the harness's tap on the encoders
-        if injector is not None:
-            injector.ctx.robot = robot
-            assert record.faults is not None
-            record.faults.watch(robot, state, supervisor, clock)
-            supervisor.start("bench-faults", injector.run)
-
-        def sim_time_of(pose_s: float) -> float:
-            for clock_s, sim_s in reversed(readings):
-                if clock_s <= pose_s:
-                    return sim_s - clock_s + pose_s
-            return pose_s
-
-        async def recorder() -> None:
-            while True:
-                # the estimate against the truth at the instant it describes: state.pose is
-                # SLAM's correction composed with the odometry reading of state.pose_time_s, and
-                # that reading shows the simulated world as it was at its last step
-                now_s = clock.now_s()
-                pose_s = state.pose_time_s if state.pose_time_s is not None else now_s
-                x, y, th = robot.poses.at(np.array([min(sim_time_of(pose_s), now_s)]))
-                record.times_s.append(pose_s - record.start_s)
-                record.true_poses.append((float(x[0]), float(y[0]), float(th[0])))
-                p = state.pose
-                record.est_poses.append((p.x_m, p.y_m, p.theta_rad))
-                await clock.sleep(RECORD_PERIOD_S)
-
-        async def explore() -> None:
-            """Press start as the user would, then wait for the planner to say done."""
-            await clock.sleep(1.0)  # the lidar spins up and SLAM publishes its first map
-            state.commands.put_nowait("start")
-            if record.faults is not None:
-                await record.faults.user(state, clock)
-                record.done = state.run_state is RunState.DONE
-                return
-            while state.run_state not in (RunState.DONE, RunState.FAULT):
-                await clock.sleep(0.2)
-            record.done = state.run_state is RunState.DONE
-
-        async def drive_then_stop() -> None:
-            run = driver.run(state, clock, period_s) if driver is not None else explore()
-            with contextlib.suppress(TimeoutError):  # out of time: done stays False
-                await asyncio.wait_for(run, spec.max_sim_s)
-            if driver is not None:
-                record.done = driver.done
-            record.end_s = clock.now_s()
-            if record.faults is not None:
-                record.faults.finish(state, supervisor, clock)
-            supervisor.request_stop("benchmark run finished")
-
-        supervisor.start("bench-recorder", recorder)
-        supervisor.start("bench-driver", drive_then_stop)
-
+    if spec.slow is not None and spec.clock != "virtual":
+        raise UsageError("a slowed CPU is emulated on the virtual clock only; use --clock virtual")
+    harness = BenchHarness(_run_config(config, spec), spec)
     builder = sim_hardware_builder(maze_path=spec.maze_path, seed=spec.seed if not spec.maze_path else None,
                                    size=spec.size if not spec.maze_path else None)
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -232,23 +139,149 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
 
         session = RunSession(record_path=Path(spec.record_path))
     daemon = run_daemon(
-        config, builder, serve_web=False, install_signal_handlers=False, on_started=on_started, session=session,
-        autonomous=spec.drive == "explore", instrument=_instrument(spec, injector, record),
+        harness.config, builder, serve_web=False, install_signal_handlers=False, on_started=harness.on_started,
+        session=session, autonomous=spec.drive == "explore",
+        instrument=_instrument(spec, harness.injector, harness.record),
     )
-    if spec.slow is not None and spec.clock != "virtual":
-        raise UsageError("a slowed CPU is emulated on the virtual clock only; use --clock virtual")
     exit_code = run_virtual(daemon, slow=spec.slow) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0
     cpu_s = time.process_time() - cpu0
-    metrics = compute_metrics(spec, record, exit_code=exit_code, wall_s=wall_s, cpu_s=cpu_s)
-    return metrics, record
+    metrics = compute_metrics(spec, harness.record, exit_code=exit_code, wall_s=wall_s, cpu_s=cpu_s)
+    return metrics, harness.record
+
+
+def _run_config(config: Config, spec: RunSpec) -> Config:
+    """The configuration of one run: the spec's seed and world; a fault run survives its faults."""
+    config = config.model_copy(deep=True)
+    config.sim.seed = spec.seed
+    config.sim.world = spec.world  # type: ignore[assignment]
+    config.daemon.exit_on_fault = not spec.faults
+    if spec.faults:  # the run must survive them and go on by itself once they clear
+        config.daemon.auto_resume = True
+    return config
+
+
+class BenchHarness:
+    """What the benchmark adds to the daemon for one run: a driver, a recorder, the fault injector.
+
+    :meth:`on_started` is ``run_daemon``'s hook: it gets the opened (simulated) hardware and
+    starts :meth:`recorder` and :meth:`drive_then_stop` under the daemon's supervisor. The
+    driver is the scripted tour (:meth:`drive_scripted`) or the user pressing start
+    (:meth:`explore`); either way the run stops itself when it is done or out of time.
+    """
+
+    def __init__(self, config: Config, spec: RunSpec) -> None:
+        self.config, self.spec = config, spec
+        self.record = RunRecord()
+        self.clock = RealClock()
+        self.injector = FaultInjector(list(spec.faults), None, self.clock, seed=spec.seed) if spec.faults else None
+        if self.injector is not None:
+            self.record.faults = FaultRecord(self.injector, recovery_window_s=spec.recovery_window_s)
+        #: which simulated instant each encoder reading shows: (clock time, sim time)
+        self.readings: deque[tuple[float, float]] = deque(maxlen=64)
+
+    def on_started(self, hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
+        """The daemon is up: the harness's tasks start beside its own."""
+        self.hardware, self.state, self.supervisor = hardware, state, supervisor
+        self.robot = robot = simulated_robot(hardware)
+        driver = self._scripted_driver() if self.spec.drive == "scripted" else None
+        self.record.hardware, self.record.state, self.record.driver = hardware, state, driver
+        self.record.start_s = self.clock.now_s()
+        self._tap_encoders()
+        if self.injector is not None:
+            self.injector.ctx.robot = robot
+            assert self.record.faults is not None
+            self.record.faults.watch(robot, state, supervisor, self.clock)
+            supervisor.start("bench-faults", self.injector.run)
+        supervisor.start("bench-recorder", self.recorder)
+        supervisor.start("bench-driver", self.drive_then_stop)
+
+    def _scripted_driver(self) -> ScriptedDriver:
+        """A ground-truth depth-first tour of the maze's cells at 80 % of the drive's limits."""
+        config, robot = self.config, self.robot
+        layout = robot.world.maze
+        if layout is None:
+            raise UsageError(f"--drive scripted needs a maze world, {robot.world.name} has no cells")
+        tour = straighten(dfs_tour(layout))
+        return ScriptedDriver(
+            [layout.cell_center_m(c) for c in tour[1:]],
+            robot.physics,
+            speed_mps=config.drive.max_speed_mps * 0.8,
+            yaw_rate_radps=config.drive.max_yaw_rate_radps * 0.8,
+            track_width_m=config.drive.track_width_m,
+            full_throttle_mps=config.drive.max_wheel_speed_mps,
+            deadband=config.sim.deadband,
+        )
+
+    def _tap_encoders(self) -> None:
+        """Note the simulated instant of each encoder reading: the simulator steps every
+        ``[sim] step_period_s``, so a reading can be up to one step older than the clock."""
+        read_encoders = self.hardware.encoders.read
+        robot, clock = self.robot, self.clock
+
+        def read_and_note() -> Any:
+            reading = read_encoders()
+            self.readings.append((clock.now_s(), robot.time_s if robot.time_s is not None else clock.now_s()))
+            return reading
+
+        self.hardware.encoders.read = read_and_note  # type: ignore[method-assign]  # the harness's tap on the encoders
+
+    def sim_time_of(self, pose_s: float) -> float:
+        """The simulated instant the encoder reading of clock time ``pose_s`` showed."""
+        for clock_s, sim_s in reversed(self.readings):
+            if clock_s <= pose_s:
+                return sim_s - clock_s + pose_s
+        return pose_s
+
+    async def recorder(self) -> None:
+        """The estimated and the true pose, every ``RECORD_PERIOD_S``."""
+        state, record, clock = self.state, self.record, self.clock
+        while True:
+            # the estimate against the truth at the instant it describes: state.pose is
+            # SLAM's correction composed with the odometry reading of state.pose_time_s, and
+            # that reading shows the simulated world as it was at its last step
+            now_s = clock.now_s()
+            pose_s = state.pose_time_s if state.pose_time_s is not None else now_s
+            x, y, th = self.robot.poses.at(np.array([min(self.sim_time_of(pose_s), now_s)]))
+            record.times_s.append(pose_s - record.start_s)
+            record.true_poses.append((float(x[0]), float(y[0]), float(th[0])))
+            p = state.pose
+            record.est_poses.append((p.x_m, p.y_m, p.theta_rad))
+            await clock.sleep(RECORD_PERIOD_S)
+
+    async def explore(self) -> None:
+        """Press start as the user would, then wait for the planner to say done."""
+        state, record, clock = self.state, self.record, self.clock
+        await clock.sleep(1.0)  # the lidar spins up and SLAM publishes its first map
+        state.commands.put_nowait("start")
+        if record.faults is not None:
+            await record.faults.user(state, clock)
+            record.done = state.run_state is RunState.DONE
+            return
+        while state.run_state not in (RunState.DONE, RunState.FAULT):
+            await clock.sleep(0.2)
+        record.done = state.run_state is RunState.DONE
+
+    async def drive_then_stop(self) -> None:
+        """Drive (or explore) until done or ``max_sim_s``, then stop the daemon."""
+        driver, record = self.record.driver, self.record
+        period_s = self.config.daemon.control_period_s
+        run = driver.run(self.state, self.clock, period_s) if driver is not None else self.explore()
+        with contextlib.suppress(TimeoutError):  # out of time: done stays False
+            await asyncio.wait_for(run, self.spec.max_sim_s)
+        if driver is not None:
+            record.done = driver.done
+        record.end_s = self.clock.now_s()
+        if record.faults is not None:
+            record.faults.finish(self.state, self.supervisor, self.clock)
+        self.supervisor.request_stop("benchmark run finished")
 
 
 def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s: float, cpu_s: float) -> dict[str, Any]:
     """The per-run keys of results.json."""
     hw, state = record.hardware, record.state
     assert hw is not None and state is not None
-    robot = hw.sim
+    robot = simulated_robot(hw)
     layout = robot.world.maze
     truth = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     est = np.asarray(record.est_poses, dtype=float).reshape(-1, 3)

@@ -81,7 +81,9 @@ async def get_status(request: web.Request) -> web.Response:
     return web.json_response({**robot.summary(), "status": robot.status, "pose_message": robot.pose})
 
 
-async def _command(request: web.Request, command: str) -> web.Response:
+async def post_command(request: web.Request) -> web.Response:
+    """``POST /robot/NAME/api/start`` and ``/stop``: forwarded to the robot with the PIN given."""
+    command = request.match_info["command"]
     _check_origin(request)
     robot = _robot(request)
     token = request.headers.get(TOKEN_HEADER)
@@ -89,14 +91,6 @@ async def _command(request: web.Request, command: str) -> web.Response:
     if reply.get("ok"):
         return web.json_response({"accepted": command})
     return web.json_response({"error": reply.get("message")}, status=int(reply.get("status", 502)))
-
-
-async def post_start(request: web.Request) -> web.Response:
-    return await _command(request, "start")
-
-
-async def post_stop(request: web.Request) -> web.Response:
-    return await _command(request, "stop")
 
 
 async def get_ws(request: web.Request) -> web.WebSocketResponse:
@@ -170,8 +164,7 @@ def create_watch_app(fleet: Fleet, static_dir: Path = DEFAULT_STATIC_DIR) -> web
     app.router.add_get("/robot/{name}/", get_page)
     app.router.add_get("/robot/{name}/ws", get_ws)
     app.router.add_get("/robot/{name}/api/status", get_status)
-    app.router.add_post("/robot/{name}/api/start", post_start)
-    app.router.add_post("/robot/{name}/api/stop", post_stop)
+    app.router.add_post("/robot/{name}/api/{command:start|stop}", post_command)
     app.router.add_static("/static/", static_dir, follow_symlinks=False)
     app.cleanup_ctx.append(_heartbeats)
     app.on_shutdown.append(_close_viewers)

@@ -1,6 +1,11 @@
 """Asyncio driver of the Slamtec RPLidar family (A1, A2, A3, C1, S2): requests, scan modes,
 scans, and surviving a flaky USB link.
 
+Why one module of ~960 lines: :class:`RPLidar` is one device's life cycle (start, scan modes,
+scanning, a silent or vanished port, reconnecting) whose states interleave in one reader loop;
+the helpers below it (:class:`_ArrivalLog`, :class:`_RevolutionBuilder`) only time-stamp and
+gather its samples. The byte protocol is apart already (:mod:`mazebot.io.rplidar_protocol`).
+
 The driver only buffers bytes and hands them to the pure decoders of
 ``mazebot.io.rplidar_protocol``; what it adds is the device's life cycle:
 

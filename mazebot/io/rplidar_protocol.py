@@ -1,5 +1,13 @@
 """The Slamtec RPLidar serial protocol (A1, A2, A3, C1, S2) as pure functions: bytes in, values out.
 
+Why one module of ~1800 lines: it is the whole wire format of one device family, and each
+format's encoder and decoder must stay side by side: the emulator writes with the functions the
+driver reads with, so a byte layout changed on one side is changed on the other in the same
+view. Most of the length is the standard-scan decoder's resynchronisation and the
+express-capsule decoders, which share the descriptor, checksum and field helpers above them. If
+it grows further, the seam is by answer kind (requests and descriptors; standard samples;
+express capsules); it stays whole while the decoders are being tuned for speed.
+
 No port, no asyncio, no clock: the driver (``mazebot.io.rplidar``), the emulator in
 ``mazebot.sim`` and the ``mazebot lidar decode`` command all share these functions, so
 what the emulator writes is byte for byte what the decoder reads, and both follow the

@@ -1,5 +1,10 @@
 """The local planner: Dynamic Window Approach, path following and recovery.
 
+Why one module of ~850 lines: the local costmap, the path tracker, the Dynamic Window planner
+and the :class:`LocalPlanner` that wraps it with in-place turns and recovery are the four parts
+of one local planner, each used only by the next; the planner's admissibility test, the
+tracker's progress and the recovery's time-outs are tuned together and read together.
+
 The Dynamic Window Approach (Fox, Burgard & Thrun 1997, "The dynamic window approach to
 collision avoidance", IEEE RA Magazine 4(1)) searches velocities, not paths: it samples
 the body velocities ``(v, ω)`` the motors can reach within the next control interval

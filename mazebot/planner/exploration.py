@@ -1,5 +1,10 @@
 """Where to go next: exploration strategies over the maze graph, and grid frontiers.
 
+Why one module of ~820 lines: :class:`Explorer` is one state machine over goals (choose, drive,
+arrive, dwell, blacklist, retry, give up) shared by the maze mode and the frontier mode; the
+strategies and the goal records above it exist only for it, and a change to how a goal is given
+up touches both modes at once.
+
 Exploring means driving to where something is still unknown until nothing reachable is.
 In a maze the unknowns are **frontier links**: a link of a reachable cell whose state
 (open or wall) is not known yet (Nayak et al., "2D Autonomous Mapping", III.C: "this unknown link can be referred to

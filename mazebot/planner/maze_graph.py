@@ -1,5 +1,10 @@
 """The maze as a graph: one node per cell centre, one link per pair of neighbouring cells.
 
+Why one module of ~880 lines: the maze frame (direction, pitch and phase of the wall lattice,
+:func:`estimate_frame`) and the graph built on it change together: the graph re-anchors its
+cells whenever the frame is refined (:func:`_shifted`), and both read the same three-state grid
+through the same cell samples (:class:`_SampleCells`).
+
 The planner does not search the occupancy grid cell by cell: a maze of 1 ft squares is a
 graph of a few hundred nodes, and the seed design (000_…, III.C "graph builder") puts a
 waypoint at every cell centre and links neighbouring waypoints whose boundary is open.

@@ -27,7 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mazebot.config import Config
+from mazebot.config import (
+    Config,
+    ControlConfig,
+    DriveConfig,
+    LidarConfig,
+    PlannerConfig,
+    RobotConfig,
+)
 from mazebot.planner.dwa import (
     DynamicWindowPlanner,
     LocalPlanner,
@@ -48,78 +55,30 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PilotParams:
-    """The plain values the pilot needs, picked from the configuration."""
+    """The configuration sections the pilot reads, as they are: each value and its default defined once.
 
-    rate_hz: float
-    strategy: str
-    mode: str
-    cell_size_m: float
-    cell_size_search: float
-    wall_thickness_m: float
-    goal_tolerance_m: float
-    progress_revolutions: int
-    dwell_revolutions: int
-    retry_after_m: float
-    max_attempts: int
-    horizon_s: float
-    stuck_timeout_s: float
-    max_recoveries: int
-    map_window_m: float
-    footprint_radius_m: float
-    clearance_m: float
-    max_speed_mps: float
-    max_accel_mps2: float
-    max_yaw_rate_radps: float
-    max_yaw_accel_radps2: float
-    brake_decel_mps2: float
-    stop_margin_m: float
-    track_width_m: float
-    max_wheel_speed_mps: float
+    The explorer and the local planner read ``[planner]``; the body's speed and turn limits
+    ``[drive]``; its footprint ``[robot]``; the stopping distance ``[control]`` (braking, the
+    emergency stop's margin, the motors' reaction); the lidar's range and mount ``[lidar]``;
+    and the control period of ``[daemon]`` (braking can start one control tick later).
+    :meth:`from_config` picks them from a loaded configuration (``Config()``: the defaults).
+    """
+
+    planner: PlannerConfig
+    drive: DriveConfig
+    robot: RobotConfig
+    control: ControlConfig
+    lidar: LidarConfig
     control_period_s: float
-    actuation_latency_s: float
-    lidar_min_range_m: float
-    lidar_max_range_m: float
-    lidar_mount_xy_m: tuple[float, float]
 
     @classmethod
     def from_config(cls, config: Config) -> PilotParams:
-        p, d = config.planner, config.drive
-        return cls(
-            rate_hz=p.rate_hz,
-            strategy=p.strategy,
-            mode=p.mode,
-            cell_size_m=p.cell_size_m,
-            cell_size_search=p.cell_size_search,
-            wall_thickness_m=p.wall_thickness_m,
-            goal_tolerance_m=p.goal_tolerance_m,
-            progress_revolutions=p.progress_revolutions,
-            dwell_revolutions=p.dwell_revolutions,
-            retry_after_m=p.retry_after_m,
-            max_attempts=p.max_attempts,
-            horizon_s=p.horizon_s,
-            stuck_timeout_s=p.stuck_timeout_s,
-            max_recoveries=p.max_recoveries,
-            map_window_m=p.map_window_m,
-            footprint_radius_m=config.robot.footprint_radius_m,
-            clearance_m=config.robot.clearance_m,
-            max_speed_mps=d.max_speed_mps,
-            max_accel_mps2=d.max_accel_mps2,
-            max_yaw_rate_radps=d.max_yaw_rate_radps,
-            max_yaw_accel_radps2=d.max_yaw_accel_radps2,
-            brake_decel_mps2=config.control.brake_decel_mps2,
-            stop_margin_m=config.control.stop_margin_m,
-            track_width_m=d.track_width_m,
-            max_wheel_speed_mps=d.max_wheel_speed_mps,
-            control_period_s=config.daemon.control_period_s,
-            actuation_latency_s=config.control.actuation_latency_s,
-            lidar_min_range_m=config.lidar.min_range_m,
-            lidar_max_range_m=config.lidar.max_range_m,
-            lidar_mount_xy_m=(config.lidar.mount_x_m, config.lidar.mount_y_m),
-        )
+        return cls(config.planner, config.drive, config.robot, config.control, config.lidar,
+                   config.daemon.control_period_s)
 
     @property
     def period_s(self) -> float:
-        return 1.0 / self.rate_hz
+        return 1.0 / self.planner.rate_hz
 
 
 class Pilot:
@@ -127,7 +86,7 @@ class Pilot:
 
     def __init__(self, params: PilotParams) -> None:
         self.params = params
-        self.kinematics = DiffDriveKinematics(params.track_width_m, params.max_wheel_speed_mps)
+        self.kinematics = DiffDriveKinematics(params.drive.track_width_m, params.drive.max_wheel_speed_mps)
         self.run_number = -1  # the run the explorer was built for
         self.explorer = self._new_explorer((0.0, 0.0))
         self.local = self._new_local_planner()
@@ -144,7 +103,7 @@ class Pilot:
     # -- construction ------------------------------------------------------------------
 
     def _new_explorer(self, start_xy_m: tuple[float, float]) -> Explorer:
-        p = self.params
+        p, robot = self.params.planner, self.params.robot
         graph = MazeGraph(
             cell_size_m=p.cell_size_m,
             wall_thickness_m=p.wall_thickness_m,
@@ -154,42 +113,42 @@ class Pilot:
         return Explorer(
             graph,
             strategy=p.strategy,
-            mode=p.mode,  # type: ignore[arg-type]
+            mode=p.mode,
             start_xy_m=start_xy_m,
             goal_tolerance_m=p.goal_tolerance_m,
             progress_revolutions=p.progress_revolutions,
             dwell_revolutions=p.dwell_revolutions,
             retry_after_m=p.retry_after_m,
             max_attempts=p.max_attempts,
-            footprint_radius_m=p.footprint_radius_m,
-            clearance_m=p.clearance_m,
-            lidar_min_range_m=p.lidar_min_range_m,
+            footprint_radius_m=robot.footprint_radius_m,
+            clearance_m=robot.clearance_m,
+            lidar_min_range_m=self.params.lidar.min_range_m,
         )
 
     def _new_local_planner(self) -> LocalPlanner:
         p = self.params
         dwa = DynamicWindowPlanner(
-            max_speed_mps=p.max_speed_mps,
-            max_yaw_rate_radps=p.max_yaw_rate_radps,
-            max_accel_mps2=p.max_accel_mps2,
-            max_yaw_accel_radps2=p.max_yaw_accel_radps2,
-            brake_decel_mps2=p.brake_decel_mps2,
+            max_speed_mps=p.drive.max_speed_mps,
+            max_yaw_rate_radps=p.drive.max_yaw_rate_radps,
+            max_accel_mps2=p.drive.max_accel_mps2,
+            max_yaw_accel_radps2=p.drive.max_yaw_accel_radps2,
+            brake_decel_mps2=p.control.brake_decel_mps2,
             # the emergency stop's margin: an arc admissible here is one the safety layer lets run
-            stop_margin_m=p.stop_margin_m,
-            footprint_radius_m=p.footprint_radius_m,
-            clearance_m=p.clearance_m,
+            stop_margin_m=p.control.stop_margin_m,
+            footprint_radius_m=p.robot.footprint_radius_m,
+            clearance_m=p.robot.clearance_m,
             # the dynamic window spans one planner period; braking can start one period
             # later at the earliest, plus a control period and the motors' reaction
             window_s=p.period_s,
-            latency_s=p.period_s + p.control_period_s + p.actuation_latency_s,
-            horizon_s=p.horizon_s,
+            latency_s=p.period_s + p.control_period_s + p.control.actuation_latency_s,
+            horizon_s=p.planner.horizon_s,
         )
         # arrive a little inside the explorer's tolerance, or it would never see "arrived"
         return LocalPlanner(
             dwa,
-            goal_tolerance_m=min(0.04, 0.7 * p.goal_tolerance_m),
-            stuck_timeout_s=p.stuck_timeout_s,
-            max_recoveries=p.max_recoveries,
+            goal_tolerance_m=min(0.04, 0.7 * p.planner.goal_tolerance_m),
+            stuck_timeout_s=p.planner.stuck_timeout_s,
+            max_recoveries=p.planner.max_recoveries,
         )
 
     # -- the tick ------------------------------------------------------------------------
@@ -271,7 +230,7 @@ class Pilot:
         three, origin_m, resolution_m, target_m = self._drive_inputs
         self._drive_inputs = None
         pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
-        window_m = self.params.map_window_m
+        window_m = self.params.planner.map_window_m
         map_xy = map_points_robot(three, origin_m, resolution_m, pose, window_m)
         walls_xy = None
         if self.explorer.mode == "maze":
@@ -351,10 +310,9 @@ class Pilot:
         if scan is None:
             return np.zeros((0, 2))
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
-            p = self.params
-            points = scan_points_robot(
-                scan.angle_rad, scan.range_m, scan.valid, p.lidar_min_range_m, p.lidar_max_range_m, p.lidar_mount_xy_m
-            )
+            lidar = self.params.lidar
+            points = scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, lidar.min_range_m,
+                                       lidar.max_range_m, (lidar.mount_x_m, lidar.mount_y_m))
             self._scan_cache = (id(scan), points)
         points = self._scan_cache[1]
         return moved_since_scan(points, scan.end_time_s, state)

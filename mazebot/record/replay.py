@@ -188,6 +188,23 @@ class Replayer:
         return result
 
 
+class Pace:
+    """How long to wait before a message so that a replay keeps ``speed`` times the recorded pace.
+
+    ``wait_s(log_time_ns, now_s)``: seconds until the message is due (<= 0: now), counted from the
+    first message's log time and ``started_s``, the clock reading when the replay started.
+    """
+
+    def __init__(self, speed: float, started_s: float) -> None:
+        self.speed, self.started_s = speed, started_s
+        self.first_log_ns: int | None = None
+
+    def wait_s(self, log_time_ns: int, now_s: float) -> float:
+        if self.first_log_ns is None:
+            self.first_log_ns = log_time_ns
+        return (log_time_ns - self.first_log_ns) / 1e9 / self.speed - (now_s - self.started_s)
+
+
 def replay(
     recording: Recording,
     *,
@@ -197,14 +214,10 @@ def replay(
 ) -> ReplayResult:
     """Run the recording through SLAM; ``speed`` paces it (1.0 = as recorded), None = as fast as possible."""
     replayer = Replayer(recording)
-    first_log_ns: int | None = None
-    started = time.monotonic()
+    pace = None if speed is None else Pace(speed, time.monotonic())
     for msg in recording.messages(TOPICS):
-        if speed is not None:
-            first_log_ns = msg.log_time_ns if first_log_ns is None else first_log_ns
-            due_s = (msg.log_time_ns - first_log_ns) / 1e9 / speed - (time.monotonic() - started)
-            if due_s > 0:
-                sleep(due_s)
+        if pace is not None and (due_s := pace.wait_s(msg.log_time_ns, time.monotonic())) > 0:
+            sleep(due_s)
         if replayer.feed(msg) and on_update is not None:
             on_update(replayer.slam)
     return replayer.finish()

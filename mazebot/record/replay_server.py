@@ -35,7 +35,7 @@ from aiohttp import web
 from mazebot.errors import HardwareUnavailable
 from mazebot.geometry import compose
 from mazebot.record.reader import Recording
-from mazebot.record.replay import TOPICS, Replayer, ReplayResult
+from mazebot.record.replay import TOPICS, Pace, Replayer, ReplayResult
 from mazebot.state import RunState, SharedState
 from mazebot.web.app import WebSettings, create_app
 
@@ -129,14 +129,10 @@ async def feed(
     loop = asyncio.get_running_loop()
     replayer = Replayer(recording, submit=lambda job: executor.submit(job.run))
     publisher = StatePublisher(state, replayer)
-    speed = progress.speed
-    first_log_ns: int | None = None
-    started_s = loop.time()
+    pace = None if progress.speed is None else Pace(progress.speed, loop.time())
     for msg in recording.messages(FED_TOPICS):
-        if speed is not None:
-            first_log_ns = msg.log_time_ns if first_log_ns is None else first_log_ns
-            due_s = (msg.log_time_ns - first_log_ns) / 1e9 / speed - (loop.time() - started_s)
-            if due_s > 0:
+        if pace is not None:
+            if (due_s := pace.wait_s(msg.log_time_ns, loop.time())) > 0:
                 await asyncio.sleep(due_s)
         elif progress.fed % FAST_YIELD_MESSAGES == 0:
             await asyncio.sleep(0)

@@ -180,3 +180,10 @@ def sim_hardware_builder(
         )
 
     return build
+
+
+def simulated_robot(hardware: Hardware) -> SimulatedRobot:
+    """The simulated robot behind ``hardware``: the harness's ground truth (the pose, the world, the kit)."""
+    if not isinstance(hardware.sim, SimulatedRobot):
+        raise TypeError(f"{hardware.description}: not a simulated robot, so no ground truth to measure against")
+    return hardware.sim

@@ -1,5 +1,10 @@
 """Differential-drive physics of the simulated robot: motors, wheels, slip and walls.
 
+Why one module of ~620 lines: the motor model of each wheel, the body's kinematics and the
+contact with the walls are integrated in one step (:meth:`RobotPhysics.step`) on one state; the
+contact capsules (:class:`_Capsules`) are its only helper, and the model's numbered description
+below is the step's.
+
 The simulator turns motor throttles into a true pose (what the lidar is ray cast from)
 and true wheel rotations (what the encoders count). The two differ the way they do on
 the real robot: the wheels are not identical, the motors are not matched, the battery

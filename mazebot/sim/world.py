@@ -148,6 +148,17 @@ class MazeLayout:
                 out.append(nxt)
         return out
 
+    def reachable(self, start: tuple[int, int] | None = None) -> set[tuple[int, int]]:
+        """The cells reachable from ``start`` (default: the start cell) through open sides, itself included."""
+        first = self.start_cell if start is None else start
+        seen, todo = {first}, [first]
+        while todo:
+            for nxt in self.neighbours(todo.pop()):
+                if nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
     def cell_center_m(self, cell: tuple[int, int]) -> tuple[float, float]:
         """World coordinates (metres) of the centre of ``cell`` (col, row)."""
         return (

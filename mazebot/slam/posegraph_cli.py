@@ -21,18 +21,9 @@ import argparse
 import json
 import math
 
+from mazebot.argtypes import positive_int
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.slam.g2o import read_g2o, write_g2o
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
 
 
 def _cmd_optimize(args: argparse.Namespace) -> int:
@@ -108,7 +99,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "(default)",
     )
     optimize.add_argument(
-        "--iterations", type=_positive_int, default=50, metavar="N", help="at most N linearizations (default 50)"
+        "--iterations", type=positive_int, default=50, metavar="N", help="at most N linearizations (default 50)"
     )
     output = optimize.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true", help="print one JSON line (the default)")

@@ -1,5 +1,11 @@
 """The SLAM façade: one ``update(scan, odometry)`` per lidar revolution.
 
+Why one module of ~1250 lines: the steps already live in modules of their own (below); what is
+left here is the state they share (keyframes, submap, pose graph, grid, calibration) and the
+two places that must agree on it: :class:`Slam`, which runs the steps in order, and
+:class:`LoopClosureJob`, which carries a copy of that state to a worker and back
+(:meth:`Slam.apply`). Apart, one piece of state would be described in two files.
+
 ``Slam.update`` reads as the method of seed ``000`` section III.B (ICP pose-graph SLAM),
 with the EKF of seed ``002`` in front of it; every step lives in its own module:
 

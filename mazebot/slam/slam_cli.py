@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from mazebot.argtypes import positive_int
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.geometry import compose, relative_pose, wrap_angle
@@ -315,15 +316,6 @@ def run_carmen(
     }
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
-
 
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.odom_systematic is not None and args.odom_model != "systematic":
@@ -373,7 +365,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         f"{defaults.bias_walk_rad_per_m_per_sqrt_m}; nominal track {defaults.track_width_m} m)",
     )
     run.add_argument("--seed", type=int, default=1, help="seed of the odometry noise (default 1)")
-    run.add_argument("--max-scans", type=_positive_int, default=None, metavar="N", help="only the first N scans")
+    run.add_argument("--max-scans", type=positive_int, default=None, metavar="N", help="only the first N scans")
     run.add_argument("--out", required=True, metavar="DIR", help="output directory")
     run.add_argument("--config", default=None, help="config file whose [slam] section is the starting point")
     run.set_defaults(func=_cmd_run)

@@ -1,5 +1,9 @@
 """The motor control loop in a process of its own (``[daemon] control_process``, the real clock).
 
+Why one module of ~660 lines: the shared memory's layout, its seqlock, the parent's side and
+the child's side must agree byte for byte; with the layout and both of its readers and writers
+in one file, an offset changed in one place is seen changed in all.
+
 Why a process: under a CPU quota the daemon's main process is often frozen by the
 throttle while it holds the interpreter lock, and C calls (numpy, scipy's k-d trees) hold
 it for milliseconds more; a control *thread* waits for that lock however the kernel
@@ -505,7 +509,7 @@ def _child_control(config: Config, view: ChildView) -> Any:
                 return view.scan_points, view.scan_time_s
             return reframe_points(view.scan_points, view.pose_then, view.pose_now), view.scan_time_s
 
-    return ProcessMotorControl(config)
+    return ProcessMotorControl.from_config(config)
 
 
 def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], stop_rx: Connection,

@@ -21,11 +21,18 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import Self
 
 import numpy as np
 
 from mazebot.clock import Clock
-from mazebot.config import Config
+from mazebot.config import (
+    Config,
+    ControlConfig,
+    DriveConfig,
+    LidarConfig,
+    RobotConfig,
+)
 from mazebot.io.motors import MotorWriteError
 from mazebot.planner.dwa import scan_points_robot
 from mazebot.planner.pilot import moved_since_scan
@@ -42,10 +49,25 @@ STALE_PERIODS = 3
 class MotorControl:
     """One control tick's decisions, separate from the loop so tests can step it."""
 
-    def __init__(self, config: Config) -> None:
-        c, d = config.control, config.drive
-        self.period_s = config.daemon.control_period_s
-        self.jog_ttl_s = config.motors.command_ttl_s
+    def __init__(
+        self,
+        control: ControlConfig,
+        drive: DriveConfig,
+        robot: RobotConfig,
+        lidar: LidarConfig,
+        *,
+        ticks_per_rev: int,
+        jog_ttl_s: float,
+        period_s: float,
+    ) -> None:
+        """The config sections the tick reads, as they are (each default defined once, in the config):
+        ``[control]`` (wheel PI, safety layer), ``[drive]`` (wheels, track), ``[robot]`` (the footprint
+        the emergency stop keeps clear), ``[lidar]`` (range and mount of the returns it checks); and
+        ``[encoders]`` ticks per revolution, ``[motors] command_ttl_s`` (a jog's time-to-live) and
+        ``[daemon] control_period_s``. :meth:`from_config` picks them from a loaded configuration."""
+        c, d = control, drive
+        self.period_s = period_s
+        self.jog_ttl_s = jog_ttl_s
         self.wheels = WheelController(
             track_width_m=d.track_width_m,
             max_wheel_speed_mps=d.max_wheel_speed_mps,
@@ -59,14 +81,14 @@ class MotorControl:
         for pid in (self.wheels.left, self.wheels.right):
             pid.latency_s = c.actuation_latency_s
         self.estimator = WheelSpeedEstimator.for_wheel(
-            config.encoders.ticks_per_rev, d.wheel_diameter_m, diameter_ratio=d.wheel_diameter_ratio
+            ticks_per_rev, d.wheel_diameter_m, diameter_ratio=d.wheel_diameter_ratio
         )
         # each motor's answer to the throttles written, for the health monitor's weak-motor check
         self.gains = WheelGainEstimator(d.max_wheel_speed_mps, c.motor_deadband, self.period_s, c.actuation_latency_s)
         self._last_tick_s: float | None = None
         self._faults_raised_seen = 0
         guard = CollisionGuard(
-            footprint_radius_m=config.robot.footprint_radius_m,
+            footprint_radius_m=robot.footprint_radius_m,
             margin_m=c.stop_margin_m,
             brake_decel_mps2=c.brake_decel_mps2,
             latency_s=self.period_s + c.actuation_latency_s,
@@ -77,9 +99,16 @@ class MotorControl:
             command_ttl_ticks=c.command_ttl_ticks,
             scan_timeout_ticks=c.scan_timeout_ticks,
         )
-        self.lidar_range_m = (config.lidar.min_range_m, config.lidar.max_range_m)
-        self.lidar_mount_xy_m = (config.lidar.mount_x_m, config.lidar.mount_y_m)
+        self.lidar_range_m = (lidar.min_range_m, lidar.max_range_m)
+        self.lidar_mount_xy_m = (lidar.mount_x_m, lidar.mount_y_m)
         self._scan_cache: tuple[int, np.ndarray] | None = None
+
+    @classmethod
+    def from_config(cls, config: Config) -> Self:
+        """The control tick of a loaded configuration."""
+        return cls(config.control, config.drive, config.robot, config.lidar,
+                   ticks_per_rev=config.encoders.ticks_per_rev, jog_ttl_s=config.motors.command_ttl_s,
+                   period_s=config.daemon.control_period_s)
 
     def tick(self, state: SharedState, now_s: float) -> tuple[float, float]:
         """The (left, right) throttles for this period; also updates the measured wheel speeds.

@@ -33,7 +33,7 @@ from mazebot.clock import Clock
 from mazebot.io.scan import Scan
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
-from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams, SlamUpdate
+from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, Slam, SlamParams, SlamUpdate
 from mazebot.state import RunState, SharedState
 from mazebot.steps import run_steps_async
 
@@ -113,127 +113,193 @@ async def run(
     searches for it in the executor (in this process: it reads the live SLAM), and clears
     the fault once found.
     """
-    slam = slam or Slam(params, background=True, record_trajectory=False)
-    guard = guard or LocalizationGuard()
-    trust = OdometryTrust()
-    loop = asyncio.get_running_loop()
-    if slam.keyframes:  # a resumed run: its map is served before the first revolution
-        state.map = slam.grid
-        state.slam.keyframes = len(slam.keyframes)
-        state.slam.anchored = slam.anchored
-    next_scan: asyncio.Future[Scan] | None = None
-    job: asyncio.Future[LoopClosureResult] | None = None
-    job_since_s = 0.0
-    job_noted = False
-    search: asyncio.Future[SearchResult] | None = None
-    final_done = False  # this exploration's final rebuild has been asked for
-    try:
-        while True:
-            if next_scan is None:
-                next_scan = asyncio.ensure_future(state.scans.get())
-            # a loop closure's result waits while a search for the lost robot reads the map (in a
-            # thread): merging it then would rebuild the grid and move the keyframes under the search
-            mergeable = job if search is None else None
-            waiting: set[asyncio.Future] = {f for f in (next_scan, mergeable, search) if f is not None}
-            timeout_s = None
-            if job is not None and not job_noted:  # wake up to say so when a job runs long
-                timeout_s = max(0.0, job_since_s + SLOW_JOB_S - clock.now_s())
-            done, _ = await asyncio.wait(waiting, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
-            if job is not None and not job_noted and job not in done and clock.now_s() - job_since_s >= SLOW_JOB_S:
-                job_noted = True
-                message = (f"a loop-closure job has been running for {clock.now_s() - job_since_s:.1f} s; "
-                           "scans go on, its result is merged when it is done")
-                log.info("%s", message)
-                state.note("slam", message, clock.now_s())
-            if job is not None and job in done:
-                result = job.result()  # a crashed job is a SLAM fault, not silence
-                job = None
-                rebuilt = await run_steps_async(slam.apply_steps(result))  # in stages, as the updates
-                _publish_closure(state, slam, result, rebuilt)
-            if search is not None and search in done:
-                found = search.result()
-                search = None
-                if guard.accept(slam, found):
-                    trust.distrust()  # found, but the odometry that lost it may still be wrong
-                    _publish_relocalized(state, slam, found, clock)
-                elif found.pose is not None:  # from a partly known view: the guard waits for it again
-                    log.info("the robot may be at (%.3f m, %.3f m) by the part of its view the map knows; "
-                             "the next revolution must find it there again", found.pose[0], found.pose[1])
-                else:
-                    log.info("the robot is not found near where the odometry has it (%d poses tried); "
-                             "searching again with the next revolution", found.tried)
-            if next_scan in done:
-                scan = next_scan.result()
-                next_scan = None
-                if state.calibrating:
-                    # the setup page's calibration measures what the odometry assumes (wiring, wheel sizes,
-                    # track width): its motions would paint walls where they are not, and lose the robot.
-                    # Afterwards the guard finds the robot in the map again, as after a kidnap.
-                    continue
-                history = await _odometry_covering(state, clock, scan.end_time_s)
-                if history is None or search is not None:
-                    continue  # no odometry yet, or a search for the robot is under way
-                guard_start_s = time.thread_time()
-                verdict = guard.check(slam, scan, history)
-                guard_cpu_s = time.thread_time() - guard_start_s  # part of this revolution's SLAM cost
-                if verdict == "lost":
-                    trust.distrust()
-                    _lost(state, guard, clock)
-                    assert guard.guess is not None  # check() predicted the pose of the revolution it calls lost
-                    search = loop.run_in_executor(
-                        executor, search_pose, slam, scan, history, guard.guess, guard.params, guard.search_scale
-                    )
-                    continue
-                if verdict == "skip":
-                    continue  # does not fit the map: SLAM must not paint it in
-                predicted = guard.guess
-                slip: list[tuple[float, float] | None] = [None]
+    task = SlamTask(state, clock, slam or Slam(params, background=True, record_trajectory=False), executor, guard)
+    await task.run()
 
-                at_rest = _at_rest(history, scan)
 
-                def paint(match, matched: bool, predicted=predicted, slip=slip, at_rest=at_rest) -> bool:
-                    if predicted is not None and match is not None and slam.acceptable(match):
-                        slip[0] = guard.slipped(predicted, match.pose)  # the lidar's pose, before the filter
-                    return trust.observe(state, slip[0] is not None, matched, at_rest)
+class SlamTask:
+    """SLAM's side of the daemon as one object: what is pending, and one method per event.
 
-                await asyncio.sleep(0)  # the guard's check and the update are two stretches, not one
-                cpu_s = [0.0]
-                try:  # in stages, the loop free in between: a keyframe scan is too long for the control tick
-                    update = await run_steps_async(slam.update_steps(scan, history, paint=paint), cpu_s)
-                except Exception as exc:  # one bad scan must not cost the map: skip it, stop the wheels
-                    _scan_failed(state, clock, exc)
-                    continue
-                state.scan_ms.append(cpu_s[0] * 1e3)
-                state.cpu.part("slam per revolution").add(guard_cpu_s + cpu_s[0])  # the guard's check too
-                if any(f.source == "slam" for f in state.faults):
-                    state.clear_faults("slam")
-                    state.note("slam", "SLAM processes scans again", clock.now_s())
-                _publish_update(state, slam, update)
-                state.slam.held_back = trust.held_back
-                if slip[0] is not None:
-                    _note_slip(state, slip[0], clock)
-                if update.loop_job is not None:  # the job itself, so a LoopClosureExecutor can ship it
-                    job = loop.run_in_executor(executor, update.loop_job)
-                    job_since_s, job_noted = clock.now_s(), False
-            # the maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job)
-            if state.run_state is RunState.EXPLORING:
-                final_done = False
-            elif state.run_state in (RunState.RETURNING, RunState.DONE) and not final_done and job is None:
-                final = slam.final_job()
-                if final is not None:
-                    final_done = True
-                    log.info("exploration over: optimizing the pose graph and rebuilding the map once more")
-                    job = loop.run_in_executor(executor, final)
-                    job_since_s, job_noted = clock.now_s(), False
-    finally:
-        if job is not None:
-            job.cancel()  # a job already running in its thread finishes unseen
-        if search is not None:
-            search.cancel()
-        if next_scan is not None:
-            next_scan.cancel()
+    Three things can be outstanding at once: the next revolution from ``state.scans``, a
+    loop-closure (or final) job in the executor, and a search for the lost robot. :meth:`run`
+    waits for whichever comes first and hands it to :meth:`on_scan`, :meth:`on_job_done` or
+    :meth:`on_search_done`; :meth:`on_job_slow` says when a job runs long and
+    :meth:`on_run_state` starts the final rebuild once the exploration is over.
+    """
+
+    def __init__(self, state: SharedState, clock: Clock, slam: Slam, executor: Executor | None = None,
+                 guard: LocalizationGuard | None = None) -> None:
+        self.state, self.clock, self.slam, self.executor = state, clock, slam, executor
+        self.guard = guard or LocalizationGuard()
+        self.trust = OdometryTrust()
+        self.next_scan: asyncio.Future[Scan] | None = None
+        self.job: asyncio.Future[LoopClosureResult] | None = None
+        self.job_since_s = 0.0
+        self.job_noted = False  # the running job was said to run long
+        self.search: asyncio.Future[SearchResult] | None = None
+        self.final_done = False  # this exploration's final rebuild has been asked for
+
+    async def run(self) -> None:
+        """Wait for the next event and handle it, for ever; what is pending is cancelled on the way out."""
+        if self.slam.keyframes:  # a resumed run: its map is served before the first revolution
+            self.state.map = self.slam.grid
+            self.state.slam.keyframes = len(self.slam.keyframes)
+            self.state.slam.anchored = self.slam.anchored
+        try:
+            while True:
+                done = await self._wait()
+                if self._job_is_slow(done):
+                    self.on_job_slow()
+                if self.job is not None and self.job in done:
+                    await self.on_job_done(self.job)
+                if self.search is not None and self.search in done:
+                    self.on_search_done(self.search)
+                if self.next_scan is not None and self.next_scan in done:
+                    scan = self.next_scan.result()
+                    self.next_scan = None
+                    if not await self.on_scan(scan):
+                        continue  # a revolution left out waits for the next one to look at the run state
+                self.on_run_state()
+        finally:
+            await self._cancel_pending()
+
+    async def _wait(self) -> set[asyncio.Future]:
+        """The futures done after waiting for the first (or until a running job is due to be said slow)."""
+        if self.next_scan is None:
+            self.next_scan = asyncio.ensure_future(self.state.scans.get())
+        # a loop closure's result waits while a search for the lost robot reads the map (in a
+        # thread): merging it then would rebuild the grid and move the keyframes under the search
+        mergeable = self.job if self.search is None else None
+        waiting: set[asyncio.Future] = {f for f in (self.next_scan, mergeable, self.search) if f is not None}
+        timeout_s = None
+        if self.job is not None and not self.job_noted:  # wake up to say so when a job runs long
+            timeout_s = max(0.0, self.job_since_s + SLOW_JOB_S - self.clock.now_s())
+        done, _ = await asyncio.wait(waiting, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
+        return done
+
+    def _job_is_slow(self, done: set[asyncio.Future]) -> bool:
+        return (self.job is not None and not self.job_noted and self.job not in done
+                and self.clock.now_s() - self.job_since_s >= SLOW_JOB_S)
+
+    def _start_job(self, job: LoopClosureJob) -> None:
+        """A loop-closure job into the executor (the job itself, so a LoopClosureExecutor can ship it)."""
+        self.job = asyncio.get_running_loop().run_in_executor(self.executor, job)
+        self.job_since_s, self.job_noted = self.clock.now_s(), False
+
+    # -- the events ---------------------------------------------------------------------
+
+    def on_job_slow(self) -> None:
+        """A loop-closure job has run for ``SLOW_JOB_S``: said once, in the log and the status."""
+        self.job_noted = True
+        message = (f"a loop-closure job has been running for {self.clock.now_s() - self.job_since_s:.1f} s; "
+                   "scans go on, its result is merged when it is done")
+        log.info("%s", message)
+        self.state.note("slam", message, self.clock.now_s())
+
+    async def on_job_done(self, job: asyncio.Future[LoopClosureResult]) -> None:
+        """A loop-closure job's result merged into SLAM (in stages, as the updates) and published."""
+        result = job.result()  # a crashed job is a SLAM fault, not silence
+        self.job = None
+        rebuilt = await run_steps_async(self.slam.apply_steps(result))
+        _publish_closure(self.state, self.slam, result, rebuilt)
+
+    def on_search_done(self, search: asyncio.Future[SearchResult]) -> None:
+        """The search for the lost robot ended: found (the fault cleared), or searched again later."""
+        found = search.result()
+        self.search = None
+        if self.guard.accept(self.slam, found):
+            self.trust.distrust()  # found, but the odometry that lost it may still be wrong
+            _publish_relocalized(self.state, self.slam, found, self.clock)
+        elif found.pose is not None:  # from a partly known view: the guard waits for it again
+            log.info("the robot may be at (%.3f m, %.3f m) by the part of its view the map knows; "
+                     "the next revolution must find it there again", found.pose[0], found.pose[1])
+        else:
+            log.info("the robot is not found near where the odometry has it (%d poses tried); "
+                     "searching again with the next revolution", found.tried)
+
+    async def on_scan(self, scan: Scan) -> bool:
+        """One revolution: checked by the guard, then localized and (if the odometry is trusted) painted.
+
+        False when the revolution was left out (calibrating, no odometry, searching, lost, not
+        fitting the map, failed).
+        """
+        state, slam, guard = self.state, self.slam, self.guard
+        if state.calibrating:
+            # the setup page's calibration measures what the odometry assumes (wiring, wheel sizes,
+            # track width): its motions would paint walls where they are not, and lose the robot.
+            # Afterwards the guard finds the robot in the map again, as after a kidnap.
+            return False
+        history = await _odometry_covering(state, self.clock, scan.end_time_s)
+        if history is None or self.search is not None:
+            return False  # no odometry yet, or a search for the robot is under way
+        guard_start_s = time.thread_time()
+        verdict = guard.check(slam, scan, history)
+        guard_cpu_s = time.thread_time() - guard_start_s  # part of this revolution's SLAM cost
+        if verdict == "lost":
+            self.on_lost(scan, history)
+            return False
+        if verdict == "skip":
+            return False  # does not fit the map: SLAM must not paint it in
+        predicted = guard.guess
+        slip: list[tuple[float, float] | None] = [None]
+        at_rest = _at_rest(history, scan)
+
+        def paint(match, matched: bool) -> bool:
+            if predicted is not None and match is not None and slam.acceptable(match):
+                slip[0] = guard.slipped(predicted, match.pose)  # the lidar's pose, before the filter
+            return self.trust.observe(state, slip[0] is not None, matched, at_rest)
+
+        await asyncio.sleep(0)  # the guard's check and the update are two stretches, not one
+        cpu_s = [0.0]
+        try:  # in stages, the loop free in between: a keyframe scan is too long for the control tick
+            update = await run_steps_async(slam.update_steps(scan, history, paint=paint), cpu_s)
+        except Exception as exc:  # one bad scan must not cost the map: skip it, stop the wheels
+            _scan_failed(state, self.clock, exc)
+            return False
+        state.scan_ms.append(cpu_s[0] * 1e3)
+        state.cpu.part("slam per revolution").add(guard_cpu_s + cpu_s[0])  # the guard's check too
+        if any(f.source == "slam" for f in state.faults):
+            state.clear_faults("slam")
+            state.note("slam", "SLAM processes scans again", self.clock.now_s())
+        _publish_update(state, slam, update)
+        state.slam.held_back = self.trust.held_back
+        if slip[0] is not None:
+            _note_slip(state, slip[0], self.clock)
+        if update.loop_job is not None:
+            self._start_job(update.loop_job)
+        return True
+
+    def on_lost(self, scan: Scan, history: OdometryHistory) -> None:
+        """The guard lost the robot: a ``localization`` fault, and a search for it in the executor."""
+        self.trust.distrust()
+        _lost(self.state, self.guard, self.clock)
+        guess = self.guard.guess
+        assert guess is not None  # check() predicted the pose of the revolution it calls lost
+        self.search = asyncio.get_running_loop().run_in_executor(
+            self.executor, search_pose, self.slam, scan, history, guess, self.guard.params, self.guard.search_scale
+        )
+
+    def on_run_state(self) -> None:
+        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job)."""
+        run_state = self.state.run_state
+        if run_state is RunState.EXPLORING:
+            self.final_done = False
+        elif run_state in (RunState.RETURNING, RunState.DONE) and not self.final_done and self.job is None:
+            final = self.slam.final_job()
+            if final is not None:
+                self.final_done = True
+                log.info("exploration over: optimizing the pose graph and rebuilding the map once more")
+                self._start_job(final)
+
+    async def _cancel_pending(self) -> None:
+        if self.job is not None:
+            self.job.cancel()  # a job already running in its thread finishes unseen
+        if self.search is not None:
+            self.search.cancel()
+        if self.next_scan is not None:
+            self.next_scan.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await next_scan
+                await self.next_scan
 
 
 def _at_rest(history: OdometryHistory, scan: Scan) -> bool:

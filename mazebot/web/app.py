@@ -224,20 +224,14 @@ def _queue_command(state: SharedState, command: str) -> bool:
     return True
 
 
-async def _post_command(request: web.Request, command: str) -> web.Response:
+async def post_command(request: web.Request) -> web.Response:
+    """``POST /api/start`` and ``/api/stop``: the command queued for the daemon, once the PIN allows it."""
+    command = request.match_info["command"]
     if (refused := authorize_command(request, command)) is not None:
         return refused
     if not _queue_command(request.app[STATE_KEY], command):
         return web.json_response({"error": "too many commands queued; try again"}, status=503)
     return web.json_response({"accepted": command})
-
-
-async def post_start(request: web.Request) -> web.Response:
-    return await _post_command(request, "start")
-
-
-async def post_stop(request: web.Request) -> web.Response:
-    return await _post_command(request, "stop")
 
 
 #: kind: (content type, download name (None: the snapshot's stem + suffix), encoder of a snapshot).
@@ -250,8 +244,10 @@ _MAP_FILES: dict[str, tuple[str, str | None, Callable[[map_images.MapSnapshot], 
 }
 
 
-async def _map_response(request: web.Request, kind: str) -> web.Response:
-    """One map file of one snapshot; ``?download`` (and always the zip) asks the browser to save it."""
+async def get_map(request: web.Request) -> web.Response:
+    """``/map.png``, ``.pgm``, ``.yaml``, ``.zip``: one map file of one snapshot; ``?download`` (and
+    always the zip) asks the browser to save it."""
+    kind = request.match_info["kind"]
     if (denied := check_view(request)) is not None:
         return denied
     grid = request.app[STATE_KEY].map
@@ -264,22 +260,6 @@ async def _map_response(request: web.Request, kind: str) -> web.Response:
     headers = {"Cache-Control": "no-store", "Content-Disposition": f'{disposition}; filename="{filename}"'}
     body = await asyncio.get_running_loop().run_in_executor(None, encode, snap)
     return web.Response(body=body, content_type=content_type, headers=headers)
-
-
-async def get_map_png(request: web.Request) -> web.Response:
-    return await _map_response(request, "png")
-
-
-async def get_map_pgm(request: web.Request) -> web.Response:
-    return await _map_response(request, "pgm")
-
-
-async def get_map_yaml(request: web.Request) -> web.Response:
-    return await _map_response(request, "yaml")
-
-
-async def get_map_zip(request: web.Request) -> web.Response:
-    return await _map_response(request, "zip")
 
 
 async def get_ws(request: web.Request) -> web.WebSocketResponse:
@@ -470,12 +450,8 @@ def create_app(
     app.router.add_get("/", get_index)
     app.router.add_get("/ws", get_ws)
     app.router.add_get("/api/status", get_status)
-    app.router.add_post("/api/start", post_start)
-    app.router.add_post("/api/stop", post_stop)
-    app.router.add_get("/map.png", get_map_png)
-    app.router.add_get("/map.pgm", get_map_pgm)
-    app.router.add_get("/map.yaml", get_map_yaml)
-    app.router.add_get("/map.zip", get_map_zip)
+    app.router.add_post("/api/{command:start|stop}", post_command)
+    app.router.add_get("/map.{kind:" + "|".join(_MAP_FILES) + "}", get_map)
     from mazebot.web import setup  # the setup view: raw scan, wheels, jog, doctor, calibration
 
     setup.add_routes(app, state_dir, calibration)

@@ -52,12 +52,20 @@ async def _json_body(request: web.Request) -> dict[str, Any]:
     return body if isinstance(body, dict) else {}
 
 
-async def post_calibration(request: web.Request) -> web.Response:
+async def _calibration_for_a_command(request: web.Request) -> PageCalibration | web.Response:
+    """The page's calibration for a command that changes it; a response when the PIN is refused or there is none."""
     if (denied := await _authorized(request, "calibration")) is not None:
         return denied
     calibration = request.app.get(CALIBRATION_KEY)
     if calibration is None:
         return web.json_response({"error": UNAVAILABLE}, status=409)
+    return calibration
+
+
+async def post_calibration(request: web.Request) -> web.Response:
+    calibration = await _calibration_for_a_command(request)
+    if isinstance(calibration, web.Response):
+        return calibration
     if (refusal := calibration.refusal()) is not None:
         return web.json_response({"error": refusal}, status=409)
     return web.json_response(calibration.start().as_json())
@@ -87,11 +95,9 @@ async def post_calibration_stop(request: web.Request) -> web.Response:
 
 
 async def post_calibration_write(request: web.Request) -> web.Response:
-    if (denied := await _authorized(request, "calibration")) is not None:
-        return denied
-    calibration = request.app.get(CALIBRATION_KEY)
-    if calibration is None:
-        return web.json_response({"error": UNAVAILABLE}, status=409)
+    calibration = await _calibration_for_a_command(request)
+    if isinstance(calibration, web.Response):
+        return calibration
     body = await _json_body(request)
     try:
         run = calibration.write(body.get("id"))

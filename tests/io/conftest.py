@@ -46,6 +46,23 @@ def revolution(rev: int, samples_per_rev: int = SAMPLES_PER_REV) -> tuple[np.nda
     return angle, dist, quality, start
 
 
+
+def take_requests(buf: bytearray) -> list[tuple[int, bytes]]:
+    """The whole requests at the front of ``buf`` (command, payload), removed from it; bytes before
+    a sync byte are dropped, a partial request stays for the next read."""
+    requests = []
+    while buf:
+        if buf[0] != proto.SYNC_BYTE:
+            del buf[0]
+            continue
+        parsed = proto.parse_request(bytes(buf))
+        if parsed is None:
+            break
+        cmd, payload, used = parsed
+        del buf[:used]
+        requests.append((cmd, payload))
+    return requests
+
 @dataclass
 class FakeLidar:
     """The device end of one link: answers requests, streams scans, misbehaves on demand."""
@@ -73,15 +90,7 @@ class FakeLidar:
                 if not data:
                     return
                 buf += data
-                while buf:
-                    if buf[0] != proto.SYNC_BYTE:
-                        del buf[0]
-                        continue
-                    parsed = proto.parse_request(bytes(buf))
-                    if parsed is None:
-                        break
-                    cmd, payload, used = parsed
-                    del buf[:used]
+                for cmd, payload in take_requests(buf):
                     await self._answer(cmd, payload)
         except ConnectionError:
             return  # the driver closed the link
@@ -250,15 +259,7 @@ class PtyLidar:
                 buf += os.read(self._master, 4096)
             except OSError:
                 return
-            while buf:
-                if buf[0] != proto.SYNC_BYTE:
-                    del buf[0]
-                    continue
-                parsed = proto.parse_request(bytes(buf))
-                if parsed is None:
-                    break
-                cmd, _, used = parsed
-                del buf[:used]
+            for cmd, _ in take_requests(buf):
                 self._answer(cmd)
 
     def _answer(self, cmd: int) -> None:

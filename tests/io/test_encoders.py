@@ -26,6 +26,7 @@ from mazebot.io.encoders import (
     WheelEncoder,
     WheelEncoders,
 )
+from tests.fake_clock import FakeClock
 
 A_PIN, B_PIN = 17, 18
 MODES = ("x1", "x2", "x4")
@@ -41,17 +42,6 @@ def factory() -> Iterator[MockFactory]:
     mock = MockFactory()
     yield mock
     mock.reset()
-
-
-class FakeClock:
-    def __init__(self, now_s: float = 0.0) -> None:
-        self.t = now_s
-
-    def now_s(self) -> float:
-        return self.t
-
-    async def sleep(self, duration_s: float) -> None:
-        self.t += duration_s
 
 
 def pins(factory: MockFactory, a: int = A_PIN, b: int = B_PIN) -> tuple[MockPin, MockPin]:

@@ -27,17 +27,7 @@ from mazebot.io.motors import (
     TtlGuard,
     open_motorkit,
 )
-
-
-class FakeClock:
-    def __init__(self, now_s: float = 0.0) -> None:
-        self.t = now_s
-
-    def now_s(self) -> float:
-        return self.t
-
-    async def sleep(self, duration_s: float) -> None:
-        self.t += duration_s
+from tests.fake_clock import FakeClock
 
 
 class FakeHandle:

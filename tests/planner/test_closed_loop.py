@@ -10,21 +10,19 @@ encoder-quantised wheel speeds, the safety layer in front of the motors, and the
 physics (unmatched motors, slip, deadband, motor lag) with one control period of
 actuation latency.
 
-The maze test runs the daemon's own parts (:func:`run_daemon_exploration`): a
+Every test runs the daemon's own parts (:func:`run_daemon_exploration`): a
 :class:`~mazebot.planner.pilot.Pilot` and a :class:`~mazebot.tasks.control_task.MotorControl`
-built from the default :class:`~mazebot.config.Config` as ``mazebot/main.py`` builds them,
-talking through the shared state; a default changed in the config is what it drives
-with. The room and frontier tests wire the explorer, DWA and wheel control by hand
-(:func:`run_exploration`), to vary what the config does not (the mode, the latency).
+built from a :class:`~mazebot.config.Config` as ``mazebot/main.py`` builds them, talking
+through the shared state; a default changed in the config is what it drives with, and
+what a test varies (the strategy, the mode) it sets in the config.
 
 Run as a script to print the measured figures for a range of seeds::
 
     .venv/bin/python tests/planner/test_closed_loop.py --kind braided --seeds 1-30 [--strategy dfs] [--map grid]
-        [--mode frontier] [--size 4] [--daemon]
+        [--mode frontier] [--size 4]
 
 (``--map grid`` builds the map with a real log-odds :class:`OccupancyGrid` from noisy
-ranges instead of revealing the perfect one; ``--kind room`` is the room with cylinders;
-``--daemon`` drives with the daemon's parts from the default config.)
+ranges instead of revealing the perfect one; ``--kind room`` is the room with cylinders.)
 """
 
 from __future__ import annotations
@@ -39,18 +37,9 @@ import pytest
 
 from mazebot.config import Config
 from mazebot.io.scan import Scan
-from mazebot.planner.dwa import (
-    DynamicWindowPlanner,
-    LocalPlanner,
-    map_points_robot,
-    scan_points_robot,
-    to_robot_frame,
-)
-from mazebot.planner.exploration import Explorer, Phase
-from mazebot.planner.maze_graph import Direction, LinkState, MazeGraph
+from mazebot.planner.exploration import Explorer
+from mazebot.planner.maze_graph import Direction, LinkState
 from mazebot.planner.pilot import Pilot, PilotParams
-from mazebot.planner.safety import SafetyLayer, reframe_points
-from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
 from mazebot.sim.raster import free_reachable, true_occupancy
@@ -64,17 +53,9 @@ from mazebot.tasks.control_task import MotorControl
 pytestmark = pytest.mark.slow  # closed-loop runs of the simulated robot
 
 RES_M = 0.02
-CELL_M = 0.3048
-TICKS_PER_REV = 840  # 210 lines, x4 decoding: the config default
-WHEEL_DIAMETER_M = 0.065
-TRACK_M = 0.15
-LIDAR_MIN_M = 0.15
-LIDAR_MAX_M = 12.0
+LIDAR_MIN_M = Config().lidar.min_range_m  # the revealed map sees nothing closer, as the lidar
 MISS_FREE_M = 4.0
 PHYSICS_DT_S = 0.01
-CONTROL_EVERY = 5  # 20 Hz
-DWA_EVERY = 20  # 5 Hz: one planner tick runs the explorer and the DWA
-PLANNER_EVERY = 20  # 5 Hz
 
 
 class RevealedMap:
@@ -204,103 +185,11 @@ def finished(
     )
 
 
-def run_exploration(
-    world: World,
-    seed: int = 0,
-    time_limit_s: float = 300.0,
-    strategy: str = "nearest",
-    mode: str = "auto",
-    latency_periods: int = 1,
-    map_source: str = "truth",
-) -> RunResult:
-    """Drive the robot until the explorer reports DONE or the time limit; returns the figures.
-
-    ``map_source`` is ``"truth"`` (the perfect map, revealed by visibility) or ``"grid"``
-    (a :class:`LidarMap`); coverage is always measured on the revealed truth.
-    """
-    rng = np.random.default_rng(seed)
-    physics = RobotPhysics(PhysicsParams(), world, world.start_pose, rng)
-    start_xy = (world.start_pose[0], world.start_pose[1])
-    truth = RevealedMap(world)
-    planner_map: RevealedMap | LidarMap = truth if map_source == "truth" else LidarMap(np.random.default_rng(seed + 1))
-    caster = RayCaster.for_world(world)
-    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
-
-    explorer = Explorer(MazeGraph(anchor_xy_m=start_xy), strategy=strategy, mode=mode, start_xy_m=start_xy)  # type: ignore[arg-type]
-    period_s = DWA_EVERY * PHYSICS_DT_S
-    # the next chance to brake is one DWA period away, plus a control period of actuation latency
-    dwa = DynamicWindowPlanner(window_s=period_s, latency_s=period_s + latency_periods * CONTROL_EVERY * PHYSICS_DT_S)
-    local = LocalPlanner(dwa)
-    wheels = WheelController(TRACK_M, 0.6, 0.08)
-    for pid in (wheels.left, wheels.right):
-        pid.latency_s = latency_periods * CONTROL_EVERY * PHYSICS_DT_S
-    estimator = WheelSpeedEstimator.for_wheel(TICKS_PER_REV, WHEEL_DIAMETER_M)
-    safety = SafetyLayer()
-    pending: list[tuple[float, float]] = [(0.0, 0.0)] * latency_periods
-
-    command = (0.0, 0.0, DriveMode.STOP, 0.0)  # v, w, mode, time
-    scan_xy = np.zeros((0, 2))
-    scan_time = 0.0
-    scan_pose = physics.pose
-    measured = (0.0, 0.0)
-    still = StillClock()
-    statuses: dict[str, int] = {}
-    done = False
-    step = 0
-    while physics.time_s < time_limit_s:
-        now = physics.time_s
-        pose = physics.pose
-        if step % DWA_EVERY == 0:
-            ranges = caster.cast(np.array(pose[:2]), angles + pose[2], LIDAR_MAX_M)
-            scan_xy = scan_points_robot(angles, ranges, None, LIDAR_MIN_M, LIDAR_MAX_M)
-            scan_time, scan_pose = now, pose
-            if step % PLANNER_EVERY == 0:  # the planner task's tick
-                truth.reveal(pose[:2], angles + pose[2], ranges)
-                if planner_map is not truth:
-                    planner_map.reveal(pose[:2], angles + pose[2], ranges)
-                grid = planner_map.three_state()
-                goal = explorer.update(grid, planner_map.origin_m, RES_M, pose, now)
-                if goal is not None and goal.phase is Phase.DONE:
-                    done = True
-                    break
-                if goal is not None:
-                    local.set_path(goal.waypoints_m)
-            grid = planner_map.three_state()
-            map_xy = map_points_robot(grid, planner_map.origin_m, RES_M, pose, 0.8)
-            walls_xy = None
-            if explorer.mode == "maze":  # the wall outlines the graph knows, posts included
-                walls_xy = to_robot_frame(explorer.graph.wall_points_m(pose[:2], 0.8), pose)
-            v_now, w_now = wheels.kinematics.body_velocity(*measured)
-            cmd = local.step(pose, (v_now, w_now), scan_xy, map_xy, RES_M * math.sqrt(0.5), now, walls_xy)
-            statuses[cmd.status.value] = statuses.get(cmd.status.value, 0) + 1
-            if cmd.give_up:
-                explorer.report_unreachable(now)
-            command = (cmd.v_mps, cmd.w_radps, cmd.mode, now)
-        if step % CONTROL_EVERY == 0:
-            left_rad, right_rad = physics.wheel_angle_rad
-            ticks = [math.floor(a / math.tau * TICKS_PER_REV) for a in (left_rad, right_rad)]
-            measured = estimator.update(ticks[0], ticks[1], now)
-            v, w, mode, stamp = command
-            guard_xy = reframe_points(scan_xy, scan_pose, pose)  # the last scan, moved to where the robot is now
-            verdict = safety.check(now, v, w, stamp, guard_xy, scan_time)
-            if verdict.stop:
-                v, w, mode = 0.0, 0.0, DriveMode.STOP
-            out = wheels.update(v, w, mode, measured, CONTROL_EVERY * PHYSICS_DT_S)
-            pending.append((out.left_throttle, out.right_throttle))
-            physics.set_throttle(*pending.pop(0))
-        physics.step(PHYSICS_DT_S)
-        step += 1
-        still.update(physics)
-
-    return finished(
-        world, physics, truth, still, done=done, safety_stops=safety.stops, explorer=explorer, statuses=statuses
-    )
-
-
 def run_daemon_exploration(
     world: World, seed: int = 0, time_limit_s: float = 300.0, config: Config | None = None, map_source: str = "truth"
 ) -> RunResult:
-    """:func:`run_exploration` with the daemon's own planner and control, built from ``config`` as it builds them.
+    """Drive the robot with the daemon's own planner and control, built from ``config`` as it builds them,
+    until the run is done or the time limit; returns the figures.
 
     The planner is a :class:`Pilot` from :meth:`PilotParams.from_config` ticked at its
     configured rate, the wheels a :class:`MotorControl` (wheel PI, encoder speeds, safety
@@ -320,7 +209,7 @@ def run_daemon_exploration(
     angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
 
     pilot = Pilot(PilotParams.from_config(config))
-    control = MotorControl(config)
+    control = MotorControl.from_config(config)
     planner_every = round(pilot.params.period_s / PHYSICS_DT_S)
     control_every = round(control.period_s / PHYSICS_DT_S)
     pending = [(0.0, 0.0)] * round(config.control.actuation_latency_s / control.period_s)
@@ -427,8 +316,9 @@ def test_explores_a_6x6_maze_and_returns_without_touching_a_wall(
 
 @pytest.mark.parametrize("map_source", ["truth", "grid"])
 def test_explores_a_room_with_cylinders_by_frontiers(map_source: str) -> None:
+    """The daemon's pilot and motor control from the default config: no maze in sight, so frontiers (auto mode)."""
     world = make_room(width_m=2.0, height_m=1.2, cylinders=4, seed=0, footprint_radius_m=0.09)
-    result = run_exploration(world, seed=0, time_limit_s=300.0, map_source=map_source)
+    result = run_daemon_exploration(world, seed=0, time_limit_s=300.0, config=Config(), map_source=map_source)
     assert result.explorer.mode == "frontier"
     assert result.done
     assert result.collisions == 0
@@ -445,7 +335,9 @@ def test_frontier_mode_maps_a_1ft_corridor_maze_without_the_cell_graph(size: int
     hold the robot until it was blacklisted.
     """
     world = maze_world(seed, "braided", size)
-    result = run_exploration(world, seed=seed, time_limit_s=150.0, mode="frontier", map_source=map_source)
+    config = Config()
+    config.planner.mode = "frontier"
+    result = run_daemon_exploration(world, seed=seed, time_limit_s=150.0, config=config, map_source=map_source)
     assert result.explorer.mode == "frontier"
     assert result.done, f"not done after {result.time_s:.0f} s: {result.explorer.events}"
     assert result.collisions == 0
@@ -463,7 +355,6 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--mode", default="auto", choices=["auto", "maze", "frontier"])
     parser.add_argument("--size", type=int, default=6, help="maze cells per side")
     parser.add_argument("--seeds", default="1-3", help="first-last (inclusive)")
-    parser.add_argument("--daemon", action="store_true", help="the daemon's Pilot and MotorControl from the config")
     args = parser.parse_args(argv)
     first, _, last = args.seeds.partition("-")
     rows = []
@@ -472,12 +363,9 @@ def main(argv: list[str]) -> None:
             world = make_room(2.0, 1.2, cylinders=4, seed=seed, footprint_radius_m=0.09)
         else:
             world = maze_world(seed, args.kind, args.size)
-        if args.daemon:
-            config = Config()
-            config.planner.strategy, config.planner.mode = args.strategy, args.mode
-            r = run_daemon_exploration(world, seed=seed, config=config, map_source=args.map_source)
-        else:
-            r = run_exploration(world, seed=seed, strategy=args.strategy, mode=args.mode, map_source=args.map_source)
+        config = Config()
+        config.planner.strategy, config.planner.mode = args.strategy, args.mode
+        r = run_daemon_exploration(world, seed=seed, config=config, map_source=args.map_source)
         wrong = len(links_match_truth(r, world)) if world.maze is not None else 0
         rows.append((r.done, r.time_s, r.path_m, r.collisions, r.coverage, wrong, r.longest_still_s))
         print(

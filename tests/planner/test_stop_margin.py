@@ -29,7 +29,7 @@ def wall_ahead(distance_m: float) -> np.ndarray:
 def test_no_arc_the_planner_chooses_is_one_the_emergency_stop_refuses(stop_margin_m: float) -> None:
     config = parse_config({"control": {"stop_margin_m": stop_margin_m}})
     dwa = Pilot(PilotParams.from_config(config)).local.dwa
-    guard = MotorControl(config).safety.guard
+    guard = MotorControl.from_config(config).safety.guard
     assert dwa.stop_margin_m == guard.margin_m == stop_margin_m
     chosen_moving = 0
     for distance_m in np.arange(0.2, 0.8, 0.02):

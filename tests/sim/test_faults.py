@@ -20,7 +20,7 @@ from gpiozero.pins.mock import MockFactory
 from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.errors import UsageError
-from mazebot.io.encoders import WheelEncoders
+from mazebot.io.encoders import EncoderReading, WheelEncoders
 from mazebot.io.motors import FakeMotorKit
 from mazebot.io.rplidar import RPLidar
 from mazebot.sim.backend import SimLidarLine
@@ -121,23 +121,23 @@ def test_a_dead_encoder_counts_nothing_and_a_bouncing_one_counts_impossible_tran
     right = QuadratureSignal(factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev, idle_high=enc.pull_up)
     robot_pins = SimpleNamespace(left_signal=left, right_signal=right)  # only the pins: no physics needed
     encoders = WheelEncoders.from_config(enc, factory)
+    angle = [0.0]
+
+    def turn_both_wheels_and_read() -> EncoderReading:
+        for _ in range(100):
+            angle[0] += 0.05
+            left.update(angle[0])
+            right.update(angle[0])
+        return encoders.read()
+
     try:
-        angle = 0.0
         injector = FaultInjector([], robot_pins, RealClock())
         FAULTS["encoder-dead"].begin(injector.ctx)
-        for _ in range(100):
-            angle += 0.05
-            left.update(angle)
-            right.update(angle)
-        reading = encoders.read()
+        reading = turn_both_wheels_and_read()
         assert reading.left_ticks == 0 and abs(reading.right_ticks) > 300  # (the right one is mounted mirrored)
         FAULTS["encoder-dead"].end(injector.ctx)
         FAULTS["encoder-bounce"].begin(injector.ctx)
-        for _ in range(100):
-            angle += 0.05
-            left.update(angle)
-            right.update(angle)
-        reading = encoders.read()
+        reading = turn_both_wheels_and_read()
         truth = right.edges
         assert reading.invalid_transitions > 0
         # lost edges cost a few ticks, bounces none (they come back): the count stays close to the truth

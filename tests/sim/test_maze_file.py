@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +20,8 @@ from mazebot.sim.maze_file import (
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import SIDE_HEADING_RAD, MazeLayout, world_from_layout
+from tests.data_paths import MAZES, needs_mazes
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-MAZES = DATA_DIR / "mazes"
-needs_data = pytest.mark.skipif(not MAZES.is_dir(), reason=f"shared maze data not found at {MAZES}; set MAZEBOT_DATA")
 # Contest mazes from different decades and a training maze in a mostly empty frame.
 SAMPLE_FILES = [
     "classic/japan2013ef.txt",
@@ -42,18 +38,8 @@ def _normalise(text: str) -> str:
     return "\n".join(line.rstrip() for line in text.splitlines()).strip("\n") + "\n"
 
 
-def _reachable(layout: MazeLayout, start: tuple[int, int]) -> set[tuple[int, int]]:
-    seen = {start}
-    queue = deque([start])
-    while queue:
-        for n in layout.neighbours(queue.popleft()):
-            if n not in seen:
-                seen.add(n)
-                queue.append(n)
-    return seen
 
-
-@needs_data
+@needs_mazes
 @pytest.mark.parametrize("name", SAMPLE_FILES)
 def test_wall_counts_match_the_text(name: str) -> None:
     text = (MAZES / name).read_text()
@@ -65,7 +51,7 @@ def test_wall_counts_match_the_text(name: str) -> None:
     assert layout.wall_count() == horizontal + vertical
 
 
-@needs_data
+@needs_mazes
 @pytest.mark.parametrize("path", sorted(MAZES.glob("*/*.txt")), ids=lambda p: p.name)
 def test_every_shared_maze_round_trips(path: Path) -> None:
     text = path.read_text()
@@ -74,7 +60,7 @@ def test_every_shared_maze_round_trips(path: Path) -> None:
     assert parse_maze(maze_to_text(layout)) == layout
 
 
-@needs_data
+@needs_mazes
 def test_classic_mazes_are_closed_16x16_with_start_and_goal() -> None:
     for path in sorted((MAZES / "classic").glob("*.txt")):
         layout = read_maze_layout(path)
@@ -87,7 +73,7 @@ def test_classic_mazes_are_closed_16x16_with_start_and_goal() -> None:
         assert len(layout.goal_cells) == 4, path.name
 
 
-@needs_data
+@needs_mazes
 def test_japan2013_start_goal_and_pose() -> None:
     world = load_maze(MAZES / "classic" / "japan2013ef.txt")
     layout = world.maze
@@ -100,11 +86,11 @@ def test_japan2013_start_goal_and_pose() -> None:
     x, y, theta = world.start_pose
     assert (x, y) == pytest.approx((0.1524, 0.1524))
     assert theta == pytest.approx(math.pi / 2)  # the start cell opens to the north only
-    assert len(_reachable(layout, layout.start_cell)) == 256
+    assert len(layout.reachable()) == 256
     assert 100 < world.segments.shape[0] < 600  # merged runs: a few hundred, not thousands
 
 
-@needs_data
+@needs_mazes
 def test_training_maze_without_s_starts_in_the_south_west_corner() -> None:
     world = load_maze(MAZES / "training" / "minimaze.txt")
     assert world.maze is not None
@@ -112,10 +98,10 @@ def test_training_maze_without_s_starts_in_the_south_west_corner() -> None:
     assert world.maze.goal_cells == ()
     assert world.start_pose[2] == pytest.approx(math.pi / 2)
     # the 5x5 active area is walled off from the open frame around it
-    assert len(_reachable(world.maze, (0, 0))) == 25
+    assert len(world.maze.reachable((0, 0))) == 25
 
 
-@needs_data
+@needs_mazes
 def test_walls_are_where_rays_from_cell_centres_stop() -> None:
     # Ties the text, the layout and the wall geometry together: from each cell centre a
     # ray towards a walled side stops at the wall face, half a cell minus half a wall.
@@ -247,4 +233,4 @@ def test_default_6x6_is_a_demo_maze() -> None:
     assert layout.start_cell == (0, 0)
     assert layout.open_sides((0, 0)) == ["N"]
     assert layout.goal_cells == ((2, 2), (3, 2), (2, 3), (3, 3))
-    assert len(_reachable(layout, (0, 0))) == 36
+    assert len(layout.reachable((0, 0))) == 36

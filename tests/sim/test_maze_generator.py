@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections import deque
-
 import pytest
 
 from mazebot.sim.maze_file import maze_to_text, parse_maze
@@ -16,16 +14,6 @@ SIZES = [(2, 1), (1, 3), (5, 5), (6, 6), (16, 16), (9, 4)]
 def _cells(layout: MazeLayout) -> list[tuple[int, int]]:
     return [(c, r) for r in range(layout.height) for c in range(layout.width)]
 
-
-def _reachable(layout: MazeLayout) -> set[tuple[int, int]]:
-    seen = {layout.start_cell}
-    queue = deque([layout.start_cell])
-    while queue:
-        for n in layout.neighbours(queue.popleft()):
-            if n not in seen:
-                seen.add(n)
-                queue.append(n)
-    return seen
 
 
 def _links(layout: MazeLayout) -> int:
@@ -60,7 +48,7 @@ def _has_open_block(layout: MazeLayout, size: int) -> bool:
 def test_perfect_maze_is_a_spanning_tree(width: int, height: int, seed: int) -> None:
     layout = generate_maze(width, height, seed=seed)
     assert (layout.width, layout.height) == (width, height)
-    assert len(_reachable(layout)) == width * height
+    assert len(layout.reachable()) == width * height
     assert _links(layout) == width * height - 1
     assert _boundary_closed(layout)
     assert layout.start_cell == (0, 0)
@@ -81,7 +69,7 @@ def test_braided_maze_has_loops_and_fewer_dead_ends(seed: int) -> None:
     braided = generate_maze(12, 10, seed=seed, kind="braided", braid_fraction=0.6)
     assert _dead_ends(braided) < _dead_ends(perfect)
     assert _links(braided) > 12 * 10 - 1  # more links than a tree: loops
-    assert len(_reachable(braided)) == 12 * 10
+    assert len(braided.reachable()) == 12 * 10
     assert _boundary_closed(braided)
     assert braided.open_sides((0, 0)) == ["N"]
     fully = generate_maze(12, 10, seed=seed, kind="braided", braid_fraction=1.0)
@@ -93,7 +81,7 @@ def test_braided_maze_has_loops_and_fewer_dead_ends(seed: int) -> None:
 def test_rooms_maze_has_open_areas(seed: int, rooms: int) -> None:
     layout = generate_maze(10, 8, seed=seed, kind="rooms", room_count=rooms)
     assert _has_open_block(layout, 3)
-    assert len(_reachable(layout)) == 80
+    assert len(layout.reachable()) == 80
     assert layout.open_sides((0, 0)) == ["N"]
     assert _boundary_closed(layout)
     perfect = generate_maze(10, 8, seed=seed)

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,10 +12,8 @@ from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raster import free_reachable, true_occupancy
 from mazebot.sim.room import make_room
 from mazebot.sim.world import MazeLayout, World, rectangles_outline, world_from_layout
+from tests.data_paths import MAZES, needs_mazes
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-MAZES = DATA_DIR / "mazes"
-needs_data = pytest.mark.skipif(not MAZES.is_dir(), reason=f"shared maze data not found at {MAZES}; set MAZEBOT_DATA")
 CELL_M = 0.3048
 WALL_M = 0.012
 
@@ -81,7 +77,7 @@ def test_maze_cell_centres_are_free(maze_world: World) -> None:
                 assert not grid[r, k]
 
 
-@needs_data
+@needs_mazes
 @pytest.mark.parametrize("name", ["classic/japan2013ef.txt", "training/minimaze.txt"])
 def test_occupied_area_matches_wall_area(name: str) -> None:
     world = load_maze(MAZES / name, wall_thickness_m=WALL_M)
@@ -147,7 +143,7 @@ def test_free_reachable_covers_the_maze_and_nothing_else(maze_world: World) -> N
     assert reach.sum() >= 0.99 * free[1:-1, 1:-1].sum()
 
 
-@needs_data
+@needs_mazes
 def test_free_reachable_stops_at_walls() -> None:
     # minimaze: a walled 5x5 maze in the corner of an open 16x16 frame
     world = load_maze(MAZES / "training" / "minimaze.txt")

@@ -15,7 +15,6 @@ helpers unimportable, so the helpers travel as fixtures):
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,11 +25,11 @@ from mazebot.io.scan import Scan
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import World, rectangles_outline, world_from_layout
+from tests.data_paths import CARMEN
 
 CELL_M = 0.3048
 WALL_M = 0.012
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-INTEL_LOG = DATA_DIR / "carmen" / "intel.gfs.log"
+INTEL_LOG = CARMEN / "intel.gfs.log"
 
 CastScan = Callable[..., tuple[np.ndarray, np.ndarray]]
 MovingScan = Callable[..., Scan]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,9 +12,9 @@ import mazebot.slam.g2o as g2o
 from mazebot.errors import EXIT_USAGE, MazebotError, UsageError
 from mazebot.slam.g2o import G2oFormatError, parse_g2o, read_g2o, write_g2o
 from mazebot.slam.posegraph import PoseGraph
+from tests.data_paths import POSEGRAPHS
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-MITB = DATA_DIR / "posegraphs" / "input_MITb_g2o.g2o"
+MITB = POSEGRAPHS / "input_MITb_g2o.g2o"
 
 
 def random_graph(seed: int = 1) -> PoseGraph:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,9 +25,8 @@ from mazebot.slam.posegraph import (
     relative_pose,
     wrap_angle,
 )
+from tests.data_paths import POSEGRAPHS
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-POSEGRAPHS = DATA_DIR / "posegraphs"
 #: GTSAM 4.3 Levenberg-Marquardt results on this machine, from data/README.md
 GTSAM_CHI2 = {"input_M3500_g2o": 137.91, "input_MITb_g2o": 770.24}
 
@@ -332,6 +330,7 @@ def test_real_graph_reaches_gtsam_chi2(name: str, method: str) -> None:
 
 
 def run_cli(argv: list[str]) -> int:
+    """``mazebot posegraph ...`` without the command line's error handling: a failure raises."""
     parser = argparse.ArgumentParser(prog="mazebot")
     posegraph_cli.register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

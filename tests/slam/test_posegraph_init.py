@@ -4,16 +4,12 @@ plain LM stalls, the real graphs, and the CLI's ``--init``."""
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mazebot.slam import posegraph_cli
 from mazebot.slam.g2o import read_g2o, write_g2o
 from mazebot.slam.posegraph import (
     PoseGraph,
@@ -24,9 +20,9 @@ from mazebot.slam.posegraph import (
     rotation_information,
     wrap_angle,
 )
+from tests.data_paths import POSEGRAPHS
+from tests.slam.test_posegraph import lap_trajectory, run_cli
 
-DATA_DIR = Path(os.environ.get("MAZEBOT_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-POSEGRAPHS = DATA_DIR / "posegraphs"
 #: GTSAM 4.3 Levenberg-Marquardt from the files' own initial guess, from data/README.md
 GTSAM_CHI2 = {"input_M3500_g2o": 137.91, "input_MITb_g2o": 770.24}
 
@@ -107,21 +103,6 @@ def test_rotation_information_is_the_marginal_of_the_rotation() -> None:
 
 
 # --------------------------------------------------------------------------- poor initial guesses
-
-
-def lap_trajectory(laps: int = 3, width_m: float = 4.0, height_m: float = 3.0, step_m: float = 0.5) -> np.ndarray:
-    """Ground-truth poses driving ``laps`` times around a rectangle, turning 90° at corners."""
-    poses = []
-    x, y, theta = 0.0, 0.0, 0.0
-    for _ in range(laps):
-        for side in (width_m, height_m, width_m, height_m):
-            for _ in range(round(side / step_m)):
-                poses.append((x, y, theta))
-                x += step_m * math.cos(theta)
-                y += step_m * math.sin(theta)
-            theta = float(wrap_angle(theta + math.pi / 2))
-    poses.append((x, y, theta))
-    return np.array(poses)
 
 
 def lap_graph(seed: int) -> tuple[PoseGraph, np.ndarray]:
@@ -261,13 +242,6 @@ def test_m3500_initialized_reaches_the_gtsam_optimum() -> None:
 
 
 # --------------------------------------------------------------------------- CLI
-
-
-def run_cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="mazebot")
-    posegraph_cli.register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 def test_cli_init_orientations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -68,7 +68,7 @@ def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
         state.control_link = link
         link.publish_all(state)  # what was set before the link (the child's start does the same)
         view = ChildView(child_link)
-        reference, child = MotorControl(config), control_process._child_control(config, view)
+        reference, child = MotorControl.from_config(config), control_process._child_control(config, view)
         period_s = config.daemon.control_period_s
         outputs, stops = [], set()
         x_m, left_ticks, right_ticks = 0.0, 0, 0
@@ -121,7 +121,7 @@ def test_the_child_jogs_as_motor_control_does_and_never_while_stopping_or_in_a_f
         state.control_link = link
         link.publish_all(state)
         view = ChildView(child_link)
-        reference, child = MotorControl(config), control_process._child_control(config, view)
+        reference, child = MotorControl.from_config(config), control_process._child_control(config, view)
         period_s = config.daemon.control_period_s
         outputs = []
         for k in range(100):
@@ -199,7 +199,7 @@ def test_the_real_child_writes_what_motor_control_decides() -> None:
     assert len(ticks) >= 12
     reference = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
     reference.motion_command = command
-    control = MotorControl(config)
+    control = MotorControl.from_config(config)
     for time_s, _late_ms, _cpu_s, left, right in ticks:
         expected = control.tick(reference, time_s)
         reference.throttles = expected

@@ -58,8 +58,8 @@ async def test_ticks_run_on_their_own_thread_while_the_event_loop_is_blocked() -
     loop = asyncio.get_running_loop()
     motors, state = Motors(), _turning_state(loop)
     heartbeat = ControlHeartbeat(RealClock())
-    task = asyncio.create_task(control_task.run(motors, state, heartbeat, control_task.MotorControl(Config()),
-                                                thread=True))
+    task = asyncio.create_task(control_task.run(motors, state, heartbeat,
+                                                control_task.MotorControl.from_config(Config()), thread=True))
     await _until(lambda: len(motors.writes) >= 3)
     assert {w[0] for w in motors.writes} == {motors.writes[0][0]} != {threading.get_ident()}
     blocked_from = time.monotonic()
@@ -81,7 +81,7 @@ async def test_ticks_run_on_their_own_thread_while_the_event_loop_is_blocked() -
 async def test_a_crash_on_the_control_thread_reaches_the_task_and_brakes() -> None:
     loop = asyncio.get_running_loop()
     motors, state = Motors(), _turning_state(loop)
-    control = control_task.MotorControl(Config())
+    control = control_task.MotorControl.from_config(Config())
     original = control.tick
     calls = 0
 
@@ -117,8 +117,8 @@ async def test_faults_from_the_control_thread_are_written_on_the_event_loop() ->
         original(*args, **kwargs)
 
     state.raise_fault = raise_fault  # type: ignore[method-assign]
-    task = asyncio.create_task(control_task.run(motors, state, RealClock(), control_task.MotorControl(Config()),
-                                                thread=True))
+    task = asyncio.create_task(control_task.run(motors, state, RealClock(),
+                                                control_task.MotorControl.from_config(Config()), thread=True))
     await _until(lambda: state.run_state is RunState.FAULT)
     assert seen_on and set(seen_on) == {threading.get_ident()}  # the loop's thread, never the control thread
     task.cancel()
@@ -147,8 +147,8 @@ async def test_once_the_daemon_is_stopping_the_control_loop_commands_zero() -> N
     thread in between must not drive them again."""
     loop = asyncio.get_running_loop()
     motors, state = Motors(), _turning_state(loop)
-    task = asyncio.create_task(control_task.run(motors, state, RealClock(), control_task.MotorControl(Config()),
-                                                thread=True))
+    task = asyncio.create_task(control_task.run(motors, state, RealClock(),
+                                                control_task.MotorControl.from_config(Config()), thread=True))
     await _until(lambda: any(abs(w[2]) > 0 for w in motors.writes))
     from mazebot.tasks.supervisor import Supervisor
 

@@ -69,6 +69,22 @@ def _scan_ending(end_s: float) -> Scan:
     return Scan(np.zeros(1), np.ones(1), np.ones(1, np.uint8), np.array([end_s]), np.ones(1, bool))
 
 
+def _exploring(throttles: tuple[float, float] | None = None) -> SharedState:
+    """A robot exploring with ``throttles`` on its wheels, the lidar fine throughout (the health
+    monitor's encoder checks alone at work)."""
+    state = SharedState(run_state=RunState.EXPLORING)
+    state.latest_scan = _scan_ending(1000.0)
+    if throttles is not None:
+        state.throttles = throttles
+    return state
+
+
+def _count(state: SharedState, left_ticks: int, right_ticks: int) -> None:
+    """The encoders count this much more on each wheel."""
+    state.sensors.encoder_ticks_left += left_ticks
+    state.sensors.encoder_ticks_right += right_ticks
+
+
 # -- the state's fault model -------------------------------------------------------------
 
 
@@ -178,10 +194,8 @@ def test_lidar_silence_is_a_fault_that_clears_with_the_next_revolution() -> None
 
 
 def test_an_encoder_that_counts_nothing_while_its_motor_drives_is_a_latched_fault() -> None:
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring((0.5, 0.5))
     monitor = HealthMonitor(encoder_dead_s=1.0)
-    state.latest_scan = _scan_ending(1000.0)  # the lidar is fine throughout
-    state.throttles = (0.5, 0.5)
     for k in range(16):  # the right wheel counts, the left one does not
         state.sensors.encoder_ticks_right = 30 * k
         monitor.check(state, 99.0 + 0.1 * k)
@@ -196,10 +210,8 @@ def test_an_encoder_that_counts_nothing_while_its_motor_drives_is_a_latched_faul
 
 
 def test_a_wheel_that_stalls_with_the_other_one_is_not_an_encoder_fault() -> None:
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring((0.5, 0.5))
     monitor = HealthMonitor(encoder_dead_s=1.0)
-    state.latest_scan = _scan_ending(1000.0)
-    state.throttles = (0.5, 0.5)
     for k in range(20):  # pushed against a wall: neither wheel turns
         monitor.check(state, 99.0 + 0.1 * k)
     assert not state.faults
@@ -208,9 +220,8 @@ def test_a_wheel_that_stalls_with_the_other_one_is_not_an_encoder_fault() -> Non
 def test_a_silent_encoder_in_a_pivot_about_the_idle_wheel_is_a_fault_within_half_a_second() -> None:
     # the fault suite's encoder-dead run: the left encoder cut while the robot pivots about its
     # right wheel, which idles around the deadband and counts a tick now and then
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring()
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
     for k in range(5):
         state.throttles = (0.3, 0.09 if k % 2 else -0.09)
         state.sensors.encoder_ticks_right = k
@@ -226,10 +237,8 @@ _AFTER_THE_CUT = [(0.47, -0.59), (0.54, -0.65), (0.63, -0.65), (0.0, 0.0), (0.13
 
 
 def test_a_cut_encoder_is_a_fault_within_half_a_second_though_the_drive_keeps_pausing() -> None:
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring((0.47, -0.59))
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
-    state.throttles = (0.47, -0.59)
     for k in range(10):  # both wheels count before the cut
         state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right = 30 * k, -40 * k
         monitor.check_motors(state, 99.5 + 0.05 * k)
@@ -246,14 +255,11 @@ def test_a_cut_encoder_is_a_fault_within_half_a_second_though_the_drive_keeps_pa
 
 def test_a_turning_wheel_whose_encoder_goes_silent_is_a_fault_before_the_robot_brakes() -> None:
     # the suite's encoder-dead run of seed 4: driven one more check after the cut, then stopped
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring((0.47, -0.65))
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
-    state.throttles = (0.47, -0.65)
     t = 100.0
     for _ in range(6):  # both wheels turn
-        state.sensors.encoder_ticks_left += 35
-        state.sensors.encoder_ticks_right -= 45
+        _count(state, 35, -45)
         monitor.check_motors(state, t)
         t += 0.05
     state.sensors.encoder_ticks_right -= 45  # the left encoder is cut: one silent check, still driven ...
@@ -268,20 +274,16 @@ def test_a_turning_wheel_whose_encoder_goes_silent_is_a_fault_before_the_robot_b
 
 @pytest.mark.parametrize("case", ["reversing", "both blocked"])
 def test_a_wheel_that_reverses_or_stops_with_the_other_is_no_sudden_silence(case: str) -> None:
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring((0.4, 0.4))
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
-    state.throttles = (0.4, 0.4)
     t = 100.0
     for k in range(30):
         if case == "reversing":  # forward, then braking and backing: the count turns round, never stands
             state.throttles = (0.4, 0.4) if k < 10 else (-0.4, -0.4)
             step = 30 if k < 10 else (-15 if k > 10 else 0)  # one check in the turn-round sees no net motion
-            state.sensors.encoder_ticks_left += step
-            state.sensors.encoder_ticks_right += step
+            _count(state, step, step)
         elif k < 10:  # both wheels turn, then the robot runs into a wall: neither counts
-            state.sensors.encoder_ticks_left += 30
-            state.sensors.encoder_ticks_right += 30
+            _count(state, 30, 30)
         monitor.check_motors(state, t)
         t += 0.05
     assert not state.faults
@@ -289,16 +291,14 @@ def test_a_wheel_that_reverses_or_stops_with_the_other_is_no_sudden_silence(case
 
 def test_short_drives_of_a_healthy_wheel_with_pauses_are_no_encoder_fault() -> None:
     # stop-and-go: each drive from rest counts within the motor's lag, however many there are
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring()
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
     t = 100.0
     for k in range(40):
         driving = k % 4 != 3
         state.throttles = (0.3, 0.3) if driving else (0.0, 0.0)
         if driving and k % 4 != 0:  # the first check of each drive sees no tick yet
-            state.sensors.encoder_ticks_left += 20
-            state.sensors.encoder_ticks_right += 20
+            _count(state, 20, 20)
         monitor.check_motors(state, t)
         t += 0.05
     assert not state.faults
@@ -306,10 +306,8 @@ def test_short_drives_of_a_healthy_wheel_with_pauses_are_no_encoder_fault() -> N
 
 def test_a_wheel_starting_from_rest_while_the_other_idles_is_no_encoder_fault() -> None:
     # the motor's lag: a driven wheel counts nothing for a check or two after a start from rest
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring((0.3, 0.0))
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
-    state.throttles = (0.3, 0.0)
     for k in range(20):
         state.sensors.encoder_ticks_left = max(0, 15 * (k - 2))
         monitor.check(state, 100.0 + 0.1 * k)
@@ -324,7 +322,7 @@ async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_t
     config = Config()
     state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0)
     motors = Motors()
-    control = control_task.MotorControl(config)
+    control = control_task.MotorControl.from_config(config)
     loop = asyncio.get_running_loop()
     state.motion_command = MotionRequest(0.0, 0.5, "turn", loop.time() + 3600)  # turning in place: always allowed
     task = asyncio.create_task(control_task.run(motors, state, RealClock(), control, thread=thread))
@@ -346,15 +344,21 @@ async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_t
 # -- SLAM: a scan that cannot be processed -----------------------------------------------
 
 
-async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -> None:
+def _slam_of_a_robot_at_rest(until_s: float) -> tuple[SharedState, SlamParams, Slam]:
+    """An exploring robot's state whose odometry stands still from 0 to ``until_s``, and the
+    daemon's SLAM (default config) to run on it."""
     config = Config()
     state = SharedState(run_state=RunState.EXPLORING)
     history = OdometryHistory()
     history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(100.0, 0.0, 0.0, 0.0)
+    history.append(until_s, 0.0, 0.0, 0.0)
     state.odometry_history = history
     params = SlamParams.from_config(config.slam, config.lidar)
-    slam = Slam(params, background=True, record_trajectory=False)
+    return state, params, Slam(params, background=True, record_trajectory=False)
+
+
+async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -> None:
+    state, params, slam = _slam_of_a_robot_at_rest(100.0)
     real_update = slam.update_steps  # what the SLAM task calls
     calls: list[int] = []
 
@@ -387,9 +391,8 @@ async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -
 
 
 def test_bouncing_encoders_are_said_once_in_a_while_not_every_check() -> None:
-    state = SharedState(run_state=RunState.EXPLORING)
+    state = _exploring()
     monitor = HealthMonitor()
-    state.latest_scan = _scan_ending(1000.0)
     for k in range(30):
         state.sensors.encoder_invalid_transitions = 2 * k
         monitor.check(state, 100.0 + 0.1 * k)
@@ -401,14 +404,7 @@ def test_bouncing_encoders_are_said_once_in_a_while_not_every_check() -> None:
 async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> None:
     import threading
 
-    config = Config()
-    state = SharedState(run_state=RunState.EXPLORING)
-    history = OdometryHistory()
-    history.append(0.0, 0.0, 0.0, 0.0)
-    history.append(1e6, 0.0, 0.0, 0.0)
-    state.odometry_history = history
-    params = SlamParams.from_config(config.slam, config.lidar)
-    slam = Slam(params, background=True, record_trajectory=False)
+    state, params, slam = _slam_of_a_robot_at_rest(1e6)
     real_update = slam.update_steps  # what the SLAM task calls
     release = threading.Event()
 
@@ -439,7 +435,7 @@ async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> No
 def test_a_fault_raised_and_cleared_between_two_control_ticks_still_stops_the_wheels_for_one() -> None:
     # the kidnap of tests/bench/test_fault_runs.py: the robot was found again 40 ms after it was
     # lost, the control task never saw the fault, and the wheels drove on for 8.6 s
-    control = control_task.MotorControl(Config())
+    control = control_task.MotorControl.from_config(Config())
     state = SharedState(run_state=RunState.EXPLORING, auto_resume=True)
     state.throttle_command = (0.3, 0.3, 100.0)
     assert control.tick(state, 100.0) == (0.3, 0.3)

@@ -38,7 +38,7 @@ class WheelsOnTheFloor:
         self.config = Config()
         floor = World("floor", np.zeros((0, 4)), np.zeros((0, 3)), (0.0, 0.0, 0.0), (-100.0, -100.0, 100.0, 100.0))
         self.physics = RobotPhysics(PhysicsParams(), floor, floor.start_pose, np.random.default_rng(seed))
-        self.control = control_task.MotorControl(self.config)
+        self.control = control_task.MotorControl.from_config(self.config)
         self.state = SharedState(run_state=RunState.EXPLORING)
         self.monitor = HealthMonitor(startup_grace_s=1e9)
         self.ticks_per_rad = self.config.encoders.ticks_per_rev / math.tau

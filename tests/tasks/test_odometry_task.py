@@ -34,7 +34,8 @@ def test_the_speed_loop_and_the_odometry_measure_a_tick_alike() -> None:
     config.drive.wheel_diameter_ratio = 1.03
     d = config.drive
     odo = DiffDriveOdometry(config.encoders.ticks_per_rev, d.wheel_diameter_m, d.track_width_m, d.wheel_diameter_ratio)
-    assert MotorControl(config).estimator.metres_per_tick == (odo.metres_per_tick_left, odo.metres_per_tick_right)
+    estimator = MotorControl.from_config(config).estimator
+    assert estimator.metres_per_tick == (odo.metres_per_tick_left, odo.metres_per_tick_right)
 
 
 def test_no_encoder_reading_yet_is_no_speed_not_a_zero_count() -> None:
@@ -43,7 +44,7 @@ def test_no_encoder_reading_yet_is_no_speed_not_a_zero_count() -> None:
     from mazebot.state import SharedState
     from mazebot.tasks.control_task import MotorControl
 
-    control = MotorControl(Config())
+    control = MotorControl.from_config(Config())
     state = SharedState()
     control.tick(state, 1.00)  # no reading yet
     state.wheel_ticks = (1.05, 5000, 5000)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import threading
 from collections import Counter
+from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from types import SimpleNamespace
@@ -133,18 +135,29 @@ def _standing_still() -> OdometryHistory:
     return history
 
 
-async def test_loop_closure_job_runs_in_the_executor_and_its_result_is_published() -> None:
+@contextlib.asynccontextmanager
+async def _slam_task_on(fake: FakeSlam, workers: int = 1, guard: object = None) -> AsyncIterator[SharedState]:
+    """The SLAM task running on ``fake`` (its jobs in a pool of ``workers`` threads) until the block
+    ends, then cancelled; the shared state it reads, of a robot standing still."""
     state = SharedState()
     state.odometry_history = _standing_still()
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="test-slam") as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake,  # type: ignore[arg-type]
+                                                 guard=guard))  # type: ignore[arg-type]
+        try:
+            yield state
+        finally:
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+
+
+async def test_loop_closure_job_runs_in_the_executor_and_its_result_is_published() -> None:
     fake = FakeSlam()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
-        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
+    async with _slam_task_on(fake) as state:
         for k in range(2):
             await state.scans.put(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
         await _until(lambda: fake.applied_on)
-        task.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await task
     assert fake.job_threads[0].startswith("test-slam")  # off the event loop ...
     assert fake.applied_on == [threading.current_thread().name]  # ... merged back on it
     assert state.map is fake.grid and state.map.generation == 7 and state.slam.map_rebuilds == 1
@@ -163,11 +176,8 @@ class FakeLidar:
 
 
 async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimized_keyframes() -> None:
-    state = SharedState()
-    state.odometry_history = _standing_still()
     fake = FakeSlam()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="test-slam") as executor:
-        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
+    async with _slam_task_on(fake) as state:
         state.run_state = RunState.EXPLORING
         await state.scans.put(_static_scan(1.0, np.zeros(3)))
         await _until(lambda: fake.scans == 1)
@@ -179,9 +189,6 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
         state.run_state = RunState.DONE
         await state.scans.put(_static_scan(2.0, np.zeros(3)))
         await _until(lambda: fake.scans == 5)
-        task.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await task
     assert fake.final_jobs == 1  # once, not once per scan nor again at done
     assert state.slam.map_rebuilds == 2 and state.map is fake.grid
 
@@ -255,8 +262,6 @@ class LosingGuard:
 async def test_a_loop_closure_is_not_merged_while_the_search_for_the_lost_robot_reads_the_map(monkeypatch) -> None:
     """The search reads the live grid and keyframes in a thread; a loop closure finishing meanwhile
     must wait until the search is over, or the grid would be rebuilt under it."""
-    state = SharedState()
-    state.odometry_history = _standing_still()
     job_may_end, search_may_end, searching = threading.Event(), threading.Event(), threading.Event()
     fake = FakeSlam()
     real_job = fake.run
@@ -274,9 +279,7 @@ async def test_a_loop_closure_is_not_merged_while_the_search_for_the_lost_robot_
 
     monkeypatch.setattr(slam_task, "search_pose", search)
     guard = LosingGuard()
-    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="test-slam") as executor:
-        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake,  # type: ignore[arg-type]
-                                                 guard=guard))  # type: ignore[arg-type]
+    async with _slam_task_on(fake, workers=2, guard=guard) as state:
         for k in range(3):  # the second hands out the job, the third is lost: the search starts
             await state.scans.put(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
         await _until(searching.is_set)
@@ -285,9 +288,6 @@ async def test_a_loop_closure_is_not_merged_while_the_search_for_the_lost_robot_
         assert fake.applied_on == []  # held back
         search_may_end.set()
         await _until(lambda: fake.applied_on)
-        task.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await task
     assert guard.accepted == ["accepted after 0 merges"]  # the search's answer first, then the merge
     assert fake.applied_on == [threading.current_thread().name] and state.slam.map_rebuilds == 1
 

@@ -101,12 +101,14 @@ def playwright() -> Iterator[Any]:
         yield pw
 
 
-@pytest.fixture(scope="module")
-def browser_page(daemon: Daemon, playwright: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+def open_phone_page(pw: Any, profile: Path, url: str) -> tuple[Any, Any]:
+    """Chromium as a phone (``PHONE``, touch) with a fresh profile, on ``url``: (context, page).
+
+    ``page.errors`` collects the page's uncaught script errors; the caller closes the context.
+    """
     ARTIFACTS.mkdir(exist_ok=True)
-    pw = playwright
     context = pw.chromium.launch_persistent_context(
-        str(tmp_path_factory.mktemp("profile")),  # a fresh --user-data-dir
+        str(profile),  # a fresh --user-data-dir
         executable_path=CHROMIUM,
         headless=True,
         args=CHROMIUM_FLAGS,
@@ -117,9 +119,15 @@ def browser_page(daemon: Daemon, playwright: Any, tmp_path_factory: pytest.TempP
         env={**os.environ, "NO_PROXY": "127.0.0.1,localhost"},
     )
     page = context.pages[0] if context.pages else context.new_page()
-    page.errors = []  # type: ignore[attr-defined]
-    page.on("pageerror", lambda exc: page.errors.append(str(exc)))  # type: ignore[attr-defined]
-    page.goto(daemon.url + "/")
+    page.errors = []
+    page.on("pageerror", lambda exc: page.errors.append(str(exc)))
+    page.goto(url)
+    return context, page
+
+
+@pytest.fixture(scope="module")
+def browser_page(daemon: Daemon, playwright: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    context, page = open_phone_page(playwright, tmp_path_factory.mktemp("profile"), daemon.url + "/")
     yield page
     context.close()
 

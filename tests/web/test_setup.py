@@ -82,7 +82,7 @@ async def test_jog_is_clamped_and_refused_while_a_run_is_going_or_a_fault_is_act
 
 def test_the_control_task_drives_a_fresh_jog_and_stops_a_stale_one(state) -> None:
     config = Config()
-    control = MotorControl(config)
+    control = MotorControl.from_config(config)
     now_s = RealClock().now_s()
     state.jog_command = (0.3, -0.3, now_s)
     assert control.tick(state, now_s + 0.05) == (0.3, -0.3)

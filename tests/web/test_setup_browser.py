@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -44,17 +43,8 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
 
 @pytest.fixture(scope="module")
 def page(daemon: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
-    ARTIFACTS.mkdir(exist_ok=True)
     with sync_api.sync_playwright() as pw:
-        context = pw.chromium.launch_persistent_context(
-            str(tmp_path_factory.mktemp("setup-profile")), executable_path=CHROMIUM, headless=True,
-            args=CHROMIUM_FLAGS, viewport=PHONE, device_scale_factor=2, is_mobile=True, has_touch=True,
-            env={**os.environ, "NO_PROXY": "127.0.0.1,localhost"},
-        )
-        p = context.pages[0] if context.pages else context.new_page()
-        p.errors = []  # type: ignore[attr-defined]
-        p.on("pageerror", lambda exc: p.errors.append(str(exc)))  # type: ignore[attr-defined]
-        p.goto(daemon.url + "/")
+        context, p = _page_test.open_phone_page(pw, tmp_path_factory.mktemp("setup-profile"), daemon.url + "/")
         yield p
         context.close()
 

@@ -198,6 +198,9 @@ class SharedState:
     #: incremented by each start from idle or done: a new exploration (the planner resets)
     run_number: int = 0
     finished_at_s: float | None = None  # clock time the run reached DONE
+    #: age of the newest encoder edge counted, at each odometry reading with new edges,
+    #: milliseconds: how late a pose dated by the reading time would be (the odometry task)
+    odometry_edge_age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
     #: recent lateness of control ticks beyond their period, milliseconds
     control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
     #: CPU time per part of the daemon (:mod:`mazebot.cpu_budget`); each part's meter is

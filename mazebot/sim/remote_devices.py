@@ -21,12 +21,10 @@ import threading
 from multiprocessing.connection import Connection
 from typing import Any
 
-from gpiozero.pins.mock import MockFactory
-
 from mazebot.clock import Clock
 from mazebot.io.motors import FakeMotorKit
-from mazebot.sim.sim_pins import BoundedHistoryPin
-from mazebot.sim.world_process import encode_throttle
+from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
+from mazebot.sim.world_process import EDGES_TIME, encode_throttle
 
 
 class PipeMotorKit(FakeMotorKit):
@@ -99,33 +97,33 @@ class GpioEdgeThread(threading.Thread):
         thread.start()
     """
 
-    def __init__(self, edge_rx: Connection, factory: MockFactory, pins: tuple[int, int, int, int]) -> None:
+    def __init__(self, edge_rx: Connection, factory: SimPinFactory, pins: tuple[int, int, int, int]) -> None:
         super().__init__(name="mazebot-gpio-edges", daemon=True)
         self._rx = edge_rx
+        self._factory = factory
         self._pins = [factory.pin(number) for number in pins]
         self._stopping = threading.Event()
         self.edges = 0  # edges driven onto the pins
         self.batches = 0  # messages received (one per world step with edges)
 
     @staticmethod
-    def pin_factory() -> MockFactory:
-        """The pin factory the daemon's encoders are opened on."""
-        return MockFactory(pin_class=BoundedHistoryPin)
+    def pin_factory() -> SimPinFactory:
+        """The pin factory the daemon's encoders are opened on (the monotonic clock, as the world's)."""
+        return SimPinFactory(pin_class=BoundedHistoryPin)
 
     def run(self) -> None:
-        pins = self._pins
+        pins, drive = self._pins, self._factory.drive
+        head = EDGES_TIME.size
         try:
             while not self._stopping.is_set():
                 if not self._rx.poll(0.1):
                     continue
                 data = self._rx.recv_bytes()
-                for byte in data:
-                    pin = pins[byte >> 1]
-                    if byte & 1:
-                        pin.drive_high()
-                    else:
-                        pin.drive_low()
-                self.edges += len(data)
+                # each edge keeps the time the world made it (lgpio's edges carry the kernel's stamp)
+                (time_s,) = EDGES_TIME.unpack_from(data)
+                for byte in data[head:]:
+                    drive(pins[byte >> 1], byte & 1, time_s)
+                self.edges += len(data) - head
                 self.batches += 1
         except (EOFError, OSError):  # the world is gone
             return

@@ -44,6 +44,9 @@ TRUTH_PERIOD_S = 0.2
 SIGTERM_GRACE_S = 5.0
 #: One throttle message: the motor channel, and the throttle (NaN: coasting, ``None``).
 THROTTLE = struct.Struct("<Bd")
+#: The head of one message of edges: the clock time of the world step that made them (the
+#: monotonic clock both processes read), then one :func:`edge_byte` per edge, in order.
+EDGES_TIME = struct.Struct("<d")
 
 
 def edge_byte(index: int, level: int) -> int:
@@ -180,7 +183,9 @@ async def serve_world(
         data = factory.take_edges()
         if data:
             with contextlib.suppress(OSError):  # the daemon is gone; the world runs on until stopped
-                edge_tx.send_bytes(data)
+                # with the step's time, as the kernel stamps each edge on the robot: the daemon's
+                # encoders date the ticks by it, not by when its throttled GPIO thread got to them
+                edge_tx.send_bytes(EDGES_TIME.pack(robot.time_s if robot.time_s is not None else clock.now_s()) + data)
                 counts["edges_sent"] += len(data)
 
     async def report_truth() -> None:

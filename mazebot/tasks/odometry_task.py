@@ -10,6 +10,15 @@ from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import DiffDriveOdometry
 from mazebot.state import SharedState
 
+#: With no new edge for this long the wheels are taken to rest, and the odometry pose to hold
+#: up to the reading's time. Until then a reading without a new edge adds nothing to the
+#: history: the edges may only be late (under a 25 % quota the process that counts them can
+#: wait 80 ms and more for its turn). Long enough for such a wait, short enough that SLAM,
+#: which waits up to ``slam_task.ODOMETRY_WAIT_S`` for the odometry to cover a revolution,
+#: waits on one or two revolutions after the robot stopped. A wheel at 4 ticks/s (~1 mm/s
+#: with the default wheel) still shows as motion.
+REST_AFTER_S = 0.25
+
 
 async def run(
     encoders,
@@ -37,13 +46,21 @@ async def run(
     state.odometry_history = history
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     meter = state.cpu.part("odometry")
+    last_counts: tuple[int, int] | None = None
     while True:
         with meter.measure():
             reading = encoders.read()
             odometry.update(reading.left_ticks, reading.right_ticks)
             odo = odometry.pose
             now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
-            history.append(now_s, odo.x_m, odo.y_m, odo.theta_rad)
+            counts = (reading.left_ticks, reading.right_ticks)
+            pose_s = _pose_time_s(now_s, getattr(reading, "edge_age_s", None), counts != last_counts, history)
+            if counts != last_counts and getattr(reading, "edge_age_s", None) is not None:
+                state.odometry_edge_age_ms.append(reading.edge_age_s * 1000.0)
+            last_counts = counts
+            if pose_s is not None:
+                history.append(pose_s, odo.x_m, odo.y_m, odo.theta_rad)
+                state.pose_time_s = pose_s
             stats = state.sensors
             stats.encoder_ticks_left = reading.left_ticks
             stats.encoder_ticks_right = reading.right_ticks
@@ -53,9 +70,34 @@ async def run(
             state.pose.x_m = x
             state.pose.y_m = y
             state.pose.theta_rad = th
-            state.pose_time_s = now_s
             state.wheel_ticks = (now_s, reading.left_ticks, reading.right_ticks)
         await clock.sleep(period_s)
+
+
+def _pose_time_s(now_s: float, edge_age_s: float | None, new_edges: bool, history: OdometryHistory) -> float | None:
+    """The time an odometry reading's pose describes; None: nothing new to add to the history.
+
+    The counts hold every edge up to the newest one counted, so the pose is the wheels' pose
+    at that edge's stamp (``now_s - edge_age_s``), not at the time of reading: under a CPU
+    quota the encoder thread gets the edges in bursts, tens of milliseconds late, and a pose
+    dated by the reading time is that late too (SLAM de-skews and predicts each revolution
+    from these dates). Without a new edge the counts are older than the reading only if the
+    edges are late; after ``REST_AFTER_S`` without one the wheels rest and the pose holds
+    until now. No usable stamp (a pin factory on another clock): the reading's time, as
+    before. Never earlier than the history's newest entry.
+    """
+    if edge_age_s is None:
+        pose_s = now_s
+    elif new_edges:
+        pose_s = now_s - edge_age_s
+    elif edge_age_s >= REST_AFTER_S:
+        pose_s = now_s
+    else:
+        return None
+    span = history.span_s
+    if span is not None and pose_s < span[1]:
+        return span[1] if new_edges else None
+    return pose_s
 
 
 def _compose(a: tuple[float, float, float], x_m: float, y_m: float, theta_rad: float) -> tuple[float, float, float]:

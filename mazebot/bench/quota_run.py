@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import multiprocessing
 import os
 import signal
@@ -128,7 +129,8 @@ async def _run_daemon(
 
     state = SharedState()
     state.control_lateness_ms = deque(maxlen=LATENESS_KEPT)
-    run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": [], "encoders": None}
+    state.odometry_edge_age_ms = deque(maxlen=LATENESS_KEPT)
+    run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": [], "odometry": [], "encoders": None}
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         run["start_s"] = clock.now_s()
@@ -146,10 +148,17 @@ async def _run_daemon(
         loop.add_reader(control_rx.fileno(), on_control)
 
         async def recorder() -> None:
+            logged_s = -math.inf
             while True:
                 p = state.pose
                 if state.pose_time_s is not None:
                     run["est"].append((state.pose_time_s, p.x_m, p.y_m, p.theta_rad))
+                history = state.odometry_history
+                if history is not None:  # every odometry pose with its date, as SLAM reads them
+                    rows = history.since(logged_s)
+                    if len(rows):
+                        run["odometry"].extend(map(tuple, rows.tolist()))
+                        logged_s = float(rows[-1, 0])
                 await clock.sleep(RECORD_PERIOD_S)
 
         async def explore() -> None:
@@ -187,6 +196,7 @@ async def _run_daemon(
         "fault": None if fault is None else f"{fault.source}: {fault.message}",
         "faults_raised": state.faults_raised,
         "lateness_ms": list(state.control_lateness_ms),
+        "edge_age_ms": list(state.odometry_edge_age_ms),
         # thread CPU per part of the daemon (mazebot.cpu_budget), over the run
         "cpu_budget": state.cpu.table(run["end_s"] - run["start_s"]
                                       if run["end_s"] is not None and run["start_s"] is not None else None),
@@ -202,6 +212,7 @@ async def _run_daemon(
         "gpio_edges": gpio.edges,
         "motor_writes": kit.writes_sent + opener.writes_sent,  # this process's and the control process's
         "est": run["est"],
+        "odometry": run["odometry"],
         "planner_events": list(state.planner_events),
         "map": state.map,
     }
@@ -565,7 +576,9 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         rel = relative_poses(start, truth)
         err = np.hypot(est[:, 1] - rel[:, 0], est[:, 2] - rel[:, 1])
         ate_rms, ate_max = float(np.sqrt(np.mean(err**2))), float(err.max())
+    odometry_errors = odometry_increment_errors(np.asarray(d.get("odometry") or [], dtype=float).reshape(-1, 4), traj)
     lateness = np.asarray(d.get("lateness_ms") or [], dtype=float)
+    edge_age = np.asarray(d.get("edge_age_ms") or [], dtype=float)
     time_s = d["end_s"] - d["start_s"] if d.get("end_s") is not None and d.get("start_s") is not None else None
     # the daemon's CPU from the cgroup's own accounting, over the run (started .. finished)
     a, b = record.cpu_at_start, record.cpu_at_end
@@ -605,6 +618,17 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "control_jitter_ms_p99": _round(float(np.percentile(lateness, 99)), 3) if len(lateness) else None,
         "control_jitter_ms_max": _round(float(lateness.max()), 3) if len(lateness) else None,
         "control_ticks": len(lateness),
+        # how old the newest encoder edge was when odometry read the counts (the error of dating
+        # the pose by the reading time); the odometry dates it by the edge's own stamp
+        # the odometry's motion over 0.2 s between two of its dates against the true motion between
+        # the same instants: a pose dated late shows as a turn or a drive that comes late
+        "odometry_window_heading_error_deg_p50": _round(odometry_errors[0], 3),
+        "odometry_window_heading_error_deg_p99": _round(odometry_errors[1], 3),
+        "odometry_window_position_error_mm_p50": _round(odometry_errors[2], 3),
+        "odometry_window_position_error_mm_p99": _round(odometry_errors[3], 3),
+        "encoder_edge_age_ms_p50": _round(float(np.percentile(edge_age, 50)), 3) if len(edge_age) else None,
+        "encoder_edge_age_ms_p99": _round(float(np.percentile(edge_age, 99)), 3) if len(edge_age) else None,
+        "encoder_edge_age_ms_max": _round(float(edge_age.max()), 3) if len(edge_age) else None,
         "scan_ms_p50": _round(float(np.percentile(d["scan_ms"], 50)), 3) if d.get("scan_ms") else None,
         "lidar_revolutions": d.get("lidar_revolutions"),
         "slam_scans": d.get("slam_scans"),
@@ -638,6 +662,45 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "loadavg_before": record.loadavg_before,
         "loadavg_after": record.loadavg_after,
     }
+
+
+#: The window over which the odometry's motion is compared with the true motion.
+ODOMETRY_WINDOW_S = 0.2
+
+
+def odometry_increment_errors(odometry: Any, traj: Any, window_s: float = ODOMETRY_WINDOW_S) -> tuple[float | None, ...]:
+    """Heading (degrees) and position (mm) error of the odometry's motion over ``window_s``: p50, p99.
+
+    ``odometry`` rows (t, x, y, θ) as the history holds them, ``traj`` the world's true (t, x, y,
+    θ) on the same clock. Every 0.1 s of the run, the odometry's motion from ``t`` to
+    ``t + window_s`` (in the frame of its pose at ``t``) against the true motion between the
+    same two instants: what SLAM is given to de-skew a revolution and to predict the next
+    one. The wheels' own errors over 0.2 s are small; a date that is wrong by ``d`` adds about
+    the turn rate times ``d``.
+    """
+    import numpy as np
+
+    if len(odometry) < 2 or len(traj) < 2:
+        return (None, None, None, None)
+    t0, t1 = max(odometry[0, 0], traj[0, 0]), min(odometry[-1, 0], traj[-1, 0]) - window_s
+    if t1 <= t0:
+        return (None, None, None, None)
+    times = np.arange(t0, t1, 0.1)
+
+    def motion(rows: Any) -> tuple[Any, Any]:
+        th = np.unwrap(rows[:, 3])
+        a = [np.interp(times, rows[:, 0], v) for v in (rows[:, 1], rows[:, 2], th)]
+        b = [np.interp(times + window_s, rows[:, 0], v) for v in (rows[:, 1], rows[:, 2], th)]
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        c, s = np.cos(a[2]), np.sin(a[2])
+        return np.column_stack([c * dx + s * dy, -s * dx + c * dy]), b[2] - a[2]
+
+    odo_xy, odo_th = motion(odometry)
+    true_xy, true_th = motion(traj)
+    heading = np.degrees(np.abs(odo_th - true_th))
+    position = 1000.0 * np.hypot(*(odo_xy - true_xy).T)
+    return (float(np.percentile(heading, 50)), float(np.percentile(heading, 99)),
+            float(np.percentile(position, 50)), float(np.percentile(position, 99)))
 
 
 def _loadavg() -> str | None:

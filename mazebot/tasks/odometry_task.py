@@ -10,14 +10,17 @@ from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import DiffDriveOdometry
 from mazebot.state import SharedState
 
-#: With no new edge for this long the wheels are taken to rest, and the odometry pose to hold
-#: up to the reading's time. Until then a reading without a new edge adds nothing to the
-#: history: the edges may only be late (under a 25 % quota the process that counts them can
-#: wait 80 ms and more for its turn). Long enough for such a wait, short enough that SLAM,
-#: which waits up to ``slam_task.ODOMETRY_WAIT_S`` for the odometry to cover a revolution,
-#: waits on one or two revolutions after the robot stopped. A wheel at 4 ticks/s (~1 mm/s
-#: with the default wheel) still shows as motion.
+#: With the motors braked (both throttles 0) and no new edge for this long, the wheels rest
+#: and the odometry pose holds up to the reading's time. Until then a reading without a new
+#: edge adds nothing to the history: the edges may only be late (under a 25 % quota the
+#: thread that counts them waits 80 ms and more for its turn, 270 ms once on a 16x16 maze),
+#: and a pose dated "now" would then be that stale. Longer than the HAT's short brake takes
+#: to stop a wheel; SLAM waits for the odometry to cover a revolution (``slam_task``), so
+#: one or two revolutions after a stop wait that long.
 REST_AFTER_S = 0.25
+#: Driven but without a single edge for this long, a wheel does not turn (a throttle in the
+#: motor's dead band, a jammed wheel): its pose holds, whatever the throttles say.
+STILL_WHEN_DRIVEN_S = 1.0
 
 
 async def run(
@@ -47,6 +50,7 @@ async def run(
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     meter = state.cpu.part("odometry")
     last_counts: tuple[int, int] | None = None
+    driven_s = -math.inf  # the last reading while a throttle was not 0
     while True:
         with meter.measure():
             reading = encoders.read()
@@ -54,7 +58,10 @@ async def run(
             odo = odometry.pose
             now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
             counts = (reading.left_ticks, reading.right_ticks)
-            pose_s = _pose_time_s(now_s, getattr(reading, "edge_age_s", None), counts != last_counts, history)
+            if state.throttles != (0.0, 0.0):
+                driven_s = now_s
+            pose_s = _pose_time_s(now_s, getattr(reading, "edge_age_s", None), counts != last_counts, history,
+                                  now_s - driven_s)
             if counts != last_counts and getattr(reading, "edge_age_s", None) is not None:
                 state.odometry_edge_age_ms.append(reading.edge_age_s * 1000.0)
             last_counts = counts
@@ -74,7 +81,8 @@ async def run(
         await clock.sleep(period_s)
 
 
-def _pose_time_s(now_s: float, edge_age_s: float | None, new_edges: bool, history: OdometryHistory) -> float | None:
+def _pose_time_s(now_s: float, edge_age_s: float | None, new_edges: bool, history: OdometryHistory,
+                 braked_s: float = math.inf) -> float | None:
     """The time an odometry reading's pose describes; None: nothing new to add to the history.
 
     The counts hold every edge up to the newest one counted, so the pose is the wheels' pose
@@ -82,15 +90,16 @@ def _pose_time_s(now_s: float, edge_age_s: float | None, new_edges: bool, histor
     quota the encoder thread gets the edges in bursts, tens of milliseconds late, and a pose
     dated by the reading time is that late too (SLAM de-skews and predicts each revolution
     from these dates). Without a new edge the counts are older than the reading only if the
-    edges are late; after ``REST_AFTER_S`` without one the wheels rest and the pose holds
-    until now. No usable stamp (a pin factory on another clock): the reading's time, as
-    before. Never earlier than the history's newest entry.
+    edges are late: the pose holds until now only once the wheels rest (``braked_s``, how
+    long the motors have been braked, and the newest edge both ``REST_AFTER_S`` old, or no
+    edge for ``STILL_WHEN_DRIVEN_S``). No usable stamp (a pin factory on another clock):
+    the reading's time, as before. Never earlier than the history's newest entry.
     """
     if edge_age_s is None:
         pose_s = now_s
     elif new_edges:
         pose_s = now_s - edge_age_s
-    elif edge_age_s >= REST_AFTER_S:
+    elif (edge_age_s >= REST_AFTER_S and braked_s >= REST_AFTER_S) or edge_age_s >= STILL_WHEN_DRIVEN_S:
         pose_s = now_s
     else:
         return None

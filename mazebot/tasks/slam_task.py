@@ -43,8 +43,12 @@ log = logging.getLogger(__name__)
 SLOW_JOB_S = 0.45
 #: At most one wheel-slip note this often.
 SLIP_NOTE_EVERY_S = 5.0
-#: Longest wait for the odometry to reach a scan's last sample (it runs at >= 50 Hz).
-ODOMETRY_WAIT_S = 0.1
+#: Longest wait for the odometry to reach a scan's last sample. The odometry is dated by the
+#: encoder edges (``odometry_task``): it reaches a time once the edges up to it are counted,
+#: which a starved encoder thread does late (270 ms once under a 25 % quota); at rest the
+#: odometry holds its pose up to now after ``odometry_task.REST_AFTER_S``. A safety net for a
+#: stalled odometry task: a revolution de-skewed past the odometry's end is bent.
+ODOMETRY_WAIT_S = 0.5
 #: Faults that say the wheel odometry cannot be trusted (an encoder dead, the robot lost).
 ODOMETRY_FAULTS = frozenset({"encoders", "localization"})
 #: Revolutions in a row that fit the odometry (matched, no slip) before SLAM paints again.

@@ -101,6 +101,8 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
                 factory.drive(pins[channel], new_levels[channel], time_s=t)
                 step[k] = new
 
+    slept = asyncio.Event()
+
     class ManualClock:
         def now_s(self) -> float:
             return now[0]
@@ -109,15 +111,18 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
             now[0] += duration_s
             if int(now[0] / 0.06) != int((now[0] - duration_s) / 0.06):
                 deliver(now[0] - 0.03)  # a burst every 60 ms: all that happened until 30 ms ago
+            slept.set()
             await asyncio.sleep(0)
 
     state = SharedState()
-    odometry = DiffDriveOdometry(enc.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio)
+    odometry = DiffDriveOdometry(enc.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m,
+                                 drive.wheel_diameter_ratio)
 
     async def run_for(duration_s: float) -> None:
         task = asyncio.create_task(odometry_task.run(encoders, state, ManualClock(), enc, drive, odometry=odometry))
-        while now[0] < duration_s:
-            await asyncio.sleep(0)
+        while now[0] < duration_s:  # the manual clock moves only as the task sleeps on it
+            await slept.wait()
+            slept.clear()
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
@@ -137,3 +142,20 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
     assert 0.06 * true_rate_radps > 10 * tick_rad
     ages = np.asarray(state.odometry_edge_age_ms)
     assert ages.min() >= 29.0  # the bursts were late indeed
+
+
+def test_a_reading_without_new_edges_holds_the_pose_only_once_the_wheels_rest() -> None:
+    """No new edge: late edges while the motors drive (nothing added), a rest once braked (now)."""
+    from mazebot.slam.ekf import OdometryHistory
+    from mazebot.tasks.odometry_task import REST_AFTER_S, STILL_WHEN_DRIVEN_S, _pose_time_s
+
+    history = OdometryHistory(3.0)
+    history.append(10.0, 0.0, 0.0, 0.0)
+    assert _pose_time_s(10.5, 0.02, True, history, braked_s=0.0) == 10.48  # new edges: the newest one's stamp
+    assert _pose_time_s(10.5, None, False, history) == 10.5  # no usable stamp: the reading's time
+    late = REST_AFTER_S + 0.1
+    assert _pose_time_s(10.5, late, False, history, braked_s=0.0) is None  # driven: the edges may be late
+    assert _pose_time_s(10.5, late, False, history, braked_s=late) == 10.5  # braked and still: at rest
+    assert _pose_time_s(10.5, 0.05, False, history, braked_s=late) is None  # braked a moment ago: may coast
+    assert _pose_time_s(12.0, STILL_WHEN_DRIVEN_S, False, history, braked_s=0.0) == 12.0  # driven, never turning
+    assert _pose_time_s(10.5, 0.6, True, history, braked_s=0.0) == 10.0  # never before the newest entry

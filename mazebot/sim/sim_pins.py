@@ -56,7 +56,7 @@ class SimPinFactory(MockFactory):
         self.time_source = time_source
         self._event_time_s: float | None = None
 
-    def ticks(self) -> float:  # type: ignore[override]  # an instance's clock, not gpiozero's static one
+    def ticks(self) -> float:  # an instance's clock, not gpiozero's static one
         return self.time_source()
 
     def edge_time(self) -> float:

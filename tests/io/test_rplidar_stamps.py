@@ -128,7 +128,7 @@ def test_samples_read_late_by_a_throttled_process_are_stamped_by_the_device_rhyt
     rhythm = SampleRhythm()
     raw_err, err = [], []
     read_s = 0.0
-    for k, n in enumerate(packet_end):
+    for n in packet_end:
         sent_s = true_s[n - 1]  # the device sends a sample as it is taken, 20 ms of them at a time
         stall_s = rng.choice([0.0, 0.0, 0.0, 0.003, 0.01, 0.045])  # mostly on time, a throttled period now and then
         read_s = max(read_s, sent_s + stall_s)

@@ -116,6 +116,9 @@ class SlamStats:
     scans_dropped: int = 0  # revolutions dropped because SLAM was behind
     keyframes: int = 0
     held_back: int = 0  # revolutions that only localized, not painted: the odometry was known bad
+    #: revolutions left out because the odometry had not reached their end within the wait (its
+    #: encoder edges late beyond it): de-skewed and judged with a held pose they looked lost
+    uncovered: int = 0
     anchored: bool = False  # keyframe 0 holds its revolutions at rest (the robot waits for it before driving)
     loop_closures: int = 0  # accepted
     loop_closures_rejected: int = 0

@@ -211,6 +211,7 @@ async def _run_daemon(
         "scan_ms": list(state.scan_ms),
         "slam_scans": slam.scans,
         "slam_scans_dropped": slam.scans_dropped,
+        "slam_scans_uncovered": slam.uncovered,
         "keyframes": slam.keyframes,
         "loop_closures": slam.loop_closures,
         "lidar_revolutions": state.sensors.lidar_revolutions,
@@ -656,6 +657,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "lidar_revolutions": d.get("lidar_revolutions"),
         "slam_scans": d.get("slam_scans"),
         "slam_scans_dropped": d.get("slam_scans_dropped"),  # revolutions SLAM had to drop
+        "slam_scans_uncovered": d.get("slam_scans_uncovered"),  # left out: the odometry never reached their end
         "lidar_bytes_dropped": d.get("lidar_bytes_dropped"),
         "loop_closures": d.get("loop_closures"),
         "encoder_invalid_transitions": d.get("encoder_invalid_transitions"),

@@ -116,6 +116,9 @@ class SlamStats:
     scans_dropped: int = 0  # revolutions dropped because SLAM was behind
     keyframes: int = 0
     held_back: int = 0  # revolutions that only localized, not painted: the odometry was known bad
+    #: revolutions left out because the odometry had not reached their end within the wait (its
+    #: encoder edges late beyond it): de-skewed and judged with a held pose they looked lost
+    uncovered: int = 0
     anchored: bool = False  # keyframe 0 holds its revolutions at rest (the robot waits for it before driving)
     loop_closures: int = 0  # accepted
     loop_closures_rejected: int = 0
@@ -198,6 +201,9 @@ class SharedState:
     #: incremented by each start from idle or done: a new exploration (the planner resets)
     run_number: int = 0
     finished_at_s: float | None = None  # clock time the run reached DONE
+    #: age of the newest encoder edge counted, at each odometry reading with new edges,
+    #: milliseconds: how late a pose dated by the reading time would be (the odometry task)
+    odometry_edge_age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
     #: recent lateness of control ticks beyond their period, milliseconds
     control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
     #: CPU time per part of the daemon (:mod:`mazebot.cpu_budget`); each part's meter is

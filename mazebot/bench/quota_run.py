@@ -33,10 +33,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import multiprocessing
 import os
 import signal
 import time
+from array import array
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -133,7 +135,10 @@ async def _run_daemon(
 
     state = SharedState()
     state.control_lateness_ms = deque(maxlen=LATENESS_KEPT)
-    run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": [], "encoders": None}
+    state.odometry_edge_age_ms = deque(maxlen=LATENESS_KEPT)
+    # the logs in flat float arrays (t, x, y, θ per row): the daemon's memory is measured with them in it
+    run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": array("d"), "odometry": array("d"),
+                           "scans": [], "encoders": None}
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         run["start_s"] = clock.now_s()
@@ -151,10 +156,20 @@ async def _run_daemon(
         loop.add_reader(control_rx.fileno(), on_control)
 
         async def recorder() -> None:
+            logged_s = -math.inf
             while True:
                 p = state.pose
                 if state.pose_time_s is not None:
-                    run["est"].append((state.pose_time_s, p.x_m, p.y_m, p.theta_rad))
+                    run["est"].extend((state.pose_time_s, p.x_m, p.y_m, p.theta_rad))
+                scan, scans = state.latest_scan, run["scans"]
+                if scan is not None and len(scan.time_s) and (not scans or scans[-1][0] != scan.revolution):
+                    scans.append((scan.revolution, float(scan.time_s[0])))  # the stamp of its first sample
+                history = state.odometry_history
+                if history is not None:  # every odometry pose with its date, as SLAM reads them
+                    rows = history.since(logged_s)
+                    if len(rows):
+                        run["odometry"].extend(rows.ravel().tolist())
+                        logged_s = float(rows[-1, 0])
                 await clock.sleep(RECORD_PERIOD_S)
 
         async def explore() -> None:
@@ -190,14 +205,18 @@ async def _run_daemon(
         "end_s": run["end_s"],
         "run_state": str(state.run_state),
         "fault": None if fault is None else f"{fault.source}: {fault.message}",
+        "fault_time_s": None if fault is None else fault.time_s,
+        "events": [(e.time_s, e.source, e.message) for e in list(state.events)[-40:]],
         "faults_raised": state.faults_raised,
         "lateness_ms": list(state.control_lateness_ms),
+        "edge_age_ms": list(state.odometry_edge_age_ms),
         # thread CPU per part of the daemon (mazebot.cpu_budget), over the run
         "cpu_budget": state.cpu.table(run["end_s"] - run["start_s"]
                                       if run["end_s"] is not None and run["start_s"] is not None else None),
         "scan_ms": list(state.scan_ms),
         "slam_scans": slam.scans,
         "slam_scans_dropped": slam.scans_dropped,
+        "slam_scans_uncovered": slam.uncovered,
         "keyframes": slam.keyframes,
         "loop_closures": slam.loop_closures,
         "lidar_revolutions": state.sensors.lidar_revolutions,
@@ -207,6 +226,8 @@ async def _run_daemon(
         "gpio_edges": gpio.edges,
         "motor_writes": kit.writes_sent + opener.writes_sent,  # this process's and the control process's
         "est": run["est"],
+        "odometry": run["odometry"],
+        "scans": run["scans"],
         "planner_events": list(state.planner_events),
         "map": state.map,
     }
@@ -328,6 +349,7 @@ class QuotaRecord:
     #: every process seen in the daemon's tree (pid: start time), ended with it
     daemon_tree: dict[int, str | None] = field(default_factory=dict)
     truth: deque[tuple[float, float, float, float, int]] = field(default_factory=lambda: deque(maxlen=4))
+    collision_times_s: list[float] = field(default_factory=list)  # the world's truth reports that counted one more
     daemon: dict[str, Any] | None = None  # the daemon's report (``_run_daemon``)
     world: dict[str, Any] | None = None  # the world's summary
     errors: list[str] = field(default_factory=list)
@@ -450,6 +472,8 @@ def _take_truth(report_rx: Connection, record: QuotaRecord) -> None:
     while report_rx.poll():
         message = report_rx.recv()
         if message[0] == "truth":
+            if record.truth and message[5] > record.truth[-1][4]:  # the world counted a collision since
+                record.collision_times_s.append(message[1])
             record.truth.append(message[1:])
         elif message[0] == "summary":
             record.world = message[1]
@@ -570,7 +594,10 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         rel = relative_poses(start, truth)
         err = np.hypot(est[:, 1] - rel[:, 0], est[:, 2] - rel[:, 1])
         ate_rms, ate_max = float(np.sqrt(np.mean(err**2))), float(err.max())
+    odometry_errors = odometry_increment_errors(np.asarray(d.get("odometry") or [], dtype=float).reshape(-1, 4), traj)
+    lidar_errors = lidar_stamp_errors_ms([t for _, t in d.get("scans") or []], w.get("lidar_revolution_starts_s") or [])
     lateness = np.asarray(d.get("lateness_ms") or [], dtype=float)
+    edge_age = np.asarray(d.get("edge_age_ms") or [], dtype=float)
     time_s = d["end_s"] - d["start_s"] if d.get("end_s") is not None and d.get("start_s") is not None else None
     # the daemon's CPU from the cgroup's own accounting, over the run (started .. finished)
     a, b = record.cpu_at_start, record.cpu_at_end
@@ -603,6 +630,12 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "coverage": maps["coverage"],
         "map_f1": maps["map_f1"],
         "collisions": w.get("collisions"),
+        # seconds since the daemon started: when the world saw each collision, when the fault came
+        "collision_times_s": [_round(t - (d.get("start_s") or 0.0), 2) for t in record.collision_times_s],
+        "fault_time_s": _round(d["fault_time_s"] - (d.get("start_s") or 0.0), 2)
+        if d.get("fault_time_s") is not None else None,
+        "events": [(_round(t - (d.get("start_s") or 0.0), 2), source, text)
+                   for t, source, text in d.get("events") or []],
         "path_m": _round(w.get("odometer_m"), 3),
         "revisits": count_revisits(layout, traj[:, 1:3]) if layout is not None and len(traj) else None,
         "ate_rms_m": _round(ate_rms, 4),
@@ -610,10 +643,26 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "control_jitter_ms_p99": _round(float(np.percentile(lateness, 99)), 3) if len(lateness) else None,
         "control_jitter_ms_max": _round(float(lateness.max()), 3) if len(lateness) else None,
         "control_ticks": len(lateness),
+        # how old the newest encoder edge was when odometry read the counts (the error of dating
+        # the pose by the reading time); the odometry dates it by the edge's own stamp
+        # the odometry's motion over 0.2 s between two of its dates against the true motion between
+        # the same instants: a pose dated late shows as a turn or a drive that comes late
+        "odometry_window_heading_error_deg_p50": _round(odometry_errors[0], 3),
+        "odometry_window_heading_error_deg_p99": _round(odometry_errors[1], 3),
+        "odometry_window_position_error_mm_p50": _round(odometry_errors[2], 3),
+        "odometry_window_position_error_mm_p99": _round(odometry_errors[3], 3),
+        # the daemon's stamp of each revolution's first sample against when the emulator measured it
+        "lidar_stamp_error_ms_p50": _round(lidar_errors[0], 3),
+        "lidar_stamp_error_ms_p99": _round(lidar_errors[1], 3),
+        "lidar_stamp_error_ms_max": _round(lidar_errors[2], 3),
+        "encoder_edge_age_ms_p50": _round(float(np.percentile(edge_age, 50)), 3) if len(edge_age) else None,
+        "encoder_edge_age_ms_p99": _round(float(np.percentile(edge_age, 99)), 3) if len(edge_age) else None,
+        "encoder_edge_age_ms_max": _round(float(edge_age.max()), 3) if len(edge_age) else None,
         "scan_ms_p50": _round(float(np.percentile(d["scan_ms"], 50)), 3) if d.get("scan_ms") else None,
         "lidar_revolutions": d.get("lidar_revolutions"),
         "slam_scans": d.get("slam_scans"),
         "slam_scans_dropped": d.get("slam_scans_dropped"),  # revolutions SLAM had to drop
+        "slam_scans_uncovered": d.get("slam_scans_uncovered"),  # left out: the odometry never reached their end
         "lidar_bytes_dropped": d.get("lidar_bytes_dropped"),
         "loop_closures": d.get("loop_closures"),
         "encoder_invalid_transitions": d.get("encoder_invalid_transitions"),
@@ -643,6 +692,65 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "loadavg_before": record.loadavg_before,
         "loadavg_after": record.loadavg_after,
     }
+
+
+#: The window over which the odometry's motion is compared with the true motion.
+ODOMETRY_WINDOW_S = 0.2
+
+
+def odometry_increment_errors(odometry: Any, traj: Any,
+                              window_s: float = ODOMETRY_WINDOW_S) -> tuple[float | None, ...]:
+    """Heading (degrees) and position (mm) error of the odometry's motion over ``window_s``: p50, p99.
+
+    ``odometry`` rows (t, x, y, θ) as the history holds them, ``traj`` the world's true (t, x, y,
+    θ) on the same clock. Every 0.1 s of the run, the odometry's motion from ``t`` to
+    ``t + window_s`` (in the frame of its pose at ``t``) against the true motion between the
+    same two instants: what SLAM is given to de-skew a revolution and to predict the next
+    one. The wheels' own errors over 0.2 s are small; a date that is wrong by ``d`` adds about
+    the turn rate times ``d``.
+    """
+    import numpy as np
+
+    if len(odometry) < 2 or len(traj) < 2:
+        return (None, None, None, None)
+    t0, t1 = max(odometry[0, 0], traj[0, 0]), min(odometry[-1, 0], traj[-1, 0]) - window_s
+    if t1 <= t0:
+        return (None, None, None, None)
+    times = np.arange(t0, t1, 0.1)
+
+    def motion(rows: Any) -> tuple[Any, Any]:
+        th = np.unwrap(rows[:, 3])
+        a = [np.interp(times, rows[:, 0], v) for v in (rows[:, 1], rows[:, 2], th)]
+        b = [np.interp(times + window_s, rows[:, 0], v) for v in (rows[:, 1], rows[:, 2], th)]
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        c, s = np.cos(a[2]), np.sin(a[2])
+        return np.column_stack([c * dx + s * dy, -s * dx + c * dy]), b[2] - a[2]
+
+    odo_xy, odo_th = motion(odometry)
+    true_xy, true_th = motion(traj)
+    heading = np.degrees(np.abs(odo_th - true_th))
+    position = 1000.0 * np.hypot(*(odo_xy - true_xy).T)
+    return (float(np.percentile(heading, 50)), float(np.percentile(heading, 99)),
+            float(np.percentile(position, 50)), float(np.percentile(position, 99)))
+
+
+def lidar_stamp_errors_ms(stamps_s: list[float], starts_s: list[float]) -> tuple[float | None, ...]:
+    """How late the daemon dated its revolutions, ms: p50, p99 and the largest in size (signed).
+
+    ``stamps_s`` the daemon's stamps of revolutions' first samples, ``starts_s`` the times the
+    emulator measured first samples (one clock); each stamp is held against the nearest start
+    (revolutions are ~150 ms apart, the errors a few ms).
+    """
+    import numpy as np
+
+    if not stamps_s or len(starts_s) < 2:
+        return (None, None, None)
+    starts = np.sort(np.asarray(starts_s, dtype=float))
+    stamps = np.asarray(stamps_s, dtype=float)
+    i = np.clip(np.searchsorted(starts, stamps), 1, len(starts) - 1)
+    nearest = np.where(stamps - starts[i - 1] < starts[i] - stamps, starts[i - 1], starts[i])
+    err = 1000.0 * (stamps - nearest)
+    return float(np.percentile(err, 50)), float(np.percentile(err, 99)), float(err[np.argmax(np.abs(err))])
 
 
 def _loadavg() -> str | None:

@@ -59,6 +59,10 @@ Decoding = Literal["x1", "x2", "x4"]
 #: A gpiozero pin callback: ``(ticks, state)``, the event time and the pin's new level.
 PinCallback = Callable[[float, int], None]
 
+#: The oldest edge stamp taken as one: older than this, the stamp and the pin factory's clock
+#: cannot be the same clock (a robot at rest has no new edge, and then the age is not needed).
+MAX_EDGE_AGE_S: Final = 3600.0
+
 #: Ticks per encoder line for each decoding mode.
 TICKS_PER_LINE: Final[dict[Decoding, int]] = {"x1": 1, "x2": 2, "x4": 4}
 
@@ -217,6 +221,10 @@ class EncoderReading:
     right_ticks: int
     invalid_transitions: int
     time_s: float | None = None
+    #: seconds between the newest edge counted (either wheel) and this reading, on the pin
+    #: factory's own clock (the edge's stamp, lgpio's from the kernel): how old the counts are
+    #: when the thread that counts edges is behind. None: no edge yet, or an unusable stamp.
+    edge_age_s: float | None = None
 
 
 class WheelEncoder:
@@ -255,6 +263,9 @@ class WheelEncoder:
             )
         self._lock = threading.Lock()
         self._closed = False
+        self._factory = pin_factory
+        #: the pin factory's ticks of the newest edge counted (gpiozero's ``when_changed`` argument)
+        self._edge_ticks: float | None = None
         self._a = InputDevice(a_pin, pull_up=pull_up, pin_factory=pin_factory)
         try:
             self._b = InputDevice(b_pin, pull_up=pull_up, pin_factory=pin_factory)
@@ -298,13 +309,17 @@ class WheelEncoder:
         lock = self._lock
         edge = self._decoder.edge
 
+        # each edge's own time stamp is kept with the count: under load the edges reach this
+        # thread in bursts, and the count must be dated by when the wheel turned
         def on_a_changed(ticks: float, state: int) -> None:
             with lock:
                 edge(CHANNEL_A, state)
+                self._edge_ticks = ticks
 
         def on_b_changed(ticks: float, state: int) -> None:
             with lock:
                 edge(CHANNEL_B, state)
+                self._edge_ticks = ticks
 
         return on_a_changed, on_b_changed
 
@@ -314,6 +329,26 @@ class WheelEncoder:
         """``(ticks, invalid_transitions)``, both from the same instant."""
         with self._lock:
             return self._decoder.count, self._decoder.invalid_transitions
+
+    def read_stamped(self) -> tuple[int, int, float | None]:
+        """``(ticks, invalid_transitions, edge_ticks)``: ``edge_ticks`` the pin factory's stamp of the newest edge."""
+        with self._lock:
+            return self._decoder.count, self._decoder.invalid_transitions, self._edge_ticks
+
+    def edge_age_s(self, edge_ticks: float | None) -> float | None:
+        """Seconds from an edge stamp (:meth:`read_stamped`) to now on the pin factory's clock; None if unusable.
+
+        gpiozero's ticks are only comparable with the same factory's ``ticks()`` through its
+        ``ticks_diff`` (lgpio's are the kernel's event stamps in seconds). An age outside
+        [0, ``MAX_EDGE_AGE_S``] means the two were not on one clock: unusable, never guessed.
+        """
+        if edge_ticks is None:
+            return None
+        try:
+            age_s = float(self._factory.ticks_diff(self._factory.ticks(), edge_ticks))
+        except (TypeError, ValueError, OverflowError):
+            return None
+        return age_s if 0.0 <= age_s <= MAX_EDGE_AGE_S else None
 
     @property
     def ticks(self) -> int:
@@ -397,14 +432,21 @@ class WheelEncoders:
         return cls(left, right, clock=clock)
 
     def read(self) -> EncoderReading:
-        """Both wheels' totals (each wheel's pair of counters is internally consistent)."""
-        left_ticks, left_invalid = self.left.read()
-        right_ticks, right_invalid = self.right.read()
+        """Both wheels' totals (each wheel's pair of counters is internally consistent).
+
+        ``edge_age_s`` is the age of the newer of the two wheels' last edges: lgpio delivers
+        the edges of all lines in the order of their stamps on one thread (as the simulator's
+        GPIO thread does), so both counts hold every edge up to that one.
+        """
+        left_ticks, left_invalid, left_edge = self.left.read_stamped()
+        right_ticks, right_invalid, right_edge = self.right.read_stamped()
+        ages = [a for a in (self.left.edge_age_s(left_edge), self.right.edge_age_s(right_edge)) if a is not None]
         return EncoderReading(
             left_ticks=left_ticks,
             right_ticks=right_ticks,
             invalid_transitions=left_invalid + right_invalid,
             time_s=self._clock.now_s() if self._clock is not None else None,
+            edge_age_s=min(ages) if ages else None,
         )
 
     def close(self) -> None:

@@ -744,13 +744,18 @@ class RPLidar:
         batch = bytearray(leftover)
         arrivals = _ArrivalLog()
         arrivals.add(len(batch), last_data_s)
+        rhythm = SampleRhythm()
+        decoded = 0  # samples decoded since the scan (re)started
         while True:
             now_s = self._clock.now_s()
             stalled = now_s - last_data_s >= self._no_data_timeout_s
             if batch and (stalled or now_s - batch_since_s >= DECODE_INTERVAL_S):
+                dropped_before = decoder.bytes_dropped
                 with self.decode_meter.measure():
                     samples = decoder.feed(bytes(batch))
                 batch.clear()
+                if decoder.bytes_dropped != dropped_before:  # samples lost: their count no longer keeps time
+                    rhythm.reset()
                 self.stats.bytes_dropped = self._dropped_before + decoder.bytes_dropped
                 if len(samples):
                     last_data_s = now_s
@@ -758,6 +763,8 @@ class RPLidar:
                     restarts_without_data = 0
                     self.stats.samples += len(samples)
                     latest_s = self._latest_sample_s(arrivals, arrivals.received - decoder.pending_bytes)
+                    decoded += len(samples)
+                    latest_s = rhythm.latest(latest_s, decoded, self._period_s())  # not later than the rhythm says
                     times = self._stamp(len(samples), latest_s, stamped_until_s)
                     stamped_until_s = max(stamped_until_s, latest_s)
                     for scan in revolution.add(samples, times):
@@ -783,6 +790,7 @@ class RPLidar:
                 last_data_s = batch_since_s = stamped_until_s = self._clock.now_s()
                 arrivals = _ArrivalLog()
                 arrivals.add(len(batch), last_data_s)
+                rhythm.reset()
                 continue
             wait_s = last_data_s + self._no_data_timeout_s - now_s
             if batch:  # come back when the batch is due
@@ -884,6 +892,48 @@ class RPLidar:
             valid=valid,
             revolution=revolution,
         )
+
+
+class SampleRhythm:
+    """When the newest sample was taken, by the device's steady sample rate as well as by its bytes' arrival.
+
+    A byte's arrival time is what the host reads it at, corrected for the bytes still
+    waiting (``_timed_read``); a process that was not running (a CPU quota's throttle, a
+    busy core) reads them late, and every sample it stamps from them is late by as much:
+    45 ms at worst in a 16x16 maze at 25 % of a core, 3° of a turn. The device samples at a
+    steady rate, though: its n-th sample comes ``period`` after the one before. So the
+    newest sample is at most where the rhythm of an earlier, better-timed stamp puts it,
+    and an arrival later than that was a late read (the lower envelope of the arrivals, as
+    in clock synchronisation). The rhythm may run slow against the host clock by up to
+    ``slip`` (the nominal period is not exact: an A1's rotation, and so its rate in the
+    simulator, varies 3 % between turns), so the bound moves on by ``(1 + slip)`` periods
+    per sample; an arrival earlier than the bound is taken as it is.
+
+    Example::
+
+        rhythm = SampleRhythm()
+        rhythm.latest(arrival_s=10.000, samples=100, period_s=0.0005)   # 10.000
+        rhythm.latest(arrival_s=10.080, samples=200, period_s=0.0005)   # 10.0525: read 27 ms late
+    """
+
+    #: How much slower than its nominal period the device may sample (relative).
+    SLIP = 0.05
+
+    def __init__(self) -> None:
+        self._anchor: tuple[float, int] | None = None  # (time of the newest sample, samples so far)
+
+    def reset(self) -> None:
+        """Forget the rhythm (a new scan, lost bytes: the sample count no longer follows the device's)."""
+        self._anchor = None
+
+    def latest(self, arrival_s: float, samples: int, period_s: float) -> float:
+        """The time of sample number ``samples`` (counted since the scan began), its bytes' arrival ``arrival_s``."""
+        anchor = self._anchor
+        if anchor is not None and samples > anchor[1]:
+            bound_s = anchor[0] + (samples - anchor[1]) * period_s * (1.0 + self.SLIP)
+            arrival_s = min(arrival_s, bound_s)
+        self._anchor = (arrival_s, samples)
+        return arrival_s
 
 
 class _ArrivalLog:

@@ -27,6 +27,7 @@ import asyncio
 import contextlib
 import logging
 import struct
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -98,6 +99,9 @@ class EmulatorStats:
     samples_sent: int = 0
     bytes_sent: int = 0
     bad_requests: int = 0
+    #: when the first sample of each revolution was measured (the latest ones): the truth the
+    #: quota benchmark holds the daemon's time stamps of its revolutions against
+    revolution_starts_s: deque[float] = field(default_factory=lambda: deque(maxlen=20_000))
 
 
 class RPLidarEmulator:
@@ -336,6 +340,8 @@ class RPLidarEmulator:
             self.head.restart(self.clock.now_s())  # the head stands still: nothing measured
             return False
         samples = self.head.advance(self.clock.now_s(), self.poses)
+        if samples.start.any():
+            self.stats.revolution_starts_s.extend(samples.time_s[samples.start].tolist())
         data = self.encode(samples)
         if not data:
             return False

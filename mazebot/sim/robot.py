@@ -14,6 +14,7 @@ imperfections of ``[sim]``: motor lag and mismatch, unequal wheels, slip, lidar 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -27,7 +28,7 @@ from mazebot.io.rplidar_models import MODELS
 from mazebot.sim.encoder_signals import QuadratureSignal
 from mazebot.sim.lidar_samples import LidarParams, PoseHistory, SpinningLidar
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
-from mazebot.sim.sim_pins import BoundedHistoryPin
+from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
 from mazebot.sim.world import World
 
 
@@ -100,7 +101,9 @@ class SimulatedRobot:
         self.kit = FakeMotorKit(clock)
         # bounded edge history: gpiozero's MockPin keeps every edge (a leak over long runs);
         # the world process passes a factory that also records the edges it sends to the daemon
-        self.pin_factory = pin_factory if pin_factory is not None else MockFactory(pin_class=BoundedHistoryPin)
+        self.pin_factory = (pin_factory if pin_factory is not None
+                            else SimPinFactory(pin_class=BoundedHistoryPin,
+                                              time_source=clock.now_s if clock is not None else time.monotonic))
         enc = config.encoders
         left_pins, right_pins = (enc.left_a_pin, enc.left_b_pin), (enc.right_a_pin, enc.right_b_pin)
         if config.sim.encoder_pins_swapped:

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import signal
 import struct
 from multiprocessing.connection import Connection
@@ -36,30 +35,22 @@ from typing import Any
 
 from gpiozero.pins.mock import MockFactory
 
+from mazebot.sim.pipe_kit import decode_throttle
+from mazebot.sim.pipe_kit import encode_throttle as encode_throttle  # re-exported: the wire's other end
 from mazebot.sim.sim_pins import BoundedHistoryPin
 
 #: How often the world reports the true pose to the parent (seconds of the real clock).
 TRUTH_PERIOD_S = 0.2
 #: After a SIGTERM, how long the world waits for the daemon to stop (and close its motor line) first.
 SIGTERM_GRACE_S = 5.0
-#: One throttle message: the motor channel, and the throttle (NaN: coasting, ``None``).
-THROTTLE = struct.Struct("<Bd")
+#: The head of one message of edges: the clock time of the world step that made them (the
+#: monotonic clock both processes read), then one :func:`edge_byte` per edge, in order.
+EDGES_TIME = struct.Struct("<d")
 
 
 def edge_byte(index: int, level: int) -> int:
     """One edge on the wire: the encoder pin's index (0..3: left A, left B, right A, right B) and its new level."""
     return (index << 1) | (1 if level else 0)
-
-
-def encode_throttle(channel: int, throttle: float | None) -> bytes:
-    """A throttle write as it crosses from the daemon to the world."""
-    return THROTTLE.pack(channel, math.nan if throttle is None else throttle)
-
-
-def decode_throttle(data: bytes) -> tuple[int, float | None]:
-    """``(channel, throttle)`` of :func:`encode_throttle`'s bytes."""
-    channel, value = THROTTLE.unpack(data)
-    return channel, None if math.isnan(value) else value
 
 
 class EdgeRecordingPin(BoundedHistoryPin):
@@ -180,7 +171,9 @@ async def serve_world(
         data = factory.take_edges()
         if data:
             with contextlib.suppress(OSError):  # the daemon is gone; the world runs on until stopped
-                edge_tx.send_bytes(data)
+                # with the step's time, as the kernel stamps each edge on the robot: the daemon's
+                # encoders date the ticks by it, not by when its throttled GPIO thread got to them
+                edge_tx.send_bytes(EDGES_TIME.pack(robot.time_s if robot.time_s is not None else clock.now_s()) + data)
                 counts["edges_sent"] += len(data)
 
     async def report_truth() -> None:
@@ -218,6 +211,7 @@ async def serve_world(
             "edges_driven": robot.left_signal.edges + robot.right_signal.edges,
             "lidar_bytes_sent": emulator.stats.bytes_sent,
             "lidar_samples_sent": emulator.stats.samples_sent,
+            "lidar_revolution_starts_s": list(emulator.stats.revolution_starts_s),
             **counts,
         }))
 

@@ -117,6 +117,12 @@ class OdometryHistory:
             return None
         return float(buf[start, 0]), float(buf[end - 1, 0])
 
+    def since(self, time_s: float) -> np.ndarray:
+        """The entries newer than ``time_s``: rows (t, x, y, unwrapped θ), a copy (benchmarks log them)."""
+        buf, start, end = self._live
+        live = buf[start:end]
+        return live[np.searchsorted(live[:, 0], time_s, side="right"):].copy()
+
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Odometry poses (x, y, unwrapped θ) at the given times; the shape of ``preprocess.PoseAtTime``."""
         return self._at(self._live, times_s)  # one read: consistent while another thread appends

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import math
 import multiprocessing
@@ -515,6 +516,11 @@ def _child_control(config: Config, view: ChildView) -> Any:
 def child_main(link_name: str, config: Config, kit_opener: Callable[[], Any], stop_rx: Connection,
                log_level: str) -> None:
     """The control process: tick until told to stop, or until the main process is gone; brake on every way out."""
+    # The objects this process inherited from the fork server (numpy, scipy, the SLAM modules
+    # the loop-closure worker needs) stay out of its garbage collector: a collection writes to
+    # every object it examines, and each page it writes to is copied out of the fork server's
+    # and counts whole in this process's memory (gc.freeze: Python's gc module documentation)
+    gc.freeze()
     stopping = []
     # first of all, before the imports below take their time: a Ctrl-C to the whole process group
     # (a terminal's) while this process starts must stop it quietly, not as a KeyboardInterrupt
@@ -597,7 +603,10 @@ def _take_output(link: ControlLink, state: SharedState, heartbeat: Any, meter: A
 def start_child(link: ControlLink, config: Config, kit_opener: Callable[[], Any],
                 log_level: str) -> tuple[multiprocessing.process.BaseProcess, Connection]:
     """Start the control process from the fork server; returns it and the stop pipe's sending end."""
+    from mazebot.slam.loop_worker import FORKSERVER_PRELOAD
+
     ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(list(FORKSERVER_PRELOAD))  # in case this child starts the server
     stop_rx, stop_tx = ctx.Pipe(duplex=False)
     child = ctx.Process(target=child_main, name="mazebot-control", daemon=True,
                         args=(link.name, config, kit_opener, stop_rx, log_level))

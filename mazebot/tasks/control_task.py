@@ -34,8 +34,6 @@ from mazebot.config import (
     RobotConfig,
 )
 from mazebot.io.motors import MotorWriteError
-from mazebot.planner.dwa import scan_points_robot
-from mazebot.planner.pilot import moved_since_scan
 from mazebot.planner.safety import CollisionGuard, ControlWatchdog, SafetyLayer
 from mazebot.planner.wheel_control import DriveMode, WheelController, WheelGainEstimator, WheelSpeedEstimator
 from mazebot.state import SharedState
@@ -172,6 +170,11 @@ class MotorControl:
         The control process (:mod:`mazebot.tasks.control_process`) gets them from shared
         memory instead, prepared the same way by the daemon's main process.
         """
+        # imported here, not with the module: the control process (which overrides this method)
+        # imports this module too, and the planner's modules bring scipy and the SLAM grid
+        from mazebot.planner.dwa import scan_points_robot
+        from mazebot.planner.pilot import moved_since_scan
+
         scan = state.latest_scan
         if scan is None:
             return None, None

@@ -10,6 +10,18 @@ from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import DiffDriveOdometry
 from mazebot.state import SharedState
 
+#: With the motors braked (both throttles 0) and no new edge for this long, the wheels rest
+#: and the odometry pose holds up to the reading's time. Until then a reading without a new
+#: edge adds nothing to the history: the edges may only be late (under a 25 % quota the
+#: thread that counts them waits 80 ms and more for its turn, 270 ms once on a 16x16 maze),
+#: and a pose dated "now" would then be that stale. Longer than the HAT's short brake takes
+#: to stop a wheel; SLAM waits for the odometry to cover a revolution (``slam_task``), so
+#: one or two revolutions after a stop wait that long.
+REST_AFTER_S = 0.25
+#: Driven but without a single edge for this long, a wheel does not turn (a throttle in the
+#: motor's dead band, a jammed wheel): its pose holds, whatever the throttles say.
+STILL_WHEN_DRIVEN_S = 1.0
+
 
 async def run(
     encoders,
@@ -37,13 +49,25 @@ async def run(
     state.odometry_history = history
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     meter = state.cpu.part("odometry")
+    last_counts: tuple[int, int] | None = None
+    driven_s = -math.inf  # the last reading while a throttle was not 0
     while True:
         with meter.measure():
             reading = encoders.read()
             odometry.update(reading.left_ticks, reading.right_ticks)
             odo = odometry.pose
             now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
-            history.append(now_s, odo.x_m, odo.y_m, odo.theta_rad)
+            counts = (reading.left_ticks, reading.right_ticks)
+            if state.throttles != (0.0, 0.0):
+                driven_s = now_s
+            pose_s = _pose_time_s(now_s, getattr(reading, "edge_age_s", None), counts != last_counts, history,
+                                  now_s - driven_s)
+            if counts != last_counts and getattr(reading, "edge_age_s", None) is not None:
+                state.odometry_edge_age_ms.append(reading.edge_age_s * 1000.0)
+            last_counts = counts
+            if pose_s is not None:
+                history.append(pose_s, odo.x_m, odo.y_m, odo.theta_rad)
+                state.pose_time_s = pose_s
             stats = state.sensors
             stats.encoder_ticks_left = reading.left_ticks
             stats.encoder_ticks_right = reading.right_ticks
@@ -53,9 +77,36 @@ async def run(
             state.pose.x_m = x
             state.pose.y_m = y
             state.pose.theta_rad = th
-            state.pose_time_s = now_s
             state.wheel_ticks = (now_s, reading.left_ticks, reading.right_ticks)
         await clock.sleep(period_s)
+
+
+def _pose_time_s(now_s: float, edge_age_s: float | None, new_edges: bool, history: OdometryHistory,
+                 braked_s: float = math.inf) -> float | None:
+    """The time an odometry reading's pose describes; None: nothing new to add to the history.
+
+    The counts hold every edge up to the newest one counted, so the pose is the wheels' pose
+    at that edge's stamp (``now_s - edge_age_s``), not at the time of reading: under a CPU
+    quota the encoder thread gets the edges in bursts, tens of milliseconds late, and a pose
+    dated by the reading time is that late too (SLAM de-skews and predicts each revolution
+    from these dates). Without a new edge the counts are older than the reading only if the
+    edges are late: the pose holds until now only once the wheels rest (``braked_s``, how
+    long the motors have been braked, and the newest edge both ``REST_AFTER_S`` old, or no
+    edge for ``STILL_WHEN_DRIVEN_S``). No usable stamp (a pin factory on another clock):
+    the reading's time, as before. Never earlier than the history's newest entry.
+    """
+    if edge_age_s is None:
+        pose_s = now_s
+    elif new_edges:
+        pose_s = now_s - edge_age_s
+    elif (edge_age_s >= REST_AFTER_S and braked_s >= REST_AFTER_S) or edge_age_s >= STILL_WHEN_DRIVEN_S:
+        pose_s = now_s
+    else:
+        return None
+    span = history.span_s
+    if span is not None and pose_s < span[1]:
+        return span[1] if new_edges else None
+    return pose_s
 
 
 def _compose(a: tuple[float, float, float], x_m: float, y_m: float, theta_rad: float) -> tuple[float, float, float]:

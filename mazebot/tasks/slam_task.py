@@ -43,8 +43,12 @@ log = logging.getLogger(__name__)
 SLOW_JOB_S = 0.45
 #: At most one wheel-slip note this often.
 SLIP_NOTE_EVERY_S = 5.0
-#: Longest wait for the odometry to reach a scan's last sample (it runs at >= 50 Hz).
-ODOMETRY_WAIT_S = 0.1
+#: Longest wait for the odometry to reach a scan's last sample. The odometry is dated by the
+#: encoder edges (``odometry_task``): it reaches a time once the edges up to it are counted,
+#: which a starved encoder thread does late (270 ms once under a 25 % quota); at rest the
+#: odometry holds its pose up to now after ``odometry_task.REST_AFTER_S``. A safety net for a
+#: stalled odometry task: a revolution de-skewed past the odometry's end is bent.
+ODOMETRY_WAIT_S = 0.5
 #: Faults that say the wheel odometry cannot be trusted (an encoder dead, the robot lost).
 ODOMETRY_FAULTS = frozenset({"encoders", "localization"})
 #: Revolutions in a row that fit the odometry (matched, no slip) before SLAM paints again.
@@ -232,6 +236,13 @@ class SlamTask:
         history = await _odometry_covering(state, self.clock, scan.end_time_s)
         if history is None or self.search is not None:
             return False  # no odometry yet, or a search for the robot is under way
+        span = history.span_s
+        if span is not None and span[1] < scan.end_time_s:
+            # the encoder edges of the revolution's end are still on their way (a process
+            # starved for longer than the wait): a pose held there would bend the revolution
+            # and make the guard call the robot lost; this one is left out, the next will do
+            state.slam.uncovered += 1
+            return False
         guard_start_s = time.thread_time()
         verdict = guard.check(slam, scan, history)
         guard_cpu_s = time.thread_time() - guard_start_s  # part of this revolution's SLAM cost
@@ -352,15 +363,19 @@ def _scan_failed(state: SharedState, clock: Clock, exc: Exception) -> None:
 
 
 async def _odometry_covering(state: SharedState, clock: Clock, time_s: float) -> OdometryHistory | None:
-    """The odometry history once it reaches ``time_s`` (at most ``ODOMETRY_WAIT_S`` later)."""
+    """The odometry history once it reaches ``time_s`` (at most ``ODOMETRY_WAIT_S`` later, and
+    at least 10 polls: a process that was not running for the whole wait gives the odometry its
+    turns before giving up)."""
     deadline_s = clock.now_s() + ODOMETRY_WAIT_S
+    polls = 0
     while True:
         history = state.odometry_history
-        latest = None if history is None else history.latest
-        if latest is not None and latest[0] >= time_s:
+        span = None if history is None else history.span_s
+        if span is not None and span[1] >= time_s:
             return history
-        if clock.now_s() >= deadline_s:
-            return history if latest is not None else None
+        if clock.now_s() >= deadline_s and polls >= 10:
+            return history if span is not None else None
+        polls += 1
         await clock.sleep(0.005)
 
 

@@ -6,6 +6,7 @@ The device tests drive real gpiozero mock pins, so the code under test is the sa
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections.abc import Iterator
 
@@ -299,7 +300,9 @@ def test_pair_from_config_reads_both_wheels(factory: MockFactory) -> None:
         drive_cycles(right_a, right_b, 2, forward=False)  # B leading: mirrored forward
         right_a.drive_low()
         right_a.drive_high()  # a bounce: nets zero
-        assert encoders.read() == EncoderReading(
+        reading = encoders.read()
+        assert reading.edge_age_s is not None and 0.0 <= reading.edge_age_s < 60.0  # gpiozero's mock stamps: monotonic
+        assert dataclasses.replace(reading, edge_age_s=None) == EncoderReading(
             left_ticks=3 * cfg.ticks_per_rev // cfg.counts_per_rev,
             right_ticks=2 * 4,
             invalid_transitions=0,
@@ -332,3 +335,45 @@ def test_pair_from_config_releases_left_if_right_fails(factory: MockFactory) -> 
         WheelEncoders.from_config(cfg, factory)
     with WheelEncoder(cfg.left_a_pin, cfg.left_b_pin, pin_factory=factory):  # left is free
         pass
+
+
+# --- edge time stamps -----------------------------------------------------------------
+
+
+def test_a_reading_says_how_old_its_newest_edge_is_by_the_edges_own_stamp() -> None:
+    """Edges handled late (a throttled process) still carry the time they happened.
+
+    The simulator's pins are driven with the world's time stamps, as lgpio's callbacks get
+    the kernel's: the reading's ``edge_age_s`` is measured from the stamp, not from when the
+    callback ran.
+    """
+    from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
+
+    now = [100.0]
+    factory = SimPinFactory(pin_class=BoundedHistoryPin, time_source=lambda: now[0])
+    cfg = EncodersConfig()
+    with WheelEncoders.from_config(cfg, factory) as encoders:
+        assert encoders.read().edge_age_s is None  # no edge yet
+        left_a = factory.pin(cfg.left_a_pin)
+        right_a = factory.pin(cfg.right_a_pin)
+        now[0] = 100.050  # both edges reach the callbacks 50 ms and 30 ms after they happened
+        factory.drive(left_a, 0, time_s=100.000)
+        factory.drive(right_a, 0, time_s=100.020)
+        reading = encoders.read()
+        assert reading.edge_age_s == pytest.approx(0.030)  # the newer of the two wheels' edges
+        assert (abs(reading.left_ticks), abs(reading.right_ticks)) == (1, 1)
+        now[0] = 100.070  # read again later: the same edges are older
+        assert encoders.read().edge_age_s == pytest.approx(0.050)
+
+
+def test_an_edge_stamp_on_another_clock_gives_no_age() -> None:
+    """A stamp the pin factory's clock cannot be compared with is never taken for an age."""
+    from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
+
+    factory = SimPinFactory(pin_class=BoundedHistoryPin, time_source=lambda: 5.0)
+    cfg = EncodersConfig()
+    with WheelEncoders.from_config(cfg, factory) as encoders:
+        factory.drive(factory.pin(cfg.left_a_pin), 0, time_s=1.7e9)  # an epoch stamp against a monotonic clock
+        reading = encoders.read()
+        assert reading.edge_age_s is None
+        assert reading.left_ticks != 0  # the edge still counts

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import random
+import time
 
 import pytest
 
@@ -18,6 +19,7 @@ from mazebot.io.encoders import WheelEncoders
 from mazebot.sim.encoder_signals import QuadratureSignal
 from mazebot.sim.remote_devices import GpioEdgeThread, PipeMotorKit
 from mazebot.sim.world_process import (
+    EDGES_TIME,
     EdgeRecordingFactory,
     decode_throttle,
     edge_byte,
@@ -90,19 +92,24 @@ def test_the_daemons_encoders_count_the_worlds_edges_through_the_gpio_thread() -
         thread.start()
         wheels = Wheels(world, config)  # its idle levels are the first message
         sent = 0
-        for angle in angles:  # one message per world step, as the world process sends them
+        step_s = time.monotonic() - 1.0  # the steps happened a second ago: the edges reach the daemon late
+        for angle in angles:  # one message per world step, with its time, as the world process sends them
             wheels.turn(*angle)
+            step_s += 0.001
             data = world.take_edges()
             if data:
-                tx.send_bytes(data)
+                tx.send_bytes(EDGES_TIME.pack(step_s) + data)
                 sent += len(data)
         tx.close()  # the world is gone: the thread ends once it has driven every edge
         thread.join(10.0)
         assert not thread.is_alive()
         got = encoders.read()
+        age_s = time.monotonic() - step_s
     assert thread.edges == sent > 2000
     assert (got.left_ticks, got.right_ticks) == (expected.left_ticks, expected.right_ticks)
     assert got.invalid_transitions == 0
+    # the counts are dated by the world's step, not by when the thread drove them
+    assert got.edge_age_s is not None and age_s - 0.05 <= got.edge_age_s <= age_s
 
 
 def test_the_motor_kit_checks_the_range_and_sends_every_write_it_accepts() -> None:

@@ -56,3 +56,107 @@ def test_no_encoder_reading_yet_is_no_speed_not_a_zero_count() -> None:
     smoothing = control.estimator.smoothing
     want = ((1 - smoothing) * 10 * per_tick_m / 0.05, (1 - smoothing) * 20 * per_tick_m / 0.05)
     assert state.wheel_speeds_mps == pytest.approx(want)
+
+
+def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> None:
+    """Under a CPU quota the encoder thread gets the edges in bursts; the history stays true.
+
+    A wheel pair turning the robot on the spot at a steady rate; the edges reach the
+    counters late and in bursts (nothing for 60 ms, then all until 30 ms ago). Every history
+    entry must be the true pose at its time, to within a tick; the reading time (the old
+    stamp) was 30 to 90 ms of turning late.
+    """
+    import asyncio
+
+    from mazebot.config import Config
+    from mazebot.io.encoders import WheelEncoders
+    from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
+    from mazebot.slam.odometry import DiffDriveOdometry
+    from mazebot.state import SharedState
+    from mazebot.tasks import odometry_task
+
+    config = Config()
+    enc, drive = config.encoders, config.drive
+    now = [0.0]
+    factory = SimPinFactory(pin_class=BoundedHistoryPin, time_source=lambda: now[0])
+    encoders = WheelEncoders.from_config(enc, factory)
+    edges_per_s = 1000.0  # per wheel: left backward, right forward (a turn on the spot)
+    left = (factory.pin(enc.left_a_pin), factory.pin(enc.left_b_pin))
+    right = (factory.pin(enc.right_a_pin), factory.pin(enc.right_b_pin))
+    gray = ((0, 0), (1, 0), (1, 1), (0, 1))
+    start = 2 if enc.pull_up else 0  # the pins rest high with pull-ups
+    step = [start, start]
+    sent = [0.0]  # the time up to which the edges have been delivered
+
+    def deliver(until_s: float) -> None:
+        """Drive every edge that happened up to ``until_s``, each with its own stamp."""
+        n = int(until_s * edges_per_s)
+        while sent[0] < n:
+            sent[0] += 1
+            t = sent[0] / edges_per_s
+            for k, (pins, direction, invert) in enumerate(((left, -1, enc.left_invert), (right, 1, enc.right_invert))):
+                sign = -direction if invert else direction
+                new = (step[k] + sign) % 4
+                old_levels, new_levels = gray[step[k]], gray[new]
+                channel = 0 if old_levels[0] != new_levels[0] else 1
+                factory.drive(pins[channel], new_levels[channel], time_s=t)
+                step[k] = new
+
+    slept = asyncio.Event()
+
+    class ManualClock:
+        def now_s(self) -> float:
+            return now[0]
+
+        async def sleep(self, duration_s: float) -> None:
+            now[0] += duration_s
+            if int(now[0] / 0.06) != int((now[0] - duration_s) / 0.06):
+                deliver(now[0] - 0.03)  # a burst every 60 ms: all that happened until 30 ms ago
+            slept.set()
+            await asyncio.sleep(0)
+
+    state = SharedState()
+    odometry = DiffDriveOdometry(enc.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m,
+                                 drive.wheel_diameter_ratio)
+
+    async def run_for(duration_s: float) -> None:
+        task = asyncio.create_task(odometry_task.run(encoders, state, ManualClock(), enc, drive, odometry=odometry))
+        while now[0] < duration_s:  # the manual clock moves only as the task sleeps on it
+            await slept.wait()
+            slept.clear()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    with encoders:
+        asyncio.run(run_for(1.0))
+    per_tick_m = math.pi * drive.wheel_diameter_m / enc.ticks_per_rev
+    true_rate_radps = 2 * edges_per_s * per_tick_m / drive.track_width_m  # each wheel's edges are ticks (x4)
+    history = state.odometry_history
+    span = history.span_s
+    assert span is not None
+    times = np.linspace(max(span[0], 0.1), span[1], 50)
+    _, _, theta = history.at(times)
+    tick_rad = 2 * per_tick_m / drive.track_width_m
+    assert np.max(np.abs(theta - true_rate_radps * times)) <= 2 * tick_rad
+    # dated by the reading time the same history would be 60 ms of turning behind at worst
+    assert 0.06 * true_rate_radps > 10 * tick_rad
+    ages = np.asarray(state.odometry_edge_age_ms)
+    assert ages.min() >= 29.0  # the bursts were late indeed
+
+
+def test_a_reading_without_new_edges_holds_the_pose_only_once_the_wheels_rest() -> None:
+    """No new edge: late edges while the motors drive (nothing added), a rest once braked (now)."""
+    from mazebot.slam.ekf import OdometryHistory
+    from mazebot.tasks.odometry_task import REST_AFTER_S, STILL_WHEN_DRIVEN_S, _pose_time_s
+
+    history = OdometryHistory(3.0)
+    history.append(10.0, 0.0, 0.0, 0.0)
+    assert _pose_time_s(10.5, 0.02, True, history, braked_s=0.0) == 10.48  # new edges: the newest one's stamp
+    assert _pose_time_s(10.5, None, False, history) == 10.5  # no usable stamp: the reading's time
+    late = REST_AFTER_S + 0.1
+    assert _pose_time_s(10.5, late, False, history, braked_s=0.0) is None  # driven: the edges may be late
+    assert _pose_time_s(10.5, late, False, history, braked_s=late) == 10.5  # braked and still: at rest
+    assert _pose_time_s(10.5, 0.05, False, history, braked_s=late) is None  # braked a moment ago: may coast
+    assert _pose_time_s(12.0, STILL_WHEN_DRIVEN_S, False, history, braked_s=0.0) == 12.0  # driven, never turning
+    assert _pose_time_s(10.5, 0.6, True, history, braked_s=0.0) == 10.0  # never before the newest entry

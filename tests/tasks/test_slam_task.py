@@ -309,3 +309,30 @@ async def test_the_default_queue_holds_a_burst_of_revolutions_that_the_odometry_
     assert state.scans.qsize() == burst
     oldest_age_s = config.slam.scan_queue_size * revolution_s
     assert oldest_age_s < config.slam.odometry_history_s
+
+
+async def test_a_revolution_the_odometry_never_reaches_is_left_out_not_judged_with_a_held_pose() -> None:
+    """The encoder edges of a revolution's end never came (a starved encoder thread): left out, counted.
+
+    Judged and de-skewed with the pose held at the odometry's end, a turning robot's revolution
+    looks rotated and the guard calls the robot lost; the next revolution, which the odometry
+    reaches, is processed.
+    """
+    state = SharedState()
+    history = OdometryHistory()
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(1.1, 0.0, 0.0, 0.0)  # the odometry stops at 1.1 s
+    state.odometry_history = history
+    fake = FakeSlam()
+    with ThreadPoolExecutor(max_workers=1) as executor:
+        task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
+        await state.scans.put(_static_scan(1.0, np.zeros(3)))  # reached
+        await state.scans.put(_static_scan(1.2, np.zeros(3)))  # not reached, ever
+        await _until(lambda: state.slam.uncovered == 1, timeout_s=5.0)
+        history.append(1.5, 0.0, 0.0, 0.0)  # the late edges arrive
+        await state.scans.put(_static_scan(1.4, np.zeros(3)))
+        await _until(lambda: fake.scans == 2)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    assert state.slam.uncovered == 1 and fake.scans == 2

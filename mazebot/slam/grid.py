@@ -18,8 +18,8 @@ beams with ``np.repeat``; no Python loop per beam or cell). The sample that fall
 endpoint's cell and everything after it is not marked free.
 
 Within ``blind_range_m`` of where it starts (the lidar's minimum range) a beam lowers
-only cells that hold no evidence of a wall (log odds ≤ 0): it can make the robot's own
-surroundings free, but never erases what was seen there. Inside that distance the sensor
+only cells not believed occupied: it can make the robot's own surroundings free and
+settle a cell one stray hit left unknown, but never erases a wall or leg seen there. Inside that distance the sensor
 cannot see an obstacle: a 2 cm table leg 10 cm from an RPLidar A1 (minimum range 0.15 m,
 datasheet) gives no return at all, while the beams passing a degree beside it still cross
 the 2 cm cells its face was painted in from farther away. Clearing there erased the leg
@@ -92,8 +92,7 @@ class OccupancyGrid:
     occupied above ``occupied_prob``, free below ``free_prob``), ``max_free_range_m``
     the length up to which a no-return beam clears space, ``margin_m`` the extra room
     added on each side when the grid grows, ``blind_range_m`` the stretch at the start of
-    every beam that clears no cell holding evidence of a wall (the lidar's minimum range;
-    module docstring).
+    every beam that clears no occupied cell (the lidar's minimum range; module docstring).
     """
 
     def __init__(
@@ -235,12 +234,12 @@ class OccupancyGrid:
         is_free &= ~is_hit
         cols = self.shape[1]
         flat = self.log_odds.reshape(-1)
-        if blind_c.size:  # crossed only within the blind zone: free unless a wall was seen there
+        if blind_c.size:  # crossed only within the blind zone: lowered unless believed occupied
             is_blind = np.zeros(shape, dtype=bool)
             is_blind.reshape(-1)[(blind_r - lo[1]) * shape[1] + (blind_c - lo[0])] = True
             br, bc = np.nonzero(is_blind & ~is_free & ~is_hit)
-            blind_flat = (br + lo[1]) * cols + (bc + lo[0])
-            is_free[br[flat[blind_flat] <= 0.0], bc[flat[blind_flat] <= 0.0]] = True
+            lower = flat[(br + lo[1]) * cols + (bc + lo[0])] <= self.occupied_logodds
+            is_free[br[lower], bc[lower]] = True
         fr, fc = np.nonzero(is_free)
         hr, hc = np.nonzero(is_hit)
         free_flat = (fr + lo[1]) * cols + (fc + lo[0])

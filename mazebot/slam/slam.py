@@ -113,7 +113,7 @@ class OdometrySource(Protocol):
 @dataclass(frozen=True)
 class GridParams(GridSection):
     """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`),
-    and the lidar's minimum range: beams erase no wall that close (the sensor cannot see there)."""
+    and the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there)."""
 
     blind_range_m: float = LidarConfig().min_range_m
 

@@ -224,6 +224,19 @@ def test_the_blind_zone_keeps_a_leg_the_robot_came_too_close_to_see_and_forgets_
     assert len(memory) == 0
 
 
+def test_the_blind_zone_forgets_after_so_many_revolutions_the_odometry_drifts_over() -> None:
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15, max_age_revolutions=10)
+    memory.add_scan(_leg_returns((0.0, 0.0), (0.2, 0.0)), (0.0, 0.0, 0.0))  # seen at 0.19 m
+    memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # 0.11 m: kept
+    for k in range(8):  # turning beside it: still kept
+        memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.5 * k))
+    assert len(memory) == 1
+    memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # the tenth revolution since it was seen
+    assert len(memory) == 0
+
+
 def test_the_blind_zone_refuses_negative_ranges() -> None:
     from mazebot.planner.safety import BlindZoneMemory
 

@@ -45,7 +45,7 @@ from mazebot.planner.dwa import (
 )
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import MazeGraph
-from mazebot.planner.safety import reframe_points
+from mazebot.planner.safety import BlindZoneMemory, reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
 from mazebot.steps import all_at_once_method
@@ -97,6 +97,8 @@ class Pilot:
         self.drive_ticks = 0
         self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
+        #: returns the lidar saw close by and can no longer see (inside its minimum range)
+        self.blind_zone = BlindZoneMemory(params.lidar_min_range_m, lidar_xy_m=params.lidar_mount_xy_m)
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
         self._drive_inputs: tuple[np.ndarray, tuple[float, float], float, tuple[float, float]] | None = None
 
@@ -305,17 +307,24 @@ class Pilot:
         return sum(1 for cell in reachable if graph.is_explored(cell)) / len(reachable)
 
     def _scan_points(self, state: SharedState) -> np.ndarray:
-        """The latest revolution's valid returns, robot frame, moved to where the robot is now."""
+        """The latest revolution's valid returns, robot frame, moved to where the robot is now,
+        and the returns remembered inside the lidar's blind zone (:class:`BlindZoneMemory`)."""
         scan = state.latest_scan
         if scan is None:
             return np.zeros((0, 2))
+        history, odo = state.odometry_history, state.odometry
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
             lidar = self.params.lidar
             points = scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, lidar.min_range_m,
                                        lidar.max_range_m, (lidar.mount_x_m, lidar.mount_y_m))
             self._scan_cache = (id(scan), points)
-        points = self._scan_cache[1]
-        return moved_since_scan(points, scan.end_time_s, state)
+            if history is not None and len(history) > 0:
+                then = history.pose_at(scan.end_time_s)
+                self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])))
+        points = moved_since_scan(self._scan_cache[1], scan.end_time_s, state)
+        if odo is None or len(self.blind_zone) == 0:
+            return points
+        return np.concatenate((points, self.blind_zone.points_robot((odo.x_m, odo.y_m, odo.theta_rad))))
 
 
 def moved_since_scan(points_robot: np.ndarray, scan_time_s: float, state: SharedState) -> np.ndarray:

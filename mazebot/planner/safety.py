@@ -78,6 +78,97 @@ def reframe_points(
     return np.column_stack((c1 * dx + s1 * dy, -s1 * dx + c1 * dy))
 
 
+class BlindZoneMemory:
+    """Lidar returns seen close by, kept while they lie inside the lidar's minimum range.
+
+    Example::
+
+        memory = BlindZoneMemory(min_range_m=0.15)
+        memory.add_scan(points_robot, pose_at_scan)        # once per revolution, odometry frame
+        extra = memory.points_robot(pose_now)               # what the scan cannot show now
+
+    The RPLidar A1 reports nothing closer than 0.15 m (datasheet), more than the 0.09 m
+    footprint: a 2 cm table leg the robot stopped 12 cm from is in no scan at all, and a
+    robot that turns there and drives off towards it has nothing in its latest scan to
+    stop it (a hand-built 8×8 maze: contact 1 s after the turn, the leg gone from the map).
+    So returns within ``reach_m`` of the lidar's minimum range are remembered (odometry
+    frame), and a remembered return is dropped once a revolution's lidar stood farther
+    than ``min_range_m + motion_margin_m`` from it: then that revolution could see it,
+    and shows it again if it is still there. ``motion_margin_m`` covers the lidar's
+    travel during one revolution (0.18 s at 0.3 m/s: 5 cm), since a return's beam may
+    have swept past before the robot came that close.
+
+    A return is also dropped ``max_age_revolutions`` revolutions after it was seen
+    (40: 7 s of an A1): the odometry frame drifts, most of all in the cheap robot's
+    turns in place (slip, backlash), and a robot stuck turning beside a wall otherwise
+    gathers smeared copies of it that close in until nothing can move (a hand-built 6×6
+    maze: 40 recoveries in a row). A revolution count, not seconds, so a slow computer
+    forgets after as much motion as a fast one. ``lidar_xy_m`` is the lidar's mount
+    offset in the robot frame; one return is kept per ``voxel_m`` square, at most
+    ``max_points`` of them.
+    """
+
+    def __init__(
+        self,
+        min_range_m: float,
+        reach_m: float = 0.1,
+        motion_margin_m: float = 0.05,
+        max_age_revolutions: int = 40,
+        lidar_xy_m: tuple[float, float] = (0.0, 0.0),
+        voxel_m: float = 0.01,
+        max_points: int = 2000,
+    ) -> None:
+        if min_range_m < 0 or reach_m < 0 or motion_margin_m < 0:
+            raise ValueError(f"need non-negative ranges, got {min_range_m}, {reach_m}, {motion_margin_m}")
+        if voxel_m <= 0 or max_points < 1 or max_age_revolutions < 1:
+            raise ValueError(f"need a positive voxel, age and point count, got {voxel_m}, {max_age_revolutions}, "
+                             f"{max_points}")
+        self.min_range_m = float(min_range_m)
+        self.reach_m = float(reach_m)
+        self.motion_margin_m = float(motion_margin_m)
+        self.max_age_revolutions = int(max_age_revolutions)
+        self.lidar_xy_m = (float(lidar_xy_m[0]), float(lidar_xy_m[1]))
+        self.voxel_m = float(voxel_m)
+        self.max_points = int(max_points)
+        self.revolutions = 0
+        self._points = np.zeros((0, 3))  # odometry frame x, y and the revolution it was seen in
+        self._recent = np.zeros((0, 3))  # the last revolution's own near returns (the scan shows them)
+
+    def __len__(self) -> int:
+        return int(self._points.shape[0])
+
+    def clear(self) -> None:
+        self._points = np.zeros((0, 3))
+        self._recent = np.zeros((0, 3))
+
+    def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float]) -> None:
+        """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``."""
+        self.revolutions += 1
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        lx = pose[0] + c * self.lidar_xy_m[0] - s * self.lidar_xy_m[1]
+        ly = pose[1] + s * self.lidar_xy_m[0] + c * self.lidar_xy_m[1]
+        old = np.concatenate((self._points, self._recent))
+        unseen = np.hypot(old[:, 0] - lx, old[:, 1] - ly) < self.min_range_m + self.motion_margin_m
+        unseen &= old[:, 2] > self.revolutions - self.max_age_revolutions
+        kept = old[unseen]
+        if kept.shape[0]:  # one return per voxel: a robot standing beside a wall adds its returns every revolution
+            _, first = np.unique(np.floor(kept[:, :2] / self.voxel_m).astype(np.int64), axis=0, return_index=True)
+            kept = kept[np.sort(first)]
+        self._points = kept[-self.max_points:]
+        pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
+        rx, ry = pts[:, 0] - self.lidar_xy_m[0], pts[:, 1] - self.lidar_xy_m[1]
+        near = pts[np.hypot(rx, ry) < self.min_range_m + self.reach_m]
+        self._recent = np.column_stack((pose[0] + c * near[:, 0] - s * near[:, 1],
+                                        pose[1] + s * near[:, 0] + c * near[:, 1],
+                                        np.full(near.shape[0], float(self.revolutions))))
+
+    def points_robot(self, pose: tuple[float, float, float]) -> np.ndarray:
+        """The remembered returns the last revolution could not show, in the robot frame at odometry ``pose``."""
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dx, dy = self._points[:, 0] - pose[0], self._points[:, 1] - pose[1]
+        return np.column_stack((c * dx + s * dy, -s * dx + c * dy))
+
+
 class CollisionGuard:
     """Emergency stop on lidar returns in the robot's path.
 

@@ -118,7 +118,10 @@ class OdometrySource(Protocol):
 
 @dataclass(frozen=True)
 class GridParams(GridSection):
-    """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`)."""
+    """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`),
+    and the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there)."""
+
+    blind_range_m: float = LidarConfig().min_range_m
 
     def new_grid(self) -> OccupancyGrid:
         return OccupancyGrid(**section_values(self))
@@ -193,7 +196,7 @@ class SlamParams(FilterSection, MatchingSection, KeyframeSection, GraphSection, 
             normals=slam.normals,
             motion=as_params(MotionNoise, slam.motion),
             loop=loop,
-            grid=as_params(GridParams, slam.grid),
+            grid=as_params(GridParams, slam.grid, blind_range_m=lidar.min_range_m),
             map_smoothing=slam.smoothing if slam.map_smooth_endpoints else None,
             correlative=slam.search if slam.correlative else None,
             lattice=lattice,

@@ -186,3 +186,59 @@ def test_the_guard_stops_exactly_when_a_return_on_the_whole_sweep_is_inside() ->
             stops += 1
             assert verdict.nearest_m == pytest.approx(want)
     assert 50 < stops < 350  # both verdicts were exercised
+
+
+def _leg_returns(lidar_xy: tuple[float, float], leg_xy: tuple[float, float], min_range_m: float = 0.15) -> np.ndarray:
+    """Robot-frame returns (heading 0) of a 2 cm leg's near face: none inside the minimum range."""
+    dx, dy = leg_xy[0] - lidar_xy[0], leg_xy[1] - lidar_xy[1]
+    d = math.hypot(dx, dy)
+    if d - 0.01 < min_range_m:
+        return np.zeros((0, 2))
+    face = (d - 0.01) / d
+    return np.array([[dx * face, dy * face]])
+
+
+def test_the_blind_zone_keeps_a_leg_the_robot_came_too_close_to_see_and_forgets_it_once_it_could_see_it() -> None:
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15)
+    leg = (0.3, 0.0)
+    for x in (0.0, 0.05, 0.1):  # driving at it: seen at 0.29, 0.24, 0.19 m
+        memory.add_scan(_leg_returns((x, 0.0), leg), (x, 0.0, 0.0))
+    # within a revolution's travel of the blind zone a return is kept, though the scan shows it too
+    np.testing.assert_allclose(memory.points_robot((0.1, 0.0, 0.0)), [[0.19, 0.0]], atol=1e-9)
+    memory.add_scan(_leg_returns((0.18, 0.0), leg), (0.18, 0.0, 0.0))  # 0.11 m: the scan shows nothing
+    for _ in range(20):  # standing there: the same return is kept once
+        memory.add_scan(np.zeros((0, 2)), (0.18, 0.0, 0.0))
+    ahead = memory.points_robot((0.18, 0.0, 0.0))
+    np.testing.assert_allclose(ahead, [[0.11, 0.0]], atol=1e-9)
+    # turned away and back, still there, in the frame of the turned robot
+    memory.add_scan(np.zeros((0, 2)), (0.18, 0.0, math.pi / 2))
+    np.testing.assert_allclose(memory.points_robot((0.18, 0.0, math.pi / 2)), [[0.0, -0.11]], atol=1e-9)
+    # the guard, given it, stops a drive at the leg the scan no longer shows
+    guard = CollisionGuard()
+    assert not guard.check(np.zeros((0, 2)), v_mps=0.2, w_radps=0.0).stop
+    assert guard.check(memory.points_robot((0.18, 0.0, 0.0)), v_mps=0.2, w_radps=0.0).stop
+    # backed off to where a revolution sees that place again: the memory lets go
+    memory.add_scan(np.zeros((0, 2)), (0.0, 0.0, 0.0))  # 0.29 m away and nothing there: the leg was moved
+    assert len(memory) == 0
+
+
+def test_the_blind_zone_forgets_after_so_many_revolutions_the_odometry_drifts_over() -> None:
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15, max_age_revolutions=10)
+    memory.add_scan(_leg_returns((0.0, 0.0), (0.2, 0.0)), (0.0, 0.0, 0.0))  # seen at 0.19 m
+    memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # 0.11 m: kept
+    for k in range(8):  # turning beside it: still kept
+        memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.5 * k))
+    assert len(memory) == 1
+    memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # the tenth revolution since it was seen
+    assert len(memory) == 0
+
+
+def test_the_blind_zone_refuses_negative_ranges() -> None:
+    from mazebot.planner.safety import BlindZoneMemory
+
+    with pytest.raises(ValueError, match="non-negative"):
+        BlindZoneMemory(min_range_m=-0.15)

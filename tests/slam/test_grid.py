@@ -265,3 +265,34 @@ def test_lines_near_the_centres_of_the_cells_as_they_are_leave_the_cells_there()
     fit = PitchFit(0.3048, (0.1524, 0.1524), 1.0, (6, 6), True, True)  # a 1 ft maze from its start cell
     assert cell_offset_on_lattice(fit, 0.0, 0.02) is None
     assert cell_offset_on_lattice(replace(fit, phase_m=(0.1524, 0.161)), 0.0, 0.02) == pytest.approx((0.0, 0.011))
+
+
+def _leg_scans(grid: OccupancyGrid, pose: np.ndarray, leg: np.ndarray, times: int, min_range_m: float = 0.15) -> None:
+    """``times`` revolutions of 360 beams in a 2 m square room holding one leg (a disc); returns
+    closer than ``min_range_m`` are dropped, as the driver drops the A1's invalid samples."""
+    from mazebot.sim.raycast import cast_rays
+
+    corners = np.array([(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)])
+    segments = np.column_stack((corners, np.roll(corners, -1, axis=0)))
+    rng = np.random.default_rng(1)
+    for _ in range(times):
+        angles = np.linspace(-np.pi, np.pi, 360, endpoint=False) + rng.uniform(0.0, np.radians(1.0))
+        ranges = cast_rays(pose[:2], angles + pose[2], segments, leg[None], 12.0)
+        keep = np.isfinite(ranges) & (ranges >= min_range_m)
+        ends, hit = _beams(angles[keep], ranges[keep], pose)
+        grid.integrate(pose, ends, hit)
+
+
+@pytest.mark.parametrize("blind_range_m", [0.0, 0.15])
+def test_a_thin_leg_seen_from_afar_stays_while_the_robot_stands_in_its_blind_zone(blind_range_m: float) -> None:
+    leg = np.array([0.3, 0.2, 0.01])  # a 2 cm table leg
+    grid = OccupancyGrid(resolution_m=RES_M, blind_range_m=blind_range_m)
+    _leg_scans(grid, np.array([-0.4, 0.2, 0.0]), leg, 10)  # 0.7 m away: painted
+    rows, cols = grid.to_cell(np.array([[0.29, 0.2]]))  # the face seen
+    assert grid.occupied_mask()[max(rows[0] - 1, 0) : rows[0] + 2, cols[0] - 1 : cols[0] + 2].any()
+    _leg_scans(grid, np.array([0.3, 0.09, 0.5]), leg, 20)  # 0.11 m from the leg's centre: no return from it
+    around = grid.occupied_mask()[rows[0] - 1 : rows[0] + 2, cols[0] - 1 : cols[0] + 2]
+    assert around.any() == (blind_range_m > 0)  # with no blind zone the beams beside it erased it
+    # the robot's own place is free all the same: the blind zone makes free what held no wall
+    r, c = grid.to_cell(np.array([[0.3, 0.09]]))
+    assert grid.three_state()[r[0], c[0]] == FREE

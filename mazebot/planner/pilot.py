@@ -98,7 +98,8 @@ class Pilot:
         self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
-        self.blind_zone = BlindZoneMemory(params.lidar_min_range_m, lidar_xy_m=params.lidar_mount_xy_m)
+        self.blind_zone = BlindZoneMemory(params.lidar.min_range_m,
+                                          lidar_xy_m=(params.lidar.mount_x_m, params.lidar.mount_y_m))
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
         self._drive_inputs: tuple[np.ndarray, tuple[float, float], float, tuple[float, float]] | None = None
 

@@ -356,7 +356,9 @@ def test_a_child_that_starts_after_the_daemon_stopped_leaves_quietly_without_tou
     stop_rx, stop_tx = multiprocessing.Pipe(duplex=False)
     saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        control_process.child_main(name, Config(), opener, stop_rx, "warning")  # returns, raises nothing
+        # in this process: no real-time priority or nice, which everything the tests start later would inherit
+        fair = Config.model_validate({"daemon": {"control_rt_priority": 0, "control_nice": 0}})
+        control_process.child_main(name, fair, opener, stop_rx, "warning")  # returns, raises nothing
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)

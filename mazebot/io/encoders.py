@@ -53,6 +53,7 @@ from gpiozero.pins import Factory
 
 from mazebot.clock import Clock
 from mazebot.config import EncodersConfig
+from mazebot.taps import notify
 
 Decoding = Literal["x1", "x2", "x4"]
 
@@ -360,6 +361,10 @@ class WheelEncoders:
 
     ``clock`` (optional) stamps each reading with ``time_s``. Close the pair (or use it
     as a context manager) to release all four pins.
+
+    Taps (:mod:`mazebot.taps`): ``before_read`` is called before each reading (the simulator
+    brings its world up to the moment of the read; what it raises, the read raises); each of
+    ``on_read`` is given the reading (a listener's exception is logged, the reading still returned).
     """
 
     def __init__(
@@ -368,6 +373,8 @@ class WheelEncoders:
         self.left = left
         self.right = right
         self._clock = clock
+        self.before_read: Callable[[], None] | None = None
+        self.on_read: tuple[Callable[[EncoderReading], None], ...] = ()
 
     @classmethod
     def from_config(
@@ -398,14 +405,19 @@ class WheelEncoders:
 
     def read(self) -> EncoderReading:
         """Both wheels' totals (each wheel's pair of counters is internally consistent)."""
+        if self.before_read is not None:
+            self.before_read()
         left_ticks, left_invalid = self.left.read()
         right_ticks, right_invalid = self.right.read()
-        return EncoderReading(
+        reading = EncoderReading(
             left_ticks=left_ticks,
             right_ticks=right_ticks,
             invalid_transitions=left_invalid + right_invalid,
             time_s=self._clock.now_s() if self._clock is not None else None,
         )
+        if self.on_read:
+            notify(self.on_read, reading, "encoders.on_read")
+        return reading
 
     def close(self) -> None:
         """Release all four pins. Safe to call more than once."""

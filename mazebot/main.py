@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from gpiozero import Factory
 
     from mazebot.io.motor_hat import MotorKitLike
+    from mazebot.io.scan import Scan
     from mazebot.io.serial_link import SerialLink
     from mazebot.record.foxglove_live import FoxgloveLive
     from mazebot.slam.slam import Slam, SlamParams
@@ -58,8 +59,8 @@ class Session(Protocol):
              stack: AsyncExitStack) -> Hardware:
         """The hardware with the session's recording taps in front of it."""
 
-    def make_slam(self, params: SlamParams) -> Slam:
-        """The daemon's SLAM: fresh, or the saved run's."""
+    def make_slam(self, params: SlamParams, *, before_update: Callable[[Scan], None] | None = None) -> Slam:
+        """The daemon's SLAM: fresh, or the saved run's (``before_update``: :class:`Slam`'s fault seam)."""
 
     def start_tasks(self, config: Config, clock: Clock, state: SharedState, supervisor: Supervisor,
                     slam: Slam) -> None:
@@ -255,6 +256,7 @@ async def run_daemon(
     autonomous: bool = True,
     session: Session | None = None,
     instrument: Instrument | None = None,
+    before_slam_update: Callable[[Scan], None] | None = None,
     config_path: Path | None = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
@@ -264,7 +266,9 @@ async def run_daemon(
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     ``session`` (a :class:`mazebot.run_session.RunSession`) records, saves or resumes the run.
     ``instrument(slam, executor)`` returns the executor SLAM is to use (the fault injector's
-    way to reach the compute: :mod:`mazebot.sim.faults`). ``config_path`` is the file ``config``
+    way to reach the compute: :mod:`mazebot.sim.faults`); ``before_slam_update`` is handed to the
+    daemon's :class:`Slam` as its fault seam (called with each revolution before the update; what it
+    raises, the update raises: the fault injector's ``slam-raise``). ``config_path`` is the file ``config``
     came from: a calibration confirmed on the setup page replaces it.
     """
     clock = clock or RealClock()
@@ -336,9 +340,9 @@ async def run_daemon(
         )
         slam_params = SlamParams.from_config(config.slam, config.lidar, config.planner)
         if session is not None:  # recorded, saved or resumed
-            slam = session.make_slam(slam_params)
+            slam = session.make_slam(slam_params, before_update=before_slam_update)
         else:
-            slam = Slam(slam_params, background=True, record_trajectory=False)
+            slam = Slam(slam_params, background=True, record_trajectory=False, before_update=before_slam_update)
         if instrument is not None:
             slam_executor = instrument(slam, slam_executor)
         supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state), restart=True)

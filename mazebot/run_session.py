@@ -29,6 +29,9 @@ from mazebot.persist.runs import find_run, new_run_dir, runs_root
 from mazebot.state import SharedState
 
 if TYPE_CHECKING:  # the SLAM (numpy, scipy) is imported when it is built, after the page is served
+    from collections.abc import Callable
+
+    from mazebot.io.scan import Scan
     from mazebot.persist.snapshot import SavedRun
     from mazebot.slam.observed import ObservedSlam
     from mazebot.slam.slam import SlamParams
@@ -120,16 +123,21 @@ class RunSession:
         record_task.publish_stats(state, recorder)
         return record_task.tap_hardware(hardware, tap)
 
-    def make_slam(self, params: SlamParams) -> ObservedSlam:
-        """The daemon's Slam: resumed from the saved run, or fresh; observed by the recorder."""
+    def make_slam(self, params: SlamParams, *, before_update: Callable[[Scan], None] | None = None) -> ObservedSlam:
+        """The daemon's Slam: resumed from the saved run, or fresh; observed by the recorder.
+
+        ``before_update`` is :class:`~mazebot.slam.slam.Slam`'s fault seam (``run_daemon``'s ``before_slam_update``).
+        """
         from mazebot.slam.observed import ObservedSlam
 
         if self.resume is not None:
             from mazebot.persist.resume import ResumedSlam
 
-            slam: ObservedSlam = ResumedSlam(params, self.resume, background=True, record_trajectory=False)
+            slam: ObservedSlam = ResumedSlam(
+                params, self.resume, background=True, record_trajectory=False, before_update=before_update
+            )
         else:
-            slam = ObservedSlam(params, background=True, record_trajectory=False)
+            slam = ObservedSlam(params, background=True, record_trajectory=False, before_update=before_update)
         if self.tap is not None:
             slam.observers.append(self.tap)
         return slam

@@ -12,10 +12,12 @@ from __future__ import annotations
 import asyncio
 import enum
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from mazebot.cpu_budget import CpuBudget
+from mazebot.taps import notify
 
 if TYPE_CHECKING:
     import numpy as np
@@ -246,6 +248,10 @@ class SharedState:
     #: the control loop runs in a process of its own: the fields it reads are mirrored into it as
     #: they are assigned (:meth:`__setattr__`), so every writer reaches the child at once
     control_link: Any = None
+    #: a tap (:mod:`mazebot.taps`): each listener is given every :class:`Event` :meth:`note` keeps
+    #: (the benchmark's fault metrics, a logger); one that raises is logged, the note and the
+    #: fault that made it still happen
+    note_listeners: tuple[Callable[[Event], None], ...] = ()
 
     def __setattr__(self, name: str, value: Any) -> None:
         object.__setattr__(self, name, value)
@@ -293,7 +299,10 @@ class SharedState:
 
     def note(self, source: str, message: str, time_s: float) -> None:
         """Keep a human sentence about something that happened, for the status page."""
-        self.events.append(Event(source, message, time_s))
+        event = Event(source, message, time_s)
+        self.events.append(event)
+        if self.note_listeners:
+            notify(self.note_listeners, event, "state.note")
 
     def elapsed_s(self, now_s: float) -> float | None:
         """Time since the exploration started, frozen when it finished; None before any start."""

@@ -34,7 +34,8 @@ from scipy import ndimage
 
 from mazebot.bench.metrics import map_metrics, relative_poses
 from mazebot.clock import Clock
-from mazebot.state import RunState, SharedState
+from mazebot.io.motors import ThrottleWrite
+from mazebot.state import Event, RunState, SharedState
 
 #: How long after the last fault ended the run goes on (the recovery must happen in it).
 RECOVERY_WINDOW_S = 25.0
@@ -76,21 +77,16 @@ class FaultRecord:
         self.robot = robot
         motors = robot.config.motors
         self.channels = (motors.left_channel, motors.right_channel)
-        note = state.note
 
-        def noting(source: str, message: str, time_s: float) -> None:
-            self.events.append((clock.now_s(), source, message))
-            note(source, message, time_s)
+        def noted(event: Event) -> None:
+            self.events.append((clock.now_s(), event.source, event.message))
 
-        state.note = noting  # type: ignore[method-assign]
-        kit = robot.kit
-        write = kit._write
+        state.note_listeners += (noted,)
 
-        def writing(channel: int, throttle: float | None) -> None:
-            write(channel, throttle)  # raises when the injected I²C fault makes it fail
-            self.writes.append((clock.now_s(), channel, throttle))
+        def written(write: ThrottleWrite) -> None:  # only the writes that reached the HAT (not the failed ones)
+            self.writes.append((clock.now_s(), write.channel, write.throttle))
 
-        kit._write = writing
+        robot.kit.on_write += (written,)
 
         def before(injection: Any) -> None:
             k = self.injector.injections.index(injection)

@@ -49,6 +49,7 @@ from mazebot.bench.virtual_executor import CpuTimedExecutor
 from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.errors import UsageError
+from mazebot.io.encoders import EncoderReading
 from mazebot.main import Hardware, run_daemon
 from mazebot.sim.backend import sim_hardware_builder, simulated_robot
 from mazebot.sim.faults import FaultInjector, FaultSpec
@@ -142,6 +143,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
         harness.config, builder, serve_web=False, install_signal_handlers=False, on_started=harness.on_started,
         session=session, autonomous=spec.drive == "explore",
         instrument=_instrument(spec, harness.injector, harness.record),
+        before_slam_update=harness.injector.before_slam_update if harness.injector is not None else None,
     )
     exit_code = run_virtual(daemon, slow=spec.slow) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0
@@ -216,15 +218,14 @@ class BenchHarness:
     def _tap_encoders(self) -> None:
         """Note the simulated instant of each encoder reading: the simulator steps every
         ``[sim] step_period_s``, so a reading can be up to one step older than the clock."""
-        read_encoders = self.hardware.encoders.read
         robot, clock = self.robot, self.clock
+        if robot.encoders is None:
+            raise RuntimeError("the simulated robot has no encoders to tap (mazebot.sim.backend sets them)")
 
-        def read_and_note() -> Any:
-            reading = read_encoders()
+        def note(reading: EncoderReading) -> None:
             self.readings.append((clock.now_s(), robot.time_s if robot.time_s is not None else clock.now_s()))
-            return reading
 
-        self.hardware.encoders.read = read_and_note  # type: ignore[method-assign]  # the harness's tap on the encoders
+        robot.encoders.on_read += (note,)
 
     def sim_time_of(self, pose_s: float) -> float:
         """The simulated instant the encoder reading of clock time ``pose_s`` showed."""

@@ -53,6 +53,7 @@ from gpiozero.pins import Factory
 
 from mazebot.clock import Clock
 from mazebot.config import EncodersConfig
+from mazebot.taps import notify
 
 Decoding = Literal["x1", "x2", "x4"]
 
@@ -395,6 +396,10 @@ class WheelEncoders:
 
     ``clock`` (optional) stamps each reading with ``time_s``. Close the pair (or use it
     as a context manager) to release all four pins.
+
+    Taps (:mod:`mazebot.taps`): ``before_read`` is called before each reading (the simulator
+    brings its world up to the moment of the read; what it raises, the read raises); each of
+    ``on_read`` is given the reading (a listener's exception is logged, the reading still returned).
     """
 
     def __init__(
@@ -403,6 +408,8 @@ class WheelEncoders:
         self.left = left
         self.right = right
         self._clock = clock
+        self.before_read: Callable[[], None] | None = None
+        self.on_read: tuple[Callable[[EncoderReading], None], ...] = ()
 
     @classmethod
     def from_config(
@@ -438,16 +445,21 @@ class WheelEncoders:
         the edges of all lines in the order of their stamps on one thread (as the simulator's
         GPIO thread does), so both counts hold every edge up to that one.
         """
+        if self.before_read is not None:
+            self.before_read()
         left_ticks, left_invalid, left_edge = self.left.read_stamped()
         right_ticks, right_invalid, right_edge = self.right.read_stamped()
         ages = [a for a in (self.left.edge_age_s(left_edge), self.right.edge_age_s(right_edge)) if a is not None]
-        return EncoderReading(
+        reading = EncoderReading(
             left_ticks=left_ticks,
             right_ticks=right_ticks,
             invalid_transitions=left_invalid + right_invalid,
             time_s=self._clock.now_s() if self._clock is not None else None,
             edge_age_s=min(ages) if ages else None,
         )
+        if self.on_read:
+            notify(self.on_read, reading, "encoders.on_read")
+        return reading
 
     def close(self) -> None:
         """Release all four pins. Safe to call more than once."""

@@ -44,6 +44,7 @@ from mazebot.config import MotorsConfig
 from mazebot.errors import EXIT_UNAVAILABLE, MazebotError
 from mazebot.io.motor_hat import CHANNELS, MotorKitLike, MotorLike
 from mazebot.io.motor_hat import open_motorkit as open_motorkit  # re-exported: main.py opens the HAT from here
+from mazebot.taps import notify
 
 logger = logging.getLogger(__name__)
 
@@ -137,8 +138,12 @@ class FakeMotorKit:
         self._fail_probability = 1.0
         self._rng: random.Random | None = None
         self._motors = {channel: FakeMotor(self, channel) for channel in CHANNELS}
-        #: called before every write (the simulator brings its world up to the moment of the write)
+        #: taps (:mod:`mazebot.taps`). ``before_write`` is called before every write (the simulator
+        #: brings its world up to the moment of the write); each of ``on_write`` is given every
+        #: successful write, as it reached the HAT (the benchmark's "motors zero"). Neither can
+        #: stop a write: what they raise is logged and the write goes ahead.
         self.before_write: Callable[[], None] | None = None
+        self.on_write: tuple[Callable[[ThrottleWrite], None], ...] = ()
 
     @property
     def motor1(self) -> FakeMotor:
@@ -190,7 +195,10 @@ class FakeMotorKit:
         if throttle is not None and not -1.0 <= throttle <= 1.0:
             raise ValueError(f"throttle must be None or between -1.0 and +1.0, got {throttle}")
         if self.before_write is not None:
-            self.before_write()
+            try:
+                self.before_write()
+            except Exception:  # a motor write, a brake above all, must happen whatever a tap does
+                logger.exception("the motor kit's before_write tap failed; writing motor%d anyway", channel)
         failing = channel in self._failing and self._failures_left != 0
         if failing and self._fail_probability < 1.0:
             assert self._rng is not None
@@ -201,7 +209,10 @@ class FakeMotorKit:
             self.failed_writes += 1
             raise OSError(errno.EIO, f"injected I2C write failure on motor{channel}")
         time_s = self._clock.now_s() if self._clock is not None else 0.0
-        self.command_log.append(ThrottleWrite(time_s, channel, throttle))
+        write = ThrottleWrite(time_s, channel, throttle)
+        self.command_log.append(write)
+        if self.on_write:
+            notify(self.on_write, write, "motor kit on_write")
 
 
 # --- the differential drive ---------------------------------------------------------

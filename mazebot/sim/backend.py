@@ -148,13 +148,8 @@ def sim_hardware_builder(
         stack.callback(motors.close)
         encoders = WheelEncoders.from_config(config.encoders, robot.pin_factory)
         stack.callback(encoders.close)
-        read_encoders = encoders.read
-
-        def read_now() -> Any:
-            catch_up()
-            return read_encoders()
-
-        encoders.read = read_now  # type: ignore[method-assign]
+        encoders.before_read = catch_up  # a reading shows the wheels as they are at the clock's time
+        robot.encoders = encoders
 
         paced = config.sim.lidar_paced_by_robot
         emulator = RPLidarEmulator(

@@ -90,6 +90,8 @@ class FaultContext:
     clock: Clock
     rng: random.Random
     slam: Any = None  # the daemon's Slam (compute faults)
+    #: how many of SLAM's next updates fail (``slam-raise``; :meth:`FaultInjector.before_slam_update`)
+    slam_updates_to_fail: int = 0
     executor: SlowableExecutor | None = None
     injection: Injection | None = None  # the one being applied (a fault may fill in ``detail``)
     saved: dict[str, Any] = field(default_factory=dict)  # what ``end`` must put back
@@ -255,15 +257,12 @@ class InjectedFault(RuntimeError):
 
 def _slam_raises(ctx: FaultContext) -> None:
     slam = ctx.slam
-    if slam is None:
-        raise RuntimeError("slam-raise needs the daemon's Slam (FaultInjector.instrument)")
-    real_update = slam.update_steps  # what the SLAM task calls (Slam.update runs the same stages)
-
-    def update_once_failing(scan: Any, odometry: Any, **kwargs: Any) -> Any:
-        slam.update_steps = real_update  # the next scan is processed normally
-        raise InjectedFault("injected: a SLAM update failed")
-
-    slam.update_steps = update_once_failing
+    if slam is None or slam.before_update is None:
+        raise RuntimeError(
+            "slam-raise needs the daemon's Slam built with the injector's seam "
+            "(run_daemon(instrument=..., before_slam_update=FaultInjector.before_slam_update))"
+        )
+    ctx.slam_updates_to_fail = 1  # the next update fails, the one after is processed normally
 
 
 def _slow_job(ctx: FaultContext) -> None:
@@ -396,6 +395,7 @@ class FaultInjector:
 
     ``instrument(slam, executor)`` (the ``run_daemon`` hook) lets the compute faults reach
     SLAM and its executor; it returns the executor the daemon must use.
+    :meth:`before_slam_update` is the daemon's ``before_slam_update`` (SLAM's fault seam).
     """
 
     def __init__(self, specs: list[FaultSpec], robot: Any, clock: Clock, *, seed: int = 0) -> None:
@@ -409,6 +409,16 @@ class FaultInjector:
         self.ctx.slam = slam
         self.ctx.executor = SlowableExecutor(executor, asyncio.get_running_loop())
         return self.ctx.executor
+
+    def before_slam_update(self, scan: Any) -> None:
+        """SLAM's fault seam (:class:`mazebot.slam.slam.Slam`'s ``before_update``): ``slam-raise``'s failure.
+
+        Raises :class:`InjectedFault` in the update after the fault began, as a bug in one of
+        SLAM's stages would; the SLAM task must skip that revolution and go on.
+        """
+        if self.ctx.slam_updates_to_fail > 0:
+            self.ctx.slam_updates_to_fail -= 1
+            raise InjectedFault("injected: a SLAM update failed")
 
     async def run(self) -> None:
         """The injector task: each fault at its time, and its end ``duration_s`` later."""

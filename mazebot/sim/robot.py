@@ -23,6 +23,7 @@ from gpiozero.pins.mock import MockFactory
 
 from mazebot.clock import Clock
 from mazebot.config import Config
+from mazebot.io.encoders import WheelEncoders
 from mazebot.io.motors import FakeMotorKit
 from mazebot.io.rplidar_models import MODELS
 from mazebot.sim.encoder_signals import QuadratureSignal
@@ -113,6 +114,9 @@ class SimulatedRobot:
         self.right_signal = QuadratureSignal(self.pin_factory, *right_pins, enc.counts_per_rev, idle_high=enc.pull_up)
         self.poses = PoseHistory()
         self.lidar_line: Any = None  # mazebot.sim.backend.SimLidarLine, set by the backend
+        #: the daemon's encoders on this robot's pins, set by the backend: the harness taps them
+        #: (``on_read``) whether or not a recording wraps ``Hardware.encoders``
+        self.encoders: WheelEncoders | None = None
         self._lidar: Any = None  # an RPLidarEmulator paced by this robot's tick (attach_lidar)
         self._lidar_every = 1  # ... every this many ticks
         self.lidar_head = SpinningLidar(world, lidar_params(config), rngs[1])

@@ -524,8 +524,13 @@ class Slam:
         *,
         background: bool = False,
         record_trajectory: bool = True,
+        before_update: Callable[[Scan], None] | None = None,
     ) -> None:
         self.params = params or SlamParams()
+        #: the fault-injection seam (the simulator's ``slam-raise``, tests): called with each
+        #: revolution before :meth:`update_steps` touches any state; what it raises, the update
+        #: raises, as a bug in a stage would. None (the robot) costs one test per revolution.
+        self.before_update = before_update
         self.background = background
         self.record_trajectory = record_trajectory  # keep every scan's pose for trajectory() (offline tools)
         self.initial_pose = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
@@ -649,6 +654,8 @@ class Slam:
         under construction. A subclass that adds to an update overrides this method
         (``update = yield from super().update_steps(scan, odometry, paint=paint)``).
         """
+        if self.before_update is not None:
+            self.before_update(scan)
         p = self.params
         # 1. de-skew: every sample into the robot frame at the end of the revolution, at the
         # lidar's stamps shifted by the learned offset; the odometry pose at that end

@@ -377,3 +377,47 @@ def test_an_edge_stamp_on_another_clock_gives_no_age() -> None:
         reading = encoders.read()
         assert reading.edge_age_s is None
         assert reading.left_ticks != 0  # the edge still counts
+
+# -- the taps (mazebot.taps): the simulator brings its world up to the read, a listener watches
+
+
+def test_pair_taps_act_before_the_read_and_hear_each_reading(factory: MockFactory) -> None:
+    cfg = EncodersConfig()
+    with WheelEncoders.from_config(cfg, factory, clock=FakeClock(3.0)) as encoders:
+        left_a, left_b = pins(factory, cfg.left_a_pin, cfg.left_b_pin)
+        heard: list[EncoderReading] = []
+        encoders.before_read = lambda: drive_cycles(left_a, left_b, 1, forward=True)  # the world moves first
+        encoders.on_read += (heard.append,)
+        reading = encoders.read()
+        assert reading.left_ticks == cfg.ticks_per_rev // cfg.counts_per_rev  # the cycle driven before the read
+        assert heard == [reading]
+        encoders.before_read = None
+        assert encoders.read() == heard[-1] and len(heard) == 2  # no tap acting: the same counts, heard again
+
+
+def test_a_failing_read_listener_is_logged_and_costs_no_reading(
+    factory: MockFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    with WheelEncoders.from_config(EncodersConfig(), factory) as encoders:
+        heard: list[EncoderReading] = []
+
+        def broken(reading: EncoderReading) -> None:
+            raise RuntimeError("a logger's bug")
+
+        encoders.on_read = (broken, heard.append)
+        with caplog.at_level("ERROR", logger="mazebot.taps"):
+            reading = encoders.read()
+        assert heard == [reading]  # the next listener still heard it, and odometry got it
+        assert "encoders.on_read" in caplog.text and "a logger's bug" in caplog.text
+
+
+def test_a_failing_before_read_fails_the_read(factory: MockFactory) -> None:
+    # the simulator's world not brought up to date must not pass for a reading of now
+    with WheelEncoders.from_config(EncodersConfig(), factory) as encoders:
+
+        def world_broken() -> None:
+            raise RuntimeError("simulator step failed")
+
+        encoders.before_read = world_broken
+        with pytest.raises(RuntimeError, match="simulator step failed"):
+            encoders.read()

@@ -485,3 +485,57 @@ def test_the_hang_guard_thread_stops_the_wheels_of_a_blocked_loop() -> None:
 
     throttles = asyncio.run(drive_then_hang())
     assert throttles[1] == 0.0 and throttles[2] == 0.0
+
+
+# --- the kit's taps (mazebot.taps): what reached the HAT, and nothing a tap does stops a write
+
+
+def test_on_write_hears_each_write_that_reached_the_hat(
+    kit: FakeMotorKit, clock: FakeClock, loop: FakeLoop
+) -> None:
+    motors = make(kit, clock, loop)
+    heard: list[ThrottleWrite] = []
+    kit.on_write += (heard.append,)
+    clock.t = 2.0
+    motors.set(0.4, -0.2)
+    assert heard == [ThrottleWrite(2.0, 1, 0.4), ThrottleWrite(2.0, 2, -0.2)]
+    kit.fail_writes(channels=[2], times=1)  # the right write fails; then both brake
+    with pytest.raises(MotorWriteError):
+        motors.set(0.5, 0.5)
+    assert heard[2:] == [ThrottleWrite(2.0, 1, 0.5), ThrottleWrite(2.0, 1, 0.0), ThrottleWrite(2.0, 2, 0.0)]
+
+
+def test_a_failing_write_listener_never_stops_a_write(
+    kit: FakeMotorKit, clock: FakeClock, loop: FakeLoop, caplog: pytest.LogCaptureFixture
+) -> None:
+    motors = make(kit, clock, loop)
+    heard: list[ThrottleWrite] = []
+
+    def broken(write: ThrottleWrite) -> None:
+        raise RuntimeError("a logger's bug")
+
+    kit.on_write = (broken, heard.append)
+    with caplog.at_level(logging.ERROR, logger="mazebot.taps"):
+        motors.set(0.6, 0.6)  # no MotorWriteError: the writes happened
+        assert (kit.motor1.throttle, kit.motor2.throttle) == (0.6, 0.6)
+        motors.stop()
+    assert (kit.motor1.throttle, kit.motor2.throttle) == (0.0, 0.0)
+    assert motors.write_errors == 0 and len(heard) == 4  # the other listener heard every write
+    assert "motor kit on_write" in caplog.text
+
+
+def test_a_failing_before_write_never_stops_a_brake(
+    kit: FakeMotorKit, clock: FakeClock, loop: FakeLoop, caplog: pytest.LogCaptureFixture
+) -> None:
+    motors = make(kit, clock, loop)
+    motors.set(0.7, 0.7)
+
+    def world_broken() -> None:
+        raise RuntimeError("simulator step failed")
+
+    kit.before_write = world_broken
+    with caplog.at_level(logging.ERROR, logger="mazebot.io.motors"):
+        motors.stop()
+    assert (kit.motor1.throttle, kit.motor2.throttle) == (0.0, 0.0)
+    assert kit.command_log[-1].throttle == 0.0 and motors.write_errors == 0
+    assert "before_write tap failed" in caplog.text

@@ -25,7 +25,15 @@ from mazebot.io.motors import FakeMotorKit
 from mazebot.io.rplidar import RPLidar
 from mazebot.sim.backend import SimLidarLine
 from mazebot.sim.encoder_signals import QuadratureSignal
-from mazebot.sim.faults import DEFAULT_AT_S, FAULTS, FaultInjector, FaultSpec, SlowableExecutor, parse_fault
+from mazebot.sim.faults import (
+    DEFAULT_AT_S,
+    FAULTS,
+    FaultInjector,
+    FaultSpec,
+    InjectedFault,
+    SlowableExecutor,
+    parse_fault,
+)
 from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.robot import SimulatedRobot
@@ -240,3 +248,17 @@ def test_faults_are_named_on_the_command_line_with_an_optional_time() -> None:
     with pytest.raises(UsageError, match="must be seconds"):
         parse_fault("kidnap@soon")
     assert len(FAULTS) == 16
+
+
+def test_slam_raise_fails_the_next_update_through_slams_seam_and_only_that_one() -> None:
+    injector = FaultInjector([], _robot(), RealClock())
+    scan = SimpleNamespace(end_time_s=1.0)
+    injector.ctx.slam = SimpleNamespace(before_update=None)  # a Slam built without the injector's seam
+    with pytest.raises(RuntimeError, match="before_slam_update"):
+        FAULTS["slam-raise"].begin(injector.ctx)
+    injector.ctx.slam = SimpleNamespace(before_update=injector.before_slam_update)
+    injector.before_slam_update(scan)  # not armed: the update goes on
+    FAULTS["slam-raise"].begin(injector.ctx)
+    with pytest.raises(InjectedFault, match="a SLAM update failed"):
+        injector.before_slam_update(scan)
+    injector.before_slam_update(scan)  # the next revolution is processed normally

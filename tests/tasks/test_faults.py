@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
@@ -13,6 +14,7 @@ from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.io.motors import MotorWriteError
 from mazebot.io.scan import Scan
+from mazebot.sim.faults import InjectedFault
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import world_from_layout
@@ -344,9 +346,11 @@ async def test_motor_write_errors_are_a_fault_and_the_loop_keeps_ticking_until_t
 # -- SLAM: a scan that cannot be processed -----------------------------------------------
 
 
-def _slam_of_a_robot_at_rest(until_s: float) -> tuple[SharedState, SlamParams, Slam]:
+def _slam_of_a_robot_at_rest(
+    until_s: float, before_update: Callable[[Scan], None] | None = None
+) -> tuple[SharedState, SlamParams, Slam]:
     """An exploring robot's state whose odometry stands still from 0 to ``until_s``, and the
-    daemon's SLAM (default config) to run on it."""
+    daemon's SLAM (default config, ``before_update`` its fault seam) to run on it."""
     config = Config()
     state = SharedState(run_state=RunState.EXPLORING)
     history = OdometryHistory()
@@ -354,21 +358,37 @@ def _slam_of_a_robot_at_rest(until_s: float) -> tuple[SharedState, SlamParams, S
     history.append(until_s, 0.0, 0.0, 0.0)
     state.odometry_history = history
     params = SlamParams.from_config(config.slam, config.lidar)
-    return state, params, Slam(params, background=True, record_trajectory=False)
+    return state, params, Slam(params, background=True, record_trajectory=False, before_update=before_update)
+
+
+def test_slams_fault_seam_sees_each_revolution_first_and_what_it_raises_fails_only_that_update() -> None:
+    seen: list[float] = []
+
+    def seam(scan: Scan) -> None:
+        seen.append(scan.end_time_s)
+        if len(seen) == 2:
+            raise InjectedFault("injected: a SLAM update failed")
+
+    state, _, slam = _slam_of_a_robot_at_rest(100.0, seam)
+    history = state.odometry_history
+    slam.update(_maze_scan(1.0), history)
+    grid = slam.grid.log_odds.copy()
+    with pytest.raises(InjectedFault):
+        slam.update(_maze_scan(1.2), history)
+    assert slam.scans == 1 and np.array_equal(slam.grid.log_odds, grid)  # failed before it touched anything
+    slam.update(_maze_scan(1.4), history)
+    assert seen == [1.0, 1.2, 1.4] and slam.scans == 2
 
 
 async def test_a_scan_slam_cannot_process_stops_the_wheels_and_keeps_the_map() -> None:
-    state, params, slam = _slam_of_a_robot_at_rest(100.0)
-    real_update = slam.update_steps  # what the SLAM task calls
     calls: list[int] = []
 
-    def update_failing_once(scan, hist, **kwargs):
+    def failing_once(scan: Scan) -> None:  # the second revolution fails, as a stage's bug would
         calls.append(1)
         if len(calls) == 2:
             raise np.linalg.LinAlgError("Singular matrix")
-        return (yield from real_update(scan, hist, **kwargs))
 
-    slam.update_steps = update_failing_once  # type: ignore[method-assign]
+    state, params, slam = _slam_of_a_robot_at_rest(100.0, failing_once)
     with ThreadPoolExecutor(max_workers=1) as executor:
         task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor, slam))
         state.scans.put_nowait(_maze_scan(1.0))

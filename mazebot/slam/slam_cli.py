@@ -15,7 +15,11 @@ odometry to :class:`mazebot.slam.slam.Slam` (loop closures inline), and writes i
 
 and prints one JSON line of statistics, with the error of the trajectory against the
 poses the log carries (in a ``*.gfs.log`` those are GMapping's corrected poses, the
-reference here).
+reference here). ``error`` (the headline) compares pose by pose from the shared first
+pose, no alignment; ``error_aligned`` is the literature's ATE after a rigid SE(2) fit of
+the whole trajectory, and ``relative_error`` Kümmerle et al.'s relative displacement
+error between consecutive scans (:mod:`mazebot.slam.trajectory_metrics`): the reference
+is itself another SLAM's output in its own frame.
 
 Odometry: without ``--odom-noise`` the log's own odometry (``ODOM`` messages, else the
 odometry pose of each laser message). ``--odom-noise SX,STH`` instead derives it from the
@@ -54,6 +58,7 @@ from mazebot.slam.ekf import MotionNoise, OdometryHistory
 from mazebot.slam.map_export import write_map_png, write_ros_map
 from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
 from mazebot.slam.slam import GridParams, Slam, SlamParams
+from mazebot.slam.trajectory_metrics import aligned_error, anchored_error, relative_error
 
 
 def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -> SlamParams:
@@ -215,17 +220,6 @@ def _parse_noise(text: str | None) -> tuple[float, float] | None:
     return sx, sth
 
 
-def _trajectory_error(est: np.ndarray, ref: np.ndarray) -> dict[str, float]:
-    err = est - ref
-    err[:, 2] = wrap_angle(err[:, 2])
-    dist = np.hypot(err[:, 0], err[:, 1])
-    return {
-        "rms_m": round(float(np.sqrt(np.mean(dist**2))), 4),
-        "max_m": round(float(dist.max()), 4),
-        "heading_rms_deg": round(float(np.degrees(np.sqrt(np.mean(err[:, 2] ** 2)))), 3),
-    }
-
-
 def run_carmen(
     log_path: str,
     out_dir: str,
@@ -304,9 +298,12 @@ def run_carmen(
         ("systematic" if systematic is not None else "white"),
         "odom_systematic": None if drawn is None else {k: round(v, 6) for k, v in vars(drawn).items()},
         "seed": seed,
-        "error": _trajectory_error(final, reference),
-        "error_online": _trajectory_error(online, reference),
-        "error_odometry": _trajectory_error(odometry, reference),
+        "error": anchored_error(final, reference),
+        "error_online": anchored_error(online, reference),
+        "error_odometry": anchored_error(odometry, reference),
+        "error_aligned": aligned_error(final, reference),
+        "relative_error": relative_error(final, reference, lag=1),
+        "relative_error_odometry": relative_error(odometry, reference, lag=1),
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
         "seconds": round(seconds, 3),

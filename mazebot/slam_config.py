@@ -206,6 +206,9 @@ class LoopSection:
     max_correction_m: Annotated[float, Field(gt=0, description=(
         "accept: the correction moves at most this far ..."))] = 0.10
     max_correction_rad: Annotated[float, Field(gt=0, description="... and turns at most this much")] = 0.15
+    correction_sigmas: Annotated[float, Field(ge=0, description=(
+        "... or, if larger, this many std of the chain's drift, and the search about the prior as wide "
+        "(0: the fixed limits alone)"))] = 0.0
     ambiguity_shift_m: Annotated[float, Field(ge=0, description=(
         "retry ICP this far off (one cell: [planner] cell_size_m unless set); another good fit there rejects "
         "(0: off)"))] = MAZE_CELL_M
@@ -524,7 +527,7 @@ FLAT_KEYS: dict[str, str] = {
     "wall_lattice_gate_m": "lattice.gate_m",
     **_moved("loop_", "loop", "search_radius_m max_search_radius_m sigma_scale min_keyframe_gap submap_half_width "
              "attempt_every min_fitness max_rmse_m min_correspondences accept_degenerate gate_chi2 max_correction_m "
-             "max_correction_rad ambiguity_shift_m ambiguity_fitness_ratio ambiguity_rmse_ratio max_range_m "
+             "max_correction_rad correction_sigmas ambiguity_shift_m ambiguity_fitness_ratio ambiguity_rmse_ratio max_range_m "
              "information_scale"),
     "corr_resolution_m": "search.resolution_m",
     "corr_sigma_m": "search.sigma_m",

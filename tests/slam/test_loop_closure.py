@@ -16,6 +16,7 @@ from mazebot.slam.loop_closure import (
     Candidate,
     LoopClosureParams,
     chain_uncertainty,
+    correction_limits,
     find_candidates,
     verify,
 )
@@ -119,6 +120,57 @@ def test_rejects_a_match_that_contradicts_the_odometry(maze_world: World, cast_s
     verdict = _verify(maze_world, cast_scan, old, new_true, compose(new_true, np.array([0.15, 0.0, 0.0])))
     assert not verdict.accepted
     assert verdict.reason in ("large correction", "inconsistent with odometry")
+
+
+@pytest.fixture(scope="module")
+def hall_world() -> World:
+    """A 6 m × 4 m hall with three boxes at irregular places: no two places in it look alike."""
+    t = 0.05
+    rects = [
+        [-3.0, -2.0 - t, 3.0, -2.0],
+        [-3.0, 2.0, 3.0, 2.0 + t],
+        [-3.0 - t, -2.0, -3.0, 2.0],
+        [3.0, -2.0, 3.0 + t, 2.0],
+        [-1.7, 0.6, -1.1, 1.0],
+        [0.4, -1.3, 0.7, -0.5],
+        [1.8, 0.9, 2.3, 1.1],
+    ]
+    return World(
+        name="hall",
+        segments=rectangles_outline(np.array(rects)),
+        circles=np.zeros((0, 3)),
+        start_pose=(0.0, 0.0, 0.0),
+        bounds_m=(-3.1, -2.1, 3.1, 2.1),
+    )
+
+
+@pytest.mark.parametrize("sigmas", [0.0, 3.0])
+def test_a_drift_beyond_the_fixed_cap_closes_when_the_chain_allows_it(hall_world: World, cast_scan, sigmas) -> None:
+    # after a long loop the chain believes the robot 0.25 m and 2° from where it is, and its
+    # own uncertainty (0.15 m, 1.5°) says so: the fixed 0.10 m cap rejects the true closure,
+    # a cap of three chain standard deviations accepts it, and measures it
+    old = np.array([-0.5, 0.2, 0.3])
+    new_true = compose(old, np.array([0.3, -0.1, 0.5]))
+    new_est = compose(new_true, np.array([0.2, -0.15, math.radians(2.0)]))
+    olds = [_keyframe(hall_world, compose(old, d), cast_scan, k) for k, d in
+            enumerate(np.array([[-0.2, 0.0, 0.0], [0.0, 0.0, 0.0], [0.2, 0.05, 0.1]]))]
+    target = build_target(olds, 0.01, frame=old)
+    new = _keyframe(hall_world, new_true, cast_scan, 99)
+    candidate = Candidate(0, 1, relative_pose(old, new_est), np.diag([0.15**2, 0.15**2, math.radians(1.5) ** 2]), 0.3)
+    params = LoopClosureParams(correction_sigmas=sigmas, max_rmse_m=0.03)  # 1 % range noise at 4 m
+    assert correction_limits(candidate, params) == pytest.approx(
+        (0.1, 0.15) if sigmas == 0 else (0.45, max(0.15, 3 * math.radians(1.5)))
+    )
+    verdict = verify(candidate, target, new.match_points, new.sensor_xy, IcpParams(), params)
+    if sigmas == 0:
+        assert not verdict.accepted and verdict.reason == "large correction"
+        return
+    assert verdict.accepted, verdict.reason + " " + verdict.detail
+    truth = relative_pose(old, new_true)
+    assert np.hypot(*(verdict.measurement[:2] - truth[:2])) < 0.01
+    # the same correction with a chain that claims 2 cm of drift stays rejected
+    sure = Candidate(0, 1, candidate.prior, np.diag([0.02**2, 0.02**2, 0.01**2]), 0.3)
+    assert not verify(sure, target, new.match_points, new.sensor_xy, IcpParams(), params).accepted
 
 
 def test_chain_uncertainty_matches_propagation_by_hand() -> None:

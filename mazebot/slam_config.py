@@ -196,6 +196,9 @@ class LoopSection:
         "candidate submap: keyframes i-k .. i+k"))] = 6
     attempt_every: Annotated[int, Field(ge=1, description="look for loop closures every this many keyframes")] = 3
     max_candidates: Annotated[int, Field(ge=1, description="candidates verified per attempt (nearest first)")] = 1
+    anchor_candidate: Annotated[bool, Field(description=(
+        "verify keyframe 0 too whenever it is within the search radius (closures to it fix the map's "
+        "orientation about the start)"))] = False
     min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
     max_rmse_m: Annotated[float, Field(gt=0, description="accept: point-to-line RMS at most this")] = 0.012
     min_correspondences: Annotated[int, Field(ge=3, description="accept: at least this many matched points")] = 40
@@ -527,7 +530,7 @@ FLAT_KEYS: dict[str, str] = {
     "wall_lattice_gate_m": "lattice.gate_m",
     **_moved("loop_", "loop", "search_radius_m max_search_radius_m sigma_scale min_keyframe_gap submap_half_width "
              "attempt_every min_fitness max_rmse_m min_correspondences accept_degenerate gate_chi2 max_correction_m "
-             "max_correction_rad correction_sigmas ambiguity_shift_m ambiguity_fitness_ratio ambiguity_rmse_ratio max_range_m "
+             "max_correction_rad ambiguity_shift_m ambiguity_fitness_ratio ambiguity_rmse_ratio max_range_m "
              "information_scale"),
     "corr_resolution_m": "search.resolution_m",
     "corr_sigma_m": "search.sigma_m",

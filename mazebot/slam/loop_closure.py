@@ -17,7 +17,12 @@ along the chain of sequential edges ``i → n`` is propagated to first order:
 
 (a heading error at keyframe ``k`` swings everything after it by its lever arm). ``i``
 is a candidate when its distance to ``n`` is below ``search_radius_m + sigma_scale ·
-σ_xy`` (capped at ``max_search_radius_m``). The nearest candidates are tried first.
+σ_xy`` (capped at ``max_search_radius_m``). The nearest candidates are tried first;
+with ``anchor_candidate``, keyframe 0 too whenever it is within the radius. The map's
+frame is keyframe 0's: a heading error in the first sequential edges turns the whole map
+about the start, and a closure to any later keyframe leaves those edges as they are
+(the Seattle log: closures to keyframes 3–9 on the return, none to 0, the map turned by
+0.7°); only a closure to keyframe 0 itself measures them.
 
 **Verification** (:func:`verify`). ICP of the new keyframe's points against a submap of
 the keyframes around ``i`` (``i ± submap_half_width``), in ``i``'s frame, started at the
@@ -160,8 +165,11 @@ def find_candidates(
     if near.size == 0:
         return []
     order = near[np.argsort(dist[near], kind="stable")]
+    chosen = list(order[: params.max_candidates])
+    if params.anchor_candidate and near[0] == 0 and 0 not in chosen:
+        chosen.append(0)  # the map's own frame: see LoopSection.anchor_candidate
     out = []
-    for i in order[: params.max_candidates]:
+    for i in chosen:
         sxy = max(params.min_std_m**2, float(var_xy[i]))
         sth = max(params.min_std_rad**2, float(var_th[i]))
         out.append(

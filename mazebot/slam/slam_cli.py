@@ -84,9 +84,10 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
       than that when the chain's own uncertainty says so (3 standard deviations of its
       drift, ``correction_sigmas``): a building's loops are longer than any fixed cap
       (Intel seed 7: 1.8 m of drift after the first 35 m corridor);
-    - keyframe 0 verified too whenever it is within reach (``anchor_candidate``): only a
-      closure to it undoes a heading error of the first scans, which turns the whole
-      building about the start;
+    - keyframe 0 is *not* verified as an extra candidate (``anchor_candidate`` stays off):
+      it helped where the map is turned about the start (ACES seed 2 0.61 → 0.40 m, Seattle
+      seed 1 0.34 → 0.30 m) but lost ACES with systematic odometry (seed 1: 1.47 → 9.66 m)
+      and cost Intel seed 4 (0.140 → 0.178 m);
     - no wall prior: the maze's walls lie on one right-angle grid, this building's do not
       (a diagonal north-east corner, and the inner corridors are bowed in the log's own
       corrected poses), so the prior bent headings towards a grid that is not there.
@@ -126,7 +127,6 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
             max_correction_m=1.5,
             max_correction_rad=0.2,
             correction_sigmas=3.0,
-            anchor_candidate=True,
             ambiguity_shift_m=0.0,
             min_std_m=0.05,
             min_std_rad=0.02,

@@ -196,6 +196,9 @@ class LoopSection:
         "candidate submap: keyframes i-k .. i+k"))] = 6
     attempt_every: Annotated[int, Field(ge=1, description="look for loop closures every this many keyframes")] = 3
     max_candidates: Annotated[int, Field(ge=1, description="candidates verified per attempt (nearest first)")] = 1
+    anchor_candidate: Annotated[bool, Field(description=(
+        "verify keyframe 0 too whenever it is within the search radius (closures to it fix the map's "
+        "orientation about the start)"))] = False
     min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
     max_rmse_m: Annotated[float, Field(gt=0, description="accept: point-to-line RMS at most this")] = 0.012
     min_correspondences: Annotated[int, Field(ge=3, description="accept: at least this many matched points")] = 40
@@ -206,6 +209,9 @@ class LoopSection:
     max_correction_m: Annotated[float, Field(gt=0, description=(
         "accept: the correction moves at most this far ..."))] = 0.10
     max_correction_rad: Annotated[float, Field(gt=0, description="... and turns at most this much")] = 0.15
+    correction_sigmas: Annotated[float, Field(ge=0, description=(
+        "... or, if larger, this many std of the chain's drift, and the search about the prior as wide "
+        "(0: the fixed limits alone)"))] = 0.0
     ambiguity_shift_m: Annotated[float, Field(ge=0, description=(
         "retry ICP this far off (one cell: [planner] cell_size_m unless set); another good fit there rejects "
         "(0: off)"))] = MAZE_CELL_M

@@ -17,7 +17,12 @@ along the chain of sequential edges ``i → n`` is propagated to first order:
 
 (a heading error at keyframe ``k`` swings everything after it by its lever arm). ``i``
 is a candidate when its distance to ``n`` is below ``search_radius_m + sigma_scale ·
-σ_xy`` (capped at ``max_search_radius_m``). The nearest candidates are tried first.
+σ_xy`` (capped at ``max_search_radius_m``). The nearest candidates are tried first;
+with ``anchor_candidate``, keyframe 0 too whenever it is within the radius. The map's
+frame is keyframe 0's: a heading error in the first sequential edges turns the whole map
+about the start, and a closure to any later keyframe leaves those edges as they are
+(the Seattle log: closures to keyframes 3–9 on the return, none to 0, the map turned by
+0.7°); only a closure to keyframe 0 itself measures them.
 
 **Verification** (:func:`verify`). ICP of the new keyframe's points against a submap of
 the keyframes around ``i`` (``i ± submap_half_width``), in ``i``'s frame, started at the
@@ -34,7 +39,9 @@ search is accepted with it too. Accepted only if
    cannot say where along it the robot is), unless ``accept_degenerate``;
 3. it is consistent with the odometry chain: the correction ``z ⊖ prior`` is within
    ``max_correction_m`` / ``max_correction_rad`` and its Mahalanobis distance under
-   the chain covariance plus the ICP covariance is below ``gate_chi2``;
+   the chain covariance plus the ICP covariance is below ``gate_chi2``; with
+   ``correction_sigmas`` k the limits grow to k standard deviations of the chain
+   (:func:`correction_limits`), and the search window with them;
 4. it is unambiguous: ICP restarted from the prior shifted by ``±ambiguity_shift_m``
    along both axes (one maze cell: where a repeated corridor would fit) never finds,
    farther than ``ambiguity_tolerance_m`` from the match, another alignment nearly as
@@ -46,7 +53,7 @@ search is accepted with it too. Accepted only if
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -158,8 +165,11 @@ def find_candidates(
     if near.size == 0:
         return []
     order = near[np.argsort(dist[near], kind="stable")]
+    chosen = list(order[: params.max_candidates])
+    if params.anchor_candidate and near[0] == 0 and 0 not in chosen:
+        chosen.append(0)  # the map's own frame: see LoopSection.anchor_candidate
     out = []
-    for i in order[: params.max_candidates]:
+    for i in chosen:
         sxy = max(params.min_std_m**2, float(var_xy[i]))
         sth = max(params.min_std_rad**2, float(var_th[i]))
         out.append(
@@ -188,8 +198,15 @@ def verify(
     verdict = _verify_from(candidate.prior, candidate, target, source_xy, sensor_xy, icp, params)
     if verdict.accepted or verdict.reason not in RESCUED or params.search is None:
         return verdict
-    # ICP from the prior found no good match: start it where the branch-and-bound search says
-    start = search_start(candidate.prior, target, source_xy, sensor_xy, params.search)
+    # ICP from the prior found no good match: start it where the branch-and-bound search says,
+    # over the window the correction may span
+    limit_m, limit_rad = correction_limits(candidate, params)
+    search = replace(
+        params.search,
+        window_xy_m=max(params.search.window_xy_m, limit_m),
+        window_theta_rad=max(params.search.window_theta_rad, limit_rad),
+    )
+    start = search_start(candidate.prior, target, source_xy, sensor_xy, search)
     if np.allclose(start, candidate.prior):
         return verdict
     return _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params)
@@ -227,9 +244,10 @@ def _verify_from(
     # 3. consistent with the odometry chain
     correction = result.pose - candidate.prior
     correction[2] = float(wrap_angle(correction[2]))
-    if math.hypot(correction[0], correction[1]) > params.max_correction_m:
+    limit_m, limit_rad = correction_limits(candidate, params)
+    if math.hypot(correction[0], correction[1]) > limit_m:
         return _reject(candidate, "large correction", f"moves {math.hypot(correction[0], correction[1]):.3f} m", **fit)
-    if abs(correction[2]) > params.max_correction_rad:
+    if abs(correction[2]) > limit_rad:
         return _reject(candidate, "large correction", f"turns {correction[2]:.3f} rad", **fit)
     icp_cov = np.linalg.pinv(result.information * params.information_scale, hermitian=True)
     chi2 = float(correction @ np.linalg.solve(candidate.prior_covariance + icp_cov, correction))
@@ -246,6 +264,28 @@ def _verify_from(
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
     information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
     return Verdict(candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"])
+
+
+def correction_limits(candidate: Candidate, params: LoopClosureParams) -> tuple[float, float]:
+    """How far (m, rad) a closure may move ``candidate``'s prior: the fixed limits, or more with a drifted chain.
+
+    With ``correction_sigmas`` k > 0 the limits are at least k standard deviations of the
+    prior's chain uncertainty. A fixed cap suits a maze, where every closure comes a few
+    keyframes after the last and a corridor one cell over fits as well as the right one;
+    after a long loop in a building the drift grows with the distance driven, and a cap
+    below it rejects exactly the closure that is needed (the Intel log, a 35 m corridor at
+    the start: 1.8 m of drift, every closure back to the start rejected at a 1.5 m cap).
+    The chi² test against the same covariance still applies, and the robust weights of the
+    optimization (:mod:`mazebot.slam.robust_closures`) still judge the accepted ones.
+    """
+    if params.correction_sigmas <= 0:
+        return params.max_correction_m, params.max_correction_rad
+    cov = candidate.prior_covariance
+    k = params.correction_sigmas
+    return (
+        max(params.max_correction_m, k * math.sqrt(max(float(cov[0, 0]), float(cov[1, 1])))),
+        max(params.max_correction_rad, k * math.sqrt(float(cov[2, 2]))),
+    )
 
 
 def search_start(

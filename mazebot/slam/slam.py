@@ -1223,7 +1223,10 @@ class Slam:
                 replace(p, max_candidates=4 * p.max_candidates),
             )
             # a keyframe one cell away behind a wall is near, but sees another corridor
-            found = [c for c in found if self._in_sight(poses[c.old], poses[c.new])][: p.max_candidates]
+            found = [c for c in found if self._in_sight(poses[c.old], poses[c.new])]
+            # the nearest ones, and keyframe 0 beyond them if asked for (loop_closure.find_candidates)
+            anchor = [c for c in found[p.max_candidates :] if p.anchor_candidate and c.old == 0]
+            found = found[: p.max_candidates] + anchor
             self._pending_candidates = (self._pending_candidates + found)[-PENDING_CANDIDATES:]
         if self.job_running:
             return None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from mazebot.slam.loop_closure import (
     Candidate,
     LoopClosureParams,
     chain_uncertainty,
+    correction_limits,
     find_candidates,
     verify,
 )
@@ -121,6 +123,57 @@ def test_rejects_a_match_that_contradicts_the_odometry(maze_world: World, cast_s
     assert verdict.reason in ("large correction", "inconsistent with odometry")
 
 
+@pytest.fixture(scope="module")
+def hall_world() -> World:
+    """A 6 m × 4 m hall with three boxes at irregular places: no two places in it look alike."""
+    t = 0.05
+    rects = [
+        [-3.0, -2.0 - t, 3.0, -2.0],
+        [-3.0, 2.0, 3.0, 2.0 + t],
+        [-3.0 - t, -2.0, -3.0, 2.0],
+        [3.0, -2.0, 3.0 + t, 2.0],
+        [-1.7, 0.6, -1.1, 1.0],
+        [0.4, -1.3, 0.7, -0.5],
+        [1.8, 0.9, 2.3, 1.1],
+    ]
+    return World(
+        name="hall",
+        segments=rectangles_outline(np.array(rects)),
+        circles=np.zeros((0, 3)),
+        start_pose=(0.0, 0.0, 0.0),
+        bounds_m=(-3.1, -2.1, 3.1, 2.1),
+    )
+
+
+@pytest.mark.parametrize("sigmas", [0.0, 3.0])
+def test_a_drift_beyond_the_fixed_cap_closes_when_the_chain_allows_it(hall_world: World, cast_scan, sigmas) -> None:
+    # after a long loop the chain believes the robot 0.25 m and 2° from where it is, and its
+    # own uncertainty (0.15 m, 1.5°) says so: the fixed 0.10 m cap rejects the true closure,
+    # a cap of three chain standard deviations accepts it, and measures it
+    old = np.array([-0.5, 0.2, 0.3])
+    new_true = compose(old, np.array([0.3, -0.1, 0.5]))
+    new_est = compose(new_true, np.array([0.2, -0.15, math.radians(2.0)]))
+    olds = [_keyframe(hall_world, compose(old, d), cast_scan, k) for k, d in
+            enumerate(np.array([[-0.2, 0.0, 0.0], [0.0, 0.0, 0.0], [0.2, 0.05, 0.1]]))]
+    target = build_target(olds, 0.01, frame=old)
+    new = _keyframe(hall_world, new_true, cast_scan, 99)
+    candidate = Candidate(0, 1, relative_pose(old, new_est), np.diag([0.15**2, 0.15**2, math.radians(1.5) ** 2]), 0.3)
+    params = LoopClosureParams(correction_sigmas=sigmas, max_rmse_m=0.03)  # 1 % range noise at 4 m
+    assert correction_limits(candidate, params) == pytest.approx(
+        (0.1, 0.15) if sigmas == 0 else (0.45, max(0.15, 3 * math.radians(1.5)))
+    )
+    verdict = verify(candidate, target, new.match_points, new.sensor_xy, IcpParams(), params)
+    if sigmas == 0:
+        assert not verdict.accepted and verdict.reason == "large correction"
+        return
+    assert verdict.accepted, verdict.reason + " " + verdict.detail
+    truth = relative_pose(old, new_true)
+    assert np.hypot(*(verdict.measurement[:2] - truth[:2])) < 0.01
+    # the same correction with a chain that claims 2 cm of drift stays rejected
+    sure = Candidate(0, 1, candidate.prior, np.diag([0.02**2, 0.02**2, 0.01**2]), 0.3)
+    assert not verify(sure, target, new.match_points, new.sensor_xy, IcpParams(), params).accepted
+
+
 def test_chain_uncertainty_matches_propagation_by_hand() -> None:
     rng = np.random.default_rng(1)
     positions = np.cumsum(rng.uniform(-0.1, 0.1, (30, 2)), axis=0)
@@ -151,3 +204,20 @@ def test_candidates_are_old_and_within_the_drift_scaled_radius() -> None:
     wide = find_candidates(poses, 60, np.full(len(poses) - 1, 1e-3), var, params)
     assert len(wide) == 3 and max(c.distance_m for c in wide) > 0.12
     assert find_candidates(poses, 30, var, var, params) == []  # nothing is old enough
+
+
+def test_the_anchor_keyframe_is_tried_whenever_it_is_within_reach() -> None:
+    # the path comes back past keyframe 5, with keyframe 0 half a metre away: the nearest
+    # candidate is 5; keyframe 0 (the map's frame) is verified too only with anchor_candidate
+    out = np.column_stack((np.arange(31) * 0.1, np.zeros(31), np.zeros(31)))
+    back = np.column_stack((3.0 - np.arange(1, 31) * 0.1, np.full(30, 0.05), np.full(30, math.pi)))
+    poses = np.vstack((out, back))[:56]  # keyframe 55 is at x = 0.5
+    var = np.full(len(poses) - 1, 1e-8)
+    params = LoopClosureParams(min_keyframe_gap=40, search_radius_m=0.6, max_search_radius_m=1.0, max_candidates=1)
+    assert [c.old for c in find_candidates(poses, 55, var, var, params)] == [5]
+    anchored = find_candidates(poses, 55, var, var, replace(params, anchor_candidate=True))
+    assert [c.old for c in anchored] == [5, 0]
+    np.testing.assert_allclose(anchored[1].prior, relative_pose(poses[0], poses[55]))
+    # out of reach, it is not tried
+    far = replace(params, anchor_candidate=True, search_radius_m=0.3)
+    assert [c.old for c in find_candidates(poses, 55, var, var, far)] == [5]

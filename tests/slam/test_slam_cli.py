@@ -28,6 +28,11 @@ def test_slam_run_on_the_intel_log(intel_log_path: Path, tmp_path: Path, capsys:
     # against GMapping's corrected poses: decimetres, where the noisy odometry is off by metres
     assert stats["error"]["rms_m"] < 0.3 and stats["error"]["heading_rms_deg"] < 3.0
     assert stats["error"]["rms_m"] < 0.05 * stats["error_odometry"]["rms_m"]
+    # the literature's figures beside it: a rigid fit can only lower the position RMS, and
+    # scan to scan SLAM is closer to the reference than the odometry it started from
+    assert stats["error_aligned"]["rms_m"] <= stats["error"]["rms_m"] + 1e-4
+    assert stats["relative_error"]["pairs"] == 199
+    assert stats["relative_error"]["rot_mean_deg"] < stats["relative_error_odometry"]["rot_mean_deg"]
 
     lasers = read_carmen(intel_log_path).lasers[:200]
     rows = np.loadtxt(out / "trajectory.txt")

@@ -58,7 +58,6 @@ from __future__ import annotations
 import math
 from collections.abc import Generator, Iterable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -241,7 +240,8 @@ def match_scan_steps(
     """:func:`match_scan` in stages (:mod:`mazebot.steps`): it yields every ``ITERATIONS_PER_STAGE`` iterations.
 
     Most scans converge in a few iterations; a poor start can take up to
-    ``max_iterations`` (150), tens of milliseconds on the event loop in one piece.
+    ``max_iterations`` (150), tens of milliseconds on the event loop in one piece. The
+    numbered steps are those of the module docstring.
     """
     p = params or IcpParams()
     src = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
@@ -250,9 +250,8 @@ def match_scan_steps(
     sensor = np.zeros(2) if sensor_xy is None else np.asarray(sensor_xy, dtype=np.float64).reshape(2)
     gate_m = p.max_correspondence_m
     k = max(1, p.candidates if target.oriented else 1)
-    weighted = p.range_noise_ratio > 0.0
     converged = False
-    last: tuple[Any, ...] = ()
+    last: _Iteration | None = None
     iterations = 0
     if len(target) == 0 or src.shape[0] == 0:
         return _give_up(prior, 0)
@@ -280,47 +279,12 @@ def match_scan_steps(
         # 4. point-to-line residuals r = nᵀ(R p + t − q) to the matched target points q, Cauchy weights
         n = target.normals[j]
         r = np.einsum("ij,ij->i", n, moved[rows] - target.points[j])
-        if weighted:
-            # expected noise of each residual: both points' range noise along the normal, and a floor
-            beam = (src[rows] - sensor) @ rot.T  # lidar to point
-            var = (p.range_noise_ratio**2) * (
-                np.einsum("ij,ij->i", n, beam) ** 2 + target.normal_range_m[j] ** 2
-            ) + p.noise_floor_m**2
-            e = r / np.sqrt(var)
-            abs_e = np.abs(e)
-            scale = max(p.robust_scale_min_sigma, 1.4826 * float(np.partition(abs_e, m // 2)[m // 2]))
-            w = 1.0 / (1.0 + (e / scale) ** 2)
-        else:
-            abs_r = np.abs(r)
-            scale = max(p.robust_scale_min_m, 1.4826 * float(np.partition(abs_r, m // 2)[m // 2]))  # MAD
-            w = 1.0 / (1.0 + (r / scale) ** 2)
+        e, w, var = _robust_weights(p, r, n, (src[rows] - sensor) @ rot.T, target.normal_range_m[j])
 
-        # 5. linearized least squares; the rotation column scaled by the lever arm to metres
-        arm = rp[rows]
-        lever_m = max(0.1, math.sqrt(float(np.einsum("ij,ij->", arm, arm)) / m))
-        unit = np.array([1.0, 1.0, lever_m])
-        jac = np.empty((m, 3))
-        jac[:, :2] = n
-        jac[:, 2] = (arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]) / lever_m
-        jw = jac * w[:, None]
-        hess = jw.T @ jac
-        if weighted:
-            # observability from the kernel-weighted geometry, the step from the noise-weighted system
-            jwn = jw / var[:, None]
-            step_s, strong, eigval, eigvec, hess_obs = _solve_weighted(
-                jwn.T @ jac, jwn.T @ r, hess, p.degeneracy_ratio
-            )
-        else:
-            step_s, strong, eigval, eigvec = _solve_observable(hess, jw.T @ r, p.degeneracy_ratio)
-            hess_obs = None
-        # unobservable directions go back to the prior instead of sliding along them
-        offset = pose - prior
-        offset[2] = math.remainder(offset[2], math.tau)
-        weak = eigvec[:, ~strong]
-        step_s -= weak @ (weak.T @ (offset * unit))
-        step = step_s / unit
+        # 5. linearized least squares, unobservable directions kept at the prior
+        last = _solve_step(p, rp[rows], n, r, e, w, var)
+        step = last.step_from(pose, prior)
         pose += step
-        last = (m, r, (e if weighted else r), w, strong, eigval, eigvec, lever_m, hess_obs)
 
         # 6. convergence: the seed's criteria, then finer steps until they stop mattering
         step_t, step_r = math.hypot(step[0], step[1]), abs(float(step[2]))
@@ -328,33 +292,121 @@ def match_scan_steps(
         if step_t < p.stop_translation_m and step_r < p.stop_rotation_rad:
             break
 
-    count, r, e, w, strong, eigval, eigvec, lever_m, hess_obs = last
+    assert last is not None  # at least one iteration ran: max_iterations >= 1
     pose[2] = math.remainder(pose[2], math.tau)
-    if weighted:
-        # the normalized residuals' variance factor: 1 when the noise model is right
-        sigma2 = max(p.min_variance_factor, float(np.sum(w * e**2) / np.sum(w)))
+    return last.result(p, pose, converged, iterations, src.shape[0])
+
+
+@dataclass(frozen=True)
+class _Iteration:
+    """One linearized solve (step 5) and what the result is made of when it is the last.
+
+    ``residual_m`` are the point-to-line residuals ``r``, ``normalized`` the residuals the
+    kernel acted on (``r / σ`` when weighted, else ``r``), ``weights`` the Cauchy weights;
+    ``strong`` marks the observable eigen-directions of the lever-arm-scaled Hessian
+    (``eigval``, ``eigvec``), ``lever_m`` the scale of its rotation column, ``hess_obs`` the
+    information of the observable directions in that scaling (None until :meth:`result`
+    makes it, unweighted), ``step_scaled`` the solved step in the same scaling.
+    """
+
+    residual_m: np.ndarray
+    normalized: np.ndarray
+    weights: np.ndarray
+    weighted: bool
+    strong: np.ndarray
+    eigval: np.ndarray
+    eigvec: np.ndarray
+    lever_m: float
+    hess_obs: np.ndarray | None
+    step_scaled: np.ndarray
+
+    def step_from(self, pose: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """The step in (x, y, θ): the solved one, with its weak directions taking the pose back to ``prior``."""
+        unit = np.array([1.0, 1.0, self.lever_m])
+        offset = pose - prior
+        offset[2] = math.remainder(offset[2], math.tau)
+        weak = self.eigvec[:, ~self.strong]
+        step_s = self.step_scaled - weak @ (weak.T @ (offset * unit))
+        return step_s / unit
+
+    def result(self, p: IcpParams, pose: np.ndarray, converged: bool, iterations: int, sources: int) -> IcpResult:
+        """The match's result, its information matrix from this (the last) iteration."""
+        w, r, e = self.weights, self.residual_m, self.normalized
+        if self.weighted:
+            # the normalized residuals' variance factor: 1 when the noise model is right
+            sigma2 = max(p.min_variance_factor, float(np.sum(w * e**2) / np.sum(w)))
+            hess_obs = self.hess_obs
+            assert hess_obs is not None  # the weighted solve makes it
+        else:
+            sigma2 = max(p.sigma_min_m**2, float(np.sum(w * r**2) / np.sum(w)))
+            # information of the observable directions only, back in (x, y, θ) units
+            kept = self.eigvec[:, self.strong]
+            hess_obs = (kept * self.eigval[self.strong]) @ kept.T
+        unscale = np.array([1.0, 1.0, self.lever_m])
+        information = hess_obs * np.outer(unscale, unscale) / sigma2
+        weak_direction = None
+        if not self.strong.all():
+            v = self.eigvec[:, int(np.argmin(self.eigval))] / unscale
+            weak_direction = v / np.linalg.norm(v)
+        return IcpResult(
+            pose=pose,
+            converged=converged,
+            iterations=iterations,
+            fitness=r.size / sources,
+            rmse_m=float(np.sqrt(np.mean(r**2))),
+            information=information,
+            degenerate=not bool(self.strong.all()),
+            weak_direction=weak_direction,
+            correspondences=int(r.size),
+        )
+
+
+def _robust_weights(
+    p: IcpParams, r: np.ndarray, n: np.ndarray, beam: np.ndarray, target_normal_range_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Step 4's Cauchy weights: ``(normalized residuals, weights, expected variance or None)``.
+
+    With ``range_noise_ratio`` > 0 each residual is divided by its expected noise (both
+    points' range noise along the normal, ``beam`` being lidar to point, and a floor) and
+    the kernel acts on that; else on the residuals in metres. The kernel's scale is the
+    median absolute deviation (× 1.4826), at least the configured minimum.
+    """
+    m = r.size
+    if p.range_noise_ratio > 0.0:
+        var = (p.range_noise_ratio**2) * (
+            np.einsum("ij,ij->i", n, beam) ** 2 + target_normal_range_m**2
+        ) + p.noise_floor_m**2
+        e = r / np.sqrt(var)
+        scale = max(p.robust_scale_min_sigma, 1.4826 * float(np.partition(np.abs(e), m // 2)[m // 2]))
+        return e, 1.0 / (1.0 + (e / scale) ** 2), var
+    scale = max(p.robust_scale_min_m, 1.4826 * float(np.partition(np.abs(r), m // 2)[m // 2]))  # MAD
+    return r, 1.0 / (1.0 + (r / scale) ** 2), None
+
+
+def _solve_step(
+    p: IcpParams, arm: np.ndarray, n: np.ndarray, r: np.ndarray, e: np.ndarray, w: np.ndarray,
+    var: np.ndarray | None,
+) -> _Iteration:
+    """Step 5: the linearized least squares, the rotation column scaled by the RMS lever arm to metres.
+
+    Weighted (``var`` given): observability from the kernel-weighted geometry, the step
+    from the noise-weighted system (module docstring).
+    """
+    m = r.size
+    lever_m = max(0.1, math.sqrt(float(np.einsum("ij,ij->", arm, arm)) / m))
+    jac = np.empty((m, 3))
+    jac[:, :2] = n
+    jac[:, 2] = (arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]) / lever_m
+    jw = jac * w[:, None]
+    hess = jw.T @ jac
+    hess_obs: np.ndarray | None
+    if var is not None:
+        jwn = jw / var[:, None]
+        step_s, strong, eigval, eigvec, hess_obs = _solve_weighted(jwn.T @ jac, jwn.T @ r, hess, p.degeneracy_ratio)
     else:
-        sigma2 = max(p.sigma_min_m**2, float(np.sum(w * r**2) / np.sum(w)))
-        # information of the observable directions only, back in (x, y, θ) units
-        kept = eigvec[:, strong]
-        hess_obs = (kept * eigval[strong]) @ kept.T
-    unscale = np.array([1.0, 1.0, lever_m])
-    information = hess_obs * np.outer(unscale, unscale) / sigma2
-    weak_direction = None
-    if not strong.all():
-        v = eigvec[:, int(np.argmin(eigval))] / unscale
-        weak_direction = v / np.linalg.norm(v)
-    return IcpResult(
-        pose=pose,
-        converged=converged,
-        iterations=iterations,
-        fitness=count / src.shape[0],
-        rmse_m=float(np.sqrt(np.mean(r**2))),
-        information=information,
-        degenerate=not bool(strong.all()),
-        weak_direction=weak_direction,
-        correspondences=int(count),
-    )
+        step_s, strong, eigval, eigvec = _solve_observable(hess, jw.T @ r, p.degeneracy_ratio)
+        hess_obs = None
+    return _Iteration(r, e, w, var is not None, strong, eigval, eigvec, lever_m, hess_obs, step_s)
 
 
 match_scan = all_at_once(

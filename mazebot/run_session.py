@@ -111,8 +111,12 @@ class RunSession:
         handler = record_task.LogTap(tap)
         logging.getLogger("mazebot").addHandler(handler)
 
+        record_encoders = record_task.encoder_recorder(tap)
+        state.odometry_listeners += (record_encoders,)
+
         def close() -> None:
             logging.getLogger("mazebot").removeHandler(handler)
+            state.odometry_listeners = tuple(f for f in state.odometry_listeners if f is not record_encoders)
             recorder.close()
             record_task.publish_stats(state, recorder)
             stats = recorder.stats

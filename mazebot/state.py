@@ -81,6 +81,23 @@ class Fault:
 
 
 @dataclass(frozen=True)
+class OdometryStep:
+    """One encoder reading as the odometry task used it.
+
+    ``pose_time_s`` is the time the pose of these counts was dated with in the odometry
+    history (the newest encoder edge's own stamp, or the reading's time at rest), None when
+    the reading added nothing to the history: a recording must date the counts the same way
+    for a replay to give SLAM the same odometry.
+    """
+
+    reading_time_s: float
+    pose_time_s: float | None
+    left_ticks: int
+    right_ticks: int
+    invalid_transitions: int
+
+
+@dataclass(frozen=True)
 class Event:
     """Something the user may want to know that stopped nothing for long (a loop stall, a reconnect)."""
 
@@ -252,6 +269,9 @@ class SharedState:
     #: (the benchmark's fault metrics, a logger); one that raises is logged, the note and the
     #: fault that made it still happen
     note_listeners: tuple[Callable[[Event], None], ...] = ()
+    #: a tap: each listener is given every encoder reading the odometry task integrated, with the
+    #: time it dated the pose by (:class:`OdometryStep`; the recorder writes them)
+    odometry_listeners: tuple[Callable[[OdometryStep], None], ...] = ()
 
     def __setattr__(self, name: str, value: Any) -> None:
         object.__setattr__(self, name, value)

@@ -123,7 +123,10 @@ class Replayer:
         if msg.topic == "/mazebot/encoders":
             self.odometry.update(int(data["left_ticks"]), int(data["right_ticks"]))
             pose = self.odometry.pose
-            self.history.append(float(data["time_s"]), pose.x_m, pose.y_m, pose.theta_rad)
+            # the time the live odometry dated this pose by; None: it added nothing to the history
+            pose_s = data["pose_time_s"] if "pose_time_s" in data else data["time_s"]
+            if pose_s is not None:
+                self.history.append(float(pose_s), pose.x_m, pose.y_m, pose.theta_rad)
             if not self.steps:
                 latest = self.history.latest
                 for end_s in sorted(self._pending):

@@ -166,6 +166,7 @@ SCHEMAS: dict[str, bytes] = {
         "mazebot.EncoderTicks",
         {
             "time_s": {"type": "number"},
+            "pose_time_s": {"type": ["number", "null"]},
             "left_ticks": {"type": "integer"},
             "right_ticks": {"type": "integer"},
             "invalid_transitions": {"type": "integer"},

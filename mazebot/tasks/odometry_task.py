@@ -8,7 +8,8 @@ from mazebot.clock import Clock
 from mazebot.config import DriveConfig, EncodersConfig
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import DiffDriveOdometry
-from mazebot.state import SharedState
+from mazebot.state import OdometryStep, SharedState
+from mazebot.taps import notify
 
 #: With the motors braked (both throttles 0) and no new edge for this long, the wheels rest
 #: and the odometry pose holds up to the reading's time. Until then a reading without a new
@@ -68,6 +69,10 @@ async def run(
             if pose_s is not None:
                 history.append(pose_s, odo.x_m, odo.y_m, odo.theta_rad)
                 state.pose_time_s = pose_s
+            if state.odometry_listeners:
+                step = OdometryStep(now_s, pose_s, int(reading.left_ticks), int(reading.right_ticks),
+                                    int(reading.invalid_transitions))
+                notify(state.odometry_listeners, step, "state.odometry_listeners")
             stats = state.sensors
             stats.encoder_ticks_left = reading.left_ticks
             stats.encoder_ticks_right = reading.right_ticks

@@ -27,17 +27,16 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from mazebot.clock import Clock
-from mazebot.hardware import Encoders, Hardware, Lidar, Motors
-from mazebot.io.encoders import EncoderReading
+from mazebot.hardware import Hardware, Lidar, Motors
 from mazebot.io.scan import Scan
 from mazebot.record.schemas import transform_chain
 from mazebot.record.writer import McapRecorder
 from mazebot.slam.slam import LoopClosureResult, OdometrySource, Slam, SlamUpdate
-from mazebot.state import RunState, SharedState
+from mazebot.state import OdometryStep, RunState, SharedState
 
 
 class RecordingTap:
@@ -90,30 +89,28 @@ class LidarTap:
         return getattr(self._lidar, name)
 
 
-class EncodersTap:
-    """The encoder driver, with every reading recorded with the time odometry will use."""
+def encoder_recorder(tap: RecordingTap) -> Callable[[OdometryStep], None]:
+    """A listener for ``SharedState.odometry_listeners`` that records every encoder reading.
 
-    def __init__(self, encoders: Encoders, tap: RecordingTap) -> None:
-        self._encoders = encoders
-        self._tap = tap
+    Each reading is written at its own time with the time the odometry dated its pose by
+    (``pose_time_s``; absent from older recordings, where it was the reading's time), so a
+    replay builds the same odometry history as the live run.
+    """
 
-    def read(self) -> EncoderReading:
-        reading = self._encoders.read()
-        time_s = reading.time_s if getattr(reading, "time_s", None) is not None else self._tap.clock.now_s()
-        self._tap.put(
+    def record(step: OdometryStep) -> None:
+        tap.put(
             "/mazebot/encoders",
             {
-                "time_s": time_s,
-                "left_ticks": int(reading.left_ticks),
-                "right_ticks": int(reading.right_ticks),
-                "invalid_transitions": int(reading.invalid_transitions),
+                "time_s": step.reading_time_s,
+                "pose_time_s": step.pose_time_s,
+                "left_ticks": step.left_ticks,
+                "right_ticks": step.right_ticks,
+                "invalid_transitions": step.invalid_transitions,
             },
-            time_s,
+            step.reading_time_s,
         )
-        return reading
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._encoders, name)
+    return record
 
 
 class MotorsTap:
@@ -140,11 +137,10 @@ class MotorsTap:
 
 
 def tap_hardware(hardware: Hardware, tap: RecordingTap) -> Hardware:
-    """The same hardware with its lidar, encoders and motors recorded."""
+    """The same hardware with its lidar and motors recorded (the encoders: :func:`encoder_recorder`)."""
     return dataclasses.replace(
         hardware,
         lidar=LidarTap(hardware.lidar, tap),
-        encoders=EncodersTap(hardware.encoders, tap),
         motors=MotorsTap(hardware.motors, tap),
     )
 

@@ -386,7 +386,10 @@ def test_the_child_starts_from_a_fork_server_that_holds_its_modules_and_stays_sm
     A forked child's memory is its own only where it writes: its own imports (~7 MB before the
     server preloaded them) and the pages a garbage collection touches (~13 MB of the server's
     objects, before the child froze them out of the collector). Measured in
-    ``/proc/PID/smaps_rollup`` after the child's first 40 ticks.
+    ``/proc/PID/smaps_rollup`` after the child's first 40 ticks: ~4 MB when this test starts
+    the server, 12.5 MB once in a whole test session whose earlier tests had started it (a
+    server is started once per process); the bound is what an unfrozen collection alone
+    would exceed.
     """
     from mazebot.slam.loop_worker import FORKSERVER_PRELOAD
 
@@ -414,4 +417,4 @@ def test_the_child_starts_from_a_fork_server_that_holds_its_modules_and_stays_sm
         state.control_link = None
         link.close()
     assert child.exitcode == 0
-    assert private_mb < 12.0, f"the control process holds {private_mb:.1f} MB of its own"
+    assert private_mb < 16.0, f"the control process holds {private_mb:.1f} MB of its own"

@@ -128,6 +128,8 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
         with pytest.raises(asyncio.CancelledError):
             await task
 
+    steps: list = []
+    state.odometry_listeners = (steps.append,)  # what a recording writes: each reading, dated as the history
     with encoders:
         asyncio.run(run_for(1.0))
     per_tick_m = math.pi * drive.wheel_diameter_m / enc.ticks_per_rev
@@ -143,6 +145,12 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
     assert 0.06 * true_rate_radps > 10 * tick_rad
     ages = np.asarray(state.odometry_edge_age_ms)
     assert ages.min() >= 29.0  # the bursts were late indeed
+    # the listeners heard every reading with the date the history got (None: not added), so a
+    # replay of a recording builds this same history
+    dated = [step.pose_time_s for step in steps if step.pose_time_s is not None]
+    assert len(dated) == len(history) and (dated[0], dated[-1]) == span
+    assert any(step.pose_time_s is None for step in steps)
+    assert all(step.pose_time_s is None or step.pose_time_s <= step.reading_time_s for step in steps)
 
 
 def test_a_reading_without_new_edges_holds_the_pose_only_once_the_wheels_rest() -> None:

@@ -96,6 +96,11 @@ class LidarConfig(Section):
     mount_x_m: float = Field(0.0, description="lidar centre ahead of the wheel axle centre")
     mount_y_m: float = Field(0.0, description="lidar centre left of the wheel axle centre")
 
+    @property
+    def mount_xy_m(self) -> tuple[float, float]:
+        """The lidar centre in the robot frame, (ahead, left) of the wheel axle centre."""
+        return (self.mount_x_m, self.mount_y_m)
+
     @model_validator(mode="after")
     def _ranges_ordered(self) -> LidarConfig:
         if self.min_range_m >= self.max_range_m:

@@ -396,7 +396,7 @@ async def run_daemon(
         if live is not None:
             from mazebot.tasks import foxglove_task
 
-            fc, mount_xy_m = config.foxglove, (config.lidar.mount_x_m, config.lidar.mount_y_m)
+            fc, mount_xy_m = config.foxglove, config.lidar.mount_xy_m
             supervisor.start(
                 "foxglove",
                 lambda: foxglove_task.run(state, live, clock, fc.pose_hz, fc.map_period_s, mount_xy_m),

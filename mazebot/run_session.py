@@ -152,7 +152,7 @@ class RunSession:
 
         if self.tap is not None:
             rc = config.record
-            mount_xy_m = (config.lidar.mount_x_m, config.lidar.mount_y_m)
+            mount_xy_m = config.lidar.mount_xy_m
             supervisor.start(
                 "record", lambda: record_task.run(state, self.tap, rc.pose_hz, rc.map_period_s, mount_xy_m)
             )

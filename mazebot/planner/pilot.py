@@ -98,8 +98,7 @@ class Pilot:
         self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
-        self.blind_zone = BlindZoneMemory(params.lidar.min_range_m,
-                                          lidar_xy_m=(params.lidar.mount_x_m, params.lidar.mount_y_m))
+        self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m)
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
         self._drive_inputs: tuple[np.ndarray, tuple[float, float], float, tuple[float, float]] | None = None
 
@@ -317,7 +316,7 @@ class Pilot:
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
             lidar = self.params.lidar
             points = scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, lidar.min_range_m,
-                                       lidar.max_range_m, (lidar.mount_x_m, lidar.mount_y_m))
+                                       lidar.max_range_m, lidar.mount_xy_m)
             self._scan_cache = (id(scan), points)
             if history is not None and len(history) > 0:
                 then = history.pose_at(scan.end_time_s)

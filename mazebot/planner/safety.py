@@ -39,6 +39,7 @@ from typing import Generic, TypeVar
 import numpy as np
 
 from mazebot.config import ControlConfig, RobotConfig
+from mazebot.geometry import inverse, transform_points
 
 # the defaults below are the config's, each written once in mazebot.config
 _CONTROL = ControlConfig()
@@ -144,9 +145,7 @@ class BlindZoneMemory:
     def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float]) -> None:
         """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``."""
         self.revolutions += 1
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        lx = pose[0] + c * self.lidar_xy_m[0] - s * self.lidar_xy_m[1]
-        ly = pose[1] + s * self.lidar_xy_m[0] + c * self.lidar_xy_m[1]
+        lx, ly = transform_points(pose, self.lidar_xy_m)[0]
         old = np.concatenate((self._points, self._recent))
         unseen = np.hypot(old[:, 0] - lx, old[:, 1] - ly) < self.min_range_m + self.motion_margin_m
         unseen &= old[:, 2] > self.revolutions - self.max_age_revolutions
@@ -158,15 +157,11 @@ class BlindZoneMemory:
         pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
         rx, ry = pts[:, 0] - self.lidar_xy_m[0], pts[:, 1] - self.lidar_xy_m[1]
         near = pts[np.hypot(rx, ry) < self.min_range_m + self.reach_m]
-        self._recent = np.column_stack((pose[0] + c * near[:, 0] - s * near[:, 1],
-                                        pose[1] + s * near[:, 0] + c * near[:, 1],
-                                        np.full(near.shape[0], float(self.revolutions))))
+        self._recent = np.column_stack((transform_points(pose, near), np.full(near.shape[0], float(self.revolutions))))
 
     def points_robot(self, pose: tuple[float, float, float]) -> np.ndarray:
         """The remembered returns the last revolution could not show, in the robot frame at odometry ``pose``."""
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        dx, dy = self._points[:, 0] - pose[0], self._points[:, 1] - pose[1]
-        return np.column_stack((c * dx + s * dy, -s * dx + c * dy))
+        return transform_points(inverse(pose), self._points[:, :2])
 
 
 class CollisionGuard:

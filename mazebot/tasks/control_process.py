@@ -191,7 +191,7 @@ class ControlLink:
         if config is not None:
             lidar = config.lidar
             self._lidar_range_m = (lidar.min_range_m, lidar.max_range_m)
-            self._mount_xy_m = (lidar.mount_x_m, lidar.mount_y_m)
+            self._mount_xy_m = lidar.mount_xy_m
 
     @classmethod
     def create(cls, config: Config) -> ControlLink:

@@ -98,7 +98,7 @@ class MotorControl:
             scan_timeout_ticks=c.scan_timeout_ticks,
         )
         self.lidar_range_m = (lidar.min_range_m, lidar.max_range_m)
-        self.lidar_mount_xy_m = (lidar.mount_x_m, lidar.mount_y_m)
+        self.lidar_mount_xy_m = lidar.mount_xy_m
         self._scan_cache: tuple[int, np.ndarray] | None = None
 
     @classmethod

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 import pickle
 import statistics
 import time
@@ -36,8 +37,8 @@ import numpy as np
 from mazebot.bench.cli import SIM_S_PER_CELL
 from mazebot.bench.runner import RunSpec, _relative, run_one
 from mazebot.config import load_config, parse_config
-from mazebot.slam import slam as slam_module
-from mazebot.slam.slam import Slam, SlamParams
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.slam import Slam, SlamParams, SlamUpdated
 
 
 class FrozenOdometry:
@@ -56,17 +57,18 @@ def capture(seed: int, size: int, out: str) -> None:
     config = load_config(None)
     max_sim_s = max(900.0, SIM_S_PER_CELL * size * size)  # as ``mazebot bench --size``
     frames: list[tuple[Any, np.ndarray]] = []
-    real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
-    def update(self: Slam, scan: Any, odometry: Any, **kwargs: Any) -> Any:
-        frames.append((scan, odometry._buf[odometry._start : odometry._end].copy()))
-        return (yield from real_update(self, scan, odometry, **kwargs))
+    def captured(seen: SlamUpdated) -> None:
+        # SLAM reads the odometry (up to the revolution's end) in its first stage; the history
+        # as it stands when the update ends interpolates those times the same way
+        assert isinstance(seen.odometry, OdometryHistory)
+        frames.append((seen.scan, seen.odometry.since(-math.inf)))
 
-    slam_module.Slam.update_steps = update  # type: ignore[method-assign]
-    try:
-        metrics, record = run_one(config, RunSpec(None, (size, size), seed, "scripted", max_sim_s=max_sim_s))
-    finally:
-        slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
+    def watch(slam: Slam) -> None:
+        slam.taps.on_update += (captured,)
+
+    spec = RunSpec(None, (size, size), seed, "scripted", max_sim_s=max_sim_s)
+    metrics, record = run_one(config, spec, watch_slam=watch)
     true_poses = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     truth = {  # the true poses in the map frame (the start's), on the daemon's clock
         "times_s": np.asarray(record.times_s, dtype=float) + record.start_s,

@@ -60,7 +60,7 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -95,6 +95,7 @@ from mazebot.slam_config import (
     section_values,
 )
 from mazebot.steps import all_at_once_method
+from mazebot.taps import notify
 
 log = logging.getLogger(__name__)
 
@@ -496,6 +497,63 @@ class SlamUpdate:
 
 
 @dataclass(frozen=True)
+class Relocalization:
+    """Where a revolution was found in a map the Slam already had: its map pose, and how well it matched."""
+
+    pose: np.ndarray  # (3,) map pose at the end of the revolution
+    accepted: bool
+    fitness: float
+    rmse_m: float
+    tried: int  # ICP starts tried
+
+
+#: Finds the first revolution in the map a Slam was given (a resumed run): ``locate(slam, scan, odometry)``.
+#: It places the Slam with :meth:`Slam.start_in_map` and says where it found the revolution.
+FirstRevolutionLocator = Callable[["Slam", Scan, OdometrySource], Relocalization]
+
+
+@dataclass(frozen=True)
+class SlamUpdated:
+    """What a listener of :attr:`SlamTaps.on_update` is told: the Slam, what it consumed, what it made of it."""
+
+    slam: Slam
+    scan: Scan
+    odometry: OdometrySource
+    update: SlamUpdate
+
+
+@dataclass(frozen=True)
+class SlamApplied:
+    """What :attr:`SlamTaps.on_apply` listeners are told: a loop-closure result merged, and if it replaced the grid."""
+
+    slam: Slam
+    result: LoopClosureResult
+    rebuilt: bool
+
+
+@dataclass
+class SlamTaps:
+    """Where a :class:`Slam` lets others watch what it consumed, and when (:mod:`mazebot.taps`).
+
+    A recording must let replay take exactly the steps the live SLAM took: which revolutions
+    it processed (some are dropped when SLAM is behind), with odometry up to which reading,
+    and after how many scans each loop-closure result (computed in a thread) was merged.
+    Each tap is a tuple of listeners, called when the step has ended (``on_update`` after
+    :meth:`Slam.update_steps`, ``on_final_job`` when :meth:`Slam.final_job` hands out a job,
+    ``on_apply`` after :meth:`Slam.apply_steps`); the method itself does not change. A listener
+    watches, it never steers: what it raises is logged and dropped (:func:`mazebot.taps.notify`).
+
+    Example::
+
+        slam.taps.on_update += (lambda seen: print(seen.update.pose),)
+    """
+
+    on_update: tuple[Callable[[SlamUpdated], None], ...] = ()
+    on_final_job: tuple[Callable[[Slam], None], ...] = ()
+    on_apply: tuple[Callable[[SlamApplied], None], ...] = ()
+
+
+@dataclass(frozen=True)
 class ClosureRecord:
     """An accepted loop closure: keyframe ``new`` seen from ``old``, and when they were taken."""
 
@@ -525,12 +583,18 @@ class Slam:
         background: bool = False,
         record_trajectory: bool = True,
         before_update: Callable[[Scan], None] | None = None,
+        locate_first: FirstRevolutionLocator | None = None,
     ) -> None:
         self.params = params or SlamParams()
         #: the fault-injection seam (the simulator's ``slam-raise``, tests): called with each
         #: revolution before :meth:`update_steps` touches any state; what it raises, the update
         #: raises, as a bug in a stage would. None (the robot) costs one test per revolution.
         self.before_update = before_update
+        #: a Slam given a map before its first revolution (:meth:`continue_map`, a resumed run)
+        #: finds that revolution in it with this function first (:func:`mazebot.persist.resume.relocalize`)
+        self.locate_first = locate_first
+        self.relocalization: Relocalization | None = None  # what ``locate_first`` found
+        self.taps = SlamTaps()
         self.background = background
         self.record_trajectory = record_trajectory  # keep every scan's pose for trajectory() (offline tools)
         self.initial_pose = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
@@ -571,7 +635,6 @@ class Slam:
         self._anchor_walls: list[float] = []
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
         self._target_position: np.ndarray | None = None
-        self._in_submap: set[int] = set()
         self._keyframes_since_target = 0
         # every scan's pose relative to the keyframe before it: the trajectory follows optimizations
         self._scan_log: list[tuple[float, int, np.ndarray]] = []
@@ -651,11 +714,23 @@ class Slam:
         stages are the same computation in the same order either way, so the result is
         the same; between two of them SLAM's state is consistent (a keyframe is in the
         list, the graph and the selector together), only the new submap may still be
-        under construction. A subclass that adds to an update overrides this method
-        (``update = yield from super().update_steps(scan, odometry, paint=paint)``).
+        under construction. Who wants to see each update listens on ``taps.on_update``.
         """
         if self.before_update is not None:
             self.before_update(scan)
+        if self.locate_first is not None and self.relocalization is None and self.keyframes:
+            # 0. a map given beforehand (a resumed run): find the first revolution in it
+            self.relocalization = self.locate_first(self, scan, odometry)
+            yield
+        update = yield from self._update_stages(scan, odometry, paint)
+        if self.taps.on_update:
+            notify(self.taps.on_update, SlamUpdated(self, scan, odometry, update), "slam.on_update")
+        return update
+
+    def _update_stages(
+        self, scan: Scan, odometry: OdometrySource, paint: bool | PaintDecision
+    ) -> Generator[None, None, SlamUpdate]:
+        """Steps 1-7 of the method (the module's docstring), yielding between them."""
         p = self.params
         # 1. de-skew: every sample into the robot frame at the end of the revolution, at the
         # lidar's stamps shifted by the learned offset; the odometry pose at that end
@@ -782,8 +857,16 @@ class Slam:
         """:meth:`apply` in stages (as :meth:`update_steps`): the new submap and the late keyframes' rays.
 
         The keyframes and the filter move in the first stage, together; the old grid stays
-        the published one until the new one has every keyframe.
+        the published one until the new one has every keyframe. Listeners of ``taps.on_apply``
+        are told once it is merged.
         """
+        rebuilt = yield from self._apply_stages(result)
+        if self.taps.on_apply:
+            notify(self.taps.on_apply, SlamApplied(self, result, rebuilt), "slam.on_apply")
+        return rebuilt
+
+    def _apply_stages(self, result: LoopClosureResult) -> Generator[None, None, bool]:
+        """The merge of :meth:`apply_steps`, yielding between its stages."""
         self.job_running = False
         for v in result.verdicts:
             if not v.accepted:
@@ -834,6 +917,59 @@ class Slam:
         keyframe of the snapshot, so the whole recent trajectory follows the correction.
         """,
     )
+
+    def continue_map(
+        self,
+        keyframes: Sequence[Keyframe],
+        graph: PoseGraph,
+        grid: OccupancyGrid,
+        *,
+        wall_reference_rad: float | None,
+        chain_variances: Sequence[tuple[float, float]],
+    ) -> None:
+        """Start from a map made before (a resumed run): its keyframes, pose graph, grid and wall direction.
+
+        Call it before the first revolution. ``chain_variances`` are the (xy in m², heading in
+        rad²) variances of the sequential edges 0→1, 1→2, … (the loop-closure search radius
+        grows with them along the chain). The next keyframe continues the graph, linked to the
+        last given one; the keyframes' surfaces are computed with this Slam's normal parameters.
+        """
+        if len(chain_variances) != max(0, len(keyframes) - 1):
+            raise ValueError(
+                f"a chain of {len(keyframes)} keyframes has {max(0, len(keyframes) - 1)} sequential edges; "
+                f"got {len(chain_variances)} variances"
+            )
+        if self.scans:
+            raise RuntimeError(f"continue_map is for a Slam that has seen no revolution; this one saw {self.scans}")
+        for kf in keyframes:
+            kf.normal_params = self.params.normals
+        self.keyframes = list(keyframes)
+        self.graph = graph
+        self.grid = grid
+        self.wall_reference_rad = wall_reference_rad
+        self._edge_var_xy = [float(xy) for xy, _ in chain_variances]
+        self._edge_var_theta = [float(theta) for _, theta in chain_variances]
+
+    def start_in_map(
+        self,
+        map_from_odom: np.ndarray,
+        submap: Target | None = None,
+        *,
+        submap_xy: np.ndarray | None = None,
+    ) -> None:
+        """Before the first revolution: where the odometry frame lies in the map (a resumed run's start).
+
+        The first revolution's map pose is then ``map_from_odom ⊕ odometry``. ``submap`` (built
+        from the keyframes around the map position ``submap_xy``) is what it is matched
+        against; None keeps the Slam's own choice (made at the next keyframe).
+        """
+        self.initial_pose = np.array(map_from_odom, dtype=np.float64)
+        if submap is None:
+            return
+        if submap_xy is None:
+            raise ValueError("a submap needs the map position it was built around (submap_xy)")
+        self.target = submap
+        self._target_position = np.array(submap_xy[:2], dtype=np.float64)
 
     def relocalized(self, pose: np.ndarray, odom: np.ndarray) -> None:
         """The robot was found at map ``pose`` when the odometry read ``odom`` (:mod:`mazebot.slam.relocalize`).
@@ -1158,7 +1294,6 @@ class Slam:
                 self.keyframes[k].surface()
                 yield
         self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m)
-        self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0
 
@@ -1184,6 +1319,8 @@ class Slam:
         job = self._make_job(self._pending_candidates, None, optimize_anyway=True)
         self._pending_candidates = []
         self.job_running = True
+        if self.taps.on_final_job:
+            notify(self.taps.on_final_job, self, "slam.on_final_job")
         return replace(job, rebuild_anyway=True)
 
     def _make_job(

@@ -37,3 +37,62 @@ def test_the_check_finds_a_private_import(tmp_path: Path) -> None:
         assert _private_imports(source) == ["mazebot/_layers_probe.py:1: mazebot.slam.slam._hidden"]
     finally:
         source.unlink()
+
+
+#: Private names of other libraries the package reaches on purpose: (module file, expression).
+#: Each is the library's own way in, or a simulator reaching into gpiozero's mock pins.
+FOREIGN_PRIVATE = {
+    "argparse._SubParsersAction",  # the type add_subparsers() returns; argparse has no public name for it
+    "os._exit",  # how a forked worker leaves without running its parent's exit handlers
+    "parts._replace",  # a namedtuple's documented method (the underscore keeps it off the field names)
+    "pin_a._state",  # gpiozero's MockPin: the simulator drives the encoder pins as its tests do
+    "pin._change_state",
+    "handle._callback",  # asyncio's Handle: the bench names the callbacks the loop ran
+}
+
+
+def _private_reaches(path: Path, root: Path = PACKAGE.parent) -> list[str]:
+    """``x._name`` in ``path`` where ``x`` is not ``self``/``cls``/``super()`` and the module does not define ``_name``."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    own: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            own.add(node.name)
+        elif (isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store)
+              and isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+            own.add(node.attr)  # self._x = ...: an attribute of this module's own class
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            own.add(node.id)  # class-level _x = ..., or a module-level one
+    found = []
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")):
+            continue
+        owner = node.value
+        if isinstance(owner, ast.Name) and owner.id in ("self", "cls"):
+            continue
+        if isinstance(owner, ast.Call) and isinstance(owner.func, ast.Name) and owner.func.id == "super":
+            continue  # a subclass extending its base's hook
+        text = ast.unparse(node)
+        if node.attr in own or text in FOREIGN_PRIVATE:
+            continue
+        found.append(f"{path.relative_to(root)}:{node.lineno}: {text}")
+    return found
+
+
+def test_no_module_reaches_into_another_modules_private_attributes() -> None:
+    # a saved grid was rebuilt by writing OccupancyGrid's private fields from persist/ (now OccupancyGrid.holding)
+    found = [line for path in sorted(PACKAGE.rglob("*.py")) for line in _private_reaches(path)]
+    assert found == []
+
+
+def test_the_check_finds_a_reach_into_another_modules_private_attribute(tmp_path: Path) -> None:
+    source = tmp_path / "probe.py"
+    source.write_text(
+        "class Mine:\n"
+        "    def __init__(self, grid):\n"
+        "        self._mine = 1\n"
+        "        grid._origin_cells = (0, 0)\n"
+        "        other = Mine(grid)\n"
+        "        other._mine += 1\n"
+    )
+    assert _private_reaches(source, tmp_path) == ["probe.py:4: grid._origin_cells"]

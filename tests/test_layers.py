@@ -52,7 +52,7 @@ FOREIGN_PRIVATE = {
 
 
 def _private_reaches(path: Path, root: Path = PACKAGE.parent) -> list[str]:
-    """``x._name`` in ``path`` where ``x`` is not ``self``/``cls``/``super()`` and the module does not define ``_name``."""
+    """``x._name`` in ``path``, ``x`` not ``self``/``cls``/``super()``, where the module does not define ``_name``."""
     tree = ast.parse(path.read_text(), filename=str(path))
     own: set[str] = set()
     for node in ast.walk(tree):

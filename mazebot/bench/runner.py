@@ -156,7 +156,6 @@ def run_one(
         harness.config, builder, serve_web=False, install_signal_handlers=False, on_started=harness.on_started,
         session=session, autonomous=spec.drive == "explore",
         instrument=_instrument(spec, harness.injector, harness.record, watch_slam),
-        before_slam_update=harness.injector.before_slam_update if harness.injector is not None else None,
     )
     exit_code = run_virtual(daemon, slow=spec.slow) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0

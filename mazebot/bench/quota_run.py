@@ -1,6 +1,6 @@
 """``mazebot bench --cpu-quota``: the daemon on a Pi's share of this CPU, the world outside it.
 
-Why one module of ~650 lines: the three processes of a quota run (the daemon under the quota,
+Why one module of ~760 lines: the three processes of a quota run (the daemon under the quota,
 the world outside it, this parent watching both) and the ``/proc`` readings that measure them
 are one experiment; the metrics at the end read the record the watcher fills, so its fields and
 their readers sit together.

@@ -1,13 +1,16 @@
 """The SLAM façade: one ``update(scan, odometry)`` per lidar revolution.
 
-Why one module of ~1250 lines: the steps already live in modules of their own (below); what is
+Why one module of ~1400 lines: the steps already live in modules of their own (below); what is
 left here is the state they share (keyframes, submap, pose graph, grid, calibration) and the
 two places that must agree on it: :class:`Slam`, which runs the steps in order, and
 :class:`LoopClosureJob`, which carries a copy of that state to a worker and back
-(:meth:`Slam.apply`). Apart, one piece of state would be described in two files.
+(:meth:`Slam.apply`). Apart, one piece of state would be described in two files. The
+public ways in that a resumed run and the recorder use (:meth:`Slam.continue_map`,
+:meth:`Slam.start_in_map`, :class:`SlamTaps`) stay beside the state they touch.
 
-``Slam.update`` reads as the method of seed ``000`` section III.B (ICP pose-graph SLAM),
-with the EKF of seed ``002`` in front of it; every step lives in its own module:
+``Slam.update`` reads as the ICP pose-graph SLAM of Nayak, Chiang and Kanupriyaa, *2D
+Autonomous Mapping* (CMU 18-500 report), section III.B, with an EKF (Thrun, Burgard & Fox,
+*Probabilistic Robotics*, 3.3) in front of it; every step lives in its own module:
 
 1. **predict** the pose at the end of the revolution with the odometry increment since
    the last scan, its heading corrected by the online calibration

@@ -96,3 +96,24 @@ def test_the_check_finds_a_reach_into_another_modules_private_attribute(tmp_path
         "        other._mine += 1\n"
     )
     assert _private_reaches(source, tmp_path) == ["probe.py:4: grid._origin_cells"]
+
+
+#: The modules that may import the simulator or the benchmark: the harness itself and the
+#: commands that choose between the robot's devices and the simulator's.
+HARNESS_AND_COMMANDS = {
+    "mazebot.sim", "mazebot.bench", "mazebot.__main__", "mazebot.__init__", "mazebot.cli", "mazebot.completion_cli",
+    "mazebot.run_cli", "mazebot.doctor_cli", "mazebot.calibration_cli", "mazebot.config_cli",
+}
+
+
+def test_every_product_module_is_under_the_contract_that_keeps_the_harness_out() -> None:
+    import tomllib
+
+    pyproject = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())
+    contract = next(c for c in pyproject["tool"]["importlinter"]["contracts"] if c["type"] == "forbidden")
+    assert set(contract["forbidden_modules"]) == {"mazebot.sim", "mazebot.bench"}
+    top = {f"mazebot.{p.stem}" for p in PACKAGE.glob("*.py")} | {
+        f"mazebot.{p.name}" for p in PACKAGE.iterdir() if (p / "__init__.py").exists()
+    }
+    uncovered = sorted(top - set(contract["source_modules"]) - HARNESS_AND_COMMANDS)
+    assert uncovered == [], f"add these to the forbidden contract's source_modules in pyproject.toml: {uncovered}"

@@ -1,8 +1,9 @@
 """The SLAM façade: one ``update(scan, odometry)`` per lidar revolution.
 
-Why one module of ~1400 lines: the steps already live in modules of their own (below); what is
-left here is the state they share (keyframes, submap, pose graph, grid, calibration) and the
-two places that must agree on it: :class:`Slam`, which runs the steps in order, and
+Why one module of ~1150 lines: the steps already live in modules of their own (below), the
+parameters in :mod:`mazebot.slam.params` and the walls' priors in :mod:`mazebot.slam.wall_priors`;
+what is left here is the state they share (keyframes, submap, pose graph, grid, calibration)
+and the two places that must agree on it: :class:`Slam`, which runs the steps in order, and
 :class:`LoopClosureJob`, which carries a copy of that state to a worker and back
 (:meth:`Slam.apply`). Apart, one piece of state would be described in two files. The
 public ways in that a resumed run and the recorder use (:meth:`Slam.continue_map`,
@@ -64,47 +65,30 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Generator, Sequence
-from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 
-from mazebot.config import LidarConfig, PlannerConfig
 from mazebot.geometry import compose, inverse, relative_pose, transform_points, wrap_angle
 from mazebot.io.scan import Scan
-from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
-from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffsetCalibration, rotate_information
-from mazebot.slam.endpoint_smoothing import EndpointSmoothing
+from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
+from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan_steps
-from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
-from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice, fit_pitch
-from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
+from mazebot.slam.icp import IcpResult, Target, match_scan_steps
+from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
+from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
+from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
+from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
+from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
-from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.wall_lattice import LatticeParams, lattice_priors
-from mazebot.slam_config import (
-    FACADE_SECTIONS,
-    FilterSection,
-    GraphSection,
-    GridSection,
-    KeyframeSection,
-    MapSection,
-    MatchingSection,
-    SlamConfig,
-    WallSection,
-    as_params,
-    section_values,
-)
+from mazebot.slam.wall_priors import wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
 from mazebot.taps import notify
 
 log = logging.getLogger(__name__)
-
-#: At most about this many keyframes, evenly spread, measure the lattice's pitch (the walls
-#: repeat from keyframe to keyframe; more only costs time in every optimization).
-LATTICE_FIT_KEYFRAMES = 200
 
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
@@ -118,93 +102,6 @@ class OdometrySource(Protocol):
     """What SLAM needs from odometry: poses at any recent time (``OdometryHistory`` has this)."""
 
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-
-
-@dataclass(frozen=True)
-class GridParams(GridSection):
-    """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`),
-    and the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there)."""
-
-    blind_range_m: float = LidarConfig().min_range_m
-
-    def new_grid(self) -> OccupancyGrid:
-        return OccupancyGrid(**section_values(self))
-
-
-def _daemon_default(part: str) -> Any:
-    """The default of one of :class:`SlamParams`' nested parts: the daemon's, built from the default config."""
-    return lambda: getattr(SlamParams.from_config(SlamConfig(), LidarConfig(), PlannerConfig()), part)
-
-
-@dataclass(frozen=True)
-class SlamParams(FilterSection, MatchingSection, KeyframeSection, GraphSection, WallSection, MapSection):
-    """Everything :class:`Slam` is tuned by: the ``[slam]`` config and what it takes from ``[lidar]`` and ``[planner]``.
-
-    The façade's own values are the fields of the ``[slam.filter]``, ``[slam.matching]``,
-    ``[slam.keyframes]``, ``[slam.graph]``, ``[slam.walls]`` and ``[slam.map]`` sections
-    side by side; the steps' parameters are the other sections. ``SlamParams()`` is the
-    daemon's SLAM with the default config; ``from_config`` builds it from any config.
-    """
-
-    prepare: PrepareParams = field(default_factory=_daemon_default("prepare"))
-    icp: IcpParams = field(default_factory=_daemon_default("icp"))
-    normals: NormalParams = field(default_factory=_daemon_default("normals"))
-    motion: MotionNoise = field(default_factory=_daemon_default("motion"))
-    loop: LoopClosureParams = field(default_factory=_daemon_default("loop"))
-    grid: GridParams = field(default_factory=_daemon_default("grid"))
-    # hits moved along their beams onto their local wall line before mapping (None: as measured)
-    map_smoothing: EndpointSmoothing | None = field(default_factory=_daemon_default("map_smoothing"))
-    # the correlative search before ICP where the prediction is uncertain (None: ICP and its retries alone)
-    correlative: CorrelativeParams | None = field(default_factory=_daemon_default("correlative"))
-    # the walls lie on a square lattice of this pitch: a position prior per keyframe (None: no lattice)
-    lattice: LatticeParams | None = field(default_factory=_daemon_default("lattice"))
-
-    @classmethod
-    def from_config(cls, slam: SlamConfig, lidar: LidarConfig, planner: PlannerConfig | None = None) -> SlamParams:
-        """From the ``[slam]``, ``[lidar]`` and ``[planner]`` config sections (plain values only from here on).
-
-        Each section carries over field by field; what is built here is only what one
-        section takes from another or what a switch turns off. Without ``planner`` (a laser
-        log, not a maze) there is no wall lattice; with it, and ``wall_lattice`` and
-        ``walls.wall_prior`` on, the keyframes' wall faces are tied to the lattice of its
-        cell size, or of the pitch measured within ``cell_size_search`` of it.
-        """
-        lattice = None
-        if planner is not None and slam.wall_lattice and slam.walls.wall_prior:
-            lattice = as_params(
-                LatticeParams, slam.lattice, pitch_m=planner.cell_size_m, pitch_search=planner.cell_size_search
-            )
-        loop_search = None
-        if slam.loop_corr_window_m > 0 or slam.loop_corr_window_rad > 0:
-            loop_search = replace(
-                slam.search,
-                window_xy_m=slam.loop_corr_window_m,
-                window_theta_rad=slam.loop_corr_window_rad,
-                levels=slam.loop_corr_levels,
-            )
-        facade = {name: v for part in FACADE_SECTIONS for name, v in section_values(getattr(slam, part)).items()}
-        facade["map_max_range_m"] = slam.map.map_max_range_m or None
-        loop = as_params(LoopClosureParams, replace(slam.loop, max_range_m=slam.loop.max_range_m or None),
-                         search=loop_search)
-        return cls(
-            **facade,
-            prepare=as_params(
-                PrepareParams,
-                replace(slam.prepare, max_range_m=min(slam.prepare.max_range_m, lidar.max_range_m)),
-                min_range_m=lidar.min_range_m,
-                mount_x_m=lidar.mount_x_m,
-                mount_y_m=lidar.mount_y_m,
-                mount_yaw_rad=0.0,  # the driver already turned the angles into the robot frame
-            ),
-            icp=slam.icp,
-            normals=slam.normals,
-            motion=as_params(MotionNoise, slam.motion),
-            loop=loop,
-            grid=as_params(GridParams, slam.grid, blind_range_m=lidar.min_range_m),
-            map_smoothing=slam.smoothing if slam.map_smooth_endpoints else None,
-            correlative=slam.search if slam.correlative else None,
-            lattice=lattice,
-        )
 
 
 @dataclass(frozen=True)
@@ -299,10 +196,12 @@ class LoopClosureJob:
                 np.array([v.information for v in accepted]),
             ))
         vertices = self.poses
-        priors = self._wall_priors()
+        priors, fit = wall_priors(self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self.anchor_wall)
+        if fit is not None:
+            self.lattice_fit = fit
         if priors is not None:  # vertex ``count``: the wall grid's direction, estimated with the poses
-            vertices = np.vstack([self.poses, priors[0]])
-            parts.append(tuple(np.asarray(a) for a in priors[1:]))
+            vertices = np.vstack([self.poses, priors.vertex])
+            parts.append((priors.i, priors.j, priors.z, priors.information))
         edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
         ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
         closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k
@@ -310,7 +209,7 @@ class LoopClosureJob:
             vertices, (ai, aj, edges[2], edges[3]), closure, p.loop.dcs_phi, max_iterations=p.optimize_iterations
         )
         optimization = robust.optimization
-        wall_reference = None if priors is None else _wrap_quarter(float(robust.vertices[count, 2]))
+        wall_reference = None if priors is None else wrap_quarter(float(robust.vertices[count, 2]))
         poses = robust.vertices[:count].copy()
         # rebuild the grid from the optimized keyframes if any moved noticeably
         delta = relative_pose(self.integrated_poses, poses)
@@ -332,146 +231,6 @@ class LoopClosureJob:
             lattice_fit=self.lattice_fit,
             downweighted=int(np.sum(robust.weights < 0.1)),
         )
-
-    def _wall_priors(
-        self,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The wall-direction vertex and its edges: ``(vertex pose (1, 3), i, j, z, information)``.
-
-        In a maze every wall lies on one right-angle grid whose direction ``φ`` (map
-        frame, modulo 90°) is unknown. A keyframe at heading ``θ_k`` whose walls lie at
-        ``d_k`` in its own frame says ``θ_k + d_k ≡ φ (mod 90°)``. ``φ`` is an extra
-        vertex of the graph (its heading; its position is pinned to keyframe 0's), and
-        every keyframe whose walls show the grid gets a heading-only edge ``φ → k``
-        measuring ``θ_k − φ`` (the multiple of 90° nearest the current estimate). So
-        ``φ`` is estimated from all keyframes together with the poses, instead of being
-        taken from one keyframe's noisy wall direction: a reference off by 0.15° rotates
-        the whole map by 0.15°, 1.2 cm at the far side of a 16×16 maze. The chain of scan
-        matches keeps its local shape; these edges, each weak, keep its heading from
-        drifting over hundreds of metres (the Manhattan-world constraint of Peasley,
-        Birchfield, Cunningham & Fiedler, "Accurate on-line 3D occupancy grids using
-        Manhattan world constraints", IROS 2012, with the direction estimated rather than
-        assumed).
-
-        Estimated from the keyframes alone, ``φ`` follows the map wherever its chain of
-        matches turned it: the first in-place turns, matched against a submap of one or
-        two keyframes, leave the whole map turned by a few tenths of a degree about the
-        start, and every later keyframe agrees with that. Keyframe 0, the **anchor**, is
-        the map frame's origin by definition and measured its walls while the robot stood
-        still (``anchor_wall``: the mean of many revolutions' wall directions, several
-        times less noisy than one scan's): its tight edge ties ``φ`` to the walls as seen
-        from the start, and the other keyframes' priors turn the map back onto them.
-
-        With ``params.lattice`` the same keyframes' wall faces also tie their positions to
-        the maze's lattice (:meth:`_lattice_edges`); the vertex then stands where the
-        lattice's lines cross, and its position is estimated too.
-        """
-        p = self.params
-        if not p.wall_prior or self.wall_reference_rad is None or len(self.keyframes) < 2:
-            return None
-        reference = float(self.wall_reference_rad)
-        rows = []
-        first = 0 if self.anchor_wall is not None else 1  # keyframe 0 is fixed: as one of many it means little
-        for k in range(first, len(self.keyframes)):
-            if k == 0 and self.anchor_wall is not None:
-                direction, std = self.anchor_wall
-            else:
-                direction, strength, count = self.keyframes[k].wall_direction()
-                if strength < p.wall_min_strength or count < p.wall_min_normals:
-                    continue
-                std = p.wall_prior_std_rad
-            theta = float(self.poses[k, 2])
-            deviation = _wrap_quarter(direction + theta - reference)
-            if abs(deviation) <= p.wall_max_deviation_rad:
-                rows.append((k, theta - reference - deviation, std))
-        if not rows:
-            return None
-        wall = self.poses.shape[0]  # the index the wall vertex gets
-        wall_pose = np.array([[self.poses[0, 0], self.poses[0, 1], reference]])
-        index = np.array([k for k, _, _ in rows])
-        z = relative_pose(wall_pose[0], self.poses[index])
-        z[:, 2] = wrap_angle(np.array([t for _, t, _ in rows]))
-        info = np.zeros((len(rows) + 1, 3, 3))
-        info[:-1, 2, 2] = 1.0 / np.array([std for _, _, std in rows]) ** 2
-        info[-1, 0, 0] = info[-1, 1, 1] = 1e6  # the vertex's position sits on keyframe 0 (it means nothing)
-        ei = np.concatenate((np.full(len(rows), wall, dtype=np.intp), [0]))
-        ej = np.concatenate((index, [wall])).astype(np.intp)
-        z = np.vstack((z, relative_pose(self.poses[0], wall_pose[0])))
-        lattice = self._lattice_edges(index, reference) if p.lattice is not None else None
-        if lattice is not None:
-            wall_pose[0, :2], lattice_j, lattice_z, lattice_info = lattice
-            # the vertex's position, where the lattice's lines cross, is estimated with the poses; the
-            # tie to keyframe 0 stays only as a weak hold (1 m) on an axis no wall face measures
-            z[-1] = relative_pose(self.poses[0], wall_pose[0])
-            info[-1, 0, 0] = info[-1, 1, 1] = 1.0
-            ei = np.concatenate((ei, np.full(len(lattice_j), wall, dtype=np.intp)))
-            ej = np.concatenate((ej, lattice_j)).astype(np.intp)
-            z = np.vstack((z, lattice_z))
-            info = np.concatenate((info, lattice_info))
-        return wall_pose, ei, ej, z, info
-
-    def _lattice_edges(
-        self, index: np.ndarray, reference: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The lattice priors of keyframes ``index`` (:mod:`mazebot.slam.wall_lattice`), as wall-vertex edges.
-
-        ``(vertex position (2,), j (P,), z (P, 3), information (P, 3, 3))``: the wall vertex
-        moves to a crossing of the lattice's lines, and each edge says where keyframe ``j``
-        lies relative to it along the grid's axes (its heading is left to the wall priors:
-        no information on it). None if no keyframe's faces fit the lattice.
-        """
-        lattice = self.params.lattice
-        assert lattice is not None
-        fit = self._lattice_fit(index, reference, lattice)
-        self.lattice_fit = fit
-        if not fit.fits:
-            return None
-        # the pitch to a tenth of a millimetre: the keyframes' faces, measured at it, stay cached between jobs;
-        # and a prior is worth no more than the walls lie on the lattice (a maze built by hand: boards
-        # millimetres off their lines)
-        std_m = max(lattice.std_m, math.ceil(fit.line_rms_m * 1000.0) / 1000.0)
-        lattice = replace(lattice, pitch_m=round(fit.pitch_m, 4), std_m=std_m)
-        faces = [self.keyframes[k].lattice_faces(float(self.poses[k, 2]) - reference, lattice) for k in index]
-        rows, target, weight, line = lattice_priors(self.poses[index], faces, self.poses[0, :2], reference, lattice)
-        if not len(rows):
-            return None
-        c, s = math.cos(reference), math.sin(reference)
-        crossing = self.poses[0, :2] + (c * line[0] - s * line[1], s * line[0] + c * line[1])
-        info = np.zeros((len(rows), 3, 3))
-        info[:, 0, 0], info[:, 1, 1] = weight[:, 0], weight[:, 1]
-        return crossing, index[rows], np.column_stack((target, np.zeros(len(rows)))), info
-
-    def _lattice_fit(self, index: np.ndarray, reference: float, lattice: LatticeParams) -> PitchFit:
-        """The lattice of the faces keyframes ``index`` see (:func:`mazebot.slam.lattice_fit.fit_pitch`).
-
-        Every keyframe's surface points within ``lattice.max_range_m`` of its lidar, in the
-        map frame turned onto the wall grid (``reference``), split by the side their normal
-        faces (+u, −u, +v, −v: the classes of :data:`mazebot.slam.wall_lattice.FACE_CLASSES`):
-        the positions of the walls' faces across themselves.
-        """
-        cos_tol = math.cos(lattice.normal_tolerance_rad)
-        parts: list[list[np.ndarray]] = [[], [], [], []]  # faces seen from +u, -u, +v, -v: each its own phase
-        for k in index[:: max(1, len(index) // LATTICE_FIT_KEYFRAMES)]:
-            kf = self.keyframes[int(k)]
-            pts, nrm = kf.surface()
-            near = np.hypot(pts[:, 0] - kf.sensor_xy[0], pts[:, 1] - kf.sensor_xy[1]) <= lattice.max_range_m
-            pts, nrm = pts[near].astype(np.float64), nrm[near].astype(np.float64)
-            x, y, theta = self.poses[int(k)]
-            c, s = math.cos(theta - reference), math.sin(theta - reference)
-            cr, sr = math.cos(reference), math.sin(reference)
-            # the keyframe's origin on the grid's axes, then its points turned by its heading on the grid
-            u0, v0 = cr * x + sr * y, -sr * x + cr * y
-            u = u0 + c * pts[:, 0] - s * pts[:, 1]
-            v = v0 + s * pts[:, 0] + c * pts[:, 1]
-            nu = c * nrm[:, 0] - s * nrm[:, 1]
-            nv = s * nrm[:, 0] + c * nrm[:, 1]
-            for part, position, normal in ((0, u, nu), (1, u, -nu), (2, v, nv), (3, v, -nv)):
-                parts[part].append(position[normal >= cos_tol])
-        classes = []
-        for part, found in enumerate(parts):
-            positions = np.concatenate(found) if found else np.zeros(0)
-            classes.append((positions, np.ones(positions.size), part // 2))
-        return fit_pitch(classes, lattice.pitch_m, search=lattice.pitch_search, tolerance_m=lattice.fit_tolerance_m)
 
 
 @dataclass(frozen=True)
@@ -1031,7 +790,7 @@ class Slam:
         if p.wall_prior and self.wall_reference_rad is None:
             direction, strength, count = kf.wall_direction()
             if strength >= p.wall_min_strength and count >= p.wall_min_normals:
-                self.wall_reference_rad = _wrap_quarter(direction + float(pose[2]))
+                self.wall_reference_rad = wrap_quarter(direction + float(pose[2]))
         self._keyframes_since_attempt += 1
         return index
 
@@ -1075,7 +834,7 @@ class Slam:
         self._anchor_walls += self._usable_walls(kf)
         direction = self.anchor_wall_rad
         if p.wall_prior and direction is not None:
-            self.wall_reference_rad = _wrap_quarter(direction + float(self.keyframes[0].pose[2]))
+            self.wall_reference_rad = wrap_quarter(direction + float(self.keyframes[0].pose[2]))
 
     def _usable_walls(self, kf: Keyframe) -> list[float]:
         """``[direction]`` if the keyframe's normals show the wall grid (as the wall priors require), else ``[]``."""
@@ -1387,11 +1146,6 @@ def _segment_cells(grid: OccupancyGrid, a: np.ndarray, b: np.ndarray) -> tuple[n
     steps = max(2, math.ceil(2.0 * length / grid.resolution_m) + 1)
     u = np.linspace(0.0, 1.0, steps)[:, None]
     return grid.to_cell(a[:2] + u * (b[:2] - a[:2]))
-
-
-def _wrap_quarter(angle_rad: float) -> float:
-    """An angle modulo 90°, in [-45°, 45°)."""
-    return (angle_rad + math.pi / 4) % (math.pi / 2) - math.pi / 4
 
 
 def _turn_rate(odometry: OdometrySource, time_s: float, window_s: float = 0.02) -> float:

@@ -8,6 +8,7 @@ that needs it is a sign the name belongs in a public place (the import layers of
 from __future__ import annotations
 
 import ast
+from collections.abc import Callable
 from pathlib import Path
 
 import mazebot
@@ -15,28 +16,29 @@ import mazebot
 PACKAGE = Path(mazebot.__file__).parent
 
 
-def _private_imports(path: Path) -> list[str]:
+def _private_imports(path: Path, root: Path = PACKAGE.parent) -> list[str]:
     tree = ast.parse(path.read_text(), filename=str(path))
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("mazebot"):
-            found += [f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {node.module}.{a.name}"
+            found += [f"{path.relative_to(root)}:{node.lineno}: {node.module}.{a.name}"
                       for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
     return found
 
 
+def _in_the_package(check: Callable[[Path], list[str]]) -> list[str]:
+    """What ``check`` finds in every module of the package."""
+    return [line for path in sorted(PACKAGE.rglob("*.py")) for line in check(path)]
+
+
 def test_no_module_imports_a_private_name_of_another() -> None:
-    found = [line for path in sorted(PACKAGE.rglob("*.py")) for line in _private_imports(path)]
-    assert found == []
+    assert _in_the_package(_private_imports) == []
 
 
 def test_the_check_finds_a_private_import(tmp_path: Path) -> None:
-    source = PACKAGE / "_layers_probe.py"
-    try:
-        source.write_text("from mazebot.slam.slam import _hidden\n")
-        assert _private_imports(source) == ["mazebot/_layers_probe.py:1: mazebot.slam.slam._hidden"]
-    finally:
-        source.unlink()
+    source = tmp_path / "probe.py"
+    source.write_text("from mazebot.slam.slam import _hidden\n")
+    assert _private_imports(source, tmp_path) == ["probe.py:1: mazebot.slam.slam._hidden"]
 
 
 #: Private names of other libraries the package reaches on purpose: (module file, expression).
@@ -81,8 +83,7 @@ def _private_reaches(path: Path, root: Path = PACKAGE.parent) -> list[str]:
 
 def test_no_module_reaches_into_another_modules_private_attributes() -> None:
     # a saved grid was rebuilt by writing OccupancyGrid's private fields from persist/ (now OccupancyGrid.holding)
-    found = [line for path in sorted(PACKAGE.rglob("*.py")) for line in _private_reaches(path)]
-    assert found == []
+    assert _in_the_package(_private_reaches) == []
 
 
 def test_the_check_finds_a_reach_into_another_modules_private_attribute(tmp_path: Path) -> None:

@@ -35,7 +35,8 @@ from typing import Any
 import numpy as np
 
 from mazebot.bench.cli import SIM_S_PER_CELL
-from mazebot.bench.runner import RunSpec, _relative, run_one
+from mazebot.bench.metrics import relative_poses
+from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config, parse_config
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.slam import Slam, SlamParams, SlamUpdated
@@ -72,7 +73,7 @@ def capture(seed: int, size: int, out: str) -> None:
     true_poses = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     truth = {  # the true poses in the map frame (the start's), on the daemon's clock
         "times_s": np.asarray(record.times_s, dtype=float) + record.start_s,
-        "poses": _relative(tuple(true_poses[0]), true_poses),
+        "poses": relative_poses(tuple(true_poses[0]), true_poses),
     }
     keys = ("done", "time_s", "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "loop_closures")
     bench = {key: metrics[key] for key in keys}

@@ -35,6 +35,13 @@ def test_no_module_imports_a_private_name_of_another() -> None:
     assert _in_the_package(_private_imports) == []
 
 
+def test_no_script_in_bench_or_tools_imports_a_private_name_of_the_package() -> None:
+    # bench/slam_replay.py imported the runner's _relative after it had moved: the script broke unseen
+    repo = PACKAGE.parent
+    scripts = sorted([*(repo / "bench").glob("*.py"), *(repo / "tools").glob("*.py")])
+    assert [line for path in scripts for line in _private_imports(path, repo)] == []
+
+
 def test_the_check_finds_a_private_import(tmp_path: Path) -> None:
     source = tmp_path / "probe.py"
     source.write_text("from mazebot.slam.slam import _hidden\n")

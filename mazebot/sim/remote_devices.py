@@ -16,7 +16,9 @@ devices exactly as on the robot (``main.robot_hardware_builder``), with two stan
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
+import time
 from multiprocessing.connection import Connection
 
 from mazebot.sim.pipe_kit import PipeKitOpener as PipeKitOpener  # re-exported: the bench and tests open them here
@@ -72,6 +74,26 @@ class GpioEdgeThread(threading.Thread):
             return
         except (AssertionError, AttributeError):  # the pins were closed under us at shutdown
             return
+
+    def cpu_s(self) -> float | None:
+        """The CPU seconds this thread has used so far (its own clock, read from another thread); None
+        before it started or after it ended.
+
+        Its work is the simulator's stand-in for lgpio's callback thread: the quota benchmark
+        puts the Pi's path per edge (:mod:`mazebot.sim.edge_cost`) in place of it.
+        """
+        ident = self.ident
+        if ident is None or not self.is_alive():
+            return None
+        try:
+            return time.clock_gettime(time.pthread_getcpuclockid(ident))
+        except (OSError, AttributeError):  # no per-thread clock: the kernel's account, in clock ticks
+            try:
+                with open(f"/proc/self/task/{self.native_id}/stat") as f:
+                    fields = f.read().rpartition(")")[2].split()
+                return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            except (OSError, IndexError, ValueError):
+                return None
 
     def stop(self) -> None:
         """Stop driving pins (within 0.1 s); safe to call more than once."""

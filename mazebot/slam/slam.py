@@ -453,11 +453,12 @@ class LoopClosureJob:
         # every chosen keyframe's surface in one array (one numpy call per step, not one per keyframe: a
         # job looks at up to LATTICE_FIT_KEYFRAMES of them); each point keeps its keyframe's index in `owner`
         surfaces = [self.keyframes[k].surface() for k in chosen]
-        owner = np.repeat(np.arange(len(chosen)), [len(pts) for pts, _ in surfaces])
+        counts = [len(pts) for pts, _ in surfaces]
+        owner = np.repeat(np.arange(len(chosen)), counts)
         pts = np.concatenate([pts for pts, _ in surfaces])
         nrm = np.concatenate([nrm for _, nrm in surfaces])
-        sensor = np.array([self.keyframes[k].sensor_xy for k in chosen], dtype=np.float64)[owner]
-        near = np.hypot(pts[:, 0] - sensor[:, 0], pts[:, 1] - sensor[:, 1]) <= lattice.max_range_m
+        sensor = np.repeat(np.array([self.keyframes[k].sensor_xy for k in chosen], dtype=np.float64), counts, axis=0)
+        near = _within(pts[:, 0] - sensor[:, 0], pts[:, 1] - sensor[:, 1], lattice.max_range_m)
         pts, nrm, owner = pts[near].astype(np.float64), nrm[near].astype(np.float64), owner[near]
         # per keyframe, in floats as before: its heading on the grid, and its origin on the grid's axes
         cr, sr = math.cos(reference), math.sin(reference)
@@ -465,7 +466,8 @@ class LoopClosureJob:
         for k in chosen:
             x, y, theta = self.poses[k]
             frames.append((math.cos(theta - reference), math.sin(theta - reference), cr * x + sr * y, -sr * x + cr * y))
-        c, s, u0, v0 = (column[owner] for column in np.array(frames, dtype=np.float64).T)
+        kept = np.bincount(owner, minlength=len(chosen))  # each keyframe's points within range, in order
+        c, s, u0, v0 = (np.repeat(column, kept) for column in np.array(frames, dtype=np.float64).T)
         # its points turned by its heading on the grid, the same arithmetic in the same order
         u = u0 + c * pts[:, 0] - s * pts[:, 1]
         v = v0 + s * pts[:, 0] + c * pts[:, 1]
@@ -1247,6 +1249,27 @@ class Slam:
         if not candidates and not periodic:
             return None
         return self._make_job(candidates, poses, optimize_anyway=periodic)
+
+
+#: Relative margin of :func:`_within`'s squared test: far beyond the rounding of either form.
+_WITHIN_MARGIN = 1e-9
+
+
+def _within(dx: np.ndarray, dy: np.ndarray, radius: float) -> np.ndarray:
+    """``np.hypot(dx, dy) <= radius``, the same booleans at a fraction of the cost.
+
+    ``dx² + dy²`` decides every point clearly inside or outside (a relative margin of
+    ``_WITHIN_MARGIN`` on the square, far beyond the rounding of either form); only the
+    points in the thin band between are given to ``np.hypot``, which is correctly rounded to
+    within an ulp but several times slower (2.5 ms for 120 000 points here).
+    """
+    d2 = dx * dx + dy * dy
+    r2 = radius * radius
+    inside = d2 <= r2 * (1.0 - _WITHIN_MARGIN)
+    band = np.flatnonzero((d2 > r2 * (1.0 - _WITHIN_MARGIN)) & (d2 <= r2 * (1.0 + _WITHIN_MARGIN)))
+    if band.size:
+        inside[band] = np.hypot(dx[band], dy[band]) <= radius
+    return inside
 
 
 def _segment_cells(grid: OccupancyGrid, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

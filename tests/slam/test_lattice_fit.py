@@ -138,3 +138,16 @@ def test_the_histogram_counts_every_bin_as_sorting_the_bins_did(count: int, spre
     centres, weights = _histogram(x, w, 0.002)
     assert np.array_equal(centres, (keys[weight > 0] + 0.5) * 0.002)
     assert np.array_equal(weights, weight[weight > 0])
+
+
+def test_within_range_is_hypots_answer_on_the_circle_beside_it_and_for_nan_and_inf() -> None:
+    from mazebot.slam.slam import _within
+
+    rng = np.random.default_rng(3)
+    for radius in rng.uniform(0.1, 2.0, 10):
+        dx, dy = rng.uniform(-2.0, 2.0, 20_000), rng.uniform(-2.0, 2.0, 20_000)
+        angle = rng.uniform(0.0, math.tau, 2_000)
+        dx[:2_000], dy[:2_000] = radius * np.cos(angle), radius * np.sin(angle)  # on the circle, to rounding
+        dx[2_000:4_000], dy[2_000:4_000] = np.nextafter(dx[:2_000], 10.0), dy[:2_000]  # an ulp beside it
+        dx[4_000:4_010], dx[4_010:4_020] = np.nan, np.inf
+        assert np.array_equal(_within(dx, dy, float(radius)), np.hypot(dx, dy) <= radius)

@@ -146,7 +146,7 @@ def _quota_runs(args: argparse.Namespace, config: Config, specs: list[RunSpec], 
         runs.append(metrics)
         _progress(i, len(specs), f"{spec.name} seed {spec.seed} at {args.cpu_quota} % of one core: "
                   f"done={metrics['done']} in {metrics['time_s']} s, daemon CPU {metrics['daemon_cpu_percent']} % "
-                  f"({metrics['daemon_cpu_percent_gpio_as_pi']} % with the GPIO thread as on the Pi)")
+                  f"({metrics['daemon_cpu_percent_sim_out']} % with the simulator's GPIO share out)")
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

@@ -709,11 +709,13 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "daemon_cpu_percent": _round(cpu_pct, 1),  # of one core, over the run
         "daemon_cpu_percent_of_quota": _round(100.0 * cpu_pct / record.percent, 1)
         if cpu_pct is not None and record.percent else None,
-        # the same with the simulator's share taken out: the GPIO edge thread's own CPU replaced by its
-        # edges times the Pi's path per edge, measured after the run (gpio_share)
-        "daemon_cpu_percent_gpio_as_pi": _round(gpio["daemon_cpu_percent_gpio_as_pi"], 1),
+        # the same with the simulator's share taken out: what its GPIO stand-in does per edge beyond
+        # the Pi's path, times the edges (gpio_share); and the edge thread's own figures
+        "daemon_cpu_percent_sim_out": _round(gpio["daemon_cpu_percent_sim_out"], 2),
+        "gpio_sim_share_percent": _round(gpio["gpio_sim_share_percent"], 3),
         "gpio_thread_cpu_percent": _round(gpio["gpio_thread_cpu_percent"], 2),
         "gpio_thread_us_per_edge": _round(gpio["gpio_thread_us_per_edge"], 3),
+        "gpio_sim_path_us_per_edge": _round(gpio["gpio_sim_path_us_per_edge"], 3),
         "gpio_pi_path_us_per_edge": _round(gpio["gpio_pi_path_us_per_edge"], 3),
         "gpio_edges_per_s": _round(gpio["gpio_edges_per_s"], 1),
         "gpio_edge_costs_us": {k: round(v * 1e6, 3) for k, v in record.edge_costs.items()}
@@ -737,23 +739,26 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
 
 def gpio_share(cpu_s: float | None, window_s: float | None, gpio_cpu_s: float | None, edges: int | None,
                edge_costs: dict[str, float] | None) -> dict[str, float | None]:
-    """The daemon's CPU with the simulator's GPIO edge thread replaced by what the Pi's path would cost.
+    """The GPIO edge thread's figures, and the daemon's CPU with the simulator's share of it taken out.
 
     The thread (:class:`mazebot.sim.remote_devices.GpioEdgeThread`) stands in for lgpio's
-    callback thread, but drives gpiozero ``MockFactory`` pins, whose bookkeeping the Pi does
-    not have. Its own CPU over the run (``gpio_cpu_s``, its thread clock) comes out of the
-    cgroup's ``cpu_s``; its ``edges`` times the Pi's path per edge
-    (:func:`mazebot.sim.edge_cost.pi_path_s_per_edge` of ``edge_costs``: our decoder behind
-    gpiozero's dispatch, and lgpio's notification loop) go in. Every figure None where a part
-    is missing: the raw figure then stands alone.
+    callback thread but drives gpiozero mock pins. What it does per edge beyond the Pi's path
+    (:func:`mazebot.sim.edge_cost.simulator_excess_s_per_edge` of ``edge_costs``: the stand-in's
+    loop against our decoder behind gpiozero's dispatch and lgpio's notification loop, both
+    timed in a loop) is the simulator's: its ``edges`` times that come out of the cgroup's
+    ``cpu_s``. The rest of the thread's own CPU (``gpio_cpu_s``, its thread clock: several
+    times the loop's cost per edge, for being woken in a busy process that shares one
+    interpreter lock) stays: lgpio's callback thread is a Python thread of the daemon too.
+    Every figure None where a part is missing: the raw figure then stands alone.
     """
-    from mazebot.sim.edge_cost import pi_path_s_per_edge
+    from mazebot.sim.edge_cost import pi_path_s_per_edge, simulator_excess_s_per_edge
 
     out: dict[str, float | None] = dict.fromkeys(
-        ("daemon_cpu_percent_gpio_as_pi", "gpio_thread_cpu_percent", "gpio_thread_us_per_edge",
-         "gpio_pi_path_us_per_edge", "gpio_edges_per_s"))
+        ("daemon_cpu_percent_sim_out", "gpio_sim_share_percent", "gpio_thread_cpu_percent",
+         "gpio_thread_us_per_edge", "gpio_sim_path_us_per_edge", "gpio_pi_path_us_per_edge", "gpio_edges_per_s"))
     if edge_costs:
         out["gpio_pi_path_us_per_edge"] = 1e6 * pi_path_s_per_edge(edge_costs)
+        out["gpio_sim_path_us_per_edge"] = 1e6 * edge_costs["sim_path"]
     if gpio_cpu_s is None or not window_s or edges is None:
         return out
     out["gpio_thread_cpu_percent"] = 100.0 * gpio_cpu_s / window_s
@@ -761,8 +766,9 @@ def gpio_share(cpu_s: float | None, window_s: float | None, gpio_cpu_s: float | 
     if edges:
         out["gpio_thread_us_per_edge"] = 1e6 * gpio_cpu_s / edges
     if cpu_s is not None and edge_costs:
-        pi_s = edges * pi_path_s_per_edge(edge_costs)
-        out["daemon_cpu_percent_gpio_as_pi"] = 100.0 * (cpu_s - gpio_cpu_s + pi_s) / window_s
+        share_s = min(edges * simulator_excess_s_per_edge(edge_costs), gpio_cpu_s)
+        out["gpio_sim_share_percent"] = 100.0 * share_s / window_s
+        out["daemon_cpu_percent_sim_out"] = 100.0 * (cpu_s - share_s) / window_s
     return out
 
 

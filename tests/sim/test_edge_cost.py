@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from mazebot.sim.edge_cost import STAGES, measure_stages, pi_path_s_per_edge
+from mazebot.sim.edge_cost import STAGES, measure_stages, pi_path_s_per_edge, simulator_excess_s_per_edge
 
 
 def test_each_stage_is_timed_per_edge_and_the_pi_path_leaves_the_mocks_bookkeeping_out() -> None:
@@ -16,6 +16,9 @@ def test_each_stage_is_timed_per_edge_and_the_pi_path_leaves_the_mocks_bookkeepi
     assert pi == max(costs["mock_decode"] - costs["mock_alone"], costs["decode"]) + costs["lgpio_loop"]
     # the decoder itself is always in it, and so is lgpio's loop
     assert pi >= costs["decode"] + costs["lgpio_loop"]
+    # the stand-in's loop holds our decoder too; what it does beyond the Pi's path is never negative
+    assert costs["sim_path"] > costs["decode"]
+    assert simulator_excess_s_per_edge(costs) == max(costs["sim_path"] - pi, 0.0)
 
 
 def test_the_fastest_of_the_repeats_is_at_most_their_median() -> None:

@@ -29,10 +29,11 @@ The Pi's path, on this machine, is ``(mock_decode − mock_alone) + lgpio_loop``
 ``sim_path`` minus that (:func:`simulator_excess_s_per_edge`). ``mazebot bench --cpu-quota``
 takes the edges times that excess out of the daemon's CPU for its "simulator's share out"
 figure. Timed like this, in a loop, the stand-in costs about 1.4 µs an edge and the Pi's
-path about 1.1: the excess is small. The edge thread itself is charged ~10 µs an edge in a
-quota run: most of a thread's cost there is being woken in a busy, throttled process that
-shares one interpreter lock (lgpio's callback thread is a Python thread in the same
-position on the Pi), not the mock's bookkeeping.
+path about 1.1: the excess is small. The edge thread itself is charged several times that
+per edge in a quota run: ~45 µs each time it wakes (a hundred times a second, a message of
+~13 edges each), the cost of waking a Python thread with cold caches in a busy process that
+shares one interpreter lock, which lgpio's callback thread (a Python thread too) pays on the
+Pi as well; not the mock's bookkeeping.
 
 Example::
 

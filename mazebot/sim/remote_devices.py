@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import threading
 import time
 from multiprocessing.connection import Connection
@@ -25,6 +26,10 @@ from mazebot.sim.pipe_kit import PipeKitOpener as PipeKitOpener  # re-exported: 
 from mazebot.sim.pipe_kit import PipeMotorKit as PipeMotorKit
 from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
 from mazebot.sim.world_process import EDGES_TIME
+
+
+#: How often (ms) the GPIO edge thread looks whether it was asked to stop while no edge comes.
+STOP_POLL_MS = 100
 
 
 class GpioEdgeThread(threading.Thread):
@@ -48,6 +53,11 @@ class GpioEdgeThread(threading.Thread):
         self._factory = factory
         self._pins = [factory.pin(number) for number in pins]
         self._stopping = threading.Event()
+        # lgpio's thread blocks on its notification pipe; this one waits on the world's pipe with one
+        # poll object made here: Connection.poll(timeout) builds a selector per call, ~40 µs a wake-up
+        # of a cold thread (100 a second) that is the simulator's plumbing, not the robot's
+        self._poller = select.poll()
+        self._poller.register(edge_rx.fileno(), select.POLLIN)
         self.edges = 0  # edges driven onto the pins
         self.batches = 0  # messages received (one per world step with edges)
 
@@ -61,7 +71,7 @@ class GpioEdgeThread(threading.Thread):
         head = EDGES_TIME.size
         try:
             while not self._stopping.is_set():
-                if not self._rx.poll(0.1):
+                if not self._poller.poll(STOP_POLL_MS):
                     continue
                 data = self._rx.recv_bytes()
                 # each edge keeps the time the world made it (lgpio's edges carry the kernel's stamp)

@@ -27,7 +27,6 @@ from mazebot.sim.pipe_kit import PipeMotorKit as PipeMotorKit
 from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
 from mazebot.sim.world_process import EDGES_TIME
 
-
 #: How often (ms) the GPIO edge thread looks whether it was asked to stop while no edge comes.
 STOP_POLL_MS = 100
 

@@ -7,7 +7,7 @@ Run from the repository root:
 Optional: ``--cycles N`` (full quadrature cycles per run, default 20 000 = 80 000
 edges), ``--repeats R`` (runs per stage, best kept, default 15).
 
-Stages, each timed per edge (best of the repeats, to shed scheduler noise; the stages
+Stages, each timed per edge in thread CPU time (best of the repeats; the stages
 run interleaved so that they see the same machine load; they live in
 :mod:`mazebot.sim.edge_cost`, which ``mazebot bench --cpu-quota`` also uses, there on thread
 CPU time and the median of its repeats, to take the simulator's share out of the daemon's CPU):
@@ -25,6 +25,8 @@ CPU time and the median of its repeats, to take the simulator's share out of the
    before gpiozero sees it (read 16 bytes from a buffered file, ``struct.unpack``,
    scan the callback list, gpiozero's ``LGPIOPin`` wrapper dividing the timestamp),
    calling a no-op. See ``PY_LGPIO/lgpio_extra.py`` in joan2937/lg.
+6. ``sim path``: the quota benchmark's GPIO edge thread's loop body (a message of the
+   world unpacked, its edges driven onto the simulator's pins, a real decoder attached).
 
 The Pi estimate printed at the end uses explicit assumptions (``--pi-slowdown``, default
 5×, the pessimistic end of docs/design.md's 3–5×; ``--gil-share``, default 0.5, the fraction
@@ -47,7 +49,8 @@ def main() -> None:
     parser.add_argument("--gil-share", type=float, default=0.5)
     args = parser.parse_args()
 
-    best = measure_stages(args.cycles, args.repeats, clock=time.perf_counter, best=True)
+    # thread CPU time: a shared machine's other processes do not count (wall time did, several-fold at load 12)
+    best = measure_stages(args.cycles, args.repeats, clock=time.thread_time, best=True)
     decode, mock_noop, mock_decode = best["decode"], best["mock_noop"], best["mock_decode"]
     mock_alone, lgpio_loop = best["mock_alone"], best["lgpio_loop"]
 
@@ -67,6 +70,7 @@ def main() -> None:
     print(f"  our cost seen through gpiozero (3-2) {ours_via_gpiozero * us:7.3f} us/edge")
     print(f"  gpiozero dispatch (2-4)              {dispatch * us:7.3f} us/edge")
     print(f"  on the Pi path, here (3-4 + 5)       {per_edge_here * us:7.3f} us/edge")
+    print(f"6 the bench's GPIO stand-in, in a loop {best['sim_path'] * us:7.3f} us/edge")
     print(
         f"Pi 4 estimate: x{args.pi_slowdown:g} slower -> {per_edge_pi * us:.1f} us/edge; "
         f"with {args.gil_share:.0%} of the GIL -> {max_rate_pi:,.0f} edges/s (both wheels)"

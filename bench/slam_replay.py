@@ -54,7 +54,7 @@ class FrozenOdometry:
         return np.interp(times, t, live[:, 1]), np.interp(times, t, live[:, 2]), np.interp(times, t, live[:, 3])
 
 
-def capture(seed: int, size: int, out: str) -> None:
+def capture(seed: int, size: int, out: str, drive: str = "scripted") -> None:
     config = load_config(None)
     max_sim_s = max(900.0, SIM_S_PER_CELL * size * size)  # as ``mazebot bench --size``
     frames: list[tuple[Any, np.ndarray]] = []
@@ -68,7 +68,7 @@ def capture(seed: int, size: int, out: str) -> None:
     def watch(slam: Slam) -> None:
         slam.taps.on_update += (captured,)
 
-    spec = RunSpec(None, (size, size), seed, "scripted", max_sim_s=max_sim_s)
+    spec = RunSpec(None, (size, size), seed, drive, max_sim_s=max_sim_s)
     metrics, record = run_one(config, spec, watch_slam=watch)
     true_poses = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     truth = {  # the true poses in the map frame (the start's), on the daemon's clock
@@ -182,9 +182,11 @@ def replay(path: str, repeat: int, latency_s: float, settings: list[str]) -> Non
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    cap = sub.add_parser("capture", help="run a scripted tour and save what SLAM was given")
+    cap = sub.add_parser("capture", help="run a scripted tour (or an exploration) and save what SLAM was given")
     cap.add_argument("--seed", type=int, default=2)
     cap.add_argument("--size", type=int, default=6, help="maze cells per side (default 6)")
+    cap.add_argument("--drive", choices=("scripted", "explore"), default="scripted",
+                     help="the scripted tour (default) or an exploration, as the daemon's quota bench drives")
     cap.add_argument("--out", required=True)
     rep = sub.add_parser("replay", help="run SLAM over a capture")
     rep.add_argument("path")
@@ -196,7 +198,7 @@ def main() -> None:
                      help="a config value for the replayed SLAM (TOML syntax), e.g. slam.keyframes.submap_keyframes=30")
     args = parser.parse_args()
     if args.command == "capture":
-        capture(args.seed, args.size, args.out)
+        capture(args.seed, args.size, args.out, args.drive)
     else:
         replay(args.path, args.repeat, args.latency_s, args.set)
 

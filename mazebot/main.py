@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Protocol, cast
 from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config
+from mazebot.cpu_budget import garbage_collection_metered
 from mazebot.errors import EXIT_OK, HardwareUnavailable
 from mazebot.hardware import Hardware, HardwareBuilder, LidarActivity, lgpio_pin_factory
 from mazebot.sdnotify import ControlHeartbeat
@@ -413,7 +414,7 @@ async def run_daemon(
         # lidar, motors and web are up: tell systemd (Type=notify)
         sdnotify.notify(f"READY=1\nSTATUS={hardware.description}")
         try:
-            with _start_up_objects_frozen():
+            with _start_up_objects_frozen(), garbage_collection_metered(state.cpu.part("garbage collection")):
                 return await supervisor.wait()
         finally:
             sdnotify.notify("STOPPING=1")

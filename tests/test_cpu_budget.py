@@ -78,3 +78,24 @@ def test_unknown_part_is_refused_by_name() -> None:
         budget.part("slma")
     with pytest.raises(ValueError, match="unknown part 'gps'"):
         budget.adopt(PartMeter("gps"))
+
+
+def test_each_garbage_collection_is_charged_to_its_meter_while_metered_and_none_after() -> None:
+    import gc
+
+    from mazebot.cpu_budget import garbage_collection_metered
+
+    meter = PartMeter("garbage collection")
+    cycles = []
+    with garbage_collection_metered(meter):
+        for _ in range(20_000):  # cycles to find: a collection that has work to do
+            node: list = []
+            node.append(node)
+            cycles.append(node)
+        cycles.clear()
+        gc.collect()
+        gc.collect(0)
+    assert meter.calls >= 2 and meter.cpu_s > 0
+    calls = meter.calls
+    gc.collect()
+    assert meter.calls == calls  # the callback is gone with the block

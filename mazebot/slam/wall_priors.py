@@ -176,25 +176,56 @@ def lattice_fit(
     the positions of the walls' faces across themselves.
     """
     cos_tol = math.cos(lattice.normal_tolerance_rad)
-    parts: list[list[np.ndarray]] = [[], [], [], []]  # faces seen from +u, -u, +v, -v: each its own phase
-    for k in index[:: max(1, len(index) // LATTICE_FIT_KEYFRAMES)]:
-        kf = keyframes[int(k)]
-        pts, nrm = kf.surface()
-        near = np.hypot(pts[:, 0] - kf.sensor_xy[0], pts[:, 1] - kf.sensor_xy[1]) <= lattice.max_range_m
-        pts, nrm = pts[near].astype(np.float64), nrm[near].astype(np.float64)
-        x, y, theta = poses[int(k)]
-        c, s = math.cos(theta - reference), math.sin(theta - reference)
-        cr, sr = math.cos(reference), math.sin(reference)
-        # the keyframe's origin on the grid's axes, then its points turned by its heading on the grid
-        u0, v0 = cr * x + sr * y, -sr * x + cr * y
-        u = u0 + c * pts[:, 0] - s * pts[:, 1]
-        v = v0 + s * pts[:, 0] + c * pts[:, 1]
-        nu = c * nrm[:, 0] - s * nrm[:, 1]
-        nv = s * nrm[:, 0] + c * nrm[:, 1]
-        for part, position, normal in ((0, u, nu), (1, u, -nu), (2, v, nv), (3, v, -nv)):
-            parts[part].append(position[normal >= cos_tol])
+    chosen = [int(k) for k in index[:: max(1, len(index) // LATTICE_FIT_KEYFRAMES)]]
+    if not chosen:
+        return fit_pitch([(np.zeros(0), np.ones(0), part // 2) for part in range(4)], lattice.pitch_m,
+                         search=lattice.pitch_search, tolerance_m=lattice.fit_tolerance_m)
+    # every chosen keyframe's surface in one array (one numpy call per step, not one per keyframe: a
+    # job looks at up to LATTICE_FIT_KEYFRAMES of them); each point keeps its keyframe's index in `owner`
+    surfaces = [keyframes[k].surface() for k in chosen]
+    counts = [len(pts) for pts, _ in surfaces]
+    owner = np.repeat(np.arange(len(chosen)), counts)
+    pts = np.concatenate([pts for pts, _ in surfaces])
+    nrm = np.concatenate([nrm for _, nrm in surfaces])
+    sensor = np.repeat(np.array([keyframes[k].sensor_xy for k in chosen], dtype=np.float64), counts, axis=0)
+    near = within_radius(pts[:, 0] - sensor[:, 0], pts[:, 1] - sensor[:, 1], lattice.max_range_m)
+    pts, nrm, owner = pts[near].astype(np.float64), nrm[near].astype(np.float64), owner[near]
+    # per keyframe, in floats as before: its heading on the grid, and its origin on the grid's axes
+    cr, sr = math.cos(reference), math.sin(reference)
+    frames = []
+    for k in chosen:
+        x, y, theta = poses[k]
+        frames.append((math.cos(theta - reference), math.sin(theta - reference), cr * x + sr * y, -sr * x + cr * y))
+    kept = np.bincount(owner, minlength=len(chosen))  # each keyframe's points within range, in order
+    c, s, u0, v0 = (np.repeat(column, kept) for column in np.array(frames, dtype=np.float64).T)
+    # its points turned by its heading on the grid, the same arithmetic in the same order
+    u = u0 + c * pts[:, 0] - s * pts[:, 1]
+    v = v0 + s * pts[:, 0] + c * pts[:, 1]
+    nu = c * nrm[:, 0] - s * nrm[:, 1]
+    nv = s * nrm[:, 0] + c * nrm[:, 1]
     classes = []
-    for part, found in enumerate(parts):
-        positions = np.concatenate(found) if found else np.zeros(0)
+    for part, (position, normal) in enumerate(((u, nu), (u, -nu), (v, nv), (v, -nv))):
+        positions = position[normal >= cos_tol]  # faces seen from +u, -u, +v, -v: each its own phase
         classes.append((positions, np.ones(positions.size), part // 2))
     return fit_pitch(classes, lattice.pitch_m, search=lattice.pitch_search, tolerance_m=lattice.fit_tolerance_m)
+
+
+#: Relative margin of :func:`within_radius`'s squared test: far beyond the rounding of either form.
+WITHIN_MARGIN = 1e-9
+
+
+def within_radius(dx: np.ndarray, dy: np.ndarray, radius: float) -> np.ndarray:
+    """``np.hypot(dx, dy) <= radius``, the same booleans at a fraction of the cost.
+
+    ``dx² + dy²`` decides every point clearly inside or outside (a relative margin of
+    ``WITHIN_MARGIN`` on the square, far beyond the rounding of either form); only the
+    points in the thin band between are given to ``np.hypot``, which is correctly rounded to
+    within an ulp but several times slower (2.5 ms for 120 000 points here).
+    """
+    d2 = dx * dx + dy * dy
+    r2 = radius * radius
+    inside = d2 <= r2 * (1.0 - WITHIN_MARGIN)
+    band = np.flatnonzero((d2 > r2 * (1.0 - WITHIN_MARGIN)) & (d2 <= r2 * (1.0 + WITHIN_MARGIN)))
+    if band.size:
+        inside[band] = np.hypot(dx[band], dy[band]) <= radius
+    return inside

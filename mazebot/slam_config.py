@@ -74,6 +74,18 @@ class MotionSection:
         "odometry heading variance per metre travelled ((0.01 rad)² per m)"))] = 1e-4
     theta_rad2_per_rad: Annotated[float, Field(gt=0, description=(
         "odometry heading variance per radian turned ((0.05 rad)² per rad)"))] = 2.5e-3
+    estimate: Annotated[bool, Field(description=(
+        "learn the three variances above from the data: the disagreement between the odometry's and the "
+        "scan matches' increments (the values above are the prior, used until enough matches; off on the "
+        "robot, whose noise is measured; on for laser logs, whose odometry nobody described)"))] = False
+    estimate_min_matches: Annotated[int, Field(ge=1, le=100000, description=(
+        "matched increments before the estimate replaces the prior"))] = 20
+    estimate_window: Annotated[int, Field(ge=1, le=100000, description=(
+        "the estimate is over this many newest matched increments (the odometry may change: a floor, a load)"))] = 200
+    estimate_floor_xy_m2_per_m: Annotated[float, Field(gt=0, description=(
+        "the learned position variance never goes below this ((1 cm)² per m: the matches' own error)"))] = 1e-4
+    estimate_floor_theta_rad2: Annotated[float, Field(gt=0, description=(
+        "the learned heading variance per metre and per radian never goes below this ((0.005 rad)²)"))] = 2.5e-5
 
 
 @dataclass(frozen=True)

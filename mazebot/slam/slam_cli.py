@@ -61,8 +61,16 @@ from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systemat
 from mazebot.slam.slam import GridParams, Slam, SlamParams
 from mazebot.slam.trajectory_metrics import aligned_error, anchored_error, relative_error
 
+#: the odometry noise a laser log's SLAM starts from, before the scan matches have measured it
+#: (:mod:`mazebot.slam.odometry_noise`): 0.1 m per metre on each axis and 0.1 rad per metre and
+#: per radian, wider than any building robot's wheels, so that the first matches, the
+#: correlative window and the first loop closures are not held to an odometry nobody measured
+LASER_LOG_PRIOR_NOISE = MotionNoise(
+    xy_m2_per_m=0.1**2, theta_rad2_per_m=0.1**2, theta_rad2_per_rad=0.1**2, estimate=True
+)
 
-def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -> SlamParams:
+
+def laser_log_params(base: SlamParams) -> SlamParams:
     """SLAM settings for an indoor laser log (SICK LMS, metres between scans) from the maze ones.
 
     Every scan moves the robot more than the maze keyframe spacing, so every scan is a
@@ -97,17 +105,26 @@ def laser_log_params(base: SlamParams, odom_noise: tuple[float, float] | None) -
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
     for a sequential match that failed from the prediction; loop closures that failed from
     the prior search ±1.5 m / ±0.2 rad about it (the correction allowed).
+
+    The odometry's noise is never told (``--odom-noise`` only makes the odometry): a log's
+    own odometry comes without a description, so the motion model starts wide
+    (:data:`LASER_LOG_PRIOR_NOISE`) and is learnt from the disagreement between the
+    odometry's and the scan matches' increments (:mod:`mazebot.slam.odometry_noise`). That
+    model drives the filter's prediction (and so the correlative window), the sequential
+    edges' information and, through the chain's uncertainty, the loop closures' search
+    radius and correction bounds.
     """
     search = CorrelativeParams(
         resolution_m=0.05, sigma_m=0.1, window_xy_m=0.5, window_theta_rad=0.52, levels=3,
         max_range_m=10.0, max_points=250, min_score=0.3,
     )
-    motion = base.motion
-    if odom_noise is not None:
-        sx, sth = odom_noise
-        motion = MotionNoise(
-            xy_m2_per_m=max(sx, 1e-3) ** 2, theta_rad2_per_m=max(sth, 1e-3) ** 2, theta_rad2_per_rad=max(sth, 1e-3) ** 2
-        )
+    motion = replace(
+        base.motion,
+        xy_m2_per_m=LASER_LOG_PRIOR_NOISE.xy_m2_per_m,
+        theta_rad2_per_m=LASER_LOG_PRIOR_NOISE.theta_rad2_per_m,
+        theta_rad2_per_rad=LASER_LOG_PRIOR_NOISE.theta_rad2_per_rad,
+        estimate=True,
+    )
     return replace(
         base,
         prepare=replace(
@@ -203,6 +220,26 @@ def log_odometry(log: CarmenLog) -> np.ndarray:
     return np.array([r.odom_pose for r in log.lasers]).reshape(-1, 3)
 
 
+def same_motion(odometry: np.ndarray, reference: np.ndarray, tol_m: float = 1e-3, tol_rad: float = 1e-3) -> bool:
+    """Do two trajectories make the same increments (within ``tol_m`` / ``tol_rad``, the log's rounding)?
+
+    A raw log's laser messages carry the odometry in their pose fields too (CARMEN's
+    ``FLASER`` ``x y theta`` equal ``odom_x odom_y odom_theta`` when nothing corrected them),
+    and so do the corrected logs here whose odometry fields repeat the corrected poses:
+    either way the log holds one trajectory, and an error of the SLAM "against the
+    reference" would be against the odometry it was given.
+    """
+    odometry = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
+    reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
+    if odometry.shape[0] < 2:
+        return True
+    a = relative_pose(odometry[:-1], odometry[1:])
+    b = relative_pose(reference[:-1], reference[1:])
+    gap = np.abs(a - b)
+    gap[:, 2] = np.abs(wrap_angle(a[:, 2] - b[:, 2]))
+    return bool(np.all(gap[:, :2] <= tol_m) and np.all(gap[:, 2] <= tol_rad))
+
+
 def slam_clock(times_s: np.ndarray) -> np.ndarray:
     """Strictly increasing times for SLAM from a log's stamps, which may repeat or step back.
 
@@ -251,17 +288,15 @@ def run_carmen(
     reference = np.array([r.pose for r in lasers]).reshape(-1, 3)
     times = np.array([r.timestamp_s for r in lasers])
     drawn = None
-    filter_noise = odom_noise
     if systematic is not None:
         white = odom_noise or (0.0, 0.0)
         odometry, drawn, _ = systematic_odometry(reference, systematic, white, np.random.default_rng(seed))
-        filter_noise = systematic.effective_noise(white)
     elif odom_noise is not None:
         odometry = noisy_odometry(reference, odom_noise[0], odom_noise[1], np.random.default_rng(seed))
     else:
         odometry = log_odometry(log)[: len(lasers)]
     config = load_config(config_path)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), filter_noise)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
     # the map frame: the log's frame, anchored at its first pose; odometry starts there too
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
     slam = Slam(params, initial_pose=np.zeros(3))
@@ -292,6 +327,9 @@ def run_carmen(
     write_map_png(three, out / "map.png")
     write_ros_map(slam.grid, out / "map")
     ms = np.asarray(scan_ms)
+    # a log without corrected poses (its laser poses are its odometry) has no reference to judge by
+    judged = odom_noise is not None or systematic is not None or not same_motion(odometry, reference)
+    learnt = slam.odometry_noise
     return {
         "log": str(log_path),
         "scans": len(lasers),
@@ -307,12 +345,18 @@ def run_carmen(
         ("systematic" if systematic is not None else "white"),
         "odom_systematic": None if drawn is None else {k: round(v, 6) for k, v in vars(drawn).items()},
         "seed": seed,
-        "error": anchored_error(final, reference),
-        "error_online": anchored_error(online, reference),
-        "error_odometry": anchored_error(odometry, reference),
-        "error_aligned": aligned_error(final, reference),
-        "relative_error": relative_error(final, reference, lag=1),
-        "relative_error_odometry": relative_error(odometry, reference, lag=1),
+        "odom_noise_learnt": None if learnt is None else {
+            "pairs": learnt.pairs,
+            "xy_m_per_sqrt_m": round(math.sqrt(learnt.noise.xy_m2_per_m), 5),
+            "theta_rad_per_sqrt_m_rad": round(math.sqrt(learnt.noise.theta_rad2_per_m), 5),
+        },
+        "reference": "the log's poses" if judged else None,
+        "error": anchored_error(final, reference) if judged else None,
+        "error_online": anchored_error(online, reference) if judged else None,
+        "error_odometry": anchored_error(odometry, reference) if judged else None,
+        "error_aligned": aligned_error(final, reference) if judged else None,
+        "relative_error": relative_error(final, reference, lag=1) if judged else None,
+        "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
         "seconds": round(seconds, 3),

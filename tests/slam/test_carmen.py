@@ -108,7 +108,7 @@ def test_a_beam_without_echo_clears_no_space_in_the_map() -> None:
     window once fanned free space far outside the Intel building.
     """
     (rec,) = parse_carmen([_flaser(ranges="3 3 3 81.83")]).lasers
-    params = laser_log_params(SlamParams(), (0.05, 0.05))
+    params = laser_log_params(SlamParams())
     prepared = prepare_scan(rec.to_scan(), None, params.prepare)
     ends, hit, origins = map_rays(prepared, params.map_max_range_m, params.map_smoothing, params.range_noise_rel)
     grid = params.grid.new_grid()

@@ -212,6 +212,14 @@ class LoopSection:
         "verify keyframe 0 too whenever it is within the search radius (closures to it fix the map's "
         "orientation about the start)"))] = False
     min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
+    overlap_fitness: Annotated[bool, Field(description=(
+        "a match below min_fitness still passes if its inlier ratio among the points the submap could have "
+        "seen (inside its keyframes' beams) reaches min_fitness: a building's doorways and far corridor sides "
+        "have nothing to match (off: the ratio among all points)"))] = False
+    min_overlap: Annotated[float, Field(ge=0, le=1, description=(
+        "... and at least this share of the points lies where the submap could have seen it"))] = 0.5
+    overlap_margin_m: Annotated[float, Field(ge=0, description=(
+        "a point is seen by a beam that reached at least this close to it"))] = 0.2
     max_rmse_m: Annotated[float, Field(gt=0, description="accept: point-to-line RMS at most this")] = 0.012
     min_correspondences: Annotated[int, Field(ge=3, description="accept: at least this many matched points")] = 40
     accept_degenerate: Annotated[bool, Field(description=(

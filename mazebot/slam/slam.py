@@ -78,6 +78,7 @@ from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, bui
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice, fit_pitch
 from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
+from mazebot.slam.overlap import ObservedArea
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
@@ -280,7 +281,14 @@ class LoopClosureJob:
                 poses=[self.poses[k] for k in window],
                 clip=None if p.loop.max_range_m is None else (lidar_in_old, p.loop.max_range_m + 0.3),
             )
-            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop))
+            observed = None
+            if p.loop.overlap_fitness:
+                observed = ObservedArea.from_keyframes(
+                    [relative_pose(self.poses[cand.old], self.poses[k]) for k in window],
+                    [self.keyframes[k].sensor_xy for k in window],
+                    [self.keyframes[k].ray_ends for k in window],
+                )
+            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop, observed))
         accepted = [v for v in verdicts if v.accepted]
         if not accepted and not self.optimize_anyway:
             return LoopClosureResult(verdicts)

@@ -141,6 +141,7 @@ def laser_log_params(base: SlamParams) -> SlamParams:
             submap_half_width=5,
             attempt_every=1,
             min_fitness=0.6,
+            overlap_fitness=True,
             max_rmse_m=0.05,
             max_correction_m=1.5,
             max_correction_rad=0.2,

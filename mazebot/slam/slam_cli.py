@@ -198,27 +198,39 @@ def noisy_odometry(
 
 
 def log_odometry(log: CarmenLog) -> np.ndarray:
-    """The log's own odometry at each laser message: ``ODOM`` interpolated, else the laser's odometry pose.
+    """The log's own odometry of the laser at each laser message: ``ODOM`` interpolated, else the message's own.
 
     ``ODOM`` poses are interpolated in time between the messages around each laser
     message; where the stamps do not increase (logs whose stamps were rounded, like the
     Radish ones), time says nothing, and each laser message takes the last ``ODOM``
-    before it in the file.
+    before it in the file. Without ``ODOM`` lines (or with all of them zero, as in the
+    logs here) each message's odometry pose: a ``FLASER``'s ``odom_x odom_y odom_theta``.
+
+    The SLAM tracks the laser, so the odometry is the laser's: a ``ROBOTLASER1`` gives the
+    laser's pose and the robot's, and the laser's mounting on the robot (the one relative
+    to the other, in the same message) is applied to the robot's odometry (``ODOM`` or,
+    without it, its robot pose). ``FLASER`` poses are the laser's already.
     """
     times = np.array([r.timestamp_s for r in log.lasers])
     odom = [o for o in log.odometry if np.any(o.pose)]
+    robot = np.array([r.odom_pose for r in log.lasers]).reshape(-1, 3)
     if len(odom) >= 2:
         t = np.array([o.timestamp_s for o in odom])
         p = np.array([o.pose for o in odom])
         if np.all(np.diff(t) > 0):
             th = np.unwrap(p[:, 2])
-            return np.column_stack(
+            robot = np.column_stack(
                 (np.interp(times, t, p[:, 0]), np.interp(times, t, p[:, 1]), wrap_angle(np.interp(times, t, th)))
             )
-        lines = np.array([o.line_number for o in odom])
-        before = np.searchsorted(lines, [r.line_number for r in log.lasers]) - 1
-        return p[np.maximum(before, 0)]
-    return np.array([r.odom_pose for r in log.lasers]).reshape(-1, 3)
+        else:
+            lines = np.array([o.line_number for o in odom])
+            before = np.searchsorted(lines, [r.line_number for r in log.lasers]) - 1
+            robot = p[np.maximum(before, 0)]
+    mount = np.zeros((len(log.lasers), 3))
+    for k, r in enumerate(log.lasers):
+        if r.kind == "ROBOTLASER1":
+            mount[k] = relative_pose(r.odom_pose, r.pose)  # the laser in the robot frame
+    return compose(robot, mount)
 
 
 def same_motion(odometry: np.ndarray, reference: np.ndarray, tol_m: float = 1e-3, tol_rad: float = 1e-3) -> bool:
@@ -296,6 +308,11 @@ def run_carmen(
         odometry = noisy_odometry(reference, odom_noise[0], odom_noise[1], np.random.default_rng(seed))
     else:
         odometry = log_odometry(log)[: len(lasers)]
+        if len(lasers) > 1 and not np.any(odometry):
+            raise UsageError(
+                f"{log_path}: no odometry (its ODOM lines and odometry fields are zero): give --odom-noise "
+                "to make odometry from its poses"
+            )
     config = load_config(config_path)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
     # the map frame: the log's frame, anchored at its first pose; odometry starts there too

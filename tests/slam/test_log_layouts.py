@@ -1,4 +1,5 @@
-"""A log whose odometry is real, in CARMEN's common layouts: the SLAM gets the raw odometry, the errors the corrected poses.
+"""A log whose odometry is real, in CARMEN's common layouts: the SLAM gets the raw odometry, the errors the corrected
+poses.
 
 Each small log is the Intel log's first scans with their corrected poses, and a raw
 odometry drawn from them (:func:`mazebot.slam.slam_cli.noisy_odometry`) written where the

@@ -13,7 +13,9 @@ from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 PRIOR = MotionNoise(xy_m2_per_m=0.1**2, theta_rad2_per_m=0.1**2, theta_rad2_per_rad=0.1**2, estimate=True)
 
 
-def _pairs(rng: np.random.Generator, count: int, sigma_xy: float, sigma_th: float) -> list[tuple[np.ndarray, np.ndarray]]:
+def _pairs(
+    rng: np.random.Generator, count: int, sigma_xy: float, sigma_th: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Odometry increments of ~1 m / ~0.3 rad and the true ones, off by the motion model's noise."""
     out = []
     for _ in range(count):

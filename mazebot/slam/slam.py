@@ -79,6 +79,8 @@ from mazebot.slam.icp import IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
+from mazebot.slam.odometry_noise import OdometryNoiseEstimate
+from mazebot.slam.overlap import ObservedArea
 from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
 from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
@@ -180,7 +182,14 @@ class LoopClosureJob:
                 poses=[self.poses[k] for k in window],
                 clip=None if p.loop.max_range_m is None else (lidar_in_old, p.loop.max_range_m + 0.3),
             )
-            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop))
+            observed = None
+            if p.loop.overlap_fitness:
+                observed = ObservedArea.from_keyframes(
+                    [relative_pose(self.poses[cand.old], self.poses[k]) for k in window],
+                    [self.keyframes[k].sensor_xy for k in window],
+                    [self.keyframes[k].ray_ends for k in window],
+                )
+            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop, observed))
         accepted = [v for v in verdicts if v.accepted]
         if not accepted and not self.optimize_anyway:
             return LoopClosureResult(verdicts)
@@ -383,6 +392,10 @@ class Slam:
         self._edge_var_theta: list[float] = []
         self._last_odom: np.ndarray | None = None
         self._last_matched_pose: np.ndarray | None = None  # filter pose after the previous scan, if matched
+        # the odometry noise learnt from the matches ([slam.motion] estimate), and the previous scan's
+        # own match pose (not the filter's, which the odometry pulls towards itself)
+        self.odometry_noise = OdometryNoiseEstimate(p.motion) if p.motion.estimate else None
+        self._last_match_pose: np.ndarray | None = None
         self._last_rate: float | None = None  # odometry turn rate at the previous scan's end
         self._odom_at_keyframe: np.ndarray | None = None
         self._last_match: IcpResult | None = None
@@ -535,6 +548,8 @@ class Slam:
                 and p.calibrate_heading):
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
+        if self.odometry_noise is not None:
+            self._learn_odometry_noise(match if matched and paint else None, raw_increment)
 
         yield
 
@@ -653,6 +668,7 @@ class Slam:
         self.graph.vertices = self.keyframe_poses()
         self.ekf.reset(compose(correction, self.ekf.mean))
         self._last_matched_pose = None  # the map moved under the filter: no calibration sample
+        self._last_match_pose = None  # ... nor an odometry noise sample
         if self.selector.last is not None:
             self.selector.accept(compose(correction, self.selector.last))
         yield
@@ -743,6 +759,7 @@ class Slam:
         self.ekf.reset(pose, self.ekf.covariance)
         self._last_odom = np.asarray(odom, dtype=np.float64).copy()
         self._last_matched_pose = None
+        self._last_match_pose = None
         self._last_match = None
         self._target_position = None
         self._search_due = True
@@ -992,6 +1009,19 @@ class Slam:
             return refined
         return match
 
+    def _learn_odometry_noise(self, match: IcpResult | None, raw_increment: np.ndarray | None) -> None:
+        """One more sample of the odometry's noise if this scan and the previous one were matched.
+
+        The learnt model (:mod:`mazebot.slam.odometry_noise`) moves the filter's prediction
+        from the next scan on, and with it the sequential edges' information, the chain's
+        uncertainty and so the loop closures' search radius and correction bounds.
+        """
+        assert self.odometry_noise is not None
+        if match is not None and raw_increment is not None and self._last_match_pose is not None:
+            self.odometry_noise.observe(raw_increment, relative_pose(self._last_match_pose, match.pose))
+            self.ekf.noise = self.odometry_noise.noise
+        self._last_match_pose = None if match is None else match.pose.copy()
+
     def _sequential_information(self, z: np.ndarray, odom: np.ndarray) -> np.ndarray:
         """Information of the edge previous keyframe → this one: odometry plus, if matched, ICP.
 
@@ -999,7 +1029,7 @@ class Slam:
         """
         p = self.params
         increment = relative_pose(self._odom_at_keyframe, odom) if self._odom_at_keyframe is not None else z
-        odom_cov = p.motion.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
+        odom_cov = self.ekf.noise.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
         info = rotate_information(np.linalg.inv(odom_cov), float(z[2]))
         if self._last_match is not None:
             icp_info = self._last_match.information * p.match_information_scale

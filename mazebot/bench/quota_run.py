@@ -46,6 +46,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from mazebot.cpu_budget import RecentValues
 from mazebot.errors import MazebotError
 
 #: How long the world may take to build and serve its lidar, and the daemon to come up.
@@ -134,8 +135,8 @@ async def _run_daemon(
         return hardware
 
     state = SharedState()
-    state.control_lateness_ms = deque(maxlen=LATENESS_KEPT)
-    state.odometry_edge_age_ms = deque(maxlen=LATENESS_KEPT)
+    state.control_lateness_ms = RecentValues(LATENESS_KEPT)
+    state.odometry_edge_age_ms = RecentValues(LATENESS_KEPT)
     # the logs in flat float arrays (t, x, y, θ per row): the daemon's memory is measured with them in it
     run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": array("d"), "odometry": array("d"),
                            "scans": [], "encoders": None}

@@ -81,7 +81,10 @@ class _Replica:
             raise MissingKeyframes(f"the worker holds {len(store)} keyframes, the job starts at {shipped.first}")
         del store[shipped.first :]
         store.extend(shipped.fresh)
-        return replace(shipped.job, keyframes=store[: shipped.count]).run()
+        result = replace(shipped.job, keyframes=store[: shipped.count]).run()
+        for kf in store:  # the jobs made their surfaces: the hits are not read again here
+            kf.keep_surface_only()
+        return result
 
 
 #: In a worker process: the keyframes it was sent (the state a worker exists to keep).

@@ -36,6 +36,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from typing import Any
 
+from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.keyframes import Keyframe
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult
 
@@ -84,6 +85,7 @@ class _Replica:
         result = replace(shipped.job, keyframes=store[: shipped.count]).run()
         for kf in store:  # the jobs made their surfaces: the hits are not read again here
             kf.keep_surface_only()
+        give_back_free_memory()  # the job's temporaries, before the worker waits for the next one
         return result
 
 

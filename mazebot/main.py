@@ -28,6 +28,7 @@ from mazebot.config import Config
 from mazebot.cpu_budget import garbage_collection_metered
 from mazebot.errors import EXIT_OK, HardwareUnavailable
 from mazebot.hardware import Hardware, HardwareBuilder, LidarActivity, lgpio_pin_factory
+from mazebot.malloc_tuning import fix_mmap_threshold
 from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor
@@ -273,6 +274,7 @@ async def run_daemon(
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
     state = state if state is not None else SharedState()
+    fix_mmap_threshold()  # before the fork server starts: its children inherit the setting
     async with AsyncExitStack() as stack:
         live = _start_foxglove(config, stack)  # first: a missing package stops us before any device opens
         hardware = await build_hardware(config, clock, stack)

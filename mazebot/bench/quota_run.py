@@ -47,6 +47,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from mazebot.cpu_budget import RecentValues
 from mazebot.errors import MazebotError
 
 log = logging.getLogger(__name__)
@@ -141,8 +142,8 @@ async def _run_daemon(
         return hardware
 
     state = SharedState()
-    state.control_lateness_ms = deque(maxlen=LATENESS_KEPT)
-    state.odometry_edge_age_ms = deque(maxlen=LATENESS_KEPT)
+    state.control_lateness_ms = RecentValues(LATENESS_KEPT)
+    state.odometry_edge_age_ms = RecentValues(LATENESS_KEPT)
     # the logs in flat float arrays (t, x, y, θ per row): the daemon's memory is measured with them in it
     run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": array("d"), "odometry": array("d"),
                            "scans": [], "encoders": None, "gpio_at_start": (None, 0), "gpio_at_end": (None, 0)}

@@ -49,13 +49,14 @@ from typing import Any
 
 import numpy as np
 
-from mazebot.argtypes import positive_int
+from mazebot.argtypes import non_negative_int, positive_int
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.geometry import compose, relative_pose, wrap_angle
-from mazebot.slam.carmen import CarmenLog, read_carmen
+from mazebot.slam.carmen import CarmenLog, LaserRecord, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
+from mazebot.slam.map_consistency import consistency, first_scan_heading_deg, judged_scans, scan_corrections
 from mazebot.slam.map_export import write_map_png, write_ros_map
 from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
 from mazebot.slam.slam import GridParams, Slam, SlamParams
@@ -292,12 +293,16 @@ def run_carmen(
     max_scans: int | None = None,
     config_path: str | None = None,
     systematic: SystematicOdometryModel | None = None,
+    consistency_scans: int = 60,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
     ``systematic`` (the ``systematic`` odometry model): odometry from the log's poses
     with per-wheel scale errors, a track-width error and a drifting heading bias, plus
     ``odom_noise`` as white noise (:mod:`mazebot.slam.odometry_errors`).
+    ``consistency_scans``: how many scans (spread over the log, the first always) are
+    registered against the map of the others (:mod:`mazebot.slam.map_consistency`), at the
+    SLAM's poses and at the reference's; 0 skips it.
     """
     log = read_carmen(log_path)
     if not log.lasers:
@@ -353,6 +358,7 @@ def run_carmen(
     # a log without corrected poses (its laser poses are its odometry) has no reference to judge by
     judged = odom_noise is not None or systematic is not None or not same_motion(odometry, reference)
     learnt = slam.odometry_noise
+    judged_consistency = map_consistency(lasers, final, reference if judged else None, params, consistency_scans)
     return {
         "log": str(log_path),
         "scans": len(lasers),
@@ -380,6 +386,7 @@ def run_carmen(
         "error_aligned": aligned_error(final, reference) if judged else None,
         "relative_error": relative_error(final, reference, lag=1) if judged else None,
         "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
+        **judged_consistency,
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
         "seconds": round(seconds, 3),
@@ -389,12 +396,46 @@ def run_carmen(
 
 
 
+def map_consistency(
+    lasers: list[LaserRecord],
+    final: np.ndarray,
+    reference: np.ndarray | None,
+    params: SlamParams,
+    scans: int,
+) -> dict[str, Any]:
+    """The map's self-consistency (:mod:`mazebot.slam.map_consistency`) at the SLAM's poses and the reference's.
+
+    Each judged scan's points (those the SLAM matches: between the preparation's minimum
+    and maximum range) are registered against the others at the same trajectory's poses.
+    ``first_scan_heading_deg`` is what the map asks of the scan the map frame is anchored
+    at: a reference whose own first pose sits off its map turns every anchored figure.
+    """
+    if scans <= 0:
+        return {}
+    prepare = params.prepare
+    points = []
+    for record in lasers:
+        xy = record.points_xy(prepare.max_range_m)
+        points.append(xy[np.hypot(xy[:, 0], xy[:, 1]) >= prepare.min_range_m])
+    judged = judged_scans(len(lasers), scans)
+    out: dict[str, Any] = {}
+    for name, poses in (("consistency", final), ("consistency_reference", reference)):
+        if poses is None:
+            out[name] = None
+            continue
+        corrections = scan_corrections(poses, points, judged, params.icp, voxel_m=prepare.voxel_size_m,
+                                       normal_radius_m=params.normals.radius_m)
+        out[name] = {**consistency(corrections), "first_scan_heading_deg": first_scan_heading_deg(corrections)}
+    return out
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     if args.odom_systematic is not None and args.odom_model != "systematic":
         raise UsageError("--odom-systematic needs --odom-model systematic")
     systematic = parse_systematic(args.odom_systematic) if args.odom_model == "systematic" else None
     stats = run_carmen(
-        args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic
+        args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
+        args.consistency_scans,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -438,6 +479,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     run.add_argument("--seed", type=int, default=1, help="seed of the odometry noise (default 1)")
     run.add_argument("--max-scans", type=positive_int, default=None, metavar="N", help="only the first N scans")
+    run.add_argument(
+        "--consistency-scans",
+        type=non_negative_int,
+        default=60,
+        metavar="N",
+        help="register N scans (spread over the log) against the map of the others, at the SLAM's poses and at the "
+        "reference's: how crisp each map is, without trusting the reference (default 60; 0: skip)",
+    )
     run.add_argument("--out", required=True, metavar="DIR", help="output directory")
     run.add_argument("--config", default=None, help="config file whose [slam] section is the starting point")
     run.set_defaults(func=_cmd_run)

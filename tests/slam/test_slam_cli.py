@@ -33,6 +33,11 @@ def test_slam_run_on_the_intel_log(intel_log_path: Path, tmp_path: Path, capsys:
     assert stats["error_aligned"]["rms_m"] <= stats["error"]["rms_m"] + 1e-4
     assert stats["relative_error"]["pairs"] == 199
     assert stats["relative_error"]["rot_mean_deg"] < stats["relative_error_odometry"]["rot_mean_deg"]
+    # each scan registered against the others at the poses: the SLAM's map sits within a few tenths of a
+    # degree and centimetres of itself, and the scan the map is anchored at is judged too
+    for name in ("consistency", "consistency_reference"):
+        assert stats[name]["scans"] >= 40 and stats[name]["first_scan_heading_deg"] is not None
+    assert stats["consistency"]["heading_rms_deg"] < 0.5 and stats["consistency"]["shift_rms_m"] < 0.05
 
     lasers = read_carmen(intel_log_path).lasers[:200]
     rows = np.loadtxt(out / "trajectory.txt")

@@ -10,7 +10,8 @@ odometry to :class:`mazebot.slam.slam.Slam` (loop closures inline), and writes i
 
 - ``trajectory.txt``: one line ``timestamp x y theta`` per scan (the log's timestamps;
   poses after the last optimization, in the log's frame: the map frame is anchored at
-  the first laser pose of the log);
+  the first laser pose of the log, where the first scan registers against the finished
+  map: :func:`reanchor`, off with ``--no-reanchor``);
 - ``map.png``, ``map.pgm`` + ``map.yaml`` (ROS ``map_server``);
 
 and prints one JSON line of statistics, with the error of the trajectory against the
@@ -52,7 +53,7 @@ import numpy as np
 from mazebot.argtypes import non_negative_int, positive_int
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
-from mazebot.geometry import compose, relative_pose, wrap_angle
+from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.carmen import CarmenLog, LaserRecord, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
@@ -294,6 +295,7 @@ def run_carmen(
     config_path: str | None = None,
     systematic: SystematicOdometryModel | None = None,
     consistency_scans: int = 60,
+    anchor_first_scan: bool = True,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
@@ -302,7 +304,8 @@ def run_carmen(
     ``odom_noise`` as white noise (:mod:`mazebot.slam.odometry_errors`).
     ``consistency_scans``: how many scans (spread over the log, the first always) are
     registered against the map of the others (:mod:`mazebot.slam.map_consistency`), at the
-    SLAM's poses and at the reference's; 0 skips it.
+    SLAM's poses and at the reference's; 0 skips it. ``anchor_first_scan``: the finished map
+    is re-anchored where the first scan registers against it (:func:`reanchor`).
     """
     log = read_carmen(log_path)
     if not log.lasers:
@@ -341,7 +344,10 @@ def run_carmen(
         update = slam.update(scan, history)
         scan_ms.append((time.thread_time() - cpu0) * 1e3)
         online[k] = update.pose
-    slam.rebuild_map()  # from the keyframes at their final, optimized poses
+    points = match_points(lasers, params)
+    _, before_anchoring = slam.trajectory()
+    anchoring = reanchor(slam, points, params) if anchor_first_scan else None
+    slam.rebuild_map()  # from the keyframes at their final, optimized (and re-anchored) poses
     seconds = time.perf_counter() - wall0
     _, final = slam.trajectory()
 
@@ -358,7 +364,7 @@ def run_carmen(
     # a log without corrected poses (its laser poses are its odometry) has no reference to judge by
     judged = odom_noise is not None or systematic is not None or not same_motion(odometry, reference)
     learnt = slam.odometry_noise
-    judged_consistency = map_consistency(lasers, final, reference if judged else None, params, consistency_scans)
+    judged_consistency = map_consistency(points, final, reference if judged else None, params, consistency_scans)
     return {
         "log": str(log_path),
         "scans": len(lasers),
@@ -382,10 +388,12 @@ def run_carmen(
         "reference": "the log's poses" if judged else None,
         "error": anchored_error(final, reference) if judged else None,
         "error_online": anchored_error(online, reference) if judged else None,
+        "error_before_reanchor": anchored_error(before_anchoring, reference) if judged else None,
         "error_odometry": anchored_error(odometry, reference) if judged else None,
         "error_aligned": aligned_error(final, reference) if judged else None,
         "relative_error": relative_error(final, reference, lag=1) if judged else None,
         "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
+        "reanchor": anchoring,
         **judged_consistency,
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
@@ -396,8 +404,58 @@ def run_carmen(
 
 
 
+def match_points(lasers: list[LaserRecord], params: SlamParams) -> list[np.ndarray]:
+    """Each laser message's points (sensor frame) between the preparation's minimum and maximum range."""
+    prepare = params.prepare
+    points = []
+    for record in lasers:
+        xy = record.points_xy(prepare.max_range_m)
+        points.append(xy[np.hypot(xy[:, 0], xy[:, 1]) >= prepare.min_range_m])
+    return points
+
+
+#: the first scan's registration against the finished map re-anchors it only within these bounds:
+#: the corrections measured on the logs here are 0-1° and 0-3 cm; more says the map near the start,
+#: or the registration, is not to be trusted
+REANCHOR_MAX_RAD = math.radians(2.0)
+REANCHOR_MAX_M = 0.2
+
+
+def reanchor(slam: Slam, points: list[np.ndarray], params: SlamParams) -> dict[str, Any]:
+    """Re-anchor the finished map where the first scan registers against it; returns what was done.
+
+    The map frame is the first scan's: keyframe 0 is held at the log's first pose, and
+    the map's orientation about it comes from the first few matches only (in-place turns
+    of 30° with a 180° laser on the Radish logs, each a few tenths of a degree off), so
+    the whole map is turned about the start by that much, and by decimetres at its far
+    end, however consistent it is. Once the map is finished, the first scan registered
+    against the map of the others (:func:`mazebot.slam.map_consistency.scan_corrections`:
+    the scans more than three away in the log, the 40 nearest within 10 m) says where the
+    map puts it, measured against every later visit of the start. The whole map (every
+    keyframe but the first, and the scans that follow them) is moved rigidly so that this
+    pose is the anchor, and the first scan stays there: nothing else inside the map
+    changes, only its frame. A correction beyond
+    :data:`REANCHOR_MAX_RAD` / :data:`REANCHOR_MAX_M`, or no converged registration, leaves
+    the map as it is.
+    """
+    _, trajectory = slam.trajectory()
+    corrections = scan_corrections(trajectory, points, [0], params.icp, voxel_m=params.prepare.voxel_size_m,
+                                   normal_radius_m=params.normals.radius_m)
+    if corrections.shape[0] == 0:
+        return {"applied": False, "heading_deg": None, "shift_m": None}
+    c = corrections[0, 1:]
+    shift_m, heading_rad = math.hypot(float(c[0]), float(c[1])), float(c[2])
+    applied = abs(heading_rad) <= REANCHOR_MAX_RAD and shift_m <= REANCHOR_MAX_M
+    if applied:
+        anchor = trajectory[0]
+        move = compose(anchor, inverse(compose(anchor, c)))  # the registered first scan onto the anchor
+        for keyframe in slam.keyframes[1:]:  # keyframe 0, the first scan, is where it registered: the anchor
+            keyframe.pose = compose(move, keyframe.pose)
+    return {"applied": applied, "heading_deg": round(math.degrees(heading_rad), 3), "shift_m": round(shift_m, 4)}
+
+
 def map_consistency(
-    lasers: list[LaserRecord],
+    points: list[np.ndarray],
     final: np.ndarray,
     reference: np.ndarray | None,
     params: SlamParams,
@@ -405,25 +463,20 @@ def map_consistency(
 ) -> dict[str, Any]:
     """The map's self-consistency (:mod:`mazebot.slam.map_consistency`) at the SLAM's poses and the reference's.
 
-    Each judged scan's points (those the SLAM matches: between the preparation's minimum
-    and maximum range) are registered against the others at the same trajectory's poses.
-    ``first_scan_heading_deg`` is what the map asks of the scan the map frame is anchored
-    at: a reference whose own first pose sits off its map turns every anchored figure.
+    Each judged scan's points (those of :func:`match_points`) are registered against the
+    others at the same trajectory's poses. ``first_scan_heading_deg`` is what the map asks
+    of the scan the map frame is anchored at: a reference whose own first pose sits off
+    its map turns every anchored figure.
     """
     if scans <= 0:
         return {}
-    prepare = params.prepare
-    points = []
-    for record in lasers:
-        xy = record.points_xy(prepare.max_range_m)
-        points.append(xy[np.hypot(xy[:, 0], xy[:, 1]) >= prepare.min_range_m])
-    judged = judged_scans(len(lasers), scans)
+    judged = judged_scans(len(points), scans)
     out: dict[str, Any] = {}
     for name, poses in (("consistency", final), ("consistency_reference", reference)):
         if poses is None:
             out[name] = None
             continue
-        corrections = scan_corrections(poses, points, judged, params.icp, voxel_m=prepare.voxel_size_m,
+        corrections = scan_corrections(poses, points, judged, params.icp, voxel_m=params.prepare.voxel_size_m,
                                        normal_radius_m=params.normals.radius_m)
         out[name] = {**consistency(corrections), "first_scan_heading_deg": first_scan_heading_deg(corrections)}
     return out
@@ -435,7 +488,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     systematic = parse_systematic(args.odom_systematic) if args.odom_model == "systematic" else None
     stats = run_carmen(
         args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
-        args.consistency_scans,
+        args.consistency_scans, not args.no_reanchor,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -486,6 +539,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="N",
         help="register N scans (spread over the log) against the map of the others, at the SLAM's poses and at the "
         "reference's: how crisp each map is, without trusting the reference (default 60; 0: skip)",
+    )
+    run.add_argument(
+        "--no-reanchor",
+        action="store_true",
+        help="keep the map where the first scans' matches put it (default: moved rigidly so that the first scan, "
+        "registered against the finished map, sits at the log's first pose)",
     )
     run.add_argument("--out", required=True, metavar="DIR", help="output directory")
     run.add_argument("--config", default=None, help="config file whose [slam] section is the starting point")

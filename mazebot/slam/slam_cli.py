@@ -346,7 +346,11 @@ def run_carmen(
         online[k] = update.pose
     points = match_points(lasers, params)
     _, before_anchoring = slam.trajectory()
-    anchoring = reanchor(slam, points, params) if anchor_first_scan else None
+    # the map judged by itself, before it is re-anchored (a rigid move: only the first scan's row changes)
+    judged_scans_ = judged_scans(len(points), consistency_scans or REANCHOR_NOISE_SCANS)
+    own = scan_corrections(before_anchoring, points, judged_scans_, params.icp, voxel_m=params.prepare.voxel_size_m,
+                           normal_radius_m=params.normals.radius_m)
+    anchoring = reanchor(slam, own, heading_noise_rad(own)) if anchor_first_scan else None
     slam.rebuild_map()  # from the keyframes at their final, optimized (and re-anchored) poses
     seconds = time.perf_counter() - wall0
     _, final = slam.trajectory()
@@ -364,7 +368,9 @@ def run_carmen(
     # a log without corrected poses (its laser poses are its odometry) has no reference to judge by
     judged = odom_noise is not None or systematic is not None or not same_motion(odometry, reference)
     learnt = slam.odometry_noise
-    judged_consistency = map_consistency(points, final, reference if judged else None, params, consistency_scans)
+    judged_consistency = map_consistency(own, points, reference if judged else None, params, judged_scans_)
+    if not consistency_scans:
+        judged_consistency = {}
     return {
         "log": str(log_path),
         "scans": len(lasers),
@@ -419,9 +425,22 @@ def match_points(lasers: list[LaserRecord], params: SlamParams) -> list[np.ndarr
 #: or the registration, is not to be trusted
 REANCHOR_MAX_RAD = math.radians(2.0)
 REANCHOR_MAX_M = 0.2
+#: ... and only if its heading correction exceeds this many times the RMS heading correction of the
+#: map's other scans (a correction within the map's own scatter is noise: ACES' maps scatter by 0.4-0.5°)
+REANCHOR_SIGMAS = 2.0
+#: scans judged for that scatter when ``--consistency-scans`` is 0
+REANCHOR_NOISE_SCANS = 60
 
 
-def reanchor(slam: Slam, points: list[np.ndarray], params: SlamParams) -> dict[str, Any]:
+def heading_noise_rad(corrections: np.ndarray) -> float | None:
+    """RMS heading correction (rad) of the judged scans other than the first (None: fewer than ten judged)."""
+    others = corrections[corrections[:, 0] != 0]
+    if others.shape[0] < 10:
+        return None
+    return float(np.sqrt(np.mean(others[:, 3] ** 2)))
+
+
+def reanchor(slam: Slam, corrections: np.ndarray, heading_noise_rad: float | None) -> dict[str, Any]:
     """Re-anchor the finished map where the first scan registers against it; returns what was done.
 
     The map frame is the first scan's: keyframe 0 is held at the log's first pose, and
@@ -429,56 +448,62 @@ def reanchor(slam: Slam, points: list[np.ndarray], params: SlamParams) -> dict[s
     of 30° with a 180° laser on the Radish logs, each a few tenths of a degree off), so
     the whole map is turned about the start by that much, and by decimetres at its far
     end, however consistent it is. Once the map is finished, the first scan registered
-    against the map of the others (:func:`mazebot.slam.map_consistency.scan_corrections`:
-    the scans more than three away in the log, the 40 nearest within 10 m) says where the
-    map puts it, measured against every later visit of the start. The whole map (every
-    keyframe but the first, and the scans that follow them) is moved rigidly so that this
-    pose is the anchor, and the first scan stays there: nothing else inside the map
-    changes, only its frame. A correction beyond
-    :data:`REANCHOR_MAX_RAD` / :data:`REANCHOR_MAX_M`, or no converged registration, leaves
-    the map as it is.
+    against the map of the others (``corrections``, from
+    :func:`mazebot.slam.map_consistency.scan_corrections`: the scans more than three away
+    in the log, the 40 nearest within 10 m) says where the map puts it, measured against
+    every later visit of the start. The whole map (every keyframe but the first, and the
+    scans that follow them) is moved rigidly so that this pose is the anchor, and the
+    first scan stays there: nothing else inside the map changes, only its frame.
+
+    Left as it is when the first scan was not registered, when the correction exceeds
+    :data:`REANCHOR_MAX_RAD` / :data:`REANCHOR_MAX_M`, or when its heading is within
+    :data:`REANCHOR_SIGMAS` times ``heading_noise_rad``, the scatter of the map's other
+    scans (None: no such test).
     """
-    _, trajectory = slam.trajectory()
-    corrections = scan_corrections(trajectory, points, [0], params.icp, voxel_m=params.prepare.voxel_size_m,
-                                   normal_radius_m=params.normals.radius_m)
-    if corrections.shape[0] == 0:
-        return {"applied": False, "heading_deg": None, "shift_m": None}
-    c = corrections[0, 1:]
+    first = corrections[corrections[:, 0] == 0]
+    if first.shape[0] == 0:
+        return {"applied": False, "heading_deg": None, "shift_m": None, "noise_deg": None}
+    c = first[0, 1:]
     shift_m, heading_rad = math.hypot(float(c[0]), float(c[1])), float(c[2])
-    applied = abs(heading_rad) <= REANCHOR_MAX_RAD and shift_m <= REANCHOR_MAX_M
+    significant = heading_noise_rad is None or abs(heading_rad) > REANCHOR_SIGMAS * heading_noise_rad
+    applied = significant and abs(heading_rad) <= REANCHOR_MAX_RAD and shift_m <= REANCHOR_MAX_M
     if applied:
-        anchor = trajectory[0]
+        anchor = slam.keyframes[0].pose
         move = compose(anchor, inverse(compose(anchor, c)))  # the registered first scan onto the anchor
         for keyframe in slam.keyframes[1:]:  # keyframe 0, the first scan, is where it registered: the anchor
             keyframe.pose = compose(move, keyframe.pose)
-    return {"applied": applied, "heading_deg": round(math.degrees(heading_rad), 3), "shift_m": round(shift_m, 4)}
+    return {
+        "applied": applied,
+        "heading_deg": round(math.degrees(heading_rad), 3),
+        "shift_m": round(shift_m, 4),
+        "noise_deg": None if heading_noise_rad is None else round(math.degrees(heading_noise_rad), 3),
+    }
 
 
 def map_consistency(
+    own: np.ndarray,
     points: list[np.ndarray],
-    final: np.ndarray,
     reference: np.ndarray | None,
     params: SlamParams,
-    scans: int,
+    judged: list[int],
 ) -> dict[str, Any]:
     """The map's self-consistency (:mod:`mazebot.slam.map_consistency`) at the SLAM's poses and the reference's.
 
-    Each judged scan's points (those of :func:`match_points`) are registered against the
-    others at the same trajectory's poses. ``first_scan_heading_deg`` is what the map asks
+    ``own``: the SLAM's scans registered against the others at its poses (before
+    :func:`reanchor`); the reference's are registered here, the same ``judged`` scans with
+    the same points (:func:`match_points`). ``first_scan_heading_deg`` is what the map asks
     of the scan the map frame is anchored at: a reference whose own first pose sits off
     its map turns every anchored figure.
     """
-    if scans <= 0:
-        return {}
-    judged = judged_scans(len(points), scans)
-    out: dict[str, Any] = {}
-    for name, poses in (("consistency", final), ("consistency_reference", reference)):
-        if poses is None:
-            out[name] = None
-            continue
-        corrections = scan_corrections(poses, points, judged, params.icp, voxel_m=params.prepare.voxel_size_m,
-                                       normal_radius_m=params.normals.radius_m)
-        out[name] = {**consistency(corrections), "first_scan_heading_deg": first_scan_heading_deg(corrections)}
+    out: dict[str, Any] = {"consistency": {**consistency(own), "first_scan_heading_deg": first_scan_heading_deg(own)}}
+    if reference is None:
+        out["consistency_reference"] = None
+        return out
+    corrections = scan_corrections(reference, points, judged, params.icp, voxel_m=params.prepare.voxel_size_m,
+                                   normal_radius_m=params.normals.radius_m)
+    out["consistency_reference"] = {
+        **consistency(corrections), "first_scan_heading_deg": first_scan_heading_deg(corrections)
+    }
     return out
 
 

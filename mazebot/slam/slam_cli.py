@@ -421,13 +421,17 @@ def match_points(lasers: list[LaserRecord], params: SlamParams) -> list[np.ndarr
 
 
 #: the first scan's registration against the finished map re-anchors it only within these bounds:
-#: the corrections measured on the logs here are 0-1° and 0-3 cm; more says the map near the start,
-#: or the registration, is not to be trusted
-REANCHOR_MAX_RAD = math.radians(2.0)
-REANCHOR_MAX_M = 0.2
+#: the corrections measured on the Radish logs are 0-1° (white odometry noise) and 0.7-3.1°
+#: (systematic odometry errors), 1-8 cm; more says the map near the start, or the registration,
+#: is not to be trusted
+REANCHOR_MAX_RAD = math.radians(5.0)
+REANCHOR_MAX_M = 0.3
 #: ... and only if its heading correction exceeds this many times the RMS heading correction of the
-#: map's other scans (a correction within the map's own scatter is noise: ACES' maps scatter by 0.4-0.5°)
-REANCHOR_SIGMAS = 2.0
+#: map's other scans: a correction within the map's own scatter is noise (ACES' maps scatter by
+#: 0.3-0.8° per scan). Moving the frame by a correction c that is noise of that scatter σ turns a
+#: right map by about σ; leaving a real offset costs all of it: break-even near c = σ, and 1.5 σ
+#: leans towards leaving the frame alone
+REANCHOR_SIGMAS = 1.5
 #: scans judged for that scatter when ``--consistency-scans`` is 0
 REANCHOR_NOISE_SCANS = 60
 

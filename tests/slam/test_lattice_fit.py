@@ -104,7 +104,7 @@ def test_a_maze_whose_walls_miss_the_lattice_turns_the_priors_off_and_says_so_on
     slam = Slam(SlamParams(lattice=CONFIGURED))
     with caplog.at_level(logging.INFO, logger="mazebot.slam.slam"):
         for k in range(4):  # with three lines on an axis or without: no lattice either way
-            slam._note_lattice(replace(fit, measured=bool(k % 2)))
+            slam._note_lattice(replace(fit, measured=bool(k % 2)), 0)
     off = [r for r in caplog.records if "lattice priors off" in r.getMessage()]
     assert len(off) == 1
 

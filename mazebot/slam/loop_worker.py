@@ -36,6 +36,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from typing import Any
 
+from mazebot.fork_server import FORKSERVER_PRELOAD as FORKSERVER_PRELOAD  # what the fork server imports
 from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.keyframes import Keyframe
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult
@@ -100,17 +101,6 @@ def run_shipped(shipped: ShippedJob) -> LoopClosureResult:
 
 def _warm_up() -> None:
     """Nothing: the first task makes the pool start its worker while the daemon starts."""
-
-
-#: What the daemon's fork server imports once, before it forks anything: the loop-closure
-#: worker's SLAM (numpy, scipy) and the daemon's real-time control process
-#: (``mazebot.tasks.control_process``; named, not imported: the tasks are a layer above).
-#: Whoever starts the server first sets this same list (a second setting would come too
-#: late). Every process forked from the server shares these pages instead of importing its
-#: own copies: the control process imported ~7 MB of its own (measured with
-#: ``/proc/PID/smaps_rollup``, a forked child's private memory before and after its imports).
-FORKSERVER_PRELOAD = ("mazebot.slam.loop_worker", "mazebot.tasks.control_process", "mazebot.tasks.control_task",
-                      "mazebot.logs")
 
 
 def _watch_daemon(daemon_pid: int, period_s: float = 1.0) -> None:

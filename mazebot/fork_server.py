@@ -15,8 +15,10 @@ the daemon's pages of those modules until someone writes to them (copy on write)
 the pages shared: ``gc.freeze`` first, so that neither the daemon's full garbage collections nor
 the children's touch those objects' headers (the Python documentation's advice for a process
 that forks without exec, :func:`gc.freeze`), and nothing of the daemon's but its memory goes
-into the server: every inherited file descriptor is closed (the daemon's pipes must see their
-ends close when the daemon's do), signal handlers go back to an interpreter's defaults, and the
+into the server: every inherited file descriptor is let go of (the daemon's pipes must see their
+ends close when the daemon's do; each becomes /dev/null rather than closed, so that no number a
+stale object of the daemon's still names is handed to a child's next file), stdout and stderr
+are made afresh on descriptors 1 and 2, signal handlers go back to an interpreter's defaults, and the
 server leaves through ``os._exit`` (the daemon's exit handlers are not the server's).
 
 The server is then multiprocessing's own (:func:`multiprocessing.forkserver.main`), registered
@@ -37,6 +39,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import inspect
+import io
 import logging
 import os
 import signal
@@ -60,23 +63,30 @@ FORKSERVER_PRELOAD = ("mazebot.slam.loop_worker", "mazebot.tasks.control_process
                       "mazebot.logs")
 
 
-def _first_free_fd() -> int:
-    try:
-        return int(os.sysconf("SC_OPEN_MAX"))
-    except (ValueError, OSError):
-        return 4096
+def _let_go_of_the_daemons_files(keep: set[int]) -> None:
+    """Every inherited descriptor but ``keep`` and 0-2 made /dev/null; stdout and stderr fresh on 1 and 2.
+
+    Not closed: an object of the daemon's still names its number (a log file's stream, a test
+    runner's capture file), and a number closed here would be given to the next file a child
+    opens (its motors' shared memory), which that object would then write into. On /dev/null the
+    daemon's pipes and sockets are let go of all the same (their ends close when the daemon's do).
+    """
+    devnull = os.open(os.devnull, os.O_RDWR)
+    for name in os.listdir("/proc/self/fd"):
+        fd = int(name)
+        if fd > 2 and fd not in keep and fd != devnull:
+            with contextlib.suppress(OSError):  # the listing's own descriptor, closed meanwhile
+                os.dup2(devnull, fd)
+    os.close(devnull)
+    sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), line_buffering=True)
+    sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), line_buffering=True, errors="backslashreplace")
 
 
 def _become_the_server(listener_fd: int, alive_r: int, preload: list[str]) -> None:
     """In the forked child: multiprocessing's fork server loop, then ``os._exit``; never returns."""
     code = 1
     try:
-        keep = sorted({listener_fd, alive_r})
-        start = 3  # stdin, stdout, stderr stay (the server closes stdin itself)
-        for fd in keep:
-            os.closerange(start, fd)
-            start = fd + 1
-        os.closerange(start, _first_free_fd())
+        _let_go_of_the_daemons_files({listener_fd, alive_r})
         signal.set_wakeup_fd(-1)
         for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM):
             signal.signal(sig, signal.SIG_DFL)

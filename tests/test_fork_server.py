@@ -20,20 +20,33 @@ from multiprocessing import forkserver
 from mazebot.fork_server import start_fork_server_here
 
 
+def child_writes():  # in a child: write to stderr, then open a file; the number it gets
+    print("from the child", file=sys.stderr, flush=True)
+    fd = os.open(os.devnull, os.O_RDONLY)
+    os.close(fd)
+    return fd
+
+
 def main():
     if sys.argv[1] == "thread":
         threading.Thread(target=threading.Event().wait, daemon=True).start()
     r, w = os.pipe()  # a pipe of the daemon's own: the server must not hold an end of it
+    log = open(sys.argv[3], "w")  # as a test runner's capture or a log file: stderr on a descriptor > 2
+    real_stderr, sys.stderr = sys.stderr, log
     forked = start_fork_server_here(["json"])
+    sys.stderr = real_stderr
     again = start_fork_server_here(["json"])
     ctx = multiprocessing.get_context("forkserver")
     with ctx.Pool(1) as pool:
         worker_parent = pool.apply(os.getppid)
+        child_fd = pool.apply(child_writes)
     server = forkserver._forkserver._forkserver_pid
     held = sorted(os.readlink(f"/proc/{server}/fd/{fd}") for fd in os.listdir(f"/proc/{server}/fd"))
     with open(f"/proc/{server}/cmdline", "rb") as f:
         server_cmd = f.read().replace(b"\0", b" ").decode()
-    print(json.dumps({"forked": forked, "again": again, "server": server, "worker_parent": worker_parent, "held": held,
+    log.flush()
+    print(json.dumps({"forked": forked, "again": again, "stale_fd": log.fileno(), "child_fd": child_fd,
+                      "server": server, "worker_parent": worker_parent, "held": held,
                       "pipe": os.readlink(f"/proc/self/fd/{r}"), "server_cmd": server_cmd}), flush=True)
     if sys.argv[2] == "kill":
         os.kill(os.getpid(), signal.SIGKILL)
@@ -47,10 +60,11 @@ if __name__ == "__main__":
 def _run(tmp_path: Path, threads: str, end: str) -> dict[str, object]:
     script = tmp_path / "daemon.py"
     script.write_text(START)
-    out = subprocess.run([sys.executable, str(script), threads, end], capture_output=True, text=True, timeout=120,
-                         cwd=tmp_path)
+    out = subprocess.run([sys.executable, str(script), threads, end, str(tmp_path / "daemon.log")],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert out.stdout, out.stderr
     result: dict[str, object] = json.loads(out.stdout.splitlines()[0])
+    result["stderr"] = out.stderr
     return result
 
 
@@ -73,6 +87,11 @@ def test_children_come_from_a_server_forked_from_the_daemon(tmp_path: Path) -> N
     assert seen["worker_parent"] == seen["server"]
     assert "multiprocessing.forkserver" not in str(seen["server_cmd"])  # the daemon's own image
     assert seen["pipe"] not in seen["held"]  # the daemon's descriptors are not kept open by the server
+    # a stale object of the daemon's (its stderr on a log file) neither gets the child's output, nor does
+    # its descriptor's number go to the next file the child opens (which the object would write into)
+    assert (tmp_path / "daemon.log").read_text() == ""
+    assert seen["child_fd"] != seen["stale_fd"]
+    assert "from the child" in str(seen["stderr"])
     assert _gone_soon(int(str(seen["server"])))  # the daemon exited: so did its server
 
 

@@ -103,11 +103,37 @@ def _become_the_server(listener_fd: int, alive_r: int, preload: list[str]) -> No
 
 
 def _knows_this_multiprocessing(server: Any) -> bool:
-    """The fork server's entry and fields are the ones this module was written against (3.11-3.13)."""
+    """The fork server's entry and fields are the ones this module was written against (CPython 3.11's)."""
     params = list(inspect.signature(forkserver.main).parameters)
     fields = ("_lock", "_forkserver_address", "_forkserver_alive_fd", "_forkserver_pid", "_preload_modules")
     return params == ["listener_fd", "alive_r", "preload", "main_path", "sys_path"] and all(
         hasattr(server, name) for name in fields)
+
+
+def _fork(preload: list[str]) -> tuple[int, str, int]:
+    """Fork the server; in this process return its pid, its socket's address and the alive pipe's write end."""
+    resource_tracker.ensure_running()  # its children reach it through a descriptor sent with each start
+    gc.collect()
+    gc.freeze()  # the objects alive now are shared with the server: collections leave their pages alone
+    address: str = connection.arbitrary_address("AF_UNIX")  # type: ignore[attr-defined]
+    with socket.socket(socket.AF_UNIX) as listener:
+        listener.bind(address)
+        if not util.is_abstract_socket_namespace(address):
+            os.chmod(address, 0o600)
+        listener.listen()
+        # every client holds the write end of the "alive" pipe; the server leaves at its end
+        alive_r, alive_w = os.pipe()
+        try:
+            pid = os.fork()
+        except OSError:
+            os.close(alive_r)
+            os.close(alive_w)
+            raise
+        if pid == 0:
+            os.close(alive_w)
+            _become_the_server(listener.fileno(), alive_r, preload)
+        os.close(alive_r)
+    return pid, address, alive_w
 
 
 def start_fork_server_here(preload: Sequence[str]) -> bool:
@@ -117,7 +143,7 @@ def start_fork_server_here(preload: Sequence[str]) -> bool:
     whether the server was forked; False leaves multiprocessing to start its own when a child
     is first started (a thread is running, a server runs already, no ``os.fork``).
     """
-    server: Any = forkserver._forkserver  # its private fields: what ensure_running() sets (CPython 3.11-3.13)
+    server: Any = forkserver._forkserver  # its private fields: what ensure_running() sets (CPython 3.11)
     if not hasattr(os, "fork") or sys.platform != "linux" or not _knows_this_multiprocessing(server):
         return False
     if threading.active_count() != 1:
@@ -126,28 +152,12 @@ def start_fork_server_here(preload: Sequence[str]) -> bool:
     with server._lock:
         if server._forkserver_pid is not None:
             return False
-        resource_tracker.ensure_running()  # its children reach it through a descriptor sent with each start
+        try:
+            pid, address, alive_w = _fork(list(preload))
+        except OSError as exc:  # no tracker, socket or fork to be had: multiprocessing tries its own later
+            log.warning("the fork server could not be forked from the daemon (%s); multiprocessing starts its own", exc)
+            return False
         server._preload_modules = list(preload)
-        gc.collect()
-        gc.freeze()  # the objects alive now are shared with the server: collections leave their pages alone
-        address = connection.arbitrary_address("AF_UNIX")  # type: ignore[attr-defined]
-        with socket.socket(socket.AF_UNIX) as listener:
-            listener.bind(address)
-            if not util.is_abstract_socket_namespace(address):
-                os.chmod(address, 0o600)
-            listener.listen()
-            # every client holds the write end of the "alive" pipe; the server leaves at its end
-            alive_r, alive_w = os.pipe()
-            try:
-                pid = os.fork()
-            except OSError:
-                os.close(alive_r)
-                os.close(alive_w)
-                raise
-            if pid == 0:
-                os.close(alive_w)
-                _become_the_server(listener.fileno(), alive_r, list(preload))
-            os.close(alive_r)
         server._forkserver_address = address
         server._forkserver_alive_fd = alive_w
         server._forkserver_pid = pid

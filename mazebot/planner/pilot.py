@@ -40,12 +40,11 @@ from mazebot.planner.dwa import (
     LocalPlanner,
     LocalStatus,
     map_points_robot,
-    scan_points_robot,
     to_robot_frame,
 )
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import MazeGraph
-from mazebot.planner.safety import BlindZoneMemory, reframe_points
+from mazebot.planner.safety import BlindZoneMemory, deskewed_points_robot, reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
 from mazebot.steps import all_at_once_method
@@ -315,12 +314,13 @@ class Pilot:
         history, odo = state.odometry_history, state.odometry
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
             lidar = self.params.lidar
-            points = scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, lidar.min_range_m,
-                                       lidar.max_range_m, lidar.mount_xy_m)
+            points = deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s, history,
+                                           lidar.min_range_m, lidar.max_range_m, lidar.mount_xy_m)
             self._scan_cache = (id(scan), points)
             if history is not None and len(history) > 0:
                 then = history.pose_at(scan.end_time_s)
                 self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])))
+                state.blind_zone_points = self.blind_zone.snapshot()  # for the control loop's guard
         points = moved_since_scan(self._scan_cache[1], scan.end_time_s, state)
         if odo is None or len(self.blind_zone) == 0:
             return points

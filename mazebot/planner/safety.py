@@ -5,8 +5,9 @@ the raw lidar returns, the command about to be applied and the clock, and runs i
 control loop so it acts within one control period. It is deliberately simple enough to
 check by hand:
 
-- :class:`CollisionGuard`: an **emergency stop** when any valid lidar return lies in the
-  region the robot will sweep before it can stop: within the footprint radius (plus a
+- :class:`CollisionGuard`: an **emergency stop** when any valid lidar return (the latest
+  revolution's, and those the planner's :class:`BlindZoneMemory` keeps from inside the
+  lidar's minimum range) lies in the region the robot will sweep before it can stop: within the footprint radius (plus a
   side margin) of the arc it is about to drive, over the stopping distance
   ``|v| · latency + v² / (2 a)`` plus a front margin, on the side it is moving towards.
   The margin is kept ahead, not beside: driving along a wall a few centimetres away is
@@ -27,14 +28,18 @@ check by hand:
 Note on the lidar's minimum range: the RPLidar A1 reports nothing closer than 0.15 m
 (``min_range_m``), which is more than the 0.09 m footprint; an obstacle can only be seen
 while it is still that far away, which is why the guarded zone reaches a stopping
-distance ahead and not only the footprint.
+distance ahead and not only the footprint. At 0.27 m/s the guarded zone reaches 0.21 m
+ahead of the centre, so a wall is in a revolution's returns only while it lies 0.15–0.21 m
+ahead, a band the robot crosses in a fraction of a revolution: the guard therefore also
+checks the returns the planner remembers from inside that range (a hand-built 8×8 maze:
+the cheap robot drove into a wall it had turned beside, at 0.27 m/s, the guard silent).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 
@@ -77,6 +82,52 @@ def reframe_points(
     dx, dy = wx - pose_now[0], wy - pose_now[1]
     c1, s1 = math.cos(pose_now[2]), math.sin(pose_now[2])
     return np.column_stack((c1 * dx + s1 * dy, -s1 * dx + c1 * dy))
+
+
+class PoseHistory(Protocol):
+    """What :func:`deskewed_points_robot` reads of the odometry (``mazebot.slam.ekf.OdometryHistory``)."""
+
+    def __len__(self) -> int: ...
+
+    def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+def deskewed_points_robot(
+    angle_rad: np.ndarray,
+    range_m: np.ndarray,
+    valid: np.ndarray,
+    time_s: np.ndarray,
+    history: PoseHistory | None,
+    min_range_m: float,
+    max_range_m: float,
+    mount_xy_m: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """A revolution's valid returns (N, 2) in the robot frame at its last sample, each placed
+    with the odometry pose at its own time ``time_s`` (without a history: as if the robot stood still).
+
+    A revolution takes 0.18 s on an A1; a robot turning at 1.5 rad/s (the cheap robot's
+    weak motor makes its heading swing that fast while it is told to drive straight) turns
+    15° meanwhile, so a return from the revolution's start, placed as if seen from its
+    end, lies 15° off: 5 cm sideways at 0.2 m, the difference between a wall ahead and
+    free space beside it (a hand-built 8×8 maze: the end of a board 0.16 m ahead was shown
+    at 0.95 m and the robot drove into it). SLAM de-skews its scans the same way
+    (``mazebot.slam.preprocess``); the planner and the emergency stop take these points.
+    """
+    a = np.asarray(angle_rad, dtype=np.float64).reshape(-1)
+    r = np.asarray(range_m, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(r) & (r >= min_range_m) & (r <= max_range_m) & np.asarray(valid, dtype=bool).reshape(-1)
+    lx = mount_xy_m[0] + r[ok] * np.cos(a[ok])
+    ly = mount_xy_m[1] + r[ok] * np.sin(a[ok])
+    t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    if history is None or len(history) == 0 or not ok.any():
+        return np.column_stack((lx, ly))
+    xs, ys, ths = history.at(np.concatenate((t[ok], t[-1:])))  # the samples' poses, then the end's
+    xe, ye, the = xs[-1], ys[-1], ths[-1]
+    c, s = math.cos(the), math.sin(the)
+    dx, dy = xs[:-1] - xe, ys[:-1] - ye
+    rx, ry, rth = c * dx + s * dy, -s * dx + c * dy, ths[:-1] - the  # each sample's pose in the end's frame
+    cr, sr = np.cos(rth), np.sin(rth)
+    return np.column_stack((rx + cr * lx - sr * ly, ry + sr * lx + cr * ly))
 
 
 class BlindZoneMemory:
@@ -162,6 +213,32 @@ class BlindZoneMemory:
     def points_robot(self, pose: tuple[float, float, float]) -> np.ndarray:
         """The remembered returns the last revolution could not show, in the robot frame at odometry ``pose``."""
         return transform_points(inverse(pose), self._points[:, :2])
+
+    def snapshot(self) -> np.ndarray:
+        """Every near return remembered, the last revolution's own included: (N, 2), odometry frame, read-only.
+
+        What the planner publishes for the control loop's :class:`CollisionGuard`
+        (``SharedState.blind_zone_points``). The guard pairs it with a revolution that may be
+        newer than the one the memory last took in, from which the robot may have come
+        closer than the minimum range to the last revolution's own near returns: so they are
+        in too (a return the guard's scan also shows is only counted twice).
+        """
+        out = np.concatenate((self._points[:, :2], self._recent[:, :2]))
+        out.setflags(write=False)
+        return out
+
+
+def with_remembered(
+    points_robot: np.ndarray, remembered_odom: np.ndarray | None, pose_now: tuple[float, float, float] | None
+) -> np.ndarray:
+    """The scan's robot-frame points (N, 2) and the remembered blind-zone returns (odometry frame,
+    :meth:`BlindZoneMemory.snapshot`) moved into the robot frame at odometry ``pose_now``.
+
+    Without a pose or a memory the scan's points are returned as they are.
+    """
+    if remembered_odom is None or pose_now is None or len(remembered_odom) == 0:
+        return points_robot
+    return np.concatenate((points_robot, transform_points(inverse(pose_now), remembered_odom)))
 
 
 class CollisionGuard:

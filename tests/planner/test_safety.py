@@ -242,3 +242,56 @@ def test_the_blind_zone_refuses_negative_ranges() -> None:
 
     with pytest.raises(ValueError, match="non-negative"):
         BlindZoneMemory(min_range_m=-0.15)
+
+
+def test_a_turning_robot_s_returns_are_placed_where_each_was_seen() -> None:
+    """A robot turning at -1.5 rad/s while a revolution goes round (0.18 s: 15°): the end of a
+    board 0.16 m away 30° to the right, seen early in the revolution, is 4 cm off where it is when placed
+    as if seen from the revolution's end, and where it is when each return is placed with
+    the odometry pose of its own time."""
+    from mazebot.planner.safety import deskewed_points_robot
+    from mazebot.slam.ekf import OdometryHistory
+
+    w, period = -1.5, 0.18
+    times = np.linspace(0.0, period, 360)
+    history = OdometryHistory(3.0)
+    for t in [*times[::10].tolist(), period]:
+        history.append(t, 0.2, 0.1, 0.3 + w * t)  # turning in place at (0.2, 0.1)
+    end_heading = 0.3 + w * period
+    # the board's end, in the robot frame at the revolution's end: 0.16 m, 30° right
+    target_end = np.array([0.16 * math.cos(math.radians(-30)), 0.16 * math.sin(math.radians(-30))])
+    world = np.array([0.2, 0.1]) + np.array([[math.cos(end_heading), -math.sin(end_heading)],
+                                             [math.sin(end_heading), math.cos(end_heading)]]) @ target_end
+    k = 20  # seen by the 21st sample, early in the revolution
+    heading_then = 0.3 + w * times[k]
+    bearing = math.atan2(world[1] - 0.1, world[0] - 0.2) - heading_then
+    angle = np.full(360, bearing)
+    rng = np.zeros(360)
+    rng[k] = 0.16
+    valid = rng > 0
+    placed = deskewed_points_robot(angle, rng, valid, times, history, 0.15, 12.0)
+    np.testing.assert_allclose(placed, [target_end], atol=1e-6)
+    naive = deskewed_points_robot(angle, rng, valid, times, None, 0.15, 12.0)
+    assert np.hypot(*(naive[0] - target_end)) > 0.035
+    # the guard, driving straight on: stops on the placed return, would not on the naive one
+    guard = CollisionGuard()
+    assert guard.check(placed, 0.27, 0.0).stop and not guard.check(naive, 0.27, 0.0).stop
+
+
+def test_the_memory_s_snapshot_holds_the_last_revolution_s_near_returns_too() -> None:
+    """What the control loop's guard is given: every remembered near return, odometry frame,
+    read-only; moved into the robot frame of now beside the scan's own points."""
+    from mazebot.planner.safety import BlindZoneMemory, with_remembered
+
+    memory = BlindZoneMemory(min_range_m=0.15)
+    memory.add_scan(np.array([[0.2, 0.0], [1.0, 0.0]]), (0.0, 0.0, 0.0))  # one near return, one far
+    snap = memory.snapshot()
+    np.testing.assert_allclose(snap, [[0.2, 0.0]])
+    assert len(memory) == 0  # the planner's own view: the scan shows it
+    with pytest.raises(ValueError):
+        snap[0, 0] = 1.0
+    scan = np.array([[0.5, 0.5]])
+    np.testing.assert_allclose(with_remembered(scan, snap, (0.1, 0.0, math.pi / 2)), [[0.5, 0.5], [0.0, -0.1]],
+                               atol=1e-12)
+    assert with_remembered(scan, None, (0.0, 0.0, 0.0)) is scan
+    assert with_remembered(scan, snap, None) is scan

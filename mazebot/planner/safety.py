@@ -160,6 +160,12 @@ class BlindZoneMemory:
     forgets after as much motion as a fast one. ``lidar_xy_m`` is the lidar's mount
     offset in the robot frame; one return is kept per ``voxel_m`` square, at most
     ``max_points`` of them.
+
+    The previous revolution's near returns that the latest one could have seen are kept
+    for that one revolution more: a thin thing (a 12 mm post standing alone, a board's
+    end) is one to three samples of a revolution, and a dropout or the revolution's seam
+    loses them (a hand-built 8×8 maze: a lone post 0.18–0.21 m ahead in no sample of the
+    latest revolution, the robot turning into it).
     """
 
     def __init__(
@@ -187,13 +193,15 @@ class BlindZoneMemory:
         self.revolutions = 0
         self._points = np.zeros((0, 3))  # odometry frame x, y and the revolution it was seen in
         self._recent = np.zeros((0, 3))  # the last revolution's own near returns (the scan shows them)
+        self._previous = np.zeros((0, 3))  # the one before's, which the last could have shown (one more revolution)
 
     def __len__(self) -> int:
-        return int(self._points.shape[0])
+        return int(self._points.shape[0] + self._previous.shape[0])
 
     def clear(self) -> None:
         self._points = np.zeros((0, 3))
         self._recent = np.zeros((0, 3))
+        self._previous = np.zeros((0, 3))
 
     def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float]) -> None:
         """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``."""
@@ -202,6 +210,7 @@ class BlindZoneMemory:
         old = np.concatenate((self._points, self._recent))
         unseen = np.hypot(old[:, 0] - lx, old[:, 1] - ly) < self.min_range_m + self.motion_margin_m
         unseen &= old[:, 2] > self.revolutions - self.max_age_revolutions
+        self._previous = self._recent[~unseen[self._points.shape[0]:]]
         kept = old[unseen]
         if kept.shape[0]:  # one return per voxel: a robot standing beside a wall adds its returns every revolution
             _, first = np.unique(np.floor(kept[:, :2] / self.voxel_m).astype(np.int64), axis=0, return_index=True)
@@ -214,7 +223,7 @@ class BlindZoneMemory:
 
     def points_robot(self, pose: tuple[float, float, float]) -> np.ndarray:
         """The remembered returns the last revolution could not show, in the robot frame at odometry ``pose``."""
-        return transform_points(inverse(pose), self._points[:, :2])
+        return transform_points(inverse(pose), np.concatenate((self._points[:, :2], self._previous[:, :2])))
 
     def snapshot(self) -> np.ndarray:
         """Every near return remembered, the last revolution's own included: (N, 2), odometry frame, read-only.
@@ -225,7 +234,7 @@ class BlindZoneMemory:
         closer than the minimum range to the last revolution's own near returns: so they are
         in too (a return the guard's scan also shows is only counted twice).
         """
-        out = np.concatenate((self._points[:, :2], self._recent[:, :2]))
+        out = np.concatenate((self._points[:, :2], self._previous[:, :2], self._recent[:, :2]))
         out.setflags(write=False)
         return out
 

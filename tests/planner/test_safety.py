@@ -295,3 +295,18 @@ def test_the_memory_s_snapshot_holds_the_last_revolution_s_near_returns_too() ->
                                atol=1e-12)
     assert with_remembered(scan, None, (0.0, 0.0, 0.0)) is scan
     assert with_remembered(scan, snap, None) is scan
+
+
+def test_a_thin_post_the_latest_revolution_missed_is_kept_one_revolution_more() -> None:
+    """A lone post seen at 0.24 m, then in no sample of the next revolution (a dropout, the
+    revolution's seam): the planner and the guard still have it, for that one revolution."""
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15)
+    memory.add_scan(np.array([[0.24, 0.0], [1.5, 0.0]]), (0.0, 0.0, 0.0))
+    assert len(memory) == 0  # the scan shows it
+    memory.add_scan(np.array([[1.48, 0.0]]), (0.02, 0.0, 0.0))  # 0.22 m ahead now, missed
+    np.testing.assert_allclose(memory.points_robot((0.02, 0.0, 0.0)), [[0.22, 0.0]], atol=1e-12)
+    assert CollisionGuard().check(memory.points_robot((0.02, 0.0, 0.0)), 0.3, 0.0).stop
+    memory.add_scan(np.array([[1.48, 0.0]]), (0.02, 0.0, 0.0))  # missed twice from where it could be seen: gone
+    assert len(memory) == 0

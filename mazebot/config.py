@@ -317,6 +317,11 @@ class ControlConfig(Section):
     stop_margin_m: float = Field(
         0.03, ge=0, le=0.5, description="emergency stop: free distance kept ahead beyond the stopping distance"
     )
+    side_margin_m: float = Field(
+        0.01, ge=0, le=0.1,
+        description="emergency stop: free distance kept beside the commanded arc beyond the footprint (the "
+        "path driven strays from the arc: the cheap robot by <= 8.7 mm in 97.5 % of its stopping distances)",
+    )
     brake_decel_mps2: float = Field(0.6, gt=0, le=10, description="deceleration counted on for stopping distances")
     deadline_s: float = Field(
         0.15, gt=0, le=2, description="a control tick later than this after the previous one stops the wheels"

@@ -94,6 +94,7 @@ class MotorControl:
         guard = CollisionGuard(
             footprint_radius_m=robot.footprint_radius_m,
             margin_m=c.stop_margin_m,
+            side_margin_m=c.side_margin_m,
             brake_decel_mps2=c.brake_decel_mps2,
             latency_s=self.period_s + c.actuation_latency_s,
         )

@@ -310,3 +310,30 @@ def test_a_thin_post_the_latest_revolution_missed_is_kept_one_revolution_more() 
     assert CollisionGuard().check(memory.points_robot((0.02, 0.0, 0.0)), 0.3, 0.0).stop
     memory.add_scan(np.array([[1.48, 0.0]]), (0.02, 0.0, 0.0))  # missed twice from where it could be seen: gone
     assert len(memory) == 0
+
+
+def test_the_control_loops_guard_keeps_a_side_margin_beside_the_commanded_arc() -> None:
+    """A wall 5 mm outside the footprint beside the arc stops the control loop's guard.
+
+    The cheap robot (20-line encoders, 5 % slip in turns) drives up to ~9 mm beside the
+    arc it is told over a stopping distance (97.5 % of them, 8x8 hand-built seed 10): a
+    wall the commanded arc passes 0.5-1 cm outside the footprint was touched twice.
+    """
+    from mazebot.config import Config
+    from mazebot.tasks.control_task import MotorControl
+
+    config = Config()
+    guard = MotorControl.from_config(config).safety.guard
+    assert guard.side_margin_m == config.control.side_margin_m >= 0.009
+    footprint = config.robot.footprint_radius_m
+    v, w = 0.16, -0.58  # the command of the seed-10 contact: a right turn away from a wall on the left
+    radius = v / abs(w)  # the arc's centre lies at (0, -radius)
+    s = 0.6 * guard.stopping_distance_m(v)
+    phi = s / radius
+    on_arc = np.array([radius * math.sin(phi), -radius + radius * math.cos(phi)])
+    outward = np.array([math.sin(phi), math.cos(phi)])  # away from the centre: the wall on the left
+    wall = on_arc + (footprint + 0.005) * outward
+    assert guard.check(wall[None, :], v, w).stop
+    bare = CollisionGuard(footprint_radius_m=footprint, margin_m=guard.margin_m,
+                          brake_decel_mps2=guard.brake_decel_mps2, latency_s=guard.latency_s)
+    assert not bare.check(wall[None, :], v, w).stop  # the footprint alone let it run

@@ -284,8 +284,9 @@ class PlannerConfig(Section):
     max_recoveries: int = Field(3, ge=1, le=20, description="recoveries on one path before its goal is given up")
     stand_still_revolutions: int = Field(
         45, ge=10, le=2000,
-        description="lidar revolutions (~5.5/s) the robot may stand still with a goal before the pilot acts: "
-        "first it gives the goal up, then it backs off along its own track, then it stops with a planner fault",
+        description="planner ticks with a new lidar revolution (~5/s) the robot may stand still with a goal "
+        "before the pilot acts: first it gives the goal up, then it backs off along its own track, then it stops "
+        "with a planner fault",
     )
     map_window_m: float = Field(
         0.8, gt=0.2, le=5.0, description="radius of map and wall points around the robot given to the DWA"

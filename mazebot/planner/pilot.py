@@ -373,7 +373,7 @@ class Pilot:
             still.freed_from = (pose[0], pose[1])
         where = f"({pose[0]:.2f}, {pose[1]:.2f})"
         what = (f"stood still for {stood} lidar revolutions at {where}, SLAM painted {still.painted} of them "
-                f"({state.planner_status})")
+                f"({state.planner_status})")  # revolutions as its ticks saw them: two in one tick count once
         backoff = still.backoff_path((pose[0], pose[1])) if still.escalations == 2 else []
         if still.escalations == 1:
             text = f"{what}: giving the goal up"

@@ -191,11 +191,9 @@ def test_consecutive_corrected_scans_need_no_turn_with_the_beam_angles_read(name
     """The beam angles as read agree with the corrected poses: ICP moves consecutive scans placed there
     by no rotation in the median, and no sideways shift either (a beam angle convention half a beam off
     turns each scan about its own origin: a sideways shift of about 9 mm per metre and degree, not a turn)."""
-    from tests.data_paths import CARMEN
+    from tests.data_paths import carmen_log
 
-    path = CARMEN / name
-    if not path.is_file():
-        pytest.skip(f"CARMEN log not found at {path}; set MAZEBOT_DATA")
+    path = carmen_log(name)
     read = _pair_corrections(path, None)
     assert len(read) >= 30
     assert abs(math.degrees(float(np.median(read[:, 2])))) < 0.06

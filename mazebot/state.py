@@ -181,6 +181,11 @@ class SharedState:
     auto_resume: bool = False  # ``daemon.auto_resume``: a cleared fault resumes the run by itself
     #: the throttles the control task last wrote (left, right)
     throttles: tuple[float, float] = (0.0, 0.0)
+    #: (time_s, left, right) of each control tick's write, oldest first: the throttles the motors
+    #: had from that time to the next entry's (10 s kept). Appended by the control loop (the main
+    #: process appends the control process's ticks as it reads them); the health monitor's
+    #: weak-motor check pairs each with the wheels' travel in the same interval
+    throttle_history: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=200))
     pose: Pose2D = field(default_factory=Pose2D)
     pose_time_s: float | None = None  # clock time ``pose`` describes (the odometry reading behind it)
     #: (time_s, left_ticks, right_ticks) of the latest encoder reading, written by the
@@ -220,6 +225,10 @@ class SharedState:
     #: incremented by each start from idle or done: a new exploration (the planner resets)
     run_number: int = 0
     finished_at_s: float | None = None  # clock time the run reached DONE
+    #: (time_s, left_m, right_m): each wheel's travel since the encoders were opened, dated by the
+    #: newest encoder edge counted (the time up to which the counts are complete), or by the
+    #: reading once the wheels rest; written by the odometry task (10 s kept at 50 Hz)
+    wheel_travel: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=500))
     #: age of the newest encoder edge counted, at each odometry reading with new edges,
     #: milliseconds: how late a pose dated by the reading time would be (the odometry task)
     odometry_edge_age_ms: RecentValues = field(default_factory=lambda: RecentValues(1000))

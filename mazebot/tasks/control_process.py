@@ -607,7 +607,8 @@ def _take_output(link: ControlLink, state: SharedState, heartbeat: Any, meter: A
         state.safety_stops = out["safety_stops"]
         if hasattr(heartbeat, "last_tick_s"):
             heartbeat.last_tick_s = max(heartbeat.last_tick_s, out["tick_time_s"])
-    for _time_s, late_ms, cpu_s, _left, _right in link.new_ticks():
+    for time_s, late_ms, cpu_s, left, right in link.new_ticks():
+        state.throttle_history.append((time_s, left, right))  # the child's clock is this process's monotonic one
         state.control_lateness_ms.append(late_ms)
         meter.add(cpu_s)
     for kind, time_s, source, message in link.new_notes():

@@ -263,7 +263,9 @@ async def run(motors, state: SharedState, clock: Clock, control: MotorControl, *
         return
     next_tick_s = clock.now_s()
     while True:
-        next_tick_s = tick_once(motors, state, control, meter, clock.now_s(), next_tick_s, call_now)
+        now_s = clock.now_s()
+        next_tick_s = tick_once(motors, state, control, meter, now_s, next_tick_s, call_now)
+        state.throttle_history.append((now_s, *state.throttles))  # what the motors have from now on
         await clock.sleep(next_tick_s - clock.now_s())
 
 
@@ -292,6 +294,7 @@ async def _run_on_thread(motors, state: SharedState, clock: Clock, control: Moto
             while not stop.is_set():
                 now_s = time.monotonic()
                 next_tick_s = tick_once(motors, state, control, meter, now_s, next_tick_s, post)
+                state.throttle_history.append((now_s, *state.throttles))  # a deque's append: thread-safe
                 if beats:
                     clock.last_tick_s = now_s  # type: ignore[attr-defined]
                 stop.wait(max(0.0, next_tick_s - time.monotonic()))

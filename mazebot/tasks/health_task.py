@@ -24,11 +24,16 @@
 - **Bouncing encoders**: impossible transitions (a contact bouncing, an edge lost) are
   counted by the decoders; new ones are said in ``/api/status`` (an ``encoders``
   event, at most every ``NOTE_EVERY_S``). The wheels go on: SLAM corrects the odometry.
-- **Weak motor**: the control task fits each wheel's measured speeds to the speeds the
-  feed-forward's nominal motor model gives for the throttles it wrote, over the last
-  0.2 s (``WheelGainEstimator``); a motor whose gain is below ``weak_ratio`` of the
-  other's is said (a ``motors`` event): the wheel controller makes up for it, but a
-  gearbox or a motor is failing.
+- **Weak motor**: each wheel's speed in each control period (from one throttle write to the
+  next, ``state.throttle_history``) is its travel in that period, from the encoder counts
+  dated by their edges (``state.wheel_travel``); those speeds are fitted to the ones the
+  feed-forward's nominal motor model gives for the throttles written, over 0.2 s
+  (:class:`WheelTravelGains`, ``WheelGainEstimator``); a motor whose gain is below
+  ``weak_ratio`` of the other's is said (a ``motors`` event): the wheel controller makes
+  up for it, but a gearbox or a motor is failing. A period is judged once the edges up
+  to its end have been counted: under a CPU quota the thread that counts them runs 80-270 ms
+  late, and speeds measured by the wall clock at the control tick then paired each throttle
+  with another interval's motion (a false "gives only 8-59 %" on every quota run).
 
 All are plain checks on ``SharedState`` at 10 Hz (the dead-encoder and weak-motor ones at
 20 Hz, the control rate); they never touch a device.
@@ -38,10 +43,15 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
+
 from mazebot.clock import Clock
+from mazebot.planner.wheel_control import LATE_PERIODS, WheelGainEstimator
 from mazebot.state import SharedState
 
 log = logging.getLogger(__name__)
@@ -109,8 +119,84 @@ class _Wheel:
     moving: int = 0  # it was turning this way (+1 forward, -1 back, 0 not) just before the silence began
 
 
+class WheelTravelGains:
+    """Each motor's gain (``WheelGainEstimator``) from what the wheels did between two throttle writes.
+
+    Example (the health monitor, each check)::
+
+        travel_gains = WheelTravelGains(WheelGainEstimator(latency_s=0.0))
+        left, right = travel_gains.update(state.throttle_history, state.wheel_travel)
+
+    Each control period runs from one throttle write (``throttle_history``: time, left,
+    right) to the next; its speeds are the wheels' travel between the two times over their
+    difference, the travel read from ``wheel_travel`` (time, left_m, right_m), whose dates
+    are the encoder edges' own, interpolated between two entries. A period is judged once
+    the travel's dates reach its end, in the order of the periods, however late the edges
+    arrived: the speeds and the throttles are then of the same interval, as on an idle
+    CPU. The estimator's latency is 0: the speeds are no estimate that lags the wheel, they
+    are its mean over the period the throttle acted in. A period the travel no longer
+    reaches back to, or one longer than ``LATE_PERIODS`` control periods (the loop blocked:
+    the motors' time-to-live may have stopped the wheels), starts the window again.
+    """
+
+    def __init__(self, estimator: WheelGainEstimator) -> None:
+        self.estimator = estimator
+        self.judged_s: float | None = None  # the start of the last period judged
+        self.judged_until_s: float | None = None  # its end: the gains describe the wheels up to then
+
+    def update(self, throttles: Sequence[tuple[float, float, float]],
+               travel: Sequence[tuple[float, float, float]]) -> tuple[float | None, float | None]:
+        """The gains after every period that can be judged now (``estimator.gains``)."""
+        throttles, travel = tuple(throttles), tuple(travel)  # copies: the control thread appends
+        if len(travel) < 2 or len(throttles) < 2:
+            return self.estimator.gains
+        times = np.fromiter((t for t, _, _ in travel), dtype=np.float64, count=len(travel))
+        covered_s = float(times[-1])
+        max_period_s = LATE_PERIODS * self.estimator.period_s
+        for (start_s, left, right), (end_s, _, _) in itertools.pairwise(throttles):
+            if self.judged_s is not None and start_s <= self.judged_s:
+                continue
+            if end_s > covered_s:
+                break  # the edges up to this period's end have not been counted yet
+            previous_s, self.judged_s, self.judged_until_s = self.judged_s, start_s, end_s
+            if start_s < times[0] or end_s - start_s > max_period_s:
+                self.estimator.reset()
+                continue
+            late = previous_s is not None and start_s - previous_s > max_period_s
+            begin, begin_gap_s = _travel_at(travel, times, start_s)
+            end, end_gap_s = _travel_at(travel, times, end_s)
+            if max(begin_gap_s, end_gap_s) > max_period_s + 1e-6:  # (times are sums of float periods)
+                # the edge thread did not run for that long: the travel in between is a straight
+                # line, whatever the wheel did there (reversed in a turn, started, braked)
+                self.estimator.reset()
+                continue
+            span_s = end_s - start_s
+            speeds = ((end[0] - begin[0]) / span_s, (end[1] - begin[1]) / span_s)
+            self.estimator.update((left, right), speeds, max_period_s * 2 if late else None)
+        return self.estimator.gains
+
+
+def _travel_at(travel: Sequence[tuple[float, float, float]], times: np.ndarray,
+               time_s: float) -> tuple[tuple[float, float], float]:
+    """((left_m, right_m) at ``time_s``, between the two entries of ``travel`` around it (linear);
+    the time between those two entries, seconds: how far the straight line reaches)."""
+    k = int(np.searchsorted(times, time_s, side="left"))
+    if k >= len(travel):  # not covered: the callers judge only covered periods
+        return (travel[-1][1], travel[-1][2]), math.inf
+    t1, l1, r1 = travel[k]
+    if k == 0 or t1 == time_s:
+        return (l1, r1), (0.0 if t1 == time_s else math.inf)
+    t0, l0, r0 = travel[k - 1]
+    share = (time_s - t0) / (t1 - t0)
+    return (l0 + share * (l1 - l0), r0 + share * (r1 - r0)), t1 - t0
+
+
 class HealthMonitor:
-    """The checks, one call per period (see the module docstring)."""
+    """The checks, one call per period (see the module docstring).
+
+    ``wheel_gains`` fits the wheels' speeds to the nominal motor (built from the config's
+    ``[drive]``, ``[control]`` and ``[daemon]`` sections by ``main``; the defaults here).
+    """
 
     def __init__(
         self,
@@ -121,6 +207,7 @@ class HealthMonitor:
         weak_ratio: float = 0.6,
         weak_checks: int = 1,
         lidar: LidarActivity | None = None,
+        wheel_gains: WheelGainEstimator | None = None,
     ) -> None:
         self.lidar_silence_s = float(lidar_silence_s)
         self.lidar = lidar
@@ -138,6 +225,7 @@ class HealthMonitor:
         self._encoders_checked_s: float | None = None
         self._invalid_seen = 0
         self._weak_streak = [0, 0]
+        self.travel_gains = WheelTravelGains(wheel_gains or WheelGainEstimator(latency_s=0.0))
         self._last_gains: list[tuple[float, float] | None] = [None, None]  # (gain, check time) per wheel
         self._fault_seen_s: float | None = None  # the last check that saw an active fault
         self._last_note_s: dict[str, float] = {}
@@ -181,9 +269,9 @@ class HealthMonitor:
     def _check_motor_strength(self, state: SharedState, now_s: float) -> None:
         """Each motor's gain against the other's; one far below the other is a weak motor.
 
-        The gains are the control task's fit of the measured wheel speeds to the nominal
-        motor model over its last 0.2 s (``WheelGainEstimator``): the window is the
-        evidence that the motor stays weak, so one check below ``weak_ratio`` says it.
+        The gains are the fit of the wheels' speeds in the control periods to the nominal
+        motor model over 0.2 s (:class:`WheelTravelGains`): the window is the evidence that
+        the motor stays weak, so one check below ``weak_ratio`` says it.
         ``weak_ratio`` 0.6 sits between the suite's weak motor (0.4) and the lowest ratio of
         healthy motors in 59 simulated runs (0.85; the 16 training mazes, ten 6x6 mazes, the
         fault suite, and 18 motor-weak runs before their fault).
@@ -193,17 +281,21 @@ class HealthMonitor:
         """
         if state.faults or state.calibrating:  # a calibration's pulses and ramps are no weak motor either
             self._fault_seen_s = now_s
-        if self._fault_seen_s is not None and now_s - self._fault_seen_s < FAULT_SETTLE_S:
+        travel = self.travel_gains
+        gains = travel.update(state.throttle_history, state.wheel_travel)
+        # the periods judged may be older than the check (the edges come late): the settling
+        # counts from the fault to the end of the period judged, and one before it waits too
+        judged_s = now_s if travel.judged_until_s is None else travel.judged_until_s
+        if self._fault_seen_s is not None and judged_s - self._fault_seen_s < FAULT_SETTLE_S:
             self._weak_streak = [0, 0]
             return
-        gains = state.wheel_gains
         for side in (0, 1):
             gain = gains[side]
             if gain is not None:
-                self._last_gains[side] = (gain, now_s)
+                self._last_gains[side] = (gain, judged_s)
         for side in (0, 1):
             mine, other = gains[side], self._last_gains[1 - side]
-            reference = None if other is None or now_s - other[1] > REFERENCE_AGE_S else other[0]
+            reference = None if other is None or judged_s - other[1] > REFERENCE_AGE_S else other[0]
             weak = mine is not None and reference is not None and reference > 0 and mine < self.weak_ratio * reference
             self._weak_streak[side] = self._weak_streak[side] + 1 if weak else 0
             if weak and self._weak_streak[side] >= self.weak_checks:

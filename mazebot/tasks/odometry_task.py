@@ -69,6 +69,9 @@ async def run(
             if pose_s is not None:
                 history.append(pose_s, odo.x_m, odo.y_m, odo.theta_rad)
                 state.pose_time_s = pose_s
+                # each wheel's own travel at the same date: the health monitor's weak-motor check
+                state.wheel_travel.append((pose_s, reading.left_ticks * odometry.metres_per_tick_left,
+                                           reading.right_ticks * odometry.metres_per_tick_right))
             if state.odometry_listeners:
                 step = OdometryStep(now_s, pose_s, int(reading.left_ticks), int(reading.right_ticks),
                                     int(reading.invalid_transitions))

@@ -227,6 +227,7 @@ async def _run_daemon(
         "slam_scans": slam.scans,
         "slam_scans_dropped": slam.scans_dropped,
         "slam_scans_uncovered": slam.uncovered,
+        "slam_scans_held_back": slam.held_back,
         "keyframes": slam.keyframes,
         "loop_closures": slam.loop_closures,
         "lidar_revolutions": state.sensors.lidar_revolutions,
@@ -696,6 +697,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "slam_scans": d.get("slam_scans"),
         "slam_scans_dropped": d.get("slam_scans_dropped"),  # revolutions SLAM had to drop
         "slam_scans_uncovered": d.get("slam_scans_uncovered"),  # left out: the odometry never reached their end
+        "slam_scans_held_back": d.get("slam_scans_held_back"),  # localized only, not painted: the odometry distrusted
         "lidar_bytes_dropped": d.get("lidar_bytes_dropped"),
         "loop_closures": d.get("loop_closures"),
         "encoder_invalid_transitions": d.get("encoder_invalid_transitions"),

@@ -535,13 +535,22 @@ class LocalizationGuard:
         """How much wider than the first the next search is."""
         return min(MAX_SEARCH_SCALE, 1.0 + 0.5 * self.failed_searches)
 
-    def slipped(self, predicted: np.ndarray, corrected: np.ndarray) -> tuple[float, float] | None:
+    def slipped(self, predicted: np.ndarray, corrected: np.ndarray,
+                at_rest: bool = False) -> tuple[float, float] | None:
         """(metres, radians) ICP moved the prediction, if that is more than the odometry's own error; else None.
 
         Call it once per matched revolution: the turns of the last ``slip_scans`` add up (a
-        slipping tyre turns the robot the same way revolution after revolution).
+        slipping tyre turns the robot the same way revolution after revolution). A revolution
+        ``at_rest`` (the odometry stood still through it) is no slip, whatever ICP moved:
+        wheels that do not turn cannot slip, and what ICP moves there is the filter's own
+        error, which the next revolutions correct without the wheels. It also ends the
+        revolutions whose turns add up: on a quota run the first revolutions of a stop were
+        called slips by the 2-4° the turn before them had left in the sum.
         """
         p = self.params
+        if at_rest:
+            self._turns.clear()
+            return None
         d = compose(inverse(predicted), corrected)
         moved_m, turned_rad = math.hypot(d[0], d[1]), float(wrap_angle(d[2]))
         self._turns.append(turned_rad)

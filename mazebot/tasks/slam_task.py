@@ -30,6 +30,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from mazebot.clock import Clock
+from mazebot.geometry import compose, inverse
 from mazebot.io.scan import Scan
 from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.ekf import OdometryHistory
@@ -56,6 +57,13 @@ ODOMETRY_FAULTS = frozenset({"encoders", "localization"})
 TRUSTED_AFTER = 5
 #: A revolution during which the wheel odometry moved less than this (metres, radians) was at rest.
 AT_REST_M, AT_REST_RAD = 0.002, 0.005
+#: Revolutions at rest in a row whose good ICP matches (``Slam.acceptable``, not degenerate) the
+#: filter refused, all within ``REST_AGREE_M`` / ``REST_AGREE_RAD`` of the first, before SLAM takes
+#: their pose (:class:`RestMatches`). At rest every revolution sees the same walls from the same
+#: place: ICP from the same guess lands on the same pose, so agreement is cheap; three rule out a
+#: revolution's noise, and cost 0.55 s of a robot that stands anyway.
+REST_AGREE = 3
+REST_AGREE_M, REST_AGREE_RAD = 0.01, math.radians(0.5)
 
 
 class OdometryTrust:
@@ -73,7 +81,10 @@ class OdometryTrust:
     walls the map does not hold yet, ICP then fits no revolution (the submap lacks what the
     scan sees, residuals of 6-9 cm), none is painted, no keyframe brings the new walls in,
     and the explorer waits at rest for a target the map never resolves. Not after a fault
-    or a re-localization (:meth:`distrust`): there the pose itself is in doubt.
+    or a re-localization (:meth:`distrust`): there the pose itself is in doubt. And a
+    revolution at rest whose good ICP match the filter refused (``disputed``) starts the
+    count again, as a slip does in motion: it would be painted at the pose ICP disputes
+    (:class:`RestMatches` settles that dispute).
     """
 
     def __init__(self, trusted_after: int = TRUSTED_AFTER) -> None:
@@ -87,17 +98,67 @@ class OdometryTrust:
         self.clean = 0
         self.rest_heals = False
 
-    def observe(self, state: SharedState, slipped: bool, matched: bool, at_rest: bool = False) -> bool:
+    def observe(self, state: SharedState, slipped: bool, matched: bool, at_rest: bool = False,
+                disputed: bool = False) -> bool:
         """One revolution's verdict: paint it (True) or localize only."""
         faulted = any(f.source in ODOMETRY_FAULTS for f in state.faults)
         if slipped or faulted:
             self.clean = 0
             self.rest_heals = not faulted
+        elif disputed and at_rest:  # no slip at rest: the filter's pose is what is in doubt (RestMatches)
+            self.clean = 0
         elif matched or (at_rest and self.rest_heals):  # an unmatched revolution in motion proves nothing
             self.clean = min(self.clean + 1, self.trusted_after)
         trusted = self.clean >= self.trusted_after
         self.held_back += not trusted
         return trusted
+
+
+class RestMatches:
+    """A robot at rest whose filter refuses ICP's matches that agree with each other: the filter is wrong.
+
+    The filter (:class:`mazebot.slam.ekf.PoseEkf`) gates each match by its own covariance, and
+    at rest nothing makes that covariance grow (the odometry adds its noise per metre and
+    per radian driven). A filter that stopped a few degrees off (a turn's late edges under a
+    CPU quota) then refuses every match for as long as the robot stands, while ICP finds
+    the same pose revolution after revolution: each revolution looked like a slip (ICP moved
+    the prediction by the filter's error), none was painted, and the planner's stand-still
+    watch gave the goal up ("SLAM painted 0 of 45"), on a published pose that stayed wrong.
+    ``REST_AGREE`` such matches in a row, at rest, agreeing within ``REST_AGREE_M`` /
+    ``REST_AGREE_RAD``, are the best-known pose there is: the filter restarts there
+    (:meth:`Slam.relocalized`, as when the lost robot is found), keeps its covariance, and
+    the next revolutions are matched (and heal the trust) as usual.
+
+    Example (the SLAM task, after each update)::
+
+        pose = rest.observe(at_rest, disputed_pose)   # None, or the pose to take
+    """
+
+    def __init__(self, agree: int = REST_AGREE) -> None:
+        self.agree = agree
+        self.poses: list[np.ndarray] = []  # the disputed matches of the revolutions at rest in a row
+        self.taken = 0  # poses taken, in all
+
+    def observe(self, at_rest: bool, disputed_pose: np.ndarray | None) -> np.ndarray | None:
+        """One revolution: the pose to take once ``agree`` disputed matches at rest agree, else None."""
+        if not at_rest or disputed_pose is None:
+            self.poses.clear()
+            return None
+        if self.poses and not _same_place(self.poses[0], disputed_pose):
+            self.poses.clear()
+        self.poses.append(np.asarray(disputed_pose, dtype=np.float64).copy())
+        if len(self.poses) < self.agree:
+            return None
+        poses = np.array(self.poses)
+        self.poses.clear()
+        self.taken += 1
+        theta = math.atan2(float(np.sin(poses[:, 2]).mean()), float(np.cos(poses[:, 2]).mean()))
+        return np.array([poses[:, 0].mean(), poses[:, 1].mean(), theta])
+
+
+def _same_place(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(math.hypot(float(a[0] - b[0]), float(a[1] - b[1])) <= REST_AGREE_M
+                and abs(math.remainder(float(a[2] - b[2]), math.tau)) <= REST_AGREE_RAD)
 
 
 async def run(
@@ -137,6 +198,7 @@ class SlamTask:
         self.state, self.clock, self.slam, self.executor = state, clock, slam, executor
         self.guard = guard or LocalizationGuard()
         self.trust = OdometryTrust()
+        self.rest = RestMatches()
         self.next_scan: asyncio.Future[Scan] | None = None
         self.job: asyncio.Future[LoopClosureResult] | None = None
         self.job_since_s = 0.0
@@ -256,12 +318,17 @@ class SlamTask:
             return False  # does not fit the map: SLAM must not paint it in
         predicted = guard.guess
         slip: list[tuple[float, float] | None] = [None]
+        disputed: list[np.ndarray | None] = [None]  # a good match the filter refused
         at_rest = _at_rest(history, scan)
 
         def paint(match, matched: bool) -> bool:
-            if predicted is not None and match is not None and slam.acceptable(match):
-                slip[0] = guard.slipped(predicted, match.pose)  # the lidar's pose, before the filter
-            return self.trust.observe(state, slip[0] is not None, matched, at_rest)
+            good = match is not None and slam.acceptable(match)
+            if predicted is not None and good:
+                # the lidar's pose, before the filter; wheels at rest cannot slip
+                slip[0] = guard.slipped(predicted, match.pose, at_rest=at_rest)
+            if good and not matched and not match.degenerate:
+                disputed[0] = match.pose.copy()
+            return self.trust.observe(state, slip[0] is not None, matched, at_rest, disputed[0] is not None)
 
         await asyncio.sleep(0)  # the guard's check and the update are two stretches, not one
         cpu_s = [0.0]
@@ -277,6 +344,9 @@ class SlamTask:
             state.note("slam", "SLAM processes scans again", self.clock.now_s())
         _publish_update(state, slam, update)
         state.slam.held_back = self.trust.held_back
+        taken = self.rest.observe(at_rest, disputed[0])
+        if taken is not None:
+            _take_rest_pose(state, slam, update, taken, self.clock)
         if slip[0] is not None:
             _note_slip(state, slip[0], self.clock)
         if update.loop_job is not None:
@@ -322,6 +392,20 @@ def _at_rest(history: OdometryHistory, scan: Scan) -> bool:
     x, y, th = np.ravel(x), np.ravel(y), np.ravel(th)
     turned = abs(math.remainder(float(th[1] - th[0]), math.tau))
     return bool(math.hypot(float(x[1] - x[0]), float(y[1] - y[0])) < AT_REST_M and turned < AT_REST_RAD)
+
+
+def _take_rest_pose(state: SharedState, slam: Slam, update: SlamUpdate, pose: np.ndarray, clock: Clock) -> None:
+    """The filter restarts at the pose ICP found at rest (:class:`RestMatches`), and the pose is published."""
+    odom = compose(inverse(update.map_from_odom), update.pose)  # the odometry at the revolution's end
+    moved_m = math.hypot(float(pose[0] - update.pose[0]), float(pose[1] - update.pose[1]))
+    turned_rad = abs(math.remainder(float(pose[2] - update.pose[2]), math.tau))
+    slam.relocalized(pose, odom)
+    state.map_from_odom = tuple(float(v) for v in slam.map_from_odom)  # type: ignore[assignment]
+    message = (f"at rest, {REST_AGREE} revolutions in a row fit the map {100 * moved_m:.1f} cm / "
+               f"{math.degrees(turned_rad):.1f}° from where the filter had the robot, which refused them: "
+               "SLAM takes their pose")
+    log.info("%s", message)
+    state.note("slam", message, clock.now_s())
 
 
 def _lost(state: SharedState, guard: LocalizationGuard, clock: Clock) -> None:

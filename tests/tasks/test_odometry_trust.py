@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
+import numpy as np
+import pytest
+
+from mazebot.clock import RealClock
+from mazebot.config import Config
 from mazebot.io.scan import Scan
 from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.relocalize import LocalizationGuard
+from mazebot.slam.slam import Slam, SlamParams
 from mazebot.state import Fault, SharedState
-from mazebot.tasks.slam_task import TRUSTED_AFTER, OdometryTrust, _at_rest
+from mazebot.tasks import slam_task
+from mazebot.tasks.slam_task import REST_AGREE, TRUSTED_AFTER, OdometryTrust, RestMatches, _at_rest
+from tests.tasks.test_slam_task import _static_scan
 
 
 def verdicts(trust: OdometryTrust, state: SharedState, count: int, *, matched: bool, at_rest: bool) -> list[bool]:
@@ -46,3 +55,74 @@ def test_a_revolution_is_at_rest_when_the_odometry_stood_still_through_it() -> N
     assert _at_rest(history, scan)
     moving = Scan(scan.angle_rad, scan.range_m, scan.quality, times + 0.9, scan.valid)
     assert not _at_rest(history, moving)
+
+
+def test_a_revolution_at_rest_is_no_slip_and_ends_the_turns_that_add_up() -> None:
+    """On a quota run the first revolutions of a stop were called slips by the turn before them."""
+    pose, turned = np.zeros(3), np.array([0.0, 0.0, math.radians(0.9)])
+    stopped = np.array([0.001, 0.0, math.radians(0.3)])
+    for at_rest in (False, True):
+        guard = LocalizationGuard()
+        for _ in range(2):  # a turn: ICP corrects the heading by 0.9° a revolution, below the limits
+            assert guard.slipped(pose, turned) is None
+        # 2.1° in three revolutions: a slip in motion, none at rest
+        assert (guard.slipped(pose, stopped, at_rest=at_rest) is None) == at_rest
+    assert guard.slipped(pose, turned) is None  # and the sum began again
+    assert guard.slipped(pose, turned) is None
+
+
+def test_at_rest_a_disputed_match_is_not_painted_and_starts_the_count_again() -> None:
+    state = SharedState()
+    trust = OdometryTrust()
+    assert verdicts(trust, state, 3, matched=False, at_rest=True) == [True] * 3  # trusted from the start
+    assert not trust.observe(state, False, False, True, disputed=True)
+    assert verdicts(trust, state, TRUSTED_AFTER, matched=True, at_rest=True)[-1]
+
+
+def test_rest_matches_take_a_pose_once_enough_agree_in_a_row_at_rest() -> None:
+    rest = RestMatches()
+    pose = np.array([1.0, 2.0, 0.3])
+    assert rest.observe(True, pose) is None
+    assert rest.observe(False, pose) is None  # it moved: start again
+    assert rest.observe(True, pose) is None
+    assert rest.observe(True, pose + np.array([0.05, 0.0, 0.0])) is None  # elsewhere: start again from there
+    assert rest.observe(True, None) is None  # matched (or no good match): no dispute
+    near = [pose + np.array([0.002 * k, 0.0, 0.001 * k]) for k in range(REST_AGREE)]
+    for other in near[:-1]:
+        assert rest.observe(True, other) is None
+    taken = rest.observe(True, near[-1])
+    assert taken is not None and np.allclose(taken, np.mean(near, axis=0))
+    assert rest.observe(True, pose) is None  # taken: the next dispute needs its own agreement
+
+
+@pytest.mark.parametrize("error_deg", [1.7, 2.9])
+async def test_a_filter_a_few_degrees_off_at_rest_is_set_right_by_the_revolutions_and_the_map_painted_again(
+        error_deg: float) -> None:
+    """The filter gates matches by its covariance, which nothing grows at rest: a filter that
+    stopped a few degrees off refused every revolution for as long as the robot stood (each
+    one a "slip", none painted: main held back 20 of 20), on a published pose that stayed wrong."""
+    config = Config()
+    state = SharedState()
+    history = OdometryHistory(horizon_s=1000.0)
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(1000.0, 0.0, 0.0, 0.0)  # the wheels stand still all along
+    state.odometry_history = history
+    slam = Slam(SlamParams.from_config(config.slam, config.lidar), background=False, record_trajectory=False)
+    task = slam_task.SlamTask(state, RealClock(), slam)
+    end_s = 1.0
+    for _ in range(25):  # the anchor: the map of the standing robot
+        assert await task.on_scan(_static_scan(end_s, np.zeros(3)))
+        end_s += 0.2
+    assert task.trust.held_back == 0
+    slam.ekf.mean[2] += math.radians(error_deg)  # a turn's late edges left the filter off, confident
+    held = []
+    for _ in range(20):
+        before = task.trust.held_back
+        assert await task.on_scan(_static_scan(end_s, np.zeros(3)))
+        held.append(task.trust.held_back > before)
+        end_s += 0.2
+    # the disputed revolutions are not painted; then the pose is taken and TRUSTED_AFTER are matched
+    assert held == [True] * (REST_AGREE + TRUSTED_AFTER - 1) + [False] * (20 - REST_AGREE - TRUSTED_AFTER + 1)
+    assert abs(math.degrees(slam.ekf.mean[2])) < 0.2
+    assert abs(math.degrees(state.map_from_odom[2])) < 0.2
+    assert any("SLAM takes their pose" in e.message for e in state.events)

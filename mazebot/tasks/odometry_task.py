@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 from mazebot.clock import Clock
 from mazebot.config import DriveConfig, EncodersConfig
@@ -51,7 +52,8 @@ async def run(
     period_s = 1.0 / enc_cfg.odometry_rate_hz
     meter = state.cpu.part("odometry")
     last_counts: tuple[int, int] | None = None
-    driven_s = -math.inf  # the last reading while a throttle was not 0
+    driven_s = -math.inf  # the last reading while a throttle was not 0 (without the control's write times)
+    brakes = BrakedSince()
     while True:
         with meter.measure():
             reading = encoders.read()
@@ -61,8 +63,9 @@ async def run(
             counts = (reading.left_ticks, reading.right_ticks)
             if state.throttles != (0.0, 0.0):
                 driven_s = now_s
+            braked_since_s = brakes.update(state.throttle_history, driven_s)
             pose_s = _pose_time_s(now_s, getattr(reading, "edge_age_s", None), counts != last_counts, history,
-                                  now_s - driven_s)
+                                  now_s - braked_since_s)
             if counts != last_counts and getattr(reading, "edge_age_s", None) is not None:
                 state.odometry_edge_age_ms.append(reading.edge_age_s * 1000.0)
             last_counts = counts
@@ -87,6 +90,43 @@ async def run(
             state.pose.theta_rad = th
             state.wheel_ticks = (now_s, reading.left_ticks, reading.right_ticks)
         await clock.sleep(period_s)
+
+
+class BrakedSince:
+    """Since when both motors have been braked, by the control loop's writes and their own times.
+
+    The odometry's readings are no clock for that: a reading late by 0.3 s (a starved
+    process) that finds the throttles at 0 would date the brake from the reading before it,
+    and call wheels resting that were braked a moment ago and may still coast, while their
+    last edges are late too. ``state.throttle_history`` holds each write with the control
+    tick's time; without one (no control loop in this process, nor a control process'
+    ticks read), the readings' rule stands in.
+    """
+
+    def __init__(self) -> None:
+        self._seen_s = -math.inf  # the newest write looked at
+        self._since_s: float | None = None  # the first write of 0, 0 after the last one that drove; None: driven
+
+    def update(self, writes: Iterable[tuple[float, float, float]], fallback_s: float) -> float:
+        """The time since which both throttles have been 0 (``writes``: time, left, right, oldest first).
+
+        ``fallback_s`` (the last reading that saw a throttle) when there is no write yet.
+        """
+        fresh: list[tuple[float, float, float]] = []
+        for write in reversed(tuple(writes)):  # a copy: the control thread appends
+            if write[0] <= self._seen_s:
+                break
+            fresh.append(write)
+        for time_s, left, right in reversed(fresh):
+            if left == 0.0 and right == 0.0:
+                if self._since_s is None:
+                    self._since_s = time_s
+            else:
+                self._since_s = None
+            self._seen_s = time_s
+        if self._seen_s == -math.inf:
+            return fallback_s
+        return math.inf if self._since_s is None else self._since_s
 
 
 def _pose_time_s(now_s: float, edge_age_s: float | None, new_edges: bool, history: OdometryHistory,

@@ -168,3 +168,27 @@ def test_a_reading_without_new_edges_holds_the_pose_only_once_the_wheels_rest() 
     assert _pose_time_s(10.5, 0.05, False, history, braked_s=late) is None  # braked a moment ago: may coast
     assert _pose_time_s(12.0, STILL_WHEN_DRIVEN_S, False, history, braked_s=0.0) == 12.0  # driven, never turning
     assert _pose_time_s(10.5, 0.6, True, history, braked_s=0.0) == 10.0  # never before the newest entry
+
+
+def test_the_brake_is_dated_by_the_control_loops_write_not_by_a_late_reading() -> None:
+    """A reading 0.3 s after the one before (a starved process) finds the throttles at 0: the motors were
+    braked 20 ms before it, not since the reading before, and their last edges may still be on their way."""
+    from mazebot.slam.ekf import OdometryHistory
+    from mazebot.tasks.odometry_task import REST_AFTER_S, BrakedSince, _pose_time_s
+
+    brakes = BrakedSince()
+    assert brakes.update([], fallback_s=4.0) == 4.0  # no write seen: the readings' rule
+    writes = [(10.0 + 0.05 * k, 0.4, 0.4) for k in range(6)]  # driving until 10.25
+    assert brakes.update(writes, fallback_s=10.0) == math.inf  # driven
+    writes += [(10.28, 0.0, 0.0), (10.33, 0.0, 0.0)]
+    braked_since_s = brakes.update(writes, fallback_s=10.0)
+    assert braked_since_s == 10.28
+    history = OdometryHistory(3.0)
+    history.append(10.0, 0.0, 0.0, 0.0)
+    late = REST_AFTER_S + 0.05  # the edge thread starved too
+    assert _pose_time_s(10.3, late, False, history, braked_s=10.3 - braked_since_s) is None  # may coast: wait
+    assert _pose_time_s(10.3, late, False, history, braked_s=10.3 - 10.0) == 10.3  # the readings' rule: "at rest"
+    writes += [(10.38, 0.0, 0.0), (10.6, 0.0, 0.0)]
+    assert brakes.update(writes, fallback_s=10.0) == 10.28  # still braked since the first 0
+    writes.append((10.65, 0.0, 0.2))
+    assert brakes.update(writes, fallback_s=10.0) == math.inf

@@ -128,15 +128,19 @@ class WheelTravelGains:
         left, right = travel_gains.update(state.throttle_history, state.wheel_travel)
 
     Each control period runs from one throttle write (``throttle_history``: time, left,
-    right) to the next; its speeds are the wheels' travel between the two times over their
-    difference, the travel read from ``wheel_travel`` (time, left_m, right_m), whose dates
-    are the encoder edges' own, interpolated between two entries. A period is judged once
-    the travel's dates reach its end, in the order of the periods, however late the edges
-    arrived: the speeds and the throttles are then of the same interval, as on an idle
-    CPU. The estimator's latency is 0: the speeds are no estimate that lags the wheel, they
-    are its mean over the period the throttle acted in. A period the travel no longer
-    reaches back to, or one longer than ``LATE_PERIODS`` control periods (the loop blocked:
-    the motors' time-to-live may have stopped the wheels), starts the window again.
+    right) to the next. The estimator's model gives the nominal motor's speed at the end of
+    the period, so the wheel's speed there is measured: its travel over a period's length
+    centred on that end, over that length (a mean over the period itself lagged the model by
+    half a period: healthy wheels reversing in a turn with late edges fitted 0.75 instead of
+    0.84). The travel is read from ``wheel_travel`` (time, left_m, right_m), whose dates are
+    the encoder edges' own, interpolated between two entries. A period is judged once the
+    travel's dates reach half a period past its end, in the order of the periods, however
+    late the edges arrived: speeds and throttles are then of the same interval, as on an
+    idle CPU. The estimator's latency is 0: the speeds are no estimate that lags the wheel.
+    A period the travel no longer reaches back to, one whose travel is interpolated over
+    more than ``LATE_PERIODS`` control periods (the edges were not read in between: the
+    wheel may have reversed there), or one longer than that (the loop blocked: the motors'
+    time-to-live may have stopped the wheels) starts the window again.
     """
 
     def __init__(self, estimator: WheelGainEstimator) -> None:
@@ -156,15 +160,16 @@ class WheelTravelGains:
         for (start_s, left, right), (end_s, _, _) in itertools.pairwise(throttles):
             if self.judged_s is not None and start_s <= self.judged_s:
                 continue
-            if end_s > covered_s:
+            half_s = 0.5 * (end_s - start_s)
+            if end_s + half_s > covered_s:
                 break  # the edges up to this period's end have not been counted yet
             previous_s, self.judged_s, self.judged_until_s = self.judged_s, start_s, end_s
             if start_s < times[0] or end_s - start_s > max_period_s:
                 self.estimator.reset()
                 continue
             late = previous_s is not None and start_s - previous_s > max_period_s
-            begin, begin_gap_s = _travel_at(travel, times, start_s)
-            end, end_gap_s = _travel_at(travel, times, end_s)
+            begin, begin_gap_s = _travel_at(travel, times, end_s - half_s)
+            end, end_gap_s = _travel_at(travel, times, end_s + half_s)
             if max(begin_gap_s, end_gap_s) > max_period_s + 1e-6:  # (times are sums of float periods)
                 # the edge thread did not run for that long: the travel in between is a straight
                 # line, whatever the wheel did there (reversed in a turn, started, braked)

@@ -41,14 +41,13 @@ All are plain checks on ``SharedState`` at 10 Hz (the dead-encoder and weak-moto
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
-
-import numpy as np
 
 from mazebot.clock import Clock
 from mazebot.planner.wheel_control import LATE_PERIODS, WheelGainEstimator
@@ -150,26 +149,33 @@ class WheelTravelGains:
 
     def update(self, throttles: Sequence[tuple[float, float, float]],
                travel: Sequence[tuple[float, float, float]]) -> tuple[float | None, float | None]:
-        """The gains after every period that can be judged now (``estimator.gains``)."""
-        throttles, travel = tuple(throttles), tuple(travel)  # copies: the control thread appends
-        if len(travel) < 2 or len(throttles) < 2:
+        """The gains after every period that can be judged now (``estimator.gains``).
+
+        Looks only at the writes after the last period judged (from the newest back), and
+        finds the travel around a time by bisection: a few microseconds a check.
+        """
+        # a copy of the writes (C speed): the control loop's thread may append to them meanwhile; the
+        # travel is the odometry task's, on this loop: read where it is (a deque's index, by bisection)
+        writes, dated = tuple(throttles), travel
+        if len(dated) < 2 or len(writes) < 2:
             return self.estimator.gains
-        times = np.fromiter((t for t, _, _ in travel), dtype=np.float64, count=len(travel))
-        covered_s = float(times[-1])
+        first = len(writes)
+        while first > 0 and (self.judged_s is None or writes[first - 1][0] > self.judged_s):
+            first -= 1
+        covered_s = dated[-1][0]
         max_period_s = LATE_PERIODS * self.estimator.period_s
-        for (start_s, left, right), (end_s, _, _) in itertools.pairwise(throttles):
-            if self.judged_s is not None and start_s <= self.judged_s:
-                continue
+        for k in range(first, len(writes) - 1):
+            (start_s, left, right), end_s = writes[k], writes[k + 1][0]
             half_s = 0.5 * (end_s - start_s)
             if end_s + half_s > covered_s:
-                break  # the edges up to this period's end have not been counted yet
+                break  # the edges up to half a period past this period's end have not been counted yet
             previous_s, self.judged_s, self.judged_until_s = self.judged_s, start_s, end_s
-            if start_s < times[0] or end_s - start_s > max_period_s:
+            if start_s < dated[0][0] or end_s - start_s > max_period_s:
                 self.estimator.reset()
                 continue
             late = previous_s is not None and start_s - previous_s > max_period_s
-            begin, begin_gap_s = _travel_at(travel, times, end_s - half_s)
-            end, end_gap_s = _travel_at(travel, times, end_s + half_s)
+            begin, begin_gap_s = _travel_at(dated, end_s - half_s)
+            end, end_gap_s = _travel_at(dated, end_s + half_s)
             if max(begin_gap_s, end_gap_s) > max_period_s + 1e-6:  # (times are sums of float periods)
                 # the edge thread did not run for that long: the travel in between is a straight
                 # line, whatever the wheel did there (reversed in a turn, started, braked)
@@ -181,11 +187,10 @@ class WheelTravelGains:
         return self.estimator.gains
 
 
-def _travel_at(travel: Sequence[tuple[float, float, float]], times: np.ndarray,
-               time_s: float) -> tuple[tuple[float, float], float]:
+def _travel_at(travel: Sequence[tuple[float, float, float]], time_s: float) -> tuple[tuple[float, float], float]:
     """((left_m, right_m) at ``time_s``, between the two entries of ``travel`` around it (linear);
     the time between those two entries, seconds: how far the straight line reaches)."""
-    k = int(np.searchsorted(times, time_s, side="left"))
+    k = bisect.bisect_left(travel, time_s, key=_entry_time)
     if k >= len(travel):  # not covered: the callers judge only covered periods
         return (travel[-1][1], travel[-1][2]), math.inf
     t1, l1, r1 = travel[k]
@@ -194,6 +199,10 @@ def _travel_at(travel: Sequence[tuple[float, float, float]], times: np.ndarray,
     t0, l0, r0 = travel[k - 1]
     share = (time_s - t0) / (t1 - t0)
     return (l0 + share * (l1 - l0), r0 + share * (r1 - r0)), t1 - t0
+
+
+def _entry_time(entry: tuple[float, float, float]) -> float:
+    return entry[0]
 
 
 class HealthMonitor:

@@ -280,7 +280,9 @@ class Rollouts:
 
     ``v_mps``/``w_radps`` (K,), ``admissible`` (K,) bool, ``score`` (K,) (−inf when not
     admissible), ``free_m`` (K,) free arc length before contact, ``points`` (K, S, 2) the
-    rollout positions in the robot frame.
+    rollout positions in the robot frame. An arc the coarse-to-fine search never tried
+    (:meth:`DynamicWindowPlanner.plan_steps`) is not admissible, its score −inf, its free
+    length and points NaN.
     """
 
     v_mps: np.ndarray
@@ -531,13 +533,16 @@ class DynamicWindowPlanner:
         out[short] = arc_m[short] + (end_clear - limit_m)  # inf stays inf: free beyond the need
         return out
 
-    def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray) -> np.ndarray:
+    def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray, top_speed_mps: float | None = None) -> np.ndarray:
         """Robot-frame positions (K, S, 2) along the arcs of constant ``(v, w)`` for ``horizon_s``.
 
-        ``S`` is chosen so consecutive points are at most ``step_m`` apart at the top speed.
+        ``S`` is chosen so consecutive points are at most ``step_m`` apart at the top speed
+        (of ``v_mps``, or ``top_speed_mps``: the window's, when rolling out part of it).
         Point 0 is the robot itself. Exact arcs: ``x = v/w sin(w t)``, ``y = v/w (1 − cos(w t))``.
         """
-        reach = max(float(np.max(np.abs(v_mps), initial=0.0)), 1e-6) * self.horizon_s
+        if top_speed_mps is None:
+            top_speed_mps = float(np.max(np.abs(v_mps), initial=0.0))
+        reach = max(top_speed_mps, 1e-6) * self.horizon_s
         steps = max(2, math.ceil(reach / self.step_m))
         t = np.linspace(0.0, self.horizon_s, steps + 1)[None, :]
         v = np.asarray(v_mps, dtype=np.float64)[:, None]
@@ -577,21 +582,24 @@ class DynamicWindowPlanner:
         is admissible.
         """
         v, w = self.window(velocity[0], velocity[1], v_cap_mps)
-        pts = self.rollout(v, w)  # (K, S, 2)
+        top_speed_mps = float(np.max(np.abs(v)))
         k = v.size
+        s_count = self.rollout(v[:1], w[:1], top_speed_mps).shape[1]
+        pts = np.full((k, s_count, 2), np.nan)  # (K, S, 2), rolled out as arcs are tried
         admissible = np.zeros(k, dtype=bool)
         score = np.full(k, -np.inf)
         free_m = np.full(k, np.nan)
         tried = np.zeros(k, dtype=bool)
 
-        start_clear_m = self.start_clearance_m(pts[0, 0], costmap)
+        start_clear_m = self.start_clearance_m(np.zeros(2), costmap)
 
         def judge(idx: np.ndarray) -> Generator[None, None, None]:
             idx = idx[~tried[idx]]
             if idx.size == 0:
                 return
             tried[idx] = True
-            ok, sc, free = yield from self._judge_arcs(pose, v[idx], w[idx], pts[idx], costmap, path, start_clear_m)
+            pts[idx] = arcs = self.rollout(v[idx], w[idx], top_speed_mps)
+            ok, sc, free = yield from self._judge_arcs(pose, v[idx], w[idx], arcs, costmap, path, start_clear_m)
             admissible[idx], score[idx], free_m[idx] = ok, sc, free
 
         if self.coarse_step > 1:

@@ -430,11 +430,13 @@ class DynamicWindowPlanner:
         vv, ww = np.meshgrid(np.unique(vs), np.unique(ws), indexing="ij")
         return vv.reshape(-1), ww.reshape(-1)
 
-    def _coarse_samples(self, v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    def _coarse_samples(self, v: np.ndarray, w: np.ndarray, velocity: tuple[float, float]) -> np.ndarray:
         """Indices into the window's ``(v, w)`` grid (:meth:`window`'s order) of the coarse search.
 
         Every ``coarse_step``-th speed and turn rate, the window's edges (full braking,
-        the sharpest turns) and zero speed and zero turn rate where the window holds them.
+        the sharpest turns), zero speed and zero turn rate where the window holds them,
+        and the sample nearest the current ``velocity`` (the last step's choice, as the
+        wheels carried it out: where the best arc usually is again).
         """
         n_w = int(np.count_nonzero(v == v[0]))  # the grid is speed-major: the first speed's row
         n_v = v.size // n_w
@@ -444,7 +446,8 @@ class DynamicWindowPlanner:
         grid_v, grid_w = v.reshape(n_v, n_w)[:, 0], w.reshape(n_v, n_w)[0]
         rows |= set(np.flatnonzero(grid_v == 0.0).tolist())
         cols |= set(np.flatnonzero(grid_w == 0.0).tolist())
-        return np.array(sorted(r * n_w + c for r in rows for c in cols), dtype=np.intp)
+        now = int(np.argmin(np.abs(grid_v - velocity[0]))) * n_w + int(np.argmin(np.abs(grid_w - velocity[1])))
+        return np.array(sorted({r * n_w + c for r in rows for c in cols} | {now}), dtype=np.intp)
 
     def _neighbours(self, best: int, shape: tuple[int, int]) -> np.ndarray:
         """The grid indices around sample ``best`` (its 8 neighbours of the fine grid, inside it)."""
@@ -603,7 +606,7 @@ class DynamicWindowPlanner:
             admissible[idx], score[idx], free_m[idx] = ok, sc, free
 
         if self.coarse_step > 1:
-            yield from judge(self._coarse_samples(v, w))
+            yield from judge(self._coarse_samples(v, w, velocity))
         if self.coarse_step == 1 or not admissible.any():
             yield from judge(np.arange(k))
         n_w = int(np.count_nonzero(v == v[0]))

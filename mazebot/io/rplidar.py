@@ -84,7 +84,11 @@ MAX_RESTARTS_WITHOUT_DATA = 3
 #: cold): at 80 ms the ~2 000 samples a second are decoded in ~12 calls instead of ~25.
 #: Time stamps come from the bytes' arrival, not the decode; a revolution is handed to
 #: SLAM at most this long after its last byte (~180 ms a revolution at 5.5 rev/s).
-DECODE_INTERVAL_S = 0.06
+DECODE_INTERVAL_S = 0.08
+#: Samples stamped in one batch are spaced by the batch's own period (the time from the
+#: previous batch's newest sample to this one's, over the samples) when that is within this
+#: fraction of the nominal period, else at most the nominal one.
+MEASURED_PERIOD_BAND = 0.1
 #: A revolution longer than this many samples is cut (the start flag never came).
 MAX_SAMPLES_PER_REVOLUTION = 8192
 
@@ -869,7 +873,10 @@ class RPLidar:
             return np.empty(0)
         period_s = self._period_s()
         if received_s > since_s:  # no interval (the first capsules of a scan): nominal spacing
-            period_s = min(period_s, (received_s - since_s) / count)
+            measured_s = (received_s - since_s) / count
+            if abs(measured_s - period_s) <= MEASURED_PERIOD_BAND * period_s:
+                period_s = measured_s
+            period_s = min(period_s, measured_s)
         i = np.arange(count)
         ideal = received_s - period_s * (count - 1 - i)
         floor = self._last_time_s + 1e-6 * (i + 1)

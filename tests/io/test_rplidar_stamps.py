@@ -1,10 +1,10 @@
 """Sample time stamps of the RPLidar driver against the emulator's true sample times.
 
 The emulator knows when it took each sample; the driver only sees bytes arrive. The
-driver decodes every ``DECODE_INTERVAL_S`` (40 ms then, 80 ms now), so stamping a sample with its
-decode time put it up to that late. Stamps now come from the arrival time of the bytes that
-completed each sample, which on the emulator's 20 ms packets is within about one
-sample period of the truth.
+driver decodes every ``DECODE_INTERVAL_S`` (40 ms then, 80 ms now), so stamping a sample
+with its decode time put it up to that late. Stamps now come from the arrival time of the
+bytes that completed each sample (a batch's samples spaced by its own measured period),
+which on the emulator's 20 ms packets is within about one sample period of the truth.
 """
 
 from __future__ import annotations

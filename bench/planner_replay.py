@@ -106,7 +106,7 @@ def _explorer_pass(pilot_: Pilot, events: list[tuple[Any, ...]]) -> tuple[float,
         goals.update(repr((shown, coverage, list(explorer.events))).encode())
         explorer.events.clear()
         start_s = time.thread_time()
-        points = explorer.graph.wall_points_m(pose[:2], pilot_.params.map_window_m)
+        points = explorer.graph.wall_points_m(pose[:2], pilot_.params.planner.map_window_m)
         walls_s += time.thread_time() - start_s
         walls.update(np.ascontiguousarray(points).tobytes())
     return cpu_s, walls_s, ticks, goals.hexdigest()[:16], walls.hexdigest()[:16]

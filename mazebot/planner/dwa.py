@@ -280,7 +280,9 @@ class Rollouts:
 
     ``v_mps``/``w_radps`` (K,), ``admissible`` (K,) bool, ``score`` (K,) (−inf when not
     admissible), ``free_m`` (K,) free arc length before contact, ``points`` (K, S, 2) the
-    rollout positions in the robot frame.
+    rollout positions in the robot frame. An arc the coarse-to-fine search never tried
+    (:meth:`DynamicWindowPlanner.plan_steps`) is not admissible, its score −inf, its free
+    length and points NaN.
     """
 
     v_mps: np.ndarray
@@ -321,7 +323,8 @@ class DynamicWindowPlanner:
     (at least ``step_m / 2``: clearance changes no faster than position, so between two
     rollout points it cannot dip more than half their spacing below theirs),
     ``stop_margin_m`` extra free distance beyond the stopping distance. Sampling:
-    ``v_samples`` × ``w_samples`` velocities. Scoring weights ``w_progress``,
+    ``v_samples`` × ``w_samples`` velocities, searched coarse to fine (``coarse_step``:
+    see :meth:`plan_steps`; 1 rolls out and scores every one). Scoring weights ``w_progress``,
     ``w_path``, ``w_heading``, ``w_clearance``, ``w_speed``; ``lookahead_m`` where the
     heading carrot sits ahead on the path, ``clearance_cap_m`` the clearance beyond which
     more is not better, ``path_scale_m`` the path distance that costs one unit.
@@ -353,6 +356,7 @@ class DynamicWindowPlanner:
         lookahead_m: float = 0.25,
         clearance_cap_m: float = 0.03,
         path_scale_m: float = 0.15,
+        coarse_step: int = 2,
     ) -> None:
         if max_speed_mps <= 0 or max_yaw_rate_radps <= 0:
             raise ValueError(f"speed limits must be positive, got {max_speed_mps} m/s, {max_yaw_rate_radps} rad/s")
@@ -365,6 +369,8 @@ class DynamicWindowPlanner:
             )
         if v_samples < 2 or w_samples < 3:
             raise ValueError(f"need at least 2 speed and 3 turn-rate samples, got {v_samples}, {w_samples}")
+        if coarse_step < 1:
+            raise ValueError(f"coarse_step must be 1 (every sample) or more, got {coarse_step}")
         self.max_speed_mps = float(max_speed_mps)
         self.min_speed_mps = float(min_speed_mps)
         self.max_yaw_rate_radps = float(max_yaw_rate_radps)
@@ -385,6 +391,7 @@ class DynamicWindowPlanner:
         self.lookahead_m = float(lookahead_m)
         self.clearance_cap_m = float(clearance_cap_m)
         self.path_scale_m = float(path_scale_m)
+        self.coarse_step = int(coarse_step)
 
     @property
     def contact_m(self) -> float:
@@ -423,8 +430,39 @@ class DynamicWindowPlanner:
         vv, ww = np.meshgrid(np.unique(vs), np.unique(ws), indexing="ij")
         return vv.reshape(-1), ww.reshape(-1)
 
+    def _coarse_samples(self, v: np.ndarray, w: np.ndarray, velocity: tuple[float, float]) -> np.ndarray:
+        """Indices into the window's ``(v, w)`` grid (:meth:`window`'s order) of the coarse search.
+
+        Every ``coarse_step``-th speed and turn rate, the window's edges (full braking,
+        the sharpest turns), zero speed and zero turn rate where the window holds them,
+        and the sample nearest the current ``velocity`` (the last step's choice, as the
+        wheels carried it out: where the best arc usually is again).
+        """
+        n_w = int(np.count_nonzero(v == v[0]))  # the grid is speed-major: the first speed's row
+        n_v = v.size // n_w
+        step = self.coarse_step
+        rows = set(range(0, n_v, step)) | {n_v - 1}
+        cols = set(range(0, n_w, step)) | {n_w - 1}
+        grid_v, grid_w = v.reshape(n_v, n_w)[:, 0], w.reshape(n_v, n_w)[0]
+        rows |= set(np.flatnonzero(grid_v == 0.0).tolist())
+        cols |= set(np.flatnonzero(grid_w == 0.0).tolist())
+        now = int(np.argmin(np.abs(grid_v - velocity[0]))) * n_w + int(np.argmin(np.abs(grid_w - velocity[1])))
+        return np.array(sorted({r * n_w + c for r in rows for c in cols} | {now}), dtype=np.intp)
+
+    def _neighbours(self, best: int, shape: tuple[int, int]) -> np.ndarray:
+        """The grid indices around sample ``best`` (its 8 neighbours of the fine grid, inside it)."""
+        n_v, n_w = shape
+        r, c = divmod(best, n_w)
+        near = [
+            (r + dr) * n_w + (c + dc)
+            for dr in (-1, 0, 1)
+            for dc in (-1, 0, 1)
+            if 0 <= r + dr < n_v and 0 <= c + dc < n_w
+        ]
+        return np.array(near, dtype=np.intp)
+
     def _clearance_until_contact(
-        self, pts: np.ndarray, costmap: LocalCostmap
+        self, pts: np.ndarray, costmap: LocalCostmap, start_clear_m: float | None = None
     ) -> Generator[None, None, tuple[np.ndarray, float]]:
         """Clearance (K, S) of the rollout points up to each rollout's first contact, and the contact limit.
 
@@ -435,12 +473,15 @@ class DynamicWindowPlanner:
         a wall early, so this asks far fewer than all the points. It yields after about
         ``CLEARANCE_BLOCK`` queried points. The limit is the contact distance, or a hair
         less than the start's clearance when the robot is already that close (map noise,
-        a bump): it must not get any closer.
+        a bump): it must not get any closer. ``start_clear_m`` is point 0's clearance when
+        the caller asked it already (:meth:`start_clearance_m`).
         """
         k, s_count, _ = pts.shape
         bound_m = self.clearance_cap_m + self.contact_m
         clear = np.full((k, s_count), np.inf)
-        clear[:, 0] = costmap.clearance_m(pts[0, 0][None, :], upper_bound_m=bound_m)[0]  # point 0: the robot
+        if start_clear_m is None:
+            start_clear_m = self.start_clearance_m(pts[0, 0], costmap)
+        clear[:, 0] = start_clear_m  # point 0: the robot
         limit = min(self.contact_m, float(clear[0, 0]) - 1e-4)
         # a rollout that stays where the robot is (turning in place, v = 0) has every point at
         # point 0: its clearance is the start's all along, no need to ask again
@@ -461,6 +502,11 @@ class DynamicWindowPlanner:
                 since_yield = 0
                 yield
         return clear, limit
+
+    def start_clearance_m(self, robot_xy: np.ndarray, costmap: LocalCostmap) -> float:
+        """The clearance of the rollouts' point 0 (the robot), as :meth:`_clearance_until_contact` asks it."""
+        bound_m = self.clearance_cap_m + self.contact_m
+        return float(costmap.clearance_m(np.asarray(robot_xy)[None, :], upper_bound_m=bound_m)[0])
 
     def _free_beyond_the_rollout(
         self,
@@ -490,13 +536,16 @@ class DynamicWindowPlanner:
         out[short] = arc_m[short] + (end_clear - limit_m)  # inf stays inf: free beyond the need
         return out
 
-    def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray) -> np.ndarray:
+    def rollout(self, v_mps: np.ndarray, w_radps: np.ndarray, top_speed_mps: float | None = None) -> np.ndarray:
         """Robot-frame positions (K, S, 2) along the arcs of constant ``(v, w)`` for ``horizon_s``.
 
-        ``S`` is chosen so consecutive points are at most ``step_m`` apart at the top speed.
+        ``S`` is chosen so consecutive points are at most ``step_m`` apart at the top speed
+        (of ``v_mps``, or ``top_speed_mps``: the window's, when rolling out part of it).
         Point 0 is the robot itself. Exact arcs: ``x = v/w sin(w t)``, ``y = v/w (1 − cos(w t))``.
         """
-        reach = max(float(np.max(np.abs(v_mps), initial=0.0)), 1e-6) * self.horizon_s
+        if top_speed_mps is None:
+            top_speed_mps = float(np.max(np.abs(v_mps), initial=0.0))
+        reach = max(top_speed_mps, 1e-6) * self.horizon_s
         steps = max(2, math.ceil(reach / self.step_m))
         t = np.linspace(0.0, self.horizon_s, steps + 1)[None, :]
         v = np.asarray(v_mps, dtype=np.float64)[:, None]
@@ -517,17 +566,83 @@ class DynamicWindowPlanner:
     ) -> Generator[None, None, DwaChoice]:
         """:meth:`plan` in stages (:mod:`mazebot.steps`): it yields between blocks of clearance queries.
 
-        The clearance of ~4 000 rollout points is most of a DWA step (3 ms on a quiet
-        machine, 20 ms on a loaded one); asked ``CLEARANCE_BLOCK`` points at a time,
-        the same per-point queries give the same result with the loop free in between.
+        The clearance of the rollout points is most of a DWA step (~2 900 points for the
+        window's ~105 arcs: 3 ms on a quiet machine, 20 ms on a loaded one); asked
+        ``CLEARANCE_BLOCK`` points at a time, the same per-point queries give the same
+        result with the loop free in between.
+
+        The window is searched coarse to fine: every ``coarse_step``-th speed and turn
+        rate first (with the window's edges and zero speed and turn rate), then the fine
+        grid's neighbours of the best arc so far, again around each new best, until the best
+        has no neighbour left to try: a local maximum of the fine grid, found with about
+        half the arcs. The score (progress, path distance, heading, speed; clearance the
+        one that is not smooth) changes little between neighbouring arcs, which is what
+        lets the coarse grid find the best one's neighbourhood. Each arc is judged alone,
+        so one that is rolled out gets the same admissibility and score as in a full
+        search; the arcs never tried are inadmissible in :class:`Rollouts` (score −inf,
+        free length NaN). When no coarse arc is admissible every arc is tried, so
+        ``blocked`` (the stuck timers' input) means what it did: no arc of the window
+        is admissible.
         """
         v, w = self.window(velocity[0], velocity[1], v_cap_mps)
-        pts = self.rollout(v, w)  # (K, S, 2)
+        top_speed_mps = float(np.max(np.abs(v)))
+        k = v.size
+        s_count = self.rollout(v[:1], w[:1], top_speed_mps).shape[1]
+        pts = np.full((k, s_count, 2), np.nan)  # (K, S, 2), rolled out as arcs are tried
+        admissible = np.zeros(k, dtype=bool)
+        score = np.full(k, -np.inf)
+        free_m = np.full(k, np.nan)
+        tried = np.zeros(k, dtype=bool)
+
+        start_clear_m = self.start_clearance_m(np.zeros(2), costmap)
+
+        def judge(idx: np.ndarray) -> Generator[None, None, None]:
+            idx = idx[~tried[idx]]
+            if idx.size == 0:
+                return
+            tried[idx] = True
+            pts[idx] = arcs = self.rollout(v[idx], w[idx], top_speed_mps)
+            ok, sc, free = yield from self._judge_arcs(pose, v[idx], w[idx], arcs, costmap, path, start_clear_m)
+            admissible[idx], score[idx], free_m[idx] = ok, sc, free
+
+        if self.coarse_step > 1:
+            yield from judge(self._coarse_samples(v, w, velocity))
+        if self.coarse_step == 1 or not admissible.any():
+            yield from judge(np.arange(k))
+        n_w = int(np.count_nonzero(v == v[0]))
+        shape = (k // n_w, n_w)
+        while admissible.any():
+            best = int(np.argmax(score))
+            near = self._neighbours(best, shape)
+            if tried[near].all():
+                break
+            yield from judge(near)
+
+        rollouts = Rollouts(v, w, admissible, score, free_m, pts)
+        if not admissible.any():
+            return DwaChoice(0.0, 0.0, True, rollouts)
+        best = int(np.argmax(score))
+        return DwaChoice(float(v[best]), float(w[best]), False, rollouts)
+
+    def _judge_arcs(
+        self,
+        pose: tuple[float, float, float],
+        v: np.ndarray,
+        w: np.ndarray,
+        pts: np.ndarray,
+        costmap: LocalCostmap,
+        path: PathTrack,
+        start_clear_m: float,
+    ) -> Generator[None, None, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``(admissible, score, free_m)`` (K,) of the arcs ``(v, w)`` whose rollout points are ``pts`` (K, S, 2).
+
+        Each arc's figures depend on that arc alone (and the robot's start, point 0).
+        """
         k, s_count, _ = pts.shape
         step_len = np.abs(v) * self.horizon_s / (s_count - 1)  # (K,)
 
         # 1. Admissibility (Fox et al. 1997, section 4.2): free arc length before contact.
-        clear, limit = yield from self._clearance_until_contact(pts, costmap)
+        clear, limit = yield from self._clearance_until_contact(pts, costmap, start_clear_m)
         start_clear = float(clear[0, 0])
         hit = clear < limit
         first_hit = np.where(hit.any(axis=1), np.argmax(hit, axis=1), s_count)
@@ -558,13 +673,7 @@ class DynamicWindowPlanner:
         speed = v / self.max_speed_mps
         wp, wd, wh, wc, wv = self.weights
         score = wp * progress - wd * d_end / self.path_scale_m - wh * heading_err + wc * clearance + wv * speed
-        score = np.where(admissible, score, -np.inf)
-
-        rollouts = Rollouts(v, w, admissible, score, free_m, pts)
-        if not admissible.any():
-            return DwaChoice(0.0, 0.0, True, rollouts)
-        best = int(np.argmax(score))
-        return DwaChoice(float(v[best]), float(w[best]), False, rollouts)
+        return admissible, np.where(admissible, score, -np.inf), free_m
 
     plan = all_at_once_method(
         plan_steps,

@@ -1,10 +1,10 @@
 """Sample time stamps of the RPLidar driver against the emulator's true sample times.
 
 The emulator knows when it took each sample; the driver only sees bytes arrive. The
-driver decodes every ``DECODE_INTERVAL_S`` (40 ms), so stamping a sample with its decode
-time put it up to 40 ms late. Stamps now come from the arrival time of the bytes that
-completed each sample, which on the emulator's 20 ms packets is within about one
-sample period of the truth.
+driver decodes every ``DECODE_INTERVAL_S`` (40 ms then, 80 ms now), so stamping a sample
+with its decode time put it up to that late. Stamps now come from the arrival time of the
+bytes that completed each sample (a batch's samples spaced by its own measured period),
+which on the emulator's 20 ms packets is within about one sample period of the truth.
 """
 
 from __future__ import annotations
@@ -142,3 +142,23 @@ def test_samples_read_late_by_a_throttled_process_are_stamped_by_the_device_rhyt
     assert np.median(np.abs(err)) < 0.002
     assert np.percentile(np.abs(err), 99) < 0.013
     assert max(np.abs(err)) < 0.02
+
+
+def test_a_batch_is_spaced_by_its_own_period_near_the_nominal_one_and_by_the_nominal_one_after_a_gap() -> None:
+    period_s = 0.0005
+
+    def lidar() -> RPLidar:
+        return RPLidar(lambda: None, RealClock(), sample_period_s=period_s)  # type: ignore[arg-type, return-value]
+
+    # a head 1 % slower than nominal: 160 samples (80 ms) since the last batch's newest
+    since_s, newest_s = 10.0, 10.0 + 160 * period_s * 1.01
+    times = lidar()._stamp(160, newest_s, since_s)
+    assert times[-1] == newest_s
+    np.testing.assert_allclose(np.diff(times), period_s * 1.01, rtol=1e-9)
+    assert times[0] == pytest.approx(since_s + period_s * 1.01, abs=1e-12)  # the first where the device took it
+    # after a gap (a restarted scan, the first samples): twice the nominal interval is no period, nominal spacing
+    times = lidar()._stamp(160, since_s + 320 * period_s, since_s)
+    np.testing.assert_allclose(np.diff(times), period_s, rtol=1e-9)
+    # a backlog: more samples than fit at the nominal period are spread evenly over the interval
+    times = lidar()._stamp(160, since_s + 100 * period_s, since_s)
+    np.testing.assert_allclose(np.diff(times), 100 * period_s / 160, rtol=1e-9)

@@ -107,7 +107,7 @@ def test_every_admissible_rollout_is_collision_free_for_its_stopping_distance() 
 
 
 def _clearance_of_every_point(
-    dwa: DynamicWindowPlanner, pts: np.ndarray, costmap: LocalCostmap
+    dwa: DynamicWindowPlanner, pts: np.ndarray, costmap: LocalCostmap, start_clear_m: float | None = None
 ) -> Generator[None, None, tuple[np.ndarray, float]]:
     """The unsliced reference: every rollout point asked at once."""
     clear = costmap.clearance_m(pts.reshape(-1, 2), upper_bound_m=dwa.clearance_cap_m + dwa.contact_m)
@@ -335,3 +335,42 @@ def test_points_at_is_point_at_for_every_arc_length() -> None:
         s = np.concatenate((rng.uniform(-0.5, path.length_m + 0.5, 200), [0.0, path.length_m, *path.cum]))
         want = np.array([path.point_at(float(v)) for v in s])
         assert np.array_equal(path.points_at(s), want)
+
+
+def test_the_coarse_to_fine_search_scores_what_it_tries_as_the_full_search_and_ends_on_a_local_best() -> None:
+    rng = np.random.default_rng(5)
+    fine = DynamicWindowPlanner(coarse_step=1)
+    coarse = DynamicWindowPlanner()  # the default: every second speed and turn rate first
+    assert coarse.coarse_step == 2
+    scenes = [random_scene(rng) for _ in range(80)] + [corridor(half_width_m=h) for h in (0.146, 0.12, 0.1)]
+    tried_share = []
+    same_choice = 0
+    for obstacles in scenes:
+        v0 = float(rng.uniform(0.0, fine.max_speed_mps))
+        w0 = float(rng.uniform(-fine.max_yaw_rate_radps, fine.max_yaw_rate_radps))
+        heading = rng.uniform(-math.pi, math.pi)
+        path = [(0.0, 0.0), (0.6 * math.cos(heading), 0.6 * math.sin(heading))]
+        costmap = LocalCostmap(obstacles, footprint_radius_m=FOOTPRINT)
+        a = fine.plan((0.0, 0.0, 0.0), (v0, w0), costmap, PathTrack(path))
+        b = coarse.plan((0.0, 0.0, 0.0), (v0, w0), costmap, PathTrack(path))
+        np.testing.assert_array_equal(a.rollouts.v_mps, b.rollouts.v_mps)
+        np.testing.assert_array_equal(a.rollouts.w_radps, b.rollouts.w_radps)
+        tried = ~np.isnan(b.rollouts.free_m)
+        tried_share.append(tried.mean())
+        # every arc tried is judged as the full search judges it; the others are never chosen
+        np.testing.assert_array_equal(a.rollouts.free_m[tried], b.rollouts.free_m[tried])
+        np.testing.assert_array_equal(a.rollouts.score[tried], b.rollouts.score[tried])
+        np.testing.assert_array_equal(a.rollouts.admissible[tried], b.rollouts.admissible[tried])
+        assert not b.rollouts.admissible[~tried].any()
+        # blocked only when no arc of the window is admissible, as before
+        assert a.blocked == b.blocked
+        if b.blocked:
+            continue
+        same_choice += (a.v_mps, a.w_radps) == (b.v_mps, b.w_radps)
+        # the choice is a local best of the fine grid: none of its neighbours scores higher
+        vs, ws = np.unique(a.rollouts.v_mps), np.unique(a.rollouts.w_radps)
+        grid = a.rollouts.score.reshape(vs.size, ws.size)
+        r, c = int(np.searchsorted(vs, b.v_mps)), int(np.searchsorted(ws, b.w_radps))
+        assert grid[r, c] >= grid[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2].max()
+    assert np.mean(tried_share) < 0.6  # the search tried about half the arcs or fewer
+    assert same_choice > 0.8 * len(scenes)  # and found the full search's best in most scenes

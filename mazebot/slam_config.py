@@ -374,6 +374,9 @@ class MatchingSection:
         "... and at least this share of the scan's points lies where the submap could have seen it"))] = 0.5
     match_overlap_margin_m: Annotated[float, Field(ge=0, description=(
         "... a point counts as seen by a submap beam that reached at least this close to it"))] = 0.2
+    match_overlap_information_scale: Annotated[float, Field(gt=0, le=1, description=(
+        "... and such a match's information is this share of ICP's: few inliers at a doorway, less sure than "
+        "its Hessian says (ICP's information was 64 times too sure on the Intel log's edges)"))] = 1 / 64
 
 
 @dataclass(frozen=True)

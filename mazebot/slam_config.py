@@ -366,6 +366,17 @@ class MatchingSection:
         "that search's half-widths: this many prediction stds (at most the search's own window)"))] = 3.0
     corr_override_score: Annotated[float, Field(ge=0, le=1, description=(
         "its match replaces an acceptable ICP match scoring this much less on the likelihood table"))] = 0.05
+    match_overlap_fitness: Annotated[bool, Field(description=(
+        "a match under min_match_fitness that nothing else rescued still counts if its inlier ratio among the "
+        "points the local submap could have seen (inside its keyframes' beams) reaches min_match_fitness: a scan "
+        "through a doorway sees much the submap never saw (off: the ratio among all points)"))] = False
+    match_min_overlap: Annotated[float, Field(ge=0, le=1, description=(
+        "... and at least this share of the scan's points lies where the submap could have seen it"))] = 0.5
+    match_overlap_margin_m: Annotated[float, Field(ge=0, description=(
+        "... a point counts as seen by a submap beam that reached at least this close to it"))] = 0.2
+    match_overlap_information_scale: Annotated[float, Field(gt=0, le=1, description=(
+        "... and such a match's information is this share of ICP's: few inliers at a doorway, less sure than "
+        "its Hessian says (ICP's information was 64 times too sure on the Intel log's edges)"))] = 1 / 64
 
 
 @dataclass(frozen=True)

@@ -426,9 +426,9 @@ class Explorer:
         ):
             return None  # the map does not cover the robot yet (first scans): an empty map is not "done"
         self._retry_given_up(everything=False)
-        goal = self._explore_goal(grid, grid_origin_m, resolution_m, pose)
+        goal = yield from self._explore_goal_steps(grid, grid_origin_m, resolution_m, pose)
         if goal is None and self._retry_given_up(everything=True):  # nothing else left: try them again
-            goal = self._explore_goal(grid, grid_origin_m, resolution_m, pose)
+            goal = yield from self._explore_goal_steps(grid, grid_origin_m, resolution_m, pose)
         if goal is None:
             goal = self._return_goal(grid, grid_origin_m, resolution_m, pose)
         return goal
@@ -445,18 +445,25 @@ class Explorer:
         """,
     )
 
-    def _explore_goal(
+    def _explore_goal_steps(
         self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float, pose: tuple[float, float, float]
-    ) -> Goal | None:
-        """The next unknown to resolve: a maze link or cell, else (``map_check``) a frontier of the grid."""
+    ) -> Generator[None, None, Goal | None]:
+        """The next unknown to resolve: a maze link or cell, else (``map_check``) a frontier of the grid.
+
+        In stages: a frontier goal reads the whole grid several times (the frontiers, a
+        distance transform, a search over every free cell, the viewpoints, the path), 25 ms
+        on a 16x16 maze here, four times that on a Pi 4's share; the event loop (and the
+        planner task's own motion half, see :mod:`mazebot.tasks.planner_task`) runs between.
+        """
         if self.mode == "maze":
             goal = self._maze_goal(pose)
             if goal is None and self.map_check:
                 # the graph knows no unknown link: the grid itself must not know any
                 # known free space next to unknown space the robot can reach either
-                goal = self._frontier_goal(grid, origin, resolution_m, pose)
+                yield
+                goal = yield from self._frontier_goal_steps(grid, origin, resolution_m, pose)
             return goal
-        return self._frontier_goal(grid, origin, resolution_m, pose)
+        return (yield from self._frontier_goal_steps(grid, origin, resolution_m, pose))
 
     def _retry_given_up(self, everything: bool) -> bool:
         """Take blacklisted targets with attempts left off the blacklist; True if any was.
@@ -594,17 +601,19 @@ class Explorer:
             self._costmap = GridCostmap(grid, origin, resolution_m, self.footprint_radius_m, self.clearance_m)
         return self._costmap
 
-    def _frontier_goal(
+    def _frontier_goal_steps(
         self,
         grid: np.ndarray,
         origin: tuple[float, float],
         resolution_m: float,
         pose: tuple[float, float, float],
-    ) -> Goal | None:
+    ) -> Generator[None, None, Goal | None]:
         current = self._target
         anchor = current.key.centroid_m if current is not None and isinstance(current.key, _RegionKey) else None
         kept_goal = current.position_m if anchor is not None and current is not None else None
-        options = self._frontier_options(grid, origin, resolution_m, (pose[0], pose[1]), anchor, kept_goal)
+        options = yield from self._frontier_options_steps(
+            grid, origin, resolution_m, (pose[0], pose[1]), anchor, kept_goal
+        )
         if not options:
             self._target = None
             return None
@@ -621,7 +630,8 @@ class Explorer:
         at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
         if self._track(key, choice.goal_m, choice.cost_m, at_goal) is None:
             # just blacklisted (no progress): choose again among the rest
-            return self._frontier_goal(grid, origin, resolution_m, pose)
+            return (yield from self._frontier_goal_steps(grid, origin, resolution_m, pose))
+        yield
         path = costmap.plan((pose[0], pose[1]), choice.goal_m)
         waypoints = shortcut(path, costmap) if path else [choice.goal_m]
         cx, cy = choice.centroid_m
@@ -633,7 +643,7 @@ class Explorer:
             f"frontier of {choice.size} cells at {cx:.2f}, {cy:.2f} (sees {choice.view.gain:.0f} unknown)",
         )
 
-    def _frontier_options(
+    def _frontier_options_steps(
         self,
         grid: np.ndarray,
         origin: tuple[float, float],
@@ -641,7 +651,7 @@ class Explorer:
         robot_xy_m: tuple[float, float],
         anchor_m: tuple[float, float] | None = None,
         kept_goal_m: tuple[float, float] | None = None,
-    ) -> list[_Region]:
+    ) -> Generator[None, None, list[_Region]]:
         """Reachable, non-blacklisted frontier regions with their best viewpoints, lowest score first.
 
         Regions are looked at in the order of a lower bound of their score (the cheapest
@@ -655,7 +665,9 @@ class Explorer:
         frontiers = find_frontiers(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
         if not frontiers:
             return []
+        yield
         costmap = self._costmap_for(grid, origin, resolution_m)
+        yield
         distances = costmap.distances_from(robot_xy_m)
         cost_cells = np.where(costmap.passable, distances, np.inf)
         free = grid == FREE
@@ -677,6 +689,7 @@ class Explorer:
         for bound, is_current, frontier, centroid, candidates in ranked:
             if not is_current and bound >= best:
                 continue
+            yield
             extra = None
             if is_current and kept_goal_m is not None:
                 cell = costmap.to_cell(*kept_goal_m)

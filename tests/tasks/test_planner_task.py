@@ -65,3 +65,18 @@ def test_a_goal_half_longer_than_a_period_gets_a_motion_half_between_its_stages(
 
 def test_a_goal_half_on_a_clock_that_does_not_move_runs_no_motion_half() -> None:
     assert _goal_half(0.0) == ["stage 0", "stage 1", "stage 2", "stage 3"]
+
+
+def test_the_pilot_drives_between_stages_only_after_a_goal_half_that_chose_to_drive() -> None:
+    from mazebot.config import Config
+    from mazebot.planner.pilot import Pilot, PilotParams
+    from mazebot.state import RunState, SharedState
+
+    pilot = Pilot(PilotParams.from_config(Config()))
+    state = SharedState()
+    assert not pilot.motion_due(1e9)  # nothing followed yet
+    state.run_state = RunState.EXPLORING
+    assert pilot.plan(state, 1.0) is False  # no map yet: it holds the robot
+    assert state.motion_command is not None and state.motion_command.v_mps == 0.0
+    assert pilot.last_command_s == 1.0
+    assert not pilot.motion_due(1e9)  # a hold leaves nothing to follow between stages

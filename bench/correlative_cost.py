@@ -95,7 +95,7 @@ def main() -> None:
     if not log.is_file():
         print(f"{log} not found: laser-log figures skipped")
         return
-    laser = laser_log_params(maze, (0.05, 0.05))
+    laser = laser_log_params(maze)
     assert laser.correlative is not None and laser.loop.search is not None
     pairs = intel_pairs(log)
     _measure("laser log sequential", laser.correlative, pairs)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 import pickle
 import statistics
 import time
@@ -34,10 +35,11 @@ from typing import Any
 import numpy as np
 
 from mazebot.bench.cli import SIM_S_PER_CELL
-from mazebot.bench.runner import RunSpec, _relative, run_one
+from mazebot.bench.metrics import relative_poses
+from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config, parse_config
-from mazebot.slam import slam as slam_module
-from mazebot.slam.slam import Slam, SlamParams
+from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.slam import Slam, SlamParams, SlamUpdated
 
 
 class FrozenOdometry:
@@ -52,25 +54,26 @@ class FrozenOdometry:
         return np.interp(times, t, live[:, 1]), np.interp(times, t, live[:, 2]), np.interp(times, t, live[:, 3])
 
 
-def capture(seed: int, size: int, out: str) -> None:
+def capture(seed: int, size: int, out: str, drive: str = "scripted") -> None:
     config = load_config(None)
     max_sim_s = max(900.0, SIM_S_PER_CELL * size * size)  # as ``mazebot bench --size``
     frames: list[tuple[Any, np.ndarray]] = []
-    real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
-    def update(self: Slam, scan: Any, odometry: Any, **kwargs: Any) -> Any:
-        frames.append((scan, odometry._buf[odometry._start : odometry._end].copy()))
-        return (yield from real_update(self, scan, odometry, **kwargs))
+    def captured(seen: SlamUpdated) -> None:
+        # SLAM reads the odometry (up to the revolution's end) in its first stage; the history
+        # as it stands when the update ends interpolates those times the same way
+        assert isinstance(seen.odometry, OdometryHistory)
+        frames.append((seen.scan, seen.odometry.since(-math.inf)))
 
-    slam_module.Slam.update_steps = update  # type: ignore[method-assign]
-    try:
-        metrics, record = run_one(config, RunSpec(None, (size, size), seed, "scripted", max_sim_s=max_sim_s))
-    finally:
-        slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
+    def watch(slam: Slam) -> None:
+        slam.taps.on_update += (captured,)
+
+    spec = RunSpec(None, (size, size), seed, drive, max_sim_s=max_sim_s)
+    metrics, record = run_one(config, spec, watch_slam=watch)
     true_poses = np.asarray(record.true_poses, dtype=float).reshape(-1, 3)
     truth = {  # the true poses in the map frame (the start's), on the daemon's clock
         "times_s": np.asarray(record.times_s, dtype=float) + record.start_s,
-        "poses": _relative(tuple(true_poses[0]), true_poses),
+        "poses": relative_poses(tuple(true_poses[0]), true_poses),
     }
     keys = ("done", "time_s", "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "loop_closures")
     bench = {key: metrics[key] for key in keys}
@@ -179,9 +182,11 @@ def replay(path: str, repeat: int, latency_s: float, settings: list[str]) -> Non
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    cap = sub.add_parser("capture", help="run a scripted tour and save what SLAM was given")
+    cap = sub.add_parser("capture", help="run a scripted tour (or an exploration) and save what SLAM was given")
     cap.add_argument("--seed", type=int, default=2)
     cap.add_argument("--size", type=int, default=6, help="maze cells per side (default 6)")
+    cap.add_argument("--drive", choices=("scripted", "explore"), default="scripted",
+                     help="the scripted tour (default) or an exploration, as the daemon's quota bench drives")
     cap.add_argument("--out", required=True)
     rep = sub.add_parser("replay", help="run SLAM over a capture")
     rep.add_argument("path")
@@ -193,7 +198,7 @@ def main() -> None:
                      help="a config value for the replayed SLAM (TOML syntax), e.g. slam.keyframes.submap_keyframes=30")
     args = parser.parse_args()
     if args.command == "capture":
-        capture(args.seed, args.size, args.out)
+        capture(args.seed, args.size, args.out, args.drive)
     else:
         replay(args.path, args.repeat, args.latency_s, args.set)
 

@@ -21,8 +21,8 @@ Example::
 
 from __future__ import annotations
 
+import gc
 import time
-from collections import deque
 from collections.abc import Generator, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -35,6 +35,70 @@ T = TypeVar("T")
 
 #: Calls kept per part for the percentile: minutes of the busiest part (the 50 Hz odometry).
 RECENT_CALLS = 20000
+
+
+class RecentValues:
+    """The last ``maxlen`` numbers of a series (a ring in one float64 array), oldest first.
+
+    It replaces ``deque(maxlen=...)`` of floats for the daemon's per-call figures: a deque
+    holds a Python float object and a slot per value, about 32 bytes, this holds 8, and its
+    whole bound is one array made at the start (pages the kernel maps only once written), so
+    a run of any length stays within ``8 · maxlen`` bytes per series.
+
+    One writer; a reader on another thread may see the newest value missing, never a value
+    that was not appended.
+
+    Example::
+
+        ms = RecentValues(maxlen=3)
+        for v in (1.0, 2.0, 3.0, 4.0):
+            ms.append(v)
+        list(ms)            # [2.0, 3.0, 4.0]
+        np.asarray(ms)      # array([2., 3., 4.])
+    """
+
+    def __init__(self, maxlen: int) -> None:
+        if maxlen < 1:
+            raise ValueError(f"a series keeps at least one value, got maxlen {maxlen}")
+        self._values = np.empty(int(maxlen), dtype=np.float64)
+        self._count = 0  # values appended over the whole life
+
+    @property
+    def maxlen(self) -> int:
+        return int(self._values.shape[0])
+
+    def append(self, value: float) -> None:
+        count = self._count
+        self._values[count % self._values.shape[0]] = value
+        self._count = count + 1  # after the write: a reader never sees an unwritten slot
+
+    def clear(self) -> None:
+        self._count = 0
+
+    def __len__(self) -> int:
+        return min(self._count, self._values.shape[0])
+
+    def values(self) -> np.ndarray:
+        """A copy of the values kept, oldest first."""
+        count, size = self._count, self._values.shape[0]
+        if count <= size:
+            return self._values[:count].copy()
+        split = count % size
+        return np.concatenate((self._values[split:], self._values[:split]))
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> np.ndarray:
+        out = self.values()
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def __getitem__(self, index: int) -> float:
+        """The value at ``index``, oldest first (negative from the newest), as a deque's."""
+        return float(self.values()[index])
+
+    def __iter__(self) -> Iterator[float]:
+        return iter(self.values().tolist())
+
+    def __repr__(self) -> str:
+        return f"RecentValues(maxlen={self.maxlen}, len={len(self)})"
 
 #: The parts of the daemon, in the order a reader follows the data (docs/design.md, "Data flow").
 PARTS = (
@@ -53,6 +117,7 @@ PARTS = (
     "saving",
     "zenoh poll",
     "zenoh publish",
+    "garbage collection",
 )
 
 
@@ -70,7 +135,7 @@ class PartMeter:
         self.name = name
         self.calls = 0
         self.cpu_s = 0.0
-        self.recent_ms: deque[float] = deque(maxlen=RECENT_CALLS)
+        self.recent_ms = RecentValues(RECENT_CALLS)
 
     def add(self, cpu_s: float) -> None:
         """One call that took ``cpu_s`` seconds of CPU (measured by the caller, e.g. in a worker)."""
@@ -100,13 +165,38 @@ class PartMeter:
 
     def summary(self, robot_s: float | None) -> dict[str, Any]:
         """CPU ms per robot-second over the whole life, p50/p99 ms of the recent calls."""
-        ms = np.fromiter(self.recent_ms, dtype=float, count=len(self.recent_ms))
+        ms = self.recent_ms.values()
         return {
             "calls": self.calls,
             "cpu_ms_per_s": round(1e3 * self.cpu_s / robot_s, 3) if robot_s else None,
             "p50_ms": round(float(np.percentile(ms, 50)), 3) if len(ms) else None,
             "p99_ms": round(float(np.percentile(ms, 99)), 3) if len(ms) else None,
         }
+
+
+@contextmanager
+def garbage_collection_metered(meter: PartMeter) -> Iterator[None]:
+    """Charge every cyclic garbage collection of this process to ``meter`` while the body runs.
+
+    Python's collector runs in whichever thread's allocation set it off, inside that thread
+    (``gc.callbacks``: called at its start and its stop, in the collecting thread), so the
+    thread CPU between the two is the collection's. It belongs to no part: the allocations
+    of every part and of the event loop add up to it. Each collection costs the two
+    callbacks (a microsecond or two) on top.
+    """
+    started: list[float] = []
+
+    def on_collection(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            started.append(time.thread_time())
+        elif started:
+            meter.add(time.thread_time() - started.pop())
+
+    gc.callbacks.append(on_collection)
+    try:
+        yield
+    finally:
+        gc.callbacks.remove(on_collection)
 
 
 class CpuBudget:

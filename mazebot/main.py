@@ -25,8 +25,10 @@ from typing import TYPE_CHECKING, Protocol, cast
 from mazebot import sdnotify
 from mazebot.clock import Clock, RealClock
 from mazebot.config import Config
+from mazebot.cpu_budget import garbage_collection_metered
 from mazebot.errors import EXIT_OK, HardwareUnavailable
 from mazebot.hardware import Hardware, HardwareBuilder, LidarActivity, lgpio_pin_factory
+from mazebot.malloc_tuning import fix_mmap_threshold
 from mazebot.sdnotify import ControlHeartbeat
 from mazebot.state import SharedState
 from mazebot.tasks.supervisor import Supervisor
@@ -36,7 +38,6 @@ if TYPE_CHECKING:
     from gpiozero import Factory
 
     from mazebot.io.motor_hat import MotorKitLike
-    from mazebot.io.scan import Scan
     from mazebot.io.serial_link import SerialLink
     from mazebot.record.foxglove_live import FoxgloveLive
     from mazebot.slam.slam import Slam, SlamParams
@@ -59,8 +60,8 @@ class Session(Protocol):
              stack: AsyncExitStack) -> Hardware:
         """The hardware with the session's recording taps in front of it."""
 
-    def make_slam(self, params: SlamParams, *, before_update: Callable[[Scan], None] | None = None) -> Slam:
-        """The daemon's SLAM: fresh, or the saved run's (``before_update``: :class:`Slam`'s fault seam)."""
+    def make_slam(self, params: SlamParams) -> Slam:
+        """The daemon's SLAM: fresh, or the saved run's."""
 
     def start_tasks(self, config: Config, clock: Clock, state: SharedState, supervisor: Supervisor,
                     slam: Slam) -> None:
@@ -256,7 +257,6 @@ async def run_daemon(
     autonomous: bool = True,
     session: Session | None = None,
     instrument: Instrument | None = None,
-    before_slam_update: Callable[[Scan], None] | None = None,
     config_path: Path | None = None,
 ) -> int:
     """Run the whole robot until a signal (exit 0) or a fatal fault; return the exit code.
@@ -265,15 +265,16 @@ async def run_daemon(
     recorder there); ``serve_web=False`` leaves the web server out (virtual-time runs);
     ``autonomous=False`` leaves the planner out (the benchmark's scripted tour drives).
     ``session`` (a :class:`mazebot.run_session.RunSession`) records, saves or resumes the run.
-    ``instrument(slam, executor)`` returns the executor SLAM is to use (the fault injector's
-    way to reach the compute: :mod:`mazebot.sim.faults`); ``before_slam_update`` is handed to the
-    daemon's :class:`Slam` as its fault seam (called with each revolution before the update; what it
-    raises, the update raises: the fault injector's ``slam-raise``). ``config_path`` is the file ``config``
-    came from: a calibration confirmed on the setup page replaces it.
+    ``instrument(slam, executor)`` is shown the daemon's :class:`Slam` before its first revolution
+    and returns the executor SLAM is to use: the harness's one way to reach the compute (the fault
+    injector sets the Slam's fault seam ``before_update`` there and slows its executor:
+    :mod:`mazebot.sim.faults`; the benchmark listens on its taps). ``config_path`` is the file
+    ``config`` came from: a calibration confirmed on the setup page replaces it.
     """
     clock = clock or RealClock()
     loop = asyncio.get_running_loop()
     state = state if state is not None else SharedState()
+    fix_mmap_threshold()  # before the fork server starts: its children inherit the setting
     async with AsyncExitStack() as stack:
         live = _start_foxglove(config, stack)  # first: a missing package stops us before any device opens
         hardware = await build_hardware(config, clock, stack)
@@ -340,9 +341,9 @@ async def run_daemon(
         )
         slam_params = SlamParams.from_config(config.slam, config.lidar, config.planner)
         if session is not None:  # recorded, saved or resumed
-            slam = session.make_slam(slam_params, before_update=before_slam_update)
+            slam = session.make_slam(slam_params)
         else:
-            slam = Slam(slam_params, background=True, record_trajectory=False, before_update=before_slam_update)
+            slam = Slam(slam_params, background=True, record_trajectory=False)
         if instrument is not None:
             slam_executor = instrument(slam, slam_executor)
         supervisor.start("lidar", lambda: lidar_task.run(hardware.lidar, state), restart=True)
@@ -415,7 +416,7 @@ async def run_daemon(
         # lidar, motors and web are up: tell systemd (Type=notify)
         sdnotify.notify(f"READY=1\nSTATUS={hardware.description}")
         try:
-            with _start_up_objects_frozen():
+            with _start_up_objects_frozen(), garbage_collection_metered(state.cpu.part("garbage collection")):
                 return await supervisor.wait()
         finally:
             sdnotify.notify("STOPPING=1")

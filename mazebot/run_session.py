@@ -29,12 +29,9 @@ from mazebot.persist.runs import find_run, new_run_dir, runs_root
 from mazebot.state import SharedState
 
 if TYPE_CHECKING:  # the SLAM (numpy, scipy) is imported when it is built, after the page is served
-    from collections.abc import Callable
 
-    from mazebot.io.scan import Scan
     from mazebot.persist.snapshot import SavedRun
-    from mazebot.slam.observed import ObservedSlam
-    from mazebot.slam.slam import SlamParams
+    from mazebot.slam.slam import Slam, SlamParams
 
 log = logging.getLogger(__name__)
 
@@ -127,23 +124,18 @@ class RunSession:
         record_task.publish_stats(state, recorder)
         return record_task.tap_hardware(hardware, tap)
 
-    def make_slam(self, params: SlamParams, *, before_update: Callable[[Scan], None] | None = None) -> ObservedSlam:
-        """The daemon's Slam: resumed from the saved run, or fresh; observed by the recorder.
-
-        ``before_update`` is :class:`~mazebot.slam.slam.Slam`'s fault seam (``run_daemon``'s ``before_slam_update``).
-        """
-        from mazebot.slam.observed import ObservedSlam
+    def make_slam(self, params: SlamParams) -> Slam:
+        """The daemon's Slam: resumed from the saved run, or fresh; watched by the recorder."""
+        from mazebot.slam.slam import Slam
 
         if self.resume is not None:
-            from mazebot.persist.resume import ResumedSlam
+            from mazebot.persist.resume import resume_slam
 
-            slam: ObservedSlam = ResumedSlam(
-                params, self.resume, background=True, record_trajectory=False, before_update=before_update
-            )
+            slam = resume_slam(params, self.resume, background=True, record_trajectory=False)
         else:
-            slam = ObservedSlam(params, background=True, record_trajectory=False, before_update=before_update)
+            slam = Slam(params, background=True, record_trajectory=False)
         if self.tap is not None:
-            slam.observers.append(self.tap)
+            self.tap.watch_slam(slam)
         return slam
 
     def start_tasks(self, config: Config, clock: Clock, state: SharedState, supervisor: Any, slam: Any) -> None:

@@ -74,6 +74,18 @@ class MotionSection:
         "odometry heading variance per metre travelled ((0.01 rad)² per m)"))] = 1e-4
     theta_rad2_per_rad: Annotated[float, Field(gt=0, description=(
         "odometry heading variance per radian turned ((0.05 rad)² per rad)"))] = 2.5e-3
+    estimate: Annotated[bool, Field(description=(
+        "learn the three variances above from the data: the disagreement between the odometry's and the "
+        "scan matches' increments (the values above are the prior, used until enough matches; off on the "
+        "robot, whose noise is measured; on for laser logs, whose odometry nobody described)"))] = False
+    estimate_min_matches: Annotated[int, Field(ge=1, le=100000, description=(
+        "matched increments before the estimate replaces the prior"))] = 20
+    estimate_window: Annotated[int, Field(ge=1, le=100000, description=(
+        "the estimate is over this many newest matched increments (the odometry may change: a floor, a load)"))] = 200
+    estimate_floor_xy_m2_per_m: Annotated[float, Field(gt=0, description=(
+        "the learned position variance never goes below this ((1 cm)² per m: the matches' own error)"))] = 1e-4
+    estimate_floor_theta_rad2: Annotated[float, Field(gt=0, description=(
+        "the learned heading variance per metre and per radian never goes below this ((0.005 rad)²)"))] = 2.5e-5
 
 
 @dataclass(frozen=True)
@@ -200,6 +212,14 @@ class LoopSection:
         "verify keyframe 0 too whenever it is within the search radius (closures to it fix the map's "
         "orientation about the start)"))] = False
     min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
+    overlap_fitness: Annotated[bool, Field(description=(
+        "a match below min_fitness still passes if its inlier ratio among the points the submap could have "
+        "seen (inside its keyframes' beams) reaches min_fitness: a building's doorways and far corridor sides "
+        "have nothing to match (off: the ratio among all points)"))] = False
+    min_overlap: Annotated[float, Field(ge=0, le=1, description=(
+        "... and at least this share of the points lies where the submap could have seen it"))] = 0.5
+    overlap_margin_m: Annotated[float, Field(ge=0, description=(
+        "a point is seen by a beam that reached at least this close to it"))] = 0.2
     max_rmse_m: Annotated[float, Field(gt=0, description="accept: point-to-line RMS at most this")] = 0.012
     min_correspondences: Annotated[int, Field(ge=3, description="accept: at least this many matched points")] = 40
     accept_degenerate: Annotated[bool, Field(description=(

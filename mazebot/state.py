@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from mazebot.cpu_budget import CpuBudget
+from mazebot.cpu_budget import CpuBudget, RecentValues
 from mazebot.taps import notify
 
 if TYPE_CHECKING:
@@ -222,9 +222,9 @@ class SharedState:
     finished_at_s: float | None = None  # clock time the run reached DONE
     #: age of the newest encoder edge counted, at each odometry reading with new edges,
     #: milliseconds: how late a pose dated by the reading time would be (the odometry task)
-    odometry_edge_age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+    odometry_edge_age_ms: RecentValues = field(default_factory=lambda: RecentValues(1000))
     #: recent lateness of control ticks beyond their period, milliseconds
-    control_lateness_ms: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+    control_lateness_ms: RecentValues = field(default_factory=lambda: RecentValues(1000))
     #: CPU time per part of the daemon (:mod:`mazebot.cpu_budget`); each part's meter is
     #: written only by the task or thread whose part it is
     cpu: CpuBudget = field(default_factory=CpuBudget)
@@ -247,16 +247,16 @@ class SharedState:
     #: keyframe positions; replaced by a new deque when a loop closure moved them
     trajectory: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=2000))
     #: CPU time of SLAM's update per scan, ms (filter + ICP + grid; loop closures run in an executor)
-    scan_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    scan_ms: RecentValues = field(default_factory=lambda: RecentValues(20000))
     #: CPU time of each loop-closure job, ms, in the thread or worker process that ran it
-    loop_job_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    loop_job_ms: RecentValues = field(default_factory=lambda: RecentValues(20000))
     # --- written by the planner --------------------------------------------------------
     path: list[tuple[float, float]] = field(default_factory=list)  # planned waypoints, map frame
     goal: tuple[float, float] | None = None  # the current exploration goal, map frame
     coverage: float | None = None  # fraction of the maze the map knows, when the planner can tell
     planner_status: str = ""  # one human line: what the planner is doing and why
     #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
-    planner_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    planner_ms: RecentValues = field(default_factory=lambda: RecentValues(20000))
     #: what the planner decided and when, ``(time_s, text)``: new targets, blacklists, recoveries
     planner_events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=5000))
     # --- written by the recorder and the run saver (mazebot.tasks.record_task, persist_task) ---

@@ -30,42 +30,36 @@ from kept_run import add_keep_options, kept_or_new
 
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import load_config
-from mazebot.slam import slam as slam_module
+from mazebot.slam.slam import Slam, SlamApplied, SlamUpdated
 
 
 def run_and_capture(seed: int, size: int, maze: str | None) -> dict[str, Any]:
     """One scripted mission; returns the truth, the live estimate, per-scan poses, merges, keyframes."""
-    captured: list[Any] = []
+    captured: list[Slam] = []
     scans: list[tuple[float, np.ndarray]] = []
     merges: list[dict[str, Any]] = []
-    base = slam_module.Slam
+    last_pose: list[np.ndarray] = []  # the filter's pose after the last update or merge
 
-    class RecordingSlam(base):  # type: ignore[misc, valid-type]
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
-            kwargs["record_trajectory"] = True  # the final trajectory follows the optimized keyframes
-            super().__init__(*args, **kwargs)
-            captured.append(self)
+    def updated(seen: SlamUpdated) -> None:
+        scans.append((seen.update.time_s, seen.update.pose.copy()))
+        last_pose[:] = [seen.update.pose.copy()]
 
-        def update_steps(self, scan: Any, odometry: Any, **kwargs: Any) -> Any:
-            out = yield from super().update_steps(scan, odometry, **kwargs)
-            scans.append((out.time_s, out.pose.copy()))
-            return out
+    def applied(seen: SlamApplied) -> None:
+        after = seen.slam.pose
+        jump_m = float(np.hypot(*(after - last_pose[0])[:2])) if last_pose else 0.0
+        last_pose[:] = [after]
+        merges.append({"time_s": scans[-1][0] if scans else 0.0, "jump_m": jump_m,
+                       "accepted": sum(v.accepted for v in seen.result.verdicts)})
 
-        def apply_steps(self, result: Any) -> Any:
-            before = self.ekf.mean.copy()
-            rebuilt = yield from super().apply_steps(result)
-            jump_m = float(np.hypot(*(self.ekf.mean - before)[:2]))
-            merges.append({"time_s": scans[-1][0] if scans else 0.0, "jump_m": jump_m,
-                           "accepted": sum(v.accepted for v in result.verdicts)})
-            return rebuilt
+    def watch(slam: Slam) -> None:
+        slam.record_trajectory = True  # the final trajectory follows the optimized keyframes
+        slam.taps.on_update += (updated,)
+        slam.taps.on_apply += (applied,)
+        captured.append(slam)
 
-    slam_module.Slam = RecordingSlam
-    try:
-        spec = RunSpec(maze, None if maze else (size, size), seed, "scripted",
-                       max_sim_s=3600.0 if maze else max(900.0, 14.0 * size * size))
-        metrics, record = run_one(load_config(None), spec)
-    finally:
-        slam_module.Slam = base
+    spec = RunSpec(maze, None if maze else (size, size), seed, "scripted",
+                   max_sim_s=3600.0 if maze else max(900.0, 14.0 * size * size))
+    metrics, record = run_one(load_config(None), spec, watch_slam=watch)
     slam = captured[-1]
     final_t, final_poses = slam.trajectory()
     return {

@@ -35,41 +35,30 @@ from mazebot.bench.runner import RunSpec, map_metrics, run_one
 from mazebot.config import load_config
 from mazebot.sim.raster import free_reachable, true_occupancy
 from mazebot.sim.raycast import distance_to_obstacles
-from mazebot.slam import slam as slam_module
-from mazebot.slam.slam import GridParams
+from mazebot.slam.slam import GridParams, Slam, SlamUpdated
 
 
 def run_and_capture(seed: int, drive: str, size: int, config_path: str | None = None) -> dict[str, Any]:
     """One mission; returns the keyframes, the true trajectory, the world and the final grid."""
-    captured: list[Any] = []
-    base = slam_module.Slam
-
+    captured: list[Slam] = []
     scans: list[dict[str, Any]] = []
 
-    class CapturingSlam(base):  # type: ignore[misc, valid-type]
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
-            super().__init__(*args, **kwargs)
-            captured.append(self)
+    def updated(seen: SlamUpdated) -> None:
+        out, m = seen.update, seen.update.match
+        scans.append({
+            "time_s": out.time_s, "pose": out.pose.copy(), "matched": out.matched,
+            "match_pose": None if m is None else m.pose.copy(),
+            "fitness": None if m is None else m.fitness, "rmse_m": None if m is None else m.rmse_m,
+            "converged": None if m is None else m.converged,
+            "offset_s": seen.slam.time_offset.offset_s, "keyframe": out.keyframe,
+        })
 
-        def update_steps(self, scan: Any, odometry: Any, **kwargs: Any) -> Any:
-            # the SLAM task passes its paint decision (paint=...): hand it on
-            out = yield from super().update_steps(scan, odometry, **kwargs)
-            m = out.match
-            scans.append({
-                "time_s": out.time_s, "pose": out.pose.copy(), "matched": out.matched,
-                "match_pose": None if m is None else m.pose.copy(),
-                "fitness": None if m is None else m.fitness, "rmse_m": None if m is None else m.rmse_m,
-                "converged": None if m is None else m.converged,
-                "offset_s": self.time_offset.offset_s, "keyframe": out.keyframe,
-            })
-            return out
+    def watch(slam: Slam) -> None:
+        slam.taps.on_update += (updated,)
+        captured.append(slam)
 
-    slam_module.Slam = CapturingSlam
-    try:
-        config = load_config(config_path)
-        metrics, record = run_one(config, RunSpec(None, (size, size), seed, drive))
-    finally:
-        slam_module.Slam = base
+    config = load_config(config_path)
+    metrics, record = run_one(config, RunSpec(None, (size, size), seed, drive), watch_slam=watch)
     slam = captured[-1]
     robot = record.hardware.sim
     keyframes = [

@@ -145,7 +145,8 @@ def _quota_runs(args: argparse.Namespace, config: Config, specs: list[RunSpec], 
         metrics = quota_metrics(cfg, spec, record)
         runs.append(metrics)
         _progress(i, len(specs), f"{spec.name} seed {spec.seed} at {args.cpu_quota} % of one core: "
-                  f"done={metrics['done']} in {metrics['time_s']} s, daemon CPU {metrics['daemon_cpu_percent']} %")
+                  f"done={metrics['done']} in {metrics['time_s']} s, daemon CPU {metrics['daemon_cpu_percent']} % "
+                  f"({metrics['daemon_cpu_percent_sim_out']} % with the simulator's GPIO share out)")
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

@@ -1,6 +1,6 @@
 """``mazebot bench --cpu-quota``: the daemon on a Pi's share of this CPU, the world outside it.
 
-Why one module of ~650 lines: the three processes of a quota run (the daemon under the quota,
+Why one module of ~760 lines: the three processes of a quota run (the daemon under the quota,
 the world outside it, this parent watching both) and the ``/proc`` readings that measure them
 are one experiment; the metrics at the end read the record the watcher fills, so its fields and
 their readers sit together.
@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import multiprocessing
 import os
@@ -46,7 +47,10 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from mazebot.cpu_budget import RecentValues
 from mazebot.errors import MazebotError
+
+log = logging.getLogger(__name__)
 
 #: How long the world may take to build and serve its lidar, and the daemon to come up.
 START_TIMEOUT_S = 60.0
@@ -58,6 +62,10 @@ RSS_PERIOD_S = 0.5
 RECORD_PERIOD_S = 0.1
 #: Control ticks whose lateness is kept for the p99 (a 16x16 maze is ~12 000 ticks at 20 Hz).
 LATENESS_KEPT = 200_000
+#: The emulated Pi GPIO path's cost per edge (:mod:`mazebot.sim.edge_cost`), measured after each run:
+#: quadrature cycles per timed run (4 edges each) and runs per stage (the median kept); ~0.6 s of CPU.
+EDGE_COST_CYCLES = 5_000
+EDGE_COST_REPEATS = 7
 
 
 class QuotaRunError(MazebotError):
@@ -134,14 +142,15 @@ async def _run_daemon(
         return hardware
 
     state = SharedState()
-    state.control_lateness_ms = deque(maxlen=LATENESS_KEPT)
-    state.odometry_edge_age_ms = deque(maxlen=LATENESS_KEPT)
+    state.control_lateness_ms = RecentValues(LATENESS_KEPT)
+    state.odometry_edge_age_ms = RecentValues(LATENESS_KEPT)
     # the logs in flat float arrays (t, x, y, θ per row): the daemon's memory is measured with them in it
     run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": array("d"), "odometry": array("d"),
-                           "scans": [], "encoders": None}
+                           "scans": [], "encoders": None, "gpio_at_start": (None, 0), "gpio_at_end": (None, 0)}
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         run["start_s"] = clock.now_s()
+        run["gpio_at_start"] = (gpio.cpu_s(), gpio.edges)  # the simulator's stand-in, read with the cgroup's CPU
         result_tx.send(("started", run["start_s"]))
 
         def on_control() -> None:
@@ -186,6 +195,7 @@ async def _run_daemon(
             run["end_s"] = clock.now_s()
             reading = hardware.encoders.read()
             run["encoders"] = (reading.left_ticks, reading.right_ticks)
+            run["gpio_at_end"] = (gpio.cpu_s(), gpio.edges)
             result_tx.send(("finished", run["end_s"]))
             supervisor.request_stop("benchmark run finished")
 
@@ -224,6 +234,9 @@ async def _run_daemon(
         "encoder_invalid_transitions": state.sensors.encoder_invalid_transitions,
         "encoder_ticks": run["encoders"],
         "gpio_edges": gpio.edges,
+        # the GPIO edge thread over the run (started .. finished): its CPU seconds and the edges it drove
+        "gpio_thread_cpu_s": _difference(run["gpio_at_end"][0], run["gpio_at_start"][0]),
+        "gpio_window_edges": run["gpio_at_end"][1] - run["gpio_at_start"][1],
         "motor_writes": kit.writes_sent + opener.writes_sent,  # this process's and the control process's
         "est": run["est"],
         "odometry": run["odometry"],
@@ -231,6 +244,10 @@ async def _run_daemon(
         "planner_events": list(state.planner_events),
         "map": state.map,
     }
+
+
+def _difference(end: float | None, start: float | None) -> float | None:
+    return None if end is None or start is None else end - start
 
 
 # --- this process ------------------------------------------------------------------------
@@ -355,6 +372,9 @@ class QuotaRecord:
     errors: list[str] = field(default_factory=list)
     loadavg_before: str | None = None  # /proc/loadavg when the run began and when it ended
     loadavg_after: str | None = None
+    #: seconds of CPU per encoder edge of each stage of :mod:`mazebot.sim.edge_cost`, measured in this
+    #: process once the run's processes had ended (None: not measured)
+    edge_costs: dict[str, float] | None = None
 
 
 def _stop_process(
@@ -446,7 +466,19 @@ def run_two_process(
         _stop_process(world, None)
         for conn in (report_rx, world_ctl_tx, result_rx, daemon_ctl_tx):
             conn.close()
+    record.edge_costs = _edge_costs()
     return record
+
+
+def _edge_costs() -> dict[str, float] | None:
+    """The Pi's GPIO path per edge and its parts, on this process's thread CPU (the run's processes ended)."""
+    from mazebot.sim.edge_cost import measure_stages
+
+    try:
+        return measure_stages(EDGE_COST_CYCLES, EDGE_COST_REPEATS)
+    except Exception as exc:  # a measurement gone wrong costs the one figure, not the run
+        log.warning("the GPIO path's cost per edge could not be measured: %s", exc)
+        return None
 
 
 def _await_ready(report_rx: Connection, world: multiprocessing.process.BaseProcess, record: QuotaRecord) -> str:
@@ -613,6 +645,7 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
 
     throttled_s = delta("throttled_s")
     exit_stat = record.cpu_at_exit
+    gpio = gpio_share(cpu_s, window_s, d.get("gpio_thread_cpu_s"), d.get("gpio_window_edges"), record.edge_costs)
     return {
         "maze": spec.name,
         "seed": spec.seed,
@@ -677,6 +710,17 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "daemon_cpu_percent": _round(cpu_pct, 1),  # of one core, over the run
         "daemon_cpu_percent_of_quota": _round(100.0 * cpu_pct / record.percent, 1)
         if cpu_pct is not None and record.percent else None,
+        # the same with the simulator's share taken out: what its GPIO stand-in does per edge beyond
+        # the Pi's path, times the edges (gpio_share); and the edge thread's own figures
+        "daemon_cpu_percent_sim_out": _round(gpio["daemon_cpu_percent_sim_out"], 2),
+        "gpio_sim_share_percent": _round(gpio["gpio_sim_share_percent"], 3),
+        "gpio_thread_cpu_percent": _round(gpio["gpio_thread_cpu_percent"], 2),
+        "gpio_thread_us_per_edge": _round(gpio["gpio_thread_us_per_edge"], 3),
+        "gpio_sim_path_us_per_edge": _round(gpio["gpio_sim_path_us_per_edge"], 3),
+        "gpio_pi_path_us_per_edge": _round(gpio["gpio_pi_path_us_per_edge"], 3),
+        "gpio_edges_per_s": _round(gpio["gpio_edges_per_s"], 1),
+        "gpio_edge_costs_us": {k: round(v * 1e6, 3) for k, v in record.edge_costs.items()}
+        if record.edge_costs else None,
         "daemon_cpu_s_total": _round(exit_stat.usage_s if exit_stat is not None else None, 3),  # start-up included
         "cfs_periods": delta("nr_periods"),
         "cfs_throttled": delta("nr_throttled"),
@@ -692,6 +736,41 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "loadavg_before": record.loadavg_before,
         "loadavg_after": record.loadavg_after,
     }
+
+
+def gpio_share(cpu_s: float | None, window_s: float | None, gpio_cpu_s: float | None, edges: int | None,
+               edge_costs: dict[str, float] | None) -> dict[str, float | None]:
+    """The GPIO edge thread's figures, and the daemon's CPU with the simulator's share of it taken out.
+
+    The thread (:class:`mazebot.sim.remote_devices.GpioEdgeThread`) stands in for lgpio's
+    callback thread but drives gpiozero mock pins. What it does per edge beyond the Pi's path
+    (:func:`mazebot.sim.edge_cost.simulator_excess_s_per_edge` of ``edge_costs``: the stand-in's
+    loop against our decoder behind gpiozero's dispatch and lgpio's notification loop, both
+    timed in a loop) is the simulator's: its ``edges`` times that come out of the cgroup's
+    ``cpu_s``. The rest of the thread's own CPU (``gpio_cpu_s``, its thread clock: several
+    times the loop's cost per edge, for being woken in a busy process that shares one
+    interpreter lock) stays: lgpio's callback thread is a Python thread of the daemon too.
+    Every figure None where a part is missing: the raw figure then stands alone.
+    """
+    from mazebot.sim.edge_cost import pi_path_s_per_edge, simulator_excess_s_per_edge
+
+    out: dict[str, float | None] = dict.fromkeys(
+        ("daemon_cpu_percent_sim_out", "gpio_sim_share_percent", "gpio_thread_cpu_percent",
+         "gpio_thread_us_per_edge", "gpio_sim_path_us_per_edge", "gpio_pi_path_us_per_edge", "gpio_edges_per_s"))
+    if edge_costs:
+        out["gpio_pi_path_us_per_edge"] = 1e6 * pi_path_s_per_edge(edge_costs)
+        out["gpio_sim_path_us_per_edge"] = 1e6 * edge_costs["sim_path"]
+    if gpio_cpu_s is None or not window_s or edges is None:
+        return out
+    out["gpio_thread_cpu_percent"] = 100.0 * gpio_cpu_s / window_s
+    out["gpio_edges_per_s"] = edges / window_s
+    if edges:
+        out["gpio_thread_us_per_edge"] = 1e6 * gpio_cpu_s / edges
+    if cpu_s is not None and edge_costs:
+        share_s = min(edges * simulator_excess_s_per_edge(edge_costs), gpio_cpu_s)
+        out["gpio_sim_share_percent"] = 100.0 * share_s / window_s
+        out["daemon_cpu_percent_sim_out"] = 100.0 * (cpu_s - share_s) / window_s
+    return out
 
 
 #: The window over which the odometry's motion is compared with the true motion.

@@ -200,7 +200,10 @@ QUOTA_COLUMNS = (
     ("maze", "maze"), ("seed", "seed"), ("cpu_quota_percent", "quota % of a core"), ("done", "done"),
     ("time_s", "time to done s"), ("coverage", "coverage"), ("collisions", "collisions"),
     ("control_jitter_ms_p99", "control p99 late ms"), ("slam_scans_dropped", "revolutions dropped"),
-    ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core"),
+    ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core (raw, cgroup)"),
+    ("daemon_cpu_percent_sim_out", "daemon CPU % of a core, the simulator's GPIO share out"),
+    ("gpio_thread_cpu_percent", "GPIO edge thread % of a core"), ("gpio_thread_us_per_edge", "its µs per edge"),
+    ("gpio_sim_path_us_per_edge", "stand-in's loop µs per edge"), ("gpio_pi_path_us_per_edge", "Pi path µs per edge"),
     ("daemon_cpu_percent_of_quota", "% of quota"), ("cfs_throttled", "throttled periods"),
     ("cfs_periods", "periods"), ("daemon_rss_mb_peak", "daemon RSS MB peak"),
     ("daemon_pss_mb_peak", "daemon PSS MB peak"), ("world_cpu_percent", "world CPU % of a core"),
@@ -224,8 +227,8 @@ def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) 
         return "null" if v is None else str(v)
 
     summary: dict[str, Any] = {"runs": len(runs), "done": sum(1 for r in runs if r["done"])}
-    for key in ("time_s", "coverage", "control_jitter_ms_p99", "daemon_cpu_percent", "daemon_cpu_percent_of_quota",
-                "daemon_rss_mb_peak"):
+    for key in ("time_s", "coverage", "control_jitter_ms_p99", "daemon_cpu_percent", "daemon_cpu_percent_sim_out",
+                "daemon_cpu_percent_of_quota", "daemon_rss_mb_peak"):
         values = [r[key] for r in runs if r.get(key) is not None]
         summary[f"{key}_median"] = round(statistics.median(values), 4) if values else None
     summary["collisions_total"] = sum(r["collisions"] or 0 for r in runs)
@@ -235,7 +238,11 @@ def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) 
         "# mazebot benchmark on a share of one core", "", f"Command: `{command}`", "",
         "The daemon in a cgroup with the CPU quota (10 ms period), the simulated world in a process of its "
         "own outside it, on the real clock. CPU from the cgroup's own accounting, from the daemon's start "
-        "(devices open) to the end of the run.", "",
+        "(devices open) to the end of the run. \"The simulator's GPIO share out\": the same less what the "
+        "GPIO edge thread (gpiozero's mock pins driven from the world's pipe, the stand-in for lgpio's "
+        "callback thread) does per edge beyond the Pi's path (our decoder behind gpiozero's dispatch, lgpio's "
+        "notification loop), times its edges; both timed in a loop after the run (mazebot.sim.edge_cost). "
+        "The rest of the thread's CPU stays: a Python callback thread costs as much on the Pi.", "",
         "| " + " | ".join(title for _, title in QUOTA_COLUMNS) + " |",
         "|" + "---|" * len(QUOTA_COLUMNS),
     ]

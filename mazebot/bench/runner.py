@@ -33,7 +33,7 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -56,6 +56,9 @@ from mazebot.sim.faults import FaultInjector, FaultSpec
 from mazebot.sim.virtual_time import SlowCpu, run_virtual
 from mazebot.state import RunState, SharedState
 from mazebot.tasks.supervisor import Supervisor
+
+if TYPE_CHECKING:  # the daemon imports SLAM when it builds it
+    from mazebot.slam.slam import Slam
 
 RECORD_PERIOD_S = 0.1
 
@@ -108,22 +111,32 @@ class RunRecord:
 
 
 def _instrument(
-    spec: RunSpec, injector: FaultInjector | None, record: RunRecord
-) -> Callable[[Any, Executor], Executor] | None:
+    spec: RunSpec, injector: FaultInjector | None, record: RunRecord, watch_slam: Callable[[Slam], None] | None = None
+) -> Callable[[Slam, Executor], Executor] | None:
     """The ``run_daemon`` hook: on virtual time the lost-robot search takes its CPU time
-    (:mod:`mazebot.bench.virtual_executor`); the fault injector reaches SLAM and its executor."""
-    if spec.clock != "virtual":
+    (:mod:`mazebot.bench.virtual_executor`); the fault injector reaches SLAM and its executor;
+    ``watch_slam`` is shown the daemon's Slam before its first revolution (to listen on its taps)."""
+    if spec.clock != "virtual" and watch_slam is None:
         return injector.instrument if injector is not None else None
 
-    def instrument(slam: Any, executor: Executor) -> Executor:
-        timed = record.executor = CpuTimedExecutor(executor, asyncio.get_running_loop())
-        return injector.instrument(slam, timed) if injector is not None else timed
+    def instrument(slam: Slam, executor: Executor) -> Executor:
+        if watch_slam is not None:
+            watch_slam(slam)
+        if spec.clock == "virtual":
+            executor = record.executor = CpuTimedExecutor(executor, asyncio.get_running_loop())
+        return injector.instrument(slam, executor) if injector is not None else executor
 
     return instrument
 
 
-def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
-    """Run one simulated mission and return its metrics and the raw record (for figures)."""
+def run_one(
+    config: Config, spec: RunSpec, *, watch_slam: Callable[[Slam], None] | None = None
+) -> tuple[dict[str, Any], RunRecord]:
+    """Run one simulated mission and return its metrics and the raw record (for figures).
+
+    ``watch_slam`` is called with the daemon's Slam once it is built, before its first
+    revolution: tools and tests listen on its taps there (:class:`mazebot.slam.slam.SlamTaps`).
+    """
     if spec.drive not in ("scripted", "explore"):
         raise UsageError(f"--drive must be scripted or explore, got {spec.drive!r}")
     if spec.slow is not None and spec.clock != "virtual":
@@ -142,8 +155,7 @@ def run_one(config: Config, spec: RunSpec) -> tuple[dict[str, Any], RunRecord]:
     daemon = run_daemon(
         harness.config, builder, serve_web=False, install_signal_handlers=False, on_started=harness.on_started,
         session=session, autonomous=spec.drive == "explore",
-        instrument=_instrument(spec, harness.injector, harness.record),
-        before_slam_update=harness.injector.before_slam_update if harness.injector is not None else None,
+        instrument=_instrument(spec, harness.injector, harness.record, watch_slam),
     )
     exit_code = run_virtual(daemon, slow=spec.slow) if spec.clock == "virtual" else asyncio.run(daemon)
     wall_s = time.perf_counter() - wall0

@@ -326,6 +326,11 @@ class WheelEncoder:
 
     # Readers (any thread).
 
+    @property
+    def edge_callbacks(self) -> tuple[PinCallback, PinCallback]:
+        """The two ``when_changed`` callbacks (A, B), for timing the decode without pins."""
+        return self._on_a_changed, self._on_b_changed
+
     def read(self) -> tuple[int, int]:
         """``(ticks, invalid_transitions)``, both from the same instant."""
         with self._lock:

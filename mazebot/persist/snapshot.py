@@ -68,7 +68,7 @@ def take_snapshot(slam: Slam, extra: dict[str, Any] | None = None) -> SlamSnapsh
         poses=slam.keyframe_poses().copy(),
         graph=copy.deepcopy(slam.graph),
         log_odds=grid.log_odds.copy(),
-        origin_cells=tuple(int(v) for v in grid._origin_cells),  # type: ignore[arg-type]
+        origin_cells=grid.origin_cells,
         resolution_m=grid.resolution_m,
         three_state=grid.three_state(),
         pose=tuple(float(v) for v in slam.pose),  # type: ignore[arg-type]
@@ -215,11 +215,4 @@ def load_run(run_dir: Path, normal_params: Any = None) -> SavedRun:
 
 def saved_grid(saved: SavedRun, like: OccupancyGrid) -> OccupancyGrid:
     """The saved log-odds grid, with the sensor model of ``like`` (the configured one)."""
-    grid = copy.copy(like)
-    grid._clear()
-    grid.log_odds = saved.log_odds.copy()
-    grid._origin_cells = saved.origin_cells
-    grid.cell_offset_m = saved.cell_offset_m
-    grid._touched = np.zeros(grid.log_odds.shape, dtype=bool)
-    grid._reported = grid.three_state()
-    return grid
+    return like.holding(saved.log_odds, saved.origin_cells, saved.cell_offset_m)

@@ -40,8 +40,8 @@ an occupied cell.
 :class:`LocalPlanner` wraps the DWA with what a maze needs around it: an in-place turn
 (:class:`~mazebot.planner.wheel_control.HeadingAligner`) when the path leaves behind the
 robot (dead ends), a goal stop, and recovery when stuck (turn in place, back off or
-drive out along the most open direction, re-plan; seed 003_'s lesson that a robot must
-never stand still).
+drive out along the most open direction, re-plan; the lesson of Embedded Motion Control 2017 Group 4
+(Beurskens, Janssen, Schouten et al.) that a robot must never stand still).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ cells whenever the frame is refined (:func:`_shifted`), and both read the same t
 through the same cell samples (:class:`_SampleCells`).
 
 The planner does not search the occupancy grid cell by cell: a maze of 1 ft squares is a
-graph of a few hundred nodes, and the seed design (000_…, III.C "graph builder") puts a
+graph of a few hundred nodes, and Nayak et al., *2D Autonomous Mapping* (III.C "graph builder"), puts a
 waypoint at every cell centre and links neighbouring waypoints whose boundary is open.
 This module builds that graph from the three-state grid SLAM publishes (−1 unknown,
 0 free, 100 occupied; row 0 south) in three steps:

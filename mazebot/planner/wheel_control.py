@@ -16,7 +16,8 @@ The local planner asks for a body velocity ``(v, ω)``; the motors take a thrott
    motors, battery sag, load). The integral is clamped and frozen while the output
    saturates (anti-windup, Åström & Hägglund, *Advanced PID Control*, 2006, 3.5), the
    derivative acts on the measurement (no kick on setpoint steps), and the integral is
-   reset whenever the drive mode changes: a lesson of seed 001_ (3.2.5, 7.1), whose
+   reset whenever the drive mode changes: a lesson of Gao, Ge, Yong and D'Cruz,
+   *Autonomous SLAM Robot* (MECHENG 706 report, 2015; 3.2.5, 7.1), whose
    robot kept veering after a turn because the rotation integral was never cleared.
 
 3. **Setpoint ramps**: wheel targets are rate-limited to the acceleration the motors can
@@ -24,15 +25,16 @@ The local planner asks for a body velocity ``(v, ω)``; the motors take a thrott
    once the lagging wheel catches up; a ramp it can follow keeps the error small even
    with a control period of actuation latency.
 
-4. **In-place turns** (:class:`HeadingAligner`): the seed 004_ heading alignment
-   (section 3: rotate in the direction of the shortest angular difference, faster when
-   the error is large, stop inside a tolerance band, whose minimum is set by how much
-   the platform keeps moving after the stop command). Here the banded speeds become
-   the braking curve ``ω = sqrt(2 α |e|)`` (the fastest rate that still stops at the
-   target with deceleration ``α``), the error is predicted ahead by the actuation
-   latency (``e − ω_measured · latency``) so the stop command is sent early enough,
-   a re-engage band wider than the stop band keeps it from hunting, and the direction
-   of a near-180° turn is locked so noise cannot flip it.
+4. **In-place turns** (:class:`HeadingAligner`): the heading alignment of Vinch, *Design and
+   Implementation of an Intelligent Primitive Driver* (MS thesis, U. Florida, 2003; section
+   3: rotate in the direction of the shortest angular difference, faster when the error is
+   large, stop inside a tolerance band, whose minimum is set by how much the platform keeps
+   moving after the stop command). Here the banded speeds become the braking curve ``ω =
+   sqrt(2 α |e|)`` (the fastest rate that still stops at the target with deceleration
+   ``α``), the error is predicted ahead by the actuation latency (``e − ω_measured ·
+   latency``) so the stop command is sent early enough, a re-engage band wider than the stop
+   band keeps it from hunting, and the direction of a near-180° turn is locked so noise
+   cannot flip it.
 """
 
 from __future__ import annotations
@@ -492,7 +494,7 @@ class HeadingAligner:
         aligner = HeadingAligner()
         w_radps, done = aligner.command(heading_rad, target_rad, yaw_rate_radps)
 
-    ``tolerance_rad`` is the stop band (±; seed 004_ found ±4° the smallest its turning
+    ``tolerance_rad`` is the stop band (±; Vinch (2003) found ±4° the smallest its turning
     platform held without hunting). ``reengage_rad`` bounds the error tolerated while
     the robot is still coasting after a stop; once it has settled (measured rate below
     ``settle_rate_radps``) outside the band, a slow correction follows. That never

@@ -259,8 +259,8 @@ def _slam_raises(ctx: FaultContext) -> None:
     slam = ctx.slam
     if slam is None or slam.before_update is None:
         raise RuntimeError(
-            "slam-raise needs the daemon's Slam built with the injector's seam "
-            "(run_daemon(instrument=..., before_slam_update=FaultInjector.before_slam_update))"
+            "slam-raise needs the daemon's Slam with the injector's seam "
+            "(run_daemon(instrument=FaultInjector.instrument))"
         )
     ctx.slam_updates_to_fail = 1  # the next update fails, the one after is processed normally
 
@@ -394,8 +394,8 @@ class FaultInjector:
     """Applies faults to a simulated robot at their times; ``injections`` is the ground truth.
 
     ``instrument(slam, executor)`` (the ``run_daemon`` hook) lets the compute faults reach
-    SLAM and its executor; it returns the executor the daemon must use.
-    :meth:`before_slam_update` is the daemon's ``before_slam_update`` (SLAM's fault seam).
+    SLAM and its executor: it puts :meth:`before_slam_update` in the Slam's fault seam
+    (``before_update``) and returns the executor the daemon must use.
     """
 
     def __init__(self, specs: list[FaultSpec], robot: Any, clock: Clock, *, seed: int = 0) -> None:
@@ -406,6 +406,7 @@ class FaultInjector:
         self.on_begin: Callable[[Injection], None] | None = None
 
     def instrument(self, slam: Any, executor: Executor) -> Executor:
+        slam.before_update = self.before_slam_update
         self.ctx.slam = slam
         self.ctx.executor = SlowableExecutor(executor, asyncio.get_running_loop())
         return self.ctx.executor

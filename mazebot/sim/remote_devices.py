@@ -16,13 +16,19 @@ devices exactly as on the robot (``main.robot_hardware_builder``), with two stan
 from __future__ import annotations
 
 import contextlib
+import os
+import select
 import threading
+import time
 from multiprocessing.connection import Connection
 
 from mazebot.sim.pipe_kit import PipeKitOpener as PipeKitOpener  # re-exported: the bench and tests open them here
 from mazebot.sim.pipe_kit import PipeMotorKit as PipeMotorKit
 from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
 from mazebot.sim.world_process import EDGES_TIME
+
+#: How often (ms) the GPIO edge thread looks whether it was asked to stop while no edge comes.
+STOP_POLL_MS = 100
 
 
 class GpioEdgeThread(threading.Thread):
@@ -46,6 +52,11 @@ class GpioEdgeThread(threading.Thread):
         self._factory = factory
         self._pins = [factory.pin(number) for number in pins]
         self._stopping = threading.Event()
+        # lgpio's thread blocks on its notification pipe; this one waits on the world's pipe with one
+        # poll object made here: Connection.poll(timeout) builds a selector per call, ~40 µs a wake-up
+        # of a cold thread (100 a second) that is the simulator's plumbing, not the robot's
+        self._poller = select.poll()
+        self._poller.register(edge_rx.fileno(), select.POLLIN)
         self.edges = 0  # edges driven onto the pins
         self.batches = 0  # messages received (one per world step with edges)
 
@@ -59,7 +70,7 @@ class GpioEdgeThread(threading.Thread):
         head = EDGES_TIME.size
         try:
             while not self._stopping.is_set():
-                if not self._rx.poll(0.1):
+                if not self._poller.poll(STOP_POLL_MS):
                     continue
                 data = self._rx.recv_bytes()
                 # each edge keeps the time the world made it (lgpio's edges carry the kernel's stamp)
@@ -72,6 +83,26 @@ class GpioEdgeThread(threading.Thread):
             return
         except (AssertionError, AttributeError):  # the pins were closed under us at shutdown
             return
+
+    def cpu_s(self) -> float | None:
+        """The CPU seconds this thread has used so far (its own clock, read from another thread); None
+        before it started or after it ended.
+
+        Its work is the simulator's stand-in for lgpio's callback thread: the quota benchmark
+        puts the Pi's path per edge (:mod:`mazebot.sim.edge_cost`) in place of it.
+        """
+        ident = self.ident
+        if ident is None or not self.is_alive():
+            return None
+        try:
+            return time.clock_gettime(time.pthread_getcpuclockid(ident))
+        except (OSError, AttributeError):  # no per-thread clock: the kernel's account, in clock ticks
+            try:
+                with open(f"/proc/self/task/{self.native_id}/stat") as f:
+                    fields = f.read().rpartition(")")[2].split()
+                return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            except (OSError, IndexError, ValueError):
+                return None
 
     def stop(self) -> None:
         """Stop driving pins (within 0.1 s); safe to call more than once."""

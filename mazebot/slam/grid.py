@@ -44,6 +44,7 @@ three-state value (-1 unknown, 0 free, 100 occupied) changed since the previous 
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -138,7 +139,30 @@ class OccupancyGrid:
         self._reported = np.zeros((0, 0), dtype=np.int8)  # three-state last handed out
         self._touched = np.zeros((0, 0), dtype=bool)  # cells updated since take_dirty (bounded memory)
 
+    def holding(
+        self, log_odds: np.ndarray, origin_cells: tuple[int, int], cell_offset_m: tuple[float, float]
+    ) -> OccupancyGrid:
+        """A grid with this one's sensor model holding a map kept before (a saved run's).
+
+        ``origin_cells`` and ``cell_offset_m`` place the array as :attr:`origin_cells` and
+        ``cell_offset_m`` did when it was kept. Every cell counts as handed out already:
+        clients of the new grid load it whole (a new generation), not as changes.
+        """
+        grid = copy.copy(self)
+        grid._clear()
+        grid.log_odds = np.array(log_odds, dtype=np.float32)
+        grid._origin_cells = (int(origin_cells[0]), int(origin_cells[1]))
+        grid.cell_offset_m = (float(cell_offset_m[0]), float(cell_offset_m[1]))
+        grid._touched = np.zeros(grid.log_odds.shape, dtype=bool)
+        grid._reported = grid.three_state()
+        return grid
+
     # -- frame -------------------------------------------------------------------------
+
+    @property
+    def origin_cells(self) -> tuple[int, int]:
+        """(col, row) index of the array's cell (0, 0) in the infinite lattice of cells."""
+        return (int(self._origin_cells[0]), int(self._origin_cells[1]))
 
     @property
     def shape(self) -> tuple[int, int]:

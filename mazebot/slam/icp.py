@@ -1,8 +1,9 @@
 """Point-to-line ICP (2D point-to-plane) of a scan against a local submap.
 
-The method is the one of seed ``000`` section III.B: a kd-tree over the reference
-(target) points, point-to-plane error, outlier rejection, and a convergence test of at
-most 150 iterations or a step below 1 cm / 0.01 rad. Each iteration:
+The method is the one of Nayak, Chiang and Kanupriyaa, *2D Autonomous Mapping* (CMU 18-500
+report), section III.B: a kd-tree over the reference (target) points, point-to-plane error,
+outlier rejection, and a convergence test of at most 150 iterations or a step below 1 cm /
+0.01 rad. Each iteration:
 
 1. **Transform** the source points by the current pose estimate ``(x, y, θ)``.
 2. **Associate** each with its nearest target point (scipy ``cKDTree``), among the

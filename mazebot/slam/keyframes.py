@@ -8,7 +8,8 @@ coarse defaults of ROS packages (0.5 m, 0.5 rad) are longer than a 1 ft maze cel
 
 Each keyframe stores its points in its own robot frame (so moving its pose moves them),
 surface normals estimated once from its own scan (PCA of neighbours, as
-:func:`mazebot.slam.icp.estimate_normals`), and its rays for the grid in float32.
+:func:`mazebot.slam.icp.estimate_normals`), and its rays for the grid, in int16 quarter
+millimetres (:data:`POINT_STEP_M`).
 
 The **local submap** is the union of the last ``size`` keyframes in the map frame,
 thinned to one point per ``voxel_m`` square (the one nearest its centre), with their normals: a
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Generator, Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -40,37 +40,133 @@ from mazebot.steps import all_at_once
 LATTICE_REMEASURE_RAD = 0.005
 
 
-@dataclass
+#: Keyframe coordinates (robot frame) are kept as int16 multiples of this: a quarter of a
+#: millimetre, the RPLidar's own range unit (``dist_q2`` of its protocol: Slamtec, RPLIDAR
+#: interface protocol), for ±8.19 m, which covers SLAM's ``[slam.prepare] max_range_m`` (8 m).
+#: A keyframe with a coordinate beyond that keeps its points in float32. Each keyframe is kept
+#: by the daemon and by its loop-closure worker, a thousand or more per 16×16 maze: in float32
+#: they were most of what the robot's memory grew by (~13 kB a keyframe in each process).
+#: The rounding (0.07 mm RMS) is twenty times below the A1's range noise (1 % of the range),
+#: so the walls' directions and positions, averaged over many points, keep their precision
+#: (a millimetre's grid did not: it pulled a wall that runs along an axis onto the grid).
+POINT_STEP_M = 0.00025
+#: Unit normals are kept in int16 as multiples of this (a direction to 2e-3 degrees).
+NORMAL_STEP = 1.0 / 32767.0
+_INT16_MAX = 32767
+_NO_POINTS = np.zeros((0, 2), dtype=np.int16)
+
+
+def pack(values: np.ndarray, step: float) -> np.ndarray:
+    """``values`` as int16 multiples of ``step`` (nearest) if all fit, else as float32."""
+    v = np.asarray(values, dtype=np.float64)
+    q = np.rint(v / step)
+    if q.size and float(np.max(np.abs(q))) > _INT16_MAX:
+        return v.astype(np.float32)
+    return q.astype(np.int16)
+
+
+def unpack(packed: np.ndarray, step: float) -> np.ndarray:
+    """The float64 values of :func:`pack`'s output."""
+    if packed.dtype == np.int16:
+        return packed * step
+    return packed.astype(np.float64)
+
+
 class Keyframe:
     """One kept scan, everything in its own robot frame; ``pose`` (3,) is its map-frame pose.
 
-    Arrays are float32 (a few thousand keyframes must fit a Raspberry Pi's memory; a
-    millimetre's precision is ample). ``hits`` (H, 2) are the scan's hits; ``points``
+    Its points are stored as int16 quarter millimetres and its normals in int16 too (see
+    :data:`POINT_STEP_M`: a few thousand keyframes, each kept in two processes, must fit a
+    Raspberry Pi's memory). The properties give them back in float64 metres. ``hits`` (H, 2)
+    are the scan's hits; ``points``
     (N, 2) and ``normals`` (N, 2) the hits with a usable normal, smoothed onto their local
     line (for the local submap), estimated the first time they are asked for: a keyframe
     made during an in-place turn often waits for the next submap, and the scan that made
     it stays cheap. ``match_points`` (M, 2) are the voxel-downsampled hits (source of loop
     closure ICP), ``sensor_xy`` (2,) the lidar centre; ``ray_ends`` (K, 2) and
-    ``ray_hit`` (K,) the beams for the grid. A rebuilt map starts every beam at the
+    ``ray_hit`` (K,) the beams for the grid (the flags kept as bits). A rebuilt map starts every beam at the
     lidar's position at the end of the revolution (the live map used each sample's own,
     de-skewed origin; the difference, the robot's motion during one turn of the head,
     only touches cells under the robot).
     ``integrated_pose`` is the pose its rays were last written into the grid with.
+
+    Slots instead of an instance dict: ~0.6 kB less per keyframe.
     """
 
-    index: int
-    time_s: float
-    pose: np.ndarray
-    hits: np.ndarray
-    match_points: np.ndarray
-    sensor_xy: np.ndarray
-    ray_ends: np.ndarray
-    ray_hit: np.ndarray
-    integrated_pose: np.ndarray
-    normal_params: NormalParams = field(default_factory=NormalParams)
-    _surface: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
-    _walls: tuple[float, float, int] | None = field(default=None, repr=False)
-    _lattice: LatticeFaces | None = field(default=None, repr=False)
+    __slots__ = (
+        "_hits",
+        "_lattice",
+        "_match",
+        "_ray_count",
+        "_ray_ends",
+        "_ray_hit_bits",
+        "_surface",
+        "_walls",
+        "index",
+        "integrated_pose",
+        "normal_params",
+        "pose",
+        "sensor_xy",
+        "time_s",
+    )
+
+    def __init__(
+        self,
+        index: int,
+        time_s: float,
+        pose: np.ndarray,
+        hits: np.ndarray,
+        match_points: np.ndarray,
+        sensor_xy: np.ndarray,
+        ray_ends: np.ndarray,
+        ray_hit: np.ndarray,
+        integrated_pose: np.ndarray,
+        normal_params: NormalParams | None = None,
+    ) -> None:
+        self.index = index
+        self.time_s = time_s
+        self.pose = pose
+        self._hits = pack(np.asarray(hits).reshape(-1, 2), POINT_STEP_M)
+        self._match = pack(np.asarray(match_points).reshape(-1, 2), POINT_STEP_M)
+        self.sensor_xy = sensor_xy
+        self._ray_ends = pack(np.asarray(ray_ends).reshape(-1, 2), POINT_STEP_M)
+        flags = np.asarray(ray_hit, dtype=bool).reshape(-1)
+        self._ray_hit_bits = np.packbits(flags)
+        self._ray_count = int(flags.shape[0])
+        self.integrated_pose = integrated_pose
+        self.normal_params = normal_params or NormalParams()
+        #: (points, normals) packed (:func:`pack`), once computed
+        self._surface: tuple[np.ndarray, np.ndarray] | None = None
+        self._walls: tuple[float, float, int] | None = None
+        self._lattice: LatticeFaces | None = None
+
+    def keep_surface_only(self) -> None:
+        """Let go of the hits once the surface has been made from them.
+
+        For the loop-closure worker's replica: its jobs read the surface, the match points
+        and the rays, never the hits again (the daemon keeps them, to save the run).
+        """
+        if self._surface is not None:
+            self._hits = _NO_POINTS
+
+    def __repr__(self) -> str:
+        return f"Keyframe(index={self.index}, time_s={self.time_s}, hits={self._hits.shape[0]})"
+
+    @property
+    def hits(self) -> np.ndarray:
+        return unpack(self._hits, POINT_STEP_M)
+
+    @property
+    def match_points(self) -> np.ndarray:
+        return unpack(self._match, POINT_STEP_M)
+
+    @property
+    def ray_ends(self) -> np.ndarray:
+        return unpack(self._ray_ends, POINT_STEP_M)
+
+    @property
+    def ray_hit(self) -> np.ndarray:
+        return np.unpackbits(self._ray_hit_bits, count=self._ray_count).astype(bool)
 
     @property
     def points(self) -> np.ndarray:
@@ -79,6 +175,13 @@ class Keyframe:
     @property
     def normals(self) -> np.ndarray:
         return self.surface()[1]
+
+    @property
+    def surface_size(self) -> int:
+        """How many points the surface has (computing it if need be)."""
+        self.surface()
+        assert self._surface is not None
+        return int(self._surface[0].shape[0])
 
     @property
     def has_surface(self) -> bool:
@@ -90,7 +193,7 @@ class Keyframe:
         surface = self._surface
         if surface is None:
             p = self.normal_params
-            pts = self.hits.astype(np.float64)
+            pts = self.hits
             view = np.broadcast_to(self.sensor_xy, pts.shape)
             nrm, good = estimate_normals(pts, p.neighbours, p.radius_m, p.max_line_spread, view)
             # orient towards the lidar: the side of the wall the scan saw
@@ -99,9 +202,9 @@ class Keyframe:
             pts, nrm = pts[good], nrm[good]
             if p.smooth:
                 pts = smooth_onto_lines(pts, nrm, p.radius_m, p.neighbours)
-            surface = (pts.astype(np.float32), nrm.astype(np.float32))
+            surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
             self._surface = surface  # a race with another thread computes the same values
-        return surface
+        return unpack(surface[0], POINT_STEP_M), unpack(surface[1], NORMAL_STEP)
 
     def wall_direction(self) -> tuple[float, float, int]:
         """Dominant wall direction in the robot frame, modulo 90°: ``(angle_rad, strength, count)``.
@@ -115,7 +218,7 @@ class Keyframe:
         """
         cached = self._walls
         if cached is None:
-            nrm = self.normals.astype(np.float64)
+            nrm = self.normals
             if nrm.shape[0] == 0:
                 cached = (0.0, 0.0, 0)
             else:
@@ -164,10 +267,10 @@ class Keyframe:
             index=index,
             time_s=prepared.time_s,
             pose=pose,
-            hits=prepared.points_full.astype(np.float32),
-            match_points=prepared.points_match.astype(np.float32),
+            hits=prepared.points_full,
+            match_points=prepared.points_match,
             sensor_xy=np.array(prepared.sensor_xy, dtype=np.float64),
-            ray_ends=ends.astype(np.float32),
+            ray_ends=ends,
             ray_hit=hit,
             integrated_pose=pose.copy(),
             normal_params=normals or NormalParams(),
@@ -175,7 +278,7 @@ class Keyframe:
 
     def rays(self, pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(pose, ends, hit, origins)`` for :meth:`mazebot.slam.grid.OccupancyGrid.rebuild` (robot frame)."""
-        ends = self.ray_ends.astype(np.float64)
+        ends = self.ray_ends
         return (
             self.pose if pose is None else pose,
             ends,
@@ -300,9 +403,10 @@ def build_target_steps(
     clip: tuple[np.ndarray, float] | None = None,
 ) -> Generator[None, None, Target | None]:
     """:func:`build_target` in stages (:mod:`mazebot.steps`): the union, the voxel filter, the kd-tree."""
-    kept = [k for k, kf in enumerate(keyframes) if kf.points.shape[0]]
+    kept = [k for k, kf in enumerate(keyframes) if kf.surface_size]
     if not kept:
         return None
+    surfaces = [keyframes[k].surface() for k in kept]
     base = None if frame is None else np.asarray(frame, dtype=np.float64)
     pose_rows = []
     for k in kept:
@@ -319,9 +423,9 @@ def build_target_steps(
             sin * sensors[:, 0] + cos * sensors[:, 1] + pose_arr[:, 1],
         )
     )
-    counts = np.array([keyframes[k].points.shape[0] for k in kept])
-    local = np.concatenate([keyframes[k].points for k in kept]).astype(np.float64)
-    local_nrm = np.concatenate([keyframes[k].normals for k in kept]).astype(np.float64)
+    counts = np.array([pts.shape[0] for pts, _ in surfaces])
+    local = np.concatenate([pts for pts, _ in surfaces])
+    local_nrm = np.concatenate([nrm for _, nrm in surfaces])
     c, sn = np.repeat(cos, counts), np.repeat(sin, counts)
     points = np.column_stack(
         (

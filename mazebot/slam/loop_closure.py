@@ -57,10 +57,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mazebot.geometry import relative_pose, wrap_angle
+from mazebot.geometry import relative_pose, transform_points, wrap_angle
 from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
 from mazebot.slam.ekf import rotate_information
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
+from mazebot.slam.overlap import ObservedArea
 from mazebot.slam_config import LoopSection
 
 
@@ -108,6 +109,7 @@ class Verdict:
     fitness: float = 0.0
     rmse_m: float = float("nan")
     chi2: float = float("nan")
+    overlap_fitness: float = float("nan")  # the inlier ratio where the submap saw (when it was asked for)
     detail: str = ""  # the numbers behind ``reason``
 
 
@@ -191,11 +193,15 @@ def verify(
     sensor_xy: np.ndarray,
     icp: IcpParams,
     params: LoopClosureParams,
+    observed: ObservedArea | None = None,
 ) -> Verdict:
-    """Run the acceptance tests of the module docstring; ``target`` is in ``candidate.old``'s frame."""
+    """Run the acceptance tests of the module docstring; ``target`` is in ``candidate.old``'s frame.
+
+    ``observed``: what the submap's keyframes saw (same frame), for ``overlap_fitness``.
+    """
     if target is None or len(target) == 0:
         return _reject(candidate, "empty submap", "no points around the candidate")
-    verdict = _verify_from(candidate.prior, candidate, target, source_xy, sensor_xy, icp, params)
+    verdict = _verify_from(candidate.prior, candidate, target, source_xy, sensor_xy, icp, params, observed)
     if verdict.accepted or verdict.reason not in RESCUED or params.search is None:
         return verdict
     # ICP from the prior found no good match: start it where the branch-and-bound search says,
@@ -209,7 +215,7 @@ def verify(
     start = search_start(candidate.prior, target, source_xy, sensor_xy, search)
     if np.allclose(start, candidate.prior):
         return verdict
-    return _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params)
+    return _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params, observed)
 
 
 #: Rejections of a match that failed (not of a good match that was inconsistent or ambiguous):
@@ -225,6 +231,7 @@ def _verify_from(
     sensor_xy: np.ndarray,
     icp: IcpParams,
     params: LoopClosureParams,
+    observed: ObservedArea | None = None,
 ) -> Verdict:
     """The tests of :func:`verify` on ICP started at ``start`` (always judged against ``candidate.prior``)."""
     result = match_scan(target, source_xy, start, icp, sensor_xy=sensor_xy)
@@ -234,7 +241,7 @@ def _verify_from(
         return _reject(candidate, "no convergence", "ICP did not converge", **fit)
     if result.correspondences < params.min_correspondences:
         return _reject(candidate, "few correspondences", f"{result.correspondences} correspondences", **fit)
-    if result.fitness < params.min_fitness:
+    if result.fitness < params.min_fitness and not _fits_where_seen(result, source_xy, params, observed, fit):
         return _reject(candidate, "low inlier ratio", f"inlier ratio {result.fitness:.2f}", **fit)
     if not result.rmse_m <= params.max_rmse_m:
         return _reject(candidate, "high residual", f"residual {result.rmse_m * 1e3:.1f} mm", **fit)
@@ -263,7 +270,36 @@ def _verify_from(
             if elsewhere and _as_good(other, result, params):
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
     information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
-    return Verdict(candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"])
+    return Verdict(
+        candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"],
+        overlap_fitness=fit.get("overlap_fitness", float("nan")),
+    )
+
+
+def _fits_where_seen(
+    result: IcpResult,
+    source_xy: np.ndarray,
+    params: LoopClosureParams,
+    observed: ObservedArea | None,
+    fit: dict[str, float],
+) -> bool:
+    """The inlier ratio among the points the submap could have seen reaches ``min_fitness`` (``overlap_fitness``).
+
+    Every inlier found a submap wall, so it lies where the submap saw; the ratio is the
+    inliers over the source points inside the observed area (:mod:`mazebot.slam.overlap`),
+    and at least ``min_overlap`` of the points must be there: a scan that shares a sliver
+    with the submap says little however well the sliver fits. ``fit`` gets the ratio.
+    """
+    if not params.overlap_fitness or observed is None:
+        return False
+    points = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
+    if points.shape[0] == 0:
+        return False
+    seen = observed.contains(transform_points(result.pose, points), params.overlap_margin_m)
+    share = float(seen.mean())
+    ratio = min(1.0, result.correspondences / max(int(seen.sum()), 1))
+    fit["overlap_fitness"] = ratio
+    return share >= params.min_overlap and ratio >= params.min_fitness
 
 
 def correction_limits(candidate: Candidate, params: LoopClosureParams) -> tuple[float, float]:

@@ -36,6 +36,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from typing import Any
 
+from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.keyframes import Keyframe
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult
 
@@ -81,7 +82,11 @@ class _Replica:
             raise MissingKeyframes(f"the worker holds {len(store)} keyframes, the job starts at {shipped.first}")
         del store[shipped.first :]
         store.extend(shipped.fresh)
-        return replace(shipped.job, keyframes=store[: shipped.count]).run()
+        result = replace(shipped.job, keyframes=store[: shipped.count]).run()
+        for kf in store:  # the jobs made their surfaces: the hits are not read again here
+            kf.keep_surface_only()
+        give_back_free_memory()  # the job's temporaries, before the worker waits for the next one
+        return result
 
 
 #: In a worker process: the keyframes it was sent (the state a worker exists to keep).

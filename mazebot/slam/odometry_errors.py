@@ -67,18 +67,6 @@ class SystematicOdometryModel:
             initial_bias_rad_per_m=float(e[3] * self.bias_rad_per_m_std),
         )
 
-    def effective_noise(self, white: tuple[float, float]) -> tuple[float, float]:
-        """``(σ_xy per m, σ_θ per m and per rad)`` a filter should assume for this odometry.
-
-        The white part plus one standard deviation of the systematic errors: the distance
-        scale (per m), the heading drift of the wheel mismatch and the bias (per m), the
-        turn scale (per rad).
-        """
-        sx = math.hypot(white[0], self.wheel_scale_std)
-        mismatch = math.sqrt(2.0) * self.wheel_scale_std / self.track_width_m
-        sth = math.sqrt(white[1] ** 2 + mismatch**2 + self.bias_rad_per_m_std**2 + self.track_scale_std**2)
-        return sx, sth
-
 
 @dataclass(frozen=True)
 class DrawnErrors:

@@ -8,7 +8,7 @@ with its initialisation in front.
 
 The method is that of Grisetti, Kümmerle, Stachniss & Burgard, "A Tutorial on
 Graph-Based SLAM", IEEE Intelligent Transportation Systems Magazine 2(4), 2010; its
-Algorithm 1 is reproduced in section III.B of the design seed (``000_…``), and the step
+Algorithm 1 is reproduced in section III.B of Nayak et al., *2D Autonomous Mapping*, and the step
 numbers below are that algorithm's. Every vertex is a pose ``x_i = (x, y, θ)`` (metres,
 metres, radians) of the robot in the world frame; every edge ``<i, j>`` carries a
 measured relative pose ``z_ij`` (``x_j`` seen from ``x_i``) and its 3x3 information

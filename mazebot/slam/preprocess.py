@@ -7,12 +7,12 @@ The steps, in the order :func:`prepare_scan` runs them:
    *no-return beams*: they say "free at least this far" and clear space in the map, but
    they are never matched and never mark a wall.
 2. **Impulse rejection.** A running median along the scan (Tukey's running median, the
-   median filtering of seed ``004``) over ``median_window`` neighbouring in-range
+   median filtering of Vinch, *Design and Implementation of an Intelligent Primitive
+   Driver*, MS thesis, U. Florida, 2003) over ``median_window`` neighbouring in-range
    samples. A sample is *rejected* when it differs from its local median by more than
-   ``impulse_abs_m + impulse_rel * median``; nothing is smoothed, so straight walls,
-   corners and steps keep their exact ranges (the median of a monotonic run is the
-   sample itself). Only isolated spikes, which the A1 produces on glossy or black
-   surfaces, go.
+   ``impulse_abs_m + impulse_rel * median``; nothing is smoothed, so straight walls, corners
+   and steps keep their exact ranges (the median of a monotonic run is the sample itself).
+   Only isolated spikes, which the A1 produces on glossy or black surfaces, go.
 3. **De-skew.** The A1 turns at ~5.5 rev/s, so a robot at 0.3 m/s moves ~5 cm during
    one revolution. Each sample ``i`` was measured from the pose ``T(t_i)``; it is
    expressed in the robot frame of the revolution's *end* pose:

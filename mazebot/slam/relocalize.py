@@ -45,16 +45,17 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
 from mazebot.geometry import compose, inverse, transform_points, wrap_angle
 from mazebot.io.scan import Scan
-from mazebot.slam.icp import IcpResult, match_scan
+from mazebot.slam.grid import OccupancyGrid
+from mazebot.slam.icp import IcpResult, Target, match_scan
 from mazebot.slam.keyframes import build_target
-from mazebot.slam.slam import odometry_pose_at
+from mazebot.slam.preprocess import PreparedScan
+from mazebot.slam.slam import OdometrySource, Slam, odometry_pose_at
 
 log = logging.getLogger(__name__)
 
@@ -140,14 +141,14 @@ class SearchResult:
     partial: bool = False  # found from the known part of the view only: to be confirmed by the next revolution
 
 
-def scan_fit(grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
+def scan_fit(grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
     """Look hits (N, 2, map frame) up in the grid: see :class:`ScanFit`."""
     _, known, contradicting, on_walls = _classify(grid, hits_map, free_margin_cells)
     return ScanFit(int(known.sum()), int(contradicting.sum()), int(on_walls.sum()))
 
 
 def hit_classes(
-    grid: Any, hits_map: np.ndarray, free_margin_cells: int = 2
+    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per hit (N, 2, map frame): (in known space, contradicting the map, on a wall), boolean (N,) each.
 
@@ -163,7 +164,7 @@ def hit_classes(
 
 
 def _classify(
-    grid: Any, hits_map: np.ndarray, free_margin_cells: int
+    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(inside the grid's margin (N,), then known, contradicting, on a wall for the hits inside)."""
     hits_map = np.asarray(hits_map, dtype=np.float64).reshape(-1, 2)
@@ -195,7 +196,7 @@ def _offsets(margin: int) -> tuple[np.ndarray, np.ndarray]:
 def hits_in_map(
     scan: Scan,
     map_from_odom: np.ndarray,
-    odometry: Any,
+    odometry: OdometrySource,
     *,
     time_offset_s: float = 0.0,
     mount_xy_m: tuple[float, float] = (0.0, 0.0),
@@ -214,7 +215,7 @@ def hits_in_map(
     return np.column_stack((px + c * lx - s * ly, py + s * lx + c * ly))
 
 
-def wall_likelihood(grid: Any, sigma_m: float) -> np.ndarray:
+def wall_likelihood(grid: OccupancyGrid, sigma_m: float) -> np.ndarray:
     """exp(-d² / 2σ²) of the distance d to the nearest occupied cell, per cell (Olson 2009)."""
     occupied = grid.occupied_mask()
     if not occupied.any():
@@ -225,7 +226,7 @@ def wall_likelihood(grid: Any, sigma_m: float) -> np.ndarray:
 
 def correlative_candidates(
     likelihood: np.ndarray,
-    grid: Any,
+    grid: OccupancyGrid,
     points_robot: np.ndarray,
     guess: np.ndarray,
     params: GuardParams,
@@ -273,9 +274,9 @@ def correlative_candidates(
 
 
 def search_pose(
-    slam: Any,
+    slam: Slam,
     scan: Scan,
-    odometry: Any,
+    odometry: OdometrySource,
     guess: np.ndarray,
     params: GuardParams,
     scale: float = 1.0,
@@ -311,6 +312,8 @@ def search_pose(
     if near.size == 0:
         return SearchResult(None, odom, None, None, 0, guess)
     target = build_target([slam.keyframes[k] for k in sorted(near.tolist())], p.submap_voxel_m)
+    if target is None:  # the keyframes nearby hold no points to match
+        return SearchResult(None, odom, None, None, 0, guess)
     whole = _search_whole_view(slam, target, prepared, candidates, guess, params)
     if whole is not None:
         match, fit = whole
@@ -323,9 +326,9 @@ def search_pose(
 
 
 def _search_whole_view(
-    slam: Any,
-    target: Any,
-    prepared: Any,
+    slam: Slam,
+    target: Target,
+    prepared: PreparedScan,
     candidates: list[tuple[float, np.ndarray]],
     guess: np.ndarray,
     params: GuardParams,
@@ -384,9 +387,9 @@ def _in_window(pose: np.ndarray, guess: np.ndarray, params: GuardParams) -> bool
 
 
 def _search_known_part(
-    slam: Any,
-    target: Any,
-    prepared: Any,
+    slam: Slam,
+    target: Target,
+    prepared: PreparedScan,
     candidates: list[tuple[float, np.ndarray]],
     guess: np.ndarray,
     params: GuardParams,
@@ -456,12 +459,12 @@ class LocalizationGuard:
         self.unconfirmed: SearchResult | None = None  # a pose found from a partly known view, not yet found again
         self._turns: list[float] = []  # ICP's heading corrections of the last revolutions
 
-    def predicted_pose(self, slam: Any, scan: Scan, odometry: Any) -> np.ndarray:
+    def predicted_pose(self, slam: Slam, scan: Scan, odometry: OdometrySource) -> np.ndarray:
         """Where the odometry says the robot is at the revolution's end, in the map frame."""
         odom = odometry_pose_at(odometry, scan.end_time_s - slam.time_offset.offset_s)
         return compose(slam.map_from_odom, odom)
 
-    def check(self, slam: Any, scan: Scan, odometry: Any) -> str:
+    def check(self, slam: Slam, scan: Scan, odometry: OdometrySource) -> str:
         """``ok``: give it to SLAM; ``skip``: it does not fit (hold it back); ``lost``: search now."""
         p = self.params
         self.guess = self.predicted_pose(slam, scan, odometry)
@@ -487,7 +490,7 @@ class LocalizationGuard:
             return "lost"
         return "skip"
 
-    def accept(self, slam: Any, result: SearchResult) -> bool:
+    def accept(self, slam: Slam, result: SearchResult) -> bool:
         """Put SLAM at the found pose (True), or stay lost (False: search again on the next revolution).
 
         A pose found from the known part of the view only (``result.partial``) is taken when

@@ -1,13 +1,17 @@
 """The SLAM façade: one ``update(scan, odometry)`` per lidar revolution.
 
-Why one module of ~1250 lines: the steps already live in modules of their own (below); what is
-left here is the state they share (keyframes, submap, pose graph, grid, calibration) and the
-two places that must agree on it: :class:`Slam`, which runs the steps in order, and
+Why one module of ~1150 lines: the steps already live in modules of their own (below), the
+parameters in :mod:`mazebot.slam.params` and the walls' priors in :mod:`mazebot.slam.wall_priors`;
+what is left here is the state they share (keyframes, submap, pose graph, grid, calibration)
+and the two places that must agree on it: :class:`Slam`, which runs the steps in order, and
 :class:`LoopClosureJob`, which carries a copy of that state to a worker and back
-(:meth:`Slam.apply`). Apart, one piece of state would be described in two files.
+(:meth:`Slam.apply`). Apart, one piece of state would be described in two files. The
+public ways in that a resumed run and the recorder use (:meth:`Slam.continue_map`,
+:meth:`Slam.start_in_map`, :class:`SlamTaps`) stay beside the state they touch.
 
-``Slam.update`` reads as the method of seed ``000`` section III.B (ICP pose-graph SLAM),
-with the EKF of seed ``002`` in front of it; every step lives in its own module:
+``Slam.update`` reads as the ICP pose-graph SLAM of Nayak, Chiang and Kanupriyaa, *2D
+Autonomous Mapping* (CMU 18-500 report), section III.B, with an EKF (Thrun, Burgard & Fox,
+*Probabilistic Robotics*, 3.3) in front of it; every step lives in its own module:
 
 1. **predict** the pose at the end of the revolution with the odometry increment since
    the last scan, its heading corrected by the online calibration
@@ -60,47 +64,33 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Generator
-from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 
-from mazebot.config import LidarConfig, PlannerConfig
 from mazebot.geometry import compose, inverse, relative_pose, transform_points, wrap_angle
 from mazebot.io.scan import Scan
-from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
-from mazebot.slam.ekf import HeadingCalibration, MotionNoise, PoseEkf, TimeOffsetCalibration, rotate_information
-from mazebot.slam.endpoint_smoothing import EndpointSmoothing
+from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
+from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan_steps
-from mazebot.slam.keyframes import Keyframe, KeyframeSelector, NormalParams, build_target, build_target_steps, map_rays
-from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice, fit_pitch
-from mazebot.slam.loop_closure import Candidate, LoopClosureParams, Verdict, find_candidates, verify
+from mazebot.slam.icp import IcpResult, Target, match_scan_steps
+from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
+from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
+from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
+from mazebot.slam.odometry_noise import OdometryNoiseEstimate
+from mazebot.slam.overlap import ObservedArea
+from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
+from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
-from mazebot.slam.preprocess import PoseAtTime, PreparedScan, PrepareParams, prepare_scan
+from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.wall_lattice import LatticeParams, lattice_priors
-from mazebot.slam_config import (
-    FACADE_SECTIONS,
-    FilterSection,
-    GraphSection,
-    GridSection,
-    KeyframeSection,
-    MapSection,
-    MatchingSection,
-    SlamConfig,
-    WallSection,
-    as_params,
-    section_values,
-)
+from mazebot.slam.wall_priors import wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
+from mazebot.taps import notify
 
 log = logging.getLogger(__name__)
-
-#: At most about this many keyframes, evenly spread, measure the lattice's pitch (the walls
-#: repeat from keyframe to keyframe; more only costs time in every optimization).
-LATTICE_FIT_KEYFRAMES = 200
 
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
@@ -114,93 +104,6 @@ class OdometrySource(Protocol):
     """What SLAM needs from odometry: poses at any recent time (``OdometryHistory`` has this)."""
 
     def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-
-
-@dataclass(frozen=True)
-class GridParams(GridSection):
-    """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`),
-    and the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there)."""
-
-    blind_range_m: float = LidarConfig().min_range_m
-
-    def new_grid(self) -> OccupancyGrid:
-        return OccupancyGrid(**section_values(self))
-
-
-def _daemon_default(part: str) -> Any:
-    """The default of one of :class:`SlamParams`' nested parts: the daemon's, built from the default config."""
-    return lambda: getattr(SlamParams.from_config(SlamConfig(), LidarConfig(), PlannerConfig()), part)
-
-
-@dataclass(frozen=True)
-class SlamParams(FilterSection, MatchingSection, KeyframeSection, GraphSection, WallSection, MapSection):
-    """Everything :class:`Slam` is tuned by: the ``[slam]`` config and what it takes from ``[lidar]`` and ``[planner]``.
-
-    The façade's own values are the fields of the ``[slam.filter]``, ``[slam.matching]``,
-    ``[slam.keyframes]``, ``[slam.graph]``, ``[slam.walls]`` and ``[slam.map]`` sections
-    side by side; the steps' parameters are the other sections. ``SlamParams()`` is the
-    daemon's SLAM with the default config; ``from_config`` builds it from any config.
-    """
-
-    prepare: PrepareParams = field(default_factory=_daemon_default("prepare"))
-    icp: IcpParams = field(default_factory=_daemon_default("icp"))
-    normals: NormalParams = field(default_factory=_daemon_default("normals"))
-    motion: MotionNoise = field(default_factory=_daemon_default("motion"))
-    loop: LoopClosureParams = field(default_factory=_daemon_default("loop"))
-    grid: GridParams = field(default_factory=_daemon_default("grid"))
-    # hits moved along their beams onto their local wall line before mapping (None: as measured)
-    map_smoothing: EndpointSmoothing | None = field(default_factory=_daemon_default("map_smoothing"))
-    # the correlative search before ICP where the prediction is uncertain (None: ICP and its retries alone)
-    correlative: CorrelativeParams | None = field(default_factory=_daemon_default("correlative"))
-    # the walls lie on a square lattice of this pitch: a position prior per keyframe (None: no lattice)
-    lattice: LatticeParams | None = field(default_factory=_daemon_default("lattice"))
-
-    @classmethod
-    def from_config(cls, slam: SlamConfig, lidar: LidarConfig, planner: PlannerConfig | None = None) -> SlamParams:
-        """From the ``[slam]``, ``[lidar]`` and ``[planner]`` config sections (plain values only from here on).
-
-        Each section carries over field by field; what is built here is only what one
-        section takes from another or what a switch turns off. Without ``planner`` (a laser
-        log, not a maze) there is no wall lattice; with it, and ``wall_lattice`` and
-        ``walls.wall_prior`` on, the keyframes' wall faces are tied to the lattice of its
-        cell size, or of the pitch measured within ``cell_size_search`` of it.
-        """
-        lattice = None
-        if planner is not None and slam.wall_lattice and slam.walls.wall_prior:
-            lattice = as_params(
-                LatticeParams, slam.lattice, pitch_m=planner.cell_size_m, pitch_search=planner.cell_size_search
-            )
-        loop_search = None
-        if slam.loop_corr_window_m > 0 or slam.loop_corr_window_rad > 0:
-            loop_search = replace(
-                slam.search,
-                window_xy_m=slam.loop_corr_window_m,
-                window_theta_rad=slam.loop_corr_window_rad,
-                levels=slam.loop_corr_levels,
-            )
-        facade = {name: v for part in FACADE_SECTIONS for name, v in section_values(getattr(slam, part)).items()}
-        facade["map_max_range_m"] = slam.map.map_max_range_m or None
-        loop = as_params(LoopClosureParams, replace(slam.loop, max_range_m=slam.loop.max_range_m or None),
-                         search=loop_search)
-        return cls(
-            **facade,
-            prepare=as_params(
-                PrepareParams,
-                replace(slam.prepare, max_range_m=min(slam.prepare.max_range_m, lidar.max_range_m)),
-                min_range_m=lidar.min_range_m,
-                mount_x_m=lidar.mount_x_m,
-                mount_y_m=lidar.mount_y_m,
-                mount_yaw_rad=0.0,  # the driver already turned the angles into the robot frame
-            ),
-            icp=slam.icp,
-            normals=slam.normals,
-            motion=as_params(MotionNoise, slam.motion),
-            loop=loop,
-            grid=as_params(GridParams, slam.grid, blind_range_m=lidar.min_range_m),
-            map_smoothing=slam.smoothing if slam.map_smooth_endpoints else None,
-            correlative=slam.search if slam.correlative else None,
-            lattice=lattice,
-        )
 
 
 @dataclass(frozen=True)
@@ -279,7 +182,14 @@ class LoopClosureJob:
                 poses=[self.poses[k] for k in window],
                 clip=None if p.loop.max_range_m is None else (lidar_in_old, p.loop.max_range_m + 0.3),
             )
-            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop))
+            observed = None
+            if p.loop.overlap_fitness:
+                observed = ObservedArea.from_keyframes(
+                    [relative_pose(self.poses[cand.old], self.poses[k]) for k in window],
+                    [self.keyframes[k].sensor_xy for k in window],
+                    [self.keyframes[k].ray_ends for k in window],
+                )
+            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop, observed))
         accepted = [v for v in verdicts if v.accepted]
         if not accepted and not self.optimize_anyway:
             return LoopClosureResult(verdicts)
@@ -295,10 +205,12 @@ class LoopClosureJob:
                 np.array([v.information for v in accepted]),
             ))
         vertices = self.poses
-        priors = self._wall_priors()
+        priors, fit = wall_priors(self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self.anchor_wall)
+        if fit is not None:
+            self.lattice_fit = fit
         if priors is not None:  # vertex ``count``: the wall grid's direction, estimated with the poses
-            vertices = np.vstack([self.poses, priors[0]])
-            parts.append(tuple(np.asarray(a) for a in priors[1:]))
+            vertices = np.vstack([self.poses, priors.vertex])
+            parts.append((priors.i, priors.j, priors.z, priors.information))
         edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
         ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
         closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k
@@ -306,7 +218,7 @@ class LoopClosureJob:
             vertices, (ai, aj, edges[2], edges[3]), closure, p.loop.dcs_phi, max_iterations=p.optimize_iterations
         )
         optimization = robust.optimization
-        wall_reference = None if priors is None else _wrap_quarter(float(robust.vertices[count, 2]))
+        wall_reference = None if priors is None else wrap_quarter(float(robust.vertices[count, 2]))
         poses = robust.vertices[:count].copy()
         # rebuild the grid from the optimized keyframes if any moved noticeably
         delta = relative_pose(self.integrated_poses, poses)
@@ -328,146 +240,6 @@ class LoopClosureJob:
             lattice_fit=self.lattice_fit,
             downweighted=int(np.sum(robust.weights < 0.1)),
         )
-
-    def _wall_priors(
-        self,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The wall-direction vertex and its edges: ``(vertex pose (1, 3), i, j, z, information)``.
-
-        In a maze every wall lies on one right-angle grid whose direction ``φ`` (map
-        frame, modulo 90°) is unknown. A keyframe at heading ``θ_k`` whose walls lie at
-        ``d_k`` in its own frame says ``θ_k + d_k ≡ φ (mod 90°)``. ``φ`` is an extra
-        vertex of the graph (its heading; its position is pinned to keyframe 0's), and
-        every keyframe whose walls show the grid gets a heading-only edge ``φ → k``
-        measuring ``θ_k − φ`` (the multiple of 90° nearest the current estimate). So
-        ``φ`` is estimated from all keyframes together with the poses, instead of being
-        taken from one keyframe's noisy wall direction: a reference off by 0.15° rotates
-        the whole map by 0.15°, 1.2 cm at the far side of a 16×16 maze. The chain of scan
-        matches keeps its local shape; these edges, each weak, keep its heading from
-        drifting over hundreds of metres (the Manhattan-world constraint of Peasley,
-        Birchfield, Cunningham & Fiedler, "Accurate on-line 3D occupancy grids using
-        Manhattan world constraints", IROS 2012, with the direction estimated rather than
-        assumed).
-
-        Estimated from the keyframes alone, ``φ`` follows the map wherever its chain of
-        matches turned it: the first in-place turns, matched against a submap of one or
-        two keyframes, leave the whole map turned by a few tenths of a degree about the
-        start, and every later keyframe agrees with that. Keyframe 0, the **anchor**, is
-        the map frame's origin by definition and measured its walls while the robot stood
-        still (``anchor_wall``: the mean of many revolutions' wall directions, several
-        times less noisy than one scan's): its tight edge ties ``φ`` to the walls as seen
-        from the start, and the other keyframes' priors turn the map back onto them.
-
-        With ``params.lattice`` the same keyframes' wall faces also tie their positions to
-        the maze's lattice (:meth:`_lattice_edges`); the vertex then stands where the
-        lattice's lines cross, and its position is estimated too.
-        """
-        p = self.params
-        if not p.wall_prior or self.wall_reference_rad is None or len(self.keyframes) < 2:
-            return None
-        reference = float(self.wall_reference_rad)
-        rows = []
-        first = 0 if self.anchor_wall is not None else 1  # keyframe 0 is fixed: as one of many it means little
-        for k in range(first, len(self.keyframes)):
-            if k == 0 and self.anchor_wall is not None:
-                direction, std = self.anchor_wall
-            else:
-                direction, strength, count = self.keyframes[k].wall_direction()
-                if strength < p.wall_min_strength or count < p.wall_min_normals:
-                    continue
-                std = p.wall_prior_std_rad
-            theta = float(self.poses[k, 2])
-            deviation = _wrap_quarter(direction + theta - reference)
-            if abs(deviation) <= p.wall_max_deviation_rad:
-                rows.append((k, theta - reference - deviation, std))
-        if not rows:
-            return None
-        wall = self.poses.shape[0]  # the index the wall vertex gets
-        wall_pose = np.array([[self.poses[0, 0], self.poses[0, 1], reference]])
-        index = np.array([k for k, _, _ in rows])
-        z = relative_pose(wall_pose[0], self.poses[index])
-        z[:, 2] = wrap_angle(np.array([t for _, t, _ in rows]))
-        info = np.zeros((len(rows) + 1, 3, 3))
-        info[:-1, 2, 2] = 1.0 / np.array([std for _, _, std in rows]) ** 2
-        info[-1, 0, 0] = info[-1, 1, 1] = 1e6  # the vertex's position sits on keyframe 0 (it means nothing)
-        ei = np.concatenate((np.full(len(rows), wall, dtype=np.intp), [0]))
-        ej = np.concatenate((index, [wall])).astype(np.intp)
-        z = np.vstack((z, relative_pose(self.poses[0], wall_pose[0])))
-        lattice = self._lattice_edges(index, reference) if p.lattice is not None else None
-        if lattice is not None:
-            wall_pose[0, :2], lattice_j, lattice_z, lattice_info = lattice
-            # the vertex's position, where the lattice's lines cross, is estimated with the poses; the
-            # tie to keyframe 0 stays only as a weak hold (1 m) on an axis no wall face measures
-            z[-1] = relative_pose(self.poses[0], wall_pose[0])
-            info[-1, 0, 0] = info[-1, 1, 1] = 1.0
-            ei = np.concatenate((ei, np.full(len(lattice_j), wall, dtype=np.intp)))
-            ej = np.concatenate((ej, lattice_j)).astype(np.intp)
-            z = np.vstack((z, lattice_z))
-            info = np.concatenate((info, lattice_info))
-        return wall_pose, ei, ej, z, info
-
-    def _lattice_edges(
-        self, index: np.ndarray, reference: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The lattice priors of keyframes ``index`` (:mod:`mazebot.slam.wall_lattice`), as wall-vertex edges.
-
-        ``(vertex position (2,), j (P,), z (P, 3), information (P, 3, 3))``: the wall vertex
-        moves to a crossing of the lattice's lines, and each edge says where keyframe ``j``
-        lies relative to it along the grid's axes (its heading is left to the wall priors:
-        no information on it). None if no keyframe's faces fit the lattice.
-        """
-        lattice = self.params.lattice
-        assert lattice is not None
-        fit = self._lattice_fit(index, reference, lattice)
-        self.lattice_fit = fit
-        if not fit.fits:
-            return None
-        # the pitch to a tenth of a millimetre: the keyframes' faces, measured at it, stay cached between jobs;
-        # and a prior is worth no more than the walls lie on the lattice (a maze built by hand: boards
-        # millimetres off their lines)
-        std_m = max(lattice.std_m, math.ceil(fit.line_rms_m * 1000.0) / 1000.0)
-        lattice = replace(lattice, pitch_m=round(fit.pitch_m, 4), std_m=std_m)
-        faces = [self.keyframes[k].lattice_faces(float(self.poses[k, 2]) - reference, lattice) for k in index]
-        rows, target, weight, line = lattice_priors(self.poses[index], faces, self.poses[0, :2], reference, lattice)
-        if not len(rows):
-            return None
-        c, s = math.cos(reference), math.sin(reference)
-        crossing = self.poses[0, :2] + (c * line[0] - s * line[1], s * line[0] + c * line[1])
-        info = np.zeros((len(rows), 3, 3))
-        info[:, 0, 0], info[:, 1, 1] = weight[:, 0], weight[:, 1]
-        return crossing, index[rows], np.column_stack((target, np.zeros(len(rows)))), info
-
-    def _lattice_fit(self, index: np.ndarray, reference: float, lattice: LatticeParams) -> PitchFit:
-        """The lattice of the faces keyframes ``index`` see (:func:`mazebot.slam.lattice_fit.fit_pitch`).
-
-        Every keyframe's surface points within ``lattice.max_range_m`` of its lidar, in the
-        map frame turned onto the wall grid (``reference``), split by the side their normal
-        faces (+u, −u, +v, −v: the classes of :data:`mazebot.slam.wall_lattice.FACE_CLASSES`):
-        the positions of the walls' faces across themselves.
-        """
-        cos_tol = math.cos(lattice.normal_tolerance_rad)
-        parts: list[list[np.ndarray]] = [[], [], [], []]  # faces seen from +u, -u, +v, -v: each its own phase
-        for k in index[:: max(1, len(index) // LATTICE_FIT_KEYFRAMES)]:
-            kf = self.keyframes[int(k)]
-            pts, nrm = kf.surface()
-            near = np.hypot(pts[:, 0] - kf.sensor_xy[0], pts[:, 1] - kf.sensor_xy[1]) <= lattice.max_range_m
-            pts, nrm = pts[near].astype(np.float64), nrm[near].astype(np.float64)
-            x, y, theta = self.poses[int(k)]
-            c, s = math.cos(theta - reference), math.sin(theta - reference)
-            cr, sr = math.cos(reference), math.sin(reference)
-            # the keyframe's origin on the grid's axes, then its points turned by its heading on the grid
-            u0, v0 = cr * x + sr * y, -sr * x + cr * y
-            u = u0 + c * pts[:, 0] - s * pts[:, 1]
-            v = v0 + s * pts[:, 0] + c * pts[:, 1]
-            nu = c * nrm[:, 0] - s * nrm[:, 1]
-            nv = s * nrm[:, 0] + c * nrm[:, 1]
-            for part, position, normal in ((0, u, nu), (1, u, -nu), (2, v, nv), (3, v, -nv)):
-                parts[part].append(position[normal >= cos_tol])
-        classes = []
-        for part, found in enumerate(parts):
-            positions = np.concatenate(found) if found else np.zeros(0)
-            classes.append((positions, np.ones(positions.size), part // 2))
-        return fit_pitch(classes, lattice.pitch_m, search=lattice.pitch_search, tolerance_m=lattice.fit_tolerance_m)
 
 
 @dataclass(frozen=True)
@@ -493,6 +265,63 @@ class SlamUpdate:
     loop_job: LoopClosureJob | None = None
     verdicts: tuple[Verdict, ...] = ()
     map_rebuilt: bool = False
+
+
+@dataclass(frozen=True)
+class Relocalization:
+    """Where a revolution was found in a map the Slam already had: its map pose, and how well it matched."""
+
+    pose: np.ndarray  # (3,) map pose at the end of the revolution
+    accepted: bool
+    fitness: float
+    rmse_m: float
+    tried: int  # ICP starts tried
+
+
+#: Finds the first revolution in the map a Slam was given (a resumed run): ``locate(slam, scan, odometry)``.
+#: It places the Slam with :meth:`Slam.start_in_map` and says where it found the revolution.
+FirstRevolutionLocator = Callable[["Slam", Scan, OdometrySource], Relocalization]
+
+
+@dataclass(frozen=True)
+class SlamUpdated:
+    """What a listener of :attr:`SlamTaps.on_update` is told: the Slam, what it consumed, what it made of it."""
+
+    slam: Slam
+    scan: Scan
+    odometry: OdometrySource
+    update: SlamUpdate
+
+
+@dataclass(frozen=True)
+class SlamApplied:
+    """What :attr:`SlamTaps.on_apply` listeners are told: a loop-closure result merged, and if it replaced the grid."""
+
+    slam: Slam
+    result: LoopClosureResult
+    rebuilt: bool
+
+
+@dataclass
+class SlamTaps:
+    """Where a :class:`Slam` lets others watch what it consumed, and when (:mod:`mazebot.taps`).
+
+    A recording must let replay take exactly the steps the live SLAM took: which revolutions
+    it processed (some are dropped when SLAM is behind), with odometry up to which reading,
+    and after how many scans each loop-closure result (computed in a thread) was merged.
+    Each tap is a tuple of listeners, called when the step has ended (``on_update`` after
+    :meth:`Slam.update_steps`, ``on_final_job`` when :meth:`Slam.final_job` hands out a job,
+    ``on_apply`` after :meth:`Slam.apply_steps`); the method itself does not change. A listener
+    watches, it never steers: what it raises is logged and dropped (:func:`mazebot.taps.notify`).
+
+    Example::
+
+        slam.taps.on_update += (lambda seen: print(seen.update.pose),)
+    """
+
+    on_update: tuple[Callable[[SlamUpdated], None], ...] = ()
+    on_final_job: tuple[Callable[[Slam], None], ...] = ()
+    on_apply: tuple[Callable[[SlamApplied], None], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -525,12 +354,18 @@ class Slam:
         background: bool = False,
         record_trajectory: bool = True,
         before_update: Callable[[Scan], None] | None = None,
+        locate_first: FirstRevolutionLocator | None = None,
     ) -> None:
         self.params = params or SlamParams()
         #: the fault-injection seam (the simulator's ``slam-raise``, tests): called with each
         #: revolution before :meth:`update_steps` touches any state; what it raises, the update
         #: raises, as a bug in a stage would. None (the robot) costs one test per revolution.
         self.before_update = before_update
+        #: a Slam given a map before its first revolution (:meth:`continue_map`, a resumed run)
+        #: finds that revolution in it with this function first (:func:`mazebot.persist.resume.relocalize`)
+        self.locate_first = locate_first
+        self.relocalization: Relocalization | None = None  # what ``locate_first`` found
+        self.taps = SlamTaps()
         self.background = background
         self.record_trajectory = record_trajectory  # keep every scan's pose for trajectory() (offline tools)
         self.initial_pose = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
@@ -557,6 +392,10 @@ class Slam:
         self._edge_var_theta: list[float] = []
         self._last_odom: np.ndarray | None = None
         self._last_matched_pose: np.ndarray | None = None  # filter pose after the previous scan, if matched
+        # the odometry noise learnt from the matches ([slam.motion] estimate), and the previous scan's
+        # own match pose (not the filter's, which the odometry pulls towards itself)
+        self.odometry_noise = OdometryNoiseEstimate(p.motion) if p.motion.estimate else None
+        self._last_match_pose: np.ndarray | None = None
         self._last_rate: float | None = None  # odometry turn rate at the previous scan's end
         self._odom_at_keyframe: np.ndarray | None = None
         self._last_match: IcpResult | None = None
@@ -571,7 +410,6 @@ class Slam:
         self._anchor_walls: list[float] = []
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
         self._target_position: np.ndarray | None = None
-        self._in_submap: set[int] = set()
         self._keyframes_since_target = 0
         # every scan's pose relative to the keyframe before it: the trajectory follows optimizations
         self._scan_log: list[tuple[float, int, np.ndarray]] = []
@@ -651,11 +489,23 @@ class Slam:
         stages are the same computation in the same order either way, so the result is
         the same; between two of them SLAM's state is consistent (a keyframe is in the
         list, the graph and the selector together), only the new submap may still be
-        under construction. A subclass that adds to an update overrides this method
-        (``update = yield from super().update_steps(scan, odometry, paint=paint)``).
+        under construction. Who wants to see each update listens on ``taps.on_update``.
         """
         if self.before_update is not None:
             self.before_update(scan)
+        if self.locate_first is not None and self.relocalization is None and self.keyframes:
+            # 0. a map given beforehand (a resumed run): find the first revolution in it
+            self.relocalization = self.locate_first(self, scan, odometry)
+            yield
+        update = yield from self._update_stages(scan, odometry, paint)
+        if self.taps.on_update:
+            notify(self.taps.on_update, SlamUpdated(self, scan, odometry, update), "slam.on_update")
+        return update
+
+    def _update_stages(
+        self, scan: Scan, odometry: OdometrySource, paint: bool | PaintDecision
+    ) -> Generator[None, None, SlamUpdate]:
+        """Steps 1-7 of the method (the module's docstring), yielding between them."""
         p = self.params
         # 1. de-skew: every sample into the robot frame at the end of the revolution, at the
         # lidar's stamps shifted by the learned offset; the odometry pose at that end
@@ -698,6 +548,8 @@ class Slam:
                 and p.calibrate_heading):
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
+        if self.odometry_noise is not None:
+            self._learn_odometry_noise(match if matched and paint else None, raw_increment)
 
         yield
 
@@ -782,8 +634,16 @@ class Slam:
         """:meth:`apply` in stages (as :meth:`update_steps`): the new submap and the late keyframes' rays.
 
         The keyframes and the filter move in the first stage, together; the old grid stays
-        the published one until the new one has every keyframe.
+        the published one until the new one has every keyframe. Listeners of ``taps.on_apply``
+        are told once it is merged.
         """
+        rebuilt = yield from self._apply_stages(result)
+        if self.taps.on_apply:
+            notify(self.taps.on_apply, SlamApplied(self, result, rebuilt), "slam.on_apply")
+        return rebuilt
+
+    def _apply_stages(self, result: LoopClosureResult) -> Generator[None, None, bool]:
+        """The merge of :meth:`apply_steps`, yielding between its stages."""
         self.job_running = False
         for v in result.verdicts:
             if not v.accepted:
@@ -808,6 +668,7 @@ class Slam:
         self.graph.vertices = self.keyframe_poses()
         self.ekf.reset(compose(correction, self.ekf.mean))
         self._last_matched_pose = None  # the map moved under the filter: no calibration sample
+        self._last_match_pose = None  # ... nor an odometry noise sample
         if self.selector.last is not None:
             self.selector.accept(compose(correction, self.selector.last))
         yield
@@ -835,6 +696,59 @@ class Slam:
         """,
     )
 
+    def continue_map(
+        self,
+        keyframes: Sequence[Keyframe],
+        graph: PoseGraph,
+        grid: OccupancyGrid,
+        *,
+        wall_reference_rad: float | None,
+        chain_variances: Sequence[tuple[float, float]],
+    ) -> None:
+        """Start from a map made before (a resumed run): its keyframes, pose graph, grid and wall direction.
+
+        Call it before the first revolution. ``chain_variances`` are the (xy in m², heading in
+        rad²) variances of the sequential edges 0→1, 1→2, … (the loop-closure search radius
+        grows with them along the chain). The next keyframe continues the graph, linked to the
+        last given one; the keyframes' surfaces are computed with this Slam's normal parameters.
+        """
+        if len(chain_variances) != max(0, len(keyframes) - 1):
+            raise ValueError(
+                f"a chain of {len(keyframes)} keyframes has {max(0, len(keyframes) - 1)} sequential edges; "
+                f"got {len(chain_variances)} variances"
+            )
+        if self.scans:
+            raise RuntimeError(f"continue_map is for a Slam that has seen no revolution; this one saw {self.scans}")
+        for kf in keyframes:
+            kf.normal_params = self.params.normals
+        self.keyframes = list(keyframes)
+        self.graph = graph
+        self.grid = grid
+        self.wall_reference_rad = wall_reference_rad
+        self._edge_var_xy = [float(xy) for xy, _ in chain_variances]
+        self._edge_var_theta = [float(theta) for _, theta in chain_variances]
+
+    def start_in_map(
+        self,
+        map_from_odom: np.ndarray,
+        submap: Target | None = None,
+        *,
+        submap_xy: np.ndarray | None = None,
+    ) -> None:
+        """Before the first revolution: where the odometry frame lies in the map (a resumed run's start).
+
+        The first revolution's map pose is then ``map_from_odom ⊕ odometry``. ``submap`` (built
+        from the keyframes around the map position ``submap_xy``) is what it is matched
+        against; None keeps the Slam's own choice (made at the next keyframe).
+        """
+        self.initial_pose = np.array(map_from_odom, dtype=np.float64)
+        if submap is None:
+            return
+        if submap_xy is None:
+            raise ValueError("a submap needs the map position it was built around (submap_xy)")
+        self.target = submap
+        self._target_position = np.array(submap_xy[:2], dtype=np.float64)
+
     def relocalized(self, pose: np.ndarray, odom: np.ndarray) -> None:
         """The robot was found at map ``pose`` when the odometry read ``odom`` (:mod:`mazebot.slam.relocalize`).
 
@@ -845,6 +759,7 @@ class Slam:
         self.ekf.reset(pose, self.ekf.covariance)
         self._last_odom = np.asarray(odom, dtype=np.float64).copy()
         self._last_matched_pose = None
+        self._last_match_pose = None
         self._last_match = None
         self._target_position = None
         self._search_due = True
@@ -892,7 +807,7 @@ class Slam:
         if p.wall_prior and self.wall_reference_rad is None:
             direction, strength, count = kf.wall_direction()
             if strength >= p.wall_min_strength and count >= p.wall_min_normals:
-                self.wall_reference_rad = _wrap_quarter(direction + float(pose[2]))
+                self.wall_reference_rad = wrap_quarter(direction + float(pose[2]))
         self._keyframes_since_attempt += 1
         return index
 
@@ -936,7 +851,7 @@ class Slam:
         self._anchor_walls += self._usable_walls(kf)
         direction = self.anchor_wall_rad
         if p.wall_prior and direction is not None:
-            self.wall_reference_rad = _wrap_quarter(direction + float(self.keyframes[0].pose[2]))
+            self.wall_reference_rad = wrap_quarter(direction + float(self.keyframes[0].pose[2]))
 
     def _usable_walls(self, kf: Keyframe) -> list[float]:
         """``[direction]`` if the keyframe's normals show the wall grid (as the wall priors require), else ``[]``."""
@@ -1094,6 +1009,19 @@ class Slam:
             return refined
         return match
 
+    def _learn_odometry_noise(self, match: IcpResult | None, raw_increment: np.ndarray | None) -> None:
+        """One more sample of the odometry's noise if this scan and the previous one were matched.
+
+        The learnt model (:mod:`mazebot.slam.odometry_noise`) moves the filter's prediction
+        from the next scan on, and with it the sequential edges' information, the chain's
+        uncertainty and so the loop closures' search radius and correction bounds.
+        """
+        assert self.odometry_noise is not None
+        if match is not None and raw_increment is not None and self._last_match_pose is not None:
+            self.odometry_noise.observe(raw_increment, relative_pose(self._last_match_pose, match.pose))
+            self.ekf.noise = self.odometry_noise.noise
+        self._last_match_pose = None if match is None else match.pose.copy()
+
     def _sequential_information(self, z: np.ndarray, odom: np.ndarray) -> np.ndarray:
         """Information of the edge previous keyframe → this one: odometry plus, if matched, ICP.
 
@@ -1101,7 +1029,7 @@ class Slam:
         """
         p = self.params
         increment = relative_pose(self._odom_at_keyframe, odom) if self._odom_at_keyframe is not None else z
-        odom_cov = p.motion.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
+        odom_cov = self.ekf.noise.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
         info = rotate_information(np.linalg.inv(odom_cov), float(z[2]))
         if self._last_match is not None:
             icp_info = self._last_match.information * p.match_information_scale
@@ -1158,7 +1086,6 @@ class Slam:
                 self.keyframes[k].surface()
                 yield
         self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m)
-        self._in_submap = set(chosen)
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0
 
@@ -1184,6 +1111,8 @@ class Slam:
         job = self._make_job(self._pending_candidates, None, optimize_anyway=True)
         self._pending_candidates = []
         self.job_running = True
+        if self.taps.on_final_job:
+            notify(self.taps.on_final_job, self, "slam.on_final_job")
         return replace(job, rebuild_anyway=True)
 
     def _make_job(
@@ -1247,11 +1176,6 @@ def _segment_cells(grid: OccupancyGrid, a: np.ndarray, b: np.ndarray) -> tuple[n
     steps = max(2, math.ceil(2.0 * length / grid.resolution_m) + 1)
     u = np.linspace(0.0, 1.0, steps)[:, None]
     return grid.to_cell(a[:2] + u * (b[:2] - a[:2]))
-
-
-def _wrap_quarter(angle_rad: float) -> float:
-    """An angle modulo 90°, in [-45°, 45°)."""
-    return (angle_rad + math.pi / 4) % (math.pi / 2) - math.pi / 4
 
 
 def _turn_rate(odometry: OdometrySource, time_s: float, window_s: float = 0.02) -> float:

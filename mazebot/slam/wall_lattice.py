@@ -3,7 +3,7 @@
 A micromouse maze is a square grid of cells of one known pitch (``[planner]
 cell_size_m``, 1 ft): every wall's centre line lies on a lattice line ``u ≡ 0 (mod
 pitch)`` of the wall grid, and every face the lidar sees lies half a wall thickness off
-it. The wall-direction prior (:meth:`mazebot.slam.slam.LoopClosureJob._wall_priors`)
+it. The wall-direction prior (:func:`mazebot.slam.wall_priors.wall_priors`)
 uses the grid's direction; this module uses its spacing. A keyframe that sees a wall
 face at ``s`` along the grid's ``u`` axis (its own frame, turned onto the grid) says its
 own position ``u_k`` satisfies ``u_k + s ≡ b (mod pitch)``, where ``b`` is the offset

@@ -21,15 +21,15 @@ are this task's: one writer of the goal, the path and the command.
 from __future__ import annotations
 
 import asyncio
-from collections import deque
 
 from mazebot.clock import Clock
+from mazebot.cpu_budget import RecentValues
 from mazebot.planner.pilot import Pilot
 from mazebot.state import SharedState
 from mazebot.steps import run_steps_async, timed_stages
 
 
-async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: deque[float] | None = None) -> None:
+async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: RecentValues | None = None) -> None:
     """Tick the pilot at its rate; ``tick_ms`` (if given) collects each tick's CPU time in ms."""
     period_s = pilot.params.period_s
     next_tick_s = clock.now_s()

@@ -7,8 +7,8 @@ What goes into the file, and from where:
 - every encoder reading (``/mazebot/encoders``), from a tap on ``encoders.read()``, with
   the time the odometry task stamps it with;
 - every motor command (``/mazebot/motors``), from a tap on ``motors.set()``/``stop()``;
-- SLAM's steps (``/mazebot/slam``), from an :class:`~mazebot.slam.observed.ObservedSlam`
-  observer;
+- SLAM's steps (``/mazebot/slam``), from listeners on the Slam's taps
+  (:class:`~mazebot.slam.slam.SlamTaps`, :meth:`RecordingTap.watch_slam`);
 - pose estimates (``/pose``) at ``[record] pose_hz``, with the frame tree of the same instant
   (``/tf``: ``map -> odom -> base_link -> laser``, REP 105) and the dead-reckoned pose
   (``/odom``), so one Foxglove 3D panel shows scan, pose and map together; the map (``/map``) every
@@ -35,7 +35,7 @@ from mazebot.hardware import Hardware, Lidar, Motors
 from mazebot.io.scan import Scan
 from mazebot.record.schemas import transform_chain
 from mazebot.record.writer import McapRecorder
-from mazebot.slam.slam import LoopClosureResult, OdometrySource, Slam, SlamUpdate
+from mazebot.slam.slam import Slam, SlamApplied, SlamUpdated
 from mazebot.state import OdometryStep, RunState, SharedState
 
 
@@ -51,25 +51,31 @@ class RecordingTap:
         t = self.clock.now_s() if time_s is None else time_s
         self.recorder.put(topic, round((t + self.epoch_offset_s) * 1e9), message)
 
-    # -- SLAM observer -----------------------------------------------------------------
+    # -- SLAM's taps -------------------------------------------------------------------
 
-    def slam_updated(self, slam: Slam, scan: Scan, odometry: OdometrySource, update: SlamUpdate) -> None:
-        latest = getattr(odometry, "latest", None)
+    def watch_slam(self, slam: Slam) -> None:
+        """Record SLAM's steps: each update, each final job handed out, each loop-closure result merged."""
+        slam.taps.on_update += (self.slam_updated,)
+        slam.taps.on_final_job += (self.slam_final,)
+        slam.taps.on_apply += (self.slam_applied,)
+
+    def slam_updated(self, seen: SlamUpdated) -> None:
+        latest = getattr(seen.odometry, "latest", None)
         self.put(
             "/mazebot/slam",
             {
                 "kind": "update",
-                "scan_end_time_s": scan.end_time_s,
+                "scan_end_time_s": seen.scan.end_time_s,
                 "odometry_latest_s": None if latest is None else float(latest[0]),
-                "scans": slam.scans,
+                "scans": seen.slam.scans,
             },
         )
 
     def slam_final(self, slam: Slam) -> None:
         self.put("/mazebot/slam", {"kind": "final", "scans": slam.scans})
 
-    def slam_applied(self, slam: Slam, result: LoopClosureResult, rebuilt: bool) -> None:
-        self.put("/mazebot/slam", {"kind": "apply", "scans": slam.scans, "rebuilt": bool(rebuilt)})
+    def slam_applied(self, applied: SlamApplied) -> None:
+        self.put("/mazebot/slam", {"kind": "apply", "scans": applied.slam.scans, "rebuilt": bool(applied.rebuilt)})
 
 
 class LidarTap:

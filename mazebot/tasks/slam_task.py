@@ -31,6 +31,7 @@ import numpy as np
 
 from mazebot.clock import Clock
 from mazebot.io.scan import Scan
+from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, Slam, SlamParams, SlamUpdate
@@ -206,6 +207,8 @@ class SlamTask:
         self.job = None
         rebuilt = await run_steps_async(self.slam.apply_steps(result))
         _publish_closure(self.state, self.slam, result, rebuilt)
+        del result, job
+        give_back_free_memory()  # the old grid and submap, the job's result: all freed at this one moment
 
     def on_search_done(self, search: asyncio.Future[SearchResult]) -> None:
         """The search for the lost robot ended: found (the fault cleared), or searched again later."""

@@ -79,6 +79,8 @@ def test_a_short_two_process_run_reads_the_pty_lidar_counts_the_edges_and_moves_
     assert_the_boundary_carried_everything(record, m)
     # no cgroup: its accounting is missing, so are the figures made from it
     assert m["daemon_cpu_percent"] is None and m["cfs_throttled"] is None and m["cgroup_version"] is None
+    assert m["daemon_cpu_percent_sim_out"] is None  # nothing to take the simulator's share out of
+    assert m["gpio_thread_cpu_percent"] > 0 and m["gpio_pi_path_us_per_edge"] > 0 and m["gpio_sim_path_us_per_edge"] > 0
 
 
 def _cgroup_unusable() -> str | None:
@@ -105,6 +107,40 @@ def test_inside_a_real_cgroup_the_daemon_is_accounted_throttled_and_the_cgroup_r
     assert m["daemon_cpu_percent_of_quota"] == pytest.approx(2 * m["daemon_cpu_percent"], abs=0.2)
     assert m["cfs_periods"] > 0 and m["cfs_throttled"] is not None
     assert m["daemon_cpu_s_total"] >= m["daemon_cpu_s"] > 0
+    # the simulator's share: what its GPIO stand-in does per edge beyond the Pi's path, at most the edge
+    # thread's own CPU, which is part of the cgroup's
+    assert 0 < m["gpio_thread_cpu_percent"] < m["daemon_cpu_percent"]
+    assert 0 <= m["gpio_sim_share_percent"] <= m["gpio_thread_cpu_percent"]
+    excess_us = max(m["gpio_sim_path_us_per_edge"] - m["gpio_pi_path_us_per_edge"], 0.0)
+    share = min(m["gpio_edges_per_s"] * excess_us * 1e-4, m["gpio_thread_cpu_percent"])
+    assert m["gpio_sim_share_percent"] == pytest.approx(share, abs=0.01)
+    assert m["daemon_cpu_percent_sim_out"] == pytest.approx(m["daemon_cpu_percent"] - share, abs=0.1)
+
+
+def test_the_simulators_gpio_share_is_its_edges_times_what_its_stand_in_does_beyond_the_pi_path() -> None:
+    from mazebot.bench.quota_run import gpio_share
+
+    costs = {"decode": 0.4e-6, "mock_noop": 0.8e-6, "mock_decode": 1.2e-6, "mock_alone": 0.45e-6,
+             "lgpio_loop": 0.4e-6, "sim_path": 1.65e-6}
+    # 10 s of CPU over 100 s; the thread took 1.5 s for 160 000 edges (9.4 µs each); the Pi's path
+    # 0.75 + 0.4 µs an edge, the stand-in's 1.65: 0.5 µs an edge is the simulator's
+    share = gpio_share(10.0, 100.0, 1.5, 160_000, costs)
+    assert share["gpio_pi_path_us_per_edge"] == pytest.approx(1.15)
+    assert share["gpio_sim_path_us_per_edge"] == pytest.approx(1.65)
+    assert share["gpio_thread_cpu_percent"] == pytest.approx(1.5)
+    assert share["gpio_thread_us_per_edge"] == pytest.approx(9.375)
+    assert share["gpio_edges_per_s"] == pytest.approx(1600.0)
+    assert share["gpio_sim_share_percent"] == pytest.approx(0.08)
+    assert share["daemon_cpu_percent_sim_out"] == pytest.approx(10.0 - 0.08)
+    # a stand-in no dearer than the Pi's path takes nothing out; the share never exceeds the thread's CPU
+    cheap = gpio_share(10.0, 100.0, 1.5, 160_000, costs | {"sim_path": 1.0e-6})
+    assert cheap["gpio_sim_share_percent"] == 0.0 and cheap["daemon_cpu_percent_sim_out"] == pytest.approx(10.0)
+    dear = gpio_share(10.0, 100.0, 0.01, 160_000, costs)
+    assert dear["gpio_sim_share_percent"] == pytest.approx(0.01)
+    # a missing part leaves the figure out rather than guessing it
+    assert gpio_share(None, 100.0, 1.5, 160_000, costs)["daemon_cpu_percent_sim_out"] is None
+    assert gpio_share(10.0, 100.0, 1.5, 160_000, None)["daemon_cpu_percent_sim_out"] is None
+    assert gpio_share(10.0, 100.0, None, 160_000, costs)["gpio_thread_cpu_percent"] is None
 
 
 def test_the_quota_is_a_percentage_of_one_core_or_max() -> None:

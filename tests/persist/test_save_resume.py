@@ -18,7 +18,7 @@ import pytest
 from mazebot.errors import MazebotError
 from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.io.scan import Scan
-from mazebot.persist.resume import ResumedSlam
+from mazebot.persist.resume import resume_slam
 from mazebot.persist.snapshot import SavedRun, load_run, save_snapshot, take_snapshot
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
@@ -177,7 +177,7 @@ def test_resume_continues_from_the_saved_pose_in_the_saved_map(
     truth = relative_pose(start, true_end)
     assert math.hypot(*(saved_pose[:2] - truth[:2])) < 0.02  # the save holds the right pose
     assert abs(math.degrees(wrap_angle(saved_pose[2] - truth[2]))) < 0.5
-    resumed = ResumedSlam(_params(), saved, guess=tuple(saved_pose), background=False, record_trajectory=False)
+    resumed = resume_slam(_params(), saved, guess=tuple(saved_pose), background=False, record_trajectory=False)
     # a new process: the odometry starts again from zero, the robot has not moved
     history = OdometryHistory(horizon_s=30.0)
     history.append(0.0, 0.0, 0.0, 0.0)
@@ -222,7 +222,7 @@ def test_a_robot_that_starts_to_turn_in_its_first_revolution_is_found_with_the_l
     start = np.asarray(world.start_pose, dtype=np.float64)
     offset_s, rate_radps, turn_from_s = 0.1, 1.0, 0.5 * PERIOD_S
     params = replace(_params(), lidar_time_offset_s=offset_s, estimate_time_offset=False)
-    resumed = ResumedSlam(params, saved, guess=tuple(saved.meta["pose"]), background=False,
+    resumed = resume_slam(params, saved, guess=tuple(saved.meta["pose"]), background=False,
                           record_trajectory=False)
     history = OdometryHistory(horizon_s=30.0)
     for t in np.arange(0.0, PERIOD_S + 0.3, 0.005):

@@ -23,7 +23,7 @@ from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
 from mazebot.errors import UsageError
 from mazebot.persist.export import export_json, export_pgm, export_png, export_svg, three_state
-from mazebot.persist.resume import ResumedSlam
+from mazebot.persist.resume import resume_slam
 from mazebot.persist.runs import find_run
 from mazebot.persist.snapshot import load_run
 from mazebot.record.reader import Recording
@@ -261,7 +261,7 @@ def test_resume_relocalizes_from_an_unknown_pose(live: LiveRun, guess: tuple[flo
     # the live SLAM kept this very revolution as keyframe 0: its pose is the reference
     reference = next(kf.pose for kf in saved.keyframes if kf.time_s == scan.end_time_s)
     params = SlamParams.from_config(live.config.slam, live.config.lidar)
-    slam = ResumedSlam(params, saved, guess=guess, background=False)
+    slam = resume_slam(params, saved, guess=guess, background=False)
     update = slam.update(scan, history)
     assert slam.relocalization is not None and slam.relocalization.accepted
     error_m = math.hypot(*(update.pose[:2] - reference[:2]))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import math
 import random
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import numpy as np
@@ -250,13 +251,16 @@ def test_faults_are_named_on_the_command_line_with_an_optional_time() -> None:
     assert len(FAULTS) == 16
 
 
-def test_slam_raise_fails_the_next_update_through_slams_seam_and_only_that_one() -> None:
+async def test_slam_raise_fails_the_next_update_through_slams_seam_and_only_that_one() -> None:
     injector = FaultInjector([], _robot(), RealClock())
     scan = SimpleNamespace(end_time_s=1.0)
     injector.ctx.slam = SimpleNamespace(before_update=None)  # a Slam built without the injector's seam
-    with pytest.raises(RuntimeError, match="before_slam_update"):
+    with pytest.raises(RuntimeError, match="injector's seam"):
         FAULTS["slam-raise"].begin(injector.ctx)
-    injector.ctx.slam = SimpleNamespace(before_update=injector.before_slam_update)
+    slam = SimpleNamespace(before_update=None)
+    with ThreadPoolExecutor(max_workers=1) as executor:
+        injector.instrument(slam, executor)  # the daemon's hook sets the seam
+    assert slam.before_update == injector.before_slam_update
     injector.before_slam_update(scan)  # not armed: the update goes on
     FAULTS["slam-raise"].begin(injector.ctx)
     with pytest.raises(InjectedFault, match="a SLAM update failed"):

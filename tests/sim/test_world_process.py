@@ -100,9 +100,15 @@ def test_the_daemons_encoders_count_the_worlds_edges_through_the_gpio_thread() -
             if data:
                 tx.send_bytes(EDGES_TIME.pack(step_s) + data)
                 sent += len(data)
+        deadline = time.monotonic() + 10.0
+        while thread.edges < sent and time.monotonic() < deadline:
+            time.sleep(0.01)
+        cpu_s = thread.cpu_s()  # its own clock, read from this thread: what driving the edges cost it
+        assert cpu_s is not None and 0 < cpu_s <= time.process_time()
         tx.close()  # the world is gone: the thread ends once it has driven every edge
         thread.join(10.0)
         assert not thread.is_alive()
+        assert thread.cpu_s() is None
         got = encoders.read()
         age_s = time.monotonic() - step_s
     assert thread.edges == sent > 2000

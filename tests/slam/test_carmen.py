@@ -108,7 +108,7 @@ def test_a_beam_without_echo_clears_no_space_in_the_map() -> None:
     window once fanned free space far outside the Intel building.
     """
     (rec,) = parse_carmen([_flaser(ranges="3 3 3 81.83")]).lasers
-    params = laser_log_params(SlamParams(), (0.05, 0.05))
+    params = laser_log_params(SlamParams())
     prepared = prepare_scan(rec.to_scan(), None, params.prepare)
     ends, hit, origins = map_rays(prepared, params.map_max_range_m, params.map_smoothing, params.range_noise_rel)
     grid = params.grid.new_grid()
@@ -150,3 +150,10 @@ def test_bad_lines_are_one_clear_error_with_the_line_number(line: str, fragment:
 def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(CarmenLogError, match="not found"):
         read_carmen(tmp_path / "nope.log")
+
+
+def test_an_odd_beam_count_spans_both_ends_of_the_field_of_view() -> None:
+    """361 beams of a SICK LMS at 0.5°: -90° … +90° inclusive (180 or 360 beams leave the last end out)."""
+    ranges = " ".join(["2.0"] * 361)
+    (rec,) = parse_carmen([f"FLASER 361 {ranges} 0 0 0 0 0 0 1.0 host 1.0"]).lasers
+    np.testing.assert_allclose(np.degrees(rec.angle_rad[[0, 1, 180, 360]]), [-90.0, -89.5, 0.0, 90.0], atol=1e-9)

@@ -120,3 +120,34 @@ def test_the_lines_lie_between_the_faces_seen_from_both_sides_however_unequally_
                      (v + 0.006, np.ones(v.size), 1), (v - 0.006, np.ones(v.size), 1)], 0.30, search=0.0)
     assert math.remainder(fit.phase_m[0] - 0.10, 0.30) == pytest.approx(0.0, abs=0.0015)
     assert math.remainder(fit.phase_m[1] - 0.05, 0.30) == pytest.approx(0.0, abs=0.0015)
+
+
+@pytest.mark.parametrize("count, spread_m", [(18_000, 3.0), (200, 60.0), (5_000, 500.0), (1, 1.0)])
+def test_the_histogram_counts_every_bin_as_sorting_the_bins_did(count: int, spread_m: float) -> None:
+    """A maze's positions go into a dense count, a building's far-flung ones are sorted: the same bins either way,
+    each bin's weights summed in the same order (the same floats), the same as the sorted form always gave."""
+    from mazebot.slam.lattice_fit import _histogram
+
+    rng = np.random.default_rng(count)
+    x = rng.uniform(-spread_m, spread_m, count)
+    w = rng.uniform(0.0, 2.0, count)
+    w[::7] = 0.0  # a bin holding only weightless positions is no bin
+    index = np.floor(x / 0.002).astype(np.int64)
+    keys, inverse = np.unique(index, return_inverse=True)
+    weight = np.bincount(inverse, weights=w, minlength=keys.size)
+    centres, weights = _histogram(x, w, 0.002)
+    assert np.array_equal(centres, (keys[weight > 0] + 0.5) * 0.002)
+    assert np.array_equal(weights, weight[weight > 0])
+
+
+def test_within_range_is_hypots_answer_on_the_circle_beside_it_and_for_nan_and_inf() -> None:
+    from mazebot.slam.wall_priors import within_radius
+
+    rng = np.random.default_rng(3)
+    for radius in rng.uniform(0.1, 2.0, 10):
+        dx, dy = rng.uniform(-2.0, 2.0, 20_000), rng.uniform(-2.0, 2.0, 20_000)
+        angle = rng.uniform(0.0, math.tau, 2_000)
+        dx[:2_000], dy[:2_000] = radius * np.cos(angle), radius * np.sin(angle)  # on the circle, to rounding
+        dx[2_000:4_000], dy[2_000:4_000] = np.nextafter(dx[:2_000], 10.0), dy[:2_000]  # an ulp beside it
+        dx[4_000:4_010], dx[4_010:4_020] = np.nan, np.inf
+        assert np.array_equal(within_radius(dx, dy, float(radius)), np.hypot(dx, dy) <= radius)

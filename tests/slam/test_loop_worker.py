@@ -9,6 +9,7 @@ keyframe sent twice, missed or out of order would move a pose or a grid cell.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 from concurrent.futures.process import BrokenProcessPool
@@ -18,9 +19,9 @@ import pytest
 
 from mazebot.bench.runner import RunSpec, run_one
 from mazebot.config import Config
-from mazebot.slam import slam as slam_module
+from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.loop_worker import LoopClosureExecutor
-from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams
+from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams, SlamUpdated
 
 pytestmark = pytest.mark.slow  # a simulated run's keyframes and a worker process
 
@@ -43,19 +44,17 @@ def frames() -> list[tuple[object, np.ndarray]]:
     The tour starts once SLAM has its anchor (about 4 s at rest), so this is its first 76 s.
     """
     captured: list[tuple[object, np.ndarray]] = []
-    real_update = slam_module.Slam.update_steps  # what the SLAM task calls
 
-    def update(self: Slam, scan: object, odometry: object, **kwargs: object) -> object:
-        captured.append((scan, odometry._buf[odometry._start : odometry._end].copy()))  # type: ignore[attr-defined]
-        return (yield from real_update(self, scan, odometry, **kwargs))  # type: ignore[arg-type]
+    def capture(seen: SlamUpdated) -> None:  # the odometry as it stood when the update ended
+        assert isinstance(seen.odometry, OdometryHistory)
+        captured.append((seen.scan, seen.odometry.since(-math.inf)))  # every entry it holds, a copy
+
+    def watch(slam: Slam) -> None:
+        slam.taps.on_update += (capture,)
 
     config = Config()
     config = config.model_copy(update={"slam": config.slam.model_copy(update={"loop_closure_executor": "thread"})})
-    slam_module.Slam.update_steps = update  # type: ignore[method-assign]
-    try:
-        run_one(config, RunSpec(None, (4, 4), 5, "scripted", max_sim_s=80.0))
-    finally:
-        slam_module.Slam.update_steps = real_update  # type: ignore[method-assign]
+    run_one(config, RunSpec(None, (4, 4), 5, "scripted", max_sim_s=80.0), watch_slam=watch)
     return captured
 
 

@@ -101,7 +101,7 @@ def test_range_noise_weighting_comes_from_the_config_and_is_off_for_laser_logs()
     config.slam.icp = replace(config.slam.icp, range_noise_ratio=0.01, noise_floor_m=0.003)
     params = SlamParams.from_config(config.slam, config.lidar)
     assert params.icp.range_noise_ratio == 0.01 and params.icp.noise_floor_m == 0.003
-    assert laser_log_params(params, None).icp.range_noise_ratio == 0.0
+    assert laser_log_params(params).icp.range_noise_ratio == 0.0
 
 
 def _tiny_log(intel_log_path: Path, scans: int, rounded: bool) -> list[str]:

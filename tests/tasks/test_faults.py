@@ -424,26 +424,31 @@ def test_bouncing_encoders_are_said_once_in_a_while_not_every_check() -> None:
 async def test_a_loop_closure_job_that_runs_long_is_said_and_scans_go_on() -> None:
     import threading
 
-    state, params, slam = _slam_of_a_robot_at_rest(1e6)
-    real_update = slam.update_steps  # what the SLAM task calls
+    state, params, _ = _slam_of_a_robot_at_rest(1e6)
+    # optimized at every keyframe: the first revolution (keyframe 0, whose walls give the maze's
+    # direction) hands out a real loop-closure job
+    params = replace(params, optimize_every_keyframes=1)
+    slam = Slam(params, background=True, record_trajectory=False)
     release = threading.Event()
+    held: list[str] = []
 
-    class SlowJob:
-        def __call__(self):
-            release.wait(5.0)
-            return slam_task.LoopClosureResult(verdicts=[], poses=None)
+    class HeldExecutor(ThreadPoolExecutor):
+        """The SLAM task's executor, as slow as a worker that has not finished: each job waits for ``release``."""
 
-    def update_with_a_slow_job(scan, hist, **kwargs):
-        update = yield from real_update(scan, hist, **kwargs)
-        if slam.scans == 1:
-            return replace(update, loop_job=SlowJob())
-        return update
+        def submit(self, fn, /, *args, **kwargs):
+            held.append(type(fn).__name__)
 
-    slam.update_steps = update_with_a_slow_job  # type: ignore[method-assign]
-    with ThreadPoolExecutor(max_workers=1) as executor:
+            def held_back():
+                release.wait(5.0)
+                return fn(*args, **kwargs)
+
+            return super().submit(held_back)
+
+    with HeldExecutor(max_workers=1) as executor:
         task = asyncio.create_task(slam_task.run(state, RealClock(), params, executor, slam))
         state.scans.put_nowait(_maze_scan(1.0))
         await _until(lambda: any("loop-closure job has been running" in e.message for e in state.events), 3.0)
+        assert held == ["LoopClosureJob"]
         state.scans.put_nowait(_maze_scan(1.2))
         await _until(lambda: state.slam.scans == 2)  # scans go on while the job runs
         release.set()

@@ -1,0 +1,77 @@
+"""Keyframes in int16 quarter millimetres: half the memory of float32, a rounding below the lidar's noise."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mazebot.slam.keyframes import NORMAL_STEP, POINT_STEP_M, Keyframe, pack, unpack
+
+
+def _corridor(n: int = 400, seed: int = 3) -> np.ndarray:
+    """Hits (n, 2) on two walls of a corridor 0.15 m either side, 1 % range noise, seen from the origin."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-1.0, 1.0, n // 2)
+    left = np.column_stack((x, 0.15 + 0.0015 * rng.standard_normal(x.size)))
+    right = np.column_stack((x, -0.15 + 0.0015 * rng.standard_normal(x.size)))
+    return np.vstack((left, right))
+
+
+def _wall_keyframe(hits: np.ndarray | None = None) -> Keyframe:
+    hits = _corridor() if hits is None else hits
+    rng = np.random.default_rng(5)
+    return Keyframe(index=0, time_s=0.0, pose=np.zeros(3), hits=hits, match_points=hits[::4], sensor_xy=np.zeros(2),
+                    ray_ends=hits, ray_hit=rng.random(hits.shape[0]) < 0.9, integrated_pose=np.zeros(3))
+
+
+def test_points_round_to_a_quarter_millimetre() -> None:
+    values = np.random.default_rng(1).uniform(-8.0, 8.0, size=(1000, 2))
+    packed = pack(values, POINT_STEP_M)
+    assert packed.dtype == np.int16
+    assert np.max(np.abs(unpack(packed, POINT_STEP_M) - values)) <= POINT_STEP_M / 2 + 1e-12
+    normals = np.column_stack((np.cos(values[:, 0]), np.sin(values[:, 0])))
+    assert np.max(np.abs(unpack(pack(normals, NORMAL_STEP), NORMAL_STEP) - normals)) <= NORMAL_STEP / 2 + 1e-12
+
+
+def test_points_beyond_int16_stay_float32() -> None:
+    far = np.array([[9.0, 0.0], [0.5, -0.25]])
+    packed = pack(far, POINT_STEP_M)
+    assert packed.dtype == np.float32
+    assert np.array_equal(unpack(packed, POINT_STEP_M), far.astype(np.float32).astype(np.float64))
+
+
+def test_a_keyframe_holds_half_of_float32() -> None:
+    kf = _wall_keyframe()
+    kf.surface()
+    float32_bytes = 4 * (2 * kf.hits.size + kf.match_points.size + kf.ray_ends.size + 2 * kf.points.size)
+    float32_bytes += kf.ray_hit.size
+    held = sum(a.nbytes for a in (kf._hits, kf._match, kf._ray_ends, kf._ray_hit_bits, *kf._surface))
+    assert held <= 0.52 * float32_bytes
+    assert not hasattr(kf, "__dict__")  # slots: no per-keyframe dictionary
+
+
+def test_packing_keeps_a_walls_direction() -> None:
+    """A wall along an axis is not pulled onto the storage grid: over ten noisy scans its direction
+    is the float points' one, with no bias (a millimetre's grid pulled it by ~0.014° on average)."""
+    diffs = []
+    for seed in range(10):
+        hits = _corridor(seed=seed)
+        exact = _wall_keyframe(np.zeros((0, 2)))
+        exact._hits = hits.astype(np.float32)  # the same hits unrounded (float32 is kept as it is)
+        direction, strength, count = _wall_keyframe(hits).wall_direction()
+        want, _, want_count = exact.wall_direction()
+        assert count == want_count and strength > 0.9
+        diffs.append(np.degrees(direction - want))
+    assert abs(np.mean(diffs)) < 0.005
+    assert np.max(np.abs(diffs)) < 0.02
+
+
+def test_keep_surface_only_lets_go_of_the_hits() -> None:
+    kf = _wall_keyframe()
+    kf.keep_surface_only()  # no surface yet: the hits stay
+    assert kf.hits.shape[0] == 400
+    points, normals = kf.surface()
+    kf.keep_surface_only()
+    assert kf.hits.shape == (0, 2)
+    again = kf.surface()
+    assert np.array_equal(again[0], points) and np.array_equal(again[1], normals)
+    assert kf.ray_hit.shape == (400,) and kf.match_points.shape == (100, 2)

@@ -253,6 +253,7 @@ class _Target:
     dwelt: int = 0  # map revolutions as the target with the robot at it
     last: int | None = None  # the map's revolution count at the last tick it was the target
     at_goal: bool = False  # the robot was at it on that tick
+    dropped: int = 0  # times it was left for another target while still there (grid frontiers)
 
 
 @dataclass
@@ -289,7 +290,9 @@ class Explorer:
     many it may stay unresolved once the robot is there (the map's revolutions are
     SLAM's painted scans, passed to :meth:`update`; 5.5 a second on an A1 when SLAM
     keeps up); ``retry_after_m`` how far the robot must drive before a blacklisted
-    target is tried again, ``max_attempts`` how often a target is tried in all;
+    target is tried again, ``max_attempts`` how often a target is tried in all,
+    ``max_drops`` how often a grid frontier may be left for another while it is still there
+    before it is blacklisted (the robot going back and forth between frontiers);
     ``map_check`` whether a maze is done only when the grid has no reachable frontier
     either; ``footprint_radius_m``/``clearance_m`` the robot
     for the grid costmap; ``min_frontier_cells`` the smallest frontier region worth a
@@ -324,6 +327,7 @@ class Explorer:
         dwell_revolutions: int = _PLANNER.dwell_revolutions,
         retry_after_m: float = _PLANNER.retry_after_m,
         max_attempts: int = _PLANNER.max_attempts,
+        max_drops: int = _PLANNER.max_drops,
         map_check: bool = True,
         footprint_radius_m: float = _ROBOT.footprint_radius_m,
         clearance_m: float = _ROBOT.clearance_m,
@@ -349,15 +353,16 @@ class Explorer:
         self.turn_cost_cells = float(turn_cost_cells)
         self.switch_margin = float(switch_margin)
         self.goal_tolerance_m = float(goal_tolerance_m)
-        if progress_revolutions < 1 or dwell_revolutions < 1 or max_attempts < 1:
+        if progress_revolutions < 1 or dwell_revolutions < 1 or max_attempts < 1 or max_drops < 1:
             raise ValueError(
-                "need progress_revolutions, dwell_revolutions and max_attempts >= 1, got "
-                f"{progress_revolutions}, {dwell_revolutions}, {max_attempts}"
+                "need progress_revolutions, dwell_revolutions, max_attempts and max_drops >= 1, got "
+                f"{progress_revolutions}, {dwell_revolutions}, {max_attempts}, {max_drops}"
             )
         self.progress_revolutions = int(progress_revolutions)
         self.dwell_revolutions = int(dwell_revolutions)
         self.retry_after_m = float(retry_after_m)
         self.max_attempts = int(max_attempts)
+        self.max_drops = int(max_drops)
         self.map_check = bool(map_check)
         self.footprint_radius_m = float(footprint_radius_m)
         self.clearance_m = float(clearance_m)
@@ -483,7 +488,7 @@ class Explorer:
                 self.blacklisted_links.discard(key)
             target = self._history.get(key)
             if target is not None:  # a fresh start: its counts begin again
-                target.stalled, target.dwelt, target.best_cost = 0, 0, math.inf
+                target.stalled, target.dwelt, target.dropped, target.best_cost = 0, 0, 0, math.inf
             retried = True
         return retried
 
@@ -495,7 +500,7 @@ class Explorer:
         target = self._target
         if target is None or self.phase is not Phase.EXPLORING:
             return
-        self._blacklist(target)
+        self._blacklist(target, "the local planner could not reach it")
 
     def reset(self) -> None:
         """Start a new run: forget the phase, targets and blacklists (the graph follows the map)."""
@@ -544,7 +549,11 @@ class Explorer:
             if (cell, side) not in self.blacklisted_links
         ]
         if not candidates:
-            self._target = None
+            # No link left. A grid frontier being followed (``map_check``) stays the target:
+            # forgetting it here each tick made every frontier tick a first choice, with no
+            # hysteresis, no kept viewpoint and no revolutions counted towards a blacklist.
+            if self._target is not None and not isinstance(self._target.key, _RegionKey):
+                self._target = None
             return None
         self.phase = Phase.EXPLORING
 
@@ -626,7 +635,13 @@ class Explorer:
             margin_m = self.switch_margin * self.graph.cell_size_m
             if same is not None and same.view.score_m <= choice.view.score_m + margin_m:
                 choice = same
-        key = current.key if current is not None and choice is same else _RegionKey(choice.centroid_m)
+        if current is not None and same is not None and choice is not same:
+            # left for another while it is still there: a frontier the robot keeps going to
+            # and turning away from is blacklisted after max_drops of the explorer's choices
+            current.dropped += 1
+            if current.dropped >= self.max_drops:
+                self._blacklist(current, f"left for another frontier {current.dropped} times")
+        key = current.key if current is not None and choice is same else self._region_key(choice.centroid_m)
         at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
         if self._track(key, choice.goal_m, choice.cost_m, at_goal) is None:
             # just blacklisted (no progress): choose again among the rest
@@ -798,9 +813,27 @@ class Explorer:
         stalled = target.stalled > self.progress_revolutions
         dwelt = target.dwelt > self.dwell_revolutions
         if stalled or dwelt:
-            self._blacklist(target)
+            self._blacklist(target, f"chosen {target.stalled} map revolutions without progress, {target.dwelt} there")
             return None
         return target
+
+    def _region_key(self, centroid_m: tuple[float, float]) -> _RegionKey:
+        """The key of the region target chosen before nearest ``centroid_m`` (within ``region_match_m``,
+        not blacklisted), else a new one.
+
+        A frontier region changes shape as the map grows (its centroid moves by cells from tick
+        to tick): matched by place, a region dropped and chosen again goes on with its counts
+        (revolutions stalled and dwelt, times dropped) instead of starting afresh as a new target.
+        """
+        blacklisted = set(self.blacklisted_points_m)
+        best: _RegionKey | None = None
+        best_m = self.region_match_m
+        for key in self._history:
+            if isinstance(key, _RegionKey) and key.centroid_m not in blacklisted:
+                d_m = math.dist(key.centroid_m, centroid_m)
+                if d_m < best_m:
+                    best, best_m = key, d_m
+        return best if best is not None else _RegionKey(centroid_m)
 
     def _near_region(self, a: object, b: object) -> bool:
         """True when two grid-frontier targets are one region (their centroids within the blacklist radius)."""
@@ -820,7 +853,7 @@ class Explorer:
         margin = 2.0 * self.switch_margin
         return margin * self.graph.cell_size_m if isinstance(key, _RegionKey) else margin
 
-    def _blacklist(self, target: _Target) -> None:
+    def _blacklist(self, target: _Target, why: str) -> None:
         key = target.key
         attempts = 1 + max(
             (g.attempts for k, g in self._given_up.items() if k == key or self._near_region(k, key)), default=0
@@ -829,8 +862,7 @@ class Explorer:
         what = f"frontier at {key.centroid_m[0]:.2f}, {key.centroid_m[1]:.2f}" if isinstance(key, _RegionKey) else key
         again = "given up" if attempts >= self.max_attempts else f"tried again after {self.retry_after_m:g} m"
         self.events.append(
-            f"blacklisted {what} (chosen {target.stalled} map revolutions without progress, {target.dwelt} there; "
-            f"attempt {attempts} of {self.max_attempts}, {again})"
+            f"blacklisted {what} ({why}; attempt {attempts} of {self.max_attempts}, {again})"
         )
         if isinstance(key, _RegionKey):
             self.blacklisted_points_m.append(key.centroid_m)

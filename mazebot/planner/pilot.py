@@ -141,6 +141,7 @@ class Pilot:
             dwell_revolutions=p.dwell_revolutions,
             retry_after_m=p.retry_after_m,
             max_attempts=p.max_attempts,
+            max_drops=p.max_drops,
             footprint_radius_m=robot.footprint_radius_m,
             clearance_m=robot.clearance_m,
             lidar_min_range_m=self.params.lidar.min_range_m,

@@ -507,3 +507,51 @@ def test_a_maze_is_not_done_while_the_grid_has_a_reachable_frontier() -> None:
             assert lidar_rays_into(world, goal.target_m, lambda x, y: x > 2.5 * CELL + RES) >= 5  # within view of it
         else:
             assert goal.phase is Phase.RETURNING
+
+
+def test_a_grid_frontier_in_a_maze_is_kept_and_given_up_when_it_stays_unseen() -> None:
+    # Once the maze graph knows every link, the grid's check (map_check) looks for free
+    # space next to unknown space; a patch the lidar never resolves (a wall seen only at
+    # grazing angles on a 16x16 maze) must be kept as the goal, counted and given up, or
+    # the robot stands at it for ever. (The maze goal used to forget the frontier target on
+    # every tick: each tick was a first choice, nothing was counted, nothing blacklisted.)
+    world, grid, origin = t_maze()
+    unseen = grid.copy()
+    row = int((CELL + 0.17 - origin[1]) / RES)
+    col = int((CELL + 0.10 - origin[0]) / RES)
+    unseen[row : row + 4, col : col + 5] = -1  # 8 x 10 cm in corridor cell (1, 1), clear of its walls
+    explorer = Explorer(start_xy_m=world.start_pose[:2], dwell_revolutions=16, max_attempts=3)
+    pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
+    goals = []
+    for revolutions in range(0, 400, 2):
+        goal = explorer.update(unseen, origin, RES, pose, revolutions=revolutions)
+        assert goal is not None
+        if goal.phase is not Phase.EXPLORING:
+            break
+        assert goal.reason.startswith("frontier of"), goal.reason
+        goals.append(goal.target_m)
+        pose = (*goal.target_m, 0.0)  # the robot gets there at once; the patch stays unknown
+    assert goal.phase is Phase.RETURNING, "the unresolvable frontier was never given up"
+    blacklists = [e for e in explorer.events if e.startswith("blacklisted")]
+    assert blacklists and all("there" in e for e in blacklists), blacklists
+    assert len(goals) <= 3 * (16 // 2 + 3)  # each attempt its dwell of map revolutions, not more
+    # the viewpoint is kept while the robot stands at it (no new first choice each tick)
+    assert goals[1:6] == [goals[1]] * 5
+
+
+def test_a_frontier_left_for_another_again_and_again_is_blacklisted() -> None:
+    # The robot going back and forth between two frontiers (each cheaper while it is near
+    # it) resolves neither; a frontier left max_drops times while still there is given up.
+    grid = _room_with_patches((slice(20, 26), slice(20, 26)), (slice(30, 36), slice(90, 96)))
+    explorer = Explorer(start_xy_m=(0.2, 0.2), mode="frontier", max_drops=3, progress_revolutions=1000)
+    near_x = []
+    for k in range(12):
+        pose = (0.3, 0.3, 0.0) if k % 2 == 0 else (1.9, 0.8, 0.0)
+        goal = explorer.update(grid, (0.0, 0.0), RES, pose, revolutions=k)
+        assert goal is not None and goal.phase is Phase.EXPLORING
+        near_x.append(float(goal.reason.split(" at ")[1].split(",")[0]) < 1.0)
+        if explorer.blacklisted_points_m:
+            break
+    assert explorer.blacklisted_points_m, "the robot was sent back and forth for ever"
+    assert any("left for another frontier 3 times" in e for e in explorer.events), explorer.events
+    assert k <= 7  # on the third time it was left

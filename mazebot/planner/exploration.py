@@ -297,7 +297,8 @@ class Explorer:
     either; ``footprint_radius_m``/``clearance_m`` the robot
     for the grid costmap; ``min_frontier_cells`` the smallest frontier region worth a
     visit, ``frontier_wall_margin_cells`` how close to a wall unknown cells are taken
-    for wall (see :func:`~mazebot.planner.frontiers.find_frontiers`); ``lidar_min_range_m``
+    for wall, ``frontier_sliver_cells`` how thin an unknown area is taken for a sliver of
+    wall (see :func:`~mazebot.planner.frontiers.find_frontiers`); ``lidar_min_range_m``
     the lidar's minimum range (``[lidar] min_range_m``: nothing nearer is ever seen);
     ``view_radius_m`` how far from a viewpoint the unknown cells it is counted to see may
     be (a planning range, well inside the lidar's), ``view_candidates`` how many places
@@ -333,6 +334,7 @@ class Explorer:
         clearance_m: float = _ROBOT.clearance_m,
         min_frontier_cells: int = 4,
         frontier_wall_margin_cells: int = 2,
+        frontier_sliver_cells: int = 2,
         lidar_min_range_m: float = 0.15,
         view_radius_m: float = 0.9,
         view_candidates: int = 96,
@@ -368,6 +370,7 @@ class Explorer:
         self.clearance_m = float(clearance_m)
         self.min_frontier_cells = int(min_frontier_cells)
         self.frontier_wall_margin_cells = int(frontier_wall_margin_cells)
+        self.frontier_sliver_cells = int(frontier_sliver_cells)
         self.lidar_min_range_m = float(lidar_min_range_m)
         if view_radius_m <= lidar_min_range_m:
             raise ValueError(f"view_radius_m ({view_radius_m}) must exceed lidar_min_range_m ({lidar_min_range_m})")
@@ -677,7 +680,9 @@ class Explorer:
         frontiers: in a maze, once the graph knows every link, the grid's check finds none
         on most ticks.
         """
-        frontiers = find_frontiers(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
+        frontiers = find_frontiers(
+            grid, self.min_frontier_cells, self.frontier_wall_margin_cells, self.frontier_sliver_cells
+        )
         if not frontiers:
             return []
         yield

@@ -517,9 +517,9 @@ def test_a_grid_frontier_in_a_maze_is_kept_and_given_up_when_it_stays_unseen() -
     # every tick: each tick was a first choice, nothing was counted, nothing blacklisted.)
     world, grid, origin = t_maze()
     unseen = grid.copy()
-    row = int((CELL + 0.17 - origin[1]) / RES)
-    col = int((CELL + 0.10 - origin[0]) / RES)
-    unseen[row : row + 4, col : col + 5] = -1  # 8 x 10 cm in corridor cell (1, 1), clear of its walls
+    row = int((CELL + 0.14 - origin[1]) / RES)
+    col = int((CELL + 0.09 - origin[0]) / RES)
+    unseen[row : row + 6, col : col + 6] = -1  # 12 x 12 cm in corridor cell (1, 1), clear of its walls
     explorer = Explorer(start_xy_m=world.start_pose[:2], dwell_revolutions=16, max_attempts=3)
     pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
     goals = []

@@ -27,6 +27,7 @@ from mazebot.clock import Clock, RealClock
 from mazebot.config import Config
 from mazebot.cpu_budget import garbage_collection_metered
 from mazebot.errors import EXIT_OK, HardwareUnavailable
+from mazebot.fork_server import FORKSERVER_PRELOAD, start_fork_server_here
 from mazebot.hardware import Hardware, HardwareBuilder, LidarActivity, lgpio_pin_factory
 from mazebot.malloc_tuning import fix_mmap_threshold
 from mazebot.sdnotify import ControlHeartbeat
@@ -275,6 +276,10 @@ async def run_daemon(
     loop = asyncio.get_running_loop()
     state = state if state is not None else SharedState()
     fix_mmap_threshold()  # before the fork server starts: its children inherit the setting
+    if config.slam.loop_closure_executor == "process":
+        # forked from here while this process is one thread with no device open, so the modules
+        # imported so far (numpy, pydantic, the config's models) are in memory once, not twice
+        start_fork_server_here(FORKSERVER_PRELOAD)
     async with AsyncExitStack() as stack:
         live = _start_foxglove(config, stack)  # first: a missing package stops us before any device opens
         hardware = await build_hardware(config, clock, stack)

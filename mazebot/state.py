@@ -255,6 +255,10 @@ class SharedState:
     goal: tuple[float, float] | None = None  # the current exploration goal, map frame
     coverage: float | None = None  # fraction of the maze the map knows, when the planner can tell
     planner_status: str = ""  # one human line: what the planner is doing and why
+    #: lidar returns the planner remembers from inside the lidar's minimum range (odometry frame,
+    #: (N, 2), read-only; :meth:`mazebot.planner.safety.BlindZoneMemory.snapshot`), replaced whole
+    #: once a revolution; the control loop's collision guard reads them beside the latest scan
+    blind_zone_points: np.ndarray | None = None
     #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
     planner_ms: RecentValues = field(default_factory=lambda: RecentValues(20000))
     #: what the planner decided and when, ``(time_s, text)``: new targets, blacklists, recoveries

@@ -15,3 +15,11 @@ CARMEN = DATA_DIR / "carmen"
 
 #: skips a test when the shared maze files are not there
 needs_mazes = pytest.mark.skipif(not MAZES.is_dir(), reason=f"shared maze data not found at {MAZES}; set MAZEBOT_DATA")
+
+
+def carmen_log(name: str) -> Path:
+    """The shared CARMEN log ``name``; skips the calling test when it is not there."""
+    path = CARMEN / name
+    if not path.is_file():
+        pytest.skip(f"CARMEN log not found at {path}; set MAZEBOT_DATA")
+    return path

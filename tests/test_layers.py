@@ -57,6 +57,14 @@ FOREIGN_PRIVATE = {
     "pin_a._state",  # gpiozero's MockPin: the simulator drives the encoder pins as its tests do
     "pin._change_state",
     "handle._callback",  # asyncio's Handle: the bench names the callbacks the loop ran
+    # multiprocessing's fork server: mazebot.fork_server registers one forked from the daemon in the
+    # fields ensure_running() itself sets (checked present before use; multiprocessing has no public way)
+    "forkserver._forkserver",
+    "server._lock",
+    "server._preload_modules",
+    "server._forkserver_address",
+    "server._forkserver_alive_fd",
+    "server._forkserver_pid",
 }
 
 

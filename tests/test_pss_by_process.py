@@ -36,6 +36,21 @@ def test_roles_follow_the_fork_server() -> None:
         11: "main", 13: "fork server", 14: "control process", 15: "loop-closure worker"}
 
 
+def test_roles_of_a_fork_server_forked_from_the_daemon() -> None:
+    daemon = "python -B -c from multiprocessing.spawn import spawn_main; spawn_main(tracker_fd=5, pipe_handle=9)"
+    rows = [
+        _row(10, 1, "mazebot bench --cpu-quota 25", 60.0),
+        _row(11, 10, daemon, 70.0),
+        _row(12, 10, "python -B -c from multiprocessing.spawn import spawn_main; spawn_main(pipe_handle=7)", 40.0),
+        _row(16, 10, "python -B -c from multiprocessing.resource_tracker import main;main(6)", 6.0),
+        _row(13, 11, daemon, 20.0),  # the fork server: the daemon's command line
+        _row(14, 13, daemon, 15.0, policy=1),
+        _row(15, 13, daemon, 30.0),
+    ]
+    assert pss_by_process.roles(rows) == {
+        11: "main", 13: "fork server", 14: "control process", 15: "loop-closure worker"}
+
+
 def test_summary_gives_each_peak_and_the_sums_peak(tmp_path: Path) -> None:
     path = tmp_path / "pss.jsonl"
     samples = [(0.0, 70.0, 35.0), (10.0, 90.0, 30.0), (20.0, 80.0, 50.0)]

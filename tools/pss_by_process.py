@@ -5,9 +5,9 @@
 process tree under ``ROOT`` (the bench's pid, or the daemon's) and reads
 ``/proc/PID/smaps_rollup`` of each process (Pss: each shared page split between the processes
 that map it; kernel documentation, ``Documentation/filesystems/proc.rst``). Roles: the
-process whose child is multiprocessing's fork server is the daemon's main process; the fork
-server's children are the control process (``SCHED_FIFO``, where permitted) and the
-loop-closure worker (the others).
+process whose child is multiprocessing's fork server (its own, or one forked from the daemon)
+is the daemon's main process; the fork server's children are the control process
+(``SCHED_FIFO``, where permitted) and the loop-closure worker (the others).
 
     mazebot bench --cpu-quota 25 --drive explore --seeds 1 --maze MAZE --out DIR &
     python tools/pss_by_process.py $! --period 10 --out DIR/pss.jsonl
@@ -58,13 +58,28 @@ def _sample(pid: int) -> dict[str, Any] | None:
 
 
 def roles(rows: list[dict[str, Any]]) -> dict[int, str]:
-    """pid -> role for the daemon's processes among ``rows``."""
+    """pid -> role for the daemon's processes among ``rows``.
+
+    The fork server is either multiprocessing's own (a fresh interpreter whose command line
+    names ``multiprocessing.forkserver``) or forked from the daemon (``mazebot.fork_server``:
+    the daemon's command line, under a parent with the same one whose own parent's differs).
+    """
     out: dict[int, str] = {}
+    by_pid = {r["pid"]: r for r in rows}
     servers_and_children = {x["pid"] for x in rows if "multiprocessing.forkserver" in x["cmd"]}
     for r in rows:
         if r["pid"] in servers_and_children and r["ppid"] not in servers_and_children:
             out[r["pid"]] = "fork server"
             out[r["ppid"]] = "main"
+    if not out:
+        for r in rows:
+            parent = by_pid.get(r["ppid"])
+            if parent is None or parent["cmd"] != r["cmd"]:
+                continue
+            grandparent = by_pid.get(parent["ppid"])
+            if grandparent is None or grandparent["cmd"] != parent["cmd"]:
+                out[r["pid"]] = "fork server"
+                out[parent["pid"]] = "main"
     for r in rows:
         if out.get(r["ppid"]) == "fork server":
             out[r["pid"]] = "control process" if r["policy"] == SCHED_FIFO else "loop-closure worker"

@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Generator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -41,12 +42,11 @@ from mazebot.planner.dwa import (
     LocalPlanner,
     LocalStatus,
     map_points_robot,
-    scan_points_robot,
     to_robot_frame,
 )
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import MazeGraph
-from mazebot.planner.safety import BlindZoneMemory, reframe_points
+from mazebot.planner.safety import BlindZoneMemory, deskewed_points_robot, reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
 from mazebot.steps import all_at_once_method
@@ -91,6 +91,85 @@ class DriveInputs(NamedTuple):
     target_m: tuple[float, float]
 
 
+#: The robot counts as standing still while it stays within this of where it was (metres, radians).
+STILL_M, STILL_RAD = 0.03, 0.15
+#: Once the pilot has had to act, it counts as free again after moving this far from there.
+FREED_M = 0.3
+#: The back-off drives this far back along the robot's own track (metres): known free, it came that way.
+BACKOFF_M = 0.15
+#: The track is kept as points this far apart, this many of them (enough for the back-off).
+TRACK_STEP_M, TRACK_POINTS = 0.03, 20
+
+
+@dataclass
+class StandStill:
+    """How long the robot has stood still while it had a goal, in lidar revolutions.
+
+    The explorer and the local planner each have clocks that should move a robot that
+    stands (the explorer's dwell and progress counts, the local planner's stuck time-out
+    and recoveries), but each can be held: the explorer counts the revolutions SLAM
+    *painted*, and SLAM paints none while it distrusts the odometry; the local planner's
+    timers start again with every new path. This watch counts what the robot saw
+    instead, and acts in steps when the count reaches ``[planner] stand_still_revolutions``:
+    give the goal up, then back off along the robot's own track, then stop with a fault.
+    """
+
+    limit_revolutions: int = 45  # [planner] stand_still_revolutions
+    mark: tuple[float, float, float] | None = None  # where the robot stood when the count began
+    revolutions: int = 0
+    escalations: int = 0  # steps taken since the robot was last free (FREED_M from where it began)
+    freed_from: tuple[float, float] | None = None
+    last_scan: int | None = None  # id of the last revolution counted
+    painted_at_mark: int = 0  # SLAM's painted revolutions when the count (re)started
+    painted: int = 0  # of the revolutions stood, how many SLAM painted (the explorer's clock)
+    track: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=TRACK_POINTS))
+
+    def reset(self) -> None:
+        self.mark, self.revolutions, self.escalations, self.freed_from, self.last_scan = None, 0, 0, None, None
+        self.track.clear()
+
+    def observe(self, pose: tuple[float, float, float], scan_id: int | None, painted: int = 0) -> int:
+        """Count one planner tick at ``pose`` (``scan_id``: the latest revolution's identity;
+        ``painted``: SLAM's count of painted revolutions, for the report).
+
+        Returns the revolutions stood when they have just reached the limit (the count
+        then starts again from there, and :attr:`painted` says how many SLAM painted), else 0.
+        """
+        xy = (pose[0], pose[1])
+        if not self.track or math.dist(self.track[-1], xy) >= TRACK_STEP_M:
+            self.track.append(xy)
+        if self.freed_from is not None and math.dist(self.freed_from, xy) >= FREED_M:
+            self.escalations, self.freed_from = 0, None
+        mark = self.mark
+        turned = 0.0 if mark is None else abs(math.remainder(pose[2] - mark[2], math.tau))
+        if mark is None or math.dist(mark[:2], xy) > STILL_M or turned > STILL_RAD:
+            self.mark, self.revolutions, self.last_scan, self.painted_at_mark = pose, 0, scan_id, painted
+            return 0
+        if scan_id is None or scan_id == self.last_scan:
+            return 0
+        self.last_scan = scan_id
+        self.revolutions += 1
+        if self.revolutions < self.limit_revolutions:
+            return 0
+        stood, self.revolutions = self.revolutions, 0
+        self.painted, self.painted_at_mark = painted - self.painted_at_mark, painted
+        return stood
+
+    def backoff_path(self, xy_m: tuple[float, float]) -> list[tuple[float, float]]:
+        """Waypoints from ``xy_m`` back along the track, ``BACKOFF_M`` of it (empty: no track behind)."""
+        path = [xy_m]
+        run = 0.0
+        for point in reversed(self.track):
+            step = math.dist(path[-1], point)
+            if step < TRACK_STEP_M / 2:
+                continue
+            path.append(point)
+            run += step
+            if run >= BACKOFF_M:
+                break
+        return path if len(path) > 1 else []
+
+
 class Pilot:
     """Explorer + local planner for one daemon; :meth:`tick` once per planner period."""
 
@@ -120,6 +199,10 @@ class Pilot:
         self._give_up_pending = False
         #: motion halves run between the stages of a goal half (:meth:`interim_drive_steps`)
         self.interim_drives = 0
+        #: standing still with a goal, in lidar revolutions (see :class:`StandStill`)
+        self.still = StandStill(params.planner.stand_still_revolutions)
+        #: the back-off path while the pilot backs the robot off along its track, else None
+        self._backoff: list[tuple[float, float]] | None = None
 
     # -- construction ------------------------------------------------------------------
 
@@ -197,6 +280,7 @@ class Pilot:
             if self._was_moving:  # stopped, done or faulted since the last tick: forget the path
                 self.local.clear()
                 state.motion_command = None
+                self.still.mark = None  # a pause is not standing still with a goal
             self._was_moving = False
             return False
         self._was_moving = True
@@ -206,6 +290,8 @@ class Pilot:
             self.explorer = self._new_explorer((pose[0], pose[1]))
             self.local.clear()
             self._last_drive_inputs, self._give_up_pending = None, False
+            self.still.reset()
+            self._backoff = None
             log.info("exploration %d starts at (%.2f, %.2f) m", self.run_number, pose[0], pose[1])
         grid = state.map
         if grid is None:
@@ -232,6 +318,13 @@ class Pilot:
         if goal.phase is Phase.RETURNING and state.run_state is RunState.EXPLORING:
             state.run_state = RunState.RETURNING
             log.info("nothing reachable is unknown: returning to the start")
+        if self._backoff is not None:  # backing off along the track: the goal waits
+            self.local.set_path(self._backoff)
+            state.path = list(self._backoff)
+            state.goal = self._backoff[-1]
+            state.planner_status = f"{goal.phase.value}: backing off along its track"
+            self._drive_inputs = DriveInputs(three, grid.origin_m, grid.resolution_m, self._backoff[-1])
+            return True
         self.local.set_path(goal.waypoints_m)
         state.path = [(float(x), float(y)) for x, y in goal.waypoints_m]
         state.goal = (float(goal.target_m[0]), float(goal.target_m[1]))
@@ -319,11 +412,56 @@ class Pilot:
             where = f"{pose[0]:.2f}, {pose[1]:.2f}"
             state.planner_events.append((now_s, f"stuck: recovery {self.local.recoveries} at {where}"))
         self._recovering = cmd.status is LocalStatus.RECOVERING
-        if cmd.give_up and interim:
+        if self._backoff is not None and (cmd.give_up or cmd.status is LocalStatus.REACHED):
+            if not interim:  # backed off (or could not): the goal again from here
+                self._backoff = None
+                self.local.clear()
+        elif cmd.give_up and interim:
             self._give_up_pending = True
         elif cmd.give_up:
             self._report_give_up(state, now_s, target_m)
         self._command(state, MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s))
+        if interim:  # the watch acts on the explorer: only between goal halves, never inside one
+            return
+        scan = state.latest_scan
+        painted = max(0, state.slam.scans - state.slam.held_back)
+        stood = self.still.observe(pose, None if scan is None else id(scan), painted)
+        if stood:
+            self._stood_still(state, now_s, pose, stood)
+
+    def _stood_still(self, state: SharedState, now_s: float, pose: tuple[float, float, float], stood: int) -> None:
+        """The robot has stood still ``stand_still_revolutions`` with a goal: act, one step further each time.
+
+        1. give the goal up (the explorer blacklists it; in ``returning``, the route is
+           planned afresh); 2. back off along the robot's own track, which it drove, so is
+           free; 3. stop with a latched ``planner`` fault that says why (start tries again).
+        A robot that cannot move never sits for ever in ``exploring`` or ``returning``.
+        """
+        still = self.still
+        still.escalations += 1
+        if still.freed_from is None:
+            still.freed_from = (pose[0], pose[1])
+        where = f"({pose[0]:.2f}, {pose[1]:.2f})"
+        what = (f"stood still for {stood} lidar revolutions at {where}, SLAM painted {still.painted} of them "
+                f"({state.planner_status})")  # revolutions as its ticks saw them: two in one tick count once
+        backoff = still.backoff_path((pose[0], pose[1])) if still.escalations == 2 else []
+        if still.escalations == 1:
+            text = f"{what}: giving the goal up"
+            self.explorer.report_unreachable()
+            self.local.clear()
+        elif backoff:
+            text = f"{what}: backing off {BACKOFF_M:.2f} m along its track"
+            self._backoff = backoff
+            self.local.clear()
+        else:
+            text = f"{what}: neither giving the goal up nor backing off moved it; stopped (start tries again)"
+            self._backoff = None
+            self.local.clear()
+            self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
+            state.raise_fault("planner", text, now_s, latched=True)
+        log.warning("%s", text)
+        state.planner_events.append((now_s, text))
+        self._note_events(state, now_s, None, pose)
 
     def _report_give_up(self, state: SharedState, now_s: float, target_m: tuple[float, float]) -> None:
         log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
@@ -389,12 +527,13 @@ class Pilot:
         history, odo = state.odometry_history, state.odometry
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
             lidar = self.params.lidar
-            points = scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, lidar.min_range_m,
-                                       lidar.max_range_m, lidar.mount_xy_m)
+            points = deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s, history,
+                                           lidar.min_range_m, lidar.max_range_m, lidar.mount_xy_m)
             self._scan_cache = (id(scan), points)
             if history is not None and len(history) > 0:
                 then = history.pose_at(scan.end_time_s)
                 self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])))
+                state.blind_zone_points = self.blind_zone.snapshot()  # for the control loop's guard
         points = moved_since_scan(self._scan_cache[1], scan.end_time_s, state)
         if odo is None or len(self.blind_zone) == 0:
             return points

@@ -5,8 +5,9 @@ the raw lidar returns, the command about to be applied and the clock, and runs i
 control loop so it acts within one control period. It is deliberately simple enough to
 check by hand:
 
-- :class:`CollisionGuard`: an **emergency stop** when any valid lidar return lies in the
-  region the robot will sweep before it can stop: within the footprint radius (plus a
+- :class:`CollisionGuard`: an **emergency stop** when any valid lidar return (the latest
+  revolution's, and those the planner's :class:`BlindZoneMemory` keeps from inside the
+  lidar's minimum range) lies in the region the robot will sweep before it can stop: within the footprint radius (plus a
   side margin) of the arc it is about to drive, over the stopping distance
   ``|v| · latency + v² / (2 a)`` plus a front margin, on the side it is moving towards.
   The margin is kept ahead, not beside: driving along a wall a few centimetres away is
@@ -27,14 +28,18 @@ check by hand:
 Note on the lidar's minimum range: the RPLidar A1 reports nothing closer than 0.15 m
 (``min_range_m``), which is more than the 0.09 m footprint; an obstacle can only be seen
 while it is still that far away, which is why the guarded zone reaches a stopping
-distance ahead and not only the footprint.
+distance ahead and not only the footprint. At 0.27 m/s the guarded zone reaches 0.21 m
+ahead of the centre, so a wall is in a revolution's returns only while it lies 0.15–0.21 m
+ahead, a band the robot crosses in a fraction of a revolution: the guard therefore also
+checks the returns the planner remembers from inside that range (a hand-built 8×8 maze:
+the cheap robot drove into a wall it had turned beside, at 0.27 m/s, the guard silent).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 
@@ -79,6 +84,54 @@ def reframe_points(
     return np.column_stack((c1 * dx + s1 * dy, -s1 * dx + c1 * dy))
 
 
+class PoseHistory(Protocol):
+    """What :func:`deskewed_points_robot` reads of the odometry (``mazebot.slam.ekf.OdometryHistory``)."""
+
+    def __len__(self) -> int: ...
+
+    def at(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+def deskewed_points_robot(
+    angle_rad: np.ndarray,
+    range_m: np.ndarray,
+    valid: np.ndarray,
+    time_s: np.ndarray,
+    history: PoseHistory | None,
+    min_range_m: float,
+    max_range_m: float,
+    mount_xy_m: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """A revolution's valid returns (N, 2) in the robot frame at its last sample, each placed
+    with the odometry pose at its own time ``time_s`` (without a history: as if the robot stood still).
+
+    A revolution takes 0.18 s on an A1; a robot turning at 1.5 rad/s (the cheap robot's
+    weak motor makes its heading swing that fast while it is told to drive straight) turns
+    15° meanwhile, so a return from the revolution's start, placed as if seen from its
+    end, lies 15° off: 5 cm sideways at 0.2 m, the difference between a wall ahead and
+    free space beside it (a hand-built 8×8 maze: the end of a board 0.16 m ahead was shown
+    at 0.95 m and the robot drove into it). SLAM de-skews its scans the same way
+    (``mazebot.slam.preprocess``); the planner and the emergency stop take these points.
+    Returns newer than the history's newest pose take that pose (the odometry runs at
+    50 Hz: at most 20 ms of motion unaccounted for, while it catches up with the lidar).
+    """
+    a = np.asarray(angle_rad, dtype=np.float64).reshape(-1)
+    r = np.asarray(range_m, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(r) & (r >= min_range_m) & (r <= max_range_m) & np.asarray(valid, dtype=bool).reshape(-1)
+    lx = mount_xy_m[0] + r[ok] * np.cos(a[ok])
+    ly = mount_xy_m[1] + r[ok] * np.sin(a[ok])
+    t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    if history is None or len(history) == 0 or not ok.any():
+        return np.column_stack((lx, ly))
+    xs, ys, ths = history.at(np.concatenate((t[ok], t[-1:])))  # the samples' poses, then the end's
+    xe, ye, the = xs[-1], ys[-1], ths[-1]
+    c, s = math.cos(the), math.sin(the)
+    dx, dy = xs[:-1] - xe, ys[:-1] - ye
+    rx, ry, rth = c * dx + s * dy, -s * dx + c * dy, ths[:-1] - the  # each sample's pose in the end's frame
+    cr, sr = np.cos(rth), np.sin(rth)
+    return np.column_stack((rx + cr * lx - sr * ly, ry + sr * lx + cr * ly))
+
+
 class BlindZoneMemory:
     """Lidar returns seen close by, kept while they lie inside the lidar's minimum range.
 
@@ -107,6 +160,12 @@ class BlindZoneMemory:
     forgets after as much motion as a fast one. ``lidar_xy_m`` is the lidar's mount
     offset in the robot frame; one return is kept per ``voxel_m`` square, at most
     ``max_points`` of them.
+
+    The previous revolution's near returns that the latest one could have seen are kept
+    for that one revolution more: a thin thing (a 12 mm post standing alone, a board's
+    end) is one to three samples of a revolution, and a dropout or the revolution's seam
+    loses them (a hand-built 8×8 maze: a lone post 0.18–0.21 m ahead in no sample of the
+    latest revolution, the robot turning into it).
     """
 
     def __init__(
@@ -134,13 +193,15 @@ class BlindZoneMemory:
         self.revolutions = 0
         self._points = np.zeros((0, 3))  # odometry frame x, y and the revolution it was seen in
         self._recent = np.zeros((0, 3))  # the last revolution's own near returns (the scan shows them)
+        self._previous = np.zeros((0, 3))  # the one before's, which the last could have shown (one more revolution)
 
     def __len__(self) -> int:
-        return int(self._points.shape[0])
+        return int(self._points.shape[0] + self._previous.shape[0])
 
     def clear(self) -> None:
         self._points = np.zeros((0, 3))
         self._recent = np.zeros((0, 3))
+        self._previous = np.zeros((0, 3))
 
     def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float]) -> None:
         """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``."""
@@ -149,6 +210,7 @@ class BlindZoneMemory:
         old = np.concatenate((self._points, self._recent))
         unseen = np.hypot(old[:, 0] - lx, old[:, 1] - ly) < self.min_range_m + self.motion_margin_m
         unseen &= old[:, 2] > self.revolutions - self.max_age_revolutions
+        self._previous = self._recent[~unseen[self._points.shape[0]:]]
         kept = old[unseen]
         if kept.shape[0]:  # one return per voxel: a robot standing beside a wall adds its returns every revolution
             _, first = np.unique(np.floor(kept[:, :2] / self.voxel_m).astype(np.int64), axis=0, return_index=True)
@@ -161,7 +223,33 @@ class BlindZoneMemory:
 
     def points_robot(self, pose: tuple[float, float, float]) -> np.ndarray:
         """The remembered returns the last revolution could not show, in the robot frame at odometry ``pose``."""
-        return transform_points(inverse(pose), self._points[:, :2])
+        return transform_points(inverse(pose), np.concatenate((self._points[:, :2], self._previous[:, :2])))
+
+    def snapshot(self) -> np.ndarray:
+        """Every near return remembered, the last revolution's own included: (N, 2), odometry frame, read-only.
+
+        What the planner publishes for the control loop's :class:`CollisionGuard`
+        (``SharedState.blind_zone_points``). The guard pairs it with a revolution that may be
+        newer than the one the memory last took in, from which the robot may have come
+        closer than the minimum range to the last revolution's own near returns: so they are
+        in too (a return the guard's scan also shows is only counted twice).
+        """
+        out = np.concatenate((self._points[:, :2], self._previous[:, :2], self._recent[:, :2]))
+        out.setflags(write=False)
+        return out
+
+
+def with_remembered(
+    points_robot: np.ndarray, remembered_odom: np.ndarray | None, pose_now: tuple[float, float, float] | None
+) -> np.ndarray:
+    """The scan's robot-frame points (N, 2) and the remembered blind-zone returns (odometry frame,
+    :meth:`BlindZoneMemory.snapshot`) moved into the robot frame at odometry ``pose_now``.
+
+    Without a pose or a memory the scan's points are returned as they are.
+    """
+    if remembered_odom is None or pose_now is None or len(remembered_odom) == 0:
+        return points_robot
+    return np.concatenate((points_robot, transform_points(inverse(pose_now), remembered_odom)))
 
 
 class CollisionGuard:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Generator, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -148,6 +149,61 @@ class Keyframe:
         """
         if self._surface is not None:
             self._hits = _NO_POINTS
+
+    def packed(self) -> dict[str, np.ndarray]:
+        """The arrays it keeps, as kept (int16 or float32, the ray flags as bits), by name.
+
+        For :mod:`mazebot.slam.shared_keyframes`, which moves them into shared memory; the
+        surface's two arrays are there once it is computed.
+        """
+        arrays = {"hits": self._hits, "match": self._match, "ray_ends": self._ray_ends,
+                  "ray_hit_bits": self._ray_hit_bits}
+        if self._surface is not None:
+            arrays["surface_points"], arrays["surface_normals"] = self._surface
+        return arrays
+
+    def use_packed(self, arrays: dict[str, np.ndarray]) -> None:
+        """Hold these arrays (named as :meth:`packed` names them, the same values) instead of its own."""
+        self._hits = arrays.get("hits", self._hits)
+        self._match = arrays.get("match", self._match)
+        self._ray_ends = arrays.get("ray_ends", self._ray_ends)
+        self._ray_hit_bits = arrays.get("ray_hit_bits", self._ray_hit_bits)
+        if "surface_points" in arrays and "surface_normals" in arrays:
+            self._surface = (arrays["surface_points"], arrays["surface_normals"])
+
+    def caches(self) -> dict[str, Any]:
+        """What it has computed from its arrays besides the surface (wall direction, lattice faces)."""
+        return {"walls": self._walls, "lattice": self._lattice}
+
+    def use_caches(self, caches: dict[str, Any]) -> None:
+        self._walls = caches.get("walls")
+        self._lattice = caches.get("lattice")
+
+    @property
+    def ray_count(self) -> int:
+        return self._ray_count
+
+    @classmethod
+    def from_packed(
+        cls,
+        index: int,
+        time_s: float,
+        pose: np.ndarray,
+        sensor_xy: np.ndarray,
+        integrated_pose: np.ndarray,
+        normal_params: NormalParams,
+        ray_count: int,
+        arrays: dict[str, np.ndarray],
+    ) -> Keyframe:
+        """A keyframe holding arrays already packed (:meth:`packed`'s names), as they are: no copy."""
+        kf = cls.__new__(cls)
+        kf.index, kf.time_s, kf.pose, kf.sensor_xy = index, time_s, pose, sensor_xy
+        kf.integrated_pose, kf.normal_params, kf._ray_count = integrated_pose, normal_params, ray_count
+        kf._hits = kf._match = kf._ray_ends = _NO_POINTS
+        kf._ray_hit_bits = np.zeros(0, dtype=np.uint8)
+        kf._surface, kf._walls, kf._lattice = None, None, None
+        kf.use_packed(arrays)
+        return kf
 
     def __repr__(self) -> str:
         return f"Keyframe(index={self.index}, time_s={self.time_s}, hits={self._hits.shape[0]})"

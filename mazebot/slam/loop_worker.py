@@ -36,8 +36,10 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from typing import Any
 
+from mazebot.fork_server import FORKSERVER_PRELOAD as FORKSERVER_PRELOAD  # what the fork server imports
 from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.keyframes import Keyframe
+from mazebot.slam.shared_keyframes import KeyframeArena, SegmentReader, SharedKeyframe
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult
 
 log = logging.getLogger(__name__)
@@ -55,14 +57,18 @@ class ShippedJob:
     """A job as sent to the worker: ``job`` without its keyframes, plus the ones the worker lacks.
 
     ``owner`` names the :class:`JobShipper` (one per SLAM instance and worker); ``fresh``
-    are the keyframes from index ``first`` on.
+    are the keyframes from index ``first`` on: where their arrays are in shared memory
+    (:class:`~mazebot.slam.shared_keyframes.SharedKeyframe`), or the keyframes themselves
+    where shared memory is not to be had. ``surfaces`` are keyframes sent before without a
+    surface that have one now (position in the list, where its arrays are).
     """
 
     owner: str
     first: int
-    fresh: list[Keyframe]
+    fresh: list[SharedKeyframe] | list[Keyframe]
     count: int
     job: LoopClosureJob
+    surfaces: tuple[tuple[int, SharedKeyframe], ...] = ()
 
 
 class _Replica:
@@ -71,17 +77,25 @@ class _Replica:
     def __init__(self) -> None:
         self.owner: str | None = None
         self.keyframes: list[Keyframe] = []
+        self.segments = SegmentReader()
+
+    def _keyframe(self, sent: SharedKeyframe | Keyframe) -> Keyframe:
+        return self.segments.keyframe(sent) if isinstance(sent, SharedKeyframe) else sent
 
     def run(self, shipped: ShippedJob) -> LoopClosureResult:
         if self.owner != shipped.owner:
             if shipped.first > 0:
                 raise MissingKeyframes(f"the worker holds no keyframes of this SLAM, the job starts at {shipped.first}")
             self.owner, self.keyframes = shipped.owner, []
+            self.segments.forget()
         store = self.keyframes
         if len(store) < shipped.first:
             raise MissingKeyframes(f"the worker holds {len(store)} keyframes, the job starts at {shipped.first}")
         del store[shipped.first :]
-        store.extend(shipped.fresh)
+        store.extend(self._keyframe(sent) for sent in shipped.fresh)
+        for position, shared in shipped.surfaces:  # the daemon's copy replaces the one made here, if any
+            if position < len(store):
+                store[position].use_packed(self._keyframe(shared).packed())
         result = replace(shipped.job, keyframes=store[: shipped.count]).run()
         for kf in store:  # the jobs made their surfaces: the hits are not read again here
             kf.keep_surface_only()
@@ -100,17 +114,6 @@ def run_shipped(shipped: ShippedJob) -> LoopClosureResult:
 
 def _warm_up() -> None:
     """Nothing: the first task makes the pool start its worker while the daemon starts."""
-
-
-#: What the daemon's fork server imports once, before it forks anything: the loop-closure
-#: worker's SLAM (numpy, scipy) and the daemon's real-time control process
-#: (``mazebot.tasks.control_process``; named, not imported: the tasks are a layer above).
-#: Whoever starts the server first sets this same list (a second setting would come too
-#: late). Every process forked from the server shares these pages instead of importing its
-#: own copies: the control process imported ~7 MB of its own (measured with
-#: ``/proc/PID/smaps_rollup``, a forked child's private memory before and after its imports).
-FORKSERVER_PRELOAD = ("mazebot.slam.loop_worker", "mazebot.tasks.control_process", "mazebot.tasks.control_task",
-                      "mazebot.logs")
 
 
 def _watch_daemon(daemon_pid: int, period_s: float = 1.0) -> None:
@@ -135,20 +138,59 @@ def _watch_daemon(daemon_pid: int, period_s: float = 1.0) -> None:
 
 
 class JobShipper:
-    """The main process's side of the replica: which keyframes the worker has been sent."""
+    """The main process's side of the replica: which keyframes the worker has been sent.
 
-    def __init__(self) -> None:
+    With ``share`` the keyframes' arrays go into shared memory the first time they are sent
+    (:class:`~mazebot.slam.shared_keyframes.KeyframeArena`), and the worker is sent where they
+    are; where shared memory cannot be had, the keyframes themselves are sent, as without.
+    """
+
+    def __init__(self, share: bool = False) -> None:
         self.owner = uuid.uuid4().hex
         self.shipped = 0
+        self.arena: KeyframeArena | None = KeyframeArena() if share else None
+        self._no_surface: dict[int, Keyframe] = {}  # sent before their surface was computed, by position
 
     def pack(self, job: LoopClosureJob) -> ShippedJob:
         count = len(job.keyframes)
         first = min(self.shipped, count)
         self.shipped = count
-        return ShippedJob(self.owner, first, job.keyframes[first:], count, replace(job, keyframes=[]))
+        fresh = job.keyframes[first:]
+        if self.arena is not None:
+            try:
+                return self._pack_shared(job, first, count, self.arena)
+            except OSError as exc:  # no /dev/shm, or full: the arrays go with the job, as before
+                log.warning("keyframes cannot be shared with the loop-closure worker (%s); sending copies", exc)
+                self.close()
+                self.shipped, first = 0, 0
+                fresh = job.keyframes
+        return ShippedJob(self.owner, first, fresh, count, replace(job, keyframes=[]))
+
+    def _pack_shared(self, job: LoopClosureJob, first: int, count: int, arena: KeyframeArena) -> ShippedJob:
+        surfaces = []
+        for position, kf in list(self._no_surface.items()):
+            if position >= first or position >= count:
+                del self._no_surface[position]
+            elif kf.has_surface:
+                surfaces.append((position, arena.share(kf)))
+                del self._no_surface[position]
+        fresh = []
+        for position in range(first, count):
+            kf = job.keyframes[position]
+            fresh.append(arena.share(kf))
+            if not kf.has_surface:
+                self._no_surface[position] = kf
+        return ShippedJob(self.owner, first, fresh, count, replace(job, keyframes=[]), tuple(surfaces))
 
     def reset(self) -> None:
         self.shipped = 0
+        self._no_surface.clear()
+
+    def close(self) -> None:
+        """Unlink the shared keyframes (idempotent); later jobs send copies."""
+        if self.arena is not None:
+            self.arena.close()
+            self.arena = None
 
 
 class LoopClosureExecutor(Executor):
@@ -172,7 +214,7 @@ class LoopClosureExecutor(Executor):
         if kind not in EXECUTOR_KINDS:
             raise ValueError(f"loop-closure executor must be one of {', '.join(EXECUTOR_KINDS)}, got {kind!r}")
         self.kind = kind
-        self._shipper = JobShipper()
+        self._shipper = JobShipper(share=kind == "process")
         self._pool: ProcessPoolExecutor | ThreadPoolExecutor | None = None
         self._local = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam-local")
         self._broken = False
@@ -256,4 +298,5 @@ class LoopClosureExecutor(Executor):
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=cancel_futures)
             self._pool = None
+        self._shipper.close()  # after the worker: it read the shared keyframes to the end
         self._local.shutdown(wait=wait, cancel_futures=cancel_futures)

@@ -21,9 +21,10 @@ hot path.
   page's jog request, the run state's ``moving`` and ``jog_allowed``, ``stopping``,
   ``faults_raised``, the wheel ticks with their stamp and
   the odometry poses (now, and at the latest scan's end), the latest scan's robot-frame
-  points with its end time. :class:`SharedState` mirrors each of these fields into the
-  link as it is assigned (``SharedState.control_link``), so every writer is covered and
-  a command reaches the child the moment the planner decides it.
+  points (de-skewed) with its end time, the planner's remembered blind-zone returns.
+  :class:`SharedState` mirrors each of these fields into the link as it is assigned
+  (``SharedState.control_link``), so every writer is covered and a command reaches the
+  child the moment the planner decides it.
 - child -> main: the throttles written, wheel speeds and gains, the safety layer's stop
   reason and count, the tick count and time (the systemd watchdog's heartbeat), a ring of
   ticks (time, lateness, CPU, throttles) and a ring of notes and faults, which the
@@ -64,7 +65,7 @@ import numpy as np
 
 from mazebot.config import Config
 from mazebot.errors import MazebotError
-from mazebot.planner.safety import reframe_points
+from mazebot.planner.safety import deskewed_points_robot, reframe_points, with_remembered
 from mazebot.planner.wheel_control import DriveMode
 from mazebot.state import SharedState
 from mazebot.tasks.priority import raise_priority
@@ -73,6 +74,9 @@ log = logging.getLogger(__name__)
 
 #: Most robot-frame points of one revolution kept for the collision guard (an S2 gives ~3200).
 MAX_SCAN_POINTS = 8192
+#: Most remembered blind-zone returns kept for the collision guard (the planner's memory keeps
+#: at most 2000, plus one revolution's near returns).
+MAX_BLIND_POINTS = 4096
 #: Entries of the tick ring and of the notes ring (51 s and 64 notes at 20 Hz: the main
 #: process reads them every period, so only a main process stalled that long loses any).
 TICK_RING = 1024
@@ -111,6 +115,7 @@ class _Layout:
         self.odometry = block(1 + 13)  # seq; ticks present, stamp, left, right; pose present, x, y, th;
         #                                 history present, then-time, x, y, th
         self.scan = block(1 + 7 + 2 * MAX_SCAN_POINTS)  # seq; present, end time, n, then present, x, y, th; points
+        self.blind = block(1 + 1 + 2 * MAX_BLIND_POINTS)  # seq; n; odometry-frame points
         self.output = block(1 + 10 + SAFETY_TEXT_BYTES // 8)  # seq; ticks, tick time, l, r, speeds, gains,
         #                                                        stops, text length; text
         self.ticks = block(1 + 5 * TICK_RING)  # count; (time, late ms, cpu s, left, right) each
@@ -166,7 +171,7 @@ class ControlLink:
     #: the SharedState fields mirrored into the link as they are assigned
     MIRRORED = frozenset(
         {"motion_command", "throttle_command", "jog_command", "run_state", "stopping", "faults_raised", "wheel_ticks",
-         "latest_scan"}
+         "latest_scan", "blind_zone_points"}
     )
 
     def __init__(self, shm: SharedMemory, owner: bool, config: Config | None = None) -> None:
@@ -182,6 +187,7 @@ class ControlLink:
         self.jog = _Seqlock(slots, LAYOUT.jog, 5)
         self.odometry = _Seqlock(slots, LAYOUT.odometry, 14)
         self.scan = _Seqlock(slots, LAYOUT.scan, 8 + 2 * MAX_SCAN_POINTS)
+        self.blind = _Seqlock(slots, LAYOUT.blind, 2 + 2 * MAX_BLIND_POINTS)
         self.output = _Seqlock(slots, LAYOUT.output, 11 + SAFETY_TEXT_BYTES // 8)
         self._ticks_read = 0
         self._notes_read = 0
@@ -211,6 +217,7 @@ class ControlLink:
         if shm is None:
             return
         del self._slots, self._bytes, self.command, self.throttle, self.jog, self.run, self.odometry, self.scan
+        del self.blind
         del self.output
         shm.close()
         if self._owner:
@@ -238,10 +245,15 @@ class ControlLink:
             self._write_odometry(state)
         elif name == "latest_scan":
             self._write_scan(state)
+        elif name == "blind_zone_points":
+            points = state.blind_zone_points
+            points = np.zeros((0, 2)) if points is None else points[-MAX_BLIND_POINTS:]  # the newest
+            self.blind.write(np.concatenate(([float(len(points))], points.reshape(-1))))
 
     def publish_all(self, state: SharedState) -> None:
         """Every block from ``state`` as it is now (a new child starts from these)."""
-        for name in ("motion_command", "throttle_command", "jog_command", "run_state", "latest_scan", "wheel_ticks"):
+        for name in ("motion_command", "throttle_command", "jog_command", "run_state", "latest_scan", "wheel_ticks",
+                     "blind_zone_points"):
             self.mirror(state, name)
 
     def _poses(self, state: SharedState, scan_time_s: float) -> list[float]:
@@ -261,16 +273,14 @@ class ControlLink:
         self.odometry.write(head + poses[:4] + [poses[4], self._scan_time_s] + poses[5:])
 
     def _write_scan(self, state: SharedState) -> None:
-        from mazebot.planner.dwa import scan_points_robot
-
         scan = state.latest_scan
         data = self.scan.data()
         if scan is None:
             self._scan_time_s = math.nan
             self.scan.write([0.0] * 7)
             return
-        points = scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, *self._lidar_range_m,
-                                   mount_xy_m=self._mount_xy_m)
+        points = deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s, state.odometry_history,
+                                       *self._lidar_range_m, mount_xy_m=self._mount_xy_m)
         if len(points) > MAX_SCAN_POINTS:
             if not self._too_many_points_logged:
                 log.warning("a revolution of %d returns: the control process guards with the first %d",
@@ -443,6 +453,8 @@ class ChildView:
         self.scan_time_s: float | None = None
         self.pose_then: tuple[float, float, float] | None = None
         self.pose_now: tuple[float, float, float] | None = None
+        #: the planner's remembered blind-zone returns, odometry frame (N, 2)
+        self.blind_points = np.zeros((0, 2))
 
     def refresh(self) -> None:
         link = self._link
@@ -479,6 +491,12 @@ class ChildView:
                 self.pose_then = (float(whole[4]), float(whole[5]), float(whole[6])) if whole[3] else None
         if odo_then is not None and odo_then[0] == self.scan_time_s:
             self.pose_then = odo_then[1]  # computed with the odometry history of now, as the thread does
+        count = link.blind.read(1)
+        if count is not None:
+            n = int(count[0])
+            whole = link.blind.read(1 + 2 * n)
+            if whole is not None and int(whole[0]) == n:
+                self.blind_points = whole[1:1 + 2 * n].reshape(-1, 2)
 
     @property
     def latest_scan(self) -> _ScanStamp | None:
@@ -508,7 +526,8 @@ def _child_control(config: Config, view: ChildView) -> Any:
                 return None, None
             if view.pose_then is None or view.pose_now is None:  # as moved_since_scan without odometry
                 return view.scan_points, view.scan_time_s
-            return reframe_points(view.scan_points, view.pose_then, view.pose_now), view.scan_time_s
+            points = reframe_points(view.scan_points, view.pose_then, view.pose_now)
+            return with_remembered(points, view.blind_points, view.pose_now), view.scan_time_s
 
     return ProcessMotorControl.from_config(config)
 

@@ -34,7 +34,13 @@ from mazebot.config import (
     RobotConfig,
 )
 from mazebot.io.motors import MotorWriteError
-from mazebot.planner.safety import CollisionGuard, ControlWatchdog, SafetyLayer
+from mazebot.planner.safety import (
+    CollisionGuard,
+    ControlWatchdog,
+    SafetyLayer,
+    deskewed_points_robot,
+    with_remembered,
+)
 from mazebot.planner.wheel_control import DriveMode, WheelController, WheelGainEstimator, WheelSpeedEstimator
 from mazebot.state import SharedState
 
@@ -88,6 +94,7 @@ class MotorControl:
         guard = CollisionGuard(
             footprint_radius_m=robot.footprint_radius_m,
             margin_m=c.stop_margin_m,
+            side_margin_m=c.side_margin_m,
             brake_decel_mps2=c.brake_decel_mps2,
             latency_s=self.period_s + c.actuation_latency_s,
         )
@@ -165,14 +172,15 @@ class MotorControl:
         return out.left_throttle, out.right_throttle
 
     def scan_points(self, state: SharedState) -> tuple[np.ndarray | None, float | None]:
-        """The latest revolution's returns in the robot frame of now, and its end time (None: no scan yet).
+        """The latest revolution's returns in the robot frame of now, and its end time (None: no scan yet);
+        with them the returns the planner remembers from inside the lidar's minimum range
+        (``state.blind_zone_points``: a table leg or a wall the robot came too close to see).
 
         The control process (:mod:`mazebot.tasks.control_process`) gets them from shared
         memory instead, prepared the same way by the daemon's main process.
         """
         # imported here, not with the module: the control process (which overrides this method)
         # imports this module too, and the planner's modules bring scipy and the SLAM grid
-        from mazebot.planner.dwa import scan_points_robot
         from mazebot.planner.pilot import moved_since_scan
 
         scan = state.latest_scan
@@ -181,10 +189,13 @@ class MotorControl:
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
             self._scan_cache = (
                 id(scan),
-                scan_points_robot(scan.angle_rad, scan.range_m, scan.valid, *self.lidar_range_m,
-                                  mount_xy_m=self.lidar_mount_xy_m),
+                deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s,
+                                      state.odometry_history, *self.lidar_range_m, mount_xy_m=self.lidar_mount_xy_m),
             )
-        return moved_since_scan(self._scan_cache[1], scan.end_time_s, state), scan.end_time_s
+        odo = state.odometry
+        points = moved_since_scan(self._scan_cache[1], scan.end_time_s, state)
+        pose_now = None if odo is None else (odo.x_m, odo.y_m, odo.theta_rad)
+        return with_remembered(points, state.blind_zone_points, pose_now), scan.end_time_s
 
 
 #: While the control loop runs on its own thread, the interpreter hands the GIL to a thread

@@ -137,6 +137,7 @@ class RunResult:
     final_xy_m: tuple[float, float]
     start_xy_m: tuple[float, float]
     statuses: dict[str, int] = field(default_factory=dict)
+    fault: str | None = None  # the fault that ended the run, if one did
 
     @property
     def avg_speed_mps(self) -> float:
@@ -167,6 +168,7 @@ def finished(
     safety_stops: int,
     explorer: Explorer,
     statuses: dict[str, int],
+    fault: str | None = None,
 ) -> RunResult:
     """The run's figures: the robot's, and the coverage measured on the revealed truth."""
     reachable, _ = free_reachable(world, RES_M, 0.09, truth.origin_m, truth.known.shape)
@@ -182,11 +184,17 @@ def finished(
         final_xy_m=(physics.x_m, physics.y_m),
         start_xy_m=(world.start_pose[0], world.start_pose[1]),
         statuses=statuses,
+        fault=fault,
     )
 
 
 def run_daemon_exploration(
-    world: World, seed: int = 0, time_limit_s: float = 300.0, config: Config | None = None, map_source: str = "truth"
+    world: World,
+    seed: int = 0,
+    time_limit_s: float = 300.0,
+    config: Config | None = None,
+    map_source: str = "truth",
+    freeze_map_after_s: float | None = None,
 ) -> RunResult:
     """Drive the robot with the daemon's own planner and control, built from ``config`` as it builds them,
     until the run is done or the time limit; returns the figures.
@@ -198,7 +206,9 @@ def run_daemon_exploration(
     ``run_state`` out. So a default the daemon uses is the one this run uses. SLAM is
     the same ground-truth stand-in (true pose; the revealed map, or a :class:`LidarMap`
     with ``map_source="grid"``); the throttles reach the motors after the configured
-    actuation latency.
+    actuation latency. From ``freeze_map_after_s`` on, the map no longer changes and every
+    revolution counts as held back (SLAM distrusting the odometry: it localizes, paints
+    nothing), as a run ends when it faults.
     """
     config = config if config is not None else Config()
     rng = np.random.default_rng(seed)
@@ -227,8 +237,9 @@ def run_daemon_exploration(
     still = StillClock()
     statuses: dict[str, int] = {}
     step = 0
-    while physics.time_s < time_limit_s and state.run_state is not RunState.DONE:
+    while physics.time_s < time_limit_s and state.run_state not in (RunState.DONE, RunState.FAULT):
         now = physics.time_s
+        frozen = freeze_map_after_s is not None and now >= freeze_map_after_s
         pose = physics.pose
         state.pose = Pose2D(*pose)
         if step % planner_every == 0:  # a revolution, then the planner task's tick on it
@@ -236,10 +247,12 @@ def run_daemon_exploration(
             lidar_xy = np.array(pose[:2]) + np.array([[c, -s], [s, c]]) @ mount_xy
             ranges = caster.cast(lidar_xy, angles + pose[2] + lidar_yaw_rad, lidar.max_range_m)
             seen_from = (float(lidar_xy[0]), float(lidar_xy[1]))
-            truth.reveal(seen_from, angles + pose[2] + lidar_yaw_rad, ranges)
-            if planner_map is not truth:
-                planner_map.reveal(seen_from, angles + pose[2] + lidar_yaw_rad, ranges)
+            if not frozen:
+                truth.reveal(seen_from, angles + pose[2] + lidar_yaw_rad, ranges)
+                if planner_map is not truth:
+                    planner_map.reveal(seen_from, angles + pose[2] + lidar_yaw_rad, ranges)
             state.slam.scans += 1
+            state.slam.held_back += frozen
             hit = np.isfinite(ranges)
             state.latest_scan = Scan(
                 angle_rad=angles.copy(),
@@ -264,9 +277,10 @@ def run_daemon_exploration(
         still.update(physics)
 
     done = state.run_state is RunState.DONE
+    fault = state.active_fault
     return finished(
         world, physics, truth, still, done=done, safety_stops=control.safety.stops, explorer=pilot.explorer,
-        statuses=statuses,
+        statuses=statuses, fault=None if fault is None else f"{fault.source}: {fault.message}",
     )
 
 
@@ -344,6 +358,28 @@ def test_frontier_mode_maps_a_1ft_corridor_maze_without_the_cell_graph(size: int
     assert result.coverage >= 0.98
     assert math.dist(result.final_xy_m, result.start_xy_m) <= 0.07
     assert not [e for e in result.explorer.events if e.startswith("blacklisted")]  # every goal it chose saw something
+
+
+@pytest.mark.parametrize("stand_still_revolutions", [45, 30])
+def test_a_robot_whose_map_stops_changing_never_stands_for_ever(stand_still_revolutions: int) -> None:
+    """SLAM that paints no revolution (held back: the odometry distrusted) freezes the explorer's clocks.
+
+    The explorer counts a target's dwell and progress in *painted* revolutions; with none
+    painted, a robot standing at an unresolved target waited for ever (two bench runs of
+    the cheap robot sat 850 s in ``returning``). The pilot's own count of revolutions stood
+    gives the goal up, backs off, and at worst stops with a fault that says why. Without
+    it (``stand_still_revolutions`` 2000) this run stood 192 of its 200 s at one place.
+    """
+    world = maze_world(1, "braided", 4)
+    config = Config()
+    config.planner.stand_still_revolutions = stand_still_revolutions
+    result = run_daemon_exploration(world, seed=1, time_limit_s=240.0, config=config, freeze_map_after_s=5.0)
+    ended = result.done or (result.fault is not None and result.fault.startswith("planner: stood still"))
+    assert ended, f"neither done nor stopped with a reason after {result.time_s:.0f} s: {result.explorer.events}"
+    assert result.time_s < 240.0
+    # a step each stand_still_revolutions (5 revolutions a second here), three steps at most
+    assert result.longest_still_s < 3 * stand_still_revolutions / 5.0 + 5.0
+    assert result.collisions == 0
 
 
 def main(argv: list[str]) -> None:

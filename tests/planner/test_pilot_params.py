@@ -19,10 +19,10 @@ from mazebot.tasks.control_task import MotorControl
 CHANGED = {
     "planner": {"goal_tolerance_m": 0.08, "progress_revolutions": 120, "dwell_revolutions": 20,
                 "retry_after_m": 1.1, "max_attempts": 4, "horizon_s": 1.5, "stuck_timeout_s": 5.0,
-                "mode": "frontier", "max_recoveries": 5},
+                "mode": "frontier", "max_recoveries": 5, "stand_still_revolutions": 60},
     "drive": {"max_speed_mps": 0.25, "max_yaw_rate_radps": 1.0, "max_accel_mps2": 0.5, "max_yaw_accel_radps2": 2.5},
     "robot": {"footprint_radius_m": 0.1, "clearance_m": 0.03},
-    "control": {"brake_decel_mps2": 0.7, "stop_margin_m": 0.05, "max_wheel_accel_mps2": 1.5,
+    "control": {"brake_decel_mps2": 0.7, "stop_margin_m": 0.05, "side_margin_m": 0.02, "max_wheel_accel_mps2": 1.5,
                 "command_ttl_ticks": 12, "scan_timeout_ticks": 25, "deadline_s": 0.2},
     "lidar": {"min_range_m": 0.12},
 }
@@ -49,11 +49,13 @@ PILOT_READS = {
     ("local.dwa", "horizon_s"): ("planner", "horizon_s"),
     ("local", "stuck_timeout_s"): ("planner", "stuck_timeout_s"),
     ("local", "max_recoveries"): ("planner", "max_recoveries"),
+    ("still", "limit_revolutions"): ("planner", "stand_still_revolutions"),
 }
 
 #: (a part of the control tick, its attribute) -> (config section, key)
 CONTROL_READS = {
     ("safety.guard", "margin_m"): ("control", "stop_margin_m"),
+    ("safety.guard", "side_margin_m"): ("control", "side_margin_m"),
     ("safety.guard", "brake_decel_mps2"): ("control", "brake_decel_mps2"),
     ("safety.guard", "footprint_radius_m"): ("robot", "footprint_radius_m"),
     ("safety", "command_ttl_ticks"): ("control", "command_ttl_ticks"),

@@ -25,7 +25,7 @@ from mazebot.io.scan import Scan
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.sim.raycast import cast_rays
 from mazebot.sim.world import World, rectangles_outline, world_from_layout
-from tests.data_paths import CARMEN
+from tests.data_paths import CARMEN, carmen_log
 
 CELL_M = 0.3048
 WALL_M = 0.012
@@ -39,9 +39,7 @@ WorldSurface = Callable[..., tuple[np.ndarray, np.ndarray]]
 @pytest.fixture(scope="session")
 def intel_log_path() -> Path:
     """The Intel Research Lab CARMEN log (910 scans, GMapping-corrected poses); skips without it."""
-    if not INTEL_LOG.is_file():
-        pytest.skip(f"CARMEN log not found at {INTEL_LOG}; set MAZEBOT_DATA")
-    return INTEL_LOG
+    return carmen_log(INTEL_LOG.name)
 
 
 @pytest.fixture(scope="session")

@@ -16,6 +16,7 @@ from mazebot.sim.room import make_room
 from mazebot.slam.lattice_fit import fit_pitch
 from mazebot.slam.slam import LoopClosureJob, Slam, SlamParams
 from mazebot.slam.wall_lattice import LatticeParams
+from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH
 from tests.slam.test_wall_lattice import keyframe_at, route_poses
 
 CONFIGURED = LatticeParams(pitch_m=0.3048, pitch_search=0.08)
@@ -104,7 +105,7 @@ def test_a_maze_whose_walls_miss_the_lattice_turns_the_priors_off_and_says_so_on
     slam = Slam(SlamParams(lattice=CONFIGURED))
     with caplog.at_level(logging.INFO, logger="mazebot.slam.slam"):
         for k in range(4):  # with three lines on an axis or without: no lattice either way
-            slam._note_lattice(replace(fit, measured=bool(k % 2)))
+            slam._note_lattice(replace(fit, measured=bool(k % 2)), 0)
     off = [r for r in caplog.records if "lattice priors off" in r.getMessage()]
     assert len(off) == 1
 
@@ -151,3 +152,30 @@ def test_within_range_is_hypots_answer_on_the_circle_beside_it_and_for_nan_and_i
         dx[2_000:4_000], dy[2_000:4_000] = np.nextafter(dx[:2_000], 10.0), dy[:2_000]  # an ulp beside it
         dx[4_000:4_010], dx[4_010:4_020] = np.nan, np.inf
         assert np.array_equal(within_radius(dx, dy, float(radius)), np.hypot(dx, dy) <= radius)
+
+
+def test_a_job_takes_the_last_fit_again_until_the_keyframes_grew_by_a_quarter(maze_world, cast_scan) -> None:
+    """The lattice is the maze's: a job a few keyframes after the last gives the same priors without
+    fitting it again; a quarter more keyframes, or the final rebuild, fit it afresh."""
+    truth = route_poses(maze_world)
+    keyframes = [keyframe_at(maze_world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    count = len(keyframes)
+    fresh = chain_job(keyframes, truth, CONFIGURED).run()
+    assert fresh.lattice_fit is not None and fresh.lattice_fit.fits and fresh.lattice_fit_keyframes == count
+    # a fit known from fewer keyframes, which no refit would give (a pitch 1 mm off): taken as it is
+    known = replace(fresh.lattice_fit, pitch_m=fresh.lattice_fit.pitch_m + 0.001)
+    earlier = math.ceil(count / LATTICE_REFIT_GROWTH) + 1  # grew by less than a quarter since
+    reused = replace(chain_job(keyframes, truth, CONFIGURED), known_fit=(known, earlier)).run()
+    assert reused.lattice_fit == known and reused.lattice_fit_keyframes == earlier
+    # the same fit as a fresh one: the same priors, the same poses
+    same = replace(chain_job(keyframes, truth, CONFIGURED), known_fit=(fresh.lattice_fit, earlier)).run()
+    assert same.poses is not None and fresh.poses is not None
+    np.testing.assert_array_equal(same.poses, fresh.poses)
+    # grown by a quarter, a fit that did not fit, or the final rebuild: fitted again
+    for job in (
+        replace(chain_job(keyframes, truth, CONFIGURED), known_fit=(known, math.floor(count / LATTICE_REFIT_GROWTH))),
+        replace(chain_job(keyframes, truth, CONFIGURED), known_fit=(replace(known, fits=False), earlier)),
+        replace(chain_job(keyframes, truth, CONFIGURED), known_fit=(known, earlier), rebuild_anyway=True),
+    ):
+        result = job.run()
+        assert result.lattice_fit == fresh.lattice_fit and result.lattice_fit_keyframes == count

@@ -221,3 +221,30 @@ def test_the_anchor_keyframe_is_tried_whenever_it_is_within_reach() -> None:
     # out of reach, it is not tried
     far = replace(params, anchor_candidate=True, search_radius_m=0.3)
     assert [c.old for c in find_candidates(poses, 55, var, var, far)] == [5]
+
+
+def test_a_candidate_next_to_an_accepted_closure_or_one_being_verified_is_not_verified_again() -> None:
+    """Back along a mapped corridor every attempt finds a candidate: the one right after a closure is
+    skipped (the graph ties that pair through it), the next but one is verified; laser logs verify all."""
+    from mazebot.slam.slam import ClosureRecord, Slam, SlamParams
+    from mazebot.slam.slam_cli import laser_log_params
+
+    defaults = SlamParams()
+    slam = Slam(replace(defaults, loop=replace(defaults.loop, closed_reach_keyframes=5)))
+    assert slam.params.loop.attempt_every == 3
+
+    def candidate(old: int, new: int) -> Candidate:
+        return Candidate(old, new, np.zeros(3), np.eye(3) * 1e-4, 0.1)
+
+    slam.closures.append(ClosureRecord(60, 134, 10.0, 40.0, np.zeros(3)))
+    assert slam._closed_already(candidate(63, 137))  # the next attempt, the old side moved on too
+    assert slam._closed_already(candidate(56, 139))
+    assert not slam._closed_already(candidate(63, 140))  # the next attempt but one
+    assert not slam._closed_already(candidate(20, 137))  # another place seen from here
+    # the running job's candidate counts as closed: its result may or may not be back, the skip is the same
+    slam._make_job([candidate(63, 140)], np.zeros((0, 3)), optimize_anyway=False)
+    assert slam._closed_already(candidate(64, 143))
+    every = Slam(replace(SlamParams(), loop=replace(slam.params.loop, closed_reach_keyframes=0)))
+    every.closures.append(ClosureRecord(60, 134, 10.0, 40.0, np.zeros(3)))
+    assert not every._closed_already(candidate(63, 137))
+    assert laser_log_params(SlamParams()).loop.closed_reach_keyframes == 0

@@ -13,6 +13,7 @@ import math
 import os
 import signal
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from mazebot.slam.loop_worker import LoopClosureExecutor
 from mazebot.slam.slam import LoopClosureResult, Slam, SlamParams, SlamUpdated
 
 pytestmark = pytest.mark.slow  # a simulated run's keyframes and a worker process
+SHM = Path("/dev/shm")  # where POSIX shared memory segments are named on Linux
 
 
 class _FrozenOdometry:
@@ -124,12 +126,17 @@ def test_a_worker_that_missed_keyframes_or_died_gets_them_all_again(frames: list
             with pytest.raises(BrokenProcessPool):
                 executor._pool.submit(int).result(timeout=30)  # type: ignore[union-attr]
 
+    arena = executor._shipper.arena
+    assert arena is not None  # the keyframes go through shared memory
     try:
         jobs, _ = _replay(frames, executor, between_jobs=trouble, max_jobs=4)
+        assert arena.segment_names and all((SHM / name).exists() for name in arena.segment_names)  # the worker's
+        #                                                        death left the daemon's segments as they were
     finally:
         executor.shutdown()
     assert jobs >= 3
     assert "sending every keyframe again" in caplog.text and "worker died" in caplog.text
+    assert not any((SHM / name).exists() for name in arena.segment_names)  # unlinked at shutdown
 
 
 def test_unknown_executor_kind_is_refused() -> None:

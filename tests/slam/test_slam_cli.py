@@ -33,6 +33,11 @@ def test_slam_run_on_the_intel_log(intel_log_path: Path, tmp_path: Path, capsys:
     assert stats["error_aligned"]["rms_m"] <= stats["error"]["rms_m"] + 1e-4
     assert stats["relative_error"]["pairs"] == 199
     assert stats["relative_error"]["rot_mean_deg"] < stats["relative_error_odometry"]["rot_mean_deg"]
+    # each scan registered against the others at the poses: the SLAM's map sits within a few tenths of a
+    # degree and centimetres of itself, and the scan the map is anchored at is judged too
+    for name in ("consistency", "consistency_reference"):
+        assert stats[name]["scans"] >= 40 and stats[name]["first_scan_heading_deg"] is not None
+    assert stats["consistency"]["heading_rms_deg"] < 0.5 and stats["consistency"]["shift_rms_m"] < 0.05
 
     lasers = read_carmen(intel_log_path).lasers[:200]
     rows = np.loadtxt(out / "trajectory.txt")
@@ -206,3 +211,60 @@ def test_an_uncertain_prediction_is_searched_on_the_intel_log_at_high_odometry_n
     stats = json.loads(capsys.readouterr().out)
     assert stats["searches"] > 250  # nearly every scan: a metre and 20° between them
     assert stats["error"]["rms_m"] < 0.3 and stats["error"]["heading_rms_deg"] < 3.0
+
+
+def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) -> None:
+    """The finished map's frame follows the first scan registered against the map, not the first matches.
+
+    The first 120 Intel scans (the robot comes back past its start), then every keyframe
+    but the first turned by 1° about it, as if the first matches had been that far off:
+    the first scan asks for the 1° back, and the map returns to where it was; the
+    unperturbed map's first scan asks for less than the map's own scatter and is left alone.
+    """
+    from mazebot.geometry import compose, inverse, relative_pose
+    from mazebot.slam.ekf import OdometryHistory
+    from mazebot.slam.map_consistency import judged_scans, scan_corrections
+    from mazebot.slam.slam import Slam
+    from mazebot.slam.slam_cli import heading_noise_rad, match_points, reanchor, slam_clock
+
+    lasers = read_carmen(intel_log_path).lasers[:120]
+    reference = np.array([r.pose for r in lasers])
+    odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))
+    odometry = compose(reference[0], relative_pose(odometry[0], odometry))
+    config = load_config(None)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    slam = Slam(params, initial_pose=np.zeros(3))
+    history = OdometryHistory(horizon_s=1e12)
+    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
+    for k, record in enumerate(lasers):
+        history.append(clock[k], *odometry[k])
+        scan = record.to_scan()
+        slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    points = match_points(lasers, params)
+
+    def registered() -> np.ndarray:
+        _, trajectory = slam.trajectory()
+        return scan_corrections(trajectory, points, judged_scans(len(points), 40), params.icp,
+                                voxel_m=params.prepare.voxel_size_m, normal_radius_m=params.normals.radius_m)
+
+    _, finished = slam.trajectory()
+    own = registered()
+    untouched = reanchor(slam, own, heading_noise_rad(own))  # within the map's own scatter: left alone
+    assert not untouched["applied"] and abs(untouched["heading_deg"]) < 0.3 and untouched["shift_m"] < 0.03
+    _, kept = slam.trajectory()
+    np.testing.assert_array_equal(kept, finished)
+
+    anchor = kept[0]
+    turn = compose(anchor, compose(np.array([0.0, 0.0, np.radians(1.0)]), inverse(anchor)))  # 1° about the anchor
+    for keyframe in slam.keyframes[1:]:
+        keyframe.pose = compose(turn, keyframe.pose)
+    own = registered()
+    turned = reanchor(slam, own, heading_noise_rad(own))
+    assert turned["applied"] and turned["heading_deg"] == pytest.approx(1.0, abs=0.1)
+    assert turned["noise_deg"] < 0.5
+    _, back = slam.trajectory()
+    far = np.hypot(*(kept[:, :2] - anchor[:2]).T) > 3.0  # a degree is 5 cm there
+    assert far.sum() > 20
+    assert np.hypot(*(back[far, :2] - kept[far, :2]).T).max() < 0.02
+    assert np.abs(wrap_angle(back[far, 2] - kept[far, 2])).max() < np.radians(0.1)
+    assert np.sqrt(np.mean(np.sum((finished[:, :2] - reference[:, :2]) ** 2, axis=1))) < 0.15  # a sound run

@@ -76,8 +76,6 @@ def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
             now_s = 100.0 + k * period_s
             if k % 2 == 0 and k < 80:  # the planner: 10 Hz, fresh commands (none after tick 80: they go stale)
                 state.motion_command = MotionRequest(0.2, 0.1 * math.sin(k / 10), "drive", now_s)
-            if k % 4 == 0:  # a revolution: a wall ahead coming closer, then gone
-                state.latest_scan = _wall_scan(0.5 - 0.008 * k if k < 60 else 2.0, now_s - 0.01)
             if k == 50:
                 state.raise_fault("lidar", "a test fault", now_s)
             if k == 55:
@@ -90,6 +88,11 @@ def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
             state.odometry_history.append(now_s, x_m, 0.0, 0.0)
             state.odometry = OdometryPose(x_m, 0.0, 0.0)
             state.wheel_ticks = (now_s, left_ticks, right_ticks)
+            # a revolution: a wall ahead coming closer, then gone; published once the odometry covers
+            # it (each return is placed with the pose of its time: the two loops de-skew at different
+            # moments, the same once the history holds the revolution's end)
+            if k % 4 == 0:
+                state.latest_scan = _wall_scan(0.5 - 0.008 * k if k < 60 else 2.0, now_s - 0.01)
             expected = reference.tick(state, now_s)
             state.throttles = expected
             view.refresh()
@@ -418,3 +421,44 @@ def test_the_child_starts_from_a_fork_server_that_holds_its_modules_and_stays_sm
         link.close()
     assert child.exitcode == 0
     assert private_mb < 16.0, f"the control process holds {private_mb:.1f} MB of its own"
+
+
+def test_the_child_and_motor_control_stop_for_a_return_only_the_planner_remembers() -> None:
+    """A leg 0.12 m ahead, inside the lidar's 0.15 m minimum range: the revolution shows
+    nothing near, the planner's blind-zone memory (``state.blind_zone_points``, odometry
+    frame) has it. Both control loops stop a drive towards it, and neither stops one beside it."""
+    config = Config()
+    link = ControlLink.create(config)
+    child_link = ControlLink.attach(link.name)
+    try:
+        state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0, auto_resume=True)
+        state.odometry_history = OdometryHistory(3.0)
+        state.control_link = link
+        link.publish_all(state)
+        view = ChildView(child_link)
+        reference, child = MotorControl.from_config(config), control_process._child_control(config, view)
+        period_s = config.daemon.control_period_s
+        # the robot stands at (1, 1) facing +y (odometry frame); the leg is 0.12 m ahead of it
+        pose = (1.0, 1.0, math.pi / 2)
+        for k in range(4):
+            state.odometry_history.append(100.0 + k * period_s, *pose)
+        state.odometry = OdometryPose(*pose)
+        state.latest_scan = _wall_scan(2.0, 100.0 + 3 * period_s)  # only a far wall in the scan
+        verdicts = {}
+        for k, (points, w) in enumerate(((None, 0.0), (np.array([[1.0, 1.12]]), 0.0), (np.array([[1.12, 1.0]]), 0.0))):
+            now_s = 100.0 + (4 + k) * period_s
+            state.blind_zone_points = points
+            state.motion_command = MotionRequest(0.2, w, "drive", now_s)
+            state.wheel_ticks = (now_s, 0, 0)
+            expected = reference.tick(state, now_s)
+            view.refresh()
+            assert child.tick(view, now_s) == expected
+            assert view.safety_stop == state.safety_stop
+            verdicts[k] = state.safety_stop.startswith("emergency stop") and expected == (0.0, 0.0)
+            state.safety_stop = ""
+            view.safety_stop = ""
+        assert verdicts == {0: False, 1: True, 2: False}  # nothing; the leg ahead; the leg beside (to the right)
+    finally:
+        state.control_link = None
+        child_link.close()
+        link.close()

@@ -1,0 +1,51 @@
+"""The pilot's watch on a robot standing still with a goal (:class:`mazebot.planner.pilot.StandStill`)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+from mazebot.planner.pilot import BACKOFF_M, StandStill
+
+
+def test_counts_revolutions_not_ticks() -> None:
+    """Planner ticks without a new revolution do not count: the clock is what the lidar saw."""
+    still = StandStill(limit_revolutions=3)
+    pose = (1.0, 2.0, 0.5)
+    assert still.observe(pose, scan_id=1) == 0  # the first tick only marks where it stands
+    reached = [still.observe(pose, scan_id) for scan_id in (1, 1, 2, 2, 3, 3, 3)]
+    assert reached == [0, 0, 0, 0, 0, 0, 0]
+    assert still.observe(pose, scan_id=4) == 3  # the third new revolution stood
+    assert still.observe(pose, scan_id=5) == 0  # and the count starts again
+
+
+def test_moving_or_turning_starts_the_count_again() -> None:
+    still = StandStill(limit_revolutions=2)
+    still.observe((0.0, 0.0, 0.0), 1)
+    still.observe((0.0, 0.0, 0.0), 2)
+    assert still.observe((0.05, 0.0, 0.0), 3) == 0  # moved 5 cm: a new mark
+    assert still.observe((0.05, 0.0, 0.3), 4) == 0  # turned 0.3 rad: a new mark
+    assert still.observe((0.05, 0.0, 0.3), 5) == 0
+    assert still.observe((0.05, 0.01, 0.3), 6) == 2  # 1 cm of estimate jitter is standing
+
+
+def test_the_backoff_follows_the_track_it_drove() -> None:
+    """Back along the points it passed (known free), about BACKOFF_M of them, newest first."""
+    still = StandStill()
+    track = [(0.03 * i, 0.0) for i in range(10)] + [(0.27, 0.03 * i) for i in range(1, 6)]  # east, then north
+    for scan_id, (x, y) in enumerate(track):
+        still.observe((x, y, 0.0), scan_id)
+    here = track[-1]
+    path = still.backoff_path(here)
+    assert path[0] == here
+    assert all(p in track for p in path[1:])
+    length = sum(math.dist(a, b) for a, b in itertools.pairwise(path))
+    assert BACKOFF_M <= length < BACKOFF_M + 0.04
+    ys = [p[1] for p in path]
+    assert ys == sorted(ys, reverse=True)  # back down the northward leg first
+
+
+def test_no_track_no_backoff() -> None:
+    still = StandStill()
+    still.observe((0.0, 0.0, 0.0), 1)
+    assert still.backoff_path((0.0, 0.0)) == []

@@ -78,7 +78,7 @@ from mazebot.planner.global_path import (
     shortest_cell_path,
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
-from mazebot.slam.grid import FREE
+from mazebot.slam.grid import FREE, UNKNOWN
 from mazebot.steps import all_at_once_method
 
 # the defaults below are the config's, each written once in mazebot.config
@@ -221,12 +221,14 @@ class _RegionKey:
 
 @dataclass(frozen=True)
 class _Region:
-    """A reachable frontier region: its viewpoint (route cost in metres, score, gain), goal, centroid, size."""
+    """A reachable frontier region: its viewpoint (route cost in metres, score, gain), goal, centroid, size,
+    and where its unknown cells are (map frame, metres: an (N, 2) array of x, y)."""
 
     view: Viewpoint
     goal_m: tuple[float, float]
     centroid_m: tuple[float, float]
     size: int
+    unknown_m: np.ndarray
 
     @property
     def cost_m(self) -> float:
@@ -343,6 +345,7 @@ class Explorer:
         region_match_m: float = 0.3,
         blacklist_radius_m: float = 0.15,
         inside_half_m: float = 0.075,
+        recheck_revolutions: int = 5,
     ) -> None:
         if mode not in ("auto", "maze", "frontier"):
             raise ValueError(f"mode must be 'auto', 'maze' or 'frontier', got {mode!r}")
@@ -381,6 +384,9 @@ class Explorer:
         self.region_match_m = float(region_match_m)
         self.blacklist_radius_m = float(blacklist_radius_m)
         self.inside_half_m = float(inside_half_m)
+        if recheck_revolutions < 1:
+            raise ValueError(f"recheck_revolutions must be >= 1, got {recheck_revolutions}")
+        self.recheck_revolutions = int(recheck_revolutions)
 
         self.phase = Phase.EXPLORING
         self.mode: Literal["maze", "frontier"] = "frontier" if mode == "frontier" else "maze"
@@ -393,6 +399,15 @@ class Explorer:
         self._given_up: dict[object, _GivenUp] = {}  # blacklisted targets, by key
         #: (region centroid, viewpoint) of grid frontiers blacklisted from there: a retry looks from elsewhere
         self._failed_views_m: list[tuple[tuple[float, float], tuple[float, float]]] = []
+        #: centroids of grid frontiers closed: they vanished while the robot was within view of them
+        #: (it looked, the lidar swept them); a frontier that comes back there is no goal again
+        self.closed_points_m: list[tuple[float, float]] = []
+        #: comebacks of each closed place (by index): a frontier there again after a tick without one
+        self.comebacks: list[int] = []
+        self._closed_hit: set[int] = set()  # closed places with a frontier back on the last search
+        #: the region followed on the last tick (its key and where its unknown cells were)
+        self._followed: tuple[object, _Region] | None = None
+        self._last_grid_search: int | None = None  # the map's revolutions at the last whole-grid search
         self.travelled_m = 0.0  # the robot's path length so far (from the poses of the ticks)
         self._last_xy_m: tuple[float, float] | None = None
         self._revolutions = 0  # the map's revolution count at this tick
@@ -465,13 +480,31 @@ class Explorer:
         """
         if self.mode == "maze":
             goal = self._maze_goal(pose)
-            if goal is None and self.map_check:
+            if goal is None and self.map_check and self._grid_search_due():
                 # the graph knows no unknown link: the grid itself must not know any
                 # known free space next to unknown space the robot can reach either
                 yield
                 goal = yield from self._frontier_goal_steps(grid, origin, resolution_m, pose)
             return goal
+        if not self._grid_search_due():
+            return None
         return (yield from self._frontier_goal_steps(grid, origin, resolution_m, pose))
+
+    def _grid_search_due(self) -> bool:
+        """False while the robot returns home and the grid was searched less than ``recheck_revolutions``
+        map revolutions ago.
+
+        Once nothing is left the robot drives home, and a search of the whole grid on every
+        tick (its frontiers, a distance transform, viewpoints: 25-45 ms on a 16x16 maze here,
+        four times that on a Pi 4's share) would find the same nothing; a frontier that the
+        map still shows is found a second or so later (counted in revolutions the map took
+        in, so a slower CPU searches as often per revolution, not per second).
+        """
+        last = self._last_grid_search
+        if self.phase is Phase.RETURNING and last is not None and self._revolutions - last < self.recheck_revolutions:
+            return False
+        self._last_grid_search = self._revolutions
+        return True
 
     def _retry_given_up(self, everything: bool) -> bool:
         """Take blacklisted targets with attempts left off the blacklist; True if any was.
@@ -514,6 +547,11 @@ class Explorer:
         self._history.clear()
         self._given_up.clear()
         self._failed_views_m.clear()
+        self.closed_points_m.clear()
+        self.comebacks.clear()
+        self._closed_hit.clear()
+        self._followed = None
+        self._last_grid_search = None
         self._target = None
 
     def _choose_mode(self) -> None:
@@ -626,6 +664,10 @@ class Explorer:
         options = yield from self._frontier_options_steps(
             grid, origin, resolution_m, (pose[0], pose[1]), anchor, kept_goal
         )
+        followed, self._followed = self._followed, None
+        still_there = anchor is not None and any(math.dist(o.centroid_m, anchor) < self.region_match_m for o in options)
+        if followed is not None and current is not None and followed[0] == current.key and not still_there:
+            self._close_if_looked(followed[1], grid, origin, resolution_m, pose)  # the followed frontier is gone
         if not options:
             self._target = None
             return None
@@ -649,6 +691,7 @@ class Explorer:
         if self._track(key, choice.goal_m, choice.cost_m, at_goal) is None:
             # just blacklisted (no progress): choose again among the rest
             return (yield from self._frontier_goal_steps(grid, origin, resolution_m, pose))
+        self._followed = (key, choice)
         yield
         path = costmap.plan((pose[0], pose[1]), choice.goal_m)
         waypoints = shortcut(path, costmap) if path else [choice.goal_m]
@@ -684,6 +727,7 @@ class Explorer:
             grid, self.min_frontier_cells, self.frontier_wall_margin_cells, self.frontier_sliver_cells
         )
         if not frontiers:
+            self._note_comebacks(set())
             return []
         yield
         costmap = self._costmap_for(grid, origin, resolution_m)
@@ -691,10 +735,15 @@ class Explorer:
         distances = costmap.distances_from(robot_xy_m)
         cost_cells = np.where(costmap.passable, distances, np.inf)
         free = grid == FREE
+        hits: set[int] = set()
         ranked: list[tuple[float, bool, Frontier, tuple[float, float], np.ndarray]] = []
         for frontier in frontiers:
             centroid = costmap.to_world(*frontier.centroid_rc)
             if any(math.dist(centroid, b) < self.blacklist_radius_m for b in self.blacklisted_points_m):
+                continue
+            closed = self._closed_near(centroid)
+            if closed is not None:  # it vanished there while the robot looked: the map redrew it
+                hits.add(closed)
                 continue
             excluded = self._failed_view_mask(centroid, costmap)
             candidates = viewpoint_candidates(frontier, cost_cells, resolution_m, self.view_radius_m, excluded)
@@ -703,6 +752,7 @@ class Explorer:
             bound = score_bound_m(frontier, candidates, cost_cells, resolution_m, self.gain_weight_m)
             is_current = anchor_m is not None and math.dist(centroid, anchor_m) < self.region_match_m
             ranked.append((bound, is_current, frontier, centroid, candidates))
+        self._note_comebacks(hits)
         ranked.sort(key=lambda item: (not item[1], item[0]))  # the current target first, then by bound
         options: list[_Region] = []
         best = math.inf
@@ -730,10 +780,67 @@ class Explorer:
             )
             if view is None:
                 continue  # nowhere it could be seen from
-            options.append(_Region(view, costmap.to_world(*view.cell), centroid, int(frontier.cells.shape[0])))
+            unknown_m = np.column_stack((frontier.unknown[:, 1], frontier.unknown[:, 0])) + 0.5
+            unknown_m = unknown_m * resolution_m + np.asarray(origin, dtype=np.float64)
+            options.append(
+                _Region(view, costmap.to_world(*view.cell), centroid, int(frontier.cells.shape[0]), unknown_m)
+            )
             best = min(best, view.score_m)
         options.sort(key=lambda o: (o.view.score_m, -o.size))
         return options
+
+    def _close_if_looked(
+        self,
+        region: _Region,
+        grid: np.ndarray,
+        origin: tuple[float, float],
+        resolution_m: float,
+        pose: tuple[float, float, float],
+    ) -> None:
+        """The followed ``region`` is gone from the grid: closed when the robot was within view of it.
+
+        Within ``view_radius_m`` of its nearest unknown cell the lidar swept it (resolved,
+        or thinned into a sliver of wall). Loop closures re-render the map from the
+        keyframes, and the cells a revolution between keyframes painted can turn unknown again
+        (a 16x16 maze's corridor walls seen at grazing angles): a frontier back at that place
+        is no reason to drive there again (:meth:`_closed_near`). One that vanished while the
+        robot was farther away (another region grew over it, it was seen from afar) stays open.
+        """
+        if region.unknown_m.shape[0] == 0:
+            return
+        near_m = float(np.min(np.hypot(region.unknown_m[:, 0] - pose[0], region.unknown_m[:, 1] - pose[1])))
+        if near_m > self.view_radius_m:
+            return
+        rows = np.floor((region.unknown_m[:, 1] - origin[1]) / resolution_m).astype(np.int64)
+        cols = np.floor((region.unknown_m[:, 0] - origin[0]) / resolution_m).astype(np.int64)
+        inside = (rows >= 0) & (rows < grid.shape[0]) & (cols >= 0) & (cols < grid.shape[1])
+        painted = int(np.count_nonzero(grid[rows[inside], cols[inside]] != UNKNOWN))
+        self.closed_points_m.append(region.centroid_m)
+        self.comebacks.append(0)
+        cx, cy = region.centroid_m
+        self.events.append(
+            f"closed frontier at {cx:.2f}, {cy:.2f}: gone with the robot {near_m:.2f} m from it "
+            f"({painted} of its {region.unknown_m.shape[0]} unknown cells painted)"
+        )
+
+    def _closed_near(self, centroid_m: tuple[float, float]) -> int | None:
+        """The index of the closed place within ``region_match_m`` of ``centroid_m``, else None."""
+        best, best_m = None, self.region_match_m
+        for k, point in enumerate(self.closed_points_m):
+            d_m = math.dist(point, centroid_m)
+            if d_m < best_m:
+                best, best_m = k, d_m
+        return best
+
+    def _note_comebacks(self, hits: set[int]) -> None:
+        """Count and report the closed places with a frontier again that had none on the last search."""
+        for k in sorted(hits - self._closed_hit):
+            self.comebacks[k] += 1
+            cx, cy = self.closed_points_m[k]
+            self.events.append(
+                f"frontier back at closed {cx:.2f}, {cy:.2f} (comeback {self.comebacks[k]}): not a goal again"
+            )
+        self._closed_hit = hits
 
     def _failed_view_mask(self, centroid_m: tuple[float, float], costmap: GridCostmap) -> np.ndarray | None:
         """Cells near viewpoints from which this region (matched by centroid) was already given up on."""

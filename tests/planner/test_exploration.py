@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 
 import numpy as np
 import pytest
@@ -14,6 +14,7 @@ from mazebot.planner.exploration import (
     Candidate,
     DepthFirstStrategy,
     Explorer,
+    Goal,
     NearestFrontierStrategy,
     Phase,
     frontier_regions,
@@ -555,3 +556,65 @@ def test_a_frontier_left_for_another_again_and_again_is_blacklisted() -> None:
     assert explorer.blacklisted_points_m, "the robot was sent back and forth for ever"
     assert any("left for another frontier 3 times" in e for e in explorer.events), explorer.events
     assert k <= 7  # on the third time it was left
+
+
+def test_a_frontier_that_comes_back_where_the_robot_looked_is_not_driven_to_again() -> None:
+    # On a 16x16 maze the late frontiers are stretches of corridor wall that the lidar paints
+    # from near by and that loop closures, re-rendering the map from the keyframes, leave
+    # unknown again: the robot drove back and forth along a corridor eight times for one such
+    # stretch. A frontier that vanished while the robot was within view of it is closed; the
+    # same frontier back there later is not a goal again, and the robot goes on home.
+    world, grid, origin = t_maze()
+    unseen = grid.copy()
+    row = int((CELL + 0.14 - origin[1]) / RES)
+    col = int((CELL + 0.09 - origin[0]) / RES)
+    unseen[row : row + 6, col : col + 6] = -1  # 12 x 12 cm in corridor cell (1, 1), clear of its walls
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
+    goal = explorer.update(unseen, origin, RES, pose, revolutions=0)
+    assert goal is not None and goal.phase is Phase.EXPLORING and goal.reason.startswith("frontier of"), goal
+    pose = (*goal.target_m, math.pi)  # the robot gets to the viewpoint; its lidar paints the patch
+    goal = explorer.update(grid, origin, RES, pose, revolutions=1)
+    assert goal is not None and goal.phase is Phase.RETURNING
+    closed = [e for e in explorer.events if e.startswith("closed frontier")]
+    assert len(closed) == 1 and "(20 of its 20 unknown cells painted)" in closed[0], explorer.events
+    # on the way home the map shows the patch unknown again, tick after tick
+    revolutions = 1
+    for cell in [(1, 1), (0, 1), (0, 1)]:
+        for _ in range(3):
+            revolutions += 5  # every tick a whole-grid search (none skipped for returning)
+            goal = explorer.update(unseen, origin, RES, (*centre(cell), math.pi), revolutions=revolutions)
+            assert goal is not None and goal.phase is Phase.RETURNING, goal
+    comebacks = [e for e in explorer.events if e.startswith("frontier back at closed")]
+    assert len(comebacks) == 1 and explorer.comebacks == [1], explorer.events
+    # a frontier elsewhere is still one
+    other = unseen.copy()
+    other[:, int((3 * CELL + 0.1 - origin[0]) / RES) :] = -1  # cell (3, 1)'s east part
+    goal = explorer.update(other, origin, RES, (*centre((0, 1)), 0.0), revolutions=revolutions + 5)
+    assert goal is not None and goal.phase is Phase.EXPLORING, goal
+    assert float(goal.reason.split(" at ")[1].split(",")[0]) > 2 * CELL, goal.reason  # the region's centroid
+
+
+def test_the_grid_is_searched_less_often_while_the_robot_returns() -> None:
+    world, grid, origin = t_maze()
+    explorer = Explorer(start_xy_m=world.start_pose[:2], recheck_revolutions=5)
+    searches = []
+    real_search = explorer._frontier_goal_steps
+
+    def counted(*args: object) -> Generator[None, None, Goal | None]:
+        searches.append(explorer._revolutions)
+        return (yield from real_search(*args))  # type: ignore[arg-type]
+
+    explorer._frontier_goal_steps = counted  # type: ignore[method-assign,assignment]
+    for revolutions in range(12):
+        goal = explorer.update(grid, origin, RES, (*centre((3, 1)), math.pi), revolutions=revolutions)
+        assert goal is not None and goal.phase is Phase.RETURNING
+    assert searches == [0, 5, 10]
+    # a frontier that shows while the robot returns is found at the next search, not before
+    partial = hide_east_of(grid, origin, 2.5 * CELL)
+    phases = []
+    for revolutions in (13, 14, 15):
+        goal = explorer.update(partial, origin, RES, (*centre((1, 1)), math.pi), revolutions=revolutions)
+        assert goal is not None
+        phases.append(goal.phase)
+    assert phases == [Phase.RETURNING, Phase.RETURNING, Phase.EXPLORING] and searches[-1] == 15

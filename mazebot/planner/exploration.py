@@ -66,6 +66,7 @@ from mazebot.planner.frontiers import (
     best_viewpoint,
     find_frontiers,
     frontier_regions,
+    frontier_unknowns,
     score_bound_m,
     viewpoint_candidates,
 )
@@ -811,16 +812,31 @@ class Explorer:
         near_m = float(np.min(np.hypot(region.unknown_m[:, 0] - pose[0], region.unknown_m[:, 1] - pose[1])))
         if near_m > self.view_radius_m:
             return
-        rows = np.floor((region.unknown_m[:, 1] - origin[1]) / resolution_m).astype(np.int64)
-        cols = np.floor((region.unknown_m[:, 0] - origin[0]) / resolution_m).astype(np.int64)
-        inside = (rows >= 0) & (rows < grid.shape[0]) & (cols >= 0) & (cols < grid.shape[1])
-        painted = int(np.count_nonzero(grid[rows[inside], cols[inside]] != UNKNOWN))
         self.closed_points_m.append(region.centroid_m)
         self.comebacks.append(0)
         cx, cy = region.centroid_m
         self.events.append(
             f"closed frontier at {cx:.2f}, {cy:.2f}: gone with the robot {near_m:.2f} m from it "
-            f"({painted} of its {region.unknown_m.shape[0]} unknown cells painted)"
+            f"({self._why_gone(region, grid, origin, resolution_m)})"
+        )
+
+    def _why_gone(
+        self, region: _Region, grid: np.ndarray, origin: tuple[float, float], resolution_m: float
+    ) -> str:
+        """What became of a vanished region's unknown cells, for the log: painted, now within the
+        wall margin of an occupied cell, now part of a sliver, or still unknown (the region then
+        fell below ``min_frontier_cells`` or out of every viewpoint's sight)."""
+        rows = np.floor((region.unknown_m[:, 1] - origin[1]) / resolution_m).astype(np.int64)
+        cols = np.floor((region.unknown_m[:, 0] - origin[0]) / resolution_m).astype(np.int64)
+        inside = (rows >= 0) & (rows < grid.shape[0]) & (cols >= 0) & (cols < grid.shape[1])
+        rows, cols = rows[inside], cols[inside]
+        unknown = grid[rows, cols] == UNKNOWN
+        off_walls = frontier_unknowns(grid, self.frontier_wall_margin_cells, 0)[rows, cols]
+        counted = frontier_unknowns(grid, self.frontier_wall_margin_cells, self.frontier_sliver_cells)[rows, cols]
+        return (
+            f"of its {region.unknown_m.shape[0]} unknown cells {np.count_nonzero(~unknown)} painted, "
+            f"{np.count_nonzero(unknown & ~off_walls)} beside a wall, {np.count_nonzero(off_walls & ~counted)} "
+            f"in a sliver, {np.count_nonzero(counted)} still counted"
         )
 
     def _closed_near(self, centroid_m: tuple[float, float]) -> int | None:

@@ -577,7 +577,7 @@ def test_a_frontier_that_comes_back_where_the_robot_looked_is_not_driven_to_agai
     goal = explorer.update(grid, origin, RES, pose, revolutions=1)
     assert goal is not None and goal.phase is Phase.RETURNING
     closed = [e for e in explorer.events if e.startswith("closed frontier")]
-    assert len(closed) == 1 and "(20 of its 20 unknown cells painted)" in closed[0], explorer.events
+    assert len(closed) == 1 and "of its 20 unknown cells 20 painted, 0 beside" in closed[0], explorer.events
     # on the way home the map shows the patch unknown again, tick after tick
     revolutions = 1
     for cell in [(1, 1), (0, 1), (0, 1)]:

@@ -1,6 +1,6 @@
 """Where to go next: exploration strategies over the maze graph, and grid frontiers.
 
-Why one module of ~820 lines: :class:`Explorer` is one state machine over goals (choose, drive,
+Why one module of ~1000 lines: :class:`Explorer` is one state machine over goals (choose, drive,
 arrive, dwell, blacklist, retry, give up) shared by the maze mode and the frontier mode; the
 strategies and the goal records above it exist only for it, and a change to how a goal is given
 up touches both modes at once.
@@ -39,6 +39,13 @@ map's revolutions (the lidar turns SLAM painted into the map: the evidence that 
 have resolved the target) while it was the target without its route cost reaching a new
 low, or while the robot stood at it. On a slower computer SLAM paints fewer revolutions
 a second and the targets get as many chances as on a fast one.
+
+A grid frontier that vanishes while the robot is within ``view_radius_m`` of it is *closed*:
+the lidar swept it from there. On a 16x16 maze the last frontiers are stretches of corridor
+wall seen only at grazing angles; they vanish as the robot comes near and come back as the
+map changes behind it (:meth:`Explorer._close_if_looked` logs what became of their cells), and
+the robot drove to and fro along a corridor for them. A frontier back at a closed place is not
+a goal again.
 
 A blacklisted target is not given up for good: it is tried again once the robot has
 driven ``retry_after_m`` elsewhere (the map around it has changed), or at once when

@@ -416,6 +416,7 @@ class Explorer:
         #: the region followed on the last tick (its key and where its unknown cells were)
         self._followed: tuple[object, _Region] | None = None
         self._last_grid_search: int | None = None  # the map's revolutions at the last whole-grid search
+        self._frontier_unknown: np.ndarray | None = None  # the last search's frontiers' unknown cells
         self.travelled_m = 0.0  # the robot's path length so far (from the poses of the ticks)
         self._last_xy_m: tuple[float, float] | None = None
         self._revolutions = 0  # the map's revolution count at this tick
@@ -560,6 +561,7 @@ class Explorer:
         self._closed_hit.clear()
         self._followed = None
         self._last_grid_search = None
+        self._frontier_unknown = None
         self._target = None
 
     def _choose_mode(self) -> None:
@@ -734,6 +736,9 @@ class Explorer:
         frontiers = find_frontiers(
             grid, self.min_frontier_cells, self.frontier_wall_margin_cells, self.frontier_sliver_cells
         )
+        self._frontier_unknown = np.zeros(grid.shape, dtype=bool)  # every frontier's unknown cells, this tick
+        for frontier in frontiers:
+            self._frontier_unknown[frontier.unknown[:, 0], frontier.unknown[:, 1]] = True
         if not frontiers:
             self._note_comebacks(set())
             return []
@@ -805,20 +810,27 @@ class Explorer:
         resolution_m: float,
         pose: tuple[float, float, float],
     ) -> None:
-        """The followed ``region`` is gone from the grid: closed when the robot was within view of it.
+        """The followed ``region`` is no option any more: closed when it is gone and the robot was within view of it.
 
-        Within ``view_radius_m`` of its nearest unknown cell the lidar swept it (resolved,
-        or thinned into a sliver of wall). Loop closures re-render the map from the
-        keyframes, and the cells a revolution between keyframes painted can turn unknown again
-        (a 16x16 maze's corridor walls seen at grazing angles): a frontier back at that place
-        is no reason to drive there again (:meth:`_closed_near`). One that vanished while the
-        robot was farther away (another region grew over it, it was seen from afar) stays open.
+        Gone: most of its unknown cells belong to no frontier of this tick's search (painted,
+        or now within the wall margin of an occupied cell, part of a sliver, or bordered by
+        too few free cells); a region that only moved or merged, its centroid farther than
+        ``region_match_m`` from where it was first chosen, is still there and stays open. Within
+        ``view_radius_m`` of its nearest unknown cell the lidar swept it. Cells at the edge of
+        the log-odds thresholds (a 16x16 maze's corridor walls, seen at grazing angles) flip as
+        revolutions come in, and the frontier comes back behind the robot: that is no reason
+        to drive there again (:meth:`_closed_near`). One that vanished while the robot was
+        farther away stays open.
         """
         if region.unknown_m.shape[0] == 0:
             return
         near_m = float(np.min(np.hypot(region.unknown_m[:, 0] - pose[0], region.unknown_m[:, 1] - pose[1])))
         if near_m > self.view_radius_m:
             return
+        rows, cols = _cells_of(region.unknown_m, grid.shape, origin, resolution_m)
+        owned = self._frontier_unknown
+        if owned is not None and owned.shape == grid.shape and 2 * np.count_nonzero(owned[rows, cols]) >= rows.size:
+            return  # still a frontier's: it moved or merged, it did not vanish
         self.closed_points_m.append(region.centroid_m)
         self.comebacks.append(0)
         cx, cy = region.centroid_m
@@ -833,10 +845,7 @@ class Explorer:
         """What became of a vanished region's unknown cells, for the log: painted, now within the
         wall margin of an occupied cell, now part of a sliver, or still unknown (the region then
         fell below ``min_frontier_cells`` or out of every viewpoint's sight)."""
-        rows = np.floor((region.unknown_m[:, 1] - origin[1]) / resolution_m).astype(np.int64)
-        cols = np.floor((region.unknown_m[:, 0] - origin[0]) / resolution_m).astype(np.int64)
-        inside = (rows >= 0) & (rows < grid.shape[0]) & (cols >= 0) & (cols < grid.shape[1])
-        rows, cols = rows[inside], cols[inside]
+        rows, cols = _cells_of(region.unknown_m, grid.shape, origin, resolution_m)
         unknown = grid[rows, cols] == UNKNOWN
         off_walls = frontier_unknowns(grid, self.frontier_wall_margin_cells, 0)[rows, cols]
         counted = frontier_unknowns(grid, self.frontier_wall_margin_cells, self.frontier_sliver_cells)[rows, cols]
@@ -1012,6 +1021,16 @@ def _ending_at(waypoints: list[tuple[float, float]], target: tuple[float, float]
     if waypoints and math.dist(waypoints[-1], target) < 0.05:
         return [*waypoints[:-1], target]
     return [*waypoints, target]
+
+
+def _cells_of(
+    xy_m: np.ndarray, shape: tuple[int, ...], origin_m: tuple[float, float], resolution_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The grid rows and columns of map points ``xy_m`` ((N, 2) x, y), those off the grid left out."""
+    rows = np.floor((xy_m[:, 1] - origin_m[1]) / resolution_m).astype(np.int64)
+    cols = np.floor((xy_m[:, 0] - origin_m[0]) / resolution_m).astype(np.int64)
+    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+    return rows[inside], cols[inside]
 
 
 def _known_free_at(

@@ -618,3 +618,21 @@ def test_the_grid_is_searched_less_often_while_the_robot_returns() -> None:
         assert goal is not None
         phases.append(goal.phase)
     assert phases == [Phase.RETURNING, Phase.RETURNING, Phase.EXPLORING] and searches[-1] == 15
+
+
+def test_a_frontier_that_only_moved_is_not_closed() -> None:
+    # A region whose centroid drifts farther than region_match_m from where it was first
+    # chosen (it grew along a wall) is no longer matched as the same target, but it did not
+    # vanish: most of its unknown cells still border free space. It stays open.
+    grid = _room_with_patches((slice(20, 26), slice(20, 26)))
+    explorer = Explorer(start_xy_m=(0.2, 0.2), mode="frontier")
+    goal = explorer.update(grid, (0.0, 0.0), RES, (0.3, 0.3, 0.0), revolutions=0)
+    assert goal is not None and goal.phase is Phase.EXPLORING
+    grown = _room_with_patches((slice(20, 26), slice(20, 60)))  # the same patch, 0.7 m longer to the east
+    goal = explorer.update(grown, (0.0, 0.0), RES, (0.3, 0.3, 0.0), revolutions=1)
+    assert goal is not None and goal.phase is Phase.EXPLORING
+    assert not explorer.closed_points_m, explorer.events
+    # painted, it is gone: now closed (the robot is within view of it)
+    goal = explorer.update(_room_with_patches(), (0.0, 0.0), RES, (0.3, 0.3, 0.0), revolutions=2)
+    assert goal is not None and goal.phase is Phase.RETURNING
+    assert len(explorer.closed_points_m) == 1, explorer.events

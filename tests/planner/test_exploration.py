@@ -559,11 +559,11 @@ def test_a_frontier_left_for_another_again_and_again_is_blacklisted() -> None:
 
 
 def test_a_frontier_that_comes_back_where_the_robot_looked_is_not_driven_to_again() -> None:
-    # On a 16x16 maze the late frontiers are stretches of corridor wall that the lidar paints
-    # from near by and that loop closures, re-rendering the map from the keyframes, leave
-    # unknown again: the robot drove back and forth along a corridor eight times for one such
-    # stretch. A frontier that vanished while the robot was within view of it is closed; the
-    # same frontier back there later is not a goal again, and the robot goes on home.
+    # On a 16x16 maze the late frontiers are stretches of corridor wall seen at grazing angles;
+    # they vanish as the robot comes near and come back behind it as their cells flip between
+    # unknown, free and wall: the robot drove back and forth along a corridor eight times for
+    # one such stretch. A frontier that vanished while the robot was within view of it is
+    # closed; the same frontier back there later is not a goal again, and the robot goes home.
     world, grid, origin = t_maze()
     unseen = grid.copy()
     row = int((CELL + 0.14 - origin[1]) / RES)

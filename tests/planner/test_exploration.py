@@ -622,17 +622,23 @@ def test_the_grid_is_searched_less_often_while_the_robot_returns() -> None:
 
 def test_a_frontier_that_only_moved_is_not_closed() -> None:
     # A region whose centroid drifts farther than region_match_m from where it was first
-    # chosen (it grew along a wall) is no longer matched as the same target, but it did not
-    # vanish: most of its unknown cells still border free space. It stays open.
-    grid = _room_with_patches((slice(20, 26), slice(20, 26)))
-    explorer = Explorer(start_xy_m=(0.2, 0.2), mode="frontier")
-    goal = explorer.update(grid, (0.0, 0.0), RES, (0.3, 0.3, 0.0), revolutions=0)
-    assert goal is not None and goal.phase is Phase.EXPLORING
-    grown = _room_with_patches((slice(20, 26), slice(20, 60)))  # the same patch, 0.7 m longer to the east
-    goal = explorer.update(grown, (0.0, 0.0), RES, (0.3, 0.3, 0.0), revolutions=1)
-    assert goal is not None and goal.phase is Phase.EXPLORING
+    # chosen (it grew along the corridor) is no longer matched as the same target, but it did
+    # not vanish: most of its unknown cells still border free space. It stays open.
+    world, grid, origin = t_maze()
+    row = int((CELL + 0.14 - origin[1]) / RES)
+    col = int((CELL + 0.09 - origin[0]) / RES)
+    patch = grid.copy()
+    patch[row : row + 6, col : col + 6] = -1  # 12 x 12 cm in corridor cell (1, 1), clear of its walls
+    grown = grid.copy()
+    grown[row : row + 6, col : col + 40] = -1  # the same patch, 0.68 m longer to the east
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
+    goal = explorer.update(patch, origin, RES, pose, revolutions=0)
+    assert goal is not None and goal.reason.startswith("frontier of"), goal
+    goal = explorer.update(grown, origin, RES, pose, revolutions=1)
+    assert goal is not None and goal.reason.startswith("frontier of"), goal
     assert not explorer.closed_points_m, explorer.events
     # painted, it is gone: now closed (the robot is within view of it)
-    goal = explorer.update(_room_with_patches(), (0.0, 0.0), RES, (0.3, 0.3, 0.0), revolutions=2)
+    goal = explorer.update(grid, origin, RES, pose, revolutions=2)
     assert goal is not None and goal.phase is Phase.RETURNING
     assert len(explorer.closed_points_m) == 1, explorer.events

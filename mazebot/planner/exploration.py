@@ -40,8 +40,8 @@ have resolved the target) while it was the target without its route cost reachin
 low, or while the robot stood at it. On a slower computer SLAM paints fewer revolutions
 a second and the targets get as many chances as on a fast one.
 
-A grid frontier that vanishes while the robot is within ``view_radius_m`` of it is *closed*:
-the lidar swept it from there. On a 16x16 maze the last frontiers are stretches of corridor
+In a maze, a grid frontier that vanishes while the robot is within ``view_radius_m`` of it is
+*closed*: the lidar swept it from there. On a 16x16 maze the last frontiers are stretches of corridor
 wall seen only at grazing angles; they vanish as the robot comes near and come back as the
 map changes behind it (:meth:`Explorer._close_if_looked` logs what became of their cells), and
 the robot drove to and fro along a corridor for them. A frontier back at a closed place is not

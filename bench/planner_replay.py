@@ -7,6 +7,7 @@ virtual-time run of the whole daemon, then replay them as often as wanted, with 
 version of the code on ``PYTHONPATH``::
 
     .venv/bin/python bench/planner_replay.py capture --seed 1 --out /tmp/planner1.pkl
+    .venv/bin/python bench/planner_replay.py capture --maze $MAZEBOT_DATA/mazes/classic/shi2.txt --out /tmp/shi2.pkl
     .venv/bin/python bench/planner_replay.py replay /tmp/planner1.pkl [--repeat 3]
 
 ``replay`` prints the thread CPU per call (the minimum over ``--repeat`` passes) of the
@@ -32,11 +33,11 @@ from mazebot.config import load_config
 from mazebot.planner import dwa, exploration, pilot
 from mazebot.planner.pilot import Pilot, PilotParams
 
-#: DWA steps kept by a capture (a 6x6 run has about 300).
-MAX_DWA_STEPS = 2000
+#: DWA steps kept by a capture (a 6x6 run has about 300, a 16x16 contest maze about 1 500).
+MAX_DWA_STEPS = 4000
 
 
-def capture(seed: int, out: str) -> None:
+def capture(seed: int, out: str, maze_path: str | None = None) -> None:
     events: list[tuple[Any, ...]] = []  # the explorer's, in order
     steps: list[dict[str, Any]] = []  # the DWA's inputs
     real_update = exploration.Explorer.update_steps
@@ -74,7 +75,8 @@ def capture(seed: int, out: str) -> None:
     exploration.Explorer.report_unreachable = report_unreachable  # type: ignore[method-assign]
     pilot.Pilot._new_explorer = new_explorer  # type: ignore[method-assign]
     dwa.DynamicWindowPlanner.plan_steps = plan_steps  # type: ignore[method-assign]
-    metrics, _ = run_one(load_config(None), RunSpec(None, (6, 6), seed, "explore"))
+    spec = RunSpec(maze_path, None if maze_path else (6, 6), seed, "explore")
+    metrics, _ = run_one(load_config(None), spec)
     print({k: metrics.get(k) for k in ("done", "coverage", "collisions", "ate_rms_m", "time_s")})
     with open(out, "wb") as f:
         pickle.dump({"explorer": events, "dwa": steps}, f)
@@ -158,15 +160,16 @@ def replay(path: str, repeat: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    cap = sub.add_parser("capture", help="run a simulated 6x6 exploration and keep the planner's inputs")
+    cap = sub.add_parser("capture", help="run a simulated exploration and keep the planner's inputs")
     cap.add_argument("--seed", type=int, default=1)
+    cap.add_argument("--maze", default=None, help="a maze file (default: the generated 6x6 maze of --seed)")
     cap.add_argument("--out", required=True)
     rep = sub.add_parser("replay", help="replay a capture: CPU per call and digests of the outputs")
     rep.add_argument("capture")
     rep.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     if args.command == "capture":
-        capture(args.seed, args.out)
+        capture(args.seed, args.out, args.maze)
     else:
         replay(args.capture, args.repeat)
 

@@ -275,6 +275,11 @@ class PlannerConfig(Section):
         3, ge=1, le=20,
         description="times a goal is tried before it is given up (the last ones when nothing else is left)",
     )
+    max_drops: int = Field(
+        3, ge=1, le=50,
+        description="a grid frontier chosen and then left for another while still there this many times is "
+        "blacklisted (counted in the explorer's choices, not in seconds)",
+    )
     horizon_s: float = Field(1.2, gt=0.2, le=5.0, description="DWA rollout length")
     stuck_timeout_s: float = Field(
         4.0, gt=0.5, le=30,

@@ -1,6 +1,6 @@
 """Where to go next: exploration strategies over the maze graph, and grid frontiers.
 
-Why one module of ~820 lines: :class:`Explorer` is one state machine over goals (choose, drive,
+Why one module of ~1000 lines: :class:`Explorer` is one state machine over goals (choose, drive,
 arrive, dwell, blacklist, retry, give up) shared by the maze mode and the frontier mode; the
 strategies and the goal records above it exist only for it, and a change to how a goal is given
 up touches both modes at once.
@@ -40,6 +40,13 @@ have resolved the target) while it was the target without its route cost reachin
 low, or while the robot stood at it. On a slower computer SLAM paints fewer revolutions
 a second and the targets get as many chances as on a fast one.
 
+In a maze, a grid frontier that vanishes while the robot is within ``view_radius_m`` of it is
+*closed*: the lidar swept it from there. On a 16x16 maze the last frontiers are stretches of corridor
+wall seen only at grazing angles; they vanish as the robot comes near and come back as the
+map changes behind it (:meth:`Explorer._close_if_looked` logs what became of their cells), and
+the robot drove to and fro along a corridor for them. A frontier back at a closed place is not
+a goal again.
+
 A blacklisted target is not given up for good: it is tried again once the robot has
 driven ``retry_after_m`` elsewhere (the map around it has changed), or at once when
 nothing else is left, up to ``max_attempts`` attempts in all. Only when no reachable
@@ -66,6 +73,7 @@ from mazebot.planner.frontiers import (
     best_viewpoint,
     find_frontiers,
     frontier_regions,
+    frontier_unknowns,
     score_bound_m,
     viewpoint_candidates,
 )
@@ -78,7 +86,7 @@ from mazebot.planner.global_path import (
     shortest_cell_path,
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
-from mazebot.slam.grid import FREE
+from mazebot.slam.grid import FREE, UNKNOWN
 from mazebot.steps import all_at_once_method
 
 # the defaults below are the config's, each written once in mazebot.config
@@ -221,12 +229,14 @@ class _RegionKey:
 
 @dataclass(frozen=True)
 class _Region:
-    """A reachable frontier region: its viewpoint (route cost in metres, score, gain), goal, centroid, size."""
+    """A reachable frontier region: its viewpoint (route cost in metres, score, gain), goal, centroid, size,
+    and where its unknown cells are (map frame, metres: an (N, 2) array of x, y)."""
 
     view: Viewpoint
     goal_m: tuple[float, float]
     centroid_m: tuple[float, float]
     size: int
+    unknown_m: np.ndarray
 
     @property
     def cost_m(self) -> float:
@@ -253,6 +263,7 @@ class _Target:
     dwelt: int = 0  # map revolutions as the target with the robot at it
     last: int | None = None  # the map's revolution count at the last tick it was the target
     at_goal: bool = False  # the robot was at it on that tick
+    dropped: int = 0  # times it was left for another target while still there (grid frontiers)
 
 
 @dataclass
@@ -289,12 +300,15 @@ class Explorer:
     many it may stay unresolved once the robot is there (the map's revolutions are
     SLAM's painted scans, passed to :meth:`update`; 5.5 a second on an A1 when SLAM
     keeps up); ``retry_after_m`` how far the robot must drive before a blacklisted
-    target is tried again, ``max_attempts`` how often a target is tried in all;
+    target is tried again, ``max_attempts`` how often a target is tried in all,
+    ``max_drops`` how often a grid frontier may be left for another while it is still there
+    before it is blacklisted (the robot going back and forth between frontiers);
     ``map_check`` whether a maze is done only when the grid has no reachable frontier
     either; ``footprint_radius_m``/``clearance_m`` the robot
     for the grid costmap; ``min_frontier_cells`` the smallest frontier region worth a
     visit, ``frontier_wall_margin_cells`` how close to a wall unknown cells are taken
-    for wall (see :func:`~mazebot.planner.frontiers.find_frontiers`); ``lidar_min_range_m``
+    for wall, ``frontier_sliver_cells`` how thin an unknown area is taken for a sliver of
+    wall (see :func:`~mazebot.planner.frontiers.find_frontiers`); ``lidar_min_range_m``
     the lidar's minimum range (``[lidar] min_range_m``: nothing nearer is ever seen);
     ``view_radius_m`` how far from a viewpoint the unknown cells it is counted to see may
     be (a planning range, well inside the lidar's), ``view_candidates`` how many places
@@ -324,11 +338,13 @@ class Explorer:
         dwell_revolutions: int = _PLANNER.dwell_revolutions,
         retry_after_m: float = _PLANNER.retry_after_m,
         max_attempts: int = _PLANNER.max_attempts,
+        max_drops: int = _PLANNER.max_drops,
         map_check: bool = True,
         footprint_radius_m: float = _ROBOT.footprint_radius_m,
         clearance_m: float = _ROBOT.clearance_m,
         min_frontier_cells: int = 4,
         frontier_wall_margin_cells: int = 2,
+        frontier_sliver_cells: int = 2,
         lidar_min_range_m: float = 0.15,
         view_radius_m: float = 0.9,
         view_candidates: int = 96,
@@ -337,6 +353,7 @@ class Explorer:
         region_match_m: float = 0.3,
         blacklist_radius_m: float = 0.15,
         inside_half_m: float = 0.075,
+        recheck_revolutions: int = 5,
     ) -> None:
         if mode not in ("auto", "maze", "frontier"):
             raise ValueError(f"mode must be 'auto', 'maze' or 'frontier', got {mode!r}")
@@ -349,20 +366,22 @@ class Explorer:
         self.turn_cost_cells = float(turn_cost_cells)
         self.switch_margin = float(switch_margin)
         self.goal_tolerance_m = float(goal_tolerance_m)
-        if progress_revolutions < 1 or dwell_revolutions < 1 or max_attempts < 1:
+        if progress_revolutions < 1 or dwell_revolutions < 1 or max_attempts < 1 or max_drops < 1:
             raise ValueError(
-                "need progress_revolutions, dwell_revolutions and max_attempts >= 1, got "
-                f"{progress_revolutions}, {dwell_revolutions}, {max_attempts}"
+                "need progress_revolutions, dwell_revolutions, max_attempts and max_drops >= 1, got "
+                f"{progress_revolutions}, {dwell_revolutions}, {max_attempts}, {max_drops}"
             )
         self.progress_revolutions = int(progress_revolutions)
         self.dwell_revolutions = int(dwell_revolutions)
         self.retry_after_m = float(retry_after_m)
         self.max_attempts = int(max_attempts)
+        self.max_drops = int(max_drops)
         self.map_check = bool(map_check)
         self.footprint_radius_m = float(footprint_radius_m)
         self.clearance_m = float(clearance_m)
         self.min_frontier_cells = int(min_frontier_cells)
         self.frontier_wall_margin_cells = int(frontier_wall_margin_cells)
+        self.frontier_sliver_cells = int(frontier_sliver_cells)
         self.lidar_min_range_m = float(lidar_min_range_m)
         if view_radius_m <= lidar_min_range_m:
             raise ValueError(f"view_radius_m ({view_radius_m}) must exceed lidar_min_range_m ({lidar_min_range_m})")
@@ -373,6 +392,9 @@ class Explorer:
         self.region_match_m = float(region_match_m)
         self.blacklist_radius_m = float(blacklist_radius_m)
         self.inside_half_m = float(inside_half_m)
+        if recheck_revolutions < 1:
+            raise ValueError(f"recheck_revolutions must be >= 1, got {recheck_revolutions}")
+        self.recheck_revolutions = int(recheck_revolutions)
 
         self.phase = Phase.EXPLORING
         self.mode: Literal["maze", "frontier"] = "frontier" if mode == "frontier" else "maze"
@@ -385,6 +407,16 @@ class Explorer:
         self._given_up: dict[object, _GivenUp] = {}  # blacklisted targets, by key
         #: (region centroid, viewpoint) of grid frontiers blacklisted from there: a retry looks from elsewhere
         self._failed_views_m: list[tuple[tuple[float, float], tuple[float, float]]] = []
+        #: centroids of grid frontiers closed: they vanished while the robot was within view of them
+        #: (it looked, the lidar swept them); a frontier that comes back there is no goal again
+        self.closed_points_m: list[tuple[float, float]] = []
+        #: comebacks of each closed place (by index): a frontier there again after a tick without one
+        self.comebacks: list[int] = []
+        self._closed_hit: set[int] = set()  # closed places with a frontier back on the last search
+        #: the region followed on the last tick (its key and where its unknown cells were)
+        self._followed: tuple[object, _Region] | None = None
+        self._last_grid_search: int | None = None  # the map's revolutions at the last whole-grid search
+        self._frontier_unknown: np.ndarray | None = None  # the last search's frontiers' unknown cells
         self.travelled_m = 0.0  # the robot's path length so far (from the poses of the ticks)
         self._last_xy_m: tuple[float, float] | None = None
         self._revolutions = 0  # the map's revolution count at this tick
@@ -426,9 +458,9 @@ class Explorer:
         ):
             return None  # the map does not cover the robot yet (first scans): an empty map is not "done"
         self._retry_given_up(everything=False)
-        goal = self._explore_goal(grid, grid_origin_m, resolution_m, pose)
+        goal = yield from self._explore_goal_steps(grid, grid_origin_m, resolution_m, pose)
         if goal is None and self._retry_given_up(everything=True):  # nothing else left: try them again
-            goal = self._explore_goal(grid, grid_origin_m, resolution_m, pose)
+            goal = yield from self._explore_goal_steps(grid, grid_origin_m, resolution_m, pose)
         if goal is None:
             goal = self._return_goal(grid, grid_origin_m, resolution_m, pose)
         return goal
@@ -445,18 +477,43 @@ class Explorer:
         """,
     )
 
-    def _explore_goal(
+    def _explore_goal_steps(
         self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float, pose: tuple[float, float, float]
-    ) -> Goal | None:
-        """The next unknown to resolve: a maze link or cell, else (``map_check``) a frontier of the grid."""
+    ) -> Generator[None, None, Goal | None]:
+        """The next unknown to resolve: a maze link or cell, else (``map_check``) a frontier of the grid.
+
+        In stages: a frontier goal reads the whole grid several times (the frontiers, a
+        distance transform, a search over every free cell, the viewpoints, the path), 25 ms
+        on a 16x16 maze here, four times that on a Pi 4's share; the event loop (and the
+        planner task's own motion half, see :mod:`mazebot.tasks.planner_task`) runs between.
+        """
         if self.mode == "maze":
             goal = self._maze_goal(pose)
-            if goal is None and self.map_check:
+            if goal is None and self.map_check and self._grid_search_due():
                 # the graph knows no unknown link: the grid itself must not know any
                 # known free space next to unknown space the robot can reach either
-                goal = self._frontier_goal(grid, origin, resolution_m, pose)
+                yield
+                goal = yield from self._frontier_goal_steps(grid, origin, resolution_m, pose)
             return goal
-        return self._frontier_goal(grid, origin, resolution_m, pose)
+        if not self._grid_search_due():
+            return None
+        return (yield from self._frontier_goal_steps(grid, origin, resolution_m, pose))
+
+    def _grid_search_due(self) -> bool:
+        """False while the robot returns home and the grid was searched less than ``recheck_revolutions``
+        map revolutions ago.
+
+        Once nothing is left the robot drives home, and a search of the whole grid on every
+        tick (its frontiers, a distance transform, viewpoints: 25-45 ms on a 16x16 maze here,
+        four times that on a Pi 4's share) would find the same nothing; a frontier that the
+        map still shows is found a second or so later (counted in revolutions the map took
+        in, so a slower CPU searches as often per revolution, not per second).
+        """
+        last = self._last_grid_search
+        if self.phase is Phase.RETURNING and last is not None and self._revolutions - last < self.recheck_revolutions:
+            return False
+        self._last_grid_search = self._revolutions
+        return True
 
     def _retry_given_up(self, everything: bool) -> bool:
         """Take blacklisted targets with attempts left off the blacklist; True if any was.
@@ -476,7 +533,7 @@ class Explorer:
                 self.blacklisted_links.discard(key)
             target = self._history.get(key)
             if target is not None:  # a fresh start: its counts begin again
-                target.stalled, target.dwelt, target.best_cost = 0, 0, math.inf
+                target.stalled, target.dwelt, target.dropped, target.best_cost = 0, 0, 0, math.inf
             retried = True
         return retried
 
@@ -488,7 +545,7 @@ class Explorer:
         target = self._target
         if target is None or self.phase is not Phase.EXPLORING:
             return
-        self._blacklist(target)
+        self._blacklist(target, "the local planner could not reach it")
 
     def reset(self) -> None:
         """Start a new run: forget the phase, targets and blacklists (the graph follows the map)."""
@@ -499,6 +556,12 @@ class Explorer:
         self._history.clear()
         self._given_up.clear()
         self._failed_views_m.clear()
+        self.closed_points_m.clear()
+        self.comebacks.clear()
+        self._closed_hit.clear()
+        self._followed = None
+        self._last_grid_search = None
+        self._frontier_unknown = None
         self._target = None
 
     def _choose_mode(self) -> None:
@@ -537,7 +600,11 @@ class Explorer:
             if (cell, side) not in self.blacklisted_links
         ]
         if not candidates:
-            self._target = None
+            # No link left. A grid frontier being followed (``map_check``) stays the target:
+            # forgetting it here each tick made every frontier tick a first choice, with no
+            # hysteresis, no kept viewpoint and no revolutions counted towards a blacklist.
+            if self._target is not None and not isinstance(self._target.key, _RegionKey):
+                self._target = None
             return None
         self.phase = Phase.EXPLORING
 
@@ -594,17 +661,24 @@ class Explorer:
             self._costmap = GridCostmap(grid, origin, resolution_m, self.footprint_radius_m, self.clearance_m)
         return self._costmap
 
-    def _frontier_goal(
+    def _frontier_goal_steps(
         self,
         grid: np.ndarray,
         origin: tuple[float, float],
         resolution_m: float,
         pose: tuple[float, float, float],
-    ) -> Goal | None:
+    ) -> Generator[None, None, Goal | None]:
         current = self._target
         anchor = current.key.centroid_m if current is not None and isinstance(current.key, _RegionKey) else None
         kept_goal = current.position_m if anchor is not None and current is not None else None
-        options = self._frontier_options(grid, origin, resolution_m, (pose[0], pose[1]), anchor, kept_goal)
+        options = yield from self._frontier_options_steps(
+            grid, origin, resolution_m, (pose[0], pose[1]), anchor, kept_goal
+        )
+        followed, self._followed = self._followed, None
+        still_there = anchor is not None and any(math.dist(o.centroid_m, anchor) < self.region_match_m for o in options)
+        followed_gone = followed is not None and current is not None and followed[0] == current.key and not still_there
+        if followed is not None and followed_gone and self.mode == "maze":  # the grid's check of a maze
+            self._close_if_looked(followed[1], grid, origin, resolution_m, pose)  # the followed frontier is gone
         if not options:
             self._target = None
             return None
@@ -617,11 +691,19 @@ class Explorer:
             margin_m = self.switch_margin * self.graph.cell_size_m
             if same is not None and same.view.score_m <= choice.view.score_m + margin_m:
                 choice = same
-        key = current.key if current is not None and choice is same else _RegionKey(choice.centroid_m)
+        if current is not None and same is not None and choice is not same:
+            # left for another while it is still there: a frontier the robot keeps going to
+            # and turning away from is blacklisted after max_drops of the explorer's choices
+            current.dropped += 1
+            if current.dropped >= self.max_drops:
+                self._blacklist(current, f"left for another frontier {current.dropped} times")
+        key = current.key if current is not None and choice is same else self._region_key(choice.centroid_m)
         at_goal = math.dist((pose[0], pose[1]), choice.goal_m) < self.goal_tolerance_m + resolution_m
         if self._track(key, choice.goal_m, choice.cost_m, at_goal) is None:
             # just blacklisted (no progress): choose again among the rest
-            return self._frontier_goal(grid, origin, resolution_m, pose)
+            return (yield from self._frontier_goal_steps(grid, origin, resolution_m, pose))
+        self._followed = (key, choice)
+        yield
         path = costmap.plan((pose[0], pose[1]), choice.goal_m)
         waypoints = shortcut(path, costmap) if path else [choice.goal_m]
         cx, cy = choice.centroid_m
@@ -633,7 +715,7 @@ class Explorer:
             f"frontier of {choice.size} cells at {cx:.2f}, {cy:.2f} (sees {choice.view.gain:.0f} unknown)",
         )
 
-    def _frontier_options(
+    def _frontier_options_steps(
         self,
         grid: np.ndarray,
         origin: tuple[float, float],
@@ -641,7 +723,7 @@ class Explorer:
         robot_xy_m: tuple[float, float],
         anchor_m: tuple[float, float] | None = None,
         kept_goal_m: tuple[float, float] | None = None,
-    ) -> list[_Region]:
+    ) -> Generator[None, None, list[_Region]]:
         """Reachable, non-blacklisted frontier regions with their best viewpoints, lowest score first.
 
         Regions are looked at in the order of a lower bound of their score (the cheapest
@@ -652,17 +734,30 @@ class Explorer:
         frontiers: in a maze, once the graph knows every link, the grid's check finds none
         on most ticks.
         """
-        frontiers = find_frontiers(grid, self.min_frontier_cells, self.frontier_wall_margin_cells)
+        frontiers = find_frontiers(
+            grid, self.min_frontier_cells, self.frontier_wall_margin_cells, self.frontier_sliver_cells
+        )
+        self._frontier_unknown = np.zeros(grid.shape, dtype=bool)  # every frontier's unknown cells, this tick
+        for frontier in frontiers:
+            self._frontier_unknown[frontier.unknown[:, 0], frontier.unknown[:, 1]] = True
         if not frontiers:
+            self._note_comebacks(set())
             return []
+        yield
         costmap = self._costmap_for(grid, origin, resolution_m)
+        yield
         distances = costmap.distances_from(robot_xy_m)
         cost_cells = np.where(costmap.passable, distances, np.inf)
         free = grid == FREE
+        hits: set[int] = set()
         ranked: list[tuple[float, bool, Frontier, tuple[float, float], np.ndarray]] = []
         for frontier in frontiers:
             centroid = costmap.to_world(*frontier.centroid_rc)
             if any(math.dist(centroid, b) < self.blacklist_radius_m for b in self.blacklisted_points_m):
+                continue
+            closed = self._closed_near(centroid) if self.mode == "maze" else None
+            if closed is not None:  # it vanished there while the robot looked: its cells flipped back
+                hits.add(closed)
                 continue
             excluded = self._failed_view_mask(centroid, costmap)
             candidates = viewpoint_candidates(frontier, cost_cells, resolution_m, self.view_radius_m, excluded)
@@ -671,12 +766,14 @@ class Explorer:
             bound = score_bound_m(frontier, candidates, cost_cells, resolution_m, self.gain_weight_m)
             is_current = anchor_m is not None and math.dist(centroid, anchor_m) < self.region_match_m
             ranked.append((bound, is_current, frontier, centroid, candidates))
+        self._note_comebacks(hits)
         ranked.sort(key=lambda item: (not item[1], item[0]))  # the current target first, then by bound
         options: list[_Region] = []
         best = math.inf
         for bound, is_current, frontier, centroid, candidates in ranked:
             if not is_current and bound >= best:
                 continue
+            yield
             extra = None
             if is_current and kept_goal_m is not None:
                 cell = costmap.to_cell(*kept_goal_m)
@@ -697,10 +794,91 @@ class Explorer:
             )
             if view is None:
                 continue  # nowhere it could be seen from
-            options.append(_Region(view, costmap.to_world(*view.cell), centroid, int(frontier.cells.shape[0])))
+            unknown_m = np.column_stack((frontier.unknown[:, 1], frontier.unknown[:, 0])) + 0.5
+            unknown_m = unknown_m * resolution_m + np.asarray(origin, dtype=np.float64)
+            options.append(
+                _Region(view, costmap.to_world(*view.cell), centroid, int(frontier.cells.shape[0]), unknown_m)
+            )
             best = min(best, view.score_m)
         options.sort(key=lambda o: (o.view.score_m, -o.size))
         return options
+
+    def _close_if_looked(
+        self,
+        region: _Region,
+        grid: np.ndarray,
+        origin: tuple[float, float],
+        resolution_m: float,
+        pose: tuple[float, float, float],
+    ) -> None:
+        """The followed ``region`` is no option any more: closed when it is gone and the robot was within view of it.
+
+        Gone: most of its unknown cells belong to no frontier of this tick's search (painted,
+        or now within the wall margin of an occupied cell, part of a sliver, or bordered by
+        too few free cells); a region that only moved or merged, its centroid farther than
+        ``region_match_m`` from where it was first chosen, is still there and stays open. Within
+        ``view_radius_m`` of its nearest unknown cell the lidar swept it. Cells at the edge of
+        the log-odds thresholds (a 16x16 maze's corridor walls, seen at grazing angles) flip as
+        revolutions come in, and the frontier comes back behind the robot: that is no reason
+        to drive there again (:meth:`_closed_near`). One that vanished while the robot was
+        farther away stays open.
+
+        Only in a maze, where grid frontiers are the check after the graph knows every link
+        (a misread opening shows as new links once seen). In frontier mode a frontier the
+        lidar resolves is followed by a new one a few cells beyond it, at the same place:
+        closing it stopped 6x6 runs at coverage 0.18-0.45.
+        """
+        if region.unknown_m.shape[0] == 0:
+            return
+        near_m = float(np.min(np.hypot(region.unknown_m[:, 0] - pose[0], region.unknown_m[:, 1] - pose[1])))
+        if near_m > self.view_radius_m:
+            return
+        rows, cols = _cells_of(region.unknown_m, grid.shape, origin, resolution_m)
+        owned = self._frontier_unknown
+        if owned is not None and owned.shape == grid.shape and 2 * np.count_nonzero(owned[rows, cols]) >= rows.size:
+            return  # still a frontier's: it moved or merged, it did not vanish
+        self.closed_points_m.append(region.centroid_m)
+        self.comebacks.append(0)
+        cx, cy = region.centroid_m
+        self.events.append(
+            f"closed frontier at {cx:.2f}, {cy:.2f}: gone with the robot {near_m:.2f} m from it "
+            f"({self._why_gone(region, grid, origin, resolution_m)})"
+        )
+
+    def _why_gone(
+        self, region: _Region, grid: np.ndarray, origin: tuple[float, float], resolution_m: float
+    ) -> str:
+        """What became of a vanished region's unknown cells, for the log: painted, now within the
+        wall margin of an occupied cell, now part of a sliver, or still unknown (the region then
+        fell below ``min_frontier_cells`` or out of every viewpoint's sight)."""
+        rows, cols = _cells_of(region.unknown_m, grid.shape, origin, resolution_m)
+        unknown = grid[rows, cols] == UNKNOWN
+        off_walls = frontier_unknowns(grid, self.frontier_wall_margin_cells, 0)[rows, cols]
+        counted = frontier_unknowns(grid, self.frontier_wall_margin_cells, self.frontier_sliver_cells)[rows, cols]
+        return (
+            f"of its {region.unknown_m.shape[0]} unknown cells {np.count_nonzero(~unknown)} painted, "
+            f"{np.count_nonzero(unknown & ~off_walls)} beside a wall, {np.count_nonzero(off_walls & ~counted)} "
+            f"in a sliver, {np.count_nonzero(counted)} still counted"
+        )
+
+    def _closed_near(self, centroid_m: tuple[float, float]) -> int | None:
+        """The index of the closed place within ``region_match_m`` of ``centroid_m``, else None."""
+        best, best_m = None, self.region_match_m
+        for k, point in enumerate(self.closed_points_m):
+            d_m = math.dist(point, centroid_m)
+            if d_m < best_m:
+                best, best_m = k, d_m
+        return best
+
+    def _note_comebacks(self, hits: set[int]) -> None:
+        """Count and report the closed places with a frontier again that had none on the last search."""
+        for k in sorted(hits - self._closed_hit):
+            self.comebacks[k] += 1
+            cx, cy = self.closed_points_m[k]
+            self.events.append(
+                f"frontier back at closed {cx:.2f}, {cy:.2f} (comeback {self.comebacks[k]}): not a goal again"
+            )
+        self._closed_hit = hits
 
     def _failed_view_mask(self, centroid_m: tuple[float, float], costmap: GridCostmap) -> np.ndarray | None:
         """Cells near viewpoints from which this region (matched by centroid) was already given up on."""
@@ -785,9 +963,27 @@ class Explorer:
         stalled = target.stalled > self.progress_revolutions
         dwelt = target.dwelt > self.dwell_revolutions
         if stalled or dwelt:
-            self._blacklist(target)
+            self._blacklist(target, f"chosen {target.stalled} map revolutions without progress, {target.dwelt} there")
             return None
         return target
+
+    def _region_key(self, centroid_m: tuple[float, float]) -> _RegionKey:
+        """The key of the region target chosen before nearest ``centroid_m`` (within ``region_match_m``,
+        not blacklisted), else a new one.
+
+        A frontier region changes shape as the map grows (its centroid moves by cells from tick
+        to tick): matched by place, a region dropped and chosen again goes on with its counts
+        (revolutions stalled and dwelt, times dropped) instead of starting afresh as a new target.
+        """
+        blacklisted = set(self.blacklisted_points_m)
+        best: _RegionKey | None = None
+        best_m = self.region_match_m
+        for key in self._history:
+            if isinstance(key, _RegionKey) and key.centroid_m not in blacklisted:
+                d_m = math.dist(key.centroid_m, centroid_m)
+                if d_m < best_m:
+                    best, best_m = key, d_m
+        return best if best is not None else _RegionKey(centroid_m)
 
     def _near_region(self, a: object, b: object) -> bool:
         """True when two grid-frontier targets are one region (their centroids within the blacklist radius)."""
@@ -807,7 +1003,7 @@ class Explorer:
         margin = 2.0 * self.switch_margin
         return margin * self.graph.cell_size_m if isinstance(key, _RegionKey) else margin
 
-    def _blacklist(self, target: _Target) -> None:
+    def _blacklist(self, target: _Target, why: str) -> None:
         key = target.key
         attempts = 1 + max(
             (g.attempts for k, g in self._given_up.items() if k == key or self._near_region(k, key)), default=0
@@ -816,8 +1012,7 @@ class Explorer:
         what = f"frontier at {key.centroid_m[0]:.2f}, {key.centroid_m[1]:.2f}" if isinstance(key, _RegionKey) else key
         again = "given up" if attempts >= self.max_attempts else f"tried again after {self.retry_after_m:g} m"
         self.events.append(
-            f"blacklisted {what} (chosen {target.stalled} map revolutions without progress, {target.dwelt} there; "
-            f"attempt {attempts} of {self.max_attempts}, {again})"
+            f"blacklisted {what} ({why}; attempt {attempts} of {self.max_attempts}, {again})"
         )
         if isinstance(key, _RegionKey):
             self.blacklisted_points_m.append(key.centroid_m)
@@ -832,6 +1027,16 @@ def _ending_at(waypoints: list[tuple[float, float]], target: tuple[float, float]
     if waypoints and math.dist(waypoints[-1], target) < 0.05:
         return [*waypoints[:-1], target]
     return [*waypoints, target]
+
+
+def _cells_of(
+    xy_m: np.ndarray, shape: tuple[int, ...], origin_m: tuple[float, float], resolution_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The grid rows and columns of map points ``xy_m`` ((N, 2) x, y), those off the grid left out."""
+    rows = np.floor((xy_m[:, 1] - origin_m[1]) / resolution_m).astype(np.int64)
+    cols = np.floor((xy_m[:, 0] - origin_m[0]) / resolution_m).astype(np.int64)
+    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+    return rows[inside], cols[inside]
 
 
 def _known_free_at(

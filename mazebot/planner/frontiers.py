@@ -69,30 +69,60 @@ class Viewpoint:
     score_m: float
 
 
-def frontier_unknowns(three_state: np.ndarray, wall_margin_cells: int = 2) -> np.ndarray:
+def frontier_unknowns(three_state: np.ndarray, wall_margin_cells: int = 2, sliver_cells: int = 2) -> np.ndarray:
     """The unknown cells that count for frontiers: a boolean grid.
 
     Unknown cells within ``wall_margin_cells`` of an occupied cell do not count: in a
     log-odds map a wall is a band of cells of which some never collect enough hits, and
     the free cells along it are no gateway to unexplored space (a real opening is wider
     than the margin, so its middle still counts).
+
+    Nor do unknown areas with no cell more than ``sliver_cells`` (4-neighbour steps) from
+    known space: slivers the map leaves in a wall between two corridors the robot drove,
+    whose 12 mm the lidar sees only at grazing angles from either side (a 16x16 maze's long
+    corridors: stretches of wall line that stay unknown with free space on both sides, "seen"
+    from every viewpoint and resolved from none). Unexplored space worth a visit (a cell
+    behind a misread opening, the map's outside) is wider than ``2 * sliver_cells + 1``
+    cells somewhere; a sliver hides no passage the robot or its lidar could use.
     """
     grid = np.asarray(three_state)
-    unknown = grid == UNKNOWN
+    all_unknown = grid == UNKNOWN
+    unknown = all_unknown.copy()
     if wall_margin_cells > 0:
-        unknown &= ~ndimage.binary_dilation(grid == OCCUPIED, iterations=wall_margin_cells)
+        unknown &= ~_dilate_4(grid == OCCUPIED, wall_margin_cells)
+    if sliver_cells > 0 and unknown.any():
+        core = ~_dilate_4(~all_unknown, sliver_cells)  # unknown cells farther than that from known ones
+        labels, _ = ndimage.label(all_unknown, structure=np.ones((3, 3), dtype=bool))
+        wide = np.unique(labels[core])
+        unknown &= np.isin(labels, wide[wide > 0])
     return unknown
 
 
-def find_frontiers(three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2) -> list[Frontier]:
+def _dilate_4(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """``scipy.ndimage.binary_dilation(mask, iterations=iterations)`` (the 4-neighbour cross,
+    nothing beyond the border), by shifted ORs: the same cells, a tenth of the time on a
+    16x16 maze's grid."""
+    out = mask.copy()
+    for _ in range(iterations):
+        src = out.copy()
+        out[1:, :] |= src[:-1, :]
+        out[:-1, :] |= src[1:, :]
+        out[:, 1:] |= src[:, :-1]
+        out[:, :-1] |= src[:, 1:]
+    return out
+
+
+def find_frontiers(
+    three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2, sliver_cells: int = 2
+) -> list[Frontier]:
     """Yamauchi's frontiers: 8-connected groups of free cells with an unknown 4-neighbour.
 
-    Unknown cells next to walls do not count (see :func:`frontier_unknowns`); groups
+    Unknown cells next to walls and thin unknown slivers do not count (see :func:`frontier_unknowns`); groups
     smaller than ``min_cells`` (speckle, the pockets behind posts) are dropped. Each
     frontier carries the unknown cells its free cells touch.
     """
     grid = np.asarray(three_state)
-    unknown = frontier_unknowns(grid, wall_margin_cells)
+    unknown = frontier_unknowns(grid, wall_margin_cells, sliver_cells)
     touches = np.zeros_like(unknown)
     touches[1:, :] |= unknown[:-1, :]
     touches[:-1, :] |= unknown[1:, :]
@@ -117,9 +147,11 @@ def find_frontiers(three_state: np.ndarray, min_cells: int = 4, wall_margin_cell
     return [Frontier(c, u) for c, u in zip(cells, unknown_cells, strict=True) if c.shape[0] >= min_cells]
 
 
-def frontier_regions(three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2) -> list[np.ndarray]:
+def frontier_regions(
+    three_state: np.ndarray, min_cells: int = 4, wall_margin_cells: int = 2, sliver_cells: int = 2
+) -> list[np.ndarray]:
     """The free cells of each frontier of :func:`find_frontiers`: a list of (K, 2) ``(row, col)`` arrays."""
-    return [f.cells for f in find_frontiers(three_state, min_cells, wall_margin_cells)]
+    return [f.cells for f in find_frontiers(three_state, min_cells, wall_margin_cells, sliver_cells)]
 
 
 def _group_by_label(labels: np.ndarray, count: int) -> list[np.ndarray]:

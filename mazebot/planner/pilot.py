@@ -25,6 +25,7 @@ import math
 from collections import deque
 from collections.abc import Generator
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -79,6 +80,15 @@ class PilotParams:
     @property
     def period_s(self) -> float:
         return 1.0 / self.planner.rate_hz
+
+
+class DriveInputs(NamedTuple):
+    """What a goal half hands to the motion half: the map it read and the goal's target."""
+
+    three: np.ndarray
+    origin_m: tuple[float, float]
+    resolution_m: float
+    target_m: tuple[float, float]
 
 
 #: The robot counts as standing still while it stays within this of where it was (metres, radians).
@@ -179,7 +189,16 @@ class Pilot:
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
         self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m)
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
-        self._drive_inputs: tuple[np.ndarray, tuple[float, float], float, tuple[float, float]] | None = None
+        self._drive_inputs: DriveInputs | None = None
+        #: the inputs of the latest motion half, for one between the stages of a long goal half
+        #: (:meth:`interim_drive_steps`); None once a goal half decided not to drive
+        self._last_drive_inputs: DriveInputs | None = None
+        #: when this pilot last wrote ``state.motion_command`` (the clock's seconds)
+        self.last_command_s = -math.inf
+        #: a motion half between stages gave up on the goal: reported by the next regular one
+        self._give_up_pending = False
+        #: motion halves run between the stages of a goal half (:meth:`interim_drive_steps`)
+        self.interim_drives = 0
         #: standing still with a goal, in lidar revolutions (see :class:`StandStill`)
         self.still = StandStill(params.planner.stand_still_revolutions)
         #: the back-off path while the pilot backs the robot off along its track, else None
@@ -205,6 +224,7 @@ class Pilot:
             dwell_revolutions=p.dwell_revolutions,
             retry_after_m=p.retry_after_m,
             max_attempts=p.max_attempts,
+            max_drops=p.max_drops,
             footprint_radius_m=robot.footprint_radius_m,
             clearance_m=robot.clearance_m,
             lidar_min_range_m=self.params.lidar.min_range_m,
@@ -250,6 +270,12 @@ class Pilot:
         run leaves the state alone (no goal, no ``returning``).
         """
         self._drive_inputs = None
+        follow = yield from self._plan_steps(state, now_s)
+        if not follow:  # held, done, stopped or a new run: nothing to follow between stages either
+            self._last_drive_inputs = None
+        return follow
+
+    def _plan_steps(self, state: SharedState, now_s: float) -> Generator[None, None, bool]:
         if not state.run_state.moving:
             if self._was_moving:  # stopped, done or faulted since the last tick: forget the path
                 self.local.clear()
@@ -263,6 +289,7 @@ class Pilot:
             self.run_number = state.run_number
             self.explorer = self._new_explorer((pose[0], pose[1]))
             self.local.clear()
+            self._last_drive_inputs, self._give_up_pending = None, False
             self.still.reset()
             self._backoff = None
             log.info("exploration %d starts at (%.2f, %.2f) m", self.run_number, pose[0], pose[1])
@@ -296,13 +323,13 @@ class Pilot:
             state.path = list(self._backoff)
             state.goal = self._backoff[-1]
             state.planner_status = f"{goal.phase.value}: backing off along its track"
-            self._drive_inputs = (three, grid.origin_m, grid.resolution_m, self._backoff[-1])
+            self._drive_inputs = DriveInputs(three, grid.origin_m, grid.resolution_m, self._backoff[-1])
             return True
         self.local.set_path(goal.waypoints_m)
         state.path = [(float(x), float(y)) for x, y in goal.waypoints_m]
         state.goal = (float(goal.target_m[0]), float(goal.target_m[1]))
         state.planner_status = f"{goal.phase.value}: {goal.reason}" if goal.reason else goal.phase.value
-        self._drive_inputs = (three, grid.origin_m, grid.resolution_m, goal.target_m)
+        self._drive_inputs = DriveInputs(three, grid.origin_m, grid.resolution_m, goal.target_m)
         return True
 
     plan = all_at_once_method(
@@ -322,8 +349,49 @@ class Pilot:
         """
         if self._drive_inputs is None or not state.run_state.moving:  # stopped since plan(): nothing to drive
             return
-        three, origin_m, resolution_m, target_m = self._drive_inputs
-        self._drive_inputs = None
+        inputs, self._drive_inputs = self._drive_inputs, None
+        self._last_drive_inputs = inputs
+        if self._give_up_pending:  # a motion half between the stages gave up: the explorer hears it now
+            self._give_up_pending = False
+            self._report_give_up(state, now_s, inputs.target_m)
+        yield from self._follow_steps(state, now_s, inputs, interim=False)
+
+    drive = all_at_once_method(
+        drive_steps, "The motion half of a tick: the DWA along the path on the latest scan, map and pose."
+    )
+
+    def motion_due(self, now_s: float) -> bool:
+        """True when a motion half should run before the goal half in progress ends.
+
+        A goal half on a large map (a frontier search over the whole grid) can take
+        longer than a planner period of wall time on a slow or shared CPU, and the control
+        loop stops the wheels when the command is ``command_ttl_ticks`` old. The path of the
+        previous goal half is still the one to follow until the new one is chosen, so
+        the motion half follows it on the latest pose and scan, a period after the last
+        command. Never due on the virtual clock (no time passes inside a tick there), nor
+        when the previous goal half decided not to drive.
+        """
+        return self._last_drive_inputs is not None and now_s - self.last_command_s >= self.params.period_s
+
+    def interim_drive_steps(self, state: SharedState, now_s: float) -> Generator[None, None, None]:
+        """A motion half between the stages of a goal half (:meth:`motion_due`): the previous path,
+        the map the previous goal half read, the latest pose and scan.
+
+        Everything it reads the goal half leaves alone until its last stage (the local
+        planner's path is set there, after the stages); a give-up is reported to the
+        explorer by the next regular motion half, not in the middle of the explorer's update.
+        """
+        inputs = self._last_drive_inputs
+        if inputs is None or not state.run_state.moving:
+            return
+        self.interim_drives += 1
+        yield from self._follow_steps(state, now_s, inputs, interim=True)
+
+    def _follow_steps(
+        self, state: SharedState, now_s: float, inputs: DriveInputs, interim: bool
+    ) -> Generator[None, None, None]:
+        """The DWA along the local planner's path on ``inputs``' map and the latest pose and scan."""
+        three, origin_m, resolution_m, target_m = inputs
         pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
         window_m = self.params.planner.map_window_m
         map_xy = map_points_robot(three, origin_m, resolution_m, pose, window_m)
@@ -345,14 +413,16 @@ class Pilot:
             state.planner_events.append((now_s, f"stuck: recovery {self.local.recoveries} at {where}"))
         self._recovering = cmd.status is LocalStatus.RECOVERING
         if self._backoff is not None and (cmd.give_up or cmd.status is LocalStatus.REACHED):
-            self._backoff = None  # backed off (or could not): the goal again from here
-            self.local.clear()
+            if not interim:  # backed off (or could not): the goal again from here
+                self._backoff = None
+                self.local.clear()
+        elif cmd.give_up and interim:
+            self._give_up_pending = True
         elif cmd.give_up:
-            log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
-            state.planner_events.append((now_s, "the local planner gave up on the goal"))
-            self.explorer.report_unreachable()
-            self._note_events(state, now_s, None, pose)
-        state.motion_command = MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s)
+            self._report_give_up(state, now_s, target_m)
+        self._command(state, MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s))
+        if interim:  # the watch acts on the explorer: only between goal halves, never inside one
+            return
         scan = state.latest_scan
         painted = max(0, state.slam.scans - state.slam.held_back)
         stood = self.still.observe(pose, None if scan is None else id(scan), painted)
@@ -387,15 +457,22 @@ class Pilot:
             text = f"{what}: neither giving the goal up nor backing off moved it; stopped (start tries again)"
             self._backoff = None
             self.local.clear()
-            state.motion_command = MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s)
+            self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
             state.raise_fault("planner", text, now_s, latched=True)
         log.warning("%s", text)
         state.planner_events.append((now_s, text))
         self._note_events(state, now_s, None, pose)
 
-    drive = all_at_once_method(
-        drive_steps, "The motion half of a tick: the DWA along the path on the latest scan, map and pose."
-    )
+    def _report_give_up(self, state: SharedState, now_s: float, target_m: tuple[float, float]) -> None:
+        log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)
+        state.planner_events.append((now_s, "the local planner gave up on the goal"))
+        self.explorer.report_unreachable()
+        pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
+        self._note_events(state, now_s, None, pose)
+
+    def _command(self, state: SharedState, command: MotionRequest) -> None:
+        state.motion_command = command
+        self.last_command_s = command.time_s
 
     def _note_events(
         self, state: SharedState, now_s: float, reason: str | None, pose: tuple[float, float, float]
@@ -410,12 +487,12 @@ class Pilot:
             self._last_reason = reason
 
     def _hold(self, state: SharedState, now_s: float, why: str) -> None:
-        state.motion_command = MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s)
+        self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
         state.planner_status = why
 
     def _finish(self, state: SharedState, now_s: float) -> None:
         self.local.clear()
-        state.motion_command = MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s)
+        self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
         state.run_state = RunState.DONE
         state.finished_at_s = now_s
         state.path = []

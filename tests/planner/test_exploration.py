@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 
 import numpy as np
 import pytest
@@ -14,6 +14,7 @@ from mazebot.planner.exploration import (
     Candidate,
     DepthFirstStrategy,
     Explorer,
+    Goal,
     NearestFrontierStrategy,
     Phase,
     frontier_regions,
@@ -507,3 +508,137 @@ def test_a_maze_is_not_done_while_the_grid_has_a_reachable_frontier() -> None:
             assert lidar_rays_into(world, goal.target_m, lambda x, y: x > 2.5 * CELL + RES) >= 5  # within view of it
         else:
             assert goal.phase is Phase.RETURNING
+
+
+def test_a_grid_frontier_in_a_maze_is_kept_and_given_up_when_it_stays_unseen() -> None:
+    # Once the maze graph knows every link, the grid's check (map_check) looks for free
+    # space next to unknown space; a patch the lidar never resolves (a wall seen only at
+    # grazing angles on a 16x16 maze) must be kept as the goal, counted and given up, or
+    # the robot stands at it for ever. (The maze goal used to forget the frontier target on
+    # every tick: each tick was a first choice, nothing was counted, nothing blacklisted.)
+    world, grid, origin = t_maze()
+    unseen = grid.copy()
+    row = int((CELL + 0.14 - origin[1]) / RES)
+    col = int((CELL + 0.09 - origin[0]) / RES)
+    unseen[row : row + 6, col : col + 6] = -1  # 12 x 12 cm in corridor cell (1, 1), clear of its walls
+    explorer = Explorer(start_xy_m=world.start_pose[:2], dwell_revolutions=16, max_attempts=3)
+    pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
+    goals = []
+    for revolutions in range(0, 400, 2):
+        goal = explorer.update(unseen, origin, RES, pose, revolutions=revolutions)
+        assert goal is not None
+        if goal.phase is not Phase.EXPLORING:
+            break
+        assert goal.reason.startswith("frontier of"), goal.reason
+        goals.append(goal.target_m)
+        pose = (*goal.target_m, 0.0)  # the robot gets there at once; the patch stays unknown
+    assert goal.phase is Phase.RETURNING, "the unresolvable frontier was never given up"
+    blacklists = [e for e in explorer.events if e.startswith("blacklisted")]
+    assert blacklists and all("there" in e for e in blacklists), blacklists
+    assert len(goals) <= 3 * (16 // 2 + 3)  # each attempt its dwell of map revolutions, not more
+    # the viewpoint is kept while the robot stands at it (no new first choice each tick)
+    assert goals[1:6] == [goals[1]] * 5
+
+
+def test_a_frontier_left_for_another_again_and_again_is_blacklisted() -> None:
+    # The robot going back and forth between two frontiers (each cheaper while it is near
+    # it) resolves neither; a frontier left max_drops times while still there is given up.
+    grid = _room_with_patches((slice(20, 26), slice(20, 26)), (slice(30, 36), slice(90, 96)))
+    explorer = Explorer(start_xy_m=(0.2, 0.2), mode="frontier", max_drops=3, progress_revolutions=1000)
+    near_x = []
+    for k in range(12):
+        pose = (0.3, 0.3, 0.0) if k % 2 == 0 else (1.9, 0.8, 0.0)
+        goal = explorer.update(grid, (0.0, 0.0), RES, pose, revolutions=k)
+        assert goal is not None and goal.phase is Phase.EXPLORING
+        near_x.append(float(goal.reason.split(" at ")[1].split(",")[0]) < 1.0)
+        if explorer.blacklisted_points_m:
+            break
+    assert explorer.blacklisted_points_m, "the robot was sent back and forth for ever"
+    assert any("left for another frontier 3 times" in e for e in explorer.events), explorer.events
+    assert k <= 7  # on the third time it was left
+
+
+def test_a_frontier_that_comes_back_where_the_robot_looked_is_not_driven_to_again() -> None:
+    # On a 16x16 maze the late frontiers are stretches of corridor wall seen at grazing angles;
+    # they vanish as the robot comes near and come back behind it as their cells flip between
+    # unknown, free and wall: the robot drove back and forth along a corridor eight times for
+    # one such stretch. A frontier that vanished while the robot was within view of it is
+    # closed; the same frontier back there later is not a goal again, and the robot goes home.
+    world, grid, origin = t_maze()
+    unseen = grid.copy()
+    row = int((CELL + 0.14 - origin[1]) / RES)
+    col = int((CELL + 0.09 - origin[0]) / RES)
+    unseen[row : row + 6, col : col + 6] = -1  # 12 x 12 cm in corridor cell (1, 1), clear of its walls
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
+    goal = explorer.update(unseen, origin, RES, pose, revolutions=0)
+    assert goal is not None and goal.phase is Phase.EXPLORING and goal.reason.startswith("frontier of"), goal
+    pose = (*goal.target_m, math.pi)  # the robot gets to the viewpoint; its lidar paints the patch
+    goal = explorer.update(grid, origin, RES, pose, revolutions=1)
+    assert goal is not None and goal.phase is Phase.RETURNING
+    closed = [e for e in explorer.events if e.startswith("closed frontier")]
+    assert len(closed) == 1 and "of its 20 unknown cells 20 painted, 0 beside" in closed[0], explorer.events
+    # on the way home the map shows the patch unknown again, tick after tick
+    revolutions = 1
+    for cell in [(1, 1), (0, 1), (0, 1)]:
+        for _ in range(3):
+            revolutions += 5  # every tick a whole-grid search (none skipped for returning)
+            goal = explorer.update(unseen, origin, RES, (*centre(cell), math.pi), revolutions=revolutions)
+            assert goal is not None and goal.phase is Phase.RETURNING, goal
+    comebacks = [e for e in explorer.events if e.startswith("frontier back at closed")]
+    assert len(comebacks) == 1 and explorer.comebacks == [1], explorer.events
+    # a frontier elsewhere is still one
+    other = unseen.copy()
+    other[:, int((3 * CELL + 0.1 - origin[0]) / RES) :] = -1  # cell (3, 1)'s east part
+    goal = explorer.update(other, origin, RES, (*centre((0, 1)), 0.0), revolutions=revolutions + 5)
+    assert goal is not None and goal.phase is Phase.EXPLORING, goal
+    assert float(goal.reason.split(" at ")[1].split(",")[0]) > 2 * CELL, goal.reason  # the region's centroid
+
+
+def test_the_grid_is_searched_less_often_while_the_robot_returns() -> None:
+    world, grid, origin = t_maze()
+    explorer = Explorer(start_xy_m=world.start_pose[:2], recheck_revolutions=5)
+    searches = []
+    real_search = explorer._frontier_goal_steps
+
+    def counted(*args: object) -> Generator[None, None, Goal | None]:
+        searches.append(explorer._revolutions)
+        return (yield from real_search(*args))  # type: ignore[arg-type]
+
+    explorer._frontier_goal_steps = counted  # type: ignore[method-assign,assignment]
+    for revolutions in range(12):
+        goal = explorer.update(grid, origin, RES, (*centre((3, 1)), math.pi), revolutions=revolutions)
+        assert goal is not None and goal.phase is Phase.RETURNING
+    assert searches == [0, 5, 10]
+    # a frontier that shows while the robot returns is found at the next search, not before
+    partial = hide_east_of(grid, origin, 2.5 * CELL)
+    phases = []
+    for revolutions in (13, 14, 15):
+        goal = explorer.update(partial, origin, RES, (*centre((1, 1)), math.pi), revolutions=revolutions)
+        assert goal is not None
+        phases.append(goal.phase)
+    assert phases == [Phase.RETURNING, Phase.RETURNING, Phase.EXPLORING] and searches[-1] == 15
+
+
+def test_a_frontier_that_only_moved_is_not_closed() -> None:
+    # A region whose centroid drifts farther than region_match_m from where it was first
+    # chosen (it grew along the corridor) is no longer matched as the same target, but it did
+    # not vanish: most of its unknown cells still border free space. It stays open.
+    world, grid, origin = t_maze()
+    row = int((CELL + 0.14 - origin[1]) / RES)
+    col = int((CELL + 0.09 - origin[0]) / RES)
+    patch = grid.copy()
+    patch[row : row + 6, col : col + 6] = -1  # 12 x 12 cm in corridor cell (1, 1), clear of its walls
+    grown = grid.copy()
+    grown[row : row + 6, col : col + 40] = -1  # the same patch, 0.68 m longer to the east
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (centre((1, 1))[0], centre((1, 1))[1] - 0.05, 0.0)  # in the cell: the graph has nothing left
+    goal = explorer.update(patch, origin, RES, pose, revolutions=0)
+    assert goal is not None and goal.reason.startswith("frontier of"), goal
+    goal = explorer.update(grown, origin, RES, pose, revolutions=1)
+    assert goal is not None and goal.reason.startswith("frontier of"), goal
+    assert not explorer.closed_points_m, explorer.events
+    # painted, it is gone: now closed (the robot is within view of it)
+    goal = explorer.update(grid, origin, RES, pose, revolutions=2)
+    assert goal is not None and goal.phase is Phase.RETURNING
+    assert len(explorer.closed_points_m) == 1, explorer.events

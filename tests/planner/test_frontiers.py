@@ -100,11 +100,13 @@ def test_a_frontier_nothing_passable_can_see_has_no_viewpoint() -> None:
     grid[30:33, 46:50] = UNSEEN  # its end, unseen
     costmap = GridCostmap(grid, (0.0, 0.0), RES)
     cost = np.where(costmap.passable, costmap.distances_from((0.3, 0.4)), np.inf)
-    (frontier,) = find_frontiers(grid, min_cells=2, wall_margin_cells=0)
+    # (a pocket this small counts only without the sliver rule: it is what this test is about)
+    (frontier,) = find_frontiers(grid, min_cells=2, wall_margin_cells=0, sliver_cells=0)
     candidates = viewpoint_candidates(frontier, cost, RES, 0.9)
     assert candidates.shape[0] > 0  # places within range exist, in the room ...
     assert best_viewpoint(frontier, candidates, grid == FREE, cost, RES, MIN_RANGE_M, 0.9, 0.3) is None  # ... blind
-    explorer = Explorer(start_xy_m=(0.3, 0.4), mode="frontier", min_frontier_cells=2, frontier_wall_margin_cells=0)
+    explorer = Explorer(start_xy_m=(0.3, 0.4), mode="frontier", min_frontier_cells=2, frontier_wall_margin_cells=0,
+                        frontier_sliver_cells=0)
     goal = explorer.update(grid, (0.0, 0.0), RES, (0.3, 0.4, 0.0), revolutions=0)
     assert goal is not None and goal.phase in (Phase.RETURNING, Phase.DONE)  # nothing left it could look at
 
@@ -149,3 +151,21 @@ def test_every_cell_of_a_1ft_maze_is_reachable_for_the_inflated_robot() -> None:
         for row in range(6):
             r, c = costmap.to_cell((col + 0.5) * cell_m, (row + 0.5) * cell_m)
             assert np.isfinite(distances[r, c]), (col, row)
+
+
+def test_an_unpainted_stretch_of_wall_between_two_seen_corridors_is_no_frontier() -> None:
+    # Two 1 ft corridors side by side, both driven: the wall between them was seen only at
+    # grazing angles and 30 cm of it stayed unknown, with free space on both sides (a 16x16
+    # maze's long corridors). Nothing is behind it: no frontier. The same stretch in the
+    # outer wall, with the unseen outside behind it, still is one.
+    grid = np.full((40, 100), UNSEEN, dtype=np.int8)
+    grid[1:15, 1:99] = FREE  # corridor one
+    grid[16:30, 1:99] = FREE  # corridor two
+    grid[0, :] = grid[15, :] = grid[30, :] = WALL
+    grid[:31, 0] = grid[:31, 99] = WALL
+    grid[15, 40:55] = UNSEEN  # the unpainted stretch between the corridors: a sliver
+    assert find_frontiers(grid) == []
+    assert len(find_frontiers(grid, sliver_cells=0)) == 2  # without the rule: a frontier on each side of it
+    grid[30, 40:55] = UNSEEN  # the same in the outer wall: the outside is behind it
+    (frontier,) = find_frontiers(grid)
+    assert set(frontier.cells[:, 0]) == {29}

@@ -18,6 +18,7 @@ from mazebot.planner.global_path import (
     shortcut,
     shortest_cell_path,
 )
+from mazebot.slam.grid import FREE, OCCUPIED
 
 Cell = tuple[int, int]
 
@@ -167,3 +168,42 @@ def test_grid_plan_is_a_cheapest_chain_of_passable_neighbours() -> None:
         cost += math.hypot(r1 - r0, c1 - c0) * costmap.step_cost[r1, c1]
     r, c = cells[-1]
     assert cost == pytest.approx(costmap.distances_from((0.3, 0.25))[r, c], rel=1e-9)
+
+
+def test_the_frontiers_wall_margin_is_scipys_dilation_by_the_cross() -> None:
+    from mazebot.planner.frontiers import _dilate_4
+
+    rng = np.random.default_rng(3)
+    for iterations in (1, 2, 3):
+        mask = rng.random((40, 53)) < 0.03
+        mask[0, 5] = mask[39, 52] = True  # at the border
+        assert np.array_equal(_dilate_4(mask, iterations), ndimage.binary_dilation(mask, iterations=iterations))
+
+
+def _segment_passable_one_at_a_time(costmap: GridCostmap, a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """The line-of-sight check as it was written first: one segment, its samples by ``np.linspace``."""
+    length = math.hypot(b[0] - a[0], b[1] - a[1])
+    n = max(2, math.ceil(length / (0.5 * costmap.resolution_m)) + 1)
+    t = np.linspace(0.0, 1.0, n)
+    c = np.floor((a[0] + t * (b[0] - a[0]) - costmap.origin_m[0]) / costmap.resolution_m).astype(np.int64)
+    r = np.floor((a[1] + t * (b[1] - a[1]) - costmap.origin_m[1]) / costmap.resolution_m).astype(np.int64)
+    inside = (r >= 0) & (r < costmap.shape[0]) & (c >= 0) & (c < costmap.shape[1])
+    return bool(inside.all() and costmap.passable[r, c].all())
+
+
+def test_all_segments_at_once_answer_as_each_segment_alone() -> None:
+    rng = np.random.default_rng(7)
+    grid = np.full((60, 80), FREE, dtype=np.int8)
+    grid[rng.random(grid.shape) < 0.01] = OCCUPIED
+    grid[20, :50] = OCCUPIED
+    costmap = GridCostmap(grid, (-0.3, 0.1), 0.02, footprint_radius_m=0.02, clearance_m=0.0)
+    answers: list[bool] = []
+    for _ in range(20):
+        a = (float(rng.uniform(-0.4, 1.4)), float(rng.uniform(0.0, 1.4)))
+        xs, ys = rng.uniform(-0.4, 1.4, 50), rng.uniform(0.0, 1.4, 50)
+        ends = [(float(x), float(y)) for x, y in zip(xs, ys, strict=True)]
+        ends.append(a)  # a zero-length segment
+        expected = [_segment_passable_one_at_a_time(costmap, a, b) for b in ends]
+        assert list(costmap.segments_passable(a, ends)) == expected
+        answers += expected
+    assert 0.1 < np.mean(answers) < 0.9  # both answers asked

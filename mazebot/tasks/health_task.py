@@ -201,6 +201,27 @@ def _travel_at(travel: Sequence[tuple[float, float, float]], time_s: float) -> t
     return (l0 + share * (l1 - l0), r0 + share * (r1 - r0)), t1 - t0
 
 
+def _driven_throughout(writes: Sequence[tuple[float, float, float]], side: int, since_s: float,
+                       throttle: float, driven_throttle: float) -> bool:
+    """Whether every throttle the ``side`` motor had from ``since_s`` on drove it the way of
+    ``throttle`` at ``driven_throttle`` or more (``writes``: the control loop's (time, left,
+    right) writes, oldest first).
+
+    A check sees only the throttle of its own moment; under a starved CPU checks run late and
+    the wheel may have been braked in between (the control loop stops the motors when the
+    planner's command grows stale) and driven again, which a dead encoder's silence must not
+    be confused with. True when the writes do not reach back that far: nothing is known
+    against the throttle seen.
+    """
+    for time_s, left, right in reversed(writes):
+        value = left if side == 0 else right
+        if abs(value) < driven_throttle or (value > 0) != (throttle > 0):
+            return False
+        if time_s <= since_s:
+            return True
+    return True
+
+
 def _entry_time(entry: tuple[float, float, float]) -> float:
     return entry[0]
 
@@ -362,6 +383,7 @@ class HealthMonitor:
             return
         step_s = 0.0 if last_s is None else min(max(0.0, now_s - last_s), PERIOD_S)
         ticks = (state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
+        writes = tuple(state.throttle_history)  # a copy (C speed): the control thread may append meanwhile
         for side, (wheel, name) in enumerate(zip(self._wheels, ("left", "right"), strict=True)):
             driven = abs(state.throttles[side]) >= self.driven_throttle
             other_driven = abs(state.throttles[1 - side]) >= self.driven_throttle
@@ -370,7 +392,9 @@ class HealthMonitor:
             if mine != wheel.ticks or idle_too_long or (wheel.driven_at_s is None and driven):
                 # it turned (or a new stretch begins): the silence, if any, starts now
                 counted = mine - wheel.ticks
-                turning = driven and abs(counted) >= MOVING_TICKS and not idle_too_long
+                # counting the way it is driven (a wheel still rolling forward while driven back is braking)
+                turning = (driven and abs(counted) >= MOVING_TICKS and not idle_too_long
+                           and (counted > 0) == (state.throttles[side] > 0))
                 wheel.moving = (1 if counted > 0 else -1) if turning else 0
                 wheel.driven_s = 0.0
                 wheel.driven_at_s = now_s if driven else None
@@ -378,7 +402,15 @@ class HealthMonitor:
                 continue
             if not driven:
                 continue  # no evidence either way; the stretch waits (IDLE_RESET_S)
-            # the throttle seen now has been the wheel's since the last check (written at that rate)
+            if last_s is not None and not _driven_throughout(
+                writes, side, last_s, state.throttles[side], self.driven_throttle
+            ):
+                # a late check: between it and the last one the motor was braked or turned the
+                # other way (a stale command's stop and a new command, under a starved CPU), and
+                # a wheel held still or reversing may count nothing: the stretch begins again
+                wheel.driven_s, wheel.driven_at_s, wheel.moving = 0.0, now_s, 0
+                wheel.ticks, wheel.other_ticks, wheel.other_idle = mine, other, not other_driven
+                continue
             wheel.driven_s += step_s
             wheel.driven_at_s = now_s
             wheel.other_idle = wheel.other_idle and not other_driven

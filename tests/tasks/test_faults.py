@@ -291,6 +291,31 @@ def test_a_wheel_that_reverses_or_stops_with_the_other_is_no_sudden_silence(case
     assert not state.faults
 
 
+@pytest.mark.parametrize("braked_between", [True, False])
+def test_a_late_check_after_a_stop_and_a_new_command_is_no_sudden_silence(braked_between: bool) -> None:
+    # under a starved CPU a check comes 80 ms late; in between, the control loop stopped the motors
+    # for a stale command and drove them again: the right wheel, braked and restarting, counted
+    # nothing. Only a wheel driven all along the silence is an encoder fault.
+    state = _exploring((0.4, 0.4))
+    monitor = HealthMonitor()
+    t = 100.0
+    for _ in range(10):  # both wheels turn, a throttle written at each check
+        state.throttle_history.append((t - 0.01, 0.4, 0.4))
+        _count(state, 30, 30)
+        monitor.check_motors(state, t)
+        t += 0.05
+    last_check_s = t - 0.05
+    if braked_between:
+        state.throttle_history.append((last_check_s + 0.01, 0.0, 0.0))  # the stale command's stop
+    state.throttle_history.append((last_check_s + 0.06, 0.4, 0.4))
+    _count(state, 45, 0)
+    monitor.check_motors(state, last_check_s + 0.08)
+    if braked_between:
+        assert not state.faults
+    else:
+        assert state.faults and "right wheel" in state.faults[0].message
+
+
 def test_short_drives_of_a_healthy_wheel_with_pauses_are_no_encoder_fault() -> None:
     # stop-and-go: each drive from rest counts within the motor's lag, however many there are
     state = _exploring()

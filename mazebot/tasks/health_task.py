@@ -278,7 +278,8 @@ class HealthMonitor:
         """The checks at the control rate: the calls between two of :meth:`check` (``MOTOR_PERIOD_S``).
 
         The dead-encoder check runs here too: the control task writes a throttle every
-        ``MOTOR_PERIOD_S``, so each check sees each throttle the wheels were given.
+        ``MOTOR_PERIOD_S``, so a check on time sees each throttle the wheels were given; a late
+        one reads the throttles it missed from ``state.throttle_history``.
         """
         if self._started_s is None:
             self._started_s = now_s

@@ -109,7 +109,8 @@ def test_scans_are_the_recorded_revolutions_with_inf_for_no_return(recording: Pa
     assert np.mean(np.isclose(hits, revolution.range_m[valid], rtol=1e-6)) > 0.9  # the rest: two on one bearing
     assert np.isposinf(msg.ranges).sum() == len(revolution) - len(set(bearing[valid].tolist()))
     # the stamp is mid-revolution on the recording's epoch clock
-    assert msg.scan_time == pytest.approx(float(np.ptp(revolution.time_s)), rel=1e-9)
+    # the revolution's span, rounded to the message's float32 (sensor_msgs/LaserScan)
+    assert msg.scan_time == float(np.float32(np.ptp(revolution.time_s)))
 
 
 def test_equal_bearings_marks_invalid_and_missing_bearings_inf() -> None:

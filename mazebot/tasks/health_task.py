@@ -403,16 +403,14 @@ class HealthMonitor:
                 continue
             if not driven:
                 continue  # no evidence either way; the stretch waits (IDLE_RESET_S)
-            if last_s is not None and not _driven_throughout(
-                writes, side, last_s, state.throttles[side], self.driven_throttle
-            ):
-                # a late check: between it and the last one the motor was braked or turned the
-                # other way (a stale command's stop and a new command, under a starved CPU), and
-                # a wheel held still or reversing may count nothing: the stretch begins again
-                wheel.driven_s, wheel.driven_at_s, wheel.moving = 0.0, now_s, 0
-                wheel.ticks, wheel.other_ticks, wheel.other_idle = mine, other, not other_driven
-                continue
-            wheel.driven_s += step_s
+            if last_s is None or _driven_throughout(writes, side, last_s, state.throttles[side], self.driven_throttle):
+                wheel.driven_s += step_s
+            else:
+                # a late check: between it and the last one the motor was braked or driven the other
+                # way (a stale command's stop and a new command, under a starved CPU); a wheel held
+                # or reversing may count nothing then: that gap is no silence, as for a brake a check
+                # sees, and the wheel is no longer known to be turning
+                wheel.moving = 0
             wheel.driven_at_s = now_s
             wheel.other_idle = wheel.other_idle and not other_driven
             other_counted = abs(other - wheel.other_ticks) >= OTHER_WHEEL_TICKS

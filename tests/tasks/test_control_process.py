@@ -9,13 +9,16 @@ are braked from the main process and a new child starts.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import multiprocessing
 import os
 import signal
 import time
+from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -56,19 +59,31 @@ class Recorder:
         raise AssertionError("the main process drove the motors")
 
 
-def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
-    """Step by step through real shared memory: driving, a wall coming closer (the collision
-    guard), odometry moving since the scan, a fault, a stale command, a stop."""
-    config = Config()
+@contextlib.contextmanager
+def _linked_controls(config: Config) -> Iterator[tuple[SharedState, ChildView, MotorControl, Any]]:
+    """An exploring robot's state linked through real shared memory to a child's view of it:
+    (state, view, the in-process MotorControl, the child's control), to be stepped on the same
+    inputs; the shared memory closed afterwards."""
     link = ControlLink.create(config)
     child_link = ControlLink.attach(link.name)
+    state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0, auto_resume=True)
     try:
-        state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0, auto_resume=True)
         state.odometry_history = OdometryHistory(3.0)
         state.control_link = link
         link.publish_all(state)  # what was set before the link (the child's start does the same)
         view = ChildView(child_link)
-        reference, child = MotorControl.from_config(config), control_process._child_control(config, view)
+        yield state, view, MotorControl.from_config(config), control_process._child_control(config, view)
+    finally:
+        state.control_link = None
+        child_link.close()
+        link.close()
+
+
+def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
+    """Step by step through real shared memory: driving, a wall coming closer (the collision
+    guard), odometry moving since the scan, a fault, a stale command, a stop."""
+    config = Config()
+    with _linked_controls(config) as (state, view, reference, child):
         period_s = config.daemon.control_period_s
         outputs, stops = [], set()
         x_m, left_ticks, right_ticks = 0.0, 0, 0
@@ -107,10 +122,6 @@ def test_the_child_decides_as_motor_control_does_on_the_same_inputs() -> None:
         assert any(abs(left) > 0.05 for left, _ in outputs)
         assert outputs[-1] == (0.0, 0.0)
         assert "stale command" in stops and stops - {"", "stale command"}, stops  # and the guard's
-    finally:
-        state.control_link = None
-        child_link.close()
-        link.close()
 
 
 def test_the_child_jogs_as_motor_control_does_and_never_while_stopping_or_in_a_fault() -> None:
@@ -428,15 +439,7 @@ def test_the_child_and_motor_control_stop_for_a_return_only_the_planner_remember
     nothing near, the planner's blind-zone memory (``state.blind_zone_points``, odometry
     frame) has it. Both control loops stop a drive towards it, and neither stops one beside it."""
     config = Config()
-    link = ControlLink.create(config)
-    child_link = ControlLink.attach(link.name)
-    try:
-        state = SharedState(run_state=RunState.EXPLORING, started_at_s=0.0, auto_resume=True)
-        state.odometry_history = OdometryHistory(3.0)
-        state.control_link = link
-        link.publish_all(state)
-        view = ChildView(child_link)
-        reference, child = MotorControl.from_config(config), control_process._child_control(config, view)
+    with _linked_controls(config) as (state, view, reference, child):
         period_s = config.daemon.control_period_s
         # the robot stands at (1, 1) facing +y (odometry frame); the leg is 0.12 m ahead of it
         pose = (1.0, 1.0, math.pi / 2)
@@ -458,7 +461,3 @@ def test_the_child_and_motor_control_stop_for_a_return_only_the_planner_remember
             state.safety_stop = ""
             view.safety_stop = ""
         assert verdicts == {0: False, 1: True, 2: False}  # nothing; the leg ahead; the leg beside (to the right)
-    finally:
-        state.control_link = None
-        child_link.close()
-        link.close()

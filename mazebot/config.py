@@ -13,9 +13,11 @@ take), so each default is written once, here.
 Why one module of ~750 lines: it is the schema of one file, ``config.toml``, in the file's
 order, with its one loader (search path, old keys migrated, errors naming the key) and its
 renderer (``mazebot config defaults``); a section read alone is a class of a few dozen lines
-and the file is read section by section. The two sections that are worlds of their own are
-apart: ``[slam]`` (:mod:`mazebot.slam_config`, nested parameter objects) and ``[sim]``
-(:mod:`mazebot.sim_config`, the harness's knobs).
+and the file is read section by section. Apart are the two sections that are worlds of their
+own, ``[slam]`` (:mod:`mazebot.slam_config`, nested parameter objects) and ``[sim]``
+(:mod:`mazebot.sim_config`, the harness's knobs), and what ``mazebot motors stop`` reads
+alone, quickly, after every exit of the daemon: ``[motors]`` (:mod:`mazebot.motors_config`)
+and the file's lookup and reading (:mod:`mazebot.config_file`).
 """
 
 from __future__ import annotations
@@ -25,35 +27,41 @@ import json
 import math
 import os
 import re
-import tomllib
 import typing
 import warnings
-from collections.abc import Mapping
-from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic.fields import FieldInfo
 
-from mazebot.config_section import Section
+from mazebot.config_file import (
+    ENV_CONFIG,
+    SYSTEM_CONFIG,
+    config_search_path,
+    default_config_path,
+    read_config_file,
+    validation_problems,
+)
+from mazebot.config_section import BcmPin, Section
 from mazebot.errors import ConfigError
+from mazebot.motors_config import MotorsConfig, load_motors_config
 from mazebot.sim_config import CHEAP_ROBOT, SimConfig
 from mazebot.slam_config import FLAT_KEYS, MAZE_CELL_M, SlamConfig
 
-#: defined with their own sections (mazebot.slam_config, mazebot.sim_config), part of this config
-__all__ = ["CHEAP_ROBOT", "MAZE_CELL_M", "Section", "SimConfig", "SlamConfig"]
+#: defined in modules of their own (the file's lookup and reading; the [motors], [sim] and [slam]
+#: sections), part of this config
+__all__ = [
+    "CHEAP_ROBOT", "ENV_CONFIG", "MAZE_CELL_M", "SYSTEM_CONFIG", "MotorsConfig", "Section", "SimConfig",
+    "SlamConfig", "config_search_path", "default_config_path", "load_motors_config", "read_config_file",
+]
 
 #: Absolute speed limits of the robot; the configured limits may not exceed them.
 ABSOLUTE_MAX_SPEED_MPS = 0.5
 ABSOLUTE_MAX_YAW_RATE_RADPS = 1.2
 
-ENV_CONFIG = "MAZEBOT_CONFIG"
 #: A robot name: one chunk of a Zenoh key expression, without its wildcards and separators (`*`, `$`, `/`).
 ROBOT_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
-
-BcmPin = Annotated[int, Field(ge=0, le=27)]
-
 
 class LidarConfig(Section):
     """Slamtec RPLidar on its USB serial adapter (an A1M8 by default; A2, A3, C1, S2 too)."""
@@ -146,59 +154,6 @@ class EncodersConfig(Section):
     def ticks_per_rev(self) -> int:
         """Counted ticks per wheel revolution for the chosen decoding."""
         return self.counts_per_rev * {"x1": 1, "x2": 2, "x4": 4}[self.decoding]
-
-
-class MotorsConfig(Section):
-    """Two DC gear motors on the Adafruit DC & Stepper Motor HAT, or on an H-bridge board on GPIO pins."""
-
-    backend: Literal["motorkit", "gpio", "fake"] = Field(
-        "motorkit",
-        description="motorkit: the Adafruit HAT over I2C; gpio: an H-bridge on GPIO pins (L298N, DRV8833, "
-        "TB6612, phase/enable boards); fake: no hardware (tests)",
-    )
-    gpio_driver: Literal["in1_in2", "phase_enable"] = Field(
-        "in1_in2",
-        description="gpio: in1_in2: two PWM inputs per motor (L298N, DRV8833, TB6612); phase_enable: a direction "
-        "pin and a PWM enable pin (DRV8835 in PHASE/ENABLE mode, Cytron MDD10A DIR/PWM)",
-    )
-    gpio_motor1_pins: list[BcmPin] = Field(
-        [5, 6],
-        description="gpio: BCM pins of channel 1; in1_in2: IN1, IN2 and, if wired, the enable (ENA, held high); "
-        "phase_enable: PHASE, ENABLE",
-    )
-    gpio_motor2_pins: list[BcmPin] = Field([13, 19], description="gpio: BCM pins of channel 2, as for channel 1")
-    i2c_address: int = Field(0x60, ge=0x03, le=0x77, description="I2C address of the HAT")
-    pwm_frequency_hz: float = Field(
-        1600.0, ge=24, le=2000,
-        description="PWM frequency of the HAT's PCA9685 (MotorKit's default is 1600 Hz) or of the gpio pins"
-    )
-    left_channel: Literal[1, 2, 3, 4] = Field(1, description="HAT motor terminal of the left wheel")
-    right_channel: Literal[1, 2, 3, 4] = Field(
-        2, description="HAT motor terminal of the right wheel"
-    )
-    left_invert: bool = Field(False, description="reverse the left motor's polarity in software")
-    right_invert: bool = Field(True, description="reverse the right motor's polarity (mirrored)")
-    command_ttl_s: float = Field(
-        0.3, gt=0, le=2, description="a throttle not refreshed within this time becomes a stop"
-    )
-
-    @model_validator(mode="after")
-    def _channels_distinct(self) -> MotorsConfig:
-        if self.left_channel == self.right_channel:
-            raise ValueError(f"left and right motors share channel {self.left_channel}")
-        if self.backend == "gpio":
-            if {self.left_channel, self.right_channel} != {1, 2}:
-                raise ValueError('with backend = "gpio" the channels are 1 and 2 (gpio_motor1_pins, gpio_motor2_pins)')
-            counts = (2, 3) if self.gpio_driver == "in1_in2" else (2,)
-            named = (("gpio_motor1_pins", self.gpio_motor1_pins), ("gpio_motor2_pins", self.gpio_motor2_pins))
-            for name, pins in named:
-                if len(pins) not in counts:
-                    wanted = "IN1, IN2 and optionally the enable" if self.gpio_driver == "in1_in2" else "PHASE, ENABLE"
-                    raise ValueError(f"{name} for {self.gpio_driver} takes {wanted}, got {pins}")
-            pins = [*self.gpio_motor1_pins, *self.gpio_motor2_pins]
-            if len(set(pins)) != len(pins):
-                raise ValueError(f"the motors' GPIO pins must all differ, got {pins}")
-        return self
 
 
 class DriveConfig(Section):
@@ -567,29 +522,6 @@ class Config(BaseModel):
         return self
 
 
-#: The system-wide config file, the one the systemd unit names (``systemd/mazebot.service``).
-SYSTEM_CONFIG = Path("/etc/mazebot/config.toml")
-
-
-def config_search_path() -> list[Path]:
-    """Where a config file is looked for when no ``--config`` is given, first match wins:
-    ``$MAZEBOT_CONFIG``, ``./config.toml``, ``$XDG_CONFIG_HOME/mazebot/config.toml``
-    (``~/.config`` when unset, per the XDG Base Directory Specification), ``/etc/mazebot/config.toml``."""
-    env = os.environ.get(ENV_CONFIG)
-    if env:
-        return [Path(env)]  # named explicitly: must exist, no falling through to another file
-    xdg = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"), ".config")
-    return [Path("config.toml"), Path(xdg) / "mazebot" / "config.toml", SYSTEM_CONFIG]
-
-
-def default_config_path() -> Path | None:
-    """The config file used without ``--config`` (:func:`config_search_path`), or None: the defaults."""
-    env = os.environ.get(ENV_CONFIG)
-    if env:
-        return Path(env)
-    return next((p for p in config_search_path() if p.is_file()), None)
-
-
 class DeprecatedKeyWarning(FutureWarning):
     """A config file uses a key of an older layout; it still works, under its new name."""
 
@@ -638,27 +570,6 @@ def _one_maze_pitch(data: dict[str, Any]) -> dict[str, Any]:
     return {**data, "sim": {"cell_size_m": pitch, **sim}, "slam": {**slam, "loop": loop}}
 
 
-def _describe_error(err: Mapping[str, Any]) -> str:
-    path = ".".join(str(p) for p in err["loc"]) or "(top level)"
-    kind = err["type"]
-    value = err.get("input")
-    if kind in ("extra_forbidden", "unexpected_keyword_argument"):
-        return f"{path}: unknown key (value {value!r}); check the spelling against `mazebot config defaults`"
-    if kind == "missing":
-        return f"{path}: required key is missing"
-    msg = err["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, ") :]
-    return f"{path}: {value!r} is not allowed: {msg}"
-
-
-def _problems(exc: ValidationError, source: str, prefix: str = "") -> ConfigError:
-    problems = [f"{source}: {prefix}{_describe_error(e)}" for e in exc.errors()]
-    more = len(problems) - 1
-    first = problems[0] + (f" (and {more} more: `mazebot config check` lists them)" if more else "")
-    return ConfigError(first, problems)
-
-
 def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
     """Validate a parsed TOML document; raise ConfigError with one line per problem.
 
@@ -676,7 +587,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
     try:
         return Config.model_validate_json(text, strict=True)
     except ValidationError as exc:
-        raise _problems(exc, source) from None
+        raise validation_problems(exc, source) from None
 
 
 def config_from_json(text: str, source: str = "<config>") -> Config:
@@ -689,23 +600,6 @@ def config_from_json(text: str, source: str = "<config>") -> Config:
         return parse_config(json.loads(text), source)
 
 
-def read_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The TOML document of a config file, not yet validated; ConfigError naming the file if unreadable."""
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: config file not found") from None
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read config file ({exc.strerror or exc})") from None
-    try:
-        return tomllib.loads(raw.decode("utf-8"))  # decoding here: a UnicodeDecodeError is no OSError
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{p}: not valid TOML: the file is not UTF-8 text") from None
-
-
 def load_config(path: str | os.PathLike[str] | None = None) -> Config:
     """Load and validate a config file; with no path, the file :func:`default_config_path` finds, or the defaults."""
     if path is None:
@@ -713,28 +607,6 @@ def load_config(path: str | os.PathLike[str] | None = None) -> Config:
         if path is None:
             return Config()
     return parse_config(read_config_file(path), str(path))
-
-
-def load_motors_config(path: str | os.PathLike[str] | None = None) -> MotorsConfig:
-    """Only the ``[motors]`` section of a config file, validated like :func:`load_config` does.
-
-    For ``mazebot motors stop``, the safety net systemd runs after every exit of the daemon:
-    a mistake in any other section must not keep it from zeroing the HAT, and building
-    only this section's model keeps the command quick (the models are built on first use,
-    ``defer_build``).
-    """
-    if path is None:
-        path = default_config_path()
-        if path is None:
-            return MotorsConfig()
-    data = read_config_file(path)
-    section = data.get("motors", {})
-    if not isinstance(section, dict):
-        raise ConfigError(f"{path}: motors: expected a [motors] table, found {section!r}")
-    try:
-        return MotorsConfig.model_validate(section, strict=True)
-    except ValidationError as exc:
-        raise _problems(exc, str(path), "motors.") from None
 
 
 def _toml_value(value: Any) -> str:

@@ -6,7 +6,9 @@ Apart from :mod:`mazebot.config` so that the sections kept in modules of their o
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class Section(BaseModel):
@@ -18,3 +20,7 @@ class Section(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, defer_build=True)
+
+
+#: A Raspberry Pi GPIO by its BCM number (the 40-pin header's GPIO 0–27), for the motor and encoder pins.
+BcmPin = Annotated[int, Field(ge=0, le=27)]

@@ -36,7 +36,10 @@ def _heavy(names: set[str]) -> list[str]:
 
 def test_motors_stop_imports_neither_numpy_nor_scipy_nor_the_slam_nor_the_web(tmp_path: Path) -> None:
     # no HAT here: it ends with exit 69 after the same imports it does on the robot
-    assert _heavy(_imported_modules(["motors", "stop"], tmp_path)) == []
+    names = _imported_modules(["motors", "stop"], tmp_path)
+    assert _heavy(names) == []
+    # nor the whole configuration's models: [motors] is read alone
+    assert {"mazebot.config", "mazebot.slam_config", "mazebot.sim_config"} & names == set()
 
 
 def test_the_top_level_help_imports_no_command_module(tmp_path: Path) -> None:

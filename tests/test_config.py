@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from mazebot import config as config_module
+from mazebot import config_file
 from mazebot.cli import main
 from mazebot.config import Config, load_config, parse_config, render_toml
 from mazebot.errors import ConfigError
@@ -78,7 +78,7 @@ def lookup(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Path]:
     monkeypatch.chdir(work)
     monkeypatch.delenv("MAZEBOT_CONFIG", raising=False)
     monkeypatch.setenv("XDG_CONFIG_HOME", str(xdg))
-    monkeypatch.setattr(config_module, "SYSTEM_CONFIG", etc)
+    monkeypatch.setattr(config_file, "SYSTEM_CONFIG", etc)
     return {"local": work / "config.toml", "xdg": xdg / "mazebot" / "config.toml", "etc": etc}
 
 

@@ -40,10 +40,10 @@ from dataclasses import dataclass
 from typing import Final, Literal, Self
 
 from mazebot.clock import Clock
-from mazebot.config import MotorsConfig
 from mazebot.errors import EXIT_UNAVAILABLE, MazebotError
 from mazebot.io.motor_hat import CHANNELS, MotorKitLike, MotorLike
 from mazebot.io.motor_hat import open_motorkit as open_motorkit  # re-exported: main.py opens the HAT from here
+from mazebot.motors_config import MotorsConfig
 from mazebot.taps import notify
 
 logger = logging.getLogger(__name__)

@@ -17,9 +17,9 @@ from mazebot.errors import EXIT_OK, ConfigError
 
 
 def _cmd_stop(args: argparse.Namespace) -> int:
-    from mazebot.config import MotorsConfig, load_motors_config
     from mazebot.io.motor_hat import CHANNELS, open_motorkit
     from mazebot.logs import error_line
+    from mazebot.motors_config import MotorsConfig, load_motors_config
 
     problem: ConfigError | None = None
     try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 
@@ -78,7 +79,7 @@ def test_the_driver_wakes_once_a_decode_interval_not_once_a_chunk(pty_lidar: Pty
             link = await lidar.open()
             take = link.take_arrived  # type: ignore[attr-defined]
 
-            def counted_take(byte_period_s):  # type: ignore[no-untyped-def]
+            def counted_take(byte_period_s: Callable[[], float]) -> tuple[bytes, list[tuple[int, float]]] | None:
                 result = take(byte_period_s)
                 if result is not None:
                     taken[0] += len(result[1])

@@ -430,7 +430,8 @@ class HealthMonitor:
                 continue
             if not driven:
                 continue  # no evidence either way; the stretch waits (IDLE_RESET_S)
-            if writes is None or _driven_throughout(writes, side, last_s, state.throttles[side], self.driven_throttle):
+            if last_s is None or writes is None or _driven_throughout(writes, side, last_s, state.throttles[side],
+                                                                      self.driven_throttle):
                 wheel.driven_s += step_s
             else:
                 # a late check: between it and the last one the motor was braked or driven the other

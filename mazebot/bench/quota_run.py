@@ -146,11 +146,13 @@ async def _run_daemon(
     state.odometry_edge_age_ms = RecentValues(LATENESS_KEPT)
     # the logs in flat float arrays (t, x, y, θ per row): the daemon's memory is measured with them in it
     run: dict[str, Any] = {"done": False, "start_s": None, "end_s": None, "est": array("d"), "odometry": array("d"),
-                           "scans": [], "encoders": None, "gpio_at_start": (None, 0), "gpio_at_end": (None, 0)}
+                           "scans": [], "encoders": None, "gpio_at_start": (None, 0), "gpio_at_end": (None, 0),
+                           "loop_at_start": (None, None), "loop_at_end": (None, None)}
 
     def on_started(hardware: Hardware, state: SharedState, supervisor: Supervisor) -> None:
         run["start_s"] = clock.now_s()
         run["gpio_at_start"] = (gpio.cpu_s(), gpio.edges)  # the simulator's stand-in, read with the cgroup's CPU
+        run["loop_at_start"] = (time.thread_time(), time.process_time())  # the event loop's thread, this process
         result_tx.send(("started", run["start_s"]))
 
         def on_control() -> None:
@@ -196,6 +198,7 @@ async def _run_daemon(
             reading = hardware.encoders.read()
             run["encoders"] = (reading.left_ticks, reading.right_ticks)
             run["gpio_at_end"] = (gpio.cpu_s(), gpio.edges)
+            run["loop_at_end"] = (time.thread_time(), time.process_time())
             result_tx.send(("finished", run["end_s"]))
             supervisor.request_stop("benchmark run finished")
 
@@ -238,6 +241,9 @@ async def _run_daemon(
         # the GPIO edge thread over the run (started .. finished): its CPU seconds and the edges it drove
         "gpio_thread_cpu_s": _difference(run["gpio_at_end"][0], run["gpio_at_start"][0]),
         "gpio_window_edges": run["gpio_at_end"][1] - run["gpio_at_start"][1],
+        # the event loop's thread and the daemon's whole process (all its threads) over the run, CPU seconds
+        "loop_thread_cpu_s": _difference(run["loop_at_end"][0], run["loop_at_start"][0]),
+        "daemon_process_cpu_s": _difference(run["loop_at_end"][1], run["loop_at_start"][1]),
         "motor_writes": kit.writes_sent + opener.writes_sent,  # this process's and the control process's
         "est": run["est"],
         "odometry": run["odometry"],
@@ -647,6 +653,8 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
     throttled_s = delta("throttled_s")
     exit_stat = record.cpu_at_exit
     gpio = gpio_share(cpu_s, window_s, d.get("gpio_thread_cpu_s"), d.get("gpio_window_edges"), record.edge_costs)
+    where = cpu_by_thread(cpu_s, time_s, d.get("loop_thread_cpu_s"), d.get("daemon_process_cpu_s"),
+                          d.get("gpio_thread_cpu_s"), d.get("cpu_budget"))
     return {
         "maze": spec.name,
         "seed": spec.seed,
@@ -723,6 +731,8 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "gpio_edges_per_s": _round(gpio["gpio_edges_per_s"], 1),
         "gpio_edge_costs_us": {k: round(v * 1e6, 3) for k, v in record.edge_costs.items()}
         if record.edge_costs else None,
+        # where the cgroup's CPU went, ms per robot-second (cpu_by_thread)
+        **{key: _round(value, 2) for key, value in where.items()},
         "daemon_cpu_s_total": _round(exit_stat.usage_s if exit_stat is not None else None, 3),  # start-up included
         "cfs_periods": delta("nr_periods"),
         "cfs_throttled": delta("nr_throttled"),
@@ -738,6 +748,43 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "loadavg_before": record.loadavg_before,
         "loadavg_after": record.loadavg_after,
     }
+
+
+#: The parts of the CPU budget whose calls run on the daemon's event-loop thread (mazebot.cpu_budget);
+#: the DWA is inside the planner tick, the loop-closure worker and the control tick are other processes.
+LOOP_THREAD_PARTS = ("lidar decoding", "odometry", "slam per revolution", "planner tick", "health check")
+
+
+def cpu_by_thread(cpu_s: float | None, robot_s: float | None, loop_cpu_s: float | None, process_cpu_s: float | None,
+                  gpio_cpu_s: float | None, budget: dict[str, Any] | None) -> dict[str, float | None]:
+    """Where the cgroup's CPU (``cpu_s`` over ``robot_s``) went, ms per robot-second: the event loop's
+    thread, of it what no part's meter holds (the loop's own work: wake-ups, timers, reads, the
+    glue between the parts), the daemon process's other threads (the GPIO edge thread, executors,
+    the motors' time-to-live guard), and the other processes of the cgroup (the control process,
+    the loop-closure worker, the fork server). Each None where a reading is missing.
+
+    The per-part table holds each part's own calls; this says how much of the total lies
+    outside them and in which thread or process, so a cut can be aimed there.
+    """
+    out: dict[str, float | None] = dict.fromkeys(
+        ("loop_thread_ms_per_s", "loop_thread_outside_parts_ms_per_s", "process_other_threads_ms_per_s",
+         "other_processes_ms_per_s"))
+    if not robot_s:
+        return out
+
+    def per_s(seconds: float) -> float:
+        return 1000.0 * seconds / robot_s
+
+    if loop_cpu_s is not None:
+        out["loop_thread_ms_per_s"] = per_s(loop_cpu_s)
+        parts = [((budget or {}).get(name) or {}).get("cpu_ms_per_s") for name in LOOP_THREAD_PARTS]
+        if budget and None not in parts:
+            out["loop_thread_outside_parts_ms_per_s"] = per_s(loop_cpu_s) - sum(p for p in parts if p is not None)
+    if process_cpu_s is not None and loop_cpu_s is not None:
+        out["process_other_threads_ms_per_s"] = per_s(process_cpu_s - loop_cpu_s - (gpio_cpu_s or 0.0))
+    if process_cpu_s is not None and cpu_s is not None:
+        out["other_processes_ms_per_s"] = per_s(cpu_s - process_cpu_s)
+    return out
 
 
 def gpio_share(cpu_s: float | None, window_s: float | None, gpio_cpu_s: float | None, edges: int | None,

@@ -211,6 +211,15 @@ QUOTA_COLUMNS = (
 )
 
 
+#: The rows of a CPU-quota report's "where the daemon's CPU went" (:func:`mazebot.bench.quota_run.cpu_by_thread`).
+WHERE_ROWS = (
+    ("loop_thread_ms_per_s", "the event loop's thread"),
+    ("loop_thread_outside_parts_ms_per_s", "of it outside the parts' meters"),
+    ("process_other_threads_ms_per_s", "the daemon process's other threads, the GPIO edge thread's own aside"),
+    ("other_processes_ms_per_s", "the other processes (control, loop-closure worker, fork server)"),
+)
+
+
 def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) -> dict[str, Any]:
     """results.json and report.md of CPU-quota runs (no figures: the world lived in another process)."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -256,6 +265,16 @@ def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) 
         lines += ["", "## CPU per part of the daemon", "", *budget, "",
                   "Thread CPU of each part's own calls (medians over the runs); the cgroup's total above also "
                   "holds the event loop, the serial and GPIO threads and the interpreter."]
+    where = [r for r in runs if r.get("loop_thread_ms_per_s") is not None and r.get("time_s")]
+    if where:
+        lines += ["", "## Where the daemon's CPU went", "", "| where | CPU ms per robot-second (median) |", "|---|---|"]
+        for key, title in WHERE_ROWS:
+            values = [r[key] for r in where if r.get(key) is not None]
+            lines.append(f"| {title} | {statistics.median(values):.3g} |" if values else f"| {title} | null |")
+        lines += ["", "The event loop's thread and the daemon process by their own thread and process CPU clocks, "
+                  "read when the run started and ended; \"outside the parts\" is the loop's thread less the parts "
+                  "that run on it (lidar decoding, odometry, SLAM per revolution, planner tick, health check); the "
+                  "other processes are the cgroup's total less the daemon's process."]
     lines += ["", "## Summary (medians)", "", "```json", json.dumps(summary, indent=2), "```", "",
               "`null` marks a metric whose part was missing (e.g. no cgroup accounting), never a guess."]
     write_atomic(out_dir / "report.md", "\n".join(lines) + "\n")

@@ -804,6 +804,8 @@ class RPLidar:
             wait_s = last_data_s + self._no_data_timeout_s - now_s
             if batch:  # come back when the batch is due
                 wait_s = min(wait_s, DECODE_INTERVAL_S - (now_s - batch_since_s))
+                if await self._take_when_due(wait_s, batch, arrivals):
+                    continue
             try:
                 data = await self._read(max(wait_s, 0.0))
             except TimeoutError:
@@ -816,6 +818,41 @@ class RPLidar:
             self.stats.bytes_received += len(data)
             self.stats.last_receive_s = received_s
             arrivals.add(len(data), received_s)
+
+    async def _take_when_due(self, wait_s: float, batch: bytearray, arrivals: _ArrivalLog) -> bool:
+        """Sleep until the batch is due, then add every byte that came meanwhile; False: read instead.
+
+        On a link that notes when its chunks came (:meth:`SerialLink.take_arrived`) and on the
+        daemon's clock (the link's times are the loop's), a batch under way needs no wake-up per
+        chunk: its bytes are taken at once when it is due, each chunk stamped with its own
+        arrival, as a read per chunk stamped them. One timer a decode interval instead of a read,
+        a timer and a task for each chunk (~50 a second from the simulator's pty, one every few
+        milliseconds from a USB serial adapter). Not while a read is outstanding (it would miss
+        the bytes taken), nor on a failed link (the read says how it failed).
+        """
+        take = getattr(self._link, "take_arrived", None)
+        if take is None or self._reader is not None or not isinstance(self._clock, RealClock):
+            return False
+        await self._clock.sleep(max(wait_s, 0.0))
+        taken = take(self._byte_period_s) if self._reader is None else None
+        if taken is None:
+            return False
+        data, chunks = taken
+        if not data:
+            return True
+        self._heard = True
+        now_s = self._clock.now_s()
+        noted = sum(count for count, _ in chunks)
+        if noted < len(data):  # bytes without a note (none on a SerialLink): they came by now
+            chunks.append((len(data) - noted, now_s))
+        for count, arrived_s in chunks:
+            received_s = max(min(arrived_s, now_s), arrivals.last_s)  # the estimate never runs backwards
+            self.stats.bytes_received += count
+            self.stats.last_receive_s = received_s
+            arrivals.add(count, received_s)
+        batch += data
+        self._undecoded = len(batch)
+        return True
 
     async def _heard_after_all(self) -> bool:
         """True when bytes wait although no sample came for ``no_data_timeout_s``.

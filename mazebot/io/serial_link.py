@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+from collections import deque
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -28,6 +29,8 @@ log = logging.getLogger(__name__)
 
 #: Default size of one read; the serial transport itself reads at most 1024 bytes.
 READ_SIZE = 4096
+#: What pyserial-asyncio's transport reads at most per readable event (``_max_read_size``).
+TRANSPORT_READ_SIZE = 1024
 #: Input kept when the consumer falls behind; older bytes are dropped (a lidar's old
 #: samples are worth less than new ones, and memory must stay bounded).
 MAX_BUFFERED_BYTES = 1 << 20
@@ -64,23 +67,56 @@ class ByteLink(Protocol):
 
 
 class _BufferedProtocol(asyncio.Protocol):
-    """An asyncio protocol that keeps received bytes until ``read`` takes them."""
+    """An asyncio protocol that keeps received bytes until ``read`` takes them.
 
-    def __init__(self) -> None:
+    It also notes when each chunk arrived (``now``: the loop's clock, read in
+    ``data_received``, which the transport calls as the bytes come), so a reader that
+    takes the bytes later, in one go (:meth:`take_arrived`), still knows their arrival
+    times. A full chunk (the transport reads at most ``full_read`` bytes a time: a backlog
+    after a stall) has more waiting behind it in the kernel (``kernel_waiting``): its last
+    byte came that many bytes' time (``byte_period_s``) before it was read.
+    """
+
+    def __init__(self, now: Callable[[], float] | None = None) -> None:
         self._buffer = bytearray()
         self._waiter: asyncio.Future[None] | None = None
         self._eof = False
         self._error: BaseException | None = None
         self.bytes_overflowed = 0
         self.lost = asyncio.Event()  # connection_lost was called
+        self._now = now
+        #: (bytes, arrival time of the chunk's last byte) of the bytes in the buffer, oldest first
+        self._arrivals: deque[list[float]] = deque()
+        self.kernel_waiting: Callable[[], int] | None = None
+        self.byte_period_s: Callable[[], float] | None = None
+        self.full_read = TRANSPORT_READ_SIZE
 
     def data_received(self, data: bytes) -> None:
         self._buffer += data
+        if self._now is not None:
+            arrived_s = self._now()
+            if len(data) >= self.full_read and self.kernel_waiting is not None and self.byte_period_s is not None:
+                with contextlib.suppress(OSError, serial.SerialException):
+                    arrived_s -= int(self.kernel_waiting()) * self.byte_period_s()
+            self._arrivals.append([float(len(data)), arrived_s])
         excess = len(self._buffer) - MAX_BUFFERED_BYTES
         if excess > 0:
             del self._buffer[:excess]
+            self._forget_arrivals(excess)
             self.bytes_overflowed += excess
         self._wake()
+
+    def _forget_arrivals(self, count: int) -> None:
+        """The arrival notes of the ``count`` oldest buffered bytes, which were taken or dropped."""
+        arrivals = self._arrivals
+        while count > 0 and arrivals:
+            first = arrivals[0]
+            if first[0] <= count:
+                count -= int(first[0])
+                arrivals.popleft()
+            else:
+                first[0] -= count
+                count = 0
 
     def eof_received(self) -> bool:
         self._eof = True
@@ -110,15 +146,30 @@ class _BufferedProtocol(asyncio.Protocol):
                 self._waiter = None
         data = bytes(self._buffer[:max_bytes])
         del self._buffer[:max_bytes]
+        self._forget_arrivals(len(data))
         return data
+
+    def take_arrived(self) -> tuple[bytes, list[tuple[int, float]]]:
+        """Every byte buffered, at once, and its chunks: (bytes, arrival time) each, oldest first."""
+        data = bytes(self._buffer)
+        self._buffer.clear()
+        chunks = [(int(count), time_s) for count, time_s in self._arrivals]
+        self._arrivals.clear()
+        return data, chunks
 
     def clear(self) -> None:
         self._buffer.clear()
+        self._arrivals.clear()
 
     @property
     def buffered(self) -> int:
         """Bytes received and not yet read."""
         return len(self._buffer)
+
+    @property
+    def failed(self) -> bool:
+        """The port failed or closed: ``read`` says so (an error or end of file), ``take_arrived`` cannot."""
+        return self._eof or self._error is not None
 
 
 class SerialLink:
@@ -158,7 +209,8 @@ class SerialLink:
             cause = exc.__context__ if isinstance(exc.__context__, OSError) else exc
             raise HardwareUnavailable(serial_port_hint(port, cause)) from exc
         loop = asyncio.get_running_loop()
-        protocol = _BufferedProtocol()
+        protocol = _BufferedProtocol(loop.time)  # RealClock's time: the driver's stamps
+        protocol.kernel_waiting = lambda: ser.in_waiting
         try:
             transport, _ = await serial_asyncio.connection_for_serial(loop, lambda: protocol, ser)
         except Exception:
@@ -170,6 +222,21 @@ class SerialLink:
         if self._closed:
             return b""
         return await self._protocol.read(max_bytes)
+
+    def take_arrived(self, byte_period_s: Callable[[], float]) -> tuple[bytes, list[tuple[int, float]]] | None:
+        """Every byte that has arrived, without waiting, with the loop-clock time each chunk of them
+        arrived (``(bytes, time_s)``, oldest first); None when the port failed or closed (``read``
+        says how).
+
+        The lidar driver takes its bytes this way between two decodes: the transport's callback
+        notes each chunk as it comes, and the driver's task wakes once a decode interval instead
+        of once a chunk (a USB serial adapter delivers one every few milliseconds). A full chunk's
+        time is moved back by the bytes still waiting in the kernel, ``byte_period_s()`` each.
+        """
+        if self._closed or self._protocol.failed:
+            return None
+        self._protocol.byte_period_s = byte_period_s
+        return self._protocol.take_arrived()
 
     def pending_bytes(self) -> int:
         """Bytes that arrived and wait to be read: in the protocol's buffer and in the kernel's.

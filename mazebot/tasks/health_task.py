@@ -154,9 +154,10 @@ class WheelTravelGains:
         Looks only at the writes after the last period judged (from the newest back), and
         finds the travel around a time by bisection: a few microseconds a check.
         """
-        # a copy of the writes (C speed): the control loop's thread may append to them meanwhile; the
-        # travel is the odometry task's, on this loop: read where it is (a deque's index, by bisection)
-        writes, dated = tuple(throttles), travel
+        # a copy of the writes not judged yet and the last one judged (the control loop's thread may
+        # append meanwhile: _tail), not of all of them; the travel is the odometry task's, on this
+        # loop: read where it is (a deque's index, by bisection)
+        writes, dated = _tail(throttles, self.judged_s), travel
         if len(dated) < 2 or len(writes) < 2:
             return self.estimator.gains
         first = len(writes)
@@ -185,6 +186,31 @@ class WheelTravelGains:
             speeds = ((end[0] - begin[0]) / span_s, (end[1] - begin[1]) / span_s)
             self.estimator.update((left, right), speeds, max_period_s * 2 if late else None)
         return self.estimator.gains
+
+
+def _tail(history: Sequence[tuple[float, float, float]], since_s: float | None) -> Sequence[tuple[float, float, float]]:
+    """The entries of ``history`` (time first, oldest first) dated after ``since_s``, and the one
+    before them, oldest first: what a check that looked up to ``since_s`` last has not seen.
+
+    Copied from the newest back, entry by entry, instead of the whole history (200 throttle
+    writes: each one's reference count touched, a cache miss apiece in a process whose caches
+    the other tasks have filled, twice a check). The control loop's thread may append while the
+    copy runs (a control thread instead of a process): the iteration then fails and the whole
+    history is copied at once (C speed, under the interpreter lock). All of it when ``since_s``
+    is None.
+    """
+    if since_s is None:
+        return tuple(history)
+    try:
+        out = []
+        for entry in reversed(history):
+            out.append(entry)
+            if entry[0] <= since_s:
+                break
+    except RuntimeError:  # appended to meanwhile ("deque mutated during iteration")
+        return tuple(history)
+    out.reverse()
+    return out
 
 
 def _travel_at(travel: Sequence[tuple[float, float, float]], time_s: float) -> tuple[tuple[float, float], float]:
@@ -384,7 +410,8 @@ class HealthMonitor:
             return
         step_s = 0.0 if last_s is None else min(max(0.0, now_s - last_s), PERIOD_S)
         ticks = (state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
-        writes = tuple(state.throttle_history)  # a copy (C speed): the control thread may append meanwhile
+        # the writes since the last check (_tail: a copy, the control thread may append meanwhile)
+        writes = None if last_s is None else _tail(state.throttle_history, last_s)
         for side, (wheel, name) in enumerate(zip(self._wheels, ("left", "right"), strict=True)):
             driven = abs(state.throttles[side]) >= self.driven_throttle
             other_driven = abs(state.throttles[1 - side]) >= self.driven_throttle
@@ -403,7 +430,8 @@ class HealthMonitor:
                 continue
             if not driven:
                 continue  # no evidence either way; the stretch waits (IDLE_RESET_S)
-            if last_s is None or _driven_throughout(writes, side, last_s, state.throttles[side], self.driven_throttle):
+            if last_s is None or writes is None or _driven_throughout(writes, side, last_s, state.throttles[side],
+                                                                      self.driven_throttle):
                 wheel.driven_s += step_s
             else:
                 # a late check: between it and the last one the motor was braked or driven the other

@@ -81,6 +81,9 @@ def test_a_short_two_process_run_reads_the_pty_lidar_counts_the_edges_and_moves_
     assert m["daemon_cpu_percent"] is None and m["cfs_throttled"] is None and m["cgroup_version"] is None
     assert m["daemon_cpu_percent_sim_out"] is None  # nothing to take the simulator's share out of
     assert m["gpio_thread_cpu_percent"] > 0 and m["gpio_pi_path_us_per_edge"] > 0 and m["gpio_sim_path_us_per_edge"] > 0
+    # the event loop's thread and the daemon's process are read in the daemon: there without a cgroup
+    assert m["loop_thread_ms_per_s"] > 0 and m["loop_thread_outside_parts_ms_per_s"] is not None
+    assert m["process_other_threads_ms_per_s"] is not None and m["other_processes_ms_per_s"] is None
 
 
 def _cgroup_unusable() -> str | None:
@@ -141,6 +144,20 @@ def test_the_simulators_gpio_share_is_its_edges_times_what_its_stand_in_does_bey
     assert gpio_share(None, 100.0, 1.5, 160_000, costs)["daemon_cpu_percent_sim_out"] is None
     assert gpio_share(10.0, 100.0, 1.5, 160_000, None)["daemon_cpu_percent_sim_out"] is None
     assert gpio_share(10.0, 100.0, None, 160_000, costs)["gpio_thread_cpu_percent"] is None
+
+
+def test_the_cgroups_cpu_is_split_into_the_loops_thread_the_processs_other_threads_and_the_other_processes() -> None:
+    from mazebot.bench.quota_run import cpu_by_thread
+
+    budget = {name: {"cpu_ms_per_s": 10.0} for name in
+              ("lidar decoding", "odometry", "slam per revolution", "planner tick", "health check")}
+    # 100 robot-seconds: the cgroup 12 s, the daemon's process 9 s, of it the loop's thread 7 s and the GPIO thread 1 s
+    where = cpu_by_thread(12.0, 100.0, 7.0, 9.0, 1.0, budget)
+    assert where == pytest.approx({"loop_thread_ms_per_s": 70.0, "loop_thread_outside_parts_ms_per_s": 20.0,
+                                   "process_other_threads_ms_per_s": 10.0, "other_processes_ms_per_s": 30.0})
+    missing = cpu_by_thread(None, 100.0, 7.0, 9.0, None, {"odometry": {"cpu_ms_per_s": None}})
+    assert missing["other_processes_ms_per_s"] is None and missing["loop_thread_outside_parts_ms_per_s"] is None
+    assert cpu_by_thread(12.0, None, 7.0, 9.0, 1.0, budget) == dict.fromkeys(where)
 
 
 def test_the_quota_is_a_percentage_of_one_core_or_max() -> None:
@@ -230,3 +247,4 @@ def test_the_report_has_a_row_per_run_nulls_for_missing_parts_and_the_planner_lo
     row = next(line for line in report.splitlines() if line.startswith("| generated-4x4"))
     assert row.count("|") == len(QUOTA_COLUMNS) + 1
     assert "no limit" in row and "null" in row  # no quota; no cgroup accounting
+    assert "Where the daemon's CPU went" not in report  # no thread clocks read: no such section

@@ -305,3 +305,26 @@ def test_a_weak_motor_is_said_while_the_other_wheel_idles_at_the_deadband() -> N
 @pytest.mark.parametrize("case", list(HEALTHY_RECORDED), ids=list(HEALTHY_RECORDED))
 def test_recorded_healthy_transients_are_no_weak_motor(case: str) -> None:
     assert _feed(HEALTHY_RECORDED[case]) == []
+
+
+def test_a_check_copies_the_writes_since_it_last_looked_and_the_last_one_it_saw() -> None:
+    from collections import deque
+
+    from mazebot.tasks.health_task import _tail
+
+    history = deque(((0.05 * k, 0.1 * (k % 7), -0.1) for k in range(200)), maxlen=200)
+    full = list(history)
+    since_s = full[150][0]
+    assert _tail(history, since_s) == full[150:]  # the one at the last check, and every one after it
+    assert _tail(history, since_s + 0.01) == full[150:]  # the last one before the check's time
+    assert _tail(history, full[-1][0]) == full[-1:]  # nothing new: the last one seen alone
+    assert list(_tail(history, -1.0)) == full  # older than the history: all of it
+    assert list(_tail(history, None)) == full
+
+    class Appending(deque):  # type: ignore[type-arg]
+        """A history the control thread appends to while the check copies it."""
+
+        def __reversed__(self):  # type: ignore[no-untyped-def]
+            raise RuntimeError("deque mutated during iteration")
+
+    assert list(_tail(Appending(full), since_s)) == full  # then the whole history, at once

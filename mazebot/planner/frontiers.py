@@ -397,10 +397,10 @@ class SweptCells:
         near = np.hypot(rows + r0 - r, cols + c0 - c) <= radius
         if not near.any():
             return 0
-        targets = np.column_stack((rows[near] + r0, cols[near] + c0))
-        seen = sees(grid == FREE, np.array([[r, c]]), targets, min_range_m / resolution_m + 1.0, radius)[0]
+        targets = np.column_stack((rows[near], cols[near]))  # in the window: its rays stay inside it
+        seen = sees(free, np.array([[r - r0, c - c0]]), targets, min_range_m / resolution_m + 1.0, radius)[0]
         hit = targets[seen]
-        np.add.at(self._counts, (hit[:, 0], hit[:, 1]), 1)
+        np.add.at(self._counts, (hit[:, 0] + r0, hit[:, 1] + c0), 1)
         np.minimum(self._counts, np.iinfo(np.int16).max - 1, out=self._counts)
         return int(hit.shape[0])
 

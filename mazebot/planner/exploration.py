@@ -773,9 +773,9 @@ class Explorer:
             centroid = costmap.to_world(*frontier.centroid_rc)
             if any(math.dist(centroid, b) < self.blacklist_radius_m for b in self.blacklisted_points_m):
                 continue
-            swept_cells = int(np.count_nonzero(swept[frontier.unknown[:, 0], frontier.unknown[:, 1]]))
-            if 2 * swept_cells > frontier.unknown.shape[0]:  # mostly cells the lidar had in view: nothing new
-                hits.add(self._close(centroid, swept_cells, frontier.unknown.shape[0], fresh))
+            why = self._nothing_new(frontier, swept, origin, resolution_m)
+            if why is not None:  # mostly cells the lidar had in view, or a wall the graph knows: nothing new
+                hits.add(self._close(centroid, why, fresh))
                 continue
             excluded = self._failed_view_mask(centroid, costmap)
             candidates = viewpoint_candidates(frontier, cost_cells, resolution_m, self.view_radius_m, excluded)
@@ -853,27 +853,50 @@ class Explorer:
             f"({self._why_gone(region, grid, origin, resolution_m)})"
         )
 
-    def _close(self, centroid_m: tuple[float, float], swept: int, unknown: int, fresh: set[int]) -> int:
-        """A frontier at ``centroid_m`` whose unknown cells are mostly swept is no goal: the index of its
-        closed place (a new one, added to ``fresh`` and logged, when none is within ``region_match_m``).
+    def _nothing_new(
+        self, frontier: Frontier, swept: np.ndarray, origin: tuple[float, float], resolution_m: float
+    ) -> str | None:
+        """Why driving to ``frontier`` would show nothing new (for the log), or None when it may.
 
-        Swept cells are ones the lidar had in clear view, within ``view_radius_m`` and beyond its
-        minimum range, for ``sweep_revolutions`` painted revolutions while they stayed unknown
-        (:class:`SweptCells`): looking again from anywhere the robot can stand shows the same. A
-        frontier a resolved one leaves a few cells beyond it (a corridor or a room seen further)
-        has new cells and stays a goal, whatever its place: the rule holds in frontier mode too,
-        where closing by place stopped 6x6 runs at coverage 0.18-0.45.
+        Most of its unknown cells are *swept*: the lidar had them in clear view, within
+        ``view_radius_m`` and beyond its minimum range, for ``sweep_revolutions`` painted
+        revolutions while they stayed unknown (:class:`SweptCells`); looking again from
+        anywhere the robot can stand shows the same. A frontier a resolved one leaves a few
+        cells beyond it (a corridor or a room seen further) has new cells and stays a goal,
+        wherever it is: the rule holds in frontier mode too, where closing by place stopped
+        6x6 runs at coverage 0.18-0.45.
+
+        In a maze, also when most of its unknown cells lie on the line of a link the graph
+        knows as a wall (:meth:`MazeGraph.on_walls`, within the wall band of the frontiers'
+        wall margin): the stretch of a wall the lidar saw only at grazing angles, with the
+        unknown inside of a closed block of cells behind it (a 16x16 maze's late frontiers,
+        which the robot drove back along the bottom corridor for). The grid's check is there
+        for a link the graph misread as a wall, and an opening shows no occupied cell along it.
         """
+        n = frontier.unknown.shape[0]
+        swept_cells = int(np.count_nonzero(swept[frontier.unknown[:, 0], frontier.unknown[:, 1]]))
+        if 2 * swept_cells > n:
+            revolutions = self.sweep_revolutions
+            return f"{swept_cells} of its {n} unknown cells swept (in the lidar's view for {revolutions} revolutions)"
+        if self.mode != "maze" or self.graph.frame is None:
+            return None
+        xy_m = (frontier.unknown[:, ::-1] + 0.5) * resolution_m + np.asarray(origin, dtype=np.float64)
+        band_m = self.graph.wall_thickness_m / 2 + self.frontier_wall_margin_cells * resolution_m
+        walled = int(np.count_nonzero(self.graph.on_walls(xy_m, band_m)))
+        if 2 * walled > n:
+            return f"{walled} of its {n} unknown cells on walls the maze graph knows"
+        return None
+
+    def _close(self, centroid_m: tuple[float, float], why: str, fresh: set[int]) -> int:
+        """A frontier at ``centroid_m`` that would show nothing new (``why``) is no goal: the index of its
+        closed place (a new one, added to ``fresh`` and logged, when none is within ``region_match_m``)."""
         k = self._closed_near(centroid_m)
         if k is None:
             k = len(self.closed_points_m)
             self.closed_points_m.append(centroid_m)
             self.comebacks.append(0)
             fresh.add(k)
-            self.events.append(
-                f"closed frontier at {centroid_m[0]:.2f}, {centroid_m[1]:.2f}: {swept} of its {unknown} unknown "
-                f"cells swept (in the lidar's view for {self.sweep_revolutions} revolutions): not a goal"
-            )
+            self.events.append(f"closed frontier at {centroid_m[0]:.2f}, {centroid_m[1]:.2f}: {why}: not a goal")
         return k
 
     def _why_gone(

@@ -371,8 +371,10 @@ class SweptCells:
         """Add one revolution to each unknown cell next to known free space the robot's lidar sees now.
 
         Call once per map revolution painted (the map changed since the last call); returns how
-        many cells were counted. Seen as :func:`best_viewpoint` counts a viewpoint's gain: from
-        the robot's cell, between the minimum range plus a cell and ``view_radius_m``.
+        many cells were counted. Seen as :func:`best_viewpoint` counts a viewpoint's gain (from
+        the robot's cell, between the minimum range plus a cell and ``view_radius_m``), along the
+        beam's centre line: the robot stands on the swept cells' side for revolutions on end, at
+        slightly different poses, so a corner the line only grazes is no false view that lasts.
         """
         grid = np.asarray(three_state)
         anchor = self._anchor_of(origin_m, resolution_m)
@@ -398,7 +400,10 @@ class SweptCells:
         if not near.any():
             return 0
         targets = np.column_stack((rows[near], cols[near]))  # in the window: its rays stay inside it
-        seen = sees(free, np.array([[r - r0, c - c0]]), targets, min_range_m / resolution_m + 1.0, radius)[0]
+        # the beam's centre line only: a wall's cells seen at a grazing angle are reached along the free band
+        # beside the wall, where a strip as wide as a cell (a viewpoint's test) already touches the wall line
+        robot = np.array([[r - r0, c - c0]])
+        seen = sees(free, robot, targets, min_range_m / resolution_m + 1.0, radius, half_width_cells=0.0)[0]
         hit = targets[seen]
         np.add.at(self._counts, (hit[:, 0] + r0, hit[:, 1] + c0), 1)
         np.minimum(self._counts, np.iinfo(np.int16).max - 1, out=self._counts)

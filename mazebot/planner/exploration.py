@@ -49,6 +49,9 @@ frontiers are stretches of corridor wall seen only at grazing angles: their cell
 unknown, free and wall as revolutions come in, the frontier vanishes as the robot comes near
 and comes back behind it, and the robot drove to and fro along a corridor for them. A frontier
 a resolved one leaves a few cells beyond it has new cells and is a goal, wherever it is.
+In a maze, a frontier whose unknown cells lie on the line of a link the graph knows as a wall
+is closed as well: those late frontiers are faces of closed blocks of cells, seen through the
+gaps a grazing view leaves in a painted wall line (an opening shows no occupied cell along it).
 
 A blacklisted target is not given up for good: it is tried again once the robot has
 driven ``retry_after_m`` elsewhere (the map around it has changed), or at once when
@@ -324,7 +327,10 @@ class Explorer:
     around a viewpoint that failed to resolve its frontier (a retry looks from elsewhere);
     ``inside_half_m`` how close (along either maze axis) the robot must come to a cell's
     centre for the cell to count as visited, its inside seen (see
-    :meth:`MazeGraph.mark_looked_into`).
+    :meth:`MazeGraph.mark_looked_into`); ``recheck_revolutions`` how many map revolutions
+    apart the whole grid is searched while the robot returns home; ``sweep_revolutions`` for
+    how many painted revolutions the lidar must have an unknown cell in clear view for it to
+    count as swept (a frontier of mostly swept cells is closed, :class:`SweptCells`).
     """
 
     def __init__(

@@ -40,12 +40,18 @@ have resolved the target) while it was the target without its route cost reachin
 low, or while the robot stood at it. On a slower computer SLAM paints fewer revolutions
 a second and the targets get as many chances as on a fast one.
 
-In a maze, a grid frontier that vanishes while the robot is within ``view_radius_m`` of it is
-*closed*: the lidar swept it from there. On a 16x16 maze the last frontiers are stretches of corridor
-wall seen only at grazing angles; they vanish as the robot comes near and come back as the
-map changes behind it (:meth:`Explorer._close_if_looked` logs what became of their cells), and
-the robot drove to and fro along a corridor for them. A frontier back at a closed place is not
-a goal again.
+A grid frontier whose unknown cells are mostly *swept* is *closed*, in both modes: on every
+painted revolution the explorer counts the unknown cells next to known free space that the
+lidar has in clear view (within ``view_radius_m``, beyond its minimum range, along free cells;
+:class:`~mazebot.planner.frontiers.SweptCells`); one in view for ``sweep_revolutions`` that is
+still unknown shows nothing new from anywhere the robot can stand. On a 16x16 maze the last
+frontiers are stretches of corridor wall seen only at grazing angles: their cells flip between
+unknown, free and wall as revolutions come in, the frontier vanishes as the robot comes near
+and comes back behind it, and the robot drove to and fro along a corridor for them. A frontier
+a resolved one leaves a few cells beyond it has new cells and is a goal, wherever it is.
+In a maze, a frontier whose unknown cells lie on the line of a link the graph knows as a wall
+is closed as well: those late frontiers are faces of closed blocks of cells, seen through the
+gaps a grazing view leaves in a painted wall line (an opening shows no occupied cell along it).
 
 A blacklisted target is not given up for good: it is tried again once the robot has
 driven ``retry_after_m`` elsewhere (the map around it has changed), or at once when
@@ -69,6 +75,7 @@ import numpy as np
 from mazebot.config import PlannerConfig, RobotConfig
 from mazebot.planner.frontiers import (
     Frontier,
+    SweptCells,
     Viewpoint,
     best_viewpoint,
     find_frontiers,
@@ -320,7 +327,10 @@ class Explorer:
     around a viewpoint that failed to resolve its frontier (a retry looks from elsewhere);
     ``inside_half_m`` how close (along either maze axis) the robot must come to a cell's
     centre for the cell to count as visited, its inside seen (see
-    :meth:`MazeGraph.mark_looked_into`).
+    :meth:`MazeGraph.mark_looked_into`); ``recheck_revolutions`` how many map revolutions
+    apart the whole grid is searched while the robot returns home; ``sweep_revolutions`` for
+    how many painted revolutions the lidar must have an unknown cell in clear view for it to
+    count as swept (a frontier of mostly swept cells is closed, :class:`SweptCells`).
     """
 
     def __init__(
@@ -354,6 +364,7 @@ class Explorer:
         blacklist_radius_m: float = 0.15,
         inside_half_m: float = 0.075,
         recheck_revolutions: int = 5,
+        sweep_revolutions: int = 4,
     ) -> None:
         if mode not in ("auto", "maze", "frontier"):
             raise ValueError(f"mode must be 'auto', 'maze' or 'frontier', got {mode!r}")
@@ -395,6 +406,9 @@ class Explorer:
         if recheck_revolutions < 1:
             raise ValueError(f"recheck_revolutions must be >= 1, got {recheck_revolutions}")
         self.recheck_revolutions = int(recheck_revolutions)
+        if sweep_revolutions < 1:
+            raise ValueError(f"sweep_revolutions must be >= 1, got {sweep_revolutions}")
+        self.sweep_revolutions = int(sweep_revolutions)
 
         self.phase = Phase.EXPLORING
         self.mode: Literal["maze", "frontier"] = "frontier" if mode == "frontier" else "maze"
@@ -407,8 +421,11 @@ class Explorer:
         self._given_up: dict[object, _GivenUp] = {}  # blacklisted targets, by key
         #: (region centroid, viewpoint) of grid frontiers blacklisted from there: a retry looks from elsewhere
         self._failed_views_m: list[tuple[tuple[float, float], tuple[float, float]]] = []
-        #: centroids of grid frontiers closed: they vanished while the robot was within view of them
-        #: (it looked, the lidar swept them); a frontier that comes back there is no goal again
+        #: the unknown cells the lidar had in clear view, counted in map revolutions (:class:`SweptCells`)
+        self.swept = SweptCells()
+        self._last_sweep: int | None = None  # the map's revolutions at the last count
+        #: centroids of grid frontiers closed: most of their unknown cells were swept (the lidar had them
+        #: in clear view for ``sweep_revolutions`` and they stayed unknown); no goal, there or again
         self.closed_points_m: list[tuple[float, float]] = []
         #: comebacks of each closed place (by index): a frontier there again after a tick without one
         self.comebacks: list[int] = []
@@ -447,6 +464,9 @@ class Explorer:
         self._last_xy_m = xy
         grid = np.asarray(three_state)
         self._costmap = None
+        if self._last_sweep is None or self._revolutions > self._last_sweep:  # one count per painted revolution
+            self._last_sweep = self._revolutions
+            self.swept.count(grid, grid_origin_m, resolution_m, xy, self.lidar_min_range_m, self.view_radius_m)
         if self.mode_setting != "frontier":
             self.graph.update(grid, grid_origin_m, resolution_m)
             yield
@@ -556,6 +576,8 @@ class Explorer:
         self._history.clear()
         self._given_up.clear()
         self._failed_views_m.clear()
+        self.swept = SweptCells()
+        self._last_sweep = None
         self.closed_points_m.clear()
         self.comebacks.clear()
         self._closed_hit.clear()
@@ -678,7 +700,7 @@ class Explorer:
         still_there = anchor is not None and any(math.dist(o.centroid_m, anchor) < self.region_match_m for o in options)
         followed_gone = followed is not None and current is not None and followed[0] == current.key and not still_there
         if followed is not None and followed_gone and self.mode == "maze":  # the grid's check of a maze
-            self._close_if_looked(followed[1], grid, origin, resolution_m, pose)  # the followed frontier is gone
+            self._log_gone(followed[1], grid, origin, resolution_m, pose)  # the followed frontier is gone
         if not options:
             self._target = None
             return None
@@ -749,15 +771,17 @@ class Explorer:
         distances = costmap.distances_from(robot_xy_m)
         cost_cells = np.where(costmap.passable, distances, np.inf)
         free = grid == FREE
+        swept = self.swept.swept_mask(grid.shape, origin, resolution_m, self.sweep_revolutions)
         hits: set[int] = set()
+        fresh: set[int] = set()
         ranked: list[tuple[float, bool, Frontier, tuple[float, float], np.ndarray]] = []
         for frontier in frontiers:
             centroid = costmap.to_world(*frontier.centroid_rc)
             if any(math.dist(centroid, b) < self.blacklist_radius_m for b in self.blacklisted_points_m):
                 continue
-            closed = self._closed_near(centroid) if self.mode == "maze" else None
-            if closed is not None:  # it vanished there while the robot looked: its cells flipped back
-                hits.add(closed)
+            why = self._nothing_new(frontier, swept, origin, resolution_m)
+            if why is not None:  # mostly cells the lidar had in view, or a wall the graph knows: nothing new
+                hits.add(self._close(centroid, why, fresh))
                 continue
             excluded = self._failed_view_mask(centroid, costmap)
             candidates = viewpoint_candidates(frontier, cost_cells, resolution_m, self.view_radius_m, excluded)
@@ -766,7 +790,7 @@ class Explorer:
             bound = score_bound_m(frontier, candidates, cost_cells, resolution_m, self.gain_weight_m)
             is_current = anchor_m is not None and math.dist(centroid, anchor_m) < self.region_match_m
             ranked.append((bound, is_current, frontier, centroid, candidates))
-        self._note_comebacks(hits)
+        self._note_comebacks(hits, fresh)
         ranked.sort(key=lambda item: (not item[1], item[0]))  # the current target first, then by bound
         options: list[_Region] = []
         best = math.inf
@@ -803,7 +827,7 @@ class Explorer:
         options.sort(key=lambda o: (o.view.score_m, -o.size))
         return options
 
-    def _close_if_looked(
+    def _log_gone(
         self,
         region: _Region,
         grid: np.ndarray,
@@ -811,22 +835,14 @@ class Explorer:
         resolution_m: float,
         pose: tuple[float, float, float],
     ) -> None:
-        """The followed ``region`` is no option any more: closed when it is gone and the robot was within view of it.
+        """Log what became of the followed ``region``'s unknown cells when it vanished with the robot within view.
 
-        Gone: most of its unknown cells belong to no frontier of this tick's search (painted,
-        or now within the wall margin of an occupied cell, part of a sliver, or bordered by
-        too few free cells); a region that only moved or merged, its centroid farther than
-        ``region_match_m`` from where it was first chosen, is still there and stays open. Within
-        ``view_radius_m`` of its nearest unknown cell the lidar swept it. Cells at the edge of
-        the log-odds thresholds (a 16x16 maze's corridor walls, seen at grazing angles) flip as
-        revolutions come in, and the frontier comes back behind the robot: that is no reason
-        to drive there again (:meth:`_closed_near`). One that vanished while the robot was
-        farther away stays open.
-
-        Only in a maze, where grid frontiers are the check after the graph knows every link
-        (a misread opening shows as new links once seen). In frontier mode a frontier the
-        lidar resolves is followed by a new one a few cells beyond it, at the same place:
-        closing it stopped 6x6 runs at coverage 0.18-0.45.
+        Gone: most of its unknown cells belong to no frontier of this tick's search; a region
+        that only moved or merged (its centroid farther than ``region_match_m`` from where it was
+        first chosen) is still there and not logged. A log line, nothing more (a maze's grid
+        check only): whether a frontier back there is a goal again is decided by its cells
+        (:meth:`_close`), not by this vanishing. On a 16x16 maze the corridor walls' cells flip
+        between unknown, free and wall with the revolutions (the lines say how many were painted).
         """
         if region.unknown_m.shape[0] == 0:
             return
@@ -837,13 +853,57 @@ class Explorer:
         owned = self._frontier_unknown
         if owned is not None and owned.shape == grid.shape and 2 * np.count_nonzero(owned[rows, cols]) >= rows.size:
             return  # still a frontier's: it moved or merged, it did not vanish
-        self.closed_points_m.append(region.centroid_m)
-        self.comebacks.append(0)
         cx, cy = region.centroid_m
         self.events.append(
-            f"closed frontier at {cx:.2f}, {cy:.2f}: gone with the robot {near_m:.2f} m from it "
+            f"frontier at {cx:.2f}, {cy:.2f} gone with the robot {near_m:.2f} m from it "
             f"({self._why_gone(region, grid, origin, resolution_m)})"
         )
+
+    def _nothing_new(
+        self, frontier: Frontier, swept: np.ndarray, origin: tuple[float, float], resolution_m: float
+    ) -> str | None:
+        """Why driving to ``frontier`` would show nothing new (for the log), or None when it may.
+
+        Most of its unknown cells are *swept*: the lidar had them in clear view, within
+        ``view_radius_m`` and beyond its minimum range, for ``sweep_revolutions`` painted
+        revolutions while they stayed unknown (:class:`SweptCells`); looking again from
+        anywhere the robot can stand shows the same. A frontier a resolved one leaves a few
+        cells beyond it (a corridor or a room seen further) has new cells and stays a goal,
+        wherever it is: the rule holds in frontier mode too, where closing by place stopped
+        6x6 runs at coverage 0.18-0.45.
+
+        In a maze, also when most of its unknown cells lie on the line of a link the graph
+        knows as a wall (:meth:`MazeGraph.on_walls`, within the wall band of the frontiers'
+        wall margin): the stretch of a wall the lidar saw only at grazing angles, with the
+        unknown inside of a closed block of cells behind it (a 16x16 maze's late frontiers,
+        which the robot drove back along the bottom corridor for). The grid's check is there
+        for a link the graph misread as a wall, and an opening shows no occupied cell along it.
+        """
+        n = frontier.unknown.shape[0]
+        swept_cells = int(np.count_nonzero(swept[frontier.unknown[:, 0], frontier.unknown[:, 1]]))
+        if 2 * swept_cells > n:
+            revolutions = self.sweep_revolutions
+            return f"{swept_cells} of its {n} unknown cells swept (in the lidar's view for {revolutions} revolutions)"
+        if self.mode != "maze" or self.graph.frame is None:
+            return None
+        xy_m = (frontier.unknown[:, ::-1] + 0.5) * resolution_m + np.asarray(origin, dtype=np.float64)
+        band_m = self.graph.wall_thickness_m / 2 + self.frontier_wall_margin_cells * resolution_m
+        walled = int(np.count_nonzero(self.graph.on_walls(xy_m, band_m)))
+        if 2 * walled > n:
+            return f"{walled} of its {n} unknown cells on walls the maze graph knows"
+        return None
+
+    def _close(self, centroid_m: tuple[float, float], why: str, fresh: set[int]) -> int:
+        """A frontier at ``centroid_m`` that would show nothing new (``why``) is no goal: the index of its
+        closed place (a new one, added to ``fresh`` and logged, when none is within ``region_match_m``)."""
+        k = self._closed_near(centroid_m)
+        if k is None:
+            k = len(self.closed_points_m)
+            self.closed_points_m.append(centroid_m)
+            self.comebacks.append(0)
+            fresh.add(k)
+            self.events.append(f"closed frontier at {centroid_m[0]:.2f}, {centroid_m[1]:.2f}: {why}: not a goal")
+        return k
 
     def _why_gone(
         self, region: _Region, grid: np.ndarray, origin: tuple[float, float], resolution_m: float
@@ -870,9 +930,10 @@ class Explorer:
                 best, best_m = k, d_m
         return best
 
-    def _note_comebacks(self, hits: set[int]) -> None:
-        """Count and report the closed places with a frontier again that had none on the last search."""
-        for k in sorted(hits - self._closed_hit):
+    def _note_comebacks(self, hits: set[int], fresh: set[int] | None = None) -> None:
+        """Count and report the closed places with a frontier again that had none on the last search
+        (``fresh``: those closed on this one)."""
+        for k in sorted(hits - self._closed_hit - (fresh or set())):
             self.comebacks[k] += 1
             cx, cy = self.closed_points_m[k]
             self.events.append(

@@ -313,3 +313,113 @@ def best_viewpoint(
 def _spread(n: int, k: int) -> np.ndarray:
     """``k`` (or fewer) indices spread evenly over ``0 .. n-1``, both ends included."""
     return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
+
+
+class SweptCells:
+    """How many map revolutions the lidar had each unknown cell in clear view: cells it was *swept* by.
+
+    A frontier is worth a visit for what its unknown cells may hide. Once the robot stood
+    where its lidar had a cell within ``view_radius_m`` (beyond the minimum range, along a
+    strip of known free cells: :func:`sees`) for several revolutions painted into the map,
+    and the cell is still unknown, driving there again shows nothing new: the cell is a
+    stretch of wall seen only at grazing angles (a 16x16 maze's corridor walls: their cells
+    flip between unknown, free and wall as revolutions come in, and the frontier they make
+    comes and goes behind the robot), not a way into unexplored space. A real opening seen
+    that way is painted free, and the cells behind it are new.
+
+    Counted per cell of the infinite lattice the map's grid is cut from (the grid grows: its
+    origin moves by whole cells), only the unknown cells next to known free ones (where a
+    frontier's unknown cells are), near the robot: a few hundred cells, a millisecond a tick.
+
+    Example::
+
+        swept = SweptCells()
+        swept.count(grid, origin_m, resolution_m, (x_m, y_m), 0.15, 0.9)  # once per painted revolution
+        mask = swept.swept_mask(grid.shape, origin_m, resolution_m, 4)   # cells swept 4 times or more
+    """
+
+    def __init__(self) -> None:
+        self._counts = np.zeros((0, 0), dtype=np.int16)
+        self._anchor = (0, 0)  # lattice (row, col) of self._counts[0, 0]
+
+    @staticmethod
+    def _anchor_of(origin_m: tuple[float, float], resolution_m: float) -> tuple[int, int]:
+        return (round(origin_m[1] / resolution_m), round(origin_m[0] / resolution_m))
+
+    def _aligned(self, shape: tuple[int, int], anchor: tuple[int, int]) -> np.ndarray:
+        """The counts on the cells of a grid of ``shape`` whose cell (0, 0) is lattice cell ``anchor``."""
+        if self._counts.shape == shape and self._anchor == anchor:
+            return self._counts
+        out = np.zeros(shape, dtype=np.int16)
+        dr, dc = self._anchor[0] - anchor[0], self._anchor[1] - anchor[1]
+        rows, cols = self._counts.shape
+        r0, c0 = max(dr, 0), max(dc, 0)
+        r1, c1 = min(dr + rows, shape[0]), min(dc + cols, shape[1])
+        if r1 > r0 and c1 > c0:
+            out[r0:r1, c0:c1] = self._counts[r0 - dr : r1 - dr, c0 - dc : c1 - dc]
+        return out
+
+    def count(
+        self,
+        three_state: np.ndarray,
+        origin_m: tuple[float, float],
+        resolution_m: float,
+        robot_xy_m: tuple[float, float],
+        min_range_m: float,
+        view_radius_m: float,
+    ) -> int:
+        """Add one revolution to each unknown cell next to known free space the robot's lidar sees now.
+
+        Call once per map revolution painted (the map changed since the last call); returns how
+        many cells were counted. Seen as :func:`best_viewpoint` counts a viewpoint's gain (from
+        the robot's cell, between the minimum range plus a cell and ``view_radius_m``), along the
+        beam's centre line: the robot stands on the swept cells' side for revolutions on end, at
+        slightly different poses, so a corner the line only grazes is no false view that lasts.
+        """
+        grid = np.asarray(three_state)
+        anchor = self._anchor_of(origin_m, resolution_m)
+        self._counts = self._aligned(grid.shape, anchor)
+        self._anchor = anchor
+        radius = view_radius_m / resolution_m
+        r = math.floor((robot_xy_m[1] - origin_m[1]) / resolution_m)
+        c = math.floor((robot_xy_m[0] - origin_m[0]) / resolution_m)
+        pad = math.ceil(radius) + 1
+        r0, r1 = max(r - pad, 0), min(r + pad + 1, grid.shape[0])
+        c0, c1 = max(c - pad, 0), min(c + pad + 1, grid.shape[1])
+        if r1 <= r0 or c1 <= c0:
+            return 0
+        window = grid[r0:r1, c0:c1]
+        free = window == FREE
+        beside_free = np.zeros_like(free)
+        beside_free[1:, :] |= free[:-1, :]
+        beside_free[:-1, :] |= free[1:, :]
+        beside_free[:, 1:] |= free[:, :-1]
+        beside_free[:, :-1] |= free[:, 1:]
+        rows, cols = np.nonzero((window == UNKNOWN) & beside_free)
+        near = np.hypot(rows + r0 - r, cols + c0 - c) <= radius
+        if not near.any():
+            return 0
+        targets = np.column_stack((rows[near], cols[near]))  # in the window: its rays stay inside it
+        # the beam's centre line only: a wall's cells seen at a grazing angle are reached along the free band
+        # beside the wall, where a strip as wide as a cell (a viewpoint's test) already touches the wall line
+        robot = np.array([[r - r0, c - c0]])
+        seen = sees(free, robot, targets, min_range_m / resolution_m + 1.0, radius, half_width_cells=0.0)[0]
+        hit = targets[seen]
+        np.add.at(self._counts, (hit[:, 0] + r0, hit[:, 1] + c0), 1)
+        np.minimum(self._counts, np.iinfo(np.int16).max - 1, out=self._counts)
+        return int(hit.shape[0])
+
+    def swept_mask(
+        self, shape: tuple[int, int], origin_m: tuple[float, float], resolution_m: float, min_revolutions: int
+    ) -> np.ndarray:
+        """The cells of a grid (``shape``, ``origin_m``) swept ``min_revolutions`` times or more, and their
+        8 neighbours (a cell at the edge of the map's thresholds flips with its neighbour)."""
+        counts = self._aligned(shape, self._anchor_of(origin_m, resolution_m))
+        swept = counts >= min_revolutions
+        out = swept.copy()
+        out[1:, :] |= swept[:-1, :]
+        out[:-1, :] |= swept[1:, :]
+        grown = out.copy()
+        grown[:, 1:] |= out[:, :-1]
+        grown[:, :-1] |= out[:, 1:]
+        return grown

@@ -686,6 +686,31 @@ class MazeGraph:
             return _LINK_STATES[rows[r][q]]
         return LinkState.UNKNOWN
 
+    def on_walls(self, xy_m: np.ndarray, tolerance_m: float) -> np.ndarray:
+        """Which map points ((N, 2), metres) lie within ``tolerance_m`` of the line of a WALL link: (N,) bool.
+
+        A boundary is a WALL once ``wall_fraction`` of it is seen occupied, and an opening never
+        shows occupied cells along it: unknown cells on such a line are a stretch of that wall
+        the lidar saw only at grazing angles (their cells flip), not a way into unexplored space.
+        """
+        points = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
+        out = np.zeros(points.shape[0], dtype=bool)
+        frame = self.frame
+        if frame is None or points.shape[0] == 0:
+            return out
+        c = self.cell_size_m
+        uv = frame.to_maze(points) / c
+        h, w = self._east.shape
+        for axis, links in ((0, self._east), (1, self._north)):
+            line = np.rint(uv[:, axis]).astype(np.int64)  # the nearest lattice line across this axis
+            near = np.abs(uv[:, axis] - line) * c <= tolerance_m
+            along = np.floor(uv[:, 1 - axis]).astype(np.int64)
+            i = (line - 1 if axis == 0 else along) - self._i0  # the cell whose E (N) side the line is
+            j = (along if axis == 0 else line - 1) - self._j0
+            inside = near & (i >= 0) & (i < w) & (j >= 0) & (j < h)
+            out[inside] |= links[j[inside], i[inside]] == LinkState.WALL
+        return out
+
     def link_between(self, a: Cell, b: Cell) -> LinkState:
         """State of the boundary between neighbouring cells ``a`` and ``b``."""
         return self.link(a, Direction.between(a, b))

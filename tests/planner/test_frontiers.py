@@ -11,6 +11,7 @@ from scipy import ndimage
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.frontiers import (
     Frontier,
+    SweptCells,
     best_viewpoint,
     find_frontiers,
     sees,
@@ -169,3 +170,25 @@ def test_an_unpainted_stretch_of_wall_between_two_seen_corridors_is_no_frontier(
     grid[30, 40:55] = UNSEEN  # the same in the outer wall: the outside is behind it
     (frontier,) = find_frontiers(grid)
     assert set(frontier.cells[:, 0]) == {29}
+
+
+def test_swept_cells_are_counted_where_the_lidar_sees_them_and_kept_when_the_grid_grows() -> None:
+    # a 2 x 1 m room known free but a 6 x 6 patch (2 cm cells); the robot 0.5 m west of it
+    grid = np.zeros((50, 100), dtype=np.int8)
+    grid[[0, -1], :] = 100
+    grid[:, [0, -1]] = 100
+    grid[22:28, 50:56] = -1
+    swept = SweptCells()
+    for _ in range(3):
+        assert swept.count(grid, (0.0, 0.0), 0.02, (0.5, 0.5), 0.15, 0.9) == 6  # the patch's west face
+    mask = swept.swept_mask(grid.shape, (0.0, 0.0), 0.02, 3)
+    assert mask[22:28, 50].all() and not mask[22:28, 52:56].any()  # the face and its neighbours, not beyond
+    assert not swept.swept_mask(grid.shape, (0.0, 0.0), 0.02, 4).any()
+    # within the lidar's minimum range nothing is seen; beyond the view radius neither
+    assert swept.count(grid, (0.0, 0.0), 0.02, (0.95, 0.5), 0.15, 0.9) == 0
+    assert swept.count(grid, (0.0, 0.0), 0.02, (0.05 + 0.02, 0.5), 0.15, 0.9) == 0
+    # the grid grows by 10 cells west and 5 south: the same cells of the world keep their counts
+    grown = np.zeros((55, 110), dtype=np.int8)
+    grown[5:, 10:] = grid
+    mask = swept.swept_mask(grown.shape, (-0.2, -0.1), 0.02, 3)
+    assert mask[27:33, 60].all() and int(mask.sum()) == 3 * 8

@@ -451,3 +451,21 @@ def test_sample_cells_follow_the_grid_values_and_refresh_when_the_grid_moves() -
             got = cells.lookup(("e", "frame"), grid, origin_m, 0.02, sample_xy)
             assert np.array_equal(got, direct(grid, origin_m, 0.02))
     assert len(calls) == 2  # worked out once per placement of the grid
+
+
+def test_points_on_the_line_of_a_wall_link_are_told_from_open_links_and_cell_insides() -> None:
+    _layout, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    graph = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    graph.update(grid, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.WALL and graph.link((1, 1), Direction.W) is LinkState.OPEN
+    points = np.array([
+        (1.5 * CELL, CELL),  # on the wall between (1, 1) and the sealed (1, 0)
+        (1.5 * CELL, CELL + 0.04),  # 4 cm off it, in (1, 1)
+        (1.5 * CELL, CELL + 0.08),  # 8 cm off it
+        (CELL, 1.5 * CELL),  # on the open link between (0, 1) and (1, 1)
+        (1.5 * CELL, 1.5 * CELL),  # the middle of (1, 1)
+        (3 * CELL, 0.5 * CELL),  # the maze's outer east wall
+    ])
+    assert graph.on_walls(points, 0.046).tolist() == [True, True, False, False, False, True]
+    assert not MazeGraph().on_walls(points, 0.046).any()  # no lattice yet: no wall known

@@ -302,7 +302,10 @@ def test_pair_from_config_reads_both_wheels(factory: MockFactory) -> None:
         right_a.drive_high()  # a bounce: nets zero
         reading = encoders.read()
         assert reading.edge_age_s is not None and 0.0 <= reading.edge_age_s < 60.0  # gpiozero's mock stamps: monotonic
-        assert dataclasses.replace(reading, edge_age_s=None) == EncoderReading(
+        # both counts sampled at the first edge (then at most one sample per 10 ms of the edges' stamps)
+        assert reading.steps[0][1:] == (1, 0) and 0.0 <= reading.steps[0][0] < 60.0
+        assert encoders.read().steps == ()  # taken by the reading before
+        assert dataclasses.replace(reading, edge_age_s=None, steps=()) == EncoderReading(
             left_ticks=3 * cfg.ticks_per_rev // cfg.counts_per_rev,
             right_ticks=2 * 4,
             invalid_transitions=0,

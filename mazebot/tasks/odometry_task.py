@@ -100,10 +100,11 @@ def _between(state: SharedState, odometry: DiffDriveOdometry, history: OdometryH
     A reading late by a few hundred milliseconds (a process starved by a CPU quota, a long
     planner stage) used to give the history one pose at each end of the gap, and SLAM
     interpolated between them: a turn that began inside the gap was smeared over all of it,
-    degrees of heading off at its start (the odometry's heading error over 0.2 s reached
-    p99 3.4° on a 16x16 maze under a 25 % quota; the worst windows held the longest gaps).
-    The edge samples say how the wheels got there, so the history holds a pose every
-    ``period_s`` of the edges' time whatever the loop did. Only inside a gap: a prompt
+    degrees of heading off at its start (the odometry's heading error over 0.2 s: p99
+    0.64-0.67° in 16x16 runs under a 25 % quota, 3.1-3.4° in earlier ones, its worst windows
+    those with gaps of 0.2-0.45 s; 0.22° with these poses). The edge samples say how the
+    wheels got there, so the history holds a pose at least every ``period_s`` of the edges'
+    time (one sample every ``EDGE_SAMPLE_PERIOD_S``) whatever the loop did. Only inside a gap: a prompt
     reading adds nothing, and a replay of a recording (each step is given to the listeners)
     builds the same history.
     """

@@ -483,7 +483,7 @@ class SlamConfig(BaseModel):
         ge=0,
         le=19,
         description="the loop-closure worker process's nice value: on a CPU shared with the daemon (one Pi core, "
-        "a quota) its jobs take what the daemon leaves and never hold up a revolution; 0: as the daemon",
+        "a quota) its jobs take what the daemon leaves instead of half of it; 0: as the daemon",
     )
     correlative: bool = Field(
         True, description="search a window of poses ([slam.search]) before ICP where its match failed, "

@@ -123,8 +123,9 @@ def _watch_daemon(daemon_pid: int, nice: int = 0, period_s: float = 1.0) -> None
     daemon (a Pi with its other cores busy, a CPU quota) it took half of it whenever both
     were ready, and the revolutions that arrived meanwhile piled up behind SLAM until the
     oldest were dropped. At nice 19 the scheduler gives the worker what the daemon leaves
-    (a weight of 15 against the daemon's 1024: the kernel's ``sched_prio_to_weight``): a
-    closure lands later, no revolution waits for it. With a core to itself nothing changes.
+    (a weight of 15 against the daemon's 1024: the kernel's ``sched_prio_to_weight``) and a
+    closure lands later. (Not enough in every quota run: one of eight on 16x16 still dropped
+    revolutions with the main thread starved during a long job.) With a core to itself nothing changes.
 
     A pool's worker waits on a pipe whose both ends it inherited, so a daemon killed
     without its clean-up (SIGKILL, a crash) would leave it waiting for ever. The objects

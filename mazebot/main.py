@@ -336,7 +336,7 @@ async def run_daemon(
         from mazebot.tasks.health_task import HealthMonitor
 
         # loop closures (verification, pose-graph optimization, map rebuilds) run here, off the event loop
-        slam_executor: Executor = LoopClosureExecutor(config.slam.loop_closure_executor)
+        slam_executor: Executor = LoopClosureExecutor(config.slam.loop_closure_executor, config.slam.loop_closure_nice)
         stack.callback(slam_executor.shutdown)
         state.auto_resume = config.daemon.auto_resume
         # what must survive a task's restart is built here, outside the tasks: the odometry

@@ -478,6 +478,13 @@ class SlamConfig(BaseModel):
         "process",
         description="run loop-closure jobs in a worker process (a core of its own) or a thread of the daemon",
     )
+    loop_closure_nice: int = Field(
+        19,
+        ge=0,
+        le=19,
+        description="the loop-closure worker process's nice value: on a CPU shared with the daemon (one Pi core, "
+        "a quota) its jobs take what the daemon leaves instead of half of it; 0: as the daemon",
+    )
     correlative: bool = Field(
         True, description="search a window of poses ([slam.search]) before ICP where its match failed, "
         "or after re-localization"

@@ -142,6 +142,16 @@ class SlamStats:
     loop_closures: int = 0  # accepted
     loop_closures_rejected: int = 0
     map_rebuilds: int = 0
+    #: where the SLAM task's time went, cumulative (seconds of the wall clock, and of its thread's
+    #: CPU): the lidar task says from their growth what held SLAM up when it drops a revolution
+    update_wall_s: float = 0.0  # revolutions checked and matched (guard, update)
+    update_cpu_s: float = 0.0
+    odometry_wait_s: float = 0.0  # waiting for the odometry to reach a revolution's end
+    merge_wall_s: float = 0.0  # loop-closure results merged (:meth:`Slam.apply_steps`)
+    merge_cpu_s: float = 0.0
+    merges: int = 0
+    #: when the loop-closure job now in the worker was started (``time.perf_counter``), None: none
+    job_started_wall_s: float | None = None
     #: accepted loop closures: (old keyframe time_s, new keyframe time_s, measured pose of the new
     #: keyframe in the old one's frame (x_m, y_m, theta_rad)), for checking against ground truth
     closures: list[tuple[float, float, tuple[float, float, float]]] = field(default_factory=list)

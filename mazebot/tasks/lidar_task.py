@@ -3,11 +3,54 @@
 from __future__ import annotations
 
 import asyncio
+import logging
+import time
+from collections import deque
+from typing import NamedTuple
 
-from mazebot.state import SharedState
+from mazebot.state import SharedState, SlamStats
+
+log = logging.getLogger(__name__)
 
 #: At most one "garbled bytes" event this often.
 GARBLED_NOTE_EVERY_S = 5.0
+
+
+class SlamTimes(NamedTuple):
+    """The SLAM task's cumulative times (:class:`SlamStats`) and this thread's CPU, when a revolution was queued."""
+
+    wall_s: float
+    thread_cpu_s: float
+    update_wall_s: float
+    update_cpu_s: float
+    odometry_wait_s: float
+    merge_wall_s: float
+    merge_cpu_s: float
+    merges: int
+    scans: int
+
+    @classmethod
+    def now(cls, slam: SlamStats) -> SlamTimes:
+        return cls(time.perf_counter(), time.thread_time(), slam.update_wall_s, slam.update_cpu_s,
+                   slam.odometry_wait_s, slam.merge_wall_s, slam.merge_cpu_s, slam.merges, slam.scans)
+
+
+def why_behind(then: SlamTimes, now: SlamTimes, job_started_wall_s: float | None) -> str:
+    """What held SLAM up while a dropped revolution waited in the queue: one line for the log.
+
+    The event loop's thread is SLAM's: its CPU against the wall time says whether the
+    process was starved (a CPU quota, the loop-closure worker) or busy; SLAM's own
+    counters say on what (matching revolutions, waiting for the odometry, merging closures).
+    """
+    wall_s = now.wall_s - then.wall_s
+    job = ("no loop-closure job running" if job_started_wall_s is None
+           else f"a loop-closure job running for {now.wall_s - job_started_wall_s:.2f} s")
+    return (f"in the {wall_s:.2f} s it waited: {now.scans - then.scans} revolutions matched in "
+            f"{now.update_wall_s - then.update_wall_s:.2f} s ({now.update_cpu_s - then.update_cpu_s:.2f} s CPU), "
+            f"{now.odometry_wait_s - then.odometry_wait_s:.2f} s waiting for the odometry, "
+            f"{now.merges - then.merges} closure results merged in {now.merge_wall_s - then.merge_wall_s:.2f} s "
+            f"({now.merge_cpu_s - then.merge_cpu_s:.2f} s CPU); the loop's thread ran "
+            f"{now.thread_cpu_s - then.thread_cpu_s:.2f} s CPU; {job}")
 
 
 async def run(lidar, state: SharedState) -> None:
@@ -21,16 +64,25 @@ async def run(lidar, state: SharedState) -> None:
     meter = getattr(lidar, "decode_meter", None)  # fakes in tests may have none
     if meter is not None:
         state.cpu.adopt(meter)
+    queued: deque[SlamTimes] = deque()  # SLAM's times when each waiting revolution was queued
     async for scan in lidar.scans():
         state.latest_scan = scan
         queue = state.scans
+        slam = state.slam
+        now = SlamTimes.now(slam)
+        while len(queued) > queue.qsize():  # the oldest were taken by SLAM
+            queued.popleft()
         while queue.full():
             try:
-                queue.get_nowait()
+                dropped_scan = queue.get_nowait()
             except asyncio.QueueEmpty:  # pragma: no cover - single loop, cannot race
                 break
-            state.slam.scans_dropped += 1
+            slam.scans_dropped += 1
+            then = queued.popleft() if queued else now
+            log.info("SLAM is %d revolutions behind: the revolution ending at %.2f s dropped; %s", queue.maxsize,
+                     dropped_scan.end_time_s, why_behind(then, now, slam.job_started_wall_s))
         queue.put_nowait(scan)
+        queued.append(now)
         stats = state.sensors
         stats.lidar_revolutions += 1
         driver_stats = lidar.stats

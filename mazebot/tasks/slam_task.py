@@ -252,6 +252,7 @@ class SlamTask:
         """A loop-closure job into the executor (the job itself, so a LoopClosureExecutor can ship it)."""
         self.job = asyncio.get_running_loop().run_in_executor(self.executor, job)
         self.job_since_s, self.job_noted = self.clock.now_s(), False
+        self.state.slam.job_started_wall_s = time.perf_counter()
 
     # -- the events ---------------------------------------------------------------------
 
@@ -267,7 +268,13 @@ class SlamTask:
         """A loop-closure job's result merged into SLAM (in stages, as the updates) and published."""
         result = job.result()  # a crashed job is a SLAM fault, not silence
         self.job = None
-        rebuilt = await run_steps_async(self.slam.apply_steps(result))
+        stats = self.state.slam
+        stats.job_started_wall_s = None
+        wall_s, cpu_s = time.perf_counter(), [0.0]
+        rebuilt = await run_steps_async(self.slam.apply_steps(result), cpu_s)
+        stats.merge_wall_s += time.perf_counter() - wall_s
+        stats.merge_cpu_s += cpu_s[0]
+        stats.merges += 1
         _publish_closure(self.state, self.slam, result, rebuilt)
         del result, job
         give_back_free_memory()  # the old grid and submap, the job's result: all freed at this one moment
@@ -292,13 +299,15 @@ class SlamTask:
         False when the revolution was left out (calibrating, no odometry, searching, lost, not
         fitting the map, failed).
         """
-        state, slam, guard = self.state, self.slam, self.guard
+        state = self.state
         if state.calibrating:
             # the setup page's calibration measures what the odometry assumes (wiring, wheel sizes,
             # track width): its motions would paint walls where they are not, and lose the robot.
             # Afterwards the guard finds the robot in the map again, as after a kidnap.
             return False
+        wait_start_s = time.perf_counter()
         history = await _odometry_covering(state, self.clock, scan.end_time_s)
+        state.slam.odometry_wait_s += time.perf_counter() - wait_start_s
         if history is None or self.search is not None:
             return False  # no odometry yet, or a search for the robot is under way
         span = history.span_s
@@ -308,6 +317,15 @@ class SlamTask:
             # and make the guard call the robot lost; this one is left out, the next will do
             state.slam.uncovered += 1
             return False
+        wall_start_s = time.perf_counter()
+        try:
+            return await self._localize(scan, history)
+        finally:
+            state.slam.update_wall_s += time.perf_counter() - wall_start_s
+
+    async def _localize(self, scan: Scan, history: OdometryHistory) -> bool:
+        """:meth:`on_scan` once the odometry covers the revolution: the guard's check, the update, publishing."""
+        state, slam, guard = self.state, self.slam, self.guard
         guard_start_s = time.thread_time()
         verdict = guard.check(slam, scan, history)
         guard_cpu_s = time.thread_time() - guard_start_s  # part of this revolution's SLAM cost
@@ -339,6 +357,7 @@ class SlamTask:
             return False
         state.scan_ms.append(cpu_s[0] * 1e3)
         state.cpu.part("slam per revolution").add(guard_cpu_s + cpu_s[0])  # the guard's check too
+        state.slam.update_cpu_s += guard_cpu_s + cpu_s[0]
         if any(f.source == "slam" for f in state.faults):
             state.clear_faults("slam")
             state.note("slam", "SLAM processes scans again", self.clock.now_s())

@@ -302,7 +302,11 @@ def test_pair_from_config_reads_both_wheels(factory: MockFactory) -> None:
         right_a.drive_high()  # a bounce: nets zero
         reading = encoders.read()
         assert reading.edge_age_s is not None and 0.0 <= reading.edge_age_s < 60.0  # gpiozero's mock stamps: monotonic
-        assert dataclasses.replace(reading, edge_age_s=None) == EncoderReading(
+        # both counts as they stood after the first edge, sampled as the second came (then at most
+        # one sample per 10 ms of the edges' stamps)
+        assert reading.steps[0][1:] == (1, 0) and 0.0 <= reading.steps[0][0] < 60.0
+        assert encoders.read().steps == ()  # taken by the reading before
+        assert dataclasses.replace(reading, edge_age_s=None, steps=()) == EncoderReading(
             left_ticks=3 * cfg.ticks_per_rev // cfg.counts_per_rev,
             right_ticks=2 * 4,
             invalid_transitions=0,
@@ -421,3 +425,30 @@ def test_a_failing_before_read_fails_the_read(factory: MockFactory) -> None:
         encoders.before_read = world_broken
         with pytest.raises(RuntimeError, match="simulator step failed"):
             encoders.read()
+
+
+def test_edge_samples_hold_whole_steps_when_a_steps_edges_come_wheel_by_wheel() -> None:
+    """The quota bench's world sends each 10 ms step's edges with the step's time, the left wheel's first.
+
+    A turn on the spot (left back, right forward, one cycle a step each): every sample must
+    hold both wheels' counts at one instant (equal and opposite). Read at a step's first
+    edge, the right wheel was a whole step behind the left.
+    """
+    from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
+
+    cfg = EncodersConfig()
+    factory = SimPinFactory(pin_class=BoundedHistoryPin, time_source=lambda: 100.0)
+    with WheelEncoders.from_config(cfg, factory) as encoders:
+        left = pins(factory, cfg.left_a_pin, cfg.left_b_pin)
+        right = pins(factory, cfg.right_a_pin, cfg.right_b_pin)
+        for k in range(1, 21):  # 20 steps of 10 ms
+            factory._event_time_s = k * 0.01  # what SimPinFactory.drive sets for each edge of the step
+            try:
+                drive_cycles(*left, 1, forward=False)
+                drive_cycles(*right, 1, forward=False)  # mirrored wheel: counts forward, a turn on the spot
+            finally:
+                factory._event_time_s = None
+        reading = encoders.read()
+    assert (reading.left_ticks, reading.right_ticks) == (-80, 80)
+    assert len(reading.steps) >= 10  # one a step, or every other one (a step is the sample period)
+    assert all(left_ticks == -right_ticks != 0 for _, left_ticks, right_ticks in reading.steps)

@@ -105,6 +105,16 @@ def test_worker_process_computes_what_this_thread_computes(frames: list) -> None
     assert jobs >= 3 and accepted >= 1  # several jobs, so keyframes were shipped in several parts
 
 
+def test_the_worker_process_runs_at_the_nice_value_asked_and_the_daemon_keeps_its_own() -> None:
+    executor = LoopClosureExecutor("process", nice=19)
+    try:
+        worker_nice = executor._pool.submit(os.getpriority, os.PRIO_PROCESS, 0).result(timeout=60)  # type: ignore[union-attr]
+    finally:
+        executor.shutdown()
+    assert worker_nice == 19  # its jobs take what the daemon leaves of a shared CPU
+    assert os.getpriority(os.PRIO_PROCESS, 0) < 19
+
+
 def test_thread_executor_runs_the_job_as_is(frames: list) -> None:
     executor = LoopClosureExecutor("thread")
     try:

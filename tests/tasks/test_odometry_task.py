@@ -192,3 +192,95 @@ def test_the_brake_is_dated_by_the_control_loops_write_not_by_a_late_reading() -
     assert brakes.update(writes, fallback_s=10.0) == 10.28  # still braked since the first 0
     writes.append((10.65, 0.0, 0.2))
     assert brakes.update(writes, fallback_s=10.0) == math.inf
+
+
+def test_a_turn_that_begins_while_the_readings_are_late_is_in_the_history_where_it_began() -> None:
+    """The odometry read every 0.25 s (a starved loop) still holds the turn's start where it was.
+
+    The robot stands for 0.6 s, then turns on the spot at a steady rate; every edge reaches the
+    counters at once with its own stamp, but the odometry task reads only every 0.25 s. The
+    history must give the true heading at every moment to within a few ticks; with a pose only
+    at each reading, the turn's start was smeared over the gap (the same history interpolated
+    between its readings: degrees off).
+    """
+    import asyncio
+
+    from mazebot.config import Config
+    from mazebot.io.encoders import WheelEncoders
+    from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
+    from mazebot.slam.odometry import DiffDriveOdometry
+    from mazebot.state import SharedState
+    from mazebot.tasks import odometry_task
+
+    config = Config()
+    enc, drive = config.encoders, config.drive
+    now = [0.0]
+    factory = SimPinFactory(pin_class=BoundedHistoryPin, time_source=lambda: now[0])
+    encoders = WheelEncoders.from_config(enc, factory)
+    edges_per_s, turn_from_s = 1000.0, 0.6  # per wheel once turning (between two readings): left back, right on
+    left = (factory.pin(enc.left_a_pin), factory.pin(enc.left_b_pin))
+    right = (factory.pin(enc.right_a_pin), factory.pin(enc.right_b_pin))
+    gray = ((0, 0), (1, 0), (1, 1), (0, 1))
+    start = 2 if enc.pull_up else 0  # the pins rest high with pull-ups
+    step = [start, start]
+    sent = [0]
+
+    def deliver(until_s: float) -> None:
+        """Drive every edge of the turn up to ``until_s``, each with its own stamp."""
+        n = int(max(0.0, until_s - turn_from_s) * edges_per_s)
+        while sent[0] < n:
+            sent[0] += 1
+            t = turn_from_s + sent[0] / edges_per_s
+            for k, (pins, direction, invert) in enumerate(((left, -1, enc.left_invert), (right, 1, enc.right_invert))):
+                sign = -direction if invert else direction
+                new = (step[k] + sign) % 4
+                old_levels, new_levels = gray[step[k]], gray[new]
+                channel = 0 if old_levels[0] != new_levels[0] else 1
+                factory.drive(pins[channel], new_levels[channel], time_s=t)
+                step[k] = new
+
+    slept = asyncio.Event()
+
+    class StarvedClock:
+        """Each sleep of the task lasts 0.25 s: the loop gets to the odometry four times a second."""
+
+        def now_s(self) -> float:
+            return now[0]
+
+        async def sleep(self, duration_s: float) -> None:
+            now[0] += max(duration_s, 0.25)
+            deliver(now[0])
+            slept.set()
+            await asyncio.sleep(0)
+
+    state = SharedState()
+    odometry = DiffDriveOdometry(enc.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m,
+                                 drive.wheel_diameter_ratio)
+
+    async def run_for(duration_s: float) -> None:
+        task = asyncio.create_task(odometry_task.run(encoders, state, StarvedClock(), enc, drive, odometry=odometry))
+        while now[0] < duration_s:
+            await slept.wait()
+            slept.clear()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    steps: list = []
+    state.odometry_listeners = (steps.append,)
+    with encoders:
+        asyncio.run(run_for(1.6))
+    per_tick_m = math.pi * drive.wheel_diameter_m / enc.ticks_per_rev
+    rate_radps = 2 * edges_per_s * per_tick_m / drive.track_width_m
+    history = state.odometry_history
+    span = history.span_s
+    assert span is not None and span[1] > 1.2
+    times = np.linspace(turn_from_s - 0.2, span[1], 200)
+    _, _, theta = history.at(times)
+    truth = rate_radps * np.clip(times - turn_from_s, 0.0, None)
+    tick_rad = 2 * per_tick_m / drive.track_width_m
+    assert np.max(np.abs(theta - truth)) <= 0.01 * rate_radps + 2 * tick_rad  # one sample period of turning
+    assert 0.25 * rate_radps > 20 * tick_rad  # a pose only per reading would be far off at the start
+    # the listeners heard every pose the history got, with its date
+    dated = [s.pose_time_s for s in steps if s.pose_time_s is not None]
+    assert len(dated) == len(history) and (dated[0], dated[-1]) == span

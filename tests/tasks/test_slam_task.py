@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import threading
+import time
 from collections import Counter
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
@@ -193,12 +195,18 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
     assert state.slam.map_rebuilds == 2 and state.map is fake.grid
 
 
-async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind() -> None:
+async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> None:
+    caplog.set_level(logging.INFO, logger="mazebot.tasks.lidar_task")
     state = SharedState()
     state.scans = asyncio.Queue(maxsize=2)
+    state.slam.job_started_wall_s = time.perf_counter()
     scans = [_static_scan(1.0 + 0.2 * k, np.zeros(3)) for k in range(5)]
     await lidar_task.run(FakeLidar(scans), state)
     assert state.sensors.lidar_revolutions == 5 and state.slam.scans_dropped == 3
+    # each drop says which revolution went and what SLAM did while it waited
+    said = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
+    assert len(said) == 3 and all("0 revolutions matched" in m and "a loop-closure job running for" in m for m in said)
+    assert [m.split("ending at ")[1].split(" s")[0] for m in said] == ["1.00", "1.20", "1.40"]
     assert [state.scans.get_nowait().end_time_s for _ in range(2)] == [s.end_time_s for s in scans[3:]]
     assert state.latest_scan is scans[-1]
 

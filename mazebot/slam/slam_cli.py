@@ -344,6 +344,7 @@ def run_carmen(
     history = OdometryHistory(horizon_s=1e12)
     online = np.zeros_like(reference)
     scan_ms = []
+    keyframe_scans: dict[int, tuple[int, bool]] = {}  # keyframe -> (the scan that made it, was it matched)
     wall0 = time.perf_counter()
     clock = slam_clock(times)
     for k, record in enumerate(lasers):
@@ -354,8 +355,11 @@ def run_carmen(
         update = slam.update(scan, history)
         scan_ms.append((time.thread_time() - cpu0) * 1e3)
         online[k] = update.pose
+        if update.keyframe is not None:
+            keyframe_scans[update.keyframe] = (k, update.matched)
     points = match_points(lasers, params)
     _, before_anchoring = slam.trajectory()
+    edges = edge_chi2(slam, keyframe_scans, reference)
     # the map judged by itself, before it is re-anchored (a rigid move: only the first scan's row changes)
     judged_scans_ = judged_scans(len(points), consistency_scans or REANCHOR_NOISE_SCANS)
     own = scan_corrections(before_anchoring, points, judged_scans_, params.icp, voxel_m=params.prepare.voxel_size_m,
@@ -411,6 +415,8 @@ def run_carmen(
         "relative_error": relative_error(final, reference, lag=1) if judged else None,
         "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
         "reanchor": anchoring,
+        "edge_chi2": edges if judged else {k: {**v, "reference_median": None, "reference_mean": None}
+                                           for k, v in edges.items()},
         **judged_consistency,
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
@@ -419,6 +425,52 @@ def run_carmen(
         "out": str(out),
     }
 
+
+
+#: the median of a chi² of 3 degrees of freedom: what a calibrated SE(2) edge's chi² has half the time
+CHI2_MEDIAN_3DOF = 2.366
+
+
+def edge_chi2(
+    slam: Slam, keyframe_scans: dict[int, tuple[int, bool]], reference: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Each kind of pose-graph edge's chi² (``eᵀΩe``), at the optimized poses and at the reference's.
+
+    Kinds: ``matched`` (a sequential edge whose new keyframe's scan was matched: odometry
+    and ICP), ``hinge`` (a sequential edge of odometry alone: the match was refused) and
+    ``closure``. An edge whose information is honest has a chi² of 3 degrees of freedom
+    against the truth, median :data:`CHI2_MEDIAN_3DOF`; against the optimized graph less
+    (the optimization fits part of each residual). The reference (another SLAM's poses)
+    has errors of its own, so its figure is an upper bound. Medians and means, nominal
+    information (before the robust weights of :mod:`mazebot.slam.robust_closures`).
+    """
+    ei, ej, z, omega = slam.graph.edge_arrays
+    poses = slam.keyframe_poses()
+    count = poses.shape[0]
+    inside = (ei < count) & (ej < count)
+    ei, ej, z, omega = ei[inside], ej[inside], z[inside], omega[inside]
+    ref = np.array([reference[keyframe_scans[k][0]] if k in keyframe_scans else reference[0] for k in range(count)])
+    matched = np.array([keyframe_scans.get(k, (0, True))[1] for k in range(count)])
+    sequential = ej == ei + 1
+    kinds = {"matched": sequential & matched[ej], "hinge": sequential & ~matched[ej], "closure": ~sequential}
+
+    def chi2(vertices: np.ndarray) -> np.ndarray:
+        e = relative_pose(z, relative_pose(vertices[ei], vertices[ej]))
+        e[:, 2] = wrap_angle(e[:, 2])
+        return np.einsum("mi,mij,mj->m", e, omega, e)
+
+    own, against = chi2(poses), chi2(ref)
+    out: dict[str, dict[str, Any]] = {}
+    for kind, mask in kinds.items():
+        n = int(mask.sum())
+        out[kind] = {
+            "edges": n,
+            "optimized_median": round(float(np.median(own[mask])), 3) if n else None,
+            "optimized_mean": round(float(np.mean(own[mask])), 3) if n else None,
+            "reference_median": round(float(np.median(against[mask])), 3) if n else None,
+            "reference_mean": round(float(np.mean(against[mask])), 3) if n else None,
+        }
+    return out
 
 
 def match_points(lasers: list[LaserRecord], params: SlamParams) -> list[np.ndarray]:

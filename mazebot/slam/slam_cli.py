@@ -416,7 +416,7 @@ def run_carmen(
         "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
         "reanchor": anchoring,
         "edge_chi2": edges if judged else {k: {**v, "reference_median": None, "reference_mean": None}
-                                           for k, v in edges.items()},
+                                           if k != "graph" else v for k, v in edges.items()},
         **judged_consistency,
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
@@ -443,6 +443,10 @@ def edge_chi2(
     (the optimization fits part of each residual). The reference (another SLAM's poses)
     has errors of its own, so its figure is an upper bound. Medians and means, nominal
     information (before the robust weights of :mod:`mazebot.slam.robust_closures`).
+    ``graph``: the optimized graph's chi² over its redundancy (3 per edge beyond a
+    spanning tree), the a-posteriori variance factor of a least-squares adjustment: 1
+    when the edges' information is calibrated against each other (Förstner's variance
+    components), more when they claim more than they agree.
     """
     ei, ej, z, omega = slam.graph.edge_arrays
     poses = slam.keyframe_poses()
@@ -460,7 +464,14 @@ def edge_chi2(
         return np.einsum("mi,mij,mj->m", e, omega, e)
 
     own, against = chi2(poses), chi2(ref)
-    out: dict[str, dict[str, Any]] = {}
+    # the whole graph's a-posteriori variance factor: its chi² over its redundancy (3 per edge beyond a tree)
+    redundancy = 3 * (ei.size - (count - 1))
+    out: dict[str, dict[str, Any]] = {"graph": {
+        "edges": int(ei.size),
+        "redundancy": redundancy,
+        "optimized_chi2": round(float(own.sum()), 1),
+        "variance_factor": round(float(own.sum()) / redundancy, 3) if redundancy > 0 else None,
+    }}
     for kind, mask in kinds.items():
         n = int(mask.sum())
         out[kind] = {

@@ -372,7 +372,7 @@ def _triangle_chi2(lasers: list, i: int, params: IcpParams) -> float:
 @pytest.mark.slow
 def test_intel_triangles_the_clustered_information_is_nearer_calibrated(intel_log_path) -> None:
     """Triangles of real scans (no reference needed): a calibrated information gives the loop's chi² the
-    median of 3 degrees of freedom, 2.37. The Hessian's is surer than the three matches agree (median 7.1
+    median of 3 degrees of freedom, 2.37. The Hessian's is surer than the three matches agree (median 7.5
     on scans 0-100); clustered by wall, 4.0."""
     lasers = read_carmen(intel_log_path).lasers
     medians = {}

@@ -111,19 +111,7 @@ def laser_log_params(base: SlamParams) -> SlamParams:
       0.165 m RMS where all of them give less than 0.15 m;
     - no wall prior: the maze's walls lie on one right-angle grid, this building's do not
       (a diagonal north-east corner, and the inner corridors are bowed in the log's own
-      corrected poses), so the prior bent headings towards a grid that is not there;
-    - ICP's information clustered by wall (``information_cluster_rad`` 0.35, walls within
-      20° and 0.25 m: :meth:`mazebot.slam.icp._Iteration._clustered`), with the maze's shares
-      of it for the filter and the sequential edges (``match_information_scale`` 0.5) and the
-      loop closures (``information_scale`` 0.1): a building's walls are seen from metres
-      away by 1° beams, a scan's 100-300 points lie on a few walls, and each wall's place in
-      the submap is off as a whole. Measured against the Hessian's information (the fifth
-      session, branch ``reallogs5``): Intel ``0.05`` seed 10 0.257 → 0.137 m, ACES seeds 1-3
-      0.145 / 0.317 / 0.161 → 0.111 / 0.158 / 0.150 m, both systematic runs better (ACES
-      0.219 → 0.194, Intel 0.161 → 0.139 m), Freiburg seed 3 worse (0.178 → 0.229 m: the map
-      turned about its start, its aligned ATE the same). The clustered information with the
-      hand shares set to 1 (closures as sure as sequential matches) was better on the Intel
-      log but worse on ACES and Seattle and with systematic odometry.
+      corrected poses), so the prior bent headings towards a grid that is not there.
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
@@ -154,10 +142,7 @@ def laser_log_params(base: SlamParams) -> SlamParams:
         prepare=replace(
             base.prepare, min_range_m=0.1, max_range_m=30.0, voxel_size_m=0.05, mount_x_m=0.0, mount_y_m=0.0
         ),
-        icp=replace(
-            base.icp, max_correspondence_m=0.5, min_correspondence_m=0.1, range_noise_ratio=0.0,
-            information_cluster_rad=0.35, information_cluster_m=0.25,
-        ),
+        icp=replace(base.icp, max_correspondence_m=0.5, min_correspondence_m=0.1, range_noise_ratio=0.0),
         normals=replace(base.normals, radius_m=0.3),
         motion=motion,
         loop=replace(

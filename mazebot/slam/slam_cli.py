@@ -111,7 +111,17 @@ def laser_log_params(base: SlamParams) -> SlamParams:
       0.165 m RMS where all of them give less than 0.15 m;
     - no wall prior: the maze's walls lie on one right-angle grid, this building's do not
       (a diagonal north-east corner, and the inner corridors are bowed in the log's own
-      corrected poses), so the prior bent headings towards a grid that is not there.
+      corrected poses), so the prior bent headings towards a grid that is not there;
+    - ICP's information from its Hessian, not clustered by wall (``[slam.icp]
+      information_cluster_rad`` stays 0; ``--config`` with 0.35 turns it on): clustered, with
+      the same shares of it for the filter (0.5) and the closures (0.1), the Intel log at
+      ``0.05,0.05`` improved on 8 of 10 seeds (median 0.130 → 0.121 m), the Radish logs on 8
+      of 9 runs and both systematic-odometry runs (ACES 0.219 → 0.194, Intel 0.161 → 0.139 m),
+      but at ``0.1,0.1`` it was worse on 6 of 8 seeds and lost the last 15 scans of seed 7 by
+      32° (6.8 m max): a less sure match makes the filter's prediction less sure, the
+      correlative window wider, and a look-alike won at the end of the log (branch
+      ``reallogs5``). With the filter's and the closures' shares raised to 1 as well it was
+      worse on the Radish logs and with systematic odometry.
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°

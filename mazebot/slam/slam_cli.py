@@ -117,8 +117,8 @@ def laser_log_params(base: SlamParams) -> SlamParams:
       the same shares of it for the filter (0.5) and the closures (0.1), the Intel log at
       ``0.05,0.05`` improved on 8 of 10 seeds (median 0.130 → 0.121 m), the Radish logs on 8
       of 9 runs and both systematic-odometry runs (ACES 0.219 → 0.194, Intel 0.161 → 0.139 m),
-      but at ``0.1,0.1`` it was worse on 6 of 8 seeds and lost the last 15 scans of seed 7 by
-      32° (6.8 m max): a less sure match makes the filter's prediction less sure, the
+      but at ``0.1,0.1`` it was worse on 7 of 10 seeds and lost the last 18 scans of seed 7
+      (32° off at the end, 6.8 m max): a less sure match makes the filter's prediction less sure, the
       correlative window wider, and a look-alike won at the end of the log (branch
       ``reallogs5``). With the filter's and the closures' shares raised to 1 as well it was
       worse on the Radish logs and with systematic odometry.

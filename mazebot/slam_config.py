@@ -123,6 +123,12 @@ class IcpParams:
         "floor of the Cauchy scale on normalized residuals, in std"))] = 2.0
     min_variance_factor: Annotated[float, Field(gt=0, description=(
         "the information never trusts the points more than the noise model"))] = 1.0
+    information_cluster_rad: Annotated[float, Field(ge=0, le=3.2, description=(
+        "residuals on one wall err together: ICP's information from its covariance clustered by wall (normals "
+        "within this angle ...), added to its Hessian's, never surer than either (0: the Hessian's alone)"
+    ))] = 0.0
+    information_cluster_m: Annotated[float, Field(gt=0, description=(
+        "... and lines within this distance of each other are one wall"))] = 0.25
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:

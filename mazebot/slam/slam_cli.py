@@ -111,7 +111,17 @@ def laser_log_params(base: SlamParams) -> SlamParams:
       0.165 m RMS where all of them give less than 0.15 m;
     - no wall prior: the maze's walls lie on one right-angle grid, this building's do not
       (a diagonal north-east corner, and the inner corridors are bowed in the log's own
-      corrected poses), so the prior bent headings towards a grid that is not there.
+      corrected poses), so the prior bent headings towards a grid that is not there;
+    - ICP's information from its Hessian, not clustered by wall (``[slam.icp]
+      information_cluster_rad`` stays 0; ``--config`` with 0.35 turns it on): clustered, with
+      the same shares of it for the filter (0.5) and the closures (0.1), the Intel log at
+      ``0.05,0.05`` improved on 8 of 10 seeds (median 0.130 → 0.121 m), the Radish logs on 8
+      of 9 runs and both systematic-odometry runs (ACES 0.219 → 0.194, Intel 0.161 → 0.139 m),
+      but at ``0.1,0.1`` it was worse on 7 of 10 seeds and lost the last 18 scans of seed 7
+      (32° off at the end, 6.8 m max): a less sure match makes the filter's prediction less sure, the
+      correlative window wider, and a look-alike won at the end of the log (branch
+      ``reallogs5``). With the filter's and the closures' shares raised to 1 as well it was
+      worse on the Radish logs and with systematic odometry.
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
@@ -344,6 +354,7 @@ def run_carmen(
     history = OdometryHistory(horizon_s=1e12)
     online = np.zeros_like(reference)
     scan_ms = []
+    keyframe_scans: dict[int, tuple[int, bool]] = {}  # keyframe -> (the scan that made it, was it matched)
     wall0 = time.perf_counter()
     clock = slam_clock(times)
     for k, record in enumerate(lasers):
@@ -354,8 +365,11 @@ def run_carmen(
         update = slam.update(scan, history)
         scan_ms.append((time.thread_time() - cpu0) * 1e3)
         online[k] = update.pose
+        if update.keyframe is not None:
+            keyframe_scans[update.keyframe] = (k, update.matched)
     points = match_points(lasers, params)
     _, before_anchoring = slam.trajectory()
+    edges = edge_chi2(slam, keyframe_scans, reference)
     # the map judged by itself, before it is re-anchored (a rigid move: only the first scan's row changes)
     judged_scans_ = judged_scans(len(points), consistency_scans or REANCHOR_NOISE_SCANS)
     own = scan_corrections(before_anchoring, points, judged_scans_, params.icp, voxel_m=params.prepare.voxel_size_m,
@@ -411,6 +425,8 @@ def run_carmen(
         "relative_error": relative_error(final, reference, lag=1) if judged else None,
         "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
         "reanchor": anchoring,
+        "edge_chi2": edges if judged else {k: {**v, "reference_median": None, "reference_mean": None}
+                                           if k != "graph" else v for k, v in edges.items()},
         **judged_consistency,
         "scan_ms_p50": round(float(np.percentile(ms, 50)), 3),
         "scan_ms_p99": round(float(np.percentile(ms, 99)), 3),
@@ -419,6 +435,63 @@ def run_carmen(
         "out": str(out),
     }
 
+
+
+#: the median of a chi² of 3 degrees of freedom: what a calibrated SE(2) edge's chi² has half the time
+CHI2_MEDIAN_3DOF = 2.366
+
+
+def edge_chi2(
+    slam: Slam, keyframe_scans: dict[int, tuple[int, bool]], reference: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Each kind of pose-graph edge's chi² (``eᵀΩe``), at the optimized poses and at the reference's.
+
+    Kinds: ``matched`` (a sequential edge whose new keyframe's scan was matched: odometry
+    and ICP), ``hinge`` (a sequential edge of odometry alone: the match was refused) and
+    ``closure``. An edge whose information is honest has a chi² of 3 degrees of freedom
+    against the truth, median :data:`CHI2_MEDIAN_3DOF`; against the optimized graph less
+    (the optimization fits part of each residual). The reference (another SLAM's poses)
+    has errors of its own, so its figure is an upper bound. Medians and means, nominal
+    information (before the robust weights of :mod:`mazebot.slam.robust_closures`).
+    ``graph``: the optimized graph's chi² over its redundancy (3 per edge beyond a
+    spanning tree), the a-posteriori variance factor of a least-squares adjustment: 1
+    when the edges' information is calibrated against each other (Förstner's variance
+    components), more when they claim more than they agree.
+    """
+    ei, ej, z, omega = slam.graph.edge_arrays
+    poses = slam.keyframe_poses()
+    count = poses.shape[0]
+    inside = (ei < count) & (ej < count)
+    ei, ej, z, omega = ei[inside], ej[inside], z[inside], omega[inside]
+    ref = np.array([reference[keyframe_scans[k][0]] if k in keyframe_scans else reference[0] for k in range(count)])
+    matched = np.array([keyframe_scans.get(k, (0, True))[1] for k in range(count)])
+    sequential = ej == ei + 1
+    kinds = {"matched": sequential & matched[ej], "hinge": sequential & ~matched[ej], "closure": ~sequential}
+
+    def chi2(vertices: np.ndarray) -> np.ndarray:
+        e = relative_pose(z, relative_pose(vertices[ei], vertices[ej]))
+        e[:, 2] = wrap_angle(e[:, 2])
+        return np.einsum("mi,mij,mj->m", e, omega, e)
+
+    own, against = chi2(poses), chi2(ref)
+    # the whole graph's a-posteriori variance factor: its chi² over its redundancy (3 per edge beyond a tree)
+    redundancy = 3 * (ei.size - (count - 1))
+    out: dict[str, dict[str, Any]] = {"graph": {
+        "edges": int(ei.size),
+        "redundancy": redundancy,
+        "optimized_chi2": round(float(own.sum()), 1),
+        "variance_factor": round(float(own.sum()) / redundancy, 3) if redundancy > 0 else None,
+    }}
+    for kind, mask in kinds.items():
+        n = int(mask.sum())
+        out[kind] = {
+            "edges": n,
+            "optimized_median": round(float(np.median(own[mask])), 3) if n else None,
+            "optimized_mean": round(float(np.mean(own[mask])), 3) if n else None,
+            "reference_median": round(float(np.median(against[mask])), 3) if n else None,
+            "reference_mean": round(float(np.mean(against[mask])), 3) if n else None,
+        }
+    return out
 
 
 def match_points(lasers: list[LaserRecord], params: SlamParams) -> list[np.ndarray]:

@@ -38,6 +38,14 @@ def test_slam_run_on_the_intel_log(intel_log_path: Path, tmp_path: Path, capsys:
     for name in ("consistency", "consistency_reference"):
         assert stats[name]["scans"] >= 40 and stats[name]["first_scan_heading_deg"] is not None
     assert stats["consistency"]["heading_rms_deg"] < 0.5 and stats["consistency"]["shift_rms_m"] < 0.05
+    # every edge of the graph by kind: the chain's edges (all but the hinges, whose match was refused) and
+    # the closures; the optimized graph fits them better than the reference does (it has errors of its own)
+    chi2 = stats["edge_chi2"]
+    assert chi2["matched"]["edges"] + chi2["hinge"]["edges"] == stats["keyframes"] - 1
+    assert chi2["closure"]["edges"] == stats["loop_closures"]
+    assert chi2["graph"]["redundancy"] == 3 * stats["loop_closures"]
+    assert chi2["matched"]["optimized_median"] < chi2["matched"]["reference_median"]
+    assert chi2["graph"]["variance_factor"] > 0
 
     lasers = read_carmen(intel_log_path).lasers[:200]
     rows = np.loadtxt(out / "trajectory.txt")

@@ -152,14 +152,18 @@ class BlindZoneMemory:
     travel during one revolution (0.18 s at 0.3 m/s: 5 cm), since a return's beam may
     have swept past before the robot came that close.
 
-    A return is also dropped ``max_age_revolutions`` revolutions after it was seen
-    (40: 7 s of an A1): the odometry frame drifts, most of all in the cheap robot's
-    turns in place (slip, backlash), and a robot stuck turning beside a wall otherwise
-    gathers smeared copies of it that close in until nothing can move (a hand-built 6×6
-    maze: 40 recoveries in a row). A revolution count, not seconds, so a slow computer
-    forgets after as much motion as a fast one. ``lidar_xy_m`` is the lidar's mount
-    offset in the robot frame; one return is kept per ``voxel_m`` square, at most
-    ``max_points`` of them.
+    A return is also dropped ``max_age_revolutions`` revolutions of motion after it was
+    seen (40: 7 s of an A1 on the move): the odometry frame drifts, most of all in the
+    cheap robot's turns in place (slip, backlash), and a robot stuck turning beside a wall
+    otherwise gathers smeared copies of it that close in until nothing can move (a
+    hand-built 6×6 maze: 40 recoveries in a row). Only revolutions over which the
+    odometry moved (by ``still_m`` or turned by ``still_rad``) count: the frame does not
+    drift while the wheels stand, and a robot that stood by a table leg for seconds and
+    then turned towards it must still know it is there (a hand-built 8×8 maze: the leg
+    forgotten after 40 revolutions of standing and turning on the spot, then driven
+    into). Revolutions, not seconds, so a slow computer forgets after as much motion as a
+    fast one. ``lidar_xy_m`` is the lidar's mount offset in the robot frame; one return
+    is kept per ``voxel_m`` square, at most ``max_points`` of them.
 
     The previous revolution's near returns that the latest one could have seen are kept
     for that one revolution more: a thin thing (a 12 mm post standing alone, a board's
@@ -177,9 +181,12 @@ class BlindZoneMemory:
         lidar_xy_m: tuple[float, float] = (0.0, 0.0),
         voxel_m: float = 0.01,
         max_points: int = 2000,
+        still_m: float = 0.002,
+        still_rad: float = 0.005,
     ) -> None:
-        if min_range_m < 0 or reach_m < 0 or motion_margin_m < 0:
-            raise ValueError(f"need non-negative ranges, got {min_range_m}, {reach_m}, {motion_margin_m}")
+        if min(min_range_m, reach_m, motion_margin_m, still_m, still_rad) < 0:
+            raise ValueError(f"need non-negative ranges, got {min_range_m}, {reach_m}, {motion_margin_m}, "
+                             f"{still_m}, {still_rad}")
         if voxel_m <= 0 or max_points < 1 or max_age_revolutions < 1:
             raise ValueError(f"need a positive voxel, age and point count, got {voxel_m}, {max_age_revolutions}, "
                              f"{max_points}")
@@ -190,7 +197,10 @@ class BlindZoneMemory:
         self.lidar_xy_m = (float(lidar_xy_m[0]), float(lidar_xy_m[1]))
         self.voxel_m = float(voxel_m)
         self.max_points = int(max_points)
-        self.revolutions = 0
+        self.still_m = float(still_m)
+        self.still_rad = float(still_rad)
+        self.revolutions = 0  # revolutions over which the odometry moved: the returns' age
+        self._last_pose: tuple[float, float, float] | None = None
         self._points = np.zeros((0, 3))  # odometry frame x, y and the revolution it was seen in
         self._recent = np.zeros((0, 3))  # the last revolution's own near returns (the scan shows them)
         self._previous = np.zeros((0, 3))  # the one before's, which the last could have shown (one more revolution)
@@ -205,7 +215,8 @@ class BlindZoneMemory:
 
     def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float]) -> None:
         """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``."""
-        self.revolutions += 1
+        if self._moved_since_last(pose):
+            self.revolutions += 1
         lx, ly = transform_points(pose, self.lidar_xy_m)[0]
         old = np.concatenate((self._points, self._recent))
         unseen = np.hypot(old[:, 0] - lx, old[:, 1] - ly) < self.min_range_m + self.motion_margin_m
@@ -220,6 +231,14 @@ class BlindZoneMemory:
         rx, ry = pts[:, 0] - self.lidar_xy_m[0], pts[:, 1] - self.lidar_xy_m[1]
         near = pts[np.hypot(rx, ry) < self.min_range_m + self.reach_m]
         self._recent = np.column_stack((transform_points(pose, near), np.full(near.shape[0], float(self.revolutions))))
+
+    def _moved_since_last(self, pose: tuple[float, float, float]) -> bool:
+        """Whether the odometry moved or turned since the previous revolution (the first one counts)."""
+        last, self._last_pose = self._last_pose, pose
+        if last is None:
+            return True
+        turned_rad = abs(math.remainder(pose[2] - last[2], math.tau))
+        return math.hypot(pose[0] - last[0], pose[1] - last[1]) >= self.still_m or turned_rad >= self.still_rad
 
     def points_robot(self, pose: tuple[float, float, float]) -> np.ndarray:
         """The remembered returns the last revolution could not show, in the robot frame at odometry ``pose``."""

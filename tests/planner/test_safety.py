@@ -231,9 +231,25 @@ def test_the_blind_zone_forgets_after_so_many_revolutions_the_odometry_drifts_ov
     memory.add_scan(_leg_returns((0.0, 0.0), (0.2, 0.0)), (0.0, 0.0, 0.0))  # seen at 0.19 m
     memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # 0.11 m: kept
     for k in range(8):  # turning beside it: still kept
-        memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.5 * k))
+        memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.5 * (k + 1)))
     assert len(memory) == 1
     memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # the tenth revolution since it was seen
+    assert len(memory) == 0
+
+
+def test_the_blind_zone_does_not_age_while_the_robot_stands() -> None:
+    """A leg the robot stood beside for many revolutions is still known when it turns towards it."""
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15, max_age_revolutions=10)
+    memory.add_scan(_leg_returns((0.0, 0.0), (0.2, 0.0)), (0.0, 0.0, 0.0))  # seen at 0.19 m
+    for _ in range(50):  # standing 0.11 m from it, long past the age limit in revolutions
+        memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))
+    for k in range(8):  # then turning on the spot: the motion the odometry drifts over counts again
+        memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.1 * (k + 1)))
+    assert len(memory) == 1
+    assert CollisionGuard().check(memory.points_robot((0.08, 0.0, 0.0)), 0.2, 0.0).stop
+    memory.add_scan(np.zeros((0, 2)), (0.08, 0.0, 0.0))  # the tenth revolution of motion since it was seen
     assert len(memory) == 0
 
 

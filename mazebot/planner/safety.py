@@ -158,12 +158,13 @@ class BlindZoneMemory:
     otherwise gathers smeared copies of it that close in until nothing can move (a
     hand-built 6×6 maze: 40 recoveries in a row). Only revolutions over which the
     odometry moved (by ``still_m`` or turned by ``still_rad``) count: the frame does not
-    drift while the wheels stand, and a robot that stood by a table leg for seconds and
-    then turned towards it must still know it is there (a hand-built 8×8 maze: the leg
-    forgotten after 40 revolutions of standing and turning on the spot, then driven
-    into). Revolutions, not seconds, so a slow computer forgets after as much motion as a
-    fast one. ``lidar_xy_m`` is the lidar's mount offset in the robot frame; one return
-    is kept per ``voxel_m`` square, at most ``max_points`` of them.
+    drift while the wheels stand, and a robot that stood by a table leg for seconds must
+    still know it is there when it turns towards it (a hand-built 8×8 maze: a leg in the
+    blind zone while the robot stood and turned on the spot for 11 s, then driven into;
+    its turns there still age the memory). Revolutions, not seconds, so a slow computer
+    forgets after as much motion as a fast one. ``lidar_xy_m`` is the lidar's mount
+    offset in the robot frame; one return is kept per ``voxel_m`` square, at most
+    ``max_points`` of them.
 
     The previous revolution's near returns that the latest one could have seen are kept
     for that one revolution more: a thin thing (a 12 mm post standing alone, a board's

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -58,6 +59,26 @@ def test_no_encoder_reading_yet_is_no_speed_not_a_zero_count() -> None:
     assert state.wheel_speeds_mps == pytest.approx(want)
 
 
+#: The quadrature levels (A, B) in the order a forward-turning wheel steps through them.
+_GRAY = ((0, 0), (1, 0), (1, 1), (0, 1))
+
+
+def _turn_edge(factory: Any, enc: Any, pins: tuple[Any, Any], step: list[int], time_s: float) -> None:
+    """One encoder edge on each wheel of a turn on the spot (left backward, right forward), stamped ``time_s``.
+
+    ``pins`` are the (A, B) pins of the left and the right wheel; ``step`` their places in
+    :data:`_GRAY`, moved on.
+    """
+    wheels = ((pins[0], -1, enc.left_invert), (pins[1], 1, enc.right_invert))
+    for k, (wheel_pins, direction, invert) in enumerate(wheels):
+        sign = -direction if invert else direction
+        new = (step[k] + sign) % 4
+        old_levels, new_levels = _GRAY[step[k]], _GRAY[new]
+        channel = 0 if old_levels[0] != new_levels[0] else 1
+        factory.drive(wheel_pins[channel], new_levels[channel], time_s=time_s)
+        step[k] = new
+
+
 def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> None:
     """Under a CPU quota the encoder thread gets the edges in bursts; the history stays true.
 
@@ -83,7 +104,6 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
     edges_per_s = 1000.0  # per wheel: left backward, right forward (a turn on the spot)
     left = (factory.pin(enc.left_a_pin), factory.pin(enc.left_b_pin))
     right = (factory.pin(enc.right_a_pin), factory.pin(enc.right_b_pin))
-    gray = ((0, 0), (1, 0), (1, 1), (0, 1))
     start = 2 if enc.pull_up else 0  # the pins rest high with pull-ups
     step = [start, start]
     sent = [0.0]  # the time up to which the edges have been delivered
@@ -94,13 +114,7 @@ def test_the_pose_is_dated_by_the_edges_not_by_when_the_counts_were_read() -> No
         while sent[0] < n:
             sent[0] += 1
             t = sent[0] / edges_per_s
-            for k, (pins, direction, invert) in enumerate(((left, -1, enc.left_invert), (right, 1, enc.right_invert))):
-                sign = -direction if invert else direction
-                new = (step[k] + sign) % 4
-                old_levels, new_levels = gray[step[k]], gray[new]
-                channel = 0 if old_levels[0] != new_levels[0] else 1
-                factory.drive(pins[channel], new_levels[channel], time_s=t)
-                step[k] = new
+            _turn_edge(factory, enc, (left, right), step, t)
 
     slept = asyncio.Event()
 
@@ -220,7 +234,6 @@ def test_a_turn_that_begins_while_the_readings_are_late_is_in_the_history_where_
     edges_per_s, turn_from_s = 1000.0, 0.6  # per wheel once turning (between two readings): left back, right on
     left = (factory.pin(enc.left_a_pin), factory.pin(enc.left_b_pin))
     right = (factory.pin(enc.right_a_pin), factory.pin(enc.right_b_pin))
-    gray = ((0, 0), (1, 0), (1, 1), (0, 1))
     start = 2 if enc.pull_up else 0  # the pins rest high with pull-ups
     step = [start, start]
     sent = [0]
@@ -231,13 +244,7 @@ def test_a_turn_that_begins_while_the_readings_are_late_is_in_the_history_where_
         while sent[0] < n:
             sent[0] += 1
             t = turn_from_s + sent[0] / edges_per_s
-            for k, (pins, direction, invert) in enumerate(((left, -1, enc.left_invert), (right, 1, enc.right_invert))):
-                sign = -direction if invert else direction
-                new = (step[k] + sign) % 4
-                old_levels, new_levels = gray[step[k]], gray[new]
-                channel = 0 if old_levels[0] != new_levels[0] else 1
-                factory.drive(pins[channel], new_levels[channel], time_s=t)
-                step[k] = new
+            _turn_edge(factory, enc, (left, right), step, t)
 
     slept = asyncio.Event()
 

@@ -225,10 +225,6 @@ class SharedState:
     motion_command: MotionRequest | None = None
     #: measured wheel surface speeds (left, right), m/s, written by the control task
     wheel_speeds_mps: tuple[float, float] = (0.0, 0.0)
-    #: each motor's speed for the throttles written over the last 0.2 s, against the nominal
-    #: motor model (1: as the feed-forward expects; None: too little motion to tell), written
-    #: by the control task (``mazebot.planner.wheel_control.WheelGainEstimator``)
-    wheel_gains: tuple[float | None, float | None] = (None, None)
     #: why the safety layer last stopped the wheels (empty: it has not), for the status page
     safety_stop: str = ""
     safety_stops: int = 0

@@ -116,8 +116,8 @@ class _Layout:
         #                                 history present, then-time, x, y, th
         self.scan = block(1 + 7 + 2 * MAX_SCAN_POINTS)  # seq; present, end time, n, then present, x, y, th; points
         self.blind = block(1 + 1 + 2 * MAX_BLIND_POINTS)  # seq; n; odometry-frame points
-        self.output = block(1 + 10 + SAFETY_TEXT_BYTES // 8)  # seq; ticks, tick time, l, r, speeds, gains,
-        #                                                        stops, text length; text
+        self.output = block(1 + 8 + SAFETY_TEXT_BYTES // 8)  # seq; ticks, tick time, l, r, speeds,
+        #                                                       stops, text length; text
         self.ticks = block(1 + 5 * TICK_RING)  # count; (time, late ms, cpu s, left, right) each
         self.notes = block(1 + NOTE_RING * (4 + NOTE_TEXT_BYTES // 8))  # count; (kind, time, src len, text len; text)
         self.size = at
@@ -188,7 +188,7 @@ class ControlLink:
         self.odometry = _Seqlock(slots, LAYOUT.odometry, 14)
         self.scan = _Seqlock(slots, LAYOUT.scan, 8 + 2 * MAX_SCAN_POINTS)
         self.blind = _Seqlock(slots, LAYOUT.blind, 2 + 2 * MAX_BLIND_POINTS)
-        self.output = _Seqlock(slots, LAYOUT.output, 11 + SAFETY_TEXT_BYTES // 8)
+        self.output = _Seqlock(slots, LAYOUT.output, 9 + SAFETY_TEXT_BYTES // 8)
         self._ticks_read = 0
         self._notes_read = 0
         self.ticks_lost = 0  # ring entries overwritten before the main process read them
@@ -302,15 +302,14 @@ class ControlLink:
         raw = self.output.read()
         if raw is None:
             return None
-        n = int(raw[9])
-        text = raw[10:].view(np.uint8)[:n].tobytes().decode("utf-8", "replace")
+        n = int(raw[7])
+        text = raw[8:].view(np.uint8)[:n].tobytes().decode("utf-8", "replace")
         return {
             "ticks": int(raw[0]),
             "tick_time_s": float(raw[1]),
             "throttles": (float(raw[2]), float(raw[3])),
             "wheel_speeds_mps": (float(raw[4]), float(raw[5])),
-            "wheel_gains": tuple(None if math.isnan(g) else float(g) for g in raw[6:8]),
-            "safety_stops": int(raw[8]),
+            "safety_stops": int(raw[6]),
             "safety_stop": text,
         }
 
@@ -342,13 +341,11 @@ class ControlLink:
 
     def write_output(self, ticks: int, tick_time_s: float, view: ChildView, control: Any) -> None:
         stop = view.safety_stop.encode("utf-8")[:SAFETY_TEXT_BYTES]
-        gains = [math.nan if g is None else float(g) for g in view.wheel_gains]
         data = self.output.data()
         self.output._seq[0] += 1.0
-        data[:9] = [float(ticks), tick_time_s, *view.throttles, *view.wheel_speeds_mps, *gains,
-                    float(view.safety_stops)]
-        data[9] = float(len(stop))
-        data[10:].view(np.uint8)[:len(stop)] = np.frombuffer(stop, dtype=np.uint8)
+        data[:7] = [float(ticks), tick_time_s, *view.throttles, *view.wheel_speeds_mps, float(view.safety_stops)]
+        data[7] = float(len(stop))
+        data[8:].view(np.uint8)[:len(stop)] = np.frombuffer(stop, dtype=np.uint8)
         self.output._seq[0] += 1.0
 
     def push_tick(self, time_s: float, late_ms: float, cpu_s: float, left: float, right: float) -> None:
@@ -441,7 +438,6 @@ class ChildView:
         self.jog_command: tuple[float, float, float] | None = None
         self.wheel_ticks: tuple[float, int, int] | None = None
         self.wheel_speeds_mps = (0.0, 0.0)
-        self.wheel_gains: tuple[float | None, float | None] = (None, None)
         self.throttles = (0.0, 0.0)
         self.safety_stop = ""
         self.safety_stops = 0
@@ -602,7 +598,6 @@ def _take_output(link: ControlLink, state: SharedState, heartbeat: Any, meter: A
     if out is not None and out["ticks"] > 0:
         state.throttles = out["throttles"]
         state.wheel_speeds_mps = out["wheel_speeds_mps"]
-        state.wheel_gains = out["wheel_gains"]
         state.safety_stop = out["safety_stop"]
         state.safety_stops = out["safety_stops"]
         if hasattr(heartbeat, "last_tick_s"):

@@ -41,7 +41,7 @@ from mazebot.planner.safety import (
     deskewed_points_robot,
     with_remembered,
 )
-from mazebot.planner.wheel_control import DriveMode, WheelController, WheelGainEstimator, WheelSpeedEstimator
+from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
 from mazebot.state import SharedState
 
 log = logging.getLogger(__name__)
@@ -87,9 +87,6 @@ class MotorControl:
         self.estimator = WheelSpeedEstimator.for_wheel(
             ticks_per_rev, d.wheel_diameter_m, diameter_ratio=d.wheel_diameter_ratio
         )
-        # each motor's answer to the throttles written, for the health monitor's weak-motor check
-        self.gains = WheelGainEstimator(d.max_wheel_speed_mps, c.motor_deadband, self.period_s, c.actuation_latency_s)
-        self._last_tick_s: float | None = None
         self._faults_raised_seen = 0
         guard = CollisionGuard(
             footprint_radius_m=robot.footprint_radius_m,
@@ -130,10 +127,6 @@ class MotorControl:
             stamp_s, left_ticks, right_ticks = reading
             measured = self.estimator.update(left_ticks, right_ticks, stamp_s)
         state.wheel_speeds_mps = measured
-        # state.throttles: what the last tick wrote (zeros if the HAT refused it), what moved the wheels since
-        dt_s = None if self._last_tick_s is None else now_s - self._last_tick_s
-        self._last_tick_s = now_s
-        state.wheel_gains = self.gains.update(state.throttles, measured, dt_s)
         moving = state.run_state.moving and not state.stopping
         if state.faults_raised != self._faults_raised_seen:
             # a fault since the last tick stops the wheels, even one already cleared again: a

@@ -133,6 +133,8 @@ class SlamStats:
 
     scans: int = 0  # revolutions processed
     scans_dropped: int = 0  # revolutions dropped because SLAM was behind
+    #: the latest drops' log lines (what held SLAM up: ``lidar_task.why_behind``), oldest first
+    drop_notes: list[str] = field(default_factory=list)
     keyframes: int = 0
     held_back: int = 0  # revolutions that only localized, not painted: the odometry was known bad
     #: revolutions left out because the odometry had not reached their end within the wait (its

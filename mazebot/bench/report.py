@@ -260,6 +260,9 @@ def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) 
     errors = [f"- {r['maze']} seed {r['seed']}: {e}" for r in runs for e in r.get("errors") or []]
     if errors:
         lines += ["", "## Errors", "", *errors]
+    drops = [f"- {r['maze']} seed {r['seed']}: {note}" for r in runs for note in r.get("slam_drop_notes") or []]
+    if drops:  # a dropped revolution must be explainable from the report alone
+        lines += ["", "## Revolutions dropped, and what held SLAM up", "", *drops]
     budget = budget_table([r for r in runs if r.get("cpu_budget") and r.get("time_s")])
     if budget:
         lines += ["", "## CPU per part of the daemon", "", *budget, "",

@@ -196,7 +196,7 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
 
 
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> None:
-    caplog.set_level(logging.INFO, logger="mazebot.tasks.lidar_task")
+    caplog.set_level(logging.WARNING, logger="mazebot.tasks.lidar_task")
     state = SharedState()
     state.scans = asyncio.Queue(maxsize=2)
     state.slam.job_started_wall_s = time.perf_counter()
@@ -206,6 +206,9 @@ async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> N
     # each drop says which revolution went and what SLAM did while it waited
     said = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
     assert len(said) == 3 and all("0 revolutions matched" in m and "a loop-closure job running for" in m for m in said)
+    assert all(r.levelno == logging.WARNING for r in caplog.records if "dropped" in r.getMessage())
+    assert all("planner ticks" in m and "the process's other threads" in m for m in said)
+    assert state.slam.drop_notes == said  # kept for the benchmark's report too
     assert [m.split("ending at ")[1].split(" s")[0] for m in said] == ["1.00", "1.20", "1.40"]
     assert [state.scans.get_nowait().end_time_s for _ in range(2)] == [s.end_time_s for s in scans[3:]]
     assert state.latest_scan is scans[-1]

@@ -152,6 +152,9 @@ class SlamStats:
     merge_wall_s: float = 0.0  # loop-closure results merged (:meth:`Slam.apply_steps`)
     merge_cpu_s: float = 0.0
     merges: int = 0
+    #: times SLAM paused the loop-closure worker to catch up, and the wall seconds it stayed paused
+    worker_pauses: int = 0
+    worker_paused_s: float = 0.0
     #: when the loop-closure job now in the worker was started (``time.perf_counter``), None: none
     job_started_wall_s: float | None = None
     #: accepted loop closures: (old keyframe time_s, new keyframe time_s, measured pose of the new

@@ -238,6 +238,8 @@ async def _run_daemon(
         "slam_scans": slam.scans,
         "slam_scans_dropped": slam.scans_dropped,
         "slam_drop_notes": list(slam.drop_notes),
+        "slam_worker_pauses": slam.worker_pauses,
+        "slam_worker_paused_s": slam.worker_paused_s,
         "slam_scans_uncovered": slam.uncovered,
         "slam_scans_held_back": slam.held_back,
         "keyframes": slam.keyframes,
@@ -714,6 +716,9 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "slam_scans": d.get("slam_scans"),
         "slam_scans_dropped": d.get("slam_scans_dropped"),  # revolutions SLAM had to drop
         "slam_drop_notes": d.get("slam_drop_notes") or [],  # what held SLAM up at each (the latest 50)
+        # SLAM paused the loop-closure worker to catch up ([slam] loop_closure_pause_behind): times, seconds
+        "slam_worker_pauses": d.get("slam_worker_pauses"),
+        "slam_worker_paused_s": _round(d.get("slam_worker_paused_s"), 2),
         "slam_scans_uncovered": d.get("slam_scans_uncovered"),  # left out: the odometry never reached their end
         "slam_scans_held_back": d.get("slam_scans_held_back"),  # localized only, not painted: the odometry distrusted
         "lidar_bytes_dropped": d.get("lidar_bytes_dropped"),

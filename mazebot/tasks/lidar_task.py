@@ -59,6 +59,8 @@ def why_behind(then: SlamTimes, now: SlamTimes, job_started_wall_s: float | None
     interpreter lock while the loop waits for it.
     """
     wall_s = now.wall_s - then.wall_s
+    loop_cpu_s = now.thread_cpu_s - then.thread_cpu_s
+    others_cpu_s = (now.process_cpu_s - then.process_cpu_s) - loop_cpu_s
     job = ("no loop-closure job running" if job_started_wall_s is None
            else f"a loop-closure job running for {now.wall_s - job_started_wall_s:.2f} s")
     return (f"in the {wall_s:.2f} s it waited: {now.scans - then.scans} revolutions matched in "
@@ -66,10 +68,9 @@ def why_behind(then: SlamTimes, now: SlamTimes, job_started_wall_s: float | None
             f"{now.odometry_wait_s - then.odometry_wait_s:.2f} s waiting for the odometry, "
             f"{now.merges - then.merges} closure results merged in {now.merge_wall_s - then.merge_wall_s:.2f} s "
             f"({now.merge_cpu_s - then.merge_cpu_s:.2f} s CPU); the loop's thread ran "
-            f"{now.thread_cpu_s - then.thread_cpu_s:.2f} s CPU (planner ticks "
-            f"{now.planner_cpu_s - then.planner_cpu_s:.2f} s, garbage collection {now.gc_cpu_s - then.gc_cpu_s:.2f} s), "
-            f"the process's other threads {(now.process_cpu_s - then.process_cpu_s) - (now.thread_cpu_s - then.thread_cpu_s):.2f} s; "
-            f"{job}")
+            f"{loop_cpu_s:.2f} s CPU (planner ticks {now.planner_cpu_s - then.planner_cpu_s:.2f} s, "
+            f"garbage collection {now.gc_cpu_s - then.gc_cpu_s:.2f} s), the process's other threads "
+            f"{others_cpu_s:.2f} s; {job}")
 
 
 async def run(lidar, state: SharedState) -> None:

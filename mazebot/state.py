@@ -133,6 +133,10 @@ class SlamStats:
 
     scans: int = 0  # revolutions processed
     scans_dropped: int = 0  # revolutions dropped because SLAM was behind
+    #: the most revolutions that waited for SLAM at once, and how many revolutions were queued
+    #: behind ``lidar_task.BEHIND_REVOLUTIONS`` or more (the queue's early signs of a drop)
+    queue_peak: int = 0
+    queue_behind: int = 0
     #: the latest drops' log lines (what held SLAM up: ``lidar_task.why_behind``), oldest first
     drop_notes: list[str] = field(default_factory=list)
     keyframes: int = 0

@@ -239,6 +239,8 @@ async def _run_daemon(
         "slam_scans_dropped": slam.scans_dropped,
         "slam_drop_notes": list(slam.drop_notes),
         "slam_worker_pauses": slam.worker_pauses,
+        "slam_queue_peak": slam.queue_peak,
+        "slam_queue_behind": slam.queue_behind,
         "slam_worker_paused_s": slam.worker_paused_s,
         "slam_scans_uncovered": slam.uncovered,
         "slam_scans_held_back": slam.held_back,
@@ -718,6 +720,9 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "slam_drop_notes": d.get("slam_drop_notes") or [],  # what held SLAM up at each (the latest 50)
         # SLAM paused the loop-closure worker to catch up ([slam] loop_closure_pause_behind): times, seconds
         "slam_worker_pauses": d.get("slam_worker_pauses"),
+        # the most revolutions that waited for SLAM at once; revolutions queued with 4 or more waiting
+        "slam_queue_peak": d.get("slam_queue_peak"),
+        "slam_queue_behind": d.get("slam_queue_behind"),
         "slam_worker_paused_s": _round(d.get("slam_worker_paused_s"), 2),
         "slam_scans_uncovered": d.get("slam_scans_uncovered"),  # left out: the odometry never reached their end
         "slam_scans_held_back": d.get("slam_scans_held_back"),  # localized only, not painted: the odometry distrusted

@@ -200,6 +200,7 @@ QUOTA_COLUMNS = (
     ("maze", "maze"), ("seed", "seed"), ("cpu_quota_percent", "quota % of a core"), ("done", "done"),
     ("time_s", "time to done s"), ("coverage", "coverage"), ("collisions", "collisions"),
     ("control_jitter_ms_p99", "control p99 late ms"), ("slam_scans_dropped", "revolutions dropped"),
+    ("slam_queue_peak", "most revolutions waiting for SLAM"), ("slam_queue_behind", "revolutions queued 4+ behind"),
     ("slam_worker_pauses", "loop-closure worker paused (times)"),
     ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core (raw, cgroup)"),
     ("daemon_cpu_percent_sim_out", "daemon CPU % of a core, the simulator's GPIO share out"),

@@ -15,6 +15,9 @@ log = logging.getLogger(__name__)
 
 #: At most one "garbled bytes" event this often.
 GARBLED_NOTE_EVERY_S = 5.0
+#: SLAM counts as behind when this many revolutions wait for it (``state.slam.queue_behind``): a
+#: drop's early sign, seen in runs that drop nothing (the queue holds ``[slam] scan_queue_size``).
+BEHIND_REVOLUTIONS = 4
 #: The latest drop lines kept in ``state.slam.drop_notes`` (for the benchmark's report).
 DROP_NOTES_KEPT = 50
 
@@ -108,6 +111,9 @@ async def run(lidar, state: SharedState) -> None:
             del slam.drop_notes[:-DROP_NOTES_KEPT]
         queue.put_nowait(scan)
         queued.append(now)
+        waiting = queue.qsize()
+        slam.queue_peak = max(slam.queue_peak, waiting)
+        slam.queue_behind += waiting >= BEHIND_REVOLUTIONS
         stats = state.sensors
         stats.lidar_revolutions += 1
         driver_stats = lidar.stats

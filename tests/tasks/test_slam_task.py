@@ -209,6 +209,7 @@ async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> N
     assert all(r.levelno == logging.WARNING for r in caplog.records if "dropped" in r.getMessage())
     assert all("planner ticks" in m and "the process's other threads" in m for m in said)
     assert state.slam.drop_notes == said  # kept for the benchmark's report too
+    assert state.slam.queue_peak == 2 and state.slam.queue_behind == 0  # the queue's bound; never 4 behind
     assert [m.split("ending at ")[1].split(" s")[0] for m in said] == ["1.00", "1.20", "1.40"]
     assert [state.scans.get_nowait().end_time_s for _ in range(2)] == [s.end_time_s for s in scans[3:]]
     assert state.latest_scan is scans[-1]

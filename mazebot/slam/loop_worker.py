@@ -343,7 +343,10 @@ class LoopClosureExecutor(Executor):
         """
         if self.kind != "process" or self._paused or self._pool is None:
             return False
-        for pid in list(getattr(self._pool, "_processes", None) or {}):  # the pool's workers by pid
+        workers = getattr(self._pool, "_processes", None) or {}  # the pool's worker processes by pid
+        for pid, process in list(workers.items()):
+            if process.exitcode is not None:  # ended: its pid may be another process's by now
+                continue
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGSTOP)
                 self._paused.append(pid)

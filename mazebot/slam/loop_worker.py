@@ -126,8 +126,10 @@ def _watch_daemon(daemon_pid: int, nice: int = 0, period_s: float = 1.0) -> None
     were ready, and the revolutions that arrived meanwhile piled up behind SLAM until the
     oldest were dropped. At nice 19 the scheduler gives the worker what the daemon leaves
     (a weight of 15 against the daemon's 1024: the kernel's ``sched_prio_to_weight``) and a
-    closure lands later. (Not enough in every quota run: one of eight on 16x16 still dropped
-    revolutions with the main thread starved during a long job.) With a core to itself nothing changes.
+    closure lands later. Not enough under a quota, which counts the CPU of every core while
+    nice weighs the tasks of one: the worker spent the budget while the main thread slept, so
+    SLAM also pauses it while it is behind (:meth:`LoopClosureExecutor.pause`). With a core to
+    itself nothing changes.
 
     A pool's worker waits on a pipe whose both ends it inherited, so a daemon killed
     without its clean-up (SIGKILL, a crash) would leave it waiting for ever. The objects

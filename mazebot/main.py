@@ -361,7 +361,9 @@ async def run_daemon(
             ),
             restart=True,
         )
-        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam), restart=True)
+        supervisor.start("slam", lambda: slam_task.run(state, clock, slam_params, slam_executor, slam,
+                                                        pause_behind=config.slam.loop_closure_pause_behind),
+                         restart=True)
         # hasattr, not isinstance on the Protocol: the recording tap forwards the driver's names through
         # __getattr__, which Python 3.12's runtime protocol checks no longer look at
         has_bytes = hasattr(hardware.lidar, "bytes_waiting")  # the tests' fakes count no bytes

@@ -492,6 +492,14 @@ class SlamConfig(BaseModel):
         description="the loop-closure worker process's nice value: on a CPU shared with the daemon (one Pi core, "
         "a quota) its jobs take what the daemon leaves instead of half of it; 0: as the daemon",
     )
+    loop_closure_pause_behind: int = Field(
+        3,
+        ge=0,
+        le=32,
+        description="revolutions waiting for SLAM at which the loop-closure worker process is paused until at "
+        "most one waits: on a shared CPU budget (a quota, one Pi core) a long job on another core took what SLAM "
+        "needed; 0: never paused",
+    )
     correlative: bool = Field(
         True, description="search a window of poses ([slam.search]) before ICP where its match failed, "
         "or after re-localization"

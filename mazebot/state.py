@@ -133,6 +133,12 @@ class SlamStats:
 
     scans: int = 0  # revolutions processed
     scans_dropped: int = 0  # revolutions dropped because SLAM was behind
+    #: the most revolutions that waited for SLAM at once, and how many revolutions were queued
+    #: behind ``lidar_task.BEHIND_REVOLUTIONS`` or more (the queue's early signs of a drop)
+    queue_peak: int = 0
+    queue_behind: int = 0
+    #: the latest drops' log lines (what held SLAM up: ``lidar_task.why_behind``), oldest first
+    drop_notes: list[str] = field(default_factory=list)
     keyframes: int = 0
     held_back: int = 0  # revolutions that only localized, not painted: the odometry was known bad
     #: revolutions left out because the odometry had not reached their end within the wait (its
@@ -150,6 +156,9 @@ class SlamStats:
     merge_wall_s: float = 0.0  # loop-closure results merged (:meth:`Slam.apply_steps`)
     merge_cpu_s: float = 0.0
     merges: int = 0
+    #: times SLAM paused the loop-closure worker to catch up, and the wall seconds it stayed paused
+    worker_pauses: int = 0
+    worker_paused_s: float = 0.0
     #: when the loop-closure job now in the worker was started (``time.perf_counter``), None: none
     job_started_wall_s: float | None = None
     #: accepted loop closures: (old keyframe time_s, new keyframe time_s, measured pose of the new

@@ -66,6 +66,8 @@ LATENESS_KEPT = 200_000
 #: quadrature cycles per timed run (4 edges each) and runs per stage (the median kept); ~0.6 s of CPU.
 EDGE_COST_CYCLES = 5_000
 EDGE_COST_REPEATS = 7
+#: What the daemon process writes to the bench's stderr (the control process logs at ``[daemon] log_level``).
+DAEMON_LOG_LEVEL = "warning"
 
 
 class QuotaRunError(MazebotError):
@@ -87,9 +89,15 @@ def daemon_main(
 ) -> None:
     """The daemon process's entry point: join the cgroup, run the daemon, send its report."""
     from mazebot.bench.cgroup import join
+    from mazebot.logs import setup_logging
 
     if procs_files:  # first of all: everything this process does from here on is inside the quota
         join([Path(p) for p in procs_files])
+    # A spawned process starts with no logging set up: only Python's last-resort handler wrote
+    # its warnings, bare, and its info lines went nowhere. The daemon's warnings and errors (a
+    # dropped revolution and why, a fault) reach the bench's output as ``mazebot run`` writes them;
+    # its info lines (every closure and goal) would bury the progress line.
+    setup_logging(DAEMON_LOG_LEVEL)
     # Ctrl-C (or a SIGTERM to the process group) reaches every process at once: the parent stops
     # us, then the world. Ignored here, both are ignored by the loop-closure fork server and its
     # worker too (a process started from here inherits ignored signals), which would otherwise die
@@ -229,6 +237,11 @@ async def _run_daemon(
         "scan_ms": list(state.scan_ms),
         "slam_scans": slam.scans,
         "slam_scans_dropped": slam.scans_dropped,
+        "slam_drop_notes": list(slam.drop_notes),
+        "slam_worker_pauses": slam.worker_pauses,
+        "slam_queue_peak": slam.queue_peak,
+        "slam_queue_behind": slam.queue_behind,
+        "slam_worker_paused_s": slam.worker_paused_s,
         "slam_scans_uncovered": slam.uncovered,
         "slam_scans_held_back": slam.held_back,
         "keyframes": slam.keyframes,
@@ -704,6 +717,13 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "lidar_revolutions": d.get("lidar_revolutions"),
         "slam_scans": d.get("slam_scans"),
         "slam_scans_dropped": d.get("slam_scans_dropped"),  # revolutions SLAM had to drop
+        "slam_drop_notes": d.get("slam_drop_notes") or [],  # what held SLAM up at each (the latest 50)
+        # SLAM paused the loop-closure worker to catch up ([slam] loop_closure_pause_behind): times, seconds
+        "slam_worker_pauses": d.get("slam_worker_pauses"),
+        # the most revolutions that waited for SLAM at once; revolutions queued with 4 or more waiting
+        "slam_queue_peak": d.get("slam_queue_peak"),
+        "slam_queue_behind": d.get("slam_queue_behind"),
+        "slam_worker_paused_s": _round(d.get("slam_worker_paused_s"), 2),
         "slam_scans_uncovered": d.get("slam_scans_uncovered"),  # left out: the odometry never reached their end
         "slam_scans_held_back": d.get("slam_scans_held_back"),  # localized only, not painted: the odometry distrusted
         "lidar_bytes_dropped": d.get("lidar_bytes_dropped"),

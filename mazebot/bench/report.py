@@ -200,6 +200,8 @@ QUOTA_COLUMNS = (
     ("maze", "maze"), ("seed", "seed"), ("cpu_quota_percent", "quota % of a core"), ("done", "done"),
     ("time_s", "time to done s"), ("coverage", "coverage"), ("collisions", "collisions"),
     ("control_jitter_ms_p99", "control p99 late ms"), ("slam_scans_dropped", "revolutions dropped"),
+    ("slam_queue_peak", "most revolutions waiting for SLAM"), ("slam_queue_behind", "revolutions queued 4+ behind"),
+    ("slam_worker_pauses", "loop-closure worker paused (times)"),
     ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core (raw, cgroup)"),
     ("daemon_cpu_percent_sim_out", "daemon CPU % of a core, the simulator's GPIO share out"),
     ("gpio_thread_cpu_percent", "GPIO edge thread % of a core"), ("gpio_thread_us_per_edge", "its µs per edge"),
@@ -260,6 +262,9 @@ def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) 
     errors = [f"- {r['maze']} seed {r['seed']}: {e}" for r in runs for e in r.get("errors") or []]
     if errors:
         lines += ["", "## Errors", "", *errors]
+    drops = [f"- {r['maze']} seed {r['seed']}: {note}" for r in runs for note in r.get("slam_drop_notes") or []]
+    if drops:  # a dropped revolution must be explainable from the report alone
+        lines += ["", "## Revolutions dropped, and what held SLAM up", "", *drops]
     budget = budget_table([r for r in runs if r.get("cpu_budget") and r.get("time_s")])
     if budget:
         lines += ["", "## CPU per part of the daemon", "", *budget, "",

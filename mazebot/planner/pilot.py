@@ -513,10 +513,7 @@ class Pilot:
             return None
         graph = self.explorer.graph
         start = graph.frame.cell_of(*self.explorer.start_xy_m)  # type: ignore[union-attr]  # ready: a frame exists
-        reachable = graph.reachable(start)
-        if not reachable:
-            return None
-        return sum(1 for cell in reachable if graph.is_explored(cell)) / len(reachable)
+        return graph.explored_share(start)
 
     def _scan_points(self, state: SharedState) -> np.ndarray:
         """The latest revolution's valid returns, robot frame, moved to where the robot is now,

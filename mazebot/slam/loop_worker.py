@@ -23,10 +23,12 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import time
 import uuid
@@ -124,8 +126,10 @@ def _watch_daemon(daemon_pid: int, nice: int = 0, period_s: float = 1.0) -> None
     were ready, and the revolutions that arrived meanwhile piled up behind SLAM until the
     oldest were dropped. At nice 19 the scheduler gives the worker what the daemon leaves
     (a weight of 15 against the daemon's 1024: the kernel's ``sched_prio_to_weight``) and a
-    closure lands later. (Not enough in every quota run: one of eight on 16x16 still dropped
-    revolutions with the main thread starved during a long job.) With a core to itself nothing changes.
+    closure lands later. Not enough under a quota, which counts the CPU of every core while
+    nice weighs the tasks of one: the worker spent the budget while the main thread slept, so
+    SLAM also pauses it while it is behind (:meth:`LoopClosureExecutor.pause`). With a core to
+    itself nothing changes.
 
     A pool's worker waits on a pipe whose both ends it inherited, so a daemon killed
     without its clean-up (SIGKILL, a crash) would leave it waiting for ever. The objects
@@ -133,6 +137,7 @@ def _watch_daemon(daemon_pid: int, nice: int = 0, period_s: float = 1.0) -> None
     writes would copy their pages into this process (``gc.freeze``).
     """
     gc.freeze()
+    _die_with_parent()
     if nice > os.getpriority(os.PRIO_PROCESS, 0):  # lowered only: raising it needs privileges
         try:
             os.setpriority(os.PRIO_PROCESS, 0, nice)
@@ -148,6 +153,28 @@ def _watch_daemon(daemon_pid: int, nice: int = 0, period_s: float = 1.0) -> None
                 os._exit(0)
 
     threading.Thread(target=watch, name="mazebot-daemon-watch", daemon=True).start()
+
+
+#: prctl(2)'s option that sends this process a signal when its parent ends (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Have the kernel kill this worker when its parent (the fork server) ends (prctl(2), Linux only).
+
+    The watch thread below cannot run while the daemon has paused the worker
+    (:meth:`LoopClosureExecutor.pause`); the fork server ends with the daemon, and SIGKILL
+    ends even a stopped process. Best effort: without it the watch thread still acts on a
+    worker that is not paused.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux, or no libc to be found
+        pass
 
 
 class JobShipper:
@@ -228,6 +255,8 @@ class LoopClosureExecutor(Executor):
             raise ValueError(f"loop-closure executor must be one of {', '.join(EXECUTOR_KINDS)}, got {kind!r}")
         self.kind = kind
         self.nice = nice  # the worker process's (``[slam] loop_closure_nice``); a thread keeps the daemon's
+        #: the worker processes stopped by :meth:`pause` (their pids), until :meth:`resume`
+        self._paused: list[int] = []
         self._shipper = JobShipper(share=kind == "process")
         self._pool: ProcessPoolExecutor | ThreadPoolExecutor | None = None
         self._local = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mazebot-slam-local")
@@ -297,7 +326,43 @@ class LoopClosureExecutor(Executor):
 
         inner.add_done_callback(done)
 
+    @property
+    def paused(self) -> bool:
+        """True between :meth:`pause` and :meth:`resume` while a worker process was stopped."""
+        return bool(self._paused)
+
+    def pause(self) -> bool:
+        """Stop the worker process where it stands (SIGSTOP) until :meth:`resume`; True if one was stopped.
+
+        Why: under a CPU quota the worker and the daemon draw on one budget, and a worker on
+        another core of the machine draws on it at once, whatever its nice value (nice weighs
+        tasks on one core's queue, a quota counts the CPU of every core). A 16x16 job of
+        seconds then left SLAM's thread a fraction of what it needs, and revolutions were
+        dropped. Paused, the job takes no CPU at all; it goes on, unchanged, where it stood.
+        A thread executor has nothing to stop (False). The worker itself dies with its fork
+        server (``PR_SET_PDEATHSIG``), so a daemon killed while it is paused leaves no
+        stopped process behind.
+        """
+        if self.kind != "process" or self._paused or self._pool is None:
+            return False
+        workers = getattr(self._pool, "_processes", None) or {}  # the pool's worker processes by pid
+        for pid, process in list(workers.items()):
+            if process.exitcode is not None:  # ended: its pid may be another process's by now
+                continue
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGSTOP)
+                self._paused.append(pid)
+        return bool(self._paused)
+
+    def resume(self) -> None:
+        """Let a paused worker go on (SIGCONT); idempotent."""
+        paused, self._paused = self._paused, []
+        for pid in paused:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+
     def _replace_pool(self) -> None:
+        self.resume()
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
         self._broken = False
@@ -309,6 +374,7 @@ class LoopClosureExecutor(Executor):
         Waiting (tens of milliseconds) lets the pool close its pipes before the interpreter
         exits; without it Python's exit hook writes to a closed one.
         """
+        self.resume()  # a stopped worker could not finish its job nor exit
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=cancel_futures)
             self._pool = None

@@ -168,6 +168,7 @@ async def run(
     executor: Executor | None = None,
     slam: Slam | None = None,
     guard: LocalizationGuard | None = None,
+    pause_behind: int = 0,
 ) -> None:
     """Consume ``state.scans`` for ever; ``executor`` runs loop-closure jobs (None: the loop's default).
 
@@ -177,9 +178,12 @@ async def run(
     ``guard`` (:mod:`mazebot.slam.relocalize`; a default one if None) holds back revolutions
     that do not fit the map; when the robot is lost it raises a ``localization`` fault and
     searches for it in the executor (in this process: it reads the live SLAM), and clears
-    the fault once found.
+    the fault once found. ``pause_behind`` (``[slam] loop_closure_pause_behind``): the
+    revolutions waiting at which an executor that can pause its worker is paused
+    (:meth:`SlamTask.pace_worker`); 0 never.
     """
-    task = SlamTask(state, clock, slam or Slam(params, background=True, record_trajectory=False), executor, guard)
+    task = SlamTask(state, clock, slam or Slam(params, background=True, record_trajectory=False), executor, guard,
+                    pause_behind)
     await task.run()
 
 
@@ -194,8 +198,12 @@ class SlamTask:
     """
 
     def __init__(self, state: SharedState, clock: Clock, slam: Slam, executor: Executor | None = None,
-                 guard: LocalizationGuard | None = None) -> None:
+                 guard: LocalizationGuard | None = None, pause_behind: int = 0) -> None:
         self.state, self.clock, self.slam, self.executor = state, clock, slam, executor
+        #: revolutions waiting behind the one in hand at which the loop-closure worker is paused
+        #: (``[slam] loop_closure_pause_behind``; 0: never)
+        self.pause_behind = pause_behind
+        self.paused_since_s: float | None = None  # the wall clock (perf_counter) when the worker was paused
         self.guard = guard or LocalizationGuard()
         self.trust = OdometryTrust()
         self.rest = RestMatches()
@@ -224,10 +232,12 @@ class SlamTask:
                 if self.next_scan is not None and self.next_scan in done:
                     scan = self.next_scan.result()
                     self.next_scan = None
+                    self.pace_worker()
                     if not await self.on_scan(scan):
                         continue  # a revolution left out waits for the next one to look at the run state
                 self.on_run_state()
         finally:
+            self._resume_worker()
             await self._cancel_pending()
 
     async def _wait(self) -> set[asyncio.Future]:
@@ -253,6 +263,36 @@ class SlamTask:
         self.job = asyncio.get_running_loop().run_in_executor(self.executor, job)
         self.job_since_s, self.job_noted = self.clock.now_s(), False
         self.state.slam.job_started_wall_s = time.perf_counter()
+
+    def pace_worker(self) -> None:
+        """Pause the loop-closure worker while SLAM is ``pause_behind`` revolutions behind; resume once caught up.
+
+        SLAM's revolutions come first: a loop closure corrects the map a little later, a
+        revolution dropped is lost. Where the worker has a core to itself SLAM does not fall
+        behind and nothing happens; where the two share a budget (a CPU quota, one Pi core
+        for the whole daemon) the worker's job took what SLAM's thread needed
+        (:meth:`LoopClosureExecutor.pause`). Resumed when at most one revolution waits, so
+        a job always goes on between the stretches SLAM is behind.
+        """
+        pause = getattr(self.executor, "pause", None)
+        if pause is None or self.pause_behind <= 0:
+            return
+        waiting = self.state.scans.qsize()
+        stats = self.state.slam
+        if self.paused_since_s is None:
+            if self.job is not None and waiting >= self.pause_behind and pause():
+                self.paused_since_s = time.perf_counter()
+                stats.worker_pauses += 1
+                log.info("SLAM is %d revolutions behind: the loop-closure job waits until it catches up", waiting)
+        elif waiting <= 1 or self.job is None:
+            self._resume_worker()
+
+    def _resume_worker(self) -> None:
+        if self.paused_since_s is None:
+            return
+        self.state.slam.worker_paused_s += time.perf_counter() - self.paused_since_s
+        self.paused_since_s = None
+        self.executor.resume()  # type: ignore[union-attr]  # paused: it has one
 
     # -- the events ---------------------------------------------------------------------
 

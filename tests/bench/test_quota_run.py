@@ -248,3 +248,18 @@ def test_the_report_has_a_row_per_run_nulls_for_missing_parts_and_the_planner_lo
     assert row.count("|") == len(QUOTA_COLUMNS) + 1
     assert "no limit" in row and "null" in row  # no quota; no cgroup accounting
     assert "Where the daemon's CPU went" not in report  # no thread clocks read: no such section
+
+
+def test_the_report_says_what_held_slam_up_at_each_dropped_revolution(tmp_path: Path) -> None:
+    from mazebot.bench.report import QUOTA_COLUMNS, write_quota_report
+
+    note = ("SLAM is 8 revolutions behind: the revolution ending at 53083.28 s dropped; in the 1.30 s it waited: "
+            "4 revolutions matched in 0.78 s (0.03 s CPU)")
+    quiet = {key: None for key, _ in QUOTA_COLUMNS} | {"maze": "shi2", "seed": 1, "done": True, "collisions": 0}
+    dropped = quiet | {"seed": 2, "slam_scans_dropped": 1, "slam_drop_notes": [note]}
+    write_quota_report(tmp_path, [quiet], "mazebot bench --cpu-quota 25")
+    assert "Revolutions dropped" not in (tmp_path / "report.md").read_text()
+    write_quota_report(tmp_path, [quiet, dropped], "mazebot bench --cpu-quota 25")
+    report = (tmp_path / "report.md").read_text()
+    assert "## Revolutions dropped, and what held SLAM up" in report
+    assert f"- shi2 seed 2: {note}" in report.splitlines()

@@ -469,3 +469,25 @@ def test_points_on_the_line_of_a_wall_link_are_told_from_open_links_and_cell_ins
     ])
     assert graph.on_walls(points, 0.046).tolist() == [True, True, False, False, False, True]
     assert not MazeGraph().on_walls(points, 0.046).any()  # no lattice yet: no wall known
+
+
+def test_the_explored_share_counts_the_reachable_cells_is_explored_says_are_explored() -> None:
+    _, world = layout_world(SMALL)
+    grid, origin = perfect_map(world)
+    blurred = grid.copy()
+    c0 = int((2 * CELL - origin[0]) / RES)
+    r0, r1 = int((0 * CELL - origin[1]) / RES), int((1 * CELL - origin[1]) / RES)
+    blurred[r0 + 1 : r1 - 1, c0 + 1 : c0 + 4] = -1  # (2, 0)'s inside not all seen
+    half = grid.copy()
+    half[: grid.shape[0] // 2] = -1  # the south half unknown: links unknown too
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    for step, (g, look) in enumerate(((half, False), (blurred, False), (blurred, True), (grid, False))):
+        if look:
+            graph.mark_looked_into((2, 0))  # in place, between two updates
+        else:
+            graph.update(g, origin, RES)
+        for start in ((0, 0), (1, 1), (2, 0)):
+            reachable = graph.reachable(start)
+            by_cell = sum(1 for cell in reachable if graph.is_explored(cell)) / len(reachable) if reachable else None
+            assert graph.explored_share(start) == by_cell, (step, start)
+    assert graph.explored_share((0, 0)) == 1.0

@@ -115,6 +115,43 @@ def test_the_worker_process_runs_at_the_nice_value_asked_and_the_daemon_keeps_it
     assert os.getpriority(os.PRIO_PROCESS, 0) < 19
 
 
+def _process_state(pid: int) -> str:
+    """The one-letter state of ``/proc/PID/stat`` (R running, S sleeping, T stopped)."""
+    return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+
+
+def test_a_paused_worker_is_stopped_until_resumed_and_then_finishes_its_work() -> None:
+    import time
+
+    executor = LoopClosureExecutor("process", nice=19)
+    try:
+        pool = executor._pool
+        pid = pool.submit(os.getpid).result(timeout=60)  # type: ignore[union-attr]
+        assert executor.pause() and executor.paused
+        assert not executor.pause()  # already paused: nothing more to stop
+        work = pool.submit(time.sleep, 0.05)  # type: ignore[union-attr]
+        time.sleep(0.5)
+        assert _process_state(pid) == "T" and not work.done()  # ten times its time, and not done
+        executor.resume()
+        assert not executor.paused
+        work.result(timeout=30)  # it went on where it stood
+        assert pool.submit(os.getpid).result(timeout=30) == pid  # type: ignore[union-attr]  # the same worker
+        assert _process_state(pid) in "RS"
+        executor.pause()
+    finally:
+        executor.shutdown()  # resumes a paused worker first, or it could never exit
+    assert not executor.paused
+
+
+def test_a_thread_executor_has_nothing_to_pause() -> None:
+    executor = LoopClosureExecutor("thread")
+    try:
+        assert not executor.pause() and not executor.paused
+        executor.resume()
+    finally:
+        executor.shutdown()
+
+
 def test_thread_executor_runs_the_job_as_is(frames: list) -> None:
     executor = LoopClosureExecutor("thread")
     try:

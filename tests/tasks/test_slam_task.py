@@ -196,7 +196,7 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
 
 
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> None:
-    caplog.set_level(logging.INFO, logger="mazebot.tasks.lidar_task")
+    caplog.set_level(logging.WARNING, logger="mazebot.tasks.lidar_task")
     state = SharedState()
     state.scans = asyncio.Queue(maxsize=2)
     state.slam.job_started_wall_s = time.perf_counter()
@@ -206,6 +206,10 @@ async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> N
     # each drop says which revolution went and what SLAM did while it waited
     said = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
     assert len(said) == 3 and all("0 revolutions matched" in m and "a loop-closure job running for" in m for m in said)
+    assert all(r.levelno == logging.WARNING for r in caplog.records if "dropped" in r.getMessage())
+    assert all("planner ticks" in m and "the process's other threads" in m for m in said)
+    assert state.slam.drop_notes == said  # kept for the benchmark's report too
+    assert state.slam.queue_peak == 2 and state.slam.queue_behind == 0  # the queue's bound; never 4 behind
     assert [m.split("ending at ")[1].split(" s")[0] for m in said] == ["1.00", "1.20", "1.40"]
     assert [state.scans.get_nowait().end_time_s for _ in range(2)] == [s.end_time_s for s in scans[3:]]
     assert state.latest_scan is scans[-1]
@@ -344,3 +348,62 @@ async def test_a_revolution_the_odometry_never_reaches_is_left_out_not_judged_wi
         with pytest.raises(asyncio.CancelledError):
             await task
     assert state.slam.uncovered == 1 and fake.scans == 2
+
+
+class PausableExecutor(ThreadPoolExecutor):
+    """A thread executor that records the SLAM task's pauses and resumes of its worker."""
+
+    def __init__(self) -> None:
+        super().__init__(max_workers=1)
+        self.calls: list[str] = []
+
+    def pause(self) -> bool:
+        self.calls.append("pause")
+        return True
+
+    def resume(self) -> None:
+        self.calls.append("resume")
+
+
+async def test_the_loop_closure_worker_waits_while_slam_is_behind_and_goes_on_once_it_caught_up() -> None:
+    state = SharedState()
+    state.scans = asyncio.Queue(maxsize=8)
+    executor = PausableExecutor()
+    task = slam_task.SlamTask(state, RealClock(), SimpleNamespace(), executor, pause_behind=3)
+    try:
+        def waiting(n: int) -> None:
+            while state.scans.qsize() > n:
+                state.scans.get_nowait()
+            while state.scans.qsize() < n:
+                state.scans.put_nowait(_static_scan(1.0, np.zeros(3)))
+
+        waiting(5)
+        task.pace_worker()
+        assert executor.calls == []  # no job running: nothing to pause
+        task.job = asyncio.get_running_loop().create_future()
+        waiting(2)
+        task.pace_worker()
+        assert executor.calls == []  # two behind: SLAM still keeps up
+        waiting(3)
+        task.pace_worker()
+        waiting(4)
+        task.pace_worker()
+        waiting(2)
+        task.pace_worker()
+        assert executor.calls == ["pause"]  # once, and held while more than one revolution waits
+        waiting(1)
+        task.pace_worker()
+        assert executor.calls == ["pause", "resume"]
+        assert state.slam.worker_pauses == 1 and state.slam.worker_paused_s > 0
+        waiting(3)
+        task.pace_worker()
+        task.job = None  # the job ended (paused jobs cannot: a job cancelled on the way out)
+        task.pace_worker()
+        assert executor.calls == ["pause", "resume", "pause", "resume"]
+        task.pause_behind = 0  # [slam] loop_closure_pause_behind = 0: never
+        task.job = asyncio.get_running_loop().create_future()
+        waiting(7)
+        task.pace_worker()
+        assert executor.calls == ["pause", "resume", "pause", "resume"]
+    finally:
+        executor.shutdown()

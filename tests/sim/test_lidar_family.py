@@ -167,9 +167,11 @@ def _room(x_min: float, y_min: float, x_max: float, y_max: float, turn_rad: floa
 
 
 @pytest.mark.parametrize("post_m", [0.17, 0.20, 0.24])
+@pytest.mark.parametrize("shape", ["round", "square"])
 @pytest.mark.parametrize("scan_mode", ["standard", "express"])
-def test_a_thin_post_close_ahead_is_seen(scan_mode: str, post_m: float) -> None:
-    """A 12 mm post close ahead, 1.5 m of free floor behind it: 3-4° wide, it takes samples.
+def test_a_thin_post_close_ahead_is_seen(scan_mode: str, shape: str, post_m: float) -> None:
+    """A 12 mm post close ahead (a table leg, or a maze's square post), 1.5 m of free floor
+    behind it: 3-4° wide, it takes samples.
 
     A triangulation head (the A1) sees along its raw angle plus an offset of ~8° far away
     and under 1.2° this close. The emulator once found a sample's offset from a cast along
@@ -178,10 +180,17 @@ def test_a_thin_post_close_ahead_is_seen(scan_mode: str, post_m: float) -> None:
     """
     from mazebot.sim.world import World
 
-    world = World("post", _room(-1.5, -1.5, 1.5, 1.5), np.array([[post_m, 0.0, 0.006]]), (0.0, 0.0, 0.0),
-                  (-1.5, -1.5, 1.5, 1.5))
+    walls = _room(-1.5, -1.5, 1.5, 1.5)
+    if shape == "round":
+        world = World("post", walls, np.array([[post_m, 0.0, 0.006]]), (0.0, 0.0, 0.0), (-1.5, -1.5, 1.5, 1.5))
+    else:
+        post = _room(post_m - 0.006, -0.006, post_m + 0.006, 0.006)
+        world = World("post", np.concatenate([walls, post]), np.zeros((0, 3)), (0.0, 0.0, 0.0), (-1.5, -1.5, 1.5, 1.5))
     for xy in _decoded_points(world, scan_mode):
-        gap_m = np.hypot(xy[:, 0] - post_m, xy[:, 1]) - 0.006
+        if shape == "round":
+            gap_m = np.hypot(xy[:, 0] - post_m, xy[:, 1]) - 0.006
+        else:  # outside the square by this much (negative: inside)
+            gap_m = np.maximum(np.abs(xy[:, 0] - post_m), np.abs(xy[:, 1])) - 0.006
         assert (np.abs(gap_m) < 0.001).sum() >= 2, (scan_mode, post_m, np.sort(np.abs(gap_m))[:4])
         # and nothing in the free space round it: every return lies on the post or a wall
         assert np.all((np.abs(gap_m) < 0.001) | (np.abs(xy).max(axis=1) > 1.49)), (scan_mode, post_m)

@@ -154,7 +154,8 @@ def _decoded_points(world: object, scan_mode: str, count: int = 3) -> list[np.nd
     points = []
     for scan in run_virtual(scans())[1:]:
         v = scan.valid
-        points.append(np.stack([scan.range_m[v] * np.cos(scan.angle_rad[v]), scan.range_m[v] * np.sin(scan.angle_rad[v])], 1))
+        r, a = scan.range_m[v], scan.angle_rad[v]
+        points.append(np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
     return points
 
 

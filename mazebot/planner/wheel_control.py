@@ -446,13 +446,17 @@ class WheelController:
     ) -> WheelCommand:
         """Throttles for body velocity ``(v_mps, w_radps)`` given the measured wheel speeds."""
         if mode is not self.mode:
-            self.left.reset()
-            self.right.reset()
+            # the reference model starts from the speeds the wheels have, not from rest: from 0 a
+            # wheel still rolling forward out of a drive reads as far too fast, P and I push it
+            # back, and a turn in place begun at 0.27 m/s reversed the body at up to 0.075 m/s
+            # for 34 mm (a 16x16 contest maze under a Pi 4's share: 0.095 m/s, into a side wall)
+            self.left.reset(measured_mps[0])
+            self.right.reset(measured_mps[1])
             self.mode = mode
         if mode is DriveMode.STOP:
             self.targets_mps = (0.0, 0.0)
-            self.left.reset()
-            self.right.reset()
+            self.left.reset(measured_mps[0])
+            self.right.reset(measured_mps[1])
             return WheelCommand(0.0, 0.0, 0.0, 0.0)
         want_l, want_r = self.kinematics.wheel_speeds(v_mps, w_radps)
         left_t, right_t = self._ramp(want_l, want_r, dt_s)

@@ -960,8 +960,14 @@ class LocalPlanner:
         if self._recovery is _Recovery.BACK_OFF:
             assert self._backoff_start is not None
             moved = math.dist(self._backoff_start, (pose[0], pose[1]))
-            ahead = self._escape_direction * np.linspace(0.0, max(self.escape_m - moved, 0.0) + 0.02, 8)
-            clear = costmap.clearance_m(np.column_stack((ahead, np.zeros(8))))
+            # the rest of the move (2 cm past its end), and never less than its stopping distance with the
+            # emergency stop's margin (as for the DWA's arcs), every step_m: judged only 2 cm ahead near
+            # its end, the move ran into the guard's stop when a wall stood 3-5 cm past it
+            stop_m = float(self.dwa.stopping_distance_m(self.escape_speed_mps))
+            reach_m = max(max(self.escape_m - moved, 0.0) + 0.02, stop_m)
+            n = max(2, math.ceil(reach_m / self.dwa.step_m) + 1)
+            ahead = self._escape_direction * np.linspace(0.0, reach_m, n)
+            clear = costmap.clearance_m(np.column_stack((ahead, np.zeros(n))))
             still_opening = bool(np.all(clear >= min(self.dwa.contact_m, float(clear[0]) - 1e-3)))
             # a slipping or blocked robot may never cover the distance: give it twice the time it needs
             in_time = now_s - self._backoff_since <= 2.0 * self.escape_m / self.escape_speed_mps + 0.5

@@ -7,13 +7,16 @@ check by hand:
 
 - :class:`CollisionGuard`: an **emergency stop** when any valid lidar return (the latest
   revolution's, and those the planner's :class:`BlindZoneMemory` keeps from inside the
-  lidar's minimum range) lies in the region the robot will sweep before it can stop: within the footprint radius (plus a
-  side margin) of the arc it is about to drive, over the stopping distance
-  ``|v| · latency + v² / (2 a)`` plus a front margin, on the side it is moving towards.
+  lidar's minimum range) lies in the region the robot will sweep before it can stop: within the
+  footprint radius (plus a side margin) of the arc it is about to drive, forwards or in reverse,
+  over the stopping distance ``|v| · latency + v² / (2 a)`` plus a front margin, and closer
+  than the return is now. The whole sweep counts, beside the robot too: a tight arc carries
+  the body sideways, and a robot reversing on one swept its side into a corridor wall with the
+  guard silent when it looked only behind (a 16×16 contest maze under a Pi 4's CPU share).
   The margin is kept ahead, not beside: driving along a wall a few centimetres away is
   normal in a 1 ft maze, driving at one is not. Turning in place is always allowed (a
-  round body sweeps nothing new) and so is moving away, so the planner's recovery
-  (rotate, back off) can still get the robot out.
+  round body sweeps nothing new) and so is any motion that takes the footprint no closer to
+  each return, so the planner's recovery (rotate, back off) can still get the robot out.
 - :class:`ControlWatchdog`: a **control deadline**: if the control loop has not ticked
   within ``deadline_s`` (an event loop blocked by heavy work), the next tick stops. This
   one is wall time on purpose: it measures how long the motors ran unsupervised.
@@ -320,52 +323,92 @@ class CollisionGuard:
         return v * self.latency_s + v * v / (2.0 * self.brake_decel_mps2)
 
     def check(self, points_robot: np.ndarray, v_mps: float, w_radps: float) -> SafetyVerdict:
-        """Stop when a return lies within :attr:`radius_m` of the arc ahead (robot-frame points (N, 2)).
+        """Stop when the sweep of the arc ``(v_mps, w_radps)`` brings the guard onto a return (robot frame, (N, 2)).
 
-        The arc is the one ``(v_mps, w_radps)`` drives, from the robot centre for the
-        stopping distance plus ``margin_m``; only returns on the side of motion count
-        (ahead when driving forward, behind when reversing), so the robot may always
-        move away.
+        The robot centre's path is the arc from here over the stopping distance plus
+        ``margin_m``, forwards or in reverse; a return stops the robot when that path comes
+        within :attr:`radius_m` of it **and** closer than the centre is to it now (by more than
+        :data:`APPROACH_TOL_M`). The second condition is what lets the robot always move
+        away: a return already inside the guard (a wall it was pushed against, map noise)
+        does not block a motion that takes the body no closer to it. Returns beside the
+        robot count like any other: a tight arc, in reverse most of all, carries the body
+        sideways into them.
         """
         if abs(v_mps) < self.min_speed_mps:
             return OK
         pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
         if pts.shape[0] == 0:
             return OK
-        direction = math.copysign(1.0, v_mps)
         length = self.stopping_distance_m(v_mps) + self.margin_m
-        n = max(2, math.ceil(length / 0.01) + 1)
-        s = np.linspace(0.0, length, n)  # arc length
-        curvature = w_radps / v_mps
-        if abs(curvature) < 1e-6:
-            ax, ay = direction * s, np.zeros(n)
-        else:
-            phi = s * curvature
-            ax = direction * np.sin(phi) / curvature
-            ay = (1.0 - np.cos(phi)) / curvature
-        # every arc point lies within ``length`` of the centre (an arc is never shorter than
-        # its chord), so a return farther than length + radius cannot be inside the guard:
-        # most of a revolution's returns are left out before the distance matrix
+        # every point of the path lies within ``length`` of the centre (an arc is never shorter
+        # than its chord), so a return farther than length + radius cannot be reached: most of a
+        # revolution's returns are left out before the exact distances
         reach = length + self.radius_m
-        ahead = (pts[:, 0] * direction > 0.0) & (pts[:, 0] * pts[:, 0] + pts[:, 1] * pts[:, 1] < reach * reach)
-        cand = pts[ahead]
-        if cand.shape[0] == 0:
+        range2 = pts[:, 0] * pts[:, 0] + pts[:, 1] * pts[:, 1]
+        near = range2 < reach * reach
+        if not near.any():
             return OK
-        d = np.min(np.hypot(cand[:, None, 0] - ax[None, :], cand[:, None, 1] - ay[None, :]), axis=1)
-        inside = d < self.radius_m
+        cand = pts[near]
+        ranges = np.sqrt(range2[near])
+        d = arc_distance_m(cand, length, math.copysign(1.0, v_mps), w_radps / v_mps)
+        inside = d < np.minimum(self.radius_m, ranges - APPROACH_TOL_M)
         if not inside.any():
             return OK
-        hits = cand[inside]
-        ranges = np.hypot(hits[:, 0], hits[:, 1])
-        k = int(np.argmin(ranges))
+        hits, hit_ranges = cand[inside], ranges[inside]
+        k = int(np.argmin(hit_ranges))
         bearing = math.degrees(math.atan2(hits[k, 1], hits[k, 0]))
-        side = "ahead" if direction > 0 else "behind"
+        where = "ahead" if abs(bearing) <= 45.0 else "behind" if abs(bearing) >= 135.0 else (
+            "on the left" if bearing > 0 else "on the right")
+        motion = "forwards" if v_mps > 0 else "in reverse"
         return SafetyVerdict(
             True,
-            f"emergency stop: obstacle {side} at {ranges[k]:.2f} m, bearing {bearing:.0f}°, inside the "
-            f"{self.radius_m:.2f} m guard of the next {length:.2f} m at {v_mps:.2f} m/s",
-            float(ranges[k]),
+            f"emergency stop: obstacle {where} at {hit_ranges[k]:.2f} m, bearing {bearing:.0f}°, inside the "
+            f"{self.radius_m:.2f} m guard of the next {length:.2f} m {motion} at {v_mps:.2f} m/s, {w_radps:.2f} rad/s",
+            float(hit_ranges[k]),
         )
+
+
+#: A return counts as approached when the sweep takes the robot centre this much closer to it
+#: than it is now (metres): one passed exactly abeam is neither approached nor left, and the last
+#: bits of a float must not decide which (the DWA's contact limit keeps the same 0.1 mm).
+APPROACH_TOL_M = 1e-4
+
+#: Below this curvature (1/m) the arc is taken as straight: over the longest stopping distance
+#: (under 0.3 m) it bows out by less than 0.05 mm, and the circle's centre would lie kilometres off.
+STRAIGHT_CURVATURE_PER_M = 1e-3
+
+
+def arc_distance_m(points_robot: np.ndarray, length_m: float, direction: float, curvature_per_m: float) -> np.ndarray:
+    """The smallest distance (N,) from each robot-frame point (N, 2) to the path of the robot centre
+    over ``length_m`` of the arc driven forwards (``direction`` +1) or in reverse (−1) with the signed
+    curvature ``w / v`` (1/m).
+
+    The centre's path is ``x = direction · sin(κs) / κ``, ``y = (1 − cos(κs)) / κ`` for arc length
+    ``s`` in ``[0, length_m]`` (κ = ``curvature_per_m``; a unicycle at constant ``(v, w)``).
+    Mirrored to a forward left turn (x times ``direction``, y times the sign of κ), the path is
+    part of a circle of radius ``ρ = 1/|κ|`` about ``(0, ρ)``, and the distance is exact: a
+    point whose angle about the centre lies within the arc's is ``|r − ρ|`` from it, any
+    other is nearest to one of the arc's ends. No samples: the result does not depend on a
+    spacing, and it costs a few array operations per point whatever the arc's length.
+    """
+    pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
+    qx = pts[:, 0] * direction
+    qy = pts[:, 1] if curvature_per_m >= 0 else -pts[:, 1]
+    k = abs(curvature_per_m)
+    if k < STRAIGHT_CURVATURE_PER_M:
+        s = np.clip(qx, 0.0, length_m)
+        return np.hypot(qx - s, qy)
+    rho = 1.0 / k
+    dy = qy - rho
+    to_centre = np.hypot(qx, dy)
+    sweep_rad = k * length_m
+    if sweep_rad >= math.tau:  # a whole circle (a crawl turning fast): every angle is on it
+        return np.abs(to_centre - rho)
+    # the angle about the centre, measured like the arc's from the robot (0) onwards: c(φ) − O = ρ (sin φ, −cos φ)
+    angle = np.mod(np.arctan2(qx, -dy), math.tau)
+    end_x, end_y = rho * math.sin(sweep_rad), 2.0 * rho * math.sin(0.5 * sweep_rad) ** 2
+    ends = np.minimum(np.hypot(qx, qy), np.hypot(qx - end_x, qy - end_y))
+    return np.where(angle <= sweep_rad, np.abs(to_centre - rho), ends)
 
 
 class ControlWatchdog:

@@ -374,3 +374,56 @@ def test_the_coarse_to_fine_search_scores_what_it_tries_as_the_full_search_and_e
         assert grid[r, c] >= grid[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2].max()
     assert np.mean(tried_share) < 0.6  # the search tried about half the arcs or fewer
     assert same_choice > 0.8 * len(scenes)  # and found the full search's best in most scenes
+
+
+def test_reverse_arcs_are_judged_on_the_footprint_they_sweep() -> None:
+    """A planner allowed to reverse rolls its reverse arcs out backwards: one that swings the body's
+    side into a wall beside and behind is not admissible, straight back and the other way are."""
+    wall = np.column_stack((np.arange(-0.4, 0.05, 0.005), np.full(90, FOOTPRINT + 0.018)))
+    dwa = DynamicWindowPlanner(min_speed_mps=-0.1, coarse_step=1)
+    costmap = LocalCostmap(wall, footprint_radius_m=FOOTPRINT)
+    choice = dwa.plan((0.0, 0.0, 0.0), (-0.1, 0.0), costmap, PathTrack([(0.0, 0.0), (-1.0, 0.0)]))
+    r = choice.rollouts
+    back = r.v_mps == r.v_mps.min()
+    assert r.v_mps.min() == pytest.approx(-0.1)
+    clockwise = back & (r.w_radps == r.w_radps.min())
+    straight = back & (r.w_radps == 0.0)
+    counter = back & (r.w_radps == r.w_radps.max())
+    assert r.points[clockwise][0, -1, 0] < 0.0 and r.points[clockwise][0, -1, 1] > 0.0  # back and to the left
+    assert not r.admissible[clockwise].any()
+    assert r.admissible[straight].all() and r.admissible[counter].all()
+    for v, w, ok in zip(r.v_mps, r.w_radps, r.admissible, strict=True):
+        if ok and abs(v) > 1e-6:  # every admissible arc, reverse ones too, keeps the footprint off the wall
+            stop = abs(v) * dwa.latency_s + v * v / (2 * dwa.brake_decel_mps2)
+            assert min_distance(arc_points(v, w, stop), wall) >= FOOTPRINT
+
+
+def test_the_recovery_s_back_off_ends_before_the_emergency_stop_would_refuse_it() -> None:
+    """A dead end 22 cm wide, the robot 9.5 cm from its end wall: it backs out, and stops backing
+    where the control loop's guard still lets it move (a wall behind, beyond the back-off's length)."""
+    from mazebot.config import Config
+    from mazebot.tasks.control_task import MotorControl
+
+    guard = MotorControl.from_config(Config()).safety.guard
+    xs = np.arange(-0.4, 0.3, 0.005)
+    ys = np.arange(-0.11, 0.11, 0.005)
+    dead_end = np.concatenate((
+        np.column_stack((xs, np.full(xs.size, 0.11))), np.column_stack((xs, np.full(xs.size, -0.11))),
+        np.column_stack((np.full(ys.size, 0.095), ys)), np.column_stack((np.full(ys.size, -0.185), ys)),
+    ))
+    local = LocalPlanner(stuck_timeout_s=1.0, blocked_timeout_s=0.4)
+    local.set_path([(0.0, 0.0), (1.0, 0.0)])
+    x = y = heading = 0.0
+    backed = 0
+    for k in range(60):
+        pts = to_robot_frame(dead_end, (x, y, heading))
+        cmd = local.step((x, y, heading), (0.0, 0.0), pts, None, 0.0, 0.2 * k)
+        if cmd.give_up:
+            break
+        verdict = guard.check(pts, cmd.v_mps, cmd.w_radps)
+        assert not verdict.stop, (k, cmd, verdict.reason)
+        backed += cmd.v_mps < 0
+        x += cmd.v_mps * 0.2 * math.cos(heading)  # an ideal robot that does as it is told
+        y += cmd.v_mps * 0.2 * math.sin(heading)
+        heading += cmd.w_radps * 0.2
+    assert backed > 0 and x < -0.02  # it did back out

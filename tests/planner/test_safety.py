@@ -1,4 +1,4 @@
-"""The safety layer: emergency stop on lidar returns ahead, control deadline, stale commands."""
+"""The safety layer: emergency stop on lidar returns in the swept path, control deadline, stale commands."""
 
 from __future__ import annotations
 
@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from mazebot.planner.dwa import scan_points_robot
-from mazebot.planner.safety import CollisionGuard, CommandGate, ControlWatchdog, SafetyLayer, reframe_points
+from mazebot.planner.safety import (
+    CollisionGuard,
+    CommandGate,
+    ControlWatchdog,
+    SafetyLayer,
+    arc_distance_m,
+    reframe_points,
+)
 from mazebot.planner.wheel_control import DriveMode, WheelController, WheelSpeedEstimator
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
 from mazebot.sim.raycast import RayCaster
@@ -153,39 +160,144 @@ def test_reframe_points_moves_an_old_scan_with_the_robot() -> None:
     assert reframe_points(seen, (0.0, 0.0, 1.0), (0.0, 0.0, 1.0)) == pytest.approx(seen)
 
 
-def _guard_reference(guard: CollisionGuard, pts: np.ndarray, v_mps: float, w_radps: float) -> float:
-    """The nearest range of a return inside the guard, from every return ahead (no shortcut); inf if none."""
-    direction = math.copysign(1.0, v_mps)
+def _sweep_reference(guard: CollisionGuard, pts: np.ndarray, v_mps: float, w_radps: float) -> tuple[float, float]:
+    """Brute force: drive a unicycle at ``(v, w)`` over the guard's length in 0.05 mm steps, keep each
+    return's nearest approach of the centre, and apply the rule (within the guard radius, and closer
+    than now). Returns (nearest range of a return inside the guard or inf, the smallest margin by which
+    any return's verdict was decided, so scenes at a hair from the line can be told apart)."""
     length = guard.stopping_distance_m(v_mps) + guard.margin_m
-    s = np.linspace(0.0, length, max(2, math.ceil(length / 0.01) + 1))
-    k = w_radps / v_mps
-    ax, ay = (direction * s, 0 * s) if abs(k) < 1e-6 else (direction * np.sin(s * k) / k, (1 - np.cos(s * k)) / k)
-    cand = pts[pts[:, 0] * direction > 0.0]
-    d = np.min(np.hypot(cand[:, None, 0] - ax[None, :], cand[:, None, 1] - ay[None, :]), axis=1)
-    inside = cand[d < guard.radius_m]
-    return float(np.hypot(inside[:, 0], inside[:, 1]).min()) if len(inside) else math.inf
+    n = max(2, math.ceil(length / 5e-5) + 1)
+    t = np.linspace(0.0, length / abs(v_mps), n)
+    dt = t[1] - t[0]
+    theta = w_radps * t
+    # exact integration of the heading, the position summed in small steps (midpoint headings)
+    mid = w_radps * (t[:-1] + 0.5 * dt)
+    x = np.concatenate(([0.0], np.cumsum(v_mps * np.cos(mid) * dt)))
+    y = np.concatenate(([0.0], np.cumsum(v_mps * np.sin(mid) * dt)))
+    assert theta.shape == x.shape
+    d = np.min(np.hypot(pts[:, None, 0] - x[None, :], pts[:, None, 1] - y[None, :]), axis=1)
+    ranges = np.hypot(pts[:, 0], pts[:, 1])
+    limit = np.minimum(guard.radius_m, ranges - 1e-4)
+    inside = d < limit
+    closeness = float(np.min(np.abs(d - limit))) if len(pts) else math.inf
+    return (float(ranges[inside].min()) if inside.any() else math.inf), closeness
 
 
 def test_the_guard_stops_exactly_when_a_return_on_the_whole_sweep_is_inside() -> None:
-    """Leaving far returns out before the distance matrix changes no verdict (random scenes near the zone's edge)."""
-    guard = CollisionGuard()
+    """Random arcs, both ways, any curvature, and random returns around the robot against a brute-force sweep."""
+    guard = CollisionGuard(side_margin_m=0.01)
     rng = np.random.default_rng(7)
-    stops = 0
-    for _ in range(400):
+    stops = beside = 0
+    for _ in range(600):
         v = float(rng.choice([-1.0, 1.0]) * rng.uniform(guard.min_speed_mps, 0.3))
-        w = float(rng.uniform(-1.2, 1.2))
+        w = float(rng.choice([0.0, rng.uniform(-1.2, 1.2), rng.uniform(-30.0, 30.0) * abs(v)]))
         reach = guard.stopping_distance_m(v) + guard.margin_m + guard.radius_m
         n = int(rng.integers(1, 12))
-        r = rng.uniform(0.0, 1.5 * reach, n)
-        a = rng.uniform(-math.pi, math.pi, n)
+        if rng.uniform() < 0.3:  # beside the robot, just outside the guard: what a tight arc sweeps into
+            r = rng.uniform(guard.radius_m, guard.radius_m + 0.03, n)
+            a = rng.choice([-1.0, 1.0], n) * rng.uniform(math.radians(60.0), math.radians(120.0), n)
+        else:
+            r = rng.uniform(0.0, 1.5 * reach, n)
+            a = rng.uniform(-math.pi, math.pi, n)
         pts = np.column_stack((r * np.cos(a), r * np.sin(a)))
-        want = _guard_reference(guard, pts, v, w)
+        want, closeness = _sweep_reference(guard, pts, v, w)
+        if closeness < 2e-6:  # within the brute force's own error of the line: either verdict is right
+            continue
         verdict = guard.check(pts, v, w)
-        assert verdict.stop == math.isfinite(want)
+        assert verdict.stop == math.isfinite(want), (v, w, pts)
         if verdict.stop:
             stops += 1
             assert verdict.nearest_m == pytest.approx(want)
-    assert 50 < stops < 350  # both verdicts were exercised
+            hit = pts[np.argmin(np.abs(np.hypot(pts[:, 0], pts[:, 1]) - want))]
+            beside += hit[0] * v <= 0.0  # not on the side the robot moves towards: the old guard's blind side
+    assert 100 < stops < 500  # both verdicts were exercised
+    assert beside > 5
+
+
+def test_the_arc_distance_is_the_exact_distance_to_the_centre_s_path() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        direction = float(rng.choice([-1.0, 1.0]))
+        curvature = float(rng.choice([0.0, 1e-4, rng.uniform(-40.0, 40.0), rng.uniform(-400.0, 400.0)]))
+        length = float(rng.uniform(0.005, 0.3))
+        pts = rng.uniform(-0.4, 0.4, (20, 2))
+        s = np.linspace(0.0, length, 20001)
+        if curvature == 0.0:
+            px, py = direction * s, 0.0 * s
+        else:
+            px, py = direction * np.sin(curvature * s) / curvature, (1.0 - np.cos(curvature * s)) / curvature
+        want = np.min(np.hypot(pts[:, None, 0] - px[None, :], pts[:, None, 1] - py[None, :]), axis=1)
+        got = arc_distance_m(pts, length, direction, curvature)
+        spacing = length / 20000
+        straightened = abs(curvature) * length**2 / 2 if abs(curvature) < 1e-3 else 0.0  # taken as straight
+        assert np.all(got <= want + 1e-12 + straightened)  # never farther than a point of the path
+        assert np.all(got >= want - spacing - straightened)  # and no nearer than the samples allow
+
+
+def test_a_tight_reverse_arc_does_not_back_the_robot_s_side_into_a_wall_end() -> None:
+    """Reversing while turning clockwise carries the body back and to the left: the end of a wall
+    beside it, level with the axle, is swept into although no return of it lies behind."""
+    guard = CollisionGuard(side_margin_m=0.01)
+    wall_end = np.column_stack((np.linspace(0.0, 0.3, 61), np.full(61, 0.105)))  # beside and ahead, 1.5 cm off
+    v, w = -0.05, -1.2
+    verdict = guard.check(wall_end, v, w)
+    assert verdict.stop and "on the left" in verdict.reason and "in reverse" in verdict.reason
+    assert not guard.check(wall_end, v, 1.2).stop  # the other way round it leaves the wall behind
+    assert not guard.check(wall_end, v, 0.0).stop  # and straight back it slides along it
+
+
+def test_the_collision_on_a_contest_maze_reversing_while_turning_clockwise_is_stopped() -> None:
+    """The contact traced on alljapan-015 under a Pi 4's share (fifth session): heading −20°, 4 cm north
+    of the corridor's centre line, backing at 0.1 m/s while turning clockwise; the north wall 0.158 m from
+    the centre line. The guard must stop the motion before the footprint reaches the wall."""
+    guard = CollisionGuard(side_margin_m=0.01)
+    heading = math.radians(-20.0)
+    wall_y = 0.158 - 0.045  # the north wall, world frame, from the robot centre
+    xs = np.linspace(-0.4, 0.4, 161)
+    c, s = math.cos(heading), math.sin(heading)
+    wall_robot = np.column_stack((c * xs + s * wall_y, -s * xs + c * wall_y))
+    verdict = guard.check(wall_robot, -0.1, -1.2)
+    assert verdict.stop
+    # the sweep reaches the wall; going forwards on the same turn takes the body away from it
+    assert not guard.check(wall_robot, 0.1, -1.2).stop
+
+
+def test_a_forward_arc_that_sweeps_the_body_into_a_side_wall_stops() -> None:
+    """A sharp left turn forwards carries the body left: a wall beside, behind the axle, is swept."""
+    guard = CollisionGuard(side_margin_m=0.01)
+    wall_behind_left = np.column_stack((np.linspace(-0.3, 0.0, 61), np.full(61, 0.105)))
+    assert guard.check(wall_behind_left, 0.05, 1.2).stop
+    assert not guard.check(wall_behind_left, 0.05, -1.2).stop
+    assert not guard.check(wall_behind_left, 0.05, 0.0).stop
+
+
+def test_straight_reverse_stops_at_a_wall_behind_and_not_beside() -> None:
+    guard = CollisionGuard(side_margin_m=0.01)
+    v = -0.2
+    reach = guard.radius_m + guard.margin_m + guard.stopping_distance_m(v)
+    behind = np.column_stack((np.full(41, -(reach - 0.01)), np.linspace(-0.2, 0.2, 41)))
+    assert guard.check(behind, v, 0.0).stop
+    assert "behind" in guard.check(behind, v, 0.0).reason
+    assert not guard.check(behind - np.array([0.02, 0.0]), v, 0.0).stop
+    assert not guard.check(behind, -v, 0.0).stop
+    beside = np.column_stack((np.linspace(-0.4, 0.4, 81), np.full(81, guard.radius_m + 0.005)))
+    assert not guard.check(beside, v, 0.0).stop
+
+
+def test_a_robot_inside_the_guard_may_move_away_and_turn_but_not_come_closer() -> None:
+    """A wall 5 mm inside the guard ahead: backing off on any arc and turning in place are allowed,
+    driving on is not; a wall inside the guard beside: turning in place is allowed."""
+    guard = CollisionGuard(side_margin_m=0.01)
+    close = guard.radius_m - 0.005
+    wall_ahead = np.column_stack((np.full(81, close), np.linspace(-0.4, 0.4, 81)))
+    for w in (-1.2, -0.5, 0.0, 0.5, 1.2):
+        assert not guard.check(wall_ahead, -0.06, w).stop, w
+        assert guard.check(wall_ahead, 0.06, w).stop, w
+    assert not guard.check(wall_ahead, 0.0, 1.2).stop
+    wall_left = np.column_stack((np.linspace(-0.4, 0.4, 81), np.full(81, close)))
+    assert not guard.check(wall_left, 0.0, -1.2).stop
+    assert guard.check(wall_left, 0.06, 1.2).stop  # a left arc into it
+    assert guard.check(wall_left, -0.06, -1.2).stop  # a reverse arc into it
 
 
 def _leg_returns(lidar_xy: tuple[float, float], leg_xy: tuple[float, float], min_range_m: float = 0.15) -> np.ndarray:

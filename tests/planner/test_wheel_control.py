@@ -277,3 +277,33 @@ def test_unequal_wheels_drive_straight_once_the_ratio_is_known(told: bool) -> No
         assert abs(turned_rad) < 0.005
     else:
         assert turned_rad > 0.08
+
+
+@pytest.mark.parametrize("stop_ticks", [0, 1, 2])
+@pytest.mark.parametrize("v0", [0.1, 0.27])
+def test_a_turn_in_place_begun_while_driving_backs_the_robot_up_by_little(v0: float, stop_ticks: int) -> None:
+    """Driving at ``v0``, then (after ``stop_ticks`` of braking) told to turn in place: the body coasts
+    forward within a stopping distance and backs up by little.
+
+    The speed controllers' reference model used to restart from rest at the mode change; the
+    wheel that keeps turning forwards then read as far too fast and was held back while the other
+    reversed, and the body backed up by 14-35 mm (0.1-0.27 m/s, no braking first) while it turned
+    (a 16x16 contest maze under a Pi 4's share: 0.095 m/s, into the corridor's side wall, with a
+    turn in place the only command). The wheel that must reverse still starts from rest (its
+    hard push tells a weak motor early), and its overshoot leaves 5-14 mm.
+    """
+    bench = Bench(latency_periods=1)
+    for _ in range(40):
+        bench.step(v0, -0.3)
+    for _ in range(stop_ticks):
+        bench.step(0.0, 0.0, DriveMode.STOP)
+    forward = backward = 0.0
+    for _ in range(40):
+        x0, y0, th0 = bench.robot.pose
+        bench.step(0.0, -1.2, DriveMode.TURN)
+        x1, y1, _ = bench.robot.pose
+        along = math.cos(th0) * (x1 - x0) + math.sin(th0) * (y1 - y0)
+        forward, backward = forward + max(along, 0.0), backward - min(along, 0.0)
+    assert backward <= 0.06 * v0  # metres: 6 mm at 0.1 m/s, 16 mm at 0.27 m/s
+    assert forward <= v0 * 0.1 + v0 * v0 / (2 * 0.6)  # the guard's stopping distance at v0
+    assert math.degrees(bench.robot.theta_rad) < -60.0  # and it did turn

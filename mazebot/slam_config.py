@@ -129,6 +129,9 @@ class IcpParams:
     ))] = 0.0
     information_cluster_m: Annotated[float, Field(gt=0, description=(
         "... and lines within this distance of each other are one wall"))] = 0.25
+    information_cluster_filter: Annotated[bool, Field(description=(
+        "the filter takes that clustered information too (false: only the pose graph's sequential edges and loop "
+        "closures do; the filter, and the correlative window its uncertainty sets, keep the Hessian's)"))] = True
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:

@@ -256,7 +256,8 @@ def _verify_from(
         return _reject(candidate, "large correction", f"moves {math.hypot(correction[0], correction[1]):.3f} m", **fit)
     if abs(correction[2]) > limit_rad:
         return _reject(candidate, "large correction", f"turns {correction[2]:.3f} rad", **fit)
-    icp_cov = np.linalg.pinv(result.information * params.information_scale, hermitian=True)
+    # judged with the information the closure would enter the pose graph with
+    icp_cov = np.linalg.pinv(result.edge_information * params.information_scale, hermitian=True)
     chi2 = float(correction @ np.linalg.solve(candidate.prior_covariance + icp_cov, correction))
     fit["chi2"] = chi2
     if chi2 > params.gate_chi2:
@@ -269,7 +270,7 @@ def _verify_from(
             elsewhere = math.hypot(*(other.pose[:2] - result.pose[:2])) > params.ambiguity_tolerance_m
             if elsewhere and _as_good(other, result, params):
                 return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
-    information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
+    information = rotate_information(result.edge_information * params.information_scale, float(result.pose[2]))
     return Verdict(
         candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"],
         overlap_fitness=fit.get("overlap_fitness", float("nan")),

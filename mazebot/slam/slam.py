@@ -993,7 +993,9 @@ class Slam:
         if float(seen.mean()) < p.match_min_overlap or ratio < p.min_match_fitness:
             return match
         self.matches_seen_rescued += 1
-        return replace(match, fitness=ratio, information=match.information * p.match_overlap_information_scale)
+        scale = p.match_overlap_information_scale
+        graph = None if match.graph_information is None else match.graph_information * scale
+        return replace(match, fitness=ratio, information=match.information * scale, graph_information=graph)
 
     _match = all_at_once_method(
         _match_steps,
@@ -1127,7 +1129,7 @@ class Slam:
         odom_cov = self.ekf.noise.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
         info = rotate_information(np.linalg.inv(odom_cov), float(z[2]))
         if self._last_match is not None:
-            icp_info = self._last_match.information * p.match_information_scale
+            icp_info = self._last_match.edge_information * p.match_information_scale
             info = info + rotate_information(icp_info, float(self.ekf.mean[2]))
         return 0.5 * (info + info.T)
 

@@ -121,7 +121,19 @@ def laser_log_params(base: SlamParams) -> SlamParams:
       (32° off at the end, 6.8 m max): a less sure match makes the filter's prediction less sure, the
       correlative window wider, and a look-alike won at the end of the log (branch
       ``reallogs5``). With the filter's and the closures' shares raised to 1 as well it was
-      worse on the Radish logs and with systematic odometry.
+      worse on the Radish logs and with systematic odometry. Clustered for the pose graph's
+      edges only (``information_cluster_filter`` false, the filter keeping the Hessian's), seed 7
+      at ``0.1,0.1`` keeps its end (0.173 m; main 0.118) and Intel ``0.05`` seed 10 and ACES seed 2
+      gain (0.257 → 0.208, 0.317 → 0.182 m), but at ``0.1`` seeds 7 and 9 are worse than main
+      (seeds 1-3 better; median of the five 0.155 → 0.193 m) and both systematic-odometry runs
+      are no better (ACES 0.219 → 0.225, Intel 0.161 → 0.166 m; branch ``reallogs6``);
+    - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
+      (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
+      every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the
+      Intel log did not gain (``0.05`` seed 10 0.257 → 0.251, ``0.1`` seed 2 0.136 → 0.131, but
+      systematic 0.161 → 0.189, ``0.1`` seeds 7 and 9 0.118 → 0.167 and 0.155 → 0.199 m),
+      Freiburg and Seattle went either way, and the 16x16 maze tour with it kept 0 false
+      closures at 3.6 mm ATE against main's 3.0 (branch ``reallogs6``).
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°

@@ -129,6 +129,9 @@ class IcpParams:
     ))] = 0.0
     information_cluster_m: Annotated[float, Field(gt=0, description=(
         "... and lines within this distance of each other are one wall"))] = 0.25
+    information_cluster_filter: Annotated[bool, Field(description=(
+        "the filter takes that clustered information too (false: only the pose graph's sequential edges and loop "
+        "closures do; the filter, and the correlative window its uncertainty sets, keep the Hessian's)"))] = True
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -262,6 +265,22 @@ class LoopSection:
     min_std_rad: Annotated[float, Field(gt=0, description="floor of the chain's heading std")] = 0.005
     max_range_m: Annotated[float | None, Field(ge=0, description=(
         "verify a loop closure with the points this close to the lidar (0: all)"))] = 2.0
+    set_verify: Annotated[bool, Field(description=(
+        "closures verified as a set too (mazebot.slam.closure_set, after Olson's single-cluster graph "
+        "partitioning): a match that passed every test but fell a little short of min_fitness or max_rmse_m "
+        "waits, and is accepted when enough closures nearby agree with it; a closure that disagrees with such a "
+        "set is refused (off: each candidate judged alone)"))] = False
+    set_fitness_ratio: Annotated[float, Field(gt=0, le=1, description=(
+        "... waits with an inlier ratio of at least this share of min_fitness ..."))] = 0.75
+    set_rmse_ratio: Annotated[float, Field(ge=1, description=(
+        "... and a residual of at most this many times max_rmse_m"))] = 1.6
+    set_window_keyframes: Annotated[int, Field(ge=1, le=1000, description=(
+        "two closures are compared when their old ends and their new ends each lie within this many keyframes "
+        "(a short chain between them is sure enough to tell)"))] = 10
+    set_min_size: Annotated[int, Field(ge=2, le=100, description=(
+        "a set is at least this many closures, each agreeing (chi2 under gate_chi2) with this many less one"))] = 3
+    set_confidence: Annotated[float, Field(ge=1, description=(
+        "... and stands out from any other set: the ratio of its affinity's two largest eigenvalues"))] = 2.0
 
     def __post_init__(self) -> None:
         if self.search_radius_m > self.max_search_radius_m:

@@ -83,7 +83,10 @@ class IcpResult:
     variance factor), with unobservable directions removed (there
     the pose is the prior, so the scan adds no information). ``degenerate`` says some
     direction was unobservable; ``weak_direction`` (3,) is the weakest one as a unit
-    pose step ``(dx, dy, dθ)``, or None.
+    pose step ``(dx, dy, dθ)``, or None. ``graph_information`` is the information the
+    pose graph's edges take when it differs from the filter's (ICP's clustered by wall
+    for the graph only, ``information_cluster_filter`` false), else None:
+    :attr:`edge_information` is the one to put on an edge.
     """
 
     pose: np.ndarray
@@ -95,6 +98,12 @@ class IcpResult:
     degenerate: bool
     weak_direction: np.ndarray | None
     correspondences: int
+    graph_information: np.ndarray | None = None
+
+    @property
+    def edge_information(self) -> np.ndarray:
+        """The information of a pose-graph edge made from this match (a sequential edge or a loop closure)."""
+        return self.information if self.graph_information is None else self.graph_information
 
 
 class Target:
@@ -349,11 +358,16 @@ class _Iteration:
             # information of the observable directions only, back in (x, y, θ) units
             kept = self.eigvec[:, self.strong]
             hess_obs = (kept * self.eigval[self.strong]) @ kept.T
-        if self.wall is not None:
-            hess_obs = self._clustered(hess_obs, sigma2)
-            sigma2 = 1.0
         unscale = np.array([1.0, 1.0, self.lever_m])
         information = hess_obs * np.outer(unscale, unscale) / sigma2
+        graph_information = None
+        if self.wall is not None:
+            clustered = self._clustered(hess_obs, sigma2) * np.outer(unscale, unscale)
+            # the filter keeps the Hessian's unless it is to take the clustered one too: a less sure
+            # match makes the filter's prediction less sure and its correlative window wider
+            information, graph_information = (
+                (clustered, None) if p.information_cluster_filter else (information, clustered)
+            )
         weak_direction = None
         if not self.strong.all():
             v = self.eigvec[:, int(np.argmin(self.eigval))] / unscale
@@ -368,6 +382,7 @@ class _Iteration:
             degenerate=not bool(self.strong.all()),
             weak_direction=weak_direction,
             correspondences=int(r.size),
+            graph_information=graph_information,
         )
 
 

@@ -111,6 +111,9 @@ class Verdict:
     chi2: float = float("nan")
     overlap_fitness: float = float("nan")  # the inlier ratio where the submap saw (when it was asked for)
     detail: str = ""  # the numbers behind ``reason``
+    # refused by a quality threshold it missed by less than the set's margin, and every other test passed:
+    # ``measurement`` and ``information`` are the match's, for :mod:`mazebot.slam.closure_set` to judge
+    tentative: bool = False
 
 
 def chain_uncertainty(
@@ -204,6 +207,7 @@ def verify(
     verdict = _verify_from(candidate.prior, candidate, target, source_xy, sensor_xy, icp, params, observed)
     if verdict.accepted or verdict.reason not in RESCUED or params.search is None:
         return verdict
+    first = verdict
     # ICP from the prior found no good match: start it where the branch-and-bound search says,
     # over the window the correction may span
     limit_m, limit_rad = correction_limits(candidate, params)
@@ -215,7 +219,9 @@ def verify(
     start = search_start(candidate.prior, target, source_xy, sensor_xy, search)
     if np.allclose(start, candidate.prior):
         return verdict
-    return _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params, observed)
+    verdict = _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params, observed)
+    # a tentative closure from the prior stays one unless the search's start did better
+    return first if first.tentative and not (verdict.accepted or verdict.tentative) else verdict
 
 
 #: Rejections of a match that failed (not of a good match that was inconsistent or ambiguous):
@@ -241,26 +247,31 @@ def _verify_from(
         return _reject(candidate, "no convergence", "ICP did not converge", **fit)
     if result.correspondences < params.min_correspondences:
         return _reject(candidate, "few correspondences", f"{result.correspondences} correspondences", **fit)
+    short: Verdict | None = None  # the quality threshold the match missed (it may still wait for a set)
     if result.fitness < params.min_fitness and not _fits_where_seen(result, source_xy, params, observed, fit):
-        return _reject(candidate, "low inlier ratio", f"inlier ratio {result.fitness:.2f}", **fit)
-    if not result.rmse_m <= params.max_rmse_m:
-        return _reject(candidate, "high residual", f"residual {result.rmse_m * 1e3:.1f} mm", **fit)
+        short = _reject(candidate, "low inlier ratio", f"inlier ratio {result.fitness:.2f}", **fit)
+    elif not result.rmse_m <= params.max_rmse_m:
+        short = _reject(candidate, "high residual", f"residual {result.rmse_m * 1e3:.1f} mm", **fit)
+    if short is not None and not _near_miss(result, params):
+        return short
     # 2. every direction observed
     if result.degenerate and not params.accept_degenerate:
-        return _reject(candidate, "degenerate", "a direction is unconstrained", **fit)
+        return short or _reject(candidate, "degenerate", "a direction is unconstrained", **fit)
     # 3. consistent with the odometry chain
     correction = result.pose - candidate.prior
     correction[2] = float(wrap_angle(correction[2]))
     limit_m, limit_rad = correction_limits(candidate, params)
     if math.hypot(correction[0], correction[1]) > limit_m:
-        return _reject(candidate, "large correction", f"moves {math.hypot(correction[0], correction[1]):.3f} m", **fit)
+        moved = f"moves {math.hypot(correction[0], correction[1]):.3f} m"
+        return short or _reject(candidate, "large correction", moved, **fit)
     if abs(correction[2]) > limit_rad:
-        return _reject(candidate, "large correction", f"turns {correction[2]:.3f} rad", **fit)
-    icp_cov = np.linalg.pinv(result.information * params.information_scale, hermitian=True)
+        return short or _reject(candidate, "large correction", f"turns {correction[2]:.3f} rad", **fit)
+    # judged with the information the closure would enter the pose graph with
+    icp_cov = np.linalg.pinv(result.edge_information * params.information_scale, hermitian=True)
     chi2 = float(correction @ np.linalg.solve(candidate.prior_covariance + icp_cov, correction))
     fit["chi2"] = chi2
     if chi2 > params.gate_chi2:
-        return _reject(candidate, "inconsistent with odometry", f"chi2 {chi2:.1f}", **fit)
+        return short or _reject(candidate, "inconsistent with odometry", f"chi2 {chi2:.1f}", **fit)
     # 4. unambiguous: no other alignment one corridor away fits as well
     if params.ambiguity_shift_m > 0:
         for shift in ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)):
@@ -268,11 +279,22 @@ def _verify_from(
             other = match_scan(target, source_xy, start, icp, sensor_xy=sensor_xy)
             elsewhere = math.hypot(*(other.pose[:2] - result.pose[:2])) > params.ambiguity_tolerance_m
             if elsewhere and _as_good(other, result, params):
-                return _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
-    information = rotate_information(result.information * params.information_scale, float(result.pose[2]))
+                return short or _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
+    information = rotate_information(result.edge_information * params.information_scale, float(result.pose[2]))
+    if short is not None:  # every other test passed: it waits for closures that agree with it
+        return replace(short, measurement=result.pose.copy(), information=information, chi2=chi2, tentative=True)
     return Verdict(
         candidate, True, "accepted", result.pose.copy(), information, fit["fitness"], fit["rmse_m"],
         overlap_fitness=fit.get("overlap_fitness", float("nan")),
+    )
+
+
+def _near_miss(result: IcpResult, params: LoopClosureParams) -> bool:
+    """A match short of ``min_fitness`` / ``max_rmse_m`` by less than the set's margins (``set_verify`` on)."""
+    return (
+        params.set_verify
+        and result.fitness >= params.set_fitness_ratio * params.min_fitness
+        and result.rmse_m <= params.set_rmse_ratio * params.max_rmse_m
     )
 
 
@@ -361,4 +383,9 @@ def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> b
 
 
 def _reject(candidate: Candidate, reason: str, detail: str, **fit: float) -> Verdict:
-    return Verdict(candidate, False, reason, candidate.prior.copy(), np.zeros((3, 3)), detail=detail, **fit)
+    nan = float("nan")
+    return Verdict(
+        candidate, False, reason, candidate.prior.copy(), np.zeros((3, 3)), fitness=fit.get("fitness", 0.0),
+        rmse_m=fit.get("rmse_m", nan), chi2=fit.get("chi2", nan), overlap_fitness=fit.get("overlap_fitness", nan),
+        detail=detail,
+    )

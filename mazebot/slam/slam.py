@@ -72,6 +72,7 @@ import numpy as np
 
 from mazebot.geometry import compose, inverse, relative_pose, transform_points, wrap_angle
 from mazebot.io.scan import Scan
+from mazebot.slam.closure_set import ACCEPTED_BY_SET, Chain, judge
 from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
@@ -127,6 +128,8 @@ class LoopClosureResult:
     lattice_fit_keyframes: int = 0  # how many keyframes the job had when that lattice was fitted
     cpu_s: float = 0.0  # thread CPU time the job took (where it ran: a thread or a worker process)
     downweighted: int = 0  # loop closures in the graph whose robust weight fell below 0.1 (robust_closures)
+    # closures waiting for a set (``tentative`` verdicts, of this job or before) that the set accepted
+    set_accepted: tuple[Verdict, ...] = ()
 
 
 @dataclass
@@ -154,6 +157,10 @@ class LoopClosureJob:
     # grew by less than wall_priors.LATTICE_REFIT_GROWTH (None: fit it)
     known_fit: tuple[PitchFit, int] | None = None
     lattice_fit_keyframes: int = 0  # set by the run: the keyframes ``lattice_fit`` was fitted with
+    # closures verified as a set ([slam.loop] set_verify): recent closures in the graph (support), and
+    # tentative ones waiting for support (mazebot.slam.closure_set)
+    set_members: tuple[Verdict, ...] = ()
+    set_waiting: tuple[Verdict, ...] = ()
 
     def __call__(self) -> LoopClosureResult:
         """The job as a callable, so any executor runs it (``loop.run_in_executor(executor, job)``)."""
@@ -195,9 +202,12 @@ class LoopClosureJob:
                     [self.keyframes[k].ray_ends for k in window],
                 )
             verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop, observed))
-        accepted = [v for v in verdicts if v.accepted]
+        set_accepted: list[Verdict] = []
+        if p.loop.set_verify:
+            verdicts, set_accepted = self._judged_as_set(verdicts)
+        accepted = [v for v in verdicts if v.accepted] + set_accepted
         if not accepted and not self.optimize_anyway:
-            return LoopClosureResult(verdicts)
+            return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted))
         # optimize the graph with the new constraints (first keyframe fixed), loop closures robust
         count = self.poses.shape[0]
         ei, ej, z, omega = self.edges
@@ -250,7 +260,24 @@ class LoopClosureJob:
             lattice_fit=self.lattice_fit,
             lattice_fit_keyframes=self.lattice_fit_keyframes,
             downweighted=int(np.sum(robust.weights < 0.1)),
+            set_accepted=tuple(set_accepted),
         )
+
+    def _judged_as_set(self, verdicts: list[Verdict]) -> tuple[list[Verdict], list[Verdict]]:
+        """This job's verdicts with the closures the set refused, and the waiting closures it accepted.
+
+        :func:`mazebot.slam.closure_set.judge` on the closures in the graph, the tentative
+        ones (waiting from before and of this job) and this job's accepted ones.
+        """
+        new = [v for v in verdicts if v.accepted]
+        waiting = list(self.set_waiting) + [v for v in verdicts if v.tentative]
+        if not new and not waiting:
+            return verdicts, []
+        chain = Chain.from_edges(self.edges, self.poses.shape[0])
+        decision = judge(list(self.set_members), waiting, new, chain, self.params.loop)
+        refused = {(v.candidate.old, v.candidate.new): v for v in decision.refused}
+        judged = [refused.get((v.candidate.old, v.candidate.new), v) if v.accepted else v for v in verdicts]
+        return judged, decision.accepted
 
 
     def _fit_to_reuse(self) -> tuple[PitchFit, int] | None:
@@ -358,6 +385,7 @@ class ClosureRecord:
     old_time_s: float
     new_time_s: float
     measurement: np.ndarray
+    by_set: bool = False  # a tentative closure the set accepted (mazebot.slam.closure_set)
 
 
 class Slam:
@@ -411,6 +439,10 @@ class Slam:
         self.searches = 0  # correlative searches run (sequential matches)
         self.searches_won = 0  # ... whose match replaced ICP's from the prediction
         self.closures_downweighted = 0  # loop closures the last optimization all but switched off
+        self.closures_from_set = 0  # loop closures a set accepted after the thresholds refused them
+        # closures verified as a set: recent ones in the graph, and tentative ones waiting (closure_set)
+        self._set_members: list[Verdict] = []
+        self._set_waiting: list[Verdict] = []
         self._search_due = False  # the next match searches (the robot was just re-localized)
         # per-edge variances of the sequential chain (loop closure search radius)
         self._edge_var_xy: list[float] = []
@@ -676,15 +708,30 @@ class Slam:
         """The merge of :meth:`apply_steps`, yielding between its stages."""
         self.job_running = False
         self._verifying = []
+        by_set = {(v.candidate.old, v.candidate.new) for v in result.set_accepted}
         for v in result.verdicts:
             if not v.accepted:
+                if (v.candidate.old, v.candidate.new) in by_set:
+                    continue  # this job's tentative closure, accepted by the set: below
                 self.rejections[v.reason] += 1
+                if v.tentative:
+                    self._set_waiting.append(v)
                 continue
-            c = v.candidate
-            self.graph.add_edge(c.old, c.new, v.measurement, v.information)
-            self.closures.append(
-                ClosureRecord(c.old, c.new, self.keyframes[c.old].time_s, self.keyframes[c.new].time_s, v.measurement)
-            )
+            self._add_closure(v)
+        for v in result.set_accepted:
+            earlier = [w for w in self._set_waiting if (w.candidate.old, w.candidate.new) == (v.candidate.old,
+                                                                                           v.candidate.new)]
+            for w in earlier:  # counted as a rejection when it came: it is a closure now
+                self.rejections[w.reason] -= 1
+                if self.rejections[w.reason] <= 0:
+                    del self.rejections[w.reason]
+                self._set_waiting.remove(w)
+            self.closures_from_set += 1
+            self._add_closure(v)
+        if self.params.loop.set_verify:
+            oldest = len(self.keyframes) - 1 - self.params.loop.set_window_keyframes
+            self._set_members = [v for v in self._set_members if v.candidate.new >= oldest]
+            self._set_waiting = [v for v in self._set_waiting if v.candidate.new >= oldest]
         self._note_lattice(result.lattice_fit, result.lattice_fit_keyframes)
         if result.poses is None:
             return False
@@ -717,6 +764,17 @@ class Slam:
         grid.take_dirty()  # clients reload the whole map on a new generation
         self.grid = grid
         return True
+
+    def _add_closure(self, v: Verdict) -> None:
+        """An accepted loop closure into the pose graph and the list of closures (and the set's members)."""
+        c = v.candidate
+        self.graph.add_edge(c.old, c.new, v.measurement, v.information)
+        self.closures.append(
+            ClosureRecord(c.old, c.new, self.keyframes[c.old].time_s, self.keyframes[c.new].time_s, v.measurement,
+                          by_set=v.reason == ACCEPTED_BY_SET)
+        )
+        if self.params.loop.set_verify:
+            self._set_members.append(v)
 
     apply = all_at_once_method(
         apply_steps,
@@ -993,7 +1051,9 @@ class Slam:
         if float(seen.mean()) < p.match_min_overlap or ratio < p.min_match_fitness:
             return match
         self.matches_seen_rescued += 1
-        return replace(match, fitness=ratio, information=match.information * p.match_overlap_information_scale)
+        scale = p.match_overlap_information_scale
+        graph = None if match.graph_information is None else match.graph_information * scale
+        return replace(match, fitness=ratio, information=match.information * scale, graph_information=graph)
 
     _match = all_at_once_method(
         _match_steps,
@@ -1127,7 +1187,7 @@ class Slam:
         odom_cov = self.ekf.noise.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
         info = rotate_information(np.linalg.inv(odom_cov), float(z[2]))
         if self._last_match is not None:
-            icp_info = self._last_match.information * p.match_information_scale
+            icp_info = self._last_match.edge_information * p.match_information_scale
             info = info + rotate_information(icp_info, float(self.ekf.mean[2]))
         return 0.5 * (info + info.T)
 
@@ -1230,6 +1290,8 @@ class Slam:
             optimize_anyway=optimize_anyway,
             anchor_wall=None if anchor is None else (anchor, self.params.wall_anchor_std_rad),
             known_fit=None if self.lattice_fit is None else (self.lattice_fit, self._lattice_fit_keyframes),
+            set_members=tuple(self._set_members),
+            set_waiting=tuple(self._set_waiting),
         )
 
     def _loop_closure_job(self) -> LoopClosureJob | None:

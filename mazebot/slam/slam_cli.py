@@ -121,7 +121,19 @@ def laser_log_params(base: SlamParams) -> SlamParams:
       (32° off at the end, 6.8 m max): a less sure match makes the filter's prediction less sure, the
       correlative window wider, and a look-alike won at the end of the log (branch
       ``reallogs5``). With the filter's and the closures' shares raised to 1 as well it was
-      worse on the Radish logs and with systematic odometry.
+      worse on the Radish logs and with systematic odometry. Clustered for the pose graph's
+      edges only (``information_cluster_filter`` false, the filter keeping the Hessian's), seed 7
+      at ``0.1,0.1`` keeps its end (0.173 m; main 0.118) and Intel ``0.05`` seed 10 and ACES seed 2
+      gain (0.257 → 0.208, 0.317 → 0.182 m), but at ``0.1`` seeds 7 and 9 are worse than main
+      (seeds 1-3 better; median of the five 0.155 → 0.193 m) and both systematic-odometry runs
+      are no better (ACES 0.219 → 0.225, Intel 0.161 → 0.166 m; branch ``reallogs6``);
+    - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
+      (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
+      every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the
+      Intel log did not gain (``0.05`` seed 10 0.257 → 0.251, ``0.1`` seed 2 0.136 → 0.131, but
+      systematic 0.161 → 0.189, ``0.1`` seeds 7 and 9 0.118 → 0.167 and 0.155 → 0.199 m),
+      Freiburg and Seattle went either way, and the 16x16 maze tour with it kept 0 false
+      closures at 3.6 mm ATE against main's 3.0 (branch ``reallogs6``).
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
@@ -403,6 +415,8 @@ def run_carmen(
         "loop_closures_rejected": sum(slam.rejections.values()),
         "rejections": dict(slam.rejections.most_common()),
         "loop_closures_downweighted": slam.closures_downweighted,
+        "loop_closures_set": slam.closures_from_set,
+        "loop_closures_off_reference": closures_off_reference(slam, keyframe_scans, reference) if judged else None,
         "searches": slam.searches,
         "searches_won": slam.searches_won,
         "matches_seen_rescued": slam.matches_seen_rescued,
@@ -491,6 +505,29 @@ def edge_chi2(
             "reference_median": round(float(np.median(against[mask])), 3) if n else None,
             "reference_mean": round(float(np.mean(against[mask])), 3) if n else None,
         }
+    return out
+
+
+#: a loop closure farther than this from the reference's relative pose is counted as wrong (the reference's
+#: own poses scatter by 1.5 cm and 0.45° per scan about its map: branch reallogs4)
+CLOSURE_OFF_M = 0.3
+CLOSURE_OFF_RAD = math.radians(2.0)
+
+
+def closures_off_reference(
+    slam: Slam, keyframe_scans: dict[int, tuple[int, bool]], reference: np.ndarray
+) -> dict[str, int]:
+    """How many accepted loop closures are off the reference's relative pose by more than
+    :data:`CLOSURE_OFF_M` or :data:`CLOSURE_OFF_RAD`, all and those a set accepted."""
+    out = {"off": 0, "set_off": 0}
+    for c in slam.closures:
+        if c.old not in keyframe_scans or c.new not in keyframe_scans:
+            continue
+        truth = relative_pose(reference[keyframe_scans[c.old][0]], reference[keyframe_scans[c.new][0]])
+        e = relative_pose(truth, c.measurement)
+        if math.hypot(float(e[0]), float(e[1])) > CLOSURE_OFF_M or abs(float(wrap_angle(e[2]))) > CLOSURE_OFF_RAD:
+            out["off"] += 1
+            out["set_off"] += int(c.by_set)
     return out
 
 

@@ -230,6 +230,26 @@ def test_the_clustered_information_is_the_hessians_shape_never_surer_and_symmetr
     assert np.all(np.linalg.eigvalsh(info) > 0)
 
 
+def test_the_clustered_information_for_the_graph_only_leaves_the_filter_the_hessians(
+    maze_world: World, maze_target: Target, cast_scan
+) -> None:
+    """``information_cluster_filter`` false: the filter's information is the Hessian's, the pose graph's
+    edges take the clustered one (``edge_information``); the pose is the same either way."""
+    truth = _random_poses(maze_world, 1, 22)[0]
+    angles, ranges = cast_scan(maze_world, truth, noise_rel=0.01)
+    src = _points(angles, ranges)
+    plain = match_scan(maze_target, src, truth)
+    both = match_scan(maze_target, src, truth, IcpParams(information_cluster_rad=0.35))
+    graph = match_scan(maze_target, src, truth, IcpParams(information_cluster_rad=0.35,
+                                                          information_cluster_filter=False))
+    np.testing.assert_array_equal(graph.pose, plain.pose)
+    np.testing.assert_array_equal(graph.information, plain.information)
+    np.testing.assert_array_equal(graph.edge_information, both.information)
+    assert plain.graph_information is None and both.graph_information is None
+    np.testing.assert_array_equal(plain.edge_information, plain.information)
+    np.testing.assert_array_equal(both.edge_information, both.information)
+
+
 def test_without_overlap_it_gives_up_and_keeps_the_prior(maze_target: Target) -> None:
     far = np.array([[50.0, 50.0], [51.0, 50.0], [50.0, 51.0]])
     prior = np.array([1.0, 2.0, 0.3])

@@ -322,3 +322,22 @@ def test_a_scan_through_a_doorway_is_matched_where_the_submap_saw(intel_log_path
     assert all(matched[1:])
     assert turn_error_deg(refused) > 5.0  # the odometry's 6.4° at scan 22
     assert turn_error_deg(poses) < 2.0
+
+
+@pytest.mark.slow
+def test_closures_verified_as_a_set_on_the_intel_log_are_right(
+    intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``[slam.loop] set_verify``: closures refused by a quality threshold they missed a little, accepted
+    because several closures nearby agree with them, and every one of them within 0.3 m and 2° of the
+    relative pose of GMapping's corrected poses (real data, the first 250 scans)."""
+    config = tmp_path / "set.toml"
+    config.write_text("[slam.loop]\nset_verify = true\n", encoding="utf-8")
+    code = main(["slam", "run", "--carmen", str(intel_log_path), "--odom-noise", "0.05,0.05", "--seed", "1",
+                 "--max-scans", "250", "--consistency-scans", "0", "--config", str(config),
+                 "--out", str(tmp_path / "intel")])
+    assert code == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats["loop_closures_set"] >= 5
+    assert stats["loop_closures_off_reference"] == {"off": 0, "set_off": 0}
+    assert stats["error"]["rms_m"] < 0.15

@@ -636,7 +636,7 @@ async def run(link: ControlLink, motors: Any, state: SharedState, heartbeat: Any
 
     Each period it brings the child's outputs, ticks, notes and faults into ``state``. The
     child's end is seen at once (its sentinel on the event loop): the motors are braked
-    from here, then :class:`ControlProcessDied` goes to the supervisor, which raises the
+    from here, then (within a period) :class:`ControlProcessDied` goes to the supervisor, which raises the
     ``control`` fault and starts this task again (a new child). Cancelled (the daemon
     stops), it tells the child to stop and waits up to ``CHILD_STOP_S`` for it to brake
     and exit, then kills it and brakes from here.
@@ -660,7 +660,10 @@ async def run(link: ControlLink, motors: Any, state: SharedState, heartbeat: Any
     try:
         while not ended.done():
             _take_output(link, state, heartbeat, meter)
-            await asyncio.wait([ended], timeout=period_s)
+            # a plain sleep, not a wait on ``ended`` with a time-out (a set, a waiter, a timer and two
+            # callbacks, 20 times a second): the end brakes the motors in ``on_end`` at once, and
+            # this loop sees it within a period
+            await asyncio.sleep(period_s)
         _take_output(link, state, heartbeat, meter)
         child.join(CHILD_STOP_S)
         raise ControlProcessDied(f"the control process {child.pid} ended (exit code {child.exitcode}); "

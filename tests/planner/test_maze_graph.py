@@ -491,3 +491,49 @@ def test_the_explored_share_counts_the_reachable_cells_is_explored_says_are_expl
             by_cell = sum(1 for cell in reachable if graph.is_explored(cell)) / len(reachable) if reachable else None
             assert graph.explored_share(start) == by_cell, (step, start)
     assert graph.explored_share((0, 0)) == 1.0
+
+
+def test_an_update_that_reads_only_the_changed_cells_leaves_what_reading_every_link_leaves() -> None:
+    """A few grid cells changing between updates (one revolution's worth) are read incrementally:
+    links, seen shares, the version and the changes reported are those of a graph that reads every
+    link each time, through reveals, fading walls, cells marked as looked into and a growing range."""
+    layout = generate_maze(6, 6, np.random.default_rng(3))
+    world = world_from_layout(layout, 0.012)
+    truth, origin = perfect_map(world)
+    rng = np.random.default_rng(11)
+    grid = np.where(rng.random(truth.shape) < 0.5, truth, UNKNOWN).astype(np.int8)
+    incremental = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    full = MazeGraph(anchor_xy_m=world.start_pose[:2])
+    full._update_changed = lambda *args: None  # type: ignore[method-assign]  # always the whole update
+    read_changed = 0
+    real_changed = incremental._update_changed
+
+    def counted(*args: object) -> object:
+        nonlocal read_changed
+        result = real_changed(*args)  # type: ignore[arg-type]
+        read_changed += result is not None
+        return result
+
+    incremental._update_changed = counted  # type: ignore[method-assign]
+    for step in range(120):
+        if step % 10 == 5:  # a wall fades: a few of its cells back to unknown, some free
+            walls = np.flatnonzero(grid.reshape(-1) == OCCUPIED)
+            grid.reshape(-1)[rng.choice(walls, 6)] = rng.choice(np.array([UNKNOWN, FREE], dtype=np.int8), 6)
+        else:  # a revolution paints a few cells as they truly are
+            grid.reshape(-1)[rng.choice(grid.size, 12)] = truth.reshape(-1)[rng.choice(grid.size, 12)]
+            hidden = np.flatnonzero(grid.reshape(-1) != truth.reshape(-1))
+            grid.reshape(-1)[hidden[:40]] = truth.reshape(-1)[hidden[:40]]
+        a = incremental.update(grid.copy(), origin, RES)
+        b = full.update(grid.copy(), origin, RES)
+        assert a.changed_links == b.changed_links and a.frame_changed == b.frame_changed
+        assert incremental.frame == full.frame and incremental.links_version == full.links_version
+        assert (incremental._i0, incremental._j0) == (full._i0, full._j0)
+        assert np.array_equal(incremental._east, full._east) and np.array_equal(incremental._north, full._north)
+        assert np.array_equal(incremental._seen, full._seen)
+        if incremental.frame is not None and step % 7 == 0:
+            cell = incremental.frame.cell_of(*world.start_pose[:2])
+            incremental.mark_looked_into((cell[0] + step % 3, cell[1]))
+            full.mark_looked_into((cell[0] + step % 3, cell[1]))
+    assert read_changed > 60  # most updates took the incremental path
+    incremental.update(truth, origin, RES)
+    assert_links_match(incremental, layout)

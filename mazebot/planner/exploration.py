@@ -664,12 +664,13 @@ class Explorer:
     def _costs_from(self, cell: Cell, heading: int | None) -> dict[Cell, float]:
         """:func:`cell_costs` from ``cell`` facing ``heading`` over the graph's open links (read only).
 
-        The same dict again while the links have not changed (``MazeGraph.links_version``).
+        The same dict again while the open links have not changed (``MazeGraph.open_version``:
+        the search reads nothing else of the graph).
         """
         graph = self.graph
-        if self._route_costs_version != graph.links_version:
+        if self._route_costs_version != graph.open_version:
             self._route_costs.clear()
-            self._route_costs_version = graph.links_version
+            self._route_costs_version = graph.open_version
         key = (cell, heading)
         costs = self._route_costs.get(key)
         if costs is None:

@@ -453,6 +453,11 @@ class MazeGraph:
         #: Counts the changes of the links or of the covered range: what a reader may key its own caches on
         #: (route costs, reachable cells). An update that reclassifies every link to the same states keeps it.
         self.links_version = 0
+        #: The same for the open links alone (what routes follow: :meth:`open_neighbours`), and for the
+        #: walls alone (what :meth:`wall_points_m` outlines): a link that turns from unknown to a wall
+        #: changes no route, one that opens draws no wall.
+        self.open_version = 0
+        self.walls_version = 0
         # Read-side copies of the arrays as Python lists (one index costs less than a numpy element),
         # and answers per cell, all kept while the links stay as they are (the seen shares: until an update)
         self._link_rows: tuple[list[list[int]], list[list[int]]] | None = None
@@ -580,10 +585,14 @@ class MazeGraph:
     ) -> GraphUpdate:
         """The end of an update: the links that changed, and the caches read off the links dropped if any did."""
         changed: list[tuple[Cell, Direction, LinkState]] = []
+        same_open = same_walls = True
         for direction, new, old in ((Direction.E, self._east, old_east), (Direction.N, self._north, old_north)):
             before = _shifted(old, old_i0 - self._i0, old_j0 - self._j0, new)
             for j, i in zip(*np.nonzero(new != before), strict=True):
                 changed.append(((int(i) + self._i0, int(j) + self._j0), direction, LinkState(int(new[j, i]))))
+            differs = new != before  # the shifted arrays hold every link of both (the range never shrinks)
+            same_open = same_open and not ((new == LinkState.OPEN) != (before == LinkState.OPEN))[differs].any()
+            same_walls = same_walls and not ((new == LinkState.WALL) != (before == LinkState.WALL))[differs].any()
         self._seen_rows = None
         same_links = (
             (self._i0, self._j0) == (old_i0, old_j0)
@@ -592,6 +601,8 @@ class MazeGraph:
         )
         if not same_links:  # what is read off the links is a pure function of the arrays and their origin
             self.links_version += 1
+            self.open_version += not same_open
+            self.walls_version += not same_walls
             self._adjacency = None
             self._link_rows = None
             self._unknown_sides.clear()
@@ -810,7 +821,8 @@ class MazeGraph:
         """Cells joined to ``cell`` by an open link, in the order E, N, W, S.
 
         Route searches call this for every cell they expand, several searches a planner
-        tick: the answers for all cells are read off the link arrays once per update.
+        tick: the answers for all cells are read off the link arrays once per update. They
+        depend on the open links alone: the same while :attr:`open_version` stays.
         """
         if self._adjacency is None:
             self._adjacency = self._open_adjacency()
@@ -1013,7 +1025,7 @@ class MazeGraph:
         every tick, and the walls change a few times a minute.
         """
         assert self.frame is not None
-        key = (self.links_version, self.frame, self.cell_size_m, spacing_m)
+        key = (self.walls_version, self.frame, self.cell_size_m, spacing_m)
         kept = self._outlines
         if kept is not None and kept[0][0] == key[0] and kept[0][1] is key[1] and kept[0][2:] == key[2:]:
             return kept[1]

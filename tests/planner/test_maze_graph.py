@@ -537,3 +537,27 @@ def test_an_update_that_reads_only_the_changed_cells_leaves_what_reading_every_l
     assert read_changed > 60  # most updates took the incremental path
     incremental.update(truth, origin, RES)
     assert_links_match(incremental, layout)
+
+
+def test_the_open_links_and_the_walls_have_versions_of_their_own() -> None:
+    # a wall coming into view changes no route (the open links stay) and an opening no wall
+    # outline: what is kept per open links or per walls stays, and follows when they change
+    _, world = layout_world(SMALL)
+    truth, origin = perfect_map(world)
+    graph = MazeGraph(frame=MazeFrame(0.0, (0.0, 0.0), CELL))
+    r = int((1 * CELL - origin[1]) / RES)
+    c0, c1 = int((1 * CELL - origin[0]) / RES), int((2 * CELL - origin[0]) / RES)
+    hidden = truth.copy()
+    hidden[r - 2 : r + 2, c0 + 1 : c1 - 1] = UNKNOWN  # the wall between (1, 0) and (1, 1) not seen yet
+    graph.update(hidden, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.UNKNOWN
+    links, opened, walls = graph.links_version, graph.open_version, graph.walls_version
+    graph.update(truth, origin, RES)  # the wall comes into view
+    assert graph.link((1, 1), Direction.S) is LinkState.WALL
+    assert graph.links_version > links and graph.open_version == opened and graph.walls_version > walls
+    links, walls = graph.links_version, graph.walls_version
+    gone = truth.copy()
+    gone[r - 2 : r + 2, c0 + 1 : c1 - 1] = FREE  # the wall turns out to be an opening
+    graph.update(gone, origin, RES)
+    assert graph.link((1, 1), Direction.S) is LinkState.OPEN
+    assert graph.links_version > links and graph.open_version > opened and graph.walls_version > walls

@@ -199,6 +199,11 @@ def sees(
     rr, cc = np.rint(rows).astype(np.int64), np.rint(cols).astype(np.int64)
     on_target = (rr == t[..., 0, None]) & (cc == t[..., 1, None])
     clear = _free_at(free, rr, cc) | ~before | on_target
+    if half_width_cells == 0.0:
+        # a strip of no width is its centre line: the edges' samples are the centre line's, and where
+        # they are checked (more than a cell and a half short of the target, never the target's own
+        # cell) the centre line is already required free
+        return in_range & clear.all(axis=2)
     # the strip's edges, up to a cell and a half short of the target (its neighbours there are unknown)
     away = (frac * dist[..., None] < dist[..., None] - 1.5) & before
     unit = delta / np.maximum(dist, 1e-9)[..., None]

@@ -72,6 +72,27 @@ def test_a_target_is_seen_through_free_cells_beyond_the_minimum_range_and_not_pa
     assert not sees(free, *grazing, MIN_RANGE_M / RES + 1, 0.9 / RES).any()
 
 
+def test_a_line_of_no_width_sees_a_target_when_its_centre_line_is_free_up_to_it() -> None:
+    """``half_width_cells=0``: every half-cell sample before the target on free space (or on the
+    target's own cell), the target within range; checked sample by sample on random grids."""
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        free = rng.random((40, 40)) < 0.85
+        viewpoints = rng.integers(0, 40, (3, 2))
+        targets = rng.integers(-2, 42, (25, 2))  # some off the grid
+        got = sees(free, viewpoints, targets, 3.0, 25.0, half_width_cells=0.0)
+        for a, v in enumerate(viewpoints):
+            for b, t in enumerate(targets):
+                dist = math.hypot(*(t - v))
+                steps = max(math.ceil(2.0 * dist), 1)
+                clear = True
+                for k in range(1, steps):
+                    r, c = (int(np.rint(v[i] + k / steps * (t[i] - v[i]))) for i in (0, 1))
+                    on_grid = 0 <= r < 40 and 0 <= c < 40
+                    clear &= (on_grid and bool(free[r, c])) or (r, c) == tuple(t)
+                assert got[a, b] == (3.0 <= dist <= 25.0 and clear), (v, t)
+
+
 def test_the_viewpoint_of_a_side_opening_is_in_the_corridor_middle_and_beyond_the_minimum_range() -> None:
     grid = corridor_with_side_opening()
     costmap = GridCostmap(grid, (0.0, 0.0), RES, footprint_radius_m=0.09, clearance_m=0.02)

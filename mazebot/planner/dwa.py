@@ -71,15 +71,6 @@ XY = tuple[float, float]
 #: Rollout points per clearance query between two stages of a DWA step (under a millisecond here, quiet).
 CLEARANCE_BLOCK = 256
 
-#: How much the path's direction weighs in choosing a recovery's escape move, in metres of
-#: clearance gained (times the cosine between the move and the path): a tie-breaker between
-#: moves that open up about as much, never a reason to take a move that barely opens over one
-#: that opens up centimetres. Beside a thin table leg in a 1 ft corridor the moves that open
-#: at all may be one ending 6 mm clearer ahead and one 21 mm clearer behind; weighed at 1 cm,
-#: the path's pull chose the one ahead, the turn onto it (within the aligner's tolerance) left
-#: it closing in again, and the robot never moved (three recoveries, then the goal given up).
-ESCAPE_PATH_NUDGE_M = 0.002
-
 
 # -- obstacles ---------------------------------------------------------------------------
 
@@ -948,7 +939,7 @@ class LocalPlanner:
         carrot = self.path.point_at(self.path.progress_m + self.dwa.lookahead_m)
         bearing = math.atan2(carrot[1] - pose[1], carrot[0] - pose[0]) - pose[2]
         gain = np.minimum(clear[:, -1], self.dwa.contact_m + self.dwa.clearance_cap_m)
-        score = np.where(ok, gain + ESCAPE_PATH_NUDGE_M * np.cos(angles - bearing), -np.inf)
+        score = np.where(ok, gain + 0.01 * np.cos(angles - bearing), -np.inf)
         best = float(angles[int(np.argmax(score))]) if ok.any() else bearing
         if abs(best) <= math.pi / 2:
             return best, 1.0

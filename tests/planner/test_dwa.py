@@ -427,33 +427,3 @@ def test_the_recovery_s_back_off_ends_before_the_emergency_stop_would_refuse_it(
         y += cmd.v_mps * 0.2 * math.sin(heading)
         heading += cmd.w_radps * 0.2
     assert backed > 0 and x < -0.02  # it did back out
-
-
-def test_the_escape_beside_a_thin_leg_is_the_move_that_opens_up_most() -> None:
-    """A 20 mm table leg ahead and to the right, nearer than the contact distance once the map's
-    cell on it counts (a disc of half a cell's diagonal), a wall on the left, the path straight
-    ahead (the scene of a hand-built 8×8 maze's run, where the robot stood until its goal was
-    given up): the recovery backs straight away from the leg, the move that opens up the most
-    space, not the one turned 20° towards the path that ends barely clearer than the start."""
-    xs = np.arange(-0.6, 0.8, 0.005)
-    angles = np.linspace(0.0, math.tau, 24, endpoint=False)
-    leg_xy = np.array([0.03, -0.114])
-    scan = np.concatenate((
-        np.column_stack((xs, np.full(xs.size, 0.136))), np.column_stack((xs, np.full(xs.size, -0.165))),
-        leg_xy + 0.01 * np.column_stack((np.cos(angles), np.sin(angles))),
-    ))
-    painted = np.array([[0.031, -0.107]])  # the map's occupied 2 cm cell on the leg
-    local = LocalPlanner()
-    local.set_path([(-0.06, 0.0), (1.0, 0.0)])
-    costmap = LocalCostmap(scan, painted, 0.02 * math.sqrt(0.5), local.dwa.footprint_radius_m, local.dwa.clearance_m)
-    start_m = float(costmap.clearance_m(np.zeros((1, 2)))[0])
-    assert start_m < local.dwa.contact_m  # the DWA cannot close in any further
-
-    def end_clearance_m(turn_rad: float, direction: float) -> float:
-        heading = turn_rad + (0.0 if direction > 0 else math.pi)
-        return float(costmap.clearance_m(local.escape_m * np.array([[math.cos(heading), math.sin(heading)]]))[0])
-
-    turn, direction = local._escape_move((0.0, 0.0, 0.0), costmap)
-    assert direction < 0 and abs(turn) < math.radians(15)  # backwards, away from the leg
-    assert end_clearance_m(turn, direction) > start_m + 0.01
-    assert end_clearance_m(turn, direction) > end_clearance_m(math.radians(20), 1.0) + 0.005

@@ -465,6 +465,10 @@ class WallSection:
         "... and turned less than this since keyframe 0"))] = 0.002
     wall_anchor_std_rad: Annotated[float, Field(gt=0, description=(
         "trust in the anchor's wall direction (it fixes the wall grid of the whole map)"))] = 0.001
+    wall_max_face_spread_rad: Annotated[float, Field(gt=0, description=(
+        "keyframe 0 anchors the wall grid only if the faces it sees at rest turn apart by at most this "
+        "(RMS about their mean): boards set by hand each stand at their own angle, and their mean "
+        "is not the maze's grid"))] = 0.005
 
 
 @dataclass(frozen=True)

@@ -87,6 +87,7 @@ from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
+from mazebot.slam.wall_faces import face_spread, face_turns
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
 from mazebot.taps import notify
@@ -467,6 +468,9 @@ class Slam:
         # keyframe 0's revolutions at rest, and the wall directions (robot frame) of those that show a grid
         self._anchor_revolutions = 0
         self._anchor_walls: list[float] = []
+        # keyframe 0's surface (points, normals) of each revolution at rest, until its faces are judged
+        self._anchor_surfaces: list[tuple[np.ndarray, np.ndarray]] = []
+        self._anchor_spread: tuple[float | None] | None = None  # the faces' spread, once judged
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
@@ -521,6 +525,34 @@ class Slam:
             return None
         four = 4.0 * np.asarray(self._anchor_walls)
         return 0.25 * math.atan2(float(np.mean(np.sin(four))), float(np.mean(np.cos(four))))
+
+    @property
+    def anchor_face_spread_rad(self) -> float | None:
+        """How far the wall faces keyframe 0 saw at rest turn apart (RMS, radians; None: fewer than two faces).
+
+        :func:`mazebot.slam.wall_faces.face_spread` of its revolutions' surfaces pooled (the
+        robot stood still), measured against the anchor's wall direction. Judged once, when
+        keyframe 0 is final (:attr:`anchored`); None before.
+        """
+        if self._anchor_spread is None:
+            direction = self.anchor_wall_rad
+            if not self.anchored or direction is None:
+                return None
+            points = np.concatenate([pts for pts, _ in self._anchor_surfaces])
+            normals = np.concatenate([nrm for _, nrm in self._anchor_surfaces])
+            self._anchor_spread = (face_spread(*face_turns(points, normals, direction)),)
+            self._anchor_surfaces = []
+            spread = self._anchor_spread[0]
+            if spread is not None and spread > self.params.wall_max_face_spread_rad:
+                log.info("the wall faces seen from the start turn %.2f deg apart (RMS): boards set by hand; "
+                         "the start is no anchor of the wall grid", math.degrees(spread))
+        return self._anchor_spread[0]
+
+    @property
+    def anchor_on_grid(self) -> bool:
+        """Keyframe 0's walls anchor the wall grid: its faces at rest lie on one grid (or too few to tell)."""
+        spread = self.anchor_face_spread_rad
+        return spread is None or spread <= self.params.wall_max_face_spread_rad
 
     def keyframe_poses(self) -> np.ndarray:
         """Poses (N, 3) of all keyframes, optimized."""
@@ -880,6 +912,7 @@ class Slam:
         if index == 0:
             self._anchor_revolutions = 1
             self._anchor_walls = self._usable_walls(kf)
+            self._anchor_surfaces = [kf.surface()]
         self.keyframes.append(kf)
         self.graph.add_vertex(pose)
         self.selector.accept(pose)
@@ -939,6 +972,7 @@ class Slam:
         self._anchor_revolutions += 1
         kf = Keyframe.from_scan(0, self.keyframes[0].pose, prepared, p.normals, p.map_max_range_m, rays=rays)
         self._anchor_walls += self._usable_walls(kf)
+        self._anchor_surfaces.append(kf.surface())
         direction = self.anchor_wall_rad
         if p.wall_prior and direction is not None:
             self.wall_reference_rad = wrap_quarter(direction + float(self.keyframes[0].pose[2]))
@@ -1278,7 +1312,7 @@ class Slam:
         self._keyframes_since_optimization = 0
         self._verifying = list(candidates)
         ei, ej, z, omega = self.graph.edge_arrays
-        anchor = self.anchor_wall_rad
+        anchor = self.anchor_wall_rad if self.anchor_on_grid else None
         return LoopClosureJob(
             candidates=candidates,
             keyframes=list(self.keyframes),

@@ -45,12 +45,16 @@ three-state value (-1 unknown, 0 free, 100 occupied) changed since the previous 
 from __future__ import annotations
 
 import copy
+import itertools
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from mazebot.geometry import transform_points
+#: Keyframes moved into the world together when the grid is rebuilt: the rays of one chunk (~25 kB a
+#: keyframe) exist at once, and the per-call cost of moving them is paid once a chunk.
+REBUILD_CHUNK_KEYFRAMES = 64
 
 UNKNOWN = -1
 FREE = 0
@@ -241,9 +245,14 @@ class OccupancyGrid:
         end_c = (ends - offset) / self.resolution_m - origin
         end_cell = np.floor(end_c).astype(np.int64)
         past_blind = self._past_blind_zone(start_c, end_c)
-        free_c, free_r = self._trace_free(past_blind, end_c, end_cell, hit, drop_hit_cells=False)
+        # both stretches of every beam traced in one pass: past the blind zone, then within it
+        # (the endpoint's own cell is traced too: a hit wins over a miss below anyway)
+        beams = end_c.shape[0]
+        cols_rows, count = self._trace(np.concatenate((past_blind, start_c)), np.concatenate((end_c, past_blind)))
+        past = int(count[:beams].sum())
+        free_c, free_r = cols_rows[0, :past], cols_rows[1, :past]
+        blind_c, blind_r = cols_rows[0, past:], cols_rows[1, past:]
         hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
-        blind_c, blind_r = self._trace_free(start_c, past_blind, end_cell, hit, drop_hit_cells=False)
 
         # one update per cell per scan, a hit winning over a miss: mark a window, then update
         end_lo, end_hi = _xy_bounds(end_cell)
@@ -308,42 +317,33 @@ class OccupancyGrid:
         scale = np.divide(skip, length, out=np.zeros_like(length), where=length > 0)
         return start_c + vec * scale[:, None]
 
-    def _trace_free(
-        self,
-        start_c: np.ndarray,
-        end_c: np.ndarray,
-        end_cell: np.ndarray,
-        hit: np.ndarray,
-        drop_hit_cells: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Cells (cols, rows) crossed by the beams before their endpoint's cell.
+    def _trace(self, start_c: np.ndarray, end_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cells crossed by the beams, end cell included: ``(cols and rows (2, S), samples per beam (N,))``.
 
         Beams are given in continuous cell units. Samples every ``trace_step`` cell along
-        each beam, all beams at once (``np.repeat`` builds the flat sample list). A beam's
-        samples inside its own endpoint cell are dropped for hits (that cell is the wall);
-        no-return beams keep theirs. ``drop_hit_cells=False`` keeps them too, for a caller
-        that lets hits win over misses anyway (:meth:`integrate`): the same cells result.
+        each beam (at 0, step, ... short of its end), all beams at once: the per-beam values
+        are stacked and repeated per sample in one ``np.repeat``, beam after beam, so
+        each beam's samples are a contiguous run of ``count`` entries.
         """
         step = self.trace_step
         vec = end_c - start_c
         length = np.hypot(vec[:, 0], vec[:, 1])
-        count = np.ceil(length / step).astype(np.int64)  # samples at 0, step, ... short of the end
+        count = np.ceil(length / step).astype(np.int64)
         total = int(count.sum())
         if total == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        # per-beam values repeated per sample (np.repeat of a column is cheaper than a gather)
-        k = np.arange(total, dtype=np.float64) - np.repeat(np.cumsum(count) - count, count)
-        frac = np.repeat(np.divide(step, length, out=np.zeros_like(length), where=length > 0), count) * k  # in [0, 1)
-        col = np.floor(np.repeat(start_c[:, 0], count) + np.repeat(vec[:, 0], count) * frac).astype(np.int64)
-        row = np.floor(np.repeat(start_c[:, 1], count) + np.repeat(vec[:, 1], count) * frac).astype(np.int64)
-        if not drop_hit_cells:
-            return col, row
-        keep = ~(
-            (col == np.repeat(end_cell[:, 0], count))
-            & (row == np.repeat(end_cell[:, 1], count))
-            & np.repeat(hit, count)
-        )
-        return col[keep], row[keep]
+            return np.zeros((2, 0), dtype=np.int64), count
+        per_beam = np.empty((6, count.shape[0]))
+        per_beam[0] = np.cumsum(count) - count  # the index of the beam's first sample
+        np.divide(step, length, out=per_beam[1], where=length > 0)  # each sample's share of the beam
+        per_beam[1][length <= 0] = 0.0
+        per_beam[2], per_beam[3] = start_c[:, 0], vec[:, 0]
+        per_beam[4], per_beam[5] = start_c[:, 1], vec[:, 1]
+        first, share, x0, dx, y0, dy = np.repeat(per_beam, count, axis=1)
+        frac = share * (np.arange(total, dtype=np.float64) - first)  # in [0, 1)
+        cells = np.empty((2, total))
+        np.floor(x0 + dx * frac, out=cells[0])
+        np.floor(y0 + dy * frac, out=cells[1])
+        return cells.astype(np.int64), count
 
     def _ensure_contains(self, xy: np.ndarray) -> None:
         """Grow the array (with ``margin_m`` on each side) so every point lies on it."""
@@ -405,18 +405,12 @@ class OccupancyGrid:
         that place modulo the resolution (None: where they were).
         """
         keyframes = list(keyframes)
-
-        def rays_of(kf: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            pose = np.asarray(kf[0], dtype=np.float64)
-            ends = transform_points(pose, kf[1])
-            origins = None if len(kf) < 4 else transform_points(pose, kf[3])
-            return self._rays(pose, ends, np.asarray(kf[2], dtype=bool), origins)
-
-        # Two passes: the extent first, then the rays, one keyframe at a time. Holding every
+        chunks = [keyframes[i : i + REBUILD_CHUNK_KEYFRAMES] for i in range(0, len(keyframes), REBUILD_CHUNK_KEYFRAMES)]
+        # Two passes: the extent first, then the rays, a chunk of keyframes at a time. Holding every
         # keyframe's world rays at once costs ~17 kB per keyframe (60 MB for a 16x16 maze).
         corners = []
-        for kf in keyframes:
-            starts, ends, _ = rays_of(kf)
+        for chunk in chunks:
+            starts, ends, _, _ = self._world_rays(chunk)
             if ends.shape[0]:
                 both = np.concatenate((starts, ends))
                 corners += [both.min(axis=0), both.max(axis=0)]
@@ -428,13 +422,44 @@ class OccupancyGrid:
                                   float(np.remainder(cell_offset_m[1], res)))
         if corners:  # size the array once for all keyframes
             self._ensure_contains(np.array(corners))
-        for kf in keyframes:
-            starts, ends, hit = rays_of(kf)
-            if ends.shape[0]:
-                self.integrate(starts[0], ends, hit, starts)
+        for chunk in chunks:
+            starts, ends, hit, bounds = self._world_rays(chunk)
+            for first, last in itertools.pairwise(bounds):
+                if last > first:
+                    self.integrate(starts[first], ends[first:last], hit[first:last], starts[first:last])
         self.generation = generation + 1
         self._touched[...] = False
         self._reported = self.three_state()
+
+    def _world_rays(
+        self, keyframes: Sequence[Sequence[np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The keyframes' beams in the world as :meth:`_rays` checks them: ``(starts, ends, hit, bounds)``.
+
+        Keyframe ``k``'s beams are rows ``bounds[k]:bounds[k + 1]``. All keyframes are moved in
+        one vectorized pass, each point with its keyframe's cosine, sine and translation: the
+        arithmetic of :func:`mazebot.geometry.transform_points` point by point, so the result
+        is the same to the bit.
+        """
+        poses = np.array([np.asarray(kf[0], dtype=np.float64)[:3] for kf in keyframes]).reshape(-1, 3)
+        counts = np.array([np.asarray(kf[1]).reshape(-1, 2).shape[0] for kf in keyframes], dtype=np.int64)
+        cos = np.repeat([math.cos(float(t)) for t in poses[:, 2]], counts)
+        sin = np.repeat([math.sin(float(t)) for t in poses[:, 2]], counts)
+        x, y = np.repeat(poses[:, 0], counts), np.repeat(poses[:, 1], counts)
+
+        def moved(local: np.ndarray) -> np.ndarray:
+            px, py = local[:, 0], local[:, 1]
+            return np.column_stack((cos * px - sin * py + x, sin * px + cos * py + y))
+
+        ends = moved(np.concatenate([np.asarray(kf[1], dtype=np.float64).reshape(-1, 2) for kf in keyframes]))
+        hit = np.concatenate([np.asarray(kf[2], dtype=bool).reshape(-1) for kf in keyframes])
+        # beams without their own origins start at the pose's position: (0, 0) moved, to the bit
+        origins = moved(np.concatenate([
+            np.asarray(kf[3], dtype=np.float64).reshape(-1, 2) if len(kf) >= 4 else np.zeros((int(n), 2))
+            for kf, n in zip(keyframes, counts, strict=True)
+        ]))
+        starts, ends, hit = self._rays(origins[:1], ends, hit, origins)
+        return starts, ends, hit, np.concatenate(([0], np.cumsum(counts)))
 
 
 def _xy_bounds(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -54,7 +54,7 @@ import numpy as np
 
 #: Keyframes moved into the world together when the grid is rebuilt: the rays of one chunk (~25 kB a
 #: keyframe) exist at once, and the per-call cost of moving them is paid once a chunk.
-REBUILD_CHUNK_KEYFRAMES = 64
+REBUILD_CHUNK_KEYFRAMES = 16
 
 UNKNOWN = -1
 FREE = 0
@@ -245,14 +245,9 @@ class OccupancyGrid:
         end_c = (ends - offset) / self.resolution_m - origin
         end_cell = np.floor(end_c).astype(np.int64)
         past_blind = self._past_blind_zone(start_c, end_c)
-        # both stretches of every beam traced in one pass: past the blind zone, then within it
-        # (the endpoint's own cell is traced too: a hit wins over a miss below anyway)
-        beams = end_c.shape[0]
-        cols_rows, count = self._trace(np.concatenate((past_blind, start_c)), np.concatenate((end_c, past_blind)))
-        past = int(count[:beams].sum())
-        free_c, free_r = cols_rows[0, :past], cols_rows[1, :past]
-        blind_c, blind_r = cols_rows[0, past:], cols_rows[1, past:]
+        free_c, free_r = self._trace_free(past_blind, end_c, end_cell, hit, drop_hit_cells=False)
         hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
+        blind_c, blind_r = self._trace_free(start_c, past_blind, end_cell, hit, drop_hit_cells=False)
 
         # one update per cell per scan, a hit winning over a miss: mark a window, then update
         end_lo, end_hi = _xy_bounds(end_cell)
@@ -317,33 +312,42 @@ class OccupancyGrid:
         scale = np.divide(skip, length, out=np.zeros_like(length), where=length > 0)
         return start_c + vec * scale[:, None]
 
-    def _trace(self, start_c: np.ndarray, end_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cells crossed by the beams, end cell included: ``(cols and rows (2, S), samples per beam (N,))``.
+    def _trace_free(
+        self,
+        start_c: np.ndarray,
+        end_c: np.ndarray,
+        end_cell: np.ndarray,
+        hit: np.ndarray,
+        drop_hit_cells: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Cells (cols, rows) crossed by the beams before their endpoint's cell.
 
         Beams are given in continuous cell units. Samples every ``trace_step`` cell along
-        each beam (at 0, step, ... short of its end), all beams at once: the per-beam values
-        are stacked and repeated per sample in one ``np.repeat``, beam after beam, so
-        each beam's samples are a contiguous run of ``count`` entries.
+        each beam, all beams at once (``np.repeat`` builds the flat sample list). A beam's
+        samples inside its own endpoint cell are dropped for hits (that cell is the wall);
+        no-return beams keep theirs. ``drop_hit_cells=False`` keeps them too, for a caller
+        that lets hits win over misses anyway (:meth:`integrate`): the same cells result.
         """
         step = self.trace_step
         vec = end_c - start_c
         length = np.hypot(vec[:, 0], vec[:, 1])
-        count = np.ceil(length / step).astype(np.int64)
+        count = np.ceil(length / step).astype(np.int64)  # samples at 0, step, ... short of the end
         total = int(count.sum())
         if total == 0:
-            return np.zeros((2, 0), dtype=np.int64), count
-        per_beam = np.empty((6, count.shape[0]))
-        per_beam[0] = np.cumsum(count) - count  # the index of the beam's first sample
-        np.divide(step, length, out=per_beam[1], where=length > 0)  # each sample's share of the beam
-        per_beam[1][length <= 0] = 0.0
-        per_beam[2], per_beam[3] = start_c[:, 0], vec[:, 0]
-        per_beam[4], per_beam[5] = start_c[:, 1], vec[:, 1]
-        first, share, x0, dx, y0, dy = np.repeat(per_beam, count, axis=1)
-        frac = share * (np.arange(total, dtype=np.float64) - first)  # in [0, 1)
-        cells = np.empty((2, total))
-        np.floor(x0 + dx * frac, out=cells[0])
-        np.floor(y0 + dy * frac, out=cells[1])
-        return cells.astype(np.int64), count
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        # per-beam values repeated per sample (np.repeat of a column is cheaper than a gather)
+        k = np.arange(total, dtype=np.float64) - np.repeat(np.cumsum(count) - count, count)
+        frac = np.repeat(np.divide(step, length, out=np.zeros_like(length), where=length > 0), count) * k  # in [0, 1)
+        col = np.floor(np.repeat(start_c[:, 0], count) + np.repeat(vec[:, 0], count) * frac).astype(np.int64)
+        row = np.floor(np.repeat(start_c[:, 1], count) + np.repeat(vec[:, 1], count) * frac).astype(np.int64)
+        if not drop_hit_cells:
+            return col, row
+        keep = ~(
+            (col == np.repeat(end_cell[:, 0], count))
+            & (row == np.repeat(end_cell[:, 1], count))
+            & np.repeat(hit, count)
+        )
+        return col[keep], row[keep]
 
     def _ensure_contains(self, xy: np.ndarray) -> None:
         """Grow the array (with ``margin_m`` on each side) so every point lies on it."""

@@ -45,12 +45,16 @@ three-state value (-1 unknown, 0 free, 100 occupied) changed since the previous 
 from __future__ import annotations
 
 import copy
+import itertools
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from mazebot.geometry import transform_points
+#: Keyframes moved into the world together when the grid is rebuilt: the rays of one chunk (~25 kB a
+#: keyframe) exist at once, and the per-call cost of moving them is paid once a chunk.
+REBUILD_CHUNK_KEYFRAMES = 16
 
 UNKNOWN = -1
 FREE = 0
@@ -405,18 +409,12 @@ class OccupancyGrid:
         that place modulo the resolution (None: where they were).
         """
         keyframes = list(keyframes)
-
-        def rays_of(kf: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            pose = np.asarray(kf[0], dtype=np.float64)
-            ends = transform_points(pose, kf[1])
-            origins = None if len(kf) < 4 else transform_points(pose, kf[3])
-            return self._rays(pose, ends, np.asarray(kf[2], dtype=bool), origins)
-
-        # Two passes: the extent first, then the rays, one keyframe at a time. Holding every
+        chunks = [keyframes[i : i + REBUILD_CHUNK_KEYFRAMES] for i in range(0, len(keyframes), REBUILD_CHUNK_KEYFRAMES)]
+        # Two passes: the extent first, then the rays, a chunk of keyframes at a time. Holding every
         # keyframe's world rays at once costs ~17 kB per keyframe (60 MB for a 16x16 maze).
         corners = []
-        for kf in keyframes:
-            starts, ends, _ = rays_of(kf)
+        for chunk in chunks:
+            starts, ends, _, _ = self._world_rays(chunk)
             if ends.shape[0]:
                 both = np.concatenate((starts, ends))
                 corners += [both.min(axis=0), both.max(axis=0)]
@@ -428,13 +426,44 @@ class OccupancyGrid:
                                   float(np.remainder(cell_offset_m[1], res)))
         if corners:  # size the array once for all keyframes
             self._ensure_contains(np.array(corners))
-        for kf in keyframes:
-            starts, ends, hit = rays_of(kf)
-            if ends.shape[0]:
-                self.integrate(starts[0], ends, hit, starts)
+        for chunk in chunks:
+            starts, ends, hit, bounds = self._world_rays(chunk)
+            for first, last in itertools.pairwise(bounds):
+                if last > first:
+                    self.integrate(starts[first], ends[first:last], hit[first:last], starts[first:last])
         self.generation = generation + 1
         self._touched[...] = False
         self._reported = self.three_state()
+
+    def _world_rays(
+        self, keyframes: Sequence[Sequence[np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The keyframes' beams in the world as :meth:`_rays` checks them: ``(starts, ends, hit, bounds)``.
+
+        Keyframe ``k``'s beams are rows ``bounds[k]:bounds[k + 1]``. All keyframes are moved in
+        one vectorized pass, each point with its keyframe's cosine, sine and translation: the
+        arithmetic of :func:`mazebot.geometry.transform_points` point by point, so the result
+        is the same to the bit.
+        """
+        poses = np.array([np.asarray(kf[0], dtype=np.float64)[:3] for kf in keyframes]).reshape(-1, 3)
+        counts = np.array([np.asarray(kf[1]).reshape(-1, 2).shape[0] for kf in keyframes], dtype=np.int64)
+        cos = np.repeat([math.cos(float(t)) for t in poses[:, 2]], counts)
+        sin = np.repeat([math.sin(float(t)) for t in poses[:, 2]], counts)
+        x, y = np.repeat(poses[:, 0], counts), np.repeat(poses[:, 1], counts)
+
+        def moved(local: np.ndarray) -> np.ndarray:
+            px, py = local[:, 0], local[:, 1]
+            return np.column_stack((cos * px - sin * py + x, sin * px + cos * py + y))
+
+        ends = moved(np.concatenate([np.asarray(kf[1], dtype=np.float64).reshape(-1, 2) for kf in keyframes]))
+        hit = np.concatenate([np.asarray(kf[2], dtype=bool).reshape(-1) for kf in keyframes])
+        # beams without their own origins start at the pose's position: (0, 0) moved, to the bit
+        origins = moved(np.concatenate([
+            np.asarray(kf[3], dtype=np.float64).reshape(-1, 2) if len(kf) >= 4 else np.zeros((int(n), 2))
+            for kf, n in zip(keyframes, counts, strict=True)
+        ]))
+        starts, ends, hit = self._rays(origins[:1], ends, hit, origins)
+        return starts, ends, hit, np.concatenate(([0], np.cumsum(counts)))
 
 
 def _xy_bounds(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

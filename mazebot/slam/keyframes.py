@@ -73,6 +73,13 @@ def unpack(packed: np.ndarray, step: float) -> np.ndarray:
     return packed.astype(np.float64)
 
 
+def unpack_all(packed: Sequence[np.ndarray], step: float) -> np.ndarray:
+    """The float64 values of several :func:`pack` outputs, concatenated: one multiplication if all are int16."""
+    if all(part.dtype == np.int16 for part in packed):
+        return np.concatenate(packed) * step
+    return np.concatenate([unpack(part, step) for part in packed])
+
+
 class Keyframe:
     """One kept scan, everything in its own robot frame; ``pose`` (3,) is its map-frame pose.
 
@@ -235,9 +242,7 @@ class Keyframe:
     @property
     def surface_size(self) -> int:
         """How many points the surface has (computing it if need be)."""
-        self.surface()
-        assert self._surface is not None
-        return int(self._surface[0].shape[0])
+        return int(self.packed_surface()[0].shape[0])
 
     @property
     def has_surface(self) -> bool:
@@ -246,6 +251,11 @@ class Keyframe:
 
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
         """``(points, normals)``: hits with a usable normal (oriented to the lidar), smoothed; computed once."""
+        points, normals = self.packed_surface()
+        return unpack(points, POINT_STEP_M), unpack(normals, NORMAL_STEP)
+
+    def packed_surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`surface` as kept (:func:`pack`'s int16 or float32), computed if need be: no copy made."""
         surface = self._surface
         if surface is None:
             p = self.normal_params
@@ -260,7 +270,7 @@ class Keyframe:
                 pts = smooth_onto_lines(pts, nrm, p.radius_m, p.neighbours)
             surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
             self._surface = surface  # a race with another thread computes the same values
-        return unpack(surface[0], POINT_STEP_M), unpack(surface[1], NORMAL_STEP)
+        return surface
 
     def wall_direction(self) -> tuple[float, float, int]:
         """Dominant wall direction in the robot frame, modulo 90°: ``(angle_rad, strength, count)``.
@@ -462,7 +472,7 @@ def build_target_steps(
     kept = [k for k, kf in enumerate(keyframes) if kf.surface_size]
     if not kept:
         return None
-    surfaces = [keyframes[k].surface() for k in kept]
+    surfaces = [keyframes[k].packed_surface() for k in kept]
     base = None if frame is None else np.asarray(frame, dtype=np.float64)
     pose_rows = []
     for k in kept:
@@ -480,8 +490,8 @@ def build_target_steps(
         )
     )
     counts = np.array([pts.shape[0] for pts, _ in surfaces])
-    local = np.concatenate([pts for pts, _ in surfaces])
-    local_nrm = np.concatenate([nrm for _, nrm in surfaces])
+    local = unpack_all([pts for pts, _ in surfaces], POINT_STEP_M)
+    local_nrm = unpack_all([nrm for _, nrm in surfaces], NORMAL_STEP)
     c, sn = np.repeat(cos, counts), np.repeat(sin, counts)
     points = np.column_stack(
         (

@@ -1272,7 +1272,7 @@ class Slam:
             chosen = sorted(near.tolist()) + chosen
         for k in chosen:
             if not self.keyframes[k].has_surface:
-                self.keyframes[k].surface()
+                self.keyframes[k].packed_surface()
                 yield
         self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m)
         self._target_keyframes = chosen

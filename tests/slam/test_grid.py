@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+import mazebot.slam.grid as grid_module
+from mazebot.geometry import transform_points
 from mazebot.sim.raster import true_occupancy
 from mazebot.sim.world import World
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
@@ -205,6 +207,34 @@ def test_rebuild_equals_integrating_from_scratch(maze_world: World, cast_scan) -
     r, c = rebuilt.to_cell(sequential.to_world(rows, cols))
     np.testing.assert_allclose(rebuilt.log_odds[r, c], sequential.log_odds[rows, cols], rtol=1e-6)
     assert np.count_nonzero(rebuilt.log_odds) == rows.size
+
+
+def test_a_rebuild_in_chunks_moves_every_keyframe_as_transform_points_does(
+    maze_world: World, cast_scan, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Keyframes moved into the world a chunk at a time give the grid of the same beams given in the world.
+
+    Eight keyframes in chunks of three, some with their own beam origins and some starting
+    at the pose: the log odds are equal to the bit to those of the keyframes moved one by one
+    with :func:`mazebot.geometry.transform_points` and handed over at the identity pose.
+    """
+    monkeypatch.setattr(grid_module, "REBUILD_CHUNK_KEYFRAMES", 3)
+    local_keyframes, world_keyframes = [], []
+    for k, pose in enumerate(_tour(maze_world)[:8]):
+        angles, ranges = cast_scan(maze_world, pose)
+        ends_world, hit = _beams(angles, ranges, pose)
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        local = (ends_world - pose[:2]) @ np.array([[c, -s], [s, c]])
+        origins = np.broadcast_to(np.array([0.03, -0.01]) if k % 2 else np.zeros(2), local.shape)
+        local_keyframes.append((pose, local, hit, origins) if k % 3 else (pose, local, hit))
+        world_origins = transform_points(pose, origins) if k % 3 else np.broadcast_to(pose[:2], local.shape)
+        world_keyframes.append((np.zeros(3), transform_points(pose, local), hit, world_origins))
+    chunked, reference = OccupancyGrid(resolution_m=RES_M), OccupancyGrid(resolution_m=RES_M)
+    chunked.rebuild(local_keyframes)
+    reference.rebuild(world_keyframes)
+    assert chunked.origin_cells == reference.origin_cells
+    np.testing.assert_array_equal(chunked.log_odds, reference.log_odds)
+    assert np.count_nonzero(chunked.log_odds) > 1000
 
 
 def test_cells_and_world_coordinates_round_trip() -> None:

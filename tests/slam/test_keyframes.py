@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mazebot.slam.keyframes import NORMAL_STEP, POINT_STEP_M, Keyframe, pack, unpack
+from mazebot.slam.keyframes import NORMAL_STEP, POINT_STEP_M, Keyframe, pack, unpack, unpack_all
 
 
 def _corridor(n: int = 400, seed: int = 3) -> np.ndarray:
@@ -75,3 +75,12 @@ def test_keep_surface_only_lets_go_of_the_hits() -> None:
     again = kf.surface()
     assert np.array_equal(again[0], points) and np.array_equal(again[1], normals)
     assert kf.ray_hit.shape == (400,) and kf.match_points.shape == (100, 2)
+
+
+def test_unpack_all_gives_the_values_of_each_part_unpacked_in_turn() -> None:
+    near = pack(np.array([[0.5, -1.25], [7.9, 0.0]]), POINT_STEP_M)  # int16
+    far = pack(np.array([[9.5, 0.1]]), POINT_STEP_M)  # beyond int16's reach: float32
+    assert near.dtype == np.int16 and far.dtype == np.float32
+    for parts in ([near, near], [near, far, near]):
+        expected = np.concatenate([unpack(part, POINT_STEP_M) for part in parts])
+        np.testing.assert_array_equal(unpack_all(parts, POINT_STEP_M), expected)

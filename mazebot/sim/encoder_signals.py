@@ -103,7 +103,7 @@ class QuadratureSignal:
         self._step = step
         self.edges += 1
         a, b = _GRAY[(step + self._offset) & 3]
-        pin, level = (self._a, a) if self._a._state != a else (self._b, b)  # exactly one channel changes
+        pin, level = (self._a, a) if self._a.state != a else (self._b, b)  # exactly one channel changes
         rng = self.rng
         if rng is not None and self.lost_edge_probability and rng.random() < self.lost_edge_probability:
             pin._change_state(bool(level))  # the level changes without an interrupt: nobody hears of this edge

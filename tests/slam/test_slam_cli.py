@@ -190,10 +190,11 @@ def test_slam_run_with_systematic_odometry(
     log = tmp_path / "tiny.log"
     log.write_text("\n".join(_tiny_log(intel_log_path, 30, rounded=False)) + "\n", encoding="utf-8")
     code = main(["slam", "run", "--carmen", str(log), "--odom-model", "systematic", "--odom-systematic",
-                 "0.03,0.05,0.01,0.003", "--seed", "2", "--out", str(tmp_path / "o")])
+                 "0.03,0.05,0.01,0.003", "--seed", "2", "--odom-calibration", "--out", str(tmp_path / "o")])
     assert code == 0
     stats = json.loads(capsys.readouterr().out)
     assert stats["odom_model"] == "systematic" and stats["odom_noise"] is None
+    assert set(stats["odom_calibration"]) == {"turn_scale", "bias_rad_per_m"}
     assert set(stats["odom_systematic"]) == {"left_scale", "right_scale", "track_scale", "initial_bias_rad_per_m"}
     assert stats["error_odometry"]["rms_m"] > 0.05  # the odometry is off, SLAM is run on it
     assert main(["slam", "run", "--carmen", str(log), "--odom-systematic", "0.01,0.02,0.005,0.002",
@@ -240,7 +241,7 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
     odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
     config = load_config(None)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_heading=True)
     slam = Slam(params, initial_pose=np.zeros(3))
     history = OdometryHistory(horizon_s=1e12)
     clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
@@ -360,10 +361,10 @@ def test_a_laser_log_learns_its_odometrys_heading_bias_and_the_noise_left_after_
 ) -> None:
     """Wheel odometry whose turns come out 8 % short (a track width off) and which drifts by 0.05 or
     0.3 rad a metre (unequal wheels; the second beyond the maze robot's ±0.1 clamp, a log's odometry
-    comes undescribed): the heading calibration learns both from the scan matches, and the
-    odometry noise learnt is what is left after that correction, not the whole bias. Without the
-    calibration the learnt heading noise is the bias's (and the correlative window the whole
-    ±30° of a laser log on nearly every scan, where a look-alike can win)."""
+    comes undescribed): the heading calibration (``slam run --odom-calibration``) learns both from
+    the scan matches, and the odometry noise learnt is what is left after that correction, not the
+    whole bias. Without the calibration the learnt heading noise is the bias's (and the correlative
+    window the whole ±30° of a laser log on nearly every scan, where a look-alike can win)."""
     from mazebot.slam.ekf import OdometryHistory
     from mazebot.slam.slam import Slam
     from mazebot.slam.slam_cli import slam_clock
@@ -372,7 +373,7 @@ def test_a_laser_log_learns_its_odometrys_heading_bias_and_the_noise_left_after_
     reference = np.array([r.pose for r in lasers])
     odometry = _biased_odometry(reference, 1 / 1.08, bias_rad_per_m)
     config = load_config(None)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_heading=True)
     slam = Slam(params, initial_pose=np.zeros(3))
     history = OdometryHistory(horizon_s=1e12)
     clock = slam_clock(np.array([r.timestamp_s for r in lasers]))

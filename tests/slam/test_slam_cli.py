@@ -12,9 +12,9 @@ import pytest
 from mazebot.cli import main
 from mazebot.config import load_config
 from mazebot.geometry import compose, relative_pose, wrap_angle
-from mazebot.slam.carmen import read_carmen
+from mazebot.slam.carmen import LaserRecord, read_carmen
 from mazebot.slam.map_export import read_ros_map
-from mazebot.slam.slam import SlamParams
+from mazebot.slam.slam import Slam, SlamParams
 from mazebot.slam.slam_cli import laser_log_params, noisy_odometry
 
 
@@ -231,24 +231,16 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
     unperturbed map's first scan asks for less than the map's own scatter and is left alone.
     """
     from mazebot.geometry import compose, inverse, relative_pose
-    from mazebot.slam.ekf import OdometryHistory
     from mazebot.slam.map_consistency import judged_scans, scan_corrections
-    from mazebot.slam.slam import Slam
-    from mazebot.slam.slam_cli import heading_noise_rad, match_points, reanchor, slam_clock
+    from mazebot.slam.slam_cli import heading_noise_rad, match_points, reanchor
 
     lasers = read_carmen(intel_log_path).lasers[:120]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
     config = load_config(None)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_heading=True)
-    slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    slam = _slam_over(lasers, odometry, params)
     points = match_points(lasers, params)
 
     def registered() -> np.ndarray:
@@ -344,6 +336,22 @@ def test_closures_verified_as_a_set_on_the_intel_log_are_right(
     assert stats["error"]["rms_m"] < 0.15
 
 
+def _slam_over(lasers: list[LaserRecord], odometry: np.ndarray, params: SlamParams) -> Slam:
+    """The laser-log SLAM run over ``lasers`` with ``odometry`` (N, 3) as ``run_carmen`` runs it."""
+    from mazebot.slam.ekf import OdometryHistory
+    from mazebot.slam.slam import Slam
+    from mazebot.slam.slam_cli import slam_clock
+
+    slam = Slam(params, initial_pose=np.zeros(3))
+    history = OdometryHistory(horizon_s=1e12)
+    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
+    for k, record in enumerate(lasers):
+        history.append(clock[k], *odometry[k])
+        scan = record.to_scan()
+        slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    return slam
+
+
 def _biased_odometry(reference: np.ndarray, turn_scale: float, bias_rad_per_m: float) -> np.ndarray:
     """Odometry from ``reference`` whose every heading change is scaled and biased per metre (from the first pose)."""
     odometry = np.zeros_like(reference)
@@ -365,22 +373,12 @@ def test_a_laser_log_learns_its_odometrys_heading_bias_and_the_noise_left_after_
     the scan matches, and the odometry noise learnt is what is left after that correction, not the
     whole bias. Without the calibration the learnt heading noise is the bias's (and the correlative
     window the whole ±30° of a laser log on nearly every scan, where a look-alike can win)."""
-    from mazebot.slam.ekf import OdometryHistory
-    from mazebot.slam.slam import Slam
-    from mazebot.slam.slam_cli import slam_clock
-
     lasers = read_carmen(intel_log_path).lasers[:150]
     reference = np.array([r.pose for r in lasers])
     odometry = _biased_odometry(reference, 1 / 1.08, bias_rad_per_m)
     config = load_config(None)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_heading=True)
-    slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    slam = _slam_over(lasers, odometry, laser_log_params(SlamParams.from_config(config.slam, config.lidar),
+                                                         calibrate_heading=True))
     # dθ_true = (1 + s)·dθ + k·dx: s = 1.08 − 1, k = −1.08 · bias
     assert slam.calibration.scale == pytest.approx(0.08, abs=0.03)
     assert slam.calibration.bias_rad_per_m == pytest.approx(-1.08 * bias_rad_per_m, abs=0.02)

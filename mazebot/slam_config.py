@@ -362,6 +362,8 @@ class FilterSection:
         "learn the odometry's heading bias (unequal wheels, track width) from scan matches"))] = True
     calibration_memory_scans: Annotated[float, Field(ge=10, description=(
         "scans the heading calibration remembers (exponential forgetting)"))] = 1000.0
+    calibration_limit: Annotated[float, Field(gt=0, le=1, description=(
+        "the heading calibration's turn scale and its bias in rad per metre stay within plus or minus this"))] = 0.1
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

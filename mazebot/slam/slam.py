@@ -425,7 +425,7 @@ class Slam:
         self.initial_pose = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
         p = self.params
         self.ekf = PoseEkf(self.initial_pose, p.initial_std, p.motion, p.filter_gate_chi2)
-        self.calibration = HeadingCalibration(p.calibration_memory_scans)
+        self.calibration = HeadingCalibration(p.calibration_memory_scans, limit=p.calibration_limit)
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()
         self.graph = PoseGraph()
@@ -608,12 +608,13 @@ class Slam:
         self.scans += 1
 
         # 2. predict: the odometry increment since the last scan moves the filter
-        raw_increment = None
+        raw_increment = predicted_increment = None
         if self._last_odom is None:
             self.ekf.reset(compose(self.initial_pose, odom), self.ekf.covariance)
         else:
             raw_increment = relative_pose(self._last_odom, odom)
-            self.ekf.predict(self.calibration.correct(raw_increment))
+            predicted_increment = self.calibration.correct(raw_increment)
+            self.ekf.predict(predicted_increment)
         self._last_odom = odom
         yield
 
@@ -642,7 +643,7 @@ class Slam:
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
         if self.odometry_noise is not None:
-            self._learn_odometry_noise(match if matched and paint else None, raw_increment)
+            self._learn_odometry_noise(match if matched and paint else None, predicted_increment)
 
         yield
 
@@ -1198,16 +1199,21 @@ class Slam:
             return refined
         return match
 
-    def _learn_odometry_noise(self, match: IcpResult | None, raw_increment: np.ndarray | None) -> None:
+    def _learn_odometry_noise(self, match: IcpResult | None, increment: np.ndarray | None) -> None:
         """One more sample of the odometry's noise if this scan and the previous one were matched.
 
-        The learnt model (:mod:`mazebot.slam.odometry_noise`) moves the filter's prediction
-        from the next scan on, and with it the sequential edges' information, the chain's
-        uncertainty and so the loop closures' search radius and correction bounds.
+        ``increment`` is the odometry increment the filter predicted with: the raw one with
+        its heading corrected by the online calibration. The noise learnt is what is left
+        of the odometry's error after that correction, so a steady bias the calibration
+        removes (unequal wheels, a wrong track width) does not also widen the prediction,
+        and with it the correlative window, by the whole bias. The learnt model
+        (:mod:`mazebot.slam.odometry_noise`) moves the filter's prediction from the next
+        scan on, and with it the sequential edges' information, the chain's uncertainty
+        and so the loop closures' search radius and correction bounds.
         """
         assert self.odometry_noise is not None
-        if match is not None and raw_increment is not None and self._last_match_pose is not None:
-            self.odometry_noise.observe(raw_increment, relative_pose(self._last_match_pose, match.pose))
+        if match is not None and increment is not None and self._last_match_pose is not None:
+            self.odometry_noise.observe(increment, relative_pose(self._last_match_pose, match.pose))
             self.ekf.noise = self.odometry_noise.noise
         self._last_match_pose = None if match is None else match.pose.copy()
 

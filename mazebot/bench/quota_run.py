@@ -56,6 +56,10 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0
 #: How long a stopped daemon or world may take to end before it is terminated, then killed.
 STOP_TIMEOUT_S = 15.0
+#: A control tick this late (ms) is counted apart in the results: ten control periods, the
+#: lateness a host's stop of the whole machine (its ~100 ms period) shows as, never a scheduling
+#: delay of the daemon on a machine of its own.
+LATE_TICK_MS = 50.0
 #: How often this process samples the resident memory of the others.
 RSS_PERIOD_S = 0.5
 #: How often the daemon samples SLAM's pose estimate (for the trajectory error).
@@ -376,6 +380,8 @@ class QuotaRecord:
     cpu_at_exit: Any = None  # ... and when the daemon process had ended
     world_cpu_at_start: float | None = None  # the world process's CPU seconds at "started" and "finished"
     world_cpu_at_end: float | None = None
+    steal_at_start_s: float | None = None  # the host's steal time of this machine at those moments
+    steal_at_end_s: float | None = None
     started_s: float | None = None  # this process's monotonic clock at those moments
     finished_s: float | None = None
     daemon_pid: int | None = None
@@ -589,10 +595,12 @@ def _on_result(message: Any, record: QuotaRecord, quota: Any) -> None:
         record.started_s = time.monotonic()
         record.cpu_at_start = quota.stat() if quota is not None else None
         record.world_cpu_at_start = process_cpu_s(record.world_pid)
+        record.steal_at_start_s = host_steal_s()
     elif kind == "finished":
         record.finished_s = time.monotonic()
         record.cpu_at_end = quota.stat() if quota is not None else None
         record.world_cpu_at_end = process_cpu_s(record.world_pid)
+        record.steal_at_end_s = host_steal_s()
     elif kind == "result":
         record.daemon = message[1]
     elif kind == "error":
@@ -698,6 +706,11 @@ def quota_metrics(config: Any, spec: Any, record: QuotaRecord) -> dict[str, Any]
         "control_jitter_ms_p99": _round(float(np.percentile(lateness, 99)), 3) if len(lateness) else None,
         "control_jitter_ms_max": _round(float(lateness.max()), 3) if len(lateness) else None,
         "control_ticks": len(lateness),
+        "control_ticks_late_over_50ms": int(np.count_nonzero(lateness > LATE_TICK_MS)) if len(lateness) else None,
+        # CPU time the hypervisor gave this machine's virtual CPUs to others during the run: while
+        # the host runs something else no process here runs, however urgent (host_steal_s)
+        "host_steal_s": _round(record.steal_at_end_s - record.steal_at_start_s, 2)
+        if record.steal_at_end_s is not None and record.steal_at_start_s is not None else None,
         # how old the newest encoder edge was when odometry read the counts (the error of dating
         # the pose by the reading time); the odometry dates it by the edge's own stamp
         # the odometry's motion over 0.2 s between two of its dates against the true motion between
@@ -899,6 +912,25 @@ def lidar_stamp_errors_ms(stamps_s: list[float], starts_s: list[float]) -> tuple
     nearest = np.where(stamps - starts[i - 1] < starts[i] - stamps, starts[i - 1], starts[i])
     err = 1000.0 * (stamps - nearest)
     return float(np.percentile(err, 50)), float(np.percentile(err, 99)), float(err[np.argmax(np.abs(err))])
+
+
+def host_steal_s(stat_text: str | None = None) -> float | None:
+    """Seconds of "steal" of all this machine's CPUs so far: time a hypervisor ran something else
+    while this virtual machine had work to run (the 8th value of ``/proc/stat``'s ``cpu`` line, in
+    USER_HZ ticks; ``proc(5)``). None where there is no such line (not Linux) or it cannot be read.
+
+    A virtual machine capped on its host stops whole, all its processes together, when it has
+    used its share of a host period: a control tick then comes late by the host's period however
+    the daemon is written, so a quota run says how much of its window the host took.
+    """
+    try:
+        text = Path("/proc/stat").read_text() if stat_text is None else stat_text
+        fields = text.split("\n", 1)[0].split()
+        if fields[0] != "cpu" or len(fields) < 9:
+            return None
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _loadavg() -> str | None:

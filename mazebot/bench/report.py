@@ -199,7 +199,8 @@ def write_report(out_dir: Path, runs: list[tuple[dict[str, Any], RunRecord]], co
 QUOTA_COLUMNS = (
     ("maze", "maze"), ("seed", "seed"), ("cpu_quota_percent", "quota % of a core"), ("done", "done"),
     ("time_s", "time to done s"), ("coverage", "coverage"), ("collisions", "collisions"),
-    ("control_jitter_ms_p99", "control p99 late ms"), ("slam_scans_dropped", "revolutions dropped"),
+    ("control_jitter_ms_p99", "control p99 late ms"), ("control_ticks_late_over_50ms", "ticks over 50 ms late"),
+    ("host_steal_s", "host steal s"), ("slam_scans_dropped", "revolutions dropped"),
     ("slam_queue_peak", "most revolutions waiting for SLAM"), ("slam_queue_behind", "revolutions queued 4+ behind"),
     ("slam_worker_pauses", "loop-closure worker paused (times)"),
     ("faults_raised", "faults raised"), ("daemon_cpu_percent", "daemon CPU % of a core (raw, cgroup)"),
@@ -243,6 +244,8 @@ def write_quota_report(out_dir: Path, runs: list[dict[str, Any]], command: str) 
         values = [r[key] for r in runs if r.get(key) is not None]
         summary[f"{key}_median"] = round(statistics.median(values), 4) if values else None
     summary["collisions_total"] = sum(r["collisions"] or 0 for r in runs)
+    steals = [r["host_steal_s"] for r in runs if r.get("host_steal_s") is not None]
+    summary["host_steal_s_total"] = round(sum(steals), 2) if steals else None
     results = {"command": command, "runs": runs, "summary": summary}
     write_atomic(out_dir / "results.json", json.dumps(results, indent=2) + "\n")
     lines = [

@@ -68,6 +68,8 @@ def assert_the_boundary_carried_everything(record: QuotaRecord, m: dict) -> None
     assert m["daemon_rss_mb_peak"] > 20 and m["world_rss_mb_peak"] > 20
     assert m["daemon_pss_mb_peak"] <= m["daemon_rss_mb_peak"]  # shared pages count once
     assert m["world_cpu_percent"] > 0  # the world's own share, outside any quota
+    assert m["host_steal_s"] is not None and m["host_steal_s"] >= 0  # what the host took meanwhile
+    assert 0 <= m["control_ticks_late_over_50ms"] <= m["control_ticks"]
     assert any("cell" in text for _, text in m["planner_events"])  # the planner chose where to look
     assert all(0 <= t_s <= 2 * SHORT_RUN_S for t_s, _ in m["planner_events"])
     assert gone(record.daemon_pid) and gone(record.world_pid)
@@ -158,6 +160,17 @@ def test_the_cgroups_cpu_is_split_into_the_loops_thread_the_processs_other_threa
     missing = cpu_by_thread(None, 100.0, 7.0, 9.0, None, {"odometry": {"cpu_ms_per_s": None}})
     assert missing["other_processes_ms_per_s"] is None and missing["loop_thread_outside_parts_ms_per_s"] is None
     assert cpu_by_thread(12.0, None, 7.0, 9.0, 1.0, budget) == dict.fromkeys(where)
+
+
+def test_the_hosts_steal_is_the_eighth_value_of_the_cpu_line_in_user_hz_ticks() -> None:
+    from mazebot.bench.quota_run import host_steal_s
+
+    tick_s = 1.0 / os.sysconf("SC_CLK_TCK")
+    stat = "cpu  4705 356 584 3699 23 23 0 1234 0 0\ncpu0 1393 280 290 1828 12 11 0 600 0 0\n"
+    assert host_steal_s(stat) == pytest.approx(1234 * tick_s)
+    assert host_steal_s("cpu0 1 2 3 4 5 6 7 8\n") is None  # not the machine's line
+    assert host_steal_s("cpu  1 2 3 4\n") is None  # a kernel too old to count steal
+    assert host_steal_s() is not None  # this machine's own
 
 
 def test_the_quota_is_a_percentage_of_one_core_or_max() -> None:

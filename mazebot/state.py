@@ -124,6 +124,9 @@ class SensorStats:
     lidar_reconnects: int = 0
     encoder_ticks_left: int = 0
     encoder_ticks_right: int = 0
+    #: the stamp of the newest encoder edge in those counts (either wheel's; the clock's time): the
+    #: wheels' own time up to which the counts are complete. None: no edge yet, or no usable stamp
+    encoder_edge_time_s: float | None = None
     encoder_invalid_transitions: int = 0
 
 

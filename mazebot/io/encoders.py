@@ -10,9 +10,10 @@ odometry one consistent :class:`EncoderReading`.
 
 Threading: gpiozero calls our pin callbacks on its own thread (lgpio's notification
 thread on the Pi; whoever drives a mock pin in tests). Each callback only updates the
-decoder's integers, under a per-wheel :class:`threading.Lock` that the asyncio side also
-takes (for a few hundred nanoseconds) to copy the counters, so a reader can never see a
-count and an invalid-transition total from different edges.
+decoder's integers, under a :class:`threading.Lock` (one for both wheels of a
+:class:`WheelEncoders`) that the asyncio side also takes (for a few hundred nanoseconds) to
+copy the counters, so a reader can never see a count and an invalid-transition total from
+different edges, nor one wheel's count from later edges than the other's.
 
 Callback cost, measured with ``tools/measure_encoder_callback.py`` (MockFactory pins
 driven through full quadrature cycles, each stage timed separately, best of 15 runs
@@ -316,6 +317,7 @@ class WheelEncoder:
         invert: bool = False,
         pull_up: bool = True,
         pin_factory: Factory,
+        lock: threading.Lock | None = None,
     ) -> None:
         if pin_factory is None:
             raise ValueError(
@@ -323,7 +325,8 @@ class WheelEncoder:
                 "(LGPIOFactory() on the Pi, MockFactory() in tests); "
                 "it never falls back to gpiozero's global default"
             )
-        self._lock = threading.Lock()
+        #: taken by each edge's callback and by the readers; :class:`WheelEncoders` gives both wheels one
+        self._lock = lock if lock is not None else threading.Lock()
         self._closed = False
         self._factory = pin_factory
         #: the pin factory's ticks of the newest edge counted (gpiozero's ``when_changed`` argument)
@@ -409,7 +412,11 @@ class WheelEncoder:
     def read_stamped(self) -> tuple[int, int, float | None]:
         """``(ticks, invalid_transitions, edge_ticks)``: ``edge_ticks`` the pin factory's stamp of the newest edge."""
         with self._lock:
-            return self._decoder.count, self._decoder.invalid_transitions, self._edge_ticks
+            return self.counters()
+
+    def counters(self) -> tuple[int, int, float | None]:
+        """:meth:`read_stamped` for a caller that holds this encoder's lock already."""
+        return self._decoder.count, self._decoder.invalid_transitions, self._edge_ticks
 
     def edge_age_s(self, edge_ticks: float | None) -> float | None:
         """Seconds from an edge stamp (:meth:`read_stamped`) to now on the pin factory's clock; None if unusable.
@@ -494,7 +501,9 @@ class WheelEncoders:
     def from_config(
         cls, cfg: EncodersConfig, pin_factory: Factory, *, clock: Clock | None = None
     ) -> WheelEncoders:
-        """Build both encoders from the ``[encoders]`` section on ``pin_factory``."""
+        """Build both encoders from the ``[encoders]`` section on ``pin_factory``, on one lock
+        (:meth:`read` takes both counts at one instant)."""
+        lock = threading.Lock()
         left = WheelEncoder(
             cfg.left_a_pin,
             cfg.left_b_pin,
@@ -502,6 +511,7 @@ class WheelEncoders:
             invert=cfg.left_invert,
             pull_up=cfg.pull_up,
             pin_factory=pin_factory,
+            lock=lock,
         )
         try:
             right = WheelEncoder(
@@ -511,6 +521,7 @@ class WheelEncoders:
                 invert=cfg.right_invert,
                 pull_up=cfg.pull_up,
                 pin_factory=pin_factory,
+                lock=lock,
             )
         except BaseException:
             left.close()
@@ -522,12 +533,23 @@ class WheelEncoders:
 
         ``edge_age_s`` is the age of the newer of the two wheels' last edges: lgpio delivers
         the edges of all lines in the order of their stamps on one thread (as the simulator's
-        GPIO thread does), so both counts hold every edge up to that one.
+        GPIO thread does), so both counts hold every edge up to that one. The two wheels are
+        read at one instant when they share a lock (:meth:`from_config`): read one after the
+        other, the edge thread could run in between (the interpreter hands it the lock every
+        few milliseconds, and a starved process's thread then counts a backlog of tens of
+        milliseconds of edges), and the second wheel was that far ahead of the first: a
+        heading 6.8 degrees off for one reading, and a first wheel "silent" for the health
+        monitor, under a 15 % quota.
         """
         if self.before_read is not None:
             self.before_read()
-        left_ticks, left_invalid, left_edge = self.left.read_stamped()
-        right_ticks, right_invalid, right_edge = self.right.read_stamped()
+        if self.left._lock is self.right._lock:
+            with self.left._lock:
+                left_ticks, left_invalid, left_edge = self.left.counters()
+                right_ticks, right_invalid, right_edge = self.right.counters()
+        else:
+            left_ticks, left_invalid, left_edge = self.left.read_stamped()
+            right_ticks, right_invalid, right_edge = self.right.read_stamped()
         ages = [a for a in (self.left.edge_age_s(left_edge), self.right.edge_age_s(right_edge)) if a is not None]
         reading = EncoderReading(
             left_ticks=left_ticks,

@@ -188,6 +188,8 @@ class Pilot:
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
         self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m)
+        #: SLAM's count of revolutions held back (``state.slam.held_back``) when the memory last took one in
+        self._held_back_seen = 0
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
         self._drive_inputs: DriveInputs | None = None
         #: the inputs of the latest motion half, for one between the stages of a long goal half
@@ -517,7 +519,13 @@ class Pilot:
 
     def _scan_points(self, state: SharedState) -> np.ndarray:
         """The latest revolution's valid returns, robot frame, moved to where the robot is now,
-        and the returns remembered inside the lidar's blind zone (:class:`BlindZoneMemory`)."""
+        and the returns remembered inside the lidar's blind zone (:class:`BlindZoneMemory`).
+
+        The memory is kept in the odometry frame, so it is only as good as the odometry since
+        each return was seen: once SLAM held a revolution back (the odometry known bad: a
+        slipping tyre, a dead encoder, the robot just found again) the memory is forgotten
+        (:meth:`BlindZoneMemory.clear`) and starts again from the next revolution.
+        """
         scan = state.latest_scan
         if scan is None:
             return np.zeros((0, 2))
@@ -527,6 +535,10 @@ class Pilot:
             points = deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s, history,
                                            lidar.min_range_m, lidar.max_range_m, lidar.mount_xy_m)
             self._scan_cache = (id(scan), points)
+            if state.slam.held_back != self._held_back_seen:
+                self._held_back_seen = state.slam.held_back
+                self.blind_zone.clear()
+                state.blind_zone_points = self.blind_zone.snapshot()
             if history is not None and len(history) > 0:
                 then = history.pose_at(scan.end_time_s)
                 self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])))

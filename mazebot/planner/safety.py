@@ -169,6 +169,15 @@ class BlindZoneMemory:
     offset in the robot frame; one return is kept per ``voxel_m`` square, at most
     ``max_points`` of them.
 
+    The odometry frame is only a frame while the odometry is right: a tyre that slips turns
+    the odometry by degrees a revolution, and returns seen over those revolutions land
+    beside where they were, smeared around the robot; at rest nothing ages them, and a robot
+    that stopped between two posts found the way ahead closed by its own copies of them
+    (the fault suite's slipping tyre: copies of a post 0.11-0.15 m away over 80 degrees of
+    bearing, and the robot turning on the spot for 4-7 s until the stuck recovery backed it
+    off). So the planner clears the memory (:meth:`clear`) whenever SLAM held a revolution
+    back for a bad odometry (:meth:`mazebot.planner.pilot.Pilot._scan_points`).
+
     The previous revolution's near returns that the latest one could have seen are kept
     for that one revolution more: a thin thing (a 12 mm post standing alone, a board's
     end) is one to three samples of a revolution, and a dropout or the revolution's seam

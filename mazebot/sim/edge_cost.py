@@ -180,22 +180,19 @@ def stage_sim_path(stack: ExitStack) -> Callable[[int], None]:
     and drives its edges), so the pipe's read is left out, as stage 5 leaves lgpio's out.
     """
     from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
-    from mazebot.sim.world_process import EDGES_TIME
+    from mazebot.sim.world_process import drive_edges, edges_message
 
     factory = SimPinFactory(pin_class=BoundedHistoryPin)
     wheel = stack.enter_context(WheelEncoder(A_PIN, B_PIN, pin_factory=factory))
     pins = [factory.pin(A_PIN), factory.pin(B_PIN)]
-    # the wire format of the world's edges: a byte per edge, pin index << 1 | level, after the time
-    message = EDGES_TIME.pack(1.0) + bytes([0 << 1 | 0, 1 << 1 | 0, 0 << 1 | 1, 1 << 1 | 1])
-    head = EDGES_TIME.size
+    # the wire format of the world's edges: a byte per edge (pin index << 1 | level), each edge's time
+    message = edges_message(bytes([0 << 1 | 0, 1 << 1 | 0, 0 << 1 | 1, 1 << 1 | 1]), (1.0, 1.0005, 1.001, 1.0015))
     drive = factory.drive
 
     def run(cycles: int) -> None:
         before = wheel.ticks
         for _ in range(cycles):
-            (time_s,) = EDGES_TIME.unpack_from(message)
-            for byte in message[head:]:
-                drive(pins[byte >> 1], byte & 1, time_s)
+            drive_edges(message, pins, drive)
         assert wheel.ticks - before == 4 * cycles and wheel.invalid_transitions == 0
 
     return run

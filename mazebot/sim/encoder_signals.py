@@ -10,6 +10,13 @@ Forward rotation is channel A leading channel B (the usual convention)::
     step:   0   1   2   3   0 …
     A:      0   1   1   0   0
     B:      0   0   1   1   0
+
+Each edge has its own time, as on the robot, where the kernel stamps every line event and
+lgpio hands the events of all lines to one thread in the order of their stamps: the
+simulator steps the physics every few milliseconds, and :meth:`QuadratureSignal.edges_to`
+says where within a step each quarter step was crossed (the wheel's angle taken as linear
+over the step), so the robot can drive both wheels' edges in time order, each stamped
+where it happened (:meth:`mazebot.sim.robot.SimulatedRobot.step`).
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ from __future__ import annotations
 import math
 import random
 
-from gpiozero.pins.mock import MockFactory
+from gpiozero.pins.mock import MockFactory, MockPin
 
 #: (A, B) levels for each quarter of an encoder line, forward order.
 _GRAY = ((0, 0), (1, 0), (1, 1), (0, 1))
@@ -37,6 +44,7 @@ class QuadratureSignal:
     ) -> None:
         if lines_per_rev <= 0:
             raise ValueError(f"lines_per_rev must be positive, got {lines_per_rev}")
+        self._factory = factory
         self._a = factory.pin(a_pin)
         self._b = factory.pin(b_pin)
         self._steps_per_rad = 4 * lines_per_rev / math.tau
@@ -44,6 +52,7 @@ class QuadratureSignal:
         # (both high with pull-ups), so claiming the pins later changes nothing.
         self._offset = 2 if idle_high else 0
         self._step = 0
+        self._angle_rad = 0.0  # the angle of the last update: where the next step's edges start
         self.edges = 0  # edges driven so far, for tests and stats
         #: the cable is cut: the pins keep their level whatever the wheel does
         self.dead = False
@@ -62,61 +71,60 @@ class QuadratureSignal:
                 else:
                     pin.drive_low()
 
-    def update(self, wheel_angle_rad: float) -> int:
-        """Emit every edge between the last angle and this one; returns how many."""
-        target = math.floor(wheel_angle_rad * self._steps_per_rad)
+    def edges_to(self, wheel_angle_rad: float) -> list[tuple[float, int]]:
+        """The quarter steps between the last angle and this one, not yet driven: ``(share, step)``
+        each, oldest first, ``share`` the part of the way from the last angle (0, 1] at which the
+        wheel crossed into ``step``. Drive them with :meth:`emit`, in this order (with another
+        wheel's in between, by their shares: :meth:`mazebot.sim.robot.SimulatedRobot.step`).
+
+        Example::
+
+            for share, step in signal.edges_to(angle):
+                signal.emit(step, time_s=start_s + share * (end_s - start_s))
+        """
+        scaled, start = wheel_angle_rad * self._steps_per_rad, self._angle_rad * self._steps_per_rad
+        self._angle_rad = wheel_angle_rad
+        target = math.floor(scaled)
+        step, span = self._step, scaled - start
+        if target == step:
+            return []
         if self.dead:
             self._step = target  # the wheel turns; the pins do not follow
-            return 0
-        if self.rng is not None and (self.bounce_probability or self.lost_edge_probability):
-            return self._update_glitching(target)
-        step = self._step
-        n = target - step
-        if n == 0:
-            return 0
-        # One pin change per quarter step, in order, as before; locals and the pins' own
-        # level attribute instead of attribute lookups and the ``state`` property per edge
-        # (~1 300 edges per simulated second go through here).
-        pin_a, pin_b, offset = self._a, self._b, self._offset
-        for s in range(step + 1, target + 1) if n > 0 else range(step - 1, target - 1, -1):
-            a, b = _GRAY[(s + offset) & 3]
-            # exactly one channel changes per quarter step
-            if pin_a._state != a:
-                if a:
-                    pin_a.drive_high()
-                else:
-                    pin_a.drive_low()
-            elif b:
-                pin_b.drive_high()
-            else:
-                pin_b.drive_low()
-        self._step = target
-        self.edges += abs(n)
-        return n
+            return []
+        if target > step:  # forward: step s is entered where the scaled angle reaches s
+            return [(min(1.0, max(0.0, (s - start) / span)), s) for s in range(step + 1, target + 1)]
+        # backward: step s is entered where the scaled angle falls below s + 1
+        return [(min(1.0, max(0.0, (s + 1 - start) / span)), s) for s in range(step - 1, target - 1, -1)]
 
-    def _update_glitching(self, target: int) -> int:
-        """``update`` with bouncing contacts and lost edges (fault injection)."""
-        assert self.rng is not None
-        n = target - self._step
-        direction = 1 if n > 0 else -1
-        for _ in range(abs(n)):
-            self._step += direction
-            a, b = _GRAY[(self._step + self._offset) % 4]
-            pin, level = (self._a, a) if self._a.state != a else (self._b, b)
-            if self.rng.random() < self.lost_edge_probability:
-                # the level changes without an interrupt: the reader never hears of this edge
-                pin._change_state(bool(level))
-                continue
-            self._set(pin, level)
-            if self.rng.random() < self.bounce_probability:
-                self._set(pin, 1 - level)  # the contact bounces back ...
-                self._set(pin, level)  # ... and settles
-        self.edges += abs(n)
-        return n
+    def emit(self, step: int, time_s: float | None = None) -> None:
+        """Drive the one channel that changes to enter ``step`` (one from the last step driven: from
+        :meth:`edges_to`), with its bounce or loss if those are injected; ``time_s``: the edge's
+        time on a :class:`mazebot.sim.sim_pins.SimPinFactory` (None: the time it is driven)."""
+        self._step = step
+        self.edges += 1
+        a, b = _GRAY[(step + self._offset) & 3]
+        pin, level = (self._a, a) if self._a.state != a else (self._b, b)  # exactly one channel changes
+        rng = self.rng
+        if rng is not None and self.lost_edge_probability and rng.random() < self.lost_edge_probability:
+            pin._change_state(bool(level))  # the level changes without an interrupt: nobody hears of this edge
+            return
+        self._set(pin, level, time_s)
+        if rng is not None and self.bounce_probability and rng.random() < self.bounce_probability:
+            self._set(pin, 1 - level, time_s)  # the contact bounces back ...
+            self._set(pin, level, time_s)  # ... and settles
 
-    @staticmethod
-    def _set(pin, level: int) -> None:
-        if level:
+    def update(self, wheel_angle_rad: float) -> int:
+        """Emit every edge between the last angle and this one, now; returns how many (signed)."""
+        before = self._step
+        for _, step in self.edges_to(wheel_angle_rad):
+            self.emit(step)
+        return 0 if self.dead else self._step - before
+
+    def _set(self, pin: MockPin, level: int, time_s: float | None = None) -> None:
+        drive = getattr(self._factory, "drive", None) if time_s is not None else None
+        if drive is not None:
+            drive(pin, level, time_s)
+        elif level:
             pin.drive_high()
         else:
             pin.drive_low()

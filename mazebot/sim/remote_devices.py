@@ -25,7 +25,7 @@ from multiprocessing.connection import Connection
 from mazebot.sim.pipe_kit import PipeKitOpener as PipeKitOpener  # re-exported: the bench and tests open them here
 from mazebot.sim.pipe_kit import PipeMotorKit as PipeMotorKit
 from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
-from mazebot.sim.world_process import EDGES_TIME
+from mazebot.sim.world_process import drive_edges
 
 #: How often (ms) the GPIO edge thread looks whether it was asked to stop while no edge comes.
 STOP_POLL_MS = 100
@@ -67,17 +67,12 @@ class GpioEdgeThread(threading.Thread):
 
     def run(self) -> None:
         pins, drive = self._pins, self._factory.drive
-        head = EDGES_TIME.size
         try:
             while not self._stopping.is_set():
                 if not self._poller.poll(STOP_POLL_MS):
                     continue
-                data = self._rx.recv_bytes()
                 # each edge keeps the time the world made it (lgpio's edges carry the kernel's stamp)
-                (time_s,) = EDGES_TIME.unpack_from(data)
-                for byte in data[head:]:
-                    drive(pins[byte >> 1], byte & 1, time_s)
-                self.edges += len(data) - head
+                self.edges += drive_edges(self._rx.recv_bytes(), pins, drive)
                 self.batches += 1
         except (EOFError, OSError):  # the world is gone
             return

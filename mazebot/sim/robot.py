@@ -135,7 +135,7 @@ class SimulatedRobot:
             self.time_s = now_s
             self._record(now_s)
             return
-        dt_s = now_s - self.time_s
+        start_s, dt_s = self.time_s, now_s - self.time_s
         if dt_s <= 0:
             return
         self.time_s = now_s
@@ -153,8 +153,18 @@ class SimulatedRobot:
         self.physics.step(dt_s)
         left_rad, right_rad = self.physics.wheel_angle_rad
         enc = self.config.encoders
-        self.left_signal.update(-left_rad if enc.left_invert != sim.left_encoder_reversed else left_rad)
-        self.right_signal.update(-right_rad if enc.right_invert != sim.right_encoder_reversed else right_rad)
+        left, right = self.left_signal, self.right_signal
+        # both wheels' edges in the order they happened, each with its own time, as lgpio hands them
+        # over on the robot: sent wheel by wheel with the step's time, a reader in the middle of a
+        # step's edges found one wheel a whole step ahead of the other (a step is tens of
+        # milliseconds when the world process runs late), and a wheel counting nothing meanwhile
+        edges = [(share, 0, step) for share, step in
+                 left.edges_to(-left_rad if enc.left_invert != sim.left_encoder_reversed else left_rad)]
+        edges += [(share, 1, step) for share, step in
+                  right.edges_to(-right_rad if enc.right_invert != sim.right_encoder_reversed else right_rad)]
+        edges.sort(key=_share)  # stable: a wheel's own edges keep their order
+        for share, side, step in edges:
+            (right if side else left).emit(step, start_s + share * dt_s)
         self._record(now_s)
 
     def _record(self, now_s: float) -> None:
@@ -207,3 +217,7 @@ class SimulatedRobot:
 
     def close(self) -> None:
         self.pin_factory.close()
+
+
+def _share(edge: tuple[float, int, int]) -> float:
+    return edge[0]

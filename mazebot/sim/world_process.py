@@ -11,8 +11,9 @@ on the real clock, and meets the daemon only where the real robot meets the worl
   (:func:`decode_throttle`) and are written into this world's fake MotorKit;
 - **encoders**: every step's quadrature edges, recorded on this world's mock pins
   (:class:`EdgeRecordingFactory`), go to the daemon on ``edge_tx``, one byte an edge
-  (:func:`edge_byte`), where a GPIO thread drives its own mock pins with them
-  (:mod:`mazebot.sim.remote_devices`);
+  (:func:`edge_byte`) and each edge's own time (:func:`edges_message`), in the order they
+  happened on both wheels, where a GPIO thread drives its own mock pins with them
+  (:mod:`mazebot.sim.remote_devices`, :func:`drive_edges`);
 - **ground truth** for the benchmark goes to the parent on ``report_tx``: ``("ready",
   pty_path)`` once the lidar is served, ``("truth", time_s, x_m, y_m, theta_rad,
   collisions)`` every :data:`TRUTH_PERIOD_S`, and ``("summary", dict)`` when told to stop
@@ -30,27 +31,49 @@ import asyncio
 import contextlib
 import signal
 import struct
+from array import array
+from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from typing import Any
 
-from gpiozero.pins.mock import MockFactory
+from gpiozero.pins.mock import MockPin
 
 from mazebot.sim.pipe_kit import decode_throttle
 from mazebot.sim.pipe_kit import encode_throttle as encode_throttle  # re-exported: the wire's other end
-from mazebot.sim.sim_pins import BoundedHistoryPin
+from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
 
 #: How often the world reports the true pose to the parent (seconds of the real clock).
 TRUTH_PERIOD_S = 0.2
 #: After a SIGTERM, how long the world waits for the daemon to stop (and close its motor line) first.
 SIGTERM_GRACE_S = 5.0
-#: The head of one message of edges: the clock time of the world step that made them (the
-#: monotonic clock both processes read), then one :func:`edge_byte` per edge, in order.
+#: The head of one message of edges: the clock time of its first edge (the monotonic clock both
+#: processes read); then one :func:`edge_byte` per edge, in order; then each edge's time after the
+#: first one's, seconds, float32 (``array("f")``, this machine's byte order: both ends are on it).
 EDGES_TIME = struct.Struct("<d")
 
 
 def edge_byte(index: int, level: int) -> int:
     """One edge on the wire: the encoder pin's index (0..3: left A, left B, right A, right B) and its new level."""
     return (index << 1) | (1 if level else 0)
+
+
+def edges_message(codes: bytes, times_s: Sequence[float]) -> bytes:
+    """The wire message of edges ``codes`` (:func:`edge_byte` each) that happened at ``times_s``, in order."""
+    first_s = times_s[0]
+    return EDGES_TIME.pack(first_s) + codes + array("f", [t - first_s for t in times_s]).tobytes()
+
+
+def drive_edges(message: bytes, pins: Sequence[MockPin], drive: Callable[[MockPin, int, float], None]) -> int:
+    """Drive each edge of ``message`` (:func:`edges_message`) onto ``pins`` (wire order) at its own
+    time (``drive``: :meth:`mazebot.sim.sim_pins.SimPinFactory.drive`); returns how many."""
+    (first_s,) = EDGES_TIME.unpack_from(message)
+    count = (len(message) - EDGES_TIME.size) // 5  # a byte and a float32 an edge
+    codes_end = EDGES_TIME.size + count
+    offsets = array("f")
+    offsets.frombytes(message[codes_end:])
+    for byte, offset_s in zip(message[EDGES_TIME.size:codes_end], offsets, strict=True):
+        drive(pins[byte >> 1], byte & 1, first_s + offset_s)
+    return count
 
 
 class EdgeRecordingPin(BoundedHistoryPin):
@@ -66,36 +89,50 @@ class EdgeRecordingPin(BoundedHistoryPin):
 
     def drive_high(self) -> None:
         if not self._state and self.edge_index is not None:
-            self._factory.edges.append(edge_byte(self.edge_index, 1))
+            self._factory.note_edge(edge_byte(self.edge_index, 1))
         super().drive_high()
 
     def drive_low(self) -> None:
         if self._state and self.edge_index is not None:
-            self._factory.edges.append(edge_byte(self.edge_index, 0))
+            self._factory.note_edge(edge_byte(self.edge_index, 0))
         super().drive_low()
 
 
-class EdgeRecordingFactory(MockFactory):
-    """gpiozero's ``MockFactory`` whose encoder pins note their edges in :attr:`edges`.
+class EdgeRecordingFactory(SimPinFactory):
+    """The simulator's pin factory whose encoder pins note their edges, with their times.
 
     Example::
 
         factory = EdgeRecordingFactory((17, 18, 22, 23))
-        factory.pin(17).drive_low()
-        bytes(factory.edges)   # b"\\x00": pin 0, level 0
+        factory.drive(factory.pin(17), 0, time_s=12.5)
+        factory.take_edges()     # b"\\x00": pin 0, level 0 (its time, 12.5, in take_message)
     """
 
     def __init__(self, encoder_pins: tuple[int, int, int, int]) -> None:
         super().__init__(pin_class=EdgeRecordingPin)
         self.edges = bytearray()
+        self.edge_times_s: list[float] = []
         for index, number in enumerate(encoder_pins):
             self.pin(number).edge_index = index
 
+    def note_edge(self, code: int) -> None:
+        """An encoder pin changes now (at :meth:`edge_time`): ``code`` is its :func:`edge_byte`."""
+        self.edges.append(code)
+        self.edge_times_s.append(self.edge_time())
+
     def take_edges(self) -> bytes:
-        """The edges noted since the last call, in order."""
+        """The edges noted since the last call, in order (their times are dropped)."""
         data = bytes(self.edges)
         self.edges.clear()
+        self.edge_times_s.clear()
         return data
+
+    def take_message(self) -> bytes:
+        """The edges noted since the last call as one wire message (:func:`edges_message`); b"": none."""
+        times_s, self.edge_times_s = self.edge_times_s, []
+        message = edges_message(bytes(self.edges), times_s) if times_s else b""
+        self.edges.clear()
+        return message
 
 
 def encoder_pins(config: Any) -> tuple[int, int, int, int]:
@@ -168,13 +205,13 @@ async def serve_world(
             stop.set()
 
     def send_edges() -> None:
-        data = factory.take_edges()
-        if data:
+        message = factory.take_message()
+        if message:
             with contextlib.suppress(OSError):  # the daemon is gone; the world runs on until stopped
-                # with the step's time, as the kernel stamps each edge on the robot: the daemon's
+                # each edge with its own time, as the kernel stamps each edge on the robot: the daemon's
                 # encoders date the ticks by it, not by when its throttled GPIO thread got to them
-                edge_tx.send_bytes(EDGES_TIME.pack(robot.time_s if robot.time_s is not None else clock.now_s()) + data)
-                counts["edges_sent"] += len(data)
+                edge_tx.send_bytes(message)
+                counts["edges_sent"] += (len(message) - EDGES_TIME.size) // 5
 
     async def report_truth() -> None:
         while True:

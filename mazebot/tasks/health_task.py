@@ -19,7 +19,14 @@
   turning and falls silent while still driven and while the other one counts is dead
   after ``SUDDEN_SILENCE_S`` already (it cannot stop that fast). Odometry is then
   wrong, so this is a fault too; it is latched (the evidence only exists while driving)
-  and the user's next start gives it another try.
+  and the user's next start gives it another try. A silence while the other wheel counts
+  is measured on the edges' own stamps (``sensors.encoder_edge_time_s``: the other wheel's
+  edges say how far the wheels' time went while this one counted nothing), not on the
+  checks' clock: under a starved CPU the edges reach the counts tens to hundreds of
+  milliseconds late and in bursts, and checks that ran meanwhile saw nothing new on
+  either wheel; counted as silence, that time made a slow wheel "silent" for 0.2 s once
+  a burst brought the other wheel's edges and none of its own. Only with the other wheel
+  idle too (no edge at all comes) does the silence count the checks that ran.
 
 - **Bouncing encoders**: impossible transitions (a contact bouncing, an edge lost) are
   counted by the decoders; new ones are said in ``/api/status`` (an ``encoders``
@@ -110,7 +117,8 @@ class LidarActivity(Protocol):
 
 @dataclass
 class _Wheel:
-    driven_s: float = 0.0  # how long the motor was driven since the tick count last moved
+    driven_s: float = 0.0  # how long the motor was driven since the tick count last moved, in the edges' time
+    driven_checks_s: float = 0.0  # ... in the checks' time (the silence with the other wheel idle too)
     driven_at_s: float | None = None  # the last check that saw it driven (None: a new stretch)
     ticks: int = 0  # the tick count at the stretch's start
     other_ticks: int = 0
@@ -284,6 +292,7 @@ class HealthMonitor:
         self._started_s: float | None = None
         self._wheels = (_Wheel(), _Wheel())
         self._encoders_checked_s: float | None = None
+        self._edges_judged_s: float | None = None  # the newest edge stamp the encoder check has judged up to
         self._invalid_seen = 0
         self._weak_streak = [0, 0]
         self.travel_gains = WheelTravelGains(wheel_gains or WheelGainEstimator(latency_s=0.0))
@@ -400,18 +409,37 @@ class HealthMonitor:
             state.note("lidar", "lidar data flows again", now_s)
             log.info("lidar data flows again")
 
+    def _edge_step(self, edge_s: float | None, step_s: float) -> tuple[float, float | None]:
+        """(seconds of the wheels' own time the counts cover beyond what the last check judged, the
+        stamp judged up to before this check). The newest edge's stamp (``edge_s``) moves on only as
+        edges are counted, however late; no edge since: nothing (neither wheel counted, the other's
+        silence is no evidence). Without stamps (None: a pin factory on another clock), the checks'
+        own time ``step_s``, as the only clock there is.
+        """
+        judged_s = self._edges_judged_s
+        if edge_s is None:
+            return step_s, None
+        if judged_s is None or edge_s <= judged_s:
+            self._edges_judged_s = edge_s if judged_s is None else judged_s
+            return 0.0, judged_s
+        self._edges_judged_s = edge_s
+        return edge_s - judged_s, judged_s
+
     def _check_encoders(self, state: SharedState, now_s: float) -> None:
         last_s, self._encoders_checked_s = self._encoders_checked_s, now_s
         if state.calibrating:
             # the wiring is what the calibration is finding out: a motor output whose encoder does not
             # count is what its pulses look for (and a failed step says so); stretches begin afresh after
+            self._edge_step(state.sensors.encoder_edge_time_s, 0.0)
             for wheel in self._wheels:
                 wheel.driven_at_s = None
             return
         step_s = 0.0 if last_s is None else min(max(0.0, now_s - last_s), PERIOD_S)
+        edges_s, judged_s = self._edge_step(state.sensors.encoder_edge_time_s, step_s)
         ticks = (state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right)
-        # the writes since the last check (_tail: a copy, the control thread may append meanwhile)
-        writes = None if last_s is None else _tail(state.throttle_history, last_s)
+        # the writes since the counts were last judged (_tail: a copy, the control thread may append meanwhile)
+        since_s = last_s if judged_s is None or last_s is None else min(last_s, judged_s)
+        writes = None if since_s is None else _tail(state.throttle_history, since_s)
         for side, (wheel, name) in enumerate(zip(self._wheels, ("left", "right"), strict=True)):
             driven = abs(state.throttles[side]) >= self.driven_throttle
             other_driven = abs(state.throttles[1 - side]) >= self.driven_throttle
@@ -424,15 +452,16 @@ class HealthMonitor:
                 turning = (driven and abs(counted) >= MOVING_TICKS and not idle_too_long
                            and (counted > 0) == (state.throttles[side] > 0))
                 wheel.moving = (1 if counted > 0 else -1) if turning else 0
-                wheel.driven_s = 0.0
+                wheel.driven_s = wheel.driven_checks_s = 0.0
                 wheel.driven_at_s = now_s if driven else None
                 wheel.ticks, wheel.other_ticks, wheel.other_idle = mine, other, not other_driven
                 continue
             if not driven:
                 continue  # no evidence either way; the stretch waits (IDLE_RESET_S)
-            if last_s is None or writes is None or _driven_throughout(writes, side, last_s, state.throttles[side],
-                                                                      self.driven_throttle):
-                wheel.driven_s += step_s
+            if since_s is None or writes is None or _driven_throughout(writes, side, since_s, state.throttles[side],
+                                                                       self.driven_throttle):
+                wheel.driven_s += edges_s
+                wheel.driven_checks_s += step_s
             else:
                 # a late check: between it and the last one the motor was braked or driven the other
                 # way (a stale command's stop and a new command, under a starved CPU); a wheel held
@@ -446,12 +475,12 @@ class HealthMonitor:
             same_way = wheel.moving != 0 and (state.throttles[side] > 0) == (wheel.moving > 0)
             driven_s = wheel.driven_s + 1e-6  # check times are sums of float periods: 0.05 may add up to 0.0499..
             sudden = same_way and driven_s >= min(self.encoder_dead_s, SUDDEN_SILENCE_S)
-            if ((driven_s >= self.encoder_dead_s or sudden) and other_counted) or (
-                wheel.other_idle and driven_s >= max(self.encoder_dead_s, OTHER_IDLE_DEAD_S)
-            ):
+            idle_dead = wheel.other_idle and wheel.driven_checks_s + 1e-6 >= max(self.encoder_dead_s, OTHER_IDLE_DEAD_S)
+            if ((driven_s >= self.encoder_dead_s or sudden) and other_counted) or idle_dead:
                 message = (
                     f"the {name} wheel's encoder counted nothing while its motor drove for "
-                    f"{wheel.driven_s:.2f} s: check the encoder's wires; press start to try again"
+                    f"{wheel.driven_checks_s if idle_dead else wheel.driven_s:.2f} s: check the encoder's "
+                    "wires; press start to try again"
                 )
                 log.warning("%s", message)
                 state.raise_fault("encoders", message, now_s, latched=True)

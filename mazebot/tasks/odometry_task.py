@@ -19,6 +19,12 @@ from mazebot.taps import notify
 #: and a pose dated "now" would then be that stale. Longer than the HAT's short brake takes
 #: to stop a wheel; SLAM waits for the odometry to cover a revolution (``slam_task``), so
 #: one or two revolutions after a stop wait that long.
+#: Time, not a count of what the loop did, is right here: what it waits for is physical (a
+#: braked wheel coming to rest), and both ends are the robot's own stamps, not the times the
+#: loop got to run: the brake's from the control loop's write (``BrakedSince``), the last
+#: edge's from the encoder's stamp. A reading that comes late sees both ages grown by the same
+#: real time the wheels had to stop in; it can never call wheels resting that were braked less
+#: than this before (a count of readings or checks would, on a fast CPU, stand for less time).
 REST_AFTER_S = 0.25
 #: Driven but without a single edge for this long, a wheel does not turn (a throttle in the
 #: motor's dead band, a jammed wheel): its pose holds, whatever the throttles say.
@@ -58,6 +64,7 @@ async def run(
         with meter.measure():
             reading = encoders.read()
             now_s = reading.time_s if getattr(reading, "time_s", None) is not None else clock.now_s()
+            edge_age_s = getattr(reading, "edge_age_s", None)
             _between(state, odometry, history, reading, now_s, period_s)
             odometry.update(reading.left_ticks, reading.right_ticks)
             odo = odometry.pose
@@ -65,10 +72,10 @@ async def run(
             if state.throttles != (0.0, 0.0):
                 driven_s = now_s
             braked_since_s = brakes.update(state.throttle_history, driven_s)
-            pose_s = _pose_time_s(now_s, getattr(reading, "edge_age_s", None), counts != last_counts, history,
+            pose_s = _pose_time_s(now_s, edge_age_s, counts != last_counts, history,
                                   now_s - braked_since_s)
-            if counts != last_counts and getattr(reading, "edge_age_s", None) is not None:
-                state.odometry_edge_age_ms.append(reading.edge_age_s * 1000.0)
+            if counts != last_counts and edge_age_s is not None:
+                state.odometry_edge_age_ms.append(edge_age_s * 1000.0)
             last_counts = counts
             if pose_s is not None:
                 history.append(pose_s, odo.x_m, odo.y_m, odo.theta_rad)
@@ -83,6 +90,7 @@ async def run(
             stats = state.sensors
             stats.encoder_ticks_left = reading.left_ticks
             stats.encoder_ticks_right = reading.right_ticks
+            stats.encoder_edge_time_s = None if edge_age_s is None else now_s - edge_age_s
             stats.encoder_invalid_transitions = reading.invalid_transitions
             state.odometry = odo
             x, y, th = _compose(state.map_from_odom, odo.x_m, odo.y_m, odo.theta_rad)

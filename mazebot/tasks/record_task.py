@@ -178,7 +178,9 @@ def publish_stats(state: SharedState, recorder: McapRecorder) -> None:
 
 
 def put_pose(state: SharedState, tap: RecordingTap, lidar_mount_xy_m: tuple[float, float]) -> None:
-    """``/pose``, and ``/odom`` with ``/tf`` once odometry runs, all stamped with the pose's reading."""
+    """``/pose``, and ``/odom`` with ``/tf`` once odometry runs, all stamped with the time the pose is true
+    at (``state.pose_time_s``: the stamp of the newest encoder edge counted, as lgpio gives it on the
+    robot), not the time of the reading, which under a starved CPU comes tens of milliseconds later."""
     p, time_s = state.pose, state.pose_time_s
     pose = (p.x_m, p.y_m, p.theta_rad)
     tap.put("/pose", pose, time_s)

@@ -45,12 +45,15 @@ log = logging.getLogger(__name__)
 SLOW_JOB_S = 0.45
 #: At most one wheel-slip note this often.
 SLIP_NOTE_EVERY_S = 5.0
-#: Longest wait for the odometry to reach a scan's last sample. The odometry is dated by the
-#: encoder edges (``odometry_task``): it reaches a time once the edges up to it are counted,
-#: which a starved encoder thread does late (270 ms once under a 25 % quota); at rest the
-#: odometry holds its pose up to now after ``odometry_task.REST_AFTER_S``. A safety net for a
-#: stalled odometry task: a revolution de-skewed past the odometry's end is bent.
-ODOMETRY_WAIT_S = 0.5
+#: Longest wait for the odometry to reach a scan's last sample, counted in revolutions the lidar
+#: delivered meanwhile (0.55 s of an A1's), not in the clock's time: a process starved by a slow
+#: CPU, whose lidar task and odometry task both ran late, gives the odometry as many turns as a
+#: fast one. The odometry is dated by the encoder edges (``odometry_task``): it reaches a time
+#: once the edges up to it are counted, which a starved encoder thread does late (270 ms once
+#: under a 25 % quota, 981 ms once on a machine at load 10); at rest the odometry holds its pose
+#: up to now after ``odometry_task.REST_AFTER_S``. A safety net for a stalled odometry task (the
+#: lidar goes on): the revolution is left out, since one de-skewed past the odometry's end is bent.
+ODOMETRY_WAIT_REVOLUTIONS = 3
 #: Faults that say the wheel odometry cannot be trusted (an encoder dead, the robot lost).
 ODOMETRY_FAULTS = frozenset({"encoders", "localization"})
 #: Revolutions in a row that fit the odometry (matched, no slip) before SLAM paints again.
@@ -509,19 +512,16 @@ def _scan_failed(state: SharedState, clock: Clock, exc: Exception) -> None:
 
 
 async def _odometry_covering(state: SharedState, clock: Clock, time_s: float) -> OdometryHistory | None:
-    """The odometry history once it reaches ``time_s`` (at most ``ODOMETRY_WAIT_S`` later, and
-    at least 10 polls: a process that was not running for the whole wait gives the odometry its
-    turns before giving up)."""
-    deadline_s = clock.now_s() + ODOMETRY_WAIT_S
-    polls = 0
+    """The odometry history once it reaches ``time_s``, or as it is once the lidar delivered
+    ``ODOMETRY_WAIT_REVOLUTIONS`` more revolutions (None: no odometry yet)."""
+    give_up_at = state.sensors.lidar_revolutions + ODOMETRY_WAIT_REVOLUTIONS
     while True:
         history = state.odometry_history
         span = None if history is None else history.span_s
         if span is not None and span[1] >= time_s:
             return history
-        if clock.now_s() >= deadline_s and polls >= 10:
+        if state.sensors.lidar_revolutions >= give_up_at:
             return history if span is not None else None
-        polls += 1
         await clock.sleep(0.005)
 
 

@@ -452,3 +452,45 @@ def test_edge_samples_hold_whole_steps_when_a_steps_edges_come_wheel_by_wheel() 
     assert (reading.left_ticks, reading.right_ticks) == (-80, 80)
     assert len(reading.steps) >= 10  # one a step, or every other one (a step is the sample period)
     assert all(left_ticks == -right_ticks != 0 for _, left_ticks, right_ticks in reading.steps)
+
+
+def test_a_reading_takes_both_wheels_at_one_instant_while_the_edge_thread_counts() -> None:
+    # the edge thread (lgpio's on the Pi) counts both wheels' edges in the order they happened,
+    # the wheels in step; a reader the interpreter interrupted between the two wheels found the
+    # second one ahead by whatever the thread counted meanwhile (a backlog, in a starved process)
+    import sys
+    import threading
+
+    from gpiozero.pins.mock import MockFactory
+
+    from mazebot.config import EncodersConfig
+
+    cfg = EncodersConfig()
+    factory = MockFactory()
+    stop = threading.Event()
+    with WheelEncoders.from_config(cfg, factory) as encoders:
+        pins = [factory.pin(p) for p in (cfg.left_a_pin, cfg.left_b_pin, cfg.right_a_pin, cfg.right_b_pin)]
+
+        def turn() -> None:  # both wheels forward together, one quarter step at a time each
+            levels = ((0, 1), (0, 0), (1, 0), (1, 1))  # the pins rest high (pull-ups): 11 -> 01 -> 00 -> 10 -> 11
+            k = 0
+            while not stop.is_set():
+                a, b = levels[k % 4]
+                for pin_a, pin_b in ((pins[0], pins[1]), (pins[2], pins[3])):
+                    if pin_a.state != a:
+                        pin_a.drive_high() if a else pin_a.drive_low()
+                    else:
+                        pin_b.drive_high() if b else pin_b.drive_low()
+                k += 1
+
+        switch_s = sys.getswitchinterval()
+        sys.setswitchinterval(1e-6)  # the interpreter switches threads as often as it can
+        thread = threading.Thread(target=turn)
+        thread.start()
+        try:
+            apart = [abs(abs(r.left_ticks) - abs(r.right_ticks)) for r in (encoders.read() for _ in range(20000))]
+        finally:
+            stop.set()
+            thread.join()
+            sys.setswitchinterval(switch_s)
+    assert max(apart) <= 1, max(apart)

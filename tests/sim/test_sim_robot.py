@@ -174,3 +174,37 @@ def test_the_robot_tick_paces_the_lidar_from_poses_already_reached() -> None:
     assert max(ahead_s) <= 0.0
     per_rev = robot.lidar_head.params.samples_per_rev
     assert all(abs(n - per_rev) <= 0.05 * per_rev for n in sizes)  # whole revolutions (±3 % jitter)
+
+
+def test_a_steps_edges_come_in_the_order_they_happened_on_both_wheels_each_with_its_own_time() -> None:
+    # lgpio hands the edges of all lines to one thread in the order of their stamps: a reader
+    # anywhere in a step's edges finds both wheels counted up to the same moment. A world step
+    # late by 80 ms (a loaded machine) used to send the left wheel's 80 ms of edges, then the
+    # right's, all stamped with the step's end: a reader in between found the right wheel silent.
+    from mazebot.sim.world_process import EdgeRecordingFactory, drive_edges, encoder_pins
+
+    config = Config()
+    config.sim.slip_std = 0.0
+    factory = EdgeRecordingFactory(encoder_pins(config))
+    robot = SimulatedRobot(_open_world(), config, seed=1, pin_factory=factory)
+    motors = DifferentialMotors.from_config(config.motors, robot.kit, RealClock(), loop=None)
+    try:
+        robot.step(10.0)
+        motors.set(-0.5, 0.5)  # spin in place: both wheels at the same speed
+        robot.step(10.3)  # up to speed
+        factory.take_message()
+        robot.step(10.38)  # one late step
+        edges: list[tuple[float, int]] = []
+        drive_edges(factory.take_message(), [0, 1, 2, 3],  # type: ignore[list-item]
+                    lambda index, level, time_s: edges.append((time_s, index)))
+    finally:
+        motors.close()
+        robot.close()
+    times = [t for t, _ in edges]
+    assert len(edges) > 100 and times == sorted(times)
+    assert 10.3 < times[0] < 10.31 and 10.37 < times[-1] <= 10.38 + 1e-6  # spread over the step
+    share = sum(index < 2 for _, index in edges) / len(edges)  # pins 0, 1 the left wheel's, 2, 3 the right's
+    left = 0
+    for k, (_, index) in enumerate(edges, start=1):
+        left += index < 2
+        assert abs(left - share * k) <= 3  # never one wheel ahead of the other (by more than a few edges)

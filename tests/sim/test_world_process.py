@@ -60,9 +60,11 @@ class Wheels:
         self.right = QuadratureSignal(factory, enc.right_a_pin, enc.right_b_pin, enc.counts_per_rev,
                                       idle_high=enc.pull_up)
 
-    def turn(self, left_rad: float, right_rad: float) -> None:
-        self.left.update(left_rad)
-        self.right.update(right_rad)
+    def turn(self, left_rad: float, right_rad: float, time_s: float | None = None) -> None:
+        """Both wheels to these angles, their edges at ``time_s`` (None: now)."""
+        for signal, angle in ((self.left, left_rad), (self.right, right_rad)):
+            for _, step in signal.edges_to(angle):
+                signal.emit(step, time_s)
 
 
 def test_the_daemons_encoders_count_the_worlds_edges_through_the_gpio_thread() -> None:
@@ -93,13 +95,13 @@ def test_the_daemons_encoders_count_the_worlds_edges_through_the_gpio_thread() -
         wheels = Wheels(world, config)  # its idle levels are the first message
         sent = 0
         step_s = time.monotonic() - 1.0  # the steps happened a second ago: the edges reach the daemon late
-        for angle in angles:  # one message per world step, with its time, as the world process sends them
-            wheels.turn(*angle)
+        for angle in angles:  # one message per world step, its edges with their times, as the world sends them
             step_s += 0.001
-            data = world.take_edges()
-            if data:
-                tx.send_bytes(EDGES_TIME.pack(step_s) + data)
-                sent += len(data)
+            wheels.turn(*angle, time_s=step_s)
+            message = world.take_message()
+            if message:
+                tx.send_bytes(message)
+                sent += (len(message) - EDGES_TIME.size) // 5
         deadline = time.monotonic() + 10.0
         while thread.edges < sent and time.monotonic() < deadline:
             time.sleep(0.01)

@@ -562,3 +562,75 @@ def test_lidar_bytes_that_never_make_a_revolution_are_a_fault_too() -> None:
             break
     assert state.faults and "make no revolution" in state.faults[0].message
     assert 1.2 <= 0.1 * k <= 1.4
+
+
+class _EdgeStream:
+    """Both wheels' encoder edges as the robot makes them, reaching the counts in order and late.
+
+    ``left_hz`` and ``right_hz`` are the wheels' edge rates; ``cut_s`` silences the right encoder
+    from then on. :meth:`deliver` counts every edge up to a stamp, as the odometry task publishes
+    them (``sensors.encoder_ticks_*`` and the newest edge's stamp, ``encoder_edge_time_s``).
+    """
+
+    def __init__(self, left_hz: float, right_hz: float, start_s: float, end_s: float,
+                 cut_s: float | None = None) -> None:
+        self.left = np.arange(start_s, end_s, 1.0 / left_hz)
+        right = np.arange(start_s + 0.3 / right_hz, end_s, 1.0 / right_hz)  # out of phase with the left's
+        self.right = right if cut_s is None else right[right < cut_s]
+
+    def deliver(self, state: SharedState, until_s: float) -> None:
+        left, right = np.searchsorted(self.left, until_s, "right"), np.searchsorted(self.right, until_s, "right")
+        state.sensors.encoder_ticks_left, state.sensors.encoder_ticks_right = int(left), int(right)
+        stamps = [wheel[n - 1] for wheel, n in ((self.left, left), (self.right, right)) if n]
+        state.sensors.encoder_edge_time_s = float(max(stamps)) if stamps else None
+
+
+def _checks_with_late_edges(edges: _EdgeStream, seed: int | None, start_s: float = 100.0,
+                            end_s: float = 104.0) -> tuple[SharedState, float]:
+    """The health monitor's checks every 50 ms from ``start_s``, the throttles (0.6, 0.25) written
+    before each; the edges counted on time (``seed`` None: 5 ms after they happened) or as a starved
+    process counts them (``seed``: the edge thread stalls for 0.2-0.4 s now and then, then catches up
+    50-100 ms of edges a check). Returns the state and the most the counts were behind at a check."""
+    rng = np.random.default_rng(seed)
+    state = _exploring((0.6, 0.25))
+    monitor = HealthMonitor()
+    counted_s, stalled_until_s, behind_s = start_s - 0.005, -np.inf, 0.0
+    t = start_s
+    while t < end_s and not state.faults:
+        state.throttle_history.append((t - 0.01, 0.6, 0.25))
+        if seed is None:
+            counted_s = t - 0.005
+        elif t >= stalled_until_s:
+            if rng.random() < 0.15:
+                stalled_until_s = t + rng.uniform(0.2, 0.4)
+            else:
+                counted_s = min(t - 0.005, counted_s + rng.uniform(0.05, 0.1))
+        edges.deliver(state, counted_s)
+        behind_s = max(behind_s, t - counted_s)
+        monitor.check_motors(state, t)
+        t += 0.05
+    return state, behind_s
+
+
+@pytest.mark.parametrize("seed", [None, *range(12)])
+def test_a_slow_wheel_is_no_silent_encoder_however_late_its_edges_are_counted(seed: int | None) -> None:
+    # a driven wheel barely turning (an edge every 60 ms: the inner wheel of a pivot) beside one at
+    # full speed (1 000 edges a second): the same edges, counted on time and as a starved process
+    # counts them. The silence is the edges' own time: checks that came while no edge was counted
+    # are no silence, and the other wheel's edges that came after a stall are not 0.2 s of it.
+    state, _ = _checks_with_late_edges(_EdgeStream(1000.0, 1.0 / 0.06, 99.0, 105.0), seed)
+    assert not state.faults, state.faults[0].message
+
+
+@pytest.mark.parametrize("seed", [None, *range(6)])
+@pytest.mark.parametrize("right_hz", [1.0 / 0.045, 400.0], ids=["slow", "turning"])
+def test_a_cut_encoder_is_caught_however_late_its_edges_are_counted(seed: int | None, right_hz: float) -> None:
+    cut_s = 101.03  # a turning wheel counts 10 edges and more between the last two checks before it
+    state, behind_s = _checks_with_late_edges(_EdgeStream(1000.0, right_hz, 99.0, 105.0, cut_s=cut_s), seed)
+    assert state.faults and "right wheel" in state.faults[0].message
+    # on time, the turning wheel within SUDDEN_SILENCE_S of the edges' time and a check, the slow one
+    # within encoder_dead_s (0.2 s) and a check after its last edge; counted late, within encoder_dead_s
+    # and a check once the edges that show it are counted (a burst may hold fewer than MOVING_TICKS of
+    # the turning wheel's last edges: it is not known to be turning then)
+    said_s = state.faults[0].time_s - cut_s
+    assert said_s <= (0.05 if right_hz > 100 and seed is None else 0.2) + 0.1 + (0.0 if seed is None else behind_s)

@@ -323,12 +323,13 @@ async def test_the_default_queue_holds_a_burst_of_revolutions_that_the_odometry_
     assert oldest_age_s < config.slam.odometry_history_s
 
 
-async def test_a_revolution_the_odometry_never_reaches_is_left_out_not_judged_with_a_held_pose() -> None:
+async def test_a_revolution_the_odometry_never_reaches_is_left_out_once_the_lidar_delivered_more() -> None:
     """The encoder edges of a revolution's end never came (a starved encoder thread): left out, counted.
 
     Judged and de-skewed with the pose held at the odometry's end, a turning robot's revolution
     looks rotated and the guard calls the robot lost; the next revolution, which the odometry
-    reaches, is processed.
+    reaches, is processed. The wait counts the revolutions the lidar delivered, not the clock: in
+    a starved process they come late, and so do the odometry's turns.
     """
     state = SharedState()
     history = OdometryHistory()
@@ -340,6 +341,10 @@ async def test_a_revolution_the_odometry_never_reaches_is_left_out_not_judged_wi
         task = asyncio.create_task(slam_task.run(state, RealClock(), SlamParams(), executor, slam=fake))  # type: ignore[arg-type]
         await state.scans.put(_static_scan(1.0, np.zeros(3)))  # reached
         await state.scans.put(_static_scan(1.2, np.zeros(3)))  # not reached, ever
+        for _ in range(slam_task.ODOMETRY_WAIT_REVOLUTIONS):  # the lidar goes on: then the wait is over
+            await asyncio.sleep(0.25)  # a starved process: the revolutions come late, the odometry's turns too
+            assert state.slam.uncovered == 0
+            state.sensors.lidar_revolutions += 1
         await _until(lambda: state.slam.uncovered == 1, timeout_s=5.0)
         history.append(1.5, 0.0, 0.0, 0.0)  # the late edges arrive
         await state.scans.put(_static_scan(1.4, np.zeros(3)))

@@ -81,6 +81,22 @@ class PilotParams:
     def period_s(self) -> float:
         return 1.0 / self.planner.rate_hz
 
+    @property
+    def interim_due_s(self) -> float:
+        """Age of the last command at which a motion half runs between a goal half's stages.
+
+        A planner period and a control period. The regular motion half comes a period
+        after the previous one plus however much longer this goal half runs than the
+        previous one did: at a period alone, every goal half a few milliseconds longer
+        than its predecessor set off a second DWA step (a third of the ticks under a Pi 4's
+        share on 6x6, a quarter of the DWA's CPU), for a command a few milliseconds
+        fresher than the regular one right behind it. A control period later the
+        regular one is late by a whole control tick: the control loop, which reads the
+        command once a control period, would then run a tick on a command older than the
+        DWA's latency (a planner period, a control period, the motors' lag) counts on.
+        """
+        return self.period_s + self.control_period_s
+
 
 class DriveInputs(NamedTuple):
     """What a goal half hands to the motion half: the map it read and the goal's target."""
@@ -369,11 +385,11 @@ class Pilot:
         longer than a planner period of wall time on a slow or shared CPU, and the control
         loop stops the wheels when the command is ``command_ttl_ticks`` old. The path of the
         previous goal half is still the one to follow until the new one is chosen, so
-        the motion half follows it on the latest pose and scan, a period after the last
-        command. Never due on the virtual clock (no time passes inside a tick there), nor
-        when the previous goal half decided not to drive.
+        the motion half follows it on the latest pose and scan, once the last command is
+        :attr:`PilotParams.interim_due_s` old. Never due on the virtual clock (no time
+        passes inside a tick there), nor when the previous goal half decided not to drive.
         """
-        return self._last_drive_inputs is not None and now_s - self.last_command_s >= self.params.period_s
+        return self._last_drive_inputs is not None and now_s - self.last_command_s >= self.params.interim_due_s
 
     def interim_drive_steps(self, state: SharedState, now_s: float) -> Generator[None, None, None]:
         """A motion half between the stages of a goal half (:meth:`motion_due`): the previous path,

@@ -14,8 +14,8 @@ the whole grid in several). When it takes longer than a planner period of wall t
 100 ms of wall time under the quota, behind SLAM's stages), a motion half runs between
 two of its stages (:meth:`Pilot.motion_due`, :meth:`Pilot.interim_drive_steps`): the DWA
 on the latest pose and scan along the path being followed, so the control loop gets a
-fresh command every period instead of stopping the wheels for a stale one. Both halves
-are this task's: one writer of the goal, the path and the command.
+fresh command within a period and a control period instead of stopping the wheels for a
+stale one. Both halves are this task's: one writer of the goal, the path and the command.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ async def run(state: SharedState, clock: Clock, pilot: Pilot, tick_ms: RecentVal
 
 async def _goal_half(state: SharedState, clock: Clock, pilot: Pilot, cpu_s: list[float]) -> bool:
     """:meth:`Pilot.plan_steps` with the loop free between its stages, and a motion half
-    between two of them whenever the last command is a planner period old."""
+    between two of them whenever the last command is overdue (:meth:`Pilot.motion_due`)."""
     stages = timed_stages(pilot.plan_steps(state, clock.now_s()), cpu_s)
     try:
         while True:

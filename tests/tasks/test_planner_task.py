@@ -80,3 +80,19 @@ def test_the_pilot_drives_between_stages_only_after_a_goal_half_that_chose_to_dr
     assert state.motion_command is not None and state.motion_command.v_mps == 0.0
     assert pilot.last_command_s == 1.0
     assert not pilot.motion_due(1e9)  # a hold leaves nothing to follow between stages
+
+
+def test_a_goal_half_a_few_milliseconds_longer_than_the_last_sets_off_no_extra_motion_half() -> None:
+    import numpy as np
+
+    from mazebot.config import Config
+    from mazebot.planner.pilot import DriveInputs, Pilot, PilotParams
+
+    params = PilotParams.from_config(Config())
+    pilot = Pilot(params)
+    pilot._last_drive_inputs = DriveInputs(np.zeros((4, 4), dtype=np.int8), (0.0, 0.0), 0.02, (0.5, 0.5))
+    pilot.last_command_s = 10.0  # the previous tick's motion half, after its goal half
+    # this tick's goal half runs 5 ms longer than the previous one: the regular motion half is right behind
+    assert not pilot.motion_due(10.0 + params.period_s + 0.005)
+    # a whole control period late: the control loop would run a tick on a stale command
+    assert pilot.motion_due(10.0 + params.period_s + params.control_period_s)

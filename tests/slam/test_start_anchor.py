@@ -1,0 +1,129 @@
+"""The start's wall grid judged through every board: a known turn of a hand-built maze recovered.
+
+Against ground truth: a 6×6 maze built by hand (boards turned by 0.7° RMS) at a known
+angle, keyframes cast from known poses; the map the keyframes drew turned about the start
+as a first in-place turn's error leaves it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mazebot.geometry import relative_pose
+from mazebot.sim.hand_maze import HandBuild, hand_built_world
+from mazebot.sim.maze_generator import generate_maze
+from mazebot.slam.slam import LoopClosureJob, SlamParams
+from mazebot.slam.start_anchor import RestSurface, start_anchor_rad, weighted_median
+from mazebot.slam.wall_faces import quarter_turns
+from tests.slam.test_wall_lattice import keyframe_at, route_poses
+
+MAZE_DEG = 17.0  # the maze's grid in the world (and map) frame
+TURN_DEG = 0.6  # the map's turn about the start after its first turn (as measured on the bench's 8x8 mazes)
+REST_REVOLUTIONS = 20  # the revolutions keyframe 0 measures its faces over
+
+
+def grid_error_deg(direction_rad: float) -> float:
+    """How far a wall-grid direction lies from the maze's (degrees, modulo 90°)."""
+    return math.degrees(math.remainder(direction_rad - math.radians(MAZE_DEG), math.pi / 2))
+
+
+def turned_about(pose0: np.ndarray, poses: np.ndarray, angle_rad: float) -> np.ndarray:
+    """``poses`` (K, 3) turned by ``angle_rad`` about ``pose0``'s position."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    dx, dy = poses[:, 0] - pose0[0], poses[:, 1] - pose0[1]
+    return np.column_stack((pose0[0] + c * dx - s * dy, pose0[1] + s * dx + c * dy, poses[:, 2] + angle_rad))
+
+
+@pytest.fixture(scope="module")
+def hand_scene():
+    """A hand-built maze at ``MAZE_DEG``, keyframes along a route, keyframe 0's faces at rest (its frame)."""
+    layout = generate_maze(6, 6, seed=3, kind="braided")
+    world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=math.radians(MAZE_DEG)), 5)
+    route = route_poses(world)
+    # the robot turns in place at the start before it drives off (a keyframe every ~0.15 rad), then the route
+    turning = np.column_stack((np.full(12, route[0, 0]), np.full(12, route[0, 1]), np.linspace(0.0, 2.0, 12)))
+    return world, np.vstack((turning, route[1:]))
+
+
+def rest_surface(world, cast_scan, pose: np.ndarray) -> RestSurface:
+    """Keyframe 0's faces and surface from ``REST_REVOLUTIONS`` revolutions pooled at ``pose``, in its frame."""
+    surfaces = [keyframe_at(world, cast_scan, 0, pose, seed=100 + k).surface() for k in range(REST_REVOLUTIONS)]
+    points = np.concatenate([p for p, _ in surfaces])
+    normals = np.concatenate([n for _, n in surfaces])
+    direction, _, _ = keyframe_at(world, cast_scan, 0, pose, seed=100).wall_direction()
+    return RestSurface.measured(points, normals, direction)
+
+
+def test_weighted_median_balances_the_weights() -> None:
+    assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([1, 1, 1])) == 2.0
+    assert weighted_median(np.array([0.0, 1.0]), np.array([1, 5])) == 1.0
+
+
+def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand_scene, cast_scan) -> None:
+    world, truth = hand_scene
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    start = rest_surface(world, cast_scan, truth[0])
+    faces = start.faces
+    assert len(faces) >= 2
+    # the start's own faces: their mean is off the maze's grid by the boards' turns
+    own = math.radians(MAZE_DEG) + float(np.average(
+        quarter_turns(faces.normal_rad + truth[0, 2] - math.radians(MAZE_DEG)), weights=faces.count))
+    assert abs(grid_error_deg(own)) > 0.2
+    for turn_deg in (0.0, TURN_DEG, -TURN_DEG):
+        poses = truth.copy()
+        poses[1:] = turned_about(truth[0], truth[1:], math.radians(turn_deg))
+        reference = math.radians(MAZE_DEG + turn_deg)  # the map's own grid: turned with it
+        anchor = start_anchor_rad(start, keyframes, poses, reference)
+        assert anchor is not None
+        # the anchor is in keyframe 0's frame; keyframe 0 stands where it truly stood
+        assert abs(grid_error_deg(anchor + truth[0, 2])) < 0.1, turn_deg
+
+
+def chain_job(keyframes, poses, start: RestSurface | None) -> LoopClosureJob:
+    """The periodic optimization of the chain ``poses`` as its matches drew it (its first edge turned)."""
+    count = len(poses)
+    ei, ej = np.arange(count - 1), np.arange(1, count)
+    info = np.tile(np.diag([1 / 0.005**2, 1 / 0.005**2, 1 / 0.01**2]), (count - 1, 1, 1))
+    direction, _, _ = keyframes[1].wall_direction()
+    return LoopClosureJob(
+        candidates=[],
+        keyframes=keyframes,
+        poses=poses.copy(),
+        integrated_poses=poses.copy(),
+        edges=(ei, ej, relative_pose(poses[ei], poses[ej]), info),
+        params=SlamParams(lattice=None),
+        wall_reference_rad=math.remainder(direction + float(poses[1, 2]), math.pi / 2),
+        optimize_anyway=True,
+        anchor_wall=None,
+        start_surface=start,
+    )
+
+
+def test_a_map_turned_about_a_hand_built_start_is_turned_back(hand_scene, cast_scan) -> None:
+    world, truth = hand_scene
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
+    rest = rest_surface(world, cast_scan, truth[0])
+
+    def optimized(turn_deg: float, start: RestSurface | None):
+        """The job on the map turned by ``turn_deg`` about the start; its keyframes' mean heading error (°)."""
+        poses = truth.copy()
+        poses[1:] = turned_about(truth[0], truth[1:], math.radians(turn_deg))
+        for kf, pose in zip(keyframes, poses, strict=True):
+            kf.pose = pose.copy()
+        result = chain_job(keyframes, poses, start).run()
+        error = np.remainder(result.poses[1:, 2] - truth[1:, 2] + math.pi, math.tau) - math.pi
+        return result, math.degrees(float(np.mean(error)))
+
+    # with no anchor the wall priors keep the turn: they tie the keyframes to each other, not to the start
+    _, straight = optimized(0.0, None)
+    _, turned = optimized(TURN_DEG, None)
+    assert turned - straight > 0.8 * TURN_DEG
+    # the start's faces, each board's own turn taken out, turn the map back: the same map as from the truth
+    result_straight, straight = optimized(0.0, rest)
+    result_turned, turned = optimized(TURN_DEG, rest)
+    assert abs(turned - straight) < 0.1
+    for result in (result_straight, result_turned):
+        assert result.wall_reference_rad is not None and abs(grid_error_deg(result.wall_reference_rad)) < 0.1

@@ -87,8 +87,8 @@ from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.start_anchor import RestSurface, start_anchor_rad
-from mazebot.slam.wall_faces import face_spread, quarter_turns
+from mazebot.slam.start_anchor import start_anchor_rad
+from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
 from mazebot.taps import notify
@@ -153,9 +153,9 @@ class LoopClosureJob:
     optimize_anyway: bool = False  # optimize even if no candidate is accepted (periodic wall priors)
     # keyframe 0's wall direction in its own frame, averaged at rest, and how tightly it ties the wall vertex
     anchor_wall: tuple[float, float] | None = None  # (direction_rad, std_rad); None: keyframe 0 is no anchor
-    # keyframe 0's faces at rest (its frame) where they turn apart: the anchor is then the grid they
-    # show once each board's own turn is taken out (mazebot.slam.start_anchor), with anchor_wall's trust
-    start_surface: RestSurface | None = None
+    # keyframe 0's faces at rest (its frame) where they turn apart: the anchor is then the maze's grid
+    # judged from every keyframe's faces together (mazebot.slam.start_anchor), with anchor_wall's trust
+    start_faces: Faces | None = None
     rebuild_anyway: bool = False  # rebuild the grid however little the keyframes moved (the end of exploration)
     lattice_fit: PitchFit | None = None  # set by the run: the lattice the walls were fitted to
     # the last lattice fitted and the keyframes it was fitted with: taken again while the keyframes
@@ -287,9 +287,9 @@ class LoopClosureJob:
 
     def _anchor(self) -> tuple[float, float] | None:
         """Keyframe 0's wall direction and trust for the wall priors: as given, or judged from every board."""
-        if self.start_surface is None or self.wall_reference_rad is None:
+        if self.start_faces is None or self.wall_reference_rad is None:
             return self.anchor_wall
-        direction = start_anchor_rad(self.start_surface, self.keyframes, self.poses, self.wall_reference_rad)
+        direction = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
         return None if direction is None else (direction, self.params.wall_anchor_std_rad)
 
     def _fit_to_reuse(self) -> tuple[PitchFit, int] | None:
@@ -482,7 +482,7 @@ class Slam:
         # keyframe 0's surface (points, normals) of each revolution at rest, until its faces are judged
         self._anchor_surfaces: list[tuple[np.ndarray, np.ndarray]] = []
         self._anchor_spread: tuple[float | None] | None = None  # the faces' spread, once judged
-        self._rest_surface: RestSurface | None = None  # ... and the faces and surface they came from
+        self._start_faces: Faces | None = None  # ... and the faces themselves (keyframe 0's frame)
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
@@ -552,9 +552,9 @@ class Slam:
                 return None
             points = np.concatenate([pts for pts, _ in self._anchor_surfaces])
             normals = np.concatenate([nrm for _, nrm in self._anchor_surfaces])
-            rest = RestSurface.measured(points, normals, direction)
-            self._rest_surface = rest
-            self._anchor_spread = (face_spread(quarter_turns(rest.faces.normal_rad - direction), rest.faces.count),)
+            faces = wall_faces(points, normals, direction)
+            self._start_faces = faces
+            self._anchor_spread = (face_spread(quarter_turns(faces.normal_rad - direction), faces.count),)
             self._anchor_surfaces = []
             spread = self._anchor_spread[0]
             if spread is not None and spread > self.params.wall_max_face_spread_rad:
@@ -1344,7 +1344,7 @@ class Slam:
             wall_reference_rad=self.wall_reference_rad,
             optimize_anyway=optimize_anyway,
             anchor_wall=None if anchor is None else (anchor, self.params.wall_anchor_std_rad),
-            start_surface=None if on_grid else self._rest_surface,
+            start_faces=None if on_grid else self._start_faces,
             known_fit=None if self.lattice_fit is None else (self.lattice_fit, self._lattice_fit_keyframes),
             set_members=tuple(self._set_members),
             set_waiting=tuple(self._set_waiting),

@@ -16,8 +16,8 @@ from mazebot.geometry import relative_pose
 from mazebot.sim.hand_maze import HandBuild, hand_built_world
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.slam.slam import LoopClosureJob, SlamParams
-from mazebot.slam.start_anchor import RestSurface, start_anchor_rad, weighted_median
-from mazebot.slam.wall_faces import quarter_turns
+from mazebot.slam.start_anchor import start_anchor_rad
+from mazebot.slam.wall_faces import Faces, quarter_turns, wall_faces
 from tests.slam.test_wall_lattice import keyframe_at, route_poses
 
 MAZE_DEG = 17.0  # the maze's grid in the world (and map) frame
@@ -39,34 +39,35 @@ def turned_about(pose0: np.ndarray, poses: np.ndarray, angle_rad: float) -> np.n
 
 @pytest.fixture(scope="module")
 def hand_scene():
-    """A hand-built maze at ``MAZE_DEG``, keyframes along a route, keyframe 0's faces at rest (its frame)."""
+    """A hand-built maze at ``MAZE_DEG``; the keyframes' true poses in the world and in the map.
+
+    The map's origin is keyframe 0, whose heading is the world's: the grid lies at ``MAZE_DEG`` in both.
+    """
     layout = generate_maze(6, 6, seed=3, kind="braided")
     world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=math.radians(MAZE_DEG)), 5)
     route = route_poses(world)
     # the robot turns in place at the start before it drives off (a keyframe every ~0.15 rad), then the route
     turning = np.column_stack((np.full(12, route[0, 0]), np.full(12, route[0, 1]), np.linspace(0.0, 2.0, 12)))
-    return world, np.vstack((turning, route[1:]))
+    world_poses = np.vstack((turning, route[1:]))
+    in_map = world_poses.copy()
+    in_map[:, :2] -= world_poses[0, :2]
+    return world, world_poses, in_map
 
 
-def rest_surface(world, cast_scan, pose: np.ndarray) -> RestSurface:
+def rest_surface(world, cast_scan, pose: np.ndarray) -> Faces:
     """Keyframe 0's faces and surface from ``REST_REVOLUTIONS`` revolutions pooled at ``pose``, in its frame."""
     surfaces = [keyframe_at(world, cast_scan, 0, pose, seed=100 + k).surface() for k in range(REST_REVOLUTIONS)]
     points = np.concatenate([p for p, _ in surfaces])
     normals = np.concatenate([n for _, n in surfaces])
     direction, _, _ = keyframe_at(world, cast_scan, 0, pose, seed=100).wall_direction()
-    return RestSurface.measured(points, normals, direction)
-
-
-def test_weighted_median_balances_the_weights() -> None:
-    assert weighted_median(np.array([3.0, 1.0, 2.0]), np.array([1, 1, 1])) == 2.0
-    assert weighted_median(np.array([0.0, 1.0]), np.array([1, 5])) == 1.0
+    return wall_faces(points, normals, direction)
 
 
 def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand_scene, cast_scan) -> None:
-    world, truth = hand_scene
-    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
-    start = rest_surface(world, cast_scan, truth[0])
-    faces = start.faces
+    world, world_poses, truth = hand_scene
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
+    start = rest_surface(world, cast_scan, world_poses[0])
+    faces = start
     assert len(faces) >= 2
     # the start's own faces: their mean is off the maze's grid by the boards' turns
     own = math.radians(MAZE_DEG) + float(np.average(
@@ -82,7 +83,7 @@ def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand
         assert abs(grid_error_deg(anchor + truth[0, 2])) < 0.1, turn_deg
 
 
-def chain_job(keyframes, poses, start: RestSurface | None) -> LoopClosureJob:
+def chain_job(keyframes, poses, start: Faces | None) -> LoopClosureJob:
     """The periodic optimization of the chain ``poses`` as its matches drew it (its first edge turned)."""
     count = len(poses)
     ei, ej = np.arange(count - 1), np.arange(1, count)
@@ -98,16 +99,16 @@ def chain_job(keyframes, poses, start: RestSurface | None) -> LoopClosureJob:
         wall_reference_rad=math.remainder(direction + float(poses[1, 2]), math.pi / 2),
         optimize_anyway=True,
         anchor_wall=None,
-        start_surface=start,
+        start_faces=start,
     )
 
 
 def test_a_map_turned_about_a_hand_built_start_is_turned_back(hand_scene, cast_scan) -> None:
-    world, truth = hand_scene
-    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
-    rest = rest_surface(world, cast_scan, truth[0])
+    world, world_poses, truth = hand_scene
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
+    rest = rest_surface(world, cast_scan, world_poses[0])
 
-    def optimized(turn_deg: float, start: RestSurface | None):
+    def optimized(turn_deg: float, start: Faces | None):
         """The job on the map turned by ``turn_deg`` about the start; its keyframes' mean heading error (°)."""
         poses = truth.copy()
         poses[1:] = turned_about(truth[0], truth[1:], math.radians(turn_deg))

@@ -8,16 +8,17 @@ as a first in-place turn's error leaves it.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from mazebot.geometry import relative_pose
 from mazebot.sim.hand_maze import HandBuild, hand_built_world
 from mazebot.sim.maze_generator import generate_maze
-from mazebot.slam.slam import LoopClosureJob, SlamParams
+from mazebot.slam.slam import LoopClosureJob
 from mazebot.slam.start_anchor import start_anchor_rad
 from mazebot.slam.wall_faces import Faces, quarter_turns, wall_faces
+from tests.slam.test_lattice_fit import chain_job as lattice_chain_job
 from tests.slam.test_wall_lattice import keyframe_at, route_poses
 
 MAZE_DEG = 17.0  # the maze's grid in the world (and map) frame
@@ -86,23 +87,8 @@ def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand
 
 
 def chain_job(keyframes, poses, start: Faces | None) -> LoopClosureJob:
-    """The periodic optimization of the chain ``poses`` as its matches drew it (its first edge turned)."""
-    count = len(poses)
-    ei, ej = np.arange(count - 1), np.arange(1, count)
-    info = np.tile(np.diag([1 / 0.005**2, 1 / 0.005**2, 1 / 0.01**2]), (count - 1, 1, 1))
-    direction, _, _ = keyframes[1].wall_direction()
-    return LoopClosureJob(
-        candidates=[],
-        keyframes=keyframes,
-        poses=poses.copy(),
-        integrated_poses=poses.copy(),
-        edges=(ei, ej, relative_pose(poses[ei], poses[ej]), info),
-        params=SlamParams(lattice=None),
-        wall_reference_rad=math.remainder(direction + float(poses[1, 2]), math.pi / 2),
-        optimize_anyway=True,
-        anchor_wall=None,
-        start_faces=start,
-    )
+    """The periodic optimization of the chain ``poses`` as its matches drew it, the start's faces its only anchor."""
+    return replace(lattice_chain_job(keyframes, poses, None), anchor_wall=None, start_faces=start)
 
 
 def test_a_map_turned_about_a_hand_built_start_is_turned_back(hand_scene, cast_scan) -> None:

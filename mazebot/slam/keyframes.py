@@ -32,6 +32,7 @@ from mazebot.geometry import relative_pose
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
+from mazebot.slam.wall_faces import NO_FACES, Faces, wall_faces
 from mazebot.slam.wall_lattice import LatticeFaces, LatticeParams, measure_faces
 from mazebot.slam_config import NormalParams as NormalParams  # the [slam.normals] section
 from mazebot.steps import all_at_once
@@ -102,6 +103,7 @@ class Keyframe:
     """
 
     __slots__ = (
+        "_faces",
         "_hits",
         "_lattice",
         "_match",
@@ -147,6 +149,7 @@ class Keyframe:
         self._surface: tuple[np.ndarray, np.ndarray] | None = None
         self._walls: tuple[float, float, int] | None = None
         self._lattice: LatticeFaces | None = None
+        self._faces: Faces | None = None
 
     def keep_surface_only(self) -> None:
         """Let go of the hits once the surface has been made from them.
@@ -208,7 +211,7 @@ class Keyframe:
         kf.integrated_pose, kf.normal_params, kf._ray_count = integrated_pose, normal_params, ray_count
         kf._hits = kf._match = kf._ray_ends = _NO_POINTS
         kf._ray_hit_bits = np.zeros(0, dtype=np.uint8)
-        kf._surface, kf._walls, kf._lattice = None, None, None
+        kf._surface, kf._walls, kf._lattice, kf._faces = None, None, None, None
         kf.use_packed(arrays)
         return kf
 
@@ -293,6 +296,18 @@ class Keyframe:
                 cached = (0.25 * math.atan2(s, c), math.hypot(c, s), int(nrm.shape[0]))
             self._walls = cached
         return cached
+
+    def wall_faces(self) -> Faces:
+        """Its straight wall faces in its own frame (:func:`mazebot.slam.wall_faces.wall_faces`), cached.
+
+        Sorted by the axes of its own wall direction (:meth:`wall_direction`); none where its
+        normals show no dominant grid.
+        """
+        if self._faces is None:
+            direction, strength, _ = self.wall_direction()
+            points, normals = self.surface()
+            self._faces = wall_faces(points, normals, direction) if strength > 0 else NO_FACES
+        return self._faces
 
     def lattice_faces(self, psi_rad: float, params: LatticeParams) -> LatticeFaces:
         """The keyframe's wall faces on the lattice (:func:`mazebot.slam.wall_lattice.measure_faces`), cached.

@@ -87,7 +87,8 @@ from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.wall_faces import face_spread, face_turns
+from mazebot.slam.start_anchor import start_anchor_rad
+from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
 from mazebot.taps import notify
@@ -152,6 +153,9 @@ class LoopClosureJob:
     optimize_anyway: bool = False  # optimize even if no candidate is accepted (periodic wall priors)
     # keyframe 0's wall direction in its own frame, averaged at rest, and how tightly it ties the wall vertex
     anchor_wall: tuple[float, float] | None = None  # (direction_rad, std_rad); None: keyframe 0 is no anchor
+    # keyframe 0's faces at rest (its frame) where they turn apart: the anchor is then the maze's grid
+    # judged from every keyframe's faces together (mazebot.slam.start_anchor), with anchor_wall's trust
+    start_faces: Faces | None = None
     rebuild_anyway: bool = False  # rebuild the grid however little the keyframes moved (the end of exploration)
     lattice_fit: PitchFit | None = None  # set by the run: the lattice the walls were fitted to
     # the last lattice fitted and the keyframes it was fitted with: taken again while the keyframes
@@ -223,7 +227,7 @@ class LoopClosureJob:
         vertices = self.poses
         reused = self._fit_to_reuse()
         priors, fit = wall_priors(
-            self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self.anchor_wall,
+            self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self._anchor(),
             known_fit=None if reused is None else reused[0],
         )
         if fit is not None:
@@ -280,6 +284,21 @@ class LoopClosureJob:
         judged = [refused.get((v.candidate.old, v.candidate.new), v) if v.accepted else v for v in verdicts]
         return judged, decision.accepted
 
+
+    def _anchor(self) -> tuple[float, float] | None:
+        """Keyframe 0's wall direction and std for the wall priors: as given, or judged from every board.
+
+        Judged from every board, it is trusted as far as that fit says (never more than the
+        anchor of exact walls): tied at ``wall_anchor_std_rad`` a direction 0.5° off turned the
+        whole map by as much (the bench's hand-built 8×8 seeds 3 and 6).
+        """
+        if self.start_faces is None or self.wall_reference_rad is None:
+            return self.anchor_wall
+        judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
+        if judged is None:
+            return None
+        direction, std = judged
+        return direction, max(std, self.params.wall_anchor_std_rad)
 
     def _fit_to_reuse(self) -> tuple[PitchFit, int] | None:
         """The known lattice fit (and its keyframes) if the walls fitted it and the keyframes grew little since.
@@ -471,6 +490,7 @@ class Slam:
         # keyframe 0's surface (points, normals) of each revolution at rest, until its faces are judged
         self._anchor_surfaces: list[tuple[np.ndarray, np.ndarray]] = []
         self._anchor_spread: tuple[float | None] | None = None  # the faces' spread, once judged
+        self._start_faces: Faces | None = None  # ... and the faces themselves (keyframe 0's frame)
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
@@ -540,12 +560,14 @@ class Slam:
                 return None
             points = np.concatenate([pts for pts, _ in self._anchor_surfaces])
             normals = np.concatenate([nrm for _, nrm in self._anchor_surfaces])
-            self._anchor_spread = (face_spread(*face_turns(points, normals, direction)),)
+            faces = wall_faces(points, normals, direction)
+            self._start_faces = faces
+            self._anchor_spread = (face_spread(quarter_turns(faces.normal_rad - direction), faces.count),)
             self._anchor_surfaces = []
             spread = self._anchor_spread[0]
             if spread is not None and spread > self.params.wall_max_face_spread_rad:
                 log.info("the wall faces seen from the start turn %.2f deg apart (RMS): boards set by hand; "
-                         "the start is no anchor of the wall grid", math.degrees(spread))
+                         "the start anchors the wall grid through every board the map sees", math.degrees(spread))
         return self._anchor_spread[0]
 
     @property
@@ -1318,7 +1340,8 @@ class Slam:
         self._keyframes_since_optimization = 0
         self._verifying = list(candidates)
         ei, ej, z, omega = self.graph.edge_arrays
-        anchor = self.anchor_wall_rad if self.anchor_on_grid else None
+        on_grid = self.anchor_on_grid
+        anchor = self.anchor_wall_rad if on_grid else None
         return LoopClosureJob(
             candidates=candidates,
             keyframes=list(self.keyframes),
@@ -1329,6 +1352,7 @@ class Slam:
             wall_reference_rad=self.wall_reference_rad,
             optimize_anyway=optimize_anyway,
             anchor_wall=None if anchor is None else (anchor, self.params.wall_anchor_std_rad),
+            start_faces=None if on_grid else self._start_faces,
             known_fit=None if self.lattice_fit is None else (self.lattice_fit, self._lattice_fit_keyframes),
             set_members=tuple(self._set_members),
             set_waiting=tuple(self._set_waiting),

@@ -20,6 +20,7 @@ the faces lie on one grid (:func:`face_spread`).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -50,12 +51,48 @@ FACE_MIN_LENGTH_M = 0.12
 FACE_MAX_STDERR_RAD = math.radians(0.1)
 
 
-def face_turns(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Each face's turn from the grid direction ``grid_rad`` (radians, counter-clockwise) and its point count.
+@dataclass(frozen=True)
+class Faces:
+    """Straight wall faces of one place, each a segment with its outward normal (the frame of its points).
 
-    ``points`` (N, 2) and ``normals`` (N, 2) are surface points of one place (a keyframe's
-    frame); ``grid_rad`` the wall grid's direction in that frame (modulo 90°). Returns
-    ``(turns_rad (F,), points (F,))`` for the faces that pass the module's tests.
+    ``centre_xy`` (F, 2) the middle of the points' fitted line, ``normal_rad`` (F,) the
+    normal's direction (pointing to the side the lidar saw the face from), ``half_length_m``
+    (F,) half the points' extent along the face, ``count`` (F,) its points.
+    """
+
+    centre_xy: np.ndarray
+    normal_rad: np.ndarray
+    half_length_m: np.ndarray
+    count: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.count.size)
+
+    def placed(self, pose: np.ndarray) -> Faces:
+        """The same faces in the frame where ``pose`` (3,) is their frame's pose."""
+        c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+        x, y = self.centre_xy[:, 0], self.centre_xy[:, 1]
+        centre = np.column_stack((pose[0] + c * x - s * y, pose[1] + s * x + c * y))
+        return Faces(centre, self.normal_rad + float(pose[2]), self.half_length_m, self.count)
+
+    @staticmethod
+    def joined(parts: list[Faces]) -> Faces:
+        """All faces of ``parts`` in one."""
+        if not parts:
+            return NO_FACES
+        return Faces(*(np.concatenate([getattr(f, name) for f in parts]) for name in Faces.__dataclass_fields__))
+
+
+NO_FACES = Faces(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.intp))
+
+
+def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> Faces:
+    """The straight faces among surface points of one place (module docstring), in their frame.
+
+    ``points`` (N, 2) and ``normals`` (N, 2) are a place's surface points (a keyframe's
+    frame); ``grid_rad`` the wall grid's direction in that frame (modulo 90°), which sorts
+    the points by the axis their normals face. A face's own direction is its least-squares
+    line's; only faces that pass the module's tests are kept.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
@@ -65,19 +102,43 @@ def face_turns(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> tupl
     nu = c * nrm[:, 0] + s * nrm[:, 1]
     nv = -s * nrm[:, 0] + c * nrm[:, 1]
     cos_tol = math.cos(AXIS_TOLERANCE_RAD)
-    turns: list[float] = []
-    counts: list[int] = []
+    rows: list[tuple[float, float, float, float, int]] = []  # (u, v, normal on the grid, half length, points)
     # faces across u (normal along ±u: the line runs along v) and across v (the line runs along u);
     # a line u = a + b v is the v axis turned by -atan(b), a line v = a + b u the u axis turned by +atan(b)
-    for across, along, normal, sign in ((u, v, nu, -1.0), (v, u, nv, 1.0)):
+    for across, along, normal, sign, axis in ((u, v, nu, -1.0, 0), (v, u, nv, 1.0, 1)):
         for side in (1.0, -1.0):
             keep = side * normal >= cos_tol
+            nominal = axis * math.pi / 2 + (0.0 if side > 0 else math.pi)  # the normal's angle on the grid
             for a, b in _faces(across[keep], along[keep]):
                 fitted = _slope(a, b)
-                if fitted is not None:
-                    turns.append(sign * math.atan(fitted))
-                    counts.append(a.size)
-    return np.array(turns), np.array(counts, dtype=np.intp)
+                if fitted is None:
+                    continue
+                mid_along = float(b.mean())
+                mid_across = float(a.mean())
+                centre = (mid_across, mid_along) if axis == 0 else (mid_along, mid_across)
+                rows.append((*centre, nominal + sign * math.atan(fitted), 0.5 * float(b[-1] - b[0]), a.size))
+    if not rows:
+        return NO_FACES
+    table = np.array(rows)
+    gu, gv = table[:, 0], table[:, 1]
+    centre_xy = np.column_stack((c * gu - s * gv, s * gu + c * gv))
+    return Faces(centre_xy, table[:, 2] + grid_rad, table[:, 3], table[:, 4].astype(np.intp))
+
+
+def face_turns(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's turn from the grid direction ``grid_rad`` (radians, counter-clockwise) and its point count.
+
+    ``points`` (N, 2) and ``normals`` (N, 2) are surface points of one place (a keyframe's
+    frame); ``grid_rad`` the wall grid's direction in that frame (modulo 90°). Returns
+    ``(turns_rad (F,), points (F,))`` for the faces of :func:`wall_faces`.
+    """
+    faces = wall_faces(points, normals, grid_rad)
+    return quarter_turns(faces.normal_rad - grid_rad), faces.count
+
+
+def quarter_turns(angles_rad: np.ndarray) -> np.ndarray:
+    """Angles modulo 90°, in [-45°, 45°)."""
+    return np.remainder(np.asarray(angles_rad, dtype=np.float64) + math.pi / 4, math.pi / 2) - math.pi / 4
 
 
 def face_spread(turns_rad: np.ndarray, counts: np.ndarray) -> float | None:

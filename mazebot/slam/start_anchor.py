@@ -1,0 +1,138 @@
+"""The maze's wall grid as seen from the start of a maze built by hand: every board judged together.
+
+Keyframe 0, the map's anchor, measures the walls it sees while the robot stands still
+(:mod:`mazebot.slam.wall_priors`). In a maze built by hand each board stands at its own
+small angle (a few tenths of a degree), so the two to four faces seen from the start are
+not the maze's grid: anchored to their mean, the whole map turns about the start by their
+error; not anchored at all, it keeps whatever turn the cheap robot's first turns left in
+the chain of scan matches (:mod:`mazebot.slam.wall_faces` tells the two kinds of maze apart).
+
+Every keyframe sees several faces at once, and the differences of their directions within
+one scan do not depend on the keyframe's heading, however wrong. So the faces of all
+keyframes are judged together, as a two-way layout (Scheffé, *The Analysis of Variance*,
+1959, ch. 4): a face ``f`` seen from place ``o`` (a keyframe, or keyframe 0 at rest) has
+the direction, in that place's own frame,
+
+    a_of = g_o + β_s(f)
+
+where ``g_o`` is the maze's mean grid in the frame of ``o`` and ``β_s`` the turn of the
+stretch of wall ``s`` the face lies on (a side, a few centimetres across and a cell along,
+found where the face lies in the map: the map's errors of a few millimetres and tenths of
+a degree do not move a face to another stretch). Least squares over all faces, each
+stretch's turn drawn about zero with a board's spread (the maze's grid is where its boards'
+turns average out; a ridge, so a stretch seen from few places, at the end of a long chain of
+them, cannot wander), gives ``g`` for keyframe 0 at rest: the anchor, in its own frame.
+Neither a map turned about the start nor one bent at a corner enters it, only which face
+lies on which wall.
+None until a face keyframe 0 saw at rest has been seen from another keyframe.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.sparse import csc_matrix
+from scipy.sparse.linalg import spsolve
+
+from mazebot.slam.keyframes import Keyframe
+from mazebot.slam.wall_faces import Faces, quarter_turns
+
+#: Faces on one side within this across ...
+STRETCH_ACROSS_M = 0.05
+
+#: ... and this along (a cell) lie on one stretch of wall: one board, or two in line.
+STRETCH_ALONG_M = 0.3
+
+#: A board set by hand stands turned by about this from the maze's grid (RMS): a maker's
+#: care with a square and a pencil line (the simulator's hand-built preset draws 0.7°). The
+#: prior of each stretch's turn: the maze's grid is where the boards' turns average to zero.
+BOARD_TURN_STD_RAD = math.radians(0.7)
+
+#: The faces' std the fit starts from ...
+FACE_STD_START_RAD = math.radians(0.2)
+
+#: ... and how often it is estimated again from the residuals (it settles within three rounds on
+#: the bench's hand-built mazes: 0.39°, 0.40°, 0.40°).
+FACE_STD_ITERATIONS = 3
+
+#: The faces' std is never taken below this (a simulated lidar without noise fits exactly).
+FACE_STD_MIN_RAD = math.radians(0.02)
+
+
+def start_anchor_rad(
+    rest: Faces, keyframes: Sequence[Keyframe], poses: np.ndarray, reference_rad: float
+) -> tuple[float, float] | None:
+    """Keyframe 0's anchor direction in its own frame (modulo 90°), ``g`` at rest (module docstring), and its std.
+
+    The std is the fit's own (its normal matrix's inverse at ``g``): ~0.3° on the bench's
+    hand-built 8×8 mazes, where the direction came out 0.02-0.65° off the maze's grid.
+
+    ``rest`` are the faces keyframe 0 saw at rest (its frame), ``poses`` (K, 3) the keyframes'
+    current poses and ``reference_rad`` the wall grid's direction in the map as known so far:
+    they only place the faces on their stretches. Every keyframe after the first adds its
+    faces (:meth:`mazebot.slam.keyframes.Keyframe.wall_faces`, cached).
+    """
+    places = [(rest, poses[0])] + [(keyframes[k].wall_faces(), poses[k]) for k in range(1, len(keyframes))]
+    owners, stretches, directions = [], [], []
+    for place, (faces, pose) in enumerate(places):
+        if not len(faces):
+            continue
+        owners.append(np.full(len(faces), place))
+        stretches.append(stretch_keys(faces.placed(pose), reference_rad))
+        base = float(faces.normal_rad[0])
+        directions.append(base + quarter_turns(faces.normal_rad - base))  # one quadrant per place
+    if not owners or owners[0][0] != 0:
+        return None
+    _, owner = np.unique(np.concatenate(owners), return_inverse=True)  # places without faces left out; 0 stays 0
+    owner = owner.reshape(-1)
+    _, stretch = np.unique(np.concatenate(stretches), axis=0, return_inverse=True)
+    stretch = stretch.reshape(-1)
+    if not np.isin(stretch[owner == 0], stretch[owner != 0]).any():
+        return None  # nothing keyframe 0 saw has been seen again: its faces alone are no anchor
+    direction, std = _two_way_fit(owner, stretch, np.concatenate(directions))
+    return float(quarter_turns(np.array([direction]))[0]), std
+
+
+def stretch_keys(faces: Faces, reference_rad: float) -> np.ndarray:
+    """Each face's stretch of wall (F, 3): the side its normal faces on the grid, its place across and along."""
+    relative = faces.normal_rad - reference_rad
+    side = np.round((relative - quarter_turns(relative)) / (math.pi / 2)).astype(np.int64) % 4
+    c, s = math.cos(reference_rad), math.sin(reference_rad)
+    u = c * faces.centre_xy[:, 0] + s * faces.centre_xy[:, 1]
+    v = -s * faces.centre_xy[:, 0] + c * faces.centre_xy[:, 1]
+    across_u = side % 2 == 0
+    across = np.floor(np.where(across_u, u, v) / STRETCH_ACROSS_M).astype(np.int64)
+    along = np.floor(np.where(across_u, v, u) / STRETCH_ALONG_M).astype(np.int64)
+    return np.column_stack((side, across, along))
+
+
+def _two_way_fit(owner: np.ndarray, stretch: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
+    """``g`` of place 0 from ``direction = g[owner] + β[stretch]`` (module docstring) by least squares, and its std.
+
+    Each stretch's turn has the prior ``0 ± BOARD_TURN_STD_RAD``; each face the same std, which
+    is estimated from the fit's own residuals (``FACE_STD_ITERATIONS`` rounds, from
+    ``FACE_STD_START_RAD``): a face's direction in its scan errs by the lidar's noise and
+    by what the de-skew left of the cheap robot's slip in turns, neither known beforehand.
+    """
+    places = int(owner.max()) + 1
+    walls = int(stretch.max()) + 1
+    rows = np.arange(owner.size)
+    face_std = FACE_STD_START_RAD
+    for _ in range(FACE_STD_ITERATIONS):
+        face_w = np.full(owner.size, 1.0 / face_std)
+        design = csc_matrix(
+            (np.concatenate((face_w, face_w, np.full(walls, 1.0 / BOARD_TURN_STD_RAD))),
+             (np.concatenate((rows, rows, owner.size + np.arange(walls))),
+              np.concatenate((owner, places + stretch, places + np.arange(walls))))),
+            shape=(owner.size + walls, places + walls),
+        )
+        target = np.concatenate((face_w * direction, np.zeros(walls)))
+        normal = (design.T @ design).tocsc()
+        solution = spsolve(normal, design.T @ target)
+        residual = direction - solution[owner] - solution[places + stretch]
+        face_std = max(math.sqrt(float(residual @ residual) / max(1, owner.size - places)), FACE_STD_MIN_RAD)
+    unit = np.zeros(places + walls)
+    unit[0] = 1.0
+    return float(solution[0]), math.sqrt(float(spsolve(normal, unit)[0]))

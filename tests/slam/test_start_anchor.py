@@ -1,0 +1,119 @@
+"""The start's wall grid judged through every board: a known turn of a hand-built maze recovered.
+
+Against ground truth: a 6×6 maze built by hand (boards turned by 0.7° RMS) at a known
+angle, keyframes cast from known poses; the map the keyframes drew turned about the start
+as a first in-place turn's error leaves it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mazebot.sim.hand_maze import HandBuild, hand_built_world
+from mazebot.sim.maze_generator import generate_maze
+from mazebot.slam.slam import LoopClosureJob
+from mazebot.slam.start_anchor import start_anchor_rad
+from mazebot.slam.wall_faces import Faces, quarter_turns, wall_faces
+from tests.slam.test_lattice_fit import chain_job as lattice_chain_job
+from tests.slam.test_wall_lattice import keyframe_at, route_poses
+
+MAZE_DEG = 17.0  # the maze's grid in the world (and map) frame
+TURN_DEG = 0.6  # the map's turn about the start after its first turn (as measured on the bench's 8x8 mazes)
+REST_REVOLUTIONS = 20  # the revolutions keyframe 0 measures its faces over
+
+
+def grid_error_deg(direction_rad: float) -> float:
+    """How far a wall-grid direction lies from the maze's (degrees, modulo 90°)."""
+    return math.degrees(math.remainder(direction_rad - math.radians(MAZE_DEG), math.pi / 2))
+
+
+def turned_about(pose0: np.ndarray, poses: np.ndarray, angle_rad: float) -> np.ndarray:
+    """``poses`` (K, 3) turned by ``angle_rad`` about ``pose0``'s position."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    dx, dy = poses[:, 0] - pose0[0], poses[:, 1] - pose0[1]
+    return np.column_stack((pose0[0] + c * dx - s * dy, pose0[1] + s * dx + c * dy, poses[:, 2] + angle_rad))
+
+
+@pytest.fixture(scope="module")
+def hand_scene():
+    """A hand-built maze at ``MAZE_DEG``; the keyframes' true poses in the world and in the map.
+
+    The map's origin is keyframe 0, whose heading is the world's: the grid lies at ``MAZE_DEG`` in both.
+    """
+    layout = generate_maze(6, 6, seed=3, kind="braided")
+    world = hand_built_world(layout, HandBuild(pitch_error_max=0.0, maze_angle_rad=math.radians(MAZE_DEG)), 5)
+    route = route_poses(world)
+    # the robot turns in place at the start before it drives off (a keyframe every ~0.15 rad), then the route
+    turning = np.column_stack((np.full(12, route[0, 0]), np.full(12, route[0, 1]), np.linspace(0.0, 2.0, 12)))
+    world_poses = np.vstack((turning, route[1:]))
+    in_map = world_poses.copy()
+    in_map[:, :2] -= world_poses[0, :2]
+    return world, world_poses, in_map
+
+
+def rest_surface(world, cast_scan, pose: np.ndarray) -> Faces:
+    """Keyframe 0's faces and surface from ``REST_REVOLUTIONS`` revolutions pooled at ``pose``, in its frame."""
+    surfaces = [keyframe_at(world, cast_scan, 0, pose, seed=100 + k).surface() for k in range(REST_REVOLUTIONS)]
+    points = np.concatenate([p for p, _ in surfaces])
+    normals = np.concatenate([n for _, n in surfaces])
+    direction, _, _ = keyframe_at(world, cast_scan, 0, pose, seed=100).wall_direction()
+    return wall_faces(points, normals, direction)
+
+
+def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand_scene, cast_scan) -> None:
+    world, world_poses, truth = hand_scene
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
+    start = rest_surface(world, cast_scan, world_poses[0])
+    faces = start
+    assert len(faces) >= 2
+    # the start's own faces: their mean is off the maze's grid by the boards' turns
+    own = math.radians(MAZE_DEG) + float(np.average(
+        quarter_turns(faces.normal_rad + truth[0, 2] - math.radians(MAZE_DEG)), weights=faces.count))
+    assert abs(grid_error_deg(own)) > 0.2
+    for turn_deg in (0.0, TURN_DEG, -TURN_DEG):
+        poses = truth.copy()
+        poses[1:] = turned_about(truth[0], truth[1:], math.radians(turn_deg))
+        reference = math.radians(MAZE_DEG + turn_deg)  # the map's own grid: turned with it
+        judged = start_anchor_rad(start, keyframes, poses, reference)
+        assert judged is not None
+        anchor, std = judged
+        # the anchor is in keyframe 0's frame; keyframe 0 stands where it truly stood
+        assert abs(grid_error_deg(anchor + truth[0, 2])) < 0.1, turn_deg
+        assert 0.0 < math.degrees(std) < 1.0  # the fit's own std: less than a board's turn
+
+
+def chain_job(keyframes, poses, start: Faces | None) -> LoopClosureJob:
+    """The periodic optimization of the chain ``poses`` as its matches drew it, the start's faces its only anchor."""
+    return replace(lattice_chain_job(keyframes, poses, None), anchor_wall=None, start_faces=start)
+
+
+def test_a_map_turned_about_a_hand_built_start_is_turned_back(hand_scene, cast_scan) -> None:
+    world, world_poses, truth = hand_scene
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
+    rest = rest_surface(world, cast_scan, world_poses[0])
+
+    def optimized(turn_deg: float, start: Faces | None):
+        """The job on the map turned by ``turn_deg`` about the start; its keyframes' mean heading error (°)."""
+        poses = truth.copy()
+        poses[1:] = turned_about(truth[0], truth[1:], math.radians(turn_deg))
+        for kf, pose in zip(keyframes, poses, strict=True):
+            kf.pose = pose.copy()
+        result = chain_job(keyframes, poses, start).run()
+        error = np.remainder(result.poses[1:, 2] - truth[1:, 2] + math.pi, math.tau) - math.pi
+        return result, math.degrees(float(np.mean(error)))
+
+    # with no anchor the wall priors keep the turn: they tie the keyframes to each other, not to the start
+    _, straight = optimized(0.0, None)
+    _, turned = optimized(TURN_DEG, None)
+    assert turned - straight > 0.8 * TURN_DEG
+    # the start's faces, each board's own turn taken out, turn the map back (at the fit's own std, not all
+    # the way against the chain's first edge): within a third of the turn of the map made from the truth
+    result_straight, straight = optimized(0.0, rest)
+    result_turned, turned = optimized(TURN_DEG, rest)
+    assert abs(turned - straight) < TURN_DEG / 3
+    for result in (result_straight, result_turned):
+        assert result.wall_reference_rad is not None and abs(grid_error_deg(result.wall_reference_rad)) < 0.1

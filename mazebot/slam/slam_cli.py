@@ -71,6 +71,18 @@ LASER_LOG_PRIOR_NOISE = MotionNoise(
     xy_m2_per_m=0.1**2, theta_rad2_per_m=0.1**2, theta_rad2_per_rad=0.1**2, estimate=True
 )
 
+#: a closure the correlative search found is refused when another alignment of its window scores this share
+#: of the best (:func:`mazebot.slam.correlative.runner_up`): after metres of drift the window spans metres of
+#: corridor, and of two look-alikes scoring within 10 % the best is no surer the right one
+LASER_LOG_AMBIGUITY_RATIO = 0.9
+#: ... counting alignments farther than this from the best: twice ICP's 0.5 m correspondence gate, beyond
+#: which ICP started at one would not converge to the other (nearer, they are one basin)
+LASER_LOG_PEAK_SEPARATION_M = 1.0
+#: the heading calibration applies an estimate only by as much as its Wald statistic exceeds this
+#: (:class:`mazebot.slam.ekf.HeadingCalibration`): chi2 of one degree of freedom at 0.1 %, so white odometry
+#: noise, whose estimates are zero but for their scatter, is not learnt as a bias
+LASER_LOG_CALIBRATION_CHI2 = 10.83
+
 
 def laser_log_params(base: SlamParams, calibrate_heading: bool = False) -> SlamParams:
     """SLAM settings for an indoor laser log (SICK LMS, metres between scans) from the maze ones.
@@ -197,6 +209,8 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = False) -> SlamP
             max_correction_rad=0.2,
             correction_sigmas=3.0,
             ambiguity_shift_m=0.0,
+            search_ambiguity_ratio=LASER_LOG_AMBIGUITY_RATIO,
+            search_peak_separation_m=LASER_LOG_PEAK_SEPARATION_M,
             min_std_m=0.05,
             min_std_rad=0.02,
             max_range_m=None,
@@ -218,6 +232,7 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = False) -> SlamP
         wall_prior=False,
         calibrate_heading=calibrate_heading,
         calibration_limit=0.5,  # a log's odometry comes undescribed: any wheel or track error a robot still drives with
+        calibration_significance_chi2=LASER_LOG_CALIBRATION_CHI2,
         estimate_time_offset=False,
         lidar_time_offset_s=0.0,
         keyframe_distance_m=0.2,

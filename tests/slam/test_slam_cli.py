@@ -391,3 +391,18 @@ def test_a_laser_log_learns_its_odometrys_heading_bias_and_the_noise_left_after_
     lengths = np.array([max(float(np.hypot(s[0], s[1]) + abs(s[2])), 0.05) for s in steps])
     raw_std = float(np.median(np.abs([float(wrap_angle(r[2])) for r in raw]) / np.sqrt(lengths)) / 0.6745)
     assert np.sqrt(learnt.noise.theta_rad2_per_m) < 0.5 * raw_std
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_laser_log_with_white_odometry_noise_learns_no_heading_bias(intel_log_path: Path, seed: int) -> None:
+    """Odometry whose errors are white (``--odom-noise 0.05,0.05``): the calibration's estimates are its noise's
+    scatter (a turn scale of −2 or −3 % over these 150 scans), within what white noise gives, so none is applied
+    and the map does not turn about its start with them."""
+    lasers = read_carmen(intel_log_path).lasers[:150]
+    reference = np.array([r.pose for r in lasers])
+    odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(seed))
+    config = load_config(None)
+    slam = _slam_over(lasers, odometry, laser_log_params(SlamParams.from_config(config.slam, config.lidar),
+                                                         calibrate_heading=True))
+    assert abs(slam.calibration.scale) < 0.01 and abs(slam.calibration.bias_rad_per_m) < 0.01

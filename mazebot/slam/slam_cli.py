@@ -460,6 +460,9 @@ def run_carmen(
         "seed": seed,
         "odom_calibration": None if not calibrate_odometry else {
             "turn_scale": round(slam.calibration.scale, 5), "bias_rad_per_m": round(slam.calibration.bias_rad_per_m, 5),
+            # what the recursion learnt, and each estimate's Wald statistic (the applied ones are shrunk by it)
+            "learnt": [round(float(v), 5) for v in slam.calibration.learnt],
+            "wald": [round(float(v), 2) for v in slam.calibration.wald()],
         },
         "odom_noise_learnt": None if learnt is None else {
             "pairs": learnt.pairs,

@@ -194,7 +194,7 @@ def test_slam_run_with_systematic_odometry(
     assert code == 0
     stats = json.loads(capsys.readouterr().out)
     assert stats["odom_model"] == "systematic" and stats["odom_noise"] is None
-    assert set(stats["odom_calibration"]) == {"turn_scale", "bias_rad_per_m"}
+    assert set(stats["odom_calibration"]) == {"turn_scale", "bias_rad_per_m", "learnt", "wald"}
     assert set(stats["odom_systematic"]) == {"left_scale", "right_scale", "track_scale", "initial_bias_rad_per_m"}
     assert stats["error_odometry"]["rms_m"] > 0.05  # the odometry is off, SLAM is run on it
     assert main(["slam", "run", "--carmen", str(log), "--odom-systematic", "0.01,0.02,0.005,0.002",

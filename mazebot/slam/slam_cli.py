@@ -84,7 +84,7 @@ LASER_LOG_PEAK_SEPARATION_M = 1.0
 LASER_LOG_CALIBRATION_CHI2 = 10.83
 
 
-def laser_log_params(base: SlamParams, calibrate_heading: bool = False) -> SlamParams:
+def laser_log_params(base: SlamParams, calibrate_heading: bool = False, closure_ambiguity: bool = False) -> SlamParams:
     """SLAM settings for an indoor laser log (SICK LMS, metres between scans) from the maze ones.
 
     Every scan moves the robot more than the maze keyframe spacing, so every scan is a
@@ -209,7 +209,7 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = False) -> SlamP
             max_correction_rad=0.2,
             correction_sigmas=3.0,
             ambiguity_shift_m=0.0,
-            search_ambiguity_ratio=LASER_LOG_AMBIGUITY_RATIO,
+            search_ambiguity_ratio=LASER_LOG_AMBIGUITY_RATIO if closure_ambiguity else 0.0,
             search_peak_separation_m=LASER_LOG_PEAK_SEPARATION_M,
             min_std_m=0.05,
             min_std_rad=0.02,
@@ -360,6 +360,7 @@ def run_carmen(
     consistency_scans: int = 60,
     anchor_first_scan: bool = True,
     calibrate_odometry: bool = False,
+    closure_ambiguity: bool = False,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
@@ -370,7 +371,8 @@ def run_carmen(
     registered against the map of the others (:mod:`mazebot.slam.map_consistency`), at the
     SLAM's poses and at the reference's; 0 skips it. ``anchor_first_scan``: the finished map
     is re-anchored where the first scan registers against it (:func:`reanchor`).
-    ``calibrate_odometry``: the odometry's heading calibrated online (:func:`laser_log_params`).
+    ``calibrate_odometry``: the odometry's heading calibrated online; ``closure_ambiguity``: a closure the
+    search found refused where its window holds a look-alike (both :func:`laser_log_params`).
     """
     log = read_carmen(log_path)
     if not log.lasers:
@@ -392,7 +394,7 @@ def run_carmen(
                 "to make odometry from its poses"
             )
     config = load_config(config_path)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_odometry)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity)
     # the map frame: the log's frame, anchored at its first pose; odometry starts there too
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
     slam = Slam(params, initial_pose=np.zeros(3))
@@ -677,7 +679,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     systematic = parse_systematic(args.odom_systematic) if args.odom_model == "systematic" else None
     stats = run_carmen(
         args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
-        args.consistency_scans, not args.no_reanchor, args.odom_calibration,
+        args.consistency_scans, not args.no_reanchor, args.odom_calibration, args.closure_ambiguity,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -723,7 +725,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--odom-calibration",
         action="store_true",
         help="calibrate the odometry's heading online from the scan matches (a turn scale and a drift per metre, "
-        "as the robot does): for wheel odometry with systematic errors; off by default",
+        "as the robot does, each applied only as far as the matches show it beyond white noise): for wheel "
+        "odometry with systematic errors; off by default",
+    )
+    run.add_argument(
+        "--closure-ambiguity",
+        action="store_true",
+        help="refuse a loop closure the correlative search found when another alignment of its window, over 1 m "
+        "from the best, scores 0.9 of it (a look-alike along a corridor); off by default",
     )
     run.add_argument("--seed", type=int, default=1, help="seed of the odometry noise (default 1)")
     run.add_argument("--max-scans", type=positive_int, default=None, metavar="N", help="only the first N scans")

@@ -264,7 +264,7 @@ def aces() -> tuple[list, LoopClosureParams, IcpParams]:
 
     lasers = read_carmen(carmen_log(ACES_LOG)).lasers
     config = load_config(None)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), closure_ambiguity=True)
     return lasers, params.loop, params.icp
 
 

@@ -109,7 +109,20 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = False, closure_
     Intel log with the defaults' systematic odometry went from 0.161 to 0.107 m; but with
     white odometry noise it learns a bias that is not there and the Freiburg 101 maps
     turned about their start (0.152 / 0.200 / 0.178 -> 0.271 / 0.286 / 0.190 m, the maps
-    themselves as consistent): not the default.
+    themselves as consistent): not the default. Since branch ``reallogs8`` each estimate is
+    applied only as far as the matches show it beyond white noise
+    (:data:`LASER_LOG_CALIBRATION_CHI2`): with white noise nothing is applied at the end of any
+    run (Freiburg 101 main's to the digit), and with the look-alike test below the stand-in
+    (odometry four times the systematic model's defaults) held every run, better than main on
+    five of six (Intel seed 1 0.183 -> 0.095 m, ACES seed 2 11.27 -> 0.150 m); still not the
+    default: the defaults' systematic odometry on Intel 0.161 -> 0.189 m.
+
+    ``closure_ambiguity`` (``slam run --closure-ambiguity``; off by default): a closure the
+    correlative search found is refused when another alignment of its window scores
+    :data:`LASER_LOG_AMBIGUITY_RATIO` of the best (:meth:`mazebot.slam.loop_closure.WindowSearch.rival`).
+    It refuses the 7.5 m look-alike of the ACES log with drifting odometry, but at ``0.1,0.1``
+    it lost the Intel log's end on seed 7 (0.118 -> 0.702 m) and a stretch of seed 2 (branch
+    ``reallogs8``).
 
     Loop closures (measured on the Intel log, ``--odom-noise 0.05,0.05``, seed 1):
 

@@ -163,6 +163,8 @@ def correlative_match(
     *,
     theta_step_rad: float | None = None,
     exhaustive: bool = False,
+    exclude: tuple[np.ndarray, float] | None = None,
+    floor: float = -1.0,
 ) -> CorrelativeResult:
     """The best-scoring pose of ``source_xy`` (N, 2, robot frame) within the window about ``initial_pose``.
 
@@ -172,6 +174,13 @@ def correlative_match(
     table's levels unless ``exhaustive`` (every candidate scored on the fine table; the
     same best pose, ties aside, at many more lookups). Ties go to the candidate nearest
     the initial pose (smallest turn, then smallest shift).
+
+    ``exclude = (centre (2,), radius_m)`` leaves out every translation within ``radius_m``
+    of ``centre`` (at any heading), and only candidates scoring above ``floor`` count:
+    :func:`runner_up` asks this for the best *other* alignment. Nothing above the floor
+    gives score 0 at ``initial_pose``. The bounds stay bounds of the candidates left in,
+    so branch and bound still returns the exhaustive answer, and the floor prunes from the
+    start.
     """
     src = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
     pose0 = np.asarray(initial_pose, dtype=np.float64).reshape(3)
@@ -200,18 +209,33 @@ def correlative_match(
         gy = np.clip(iy[heading][:, :] + b[:, None], 0, shape[1] - 1)
         return table.tables[level][gx, gy].mean(axis=1)
 
+    def excluded(level: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # a block of 2^level cells from (a, b) is left out when all its corners are (the disc is convex)
+        if exclude is None:
+            return np.zeros(np.shape(a), dtype=bool)
+        centre, radius = np.asarray(exclude[0], dtype=np.float64).reshape(2), float(exclude[1])
+        out = np.ones(np.shape(a), dtype=bool)
+        for da in (0, 2**level - 1):
+            for db in (0, 2**level - 1):
+                x0 = pose0[0] + (np.asarray(a) + da - w) * res - centre[0]
+                y0 = pose0[1] + (np.asarray(b) + db - w) * res - centre[1]
+                out &= np.hypot(x0, y0) <= radius
+        return out
+
     if exhaustive or table.levels == 0:
         grid_a, grid_b = np.meshgrid(np.arange(side), np.arange(side), indexing="ij")
-        best_key, best = None, -1.0
+        best_key, best = None, float(floor)
+        kept = ~excluded(0, grid_a.ravel(), grid_b.ravel())
         for h in range(len(thetas)):
             heads = np.full(side * side, h)
-            sc = scores(0, heads, grid_a.ravel(), grid_b.ravel())
+            sc = np.where(kept, scores(0, heads, grid_a.ravel(), grid_b.ravel()), -np.inf)
             keys = _tie_keys(grid_a.ravel(), grid_b.ravel(), w)
             order = np.lexsort((keys, -sc))
             top = order[0]
             if sc[top] > best + 1e-12:
                 best, best_key = float(sc[top]), (h, int(grid_a.ravel()[top]), int(grid_b.ravel()[top]))
-        assert best_key is not None
+        if best_key is None:
+            return CorrelativeResult(pose0.copy(), 0.0, candidates * n, candidates, len(thetas))
         h, a0, b0 = best_key
         return CorrelativeResult(
             np.array([pose0[0] + (a0 - w) * res, pose0[1] + (b0 - w) * res, float(thetas[h])]),
@@ -225,12 +249,14 @@ def correlative_match(
     heads = np.repeat(np.arange(len(thetas)), ha.size)
     a = np.tile(ha.ravel(), len(thetas))
     b = np.tile(hb.ravel(), len(thetas))
+    kept = ~excluded(top, a, b)
+    heads, a, b = heads[kept], a[kept], b[kept]
     bound = scores(top, heads, a, b)
     lookups = bound.size * n
     # depth first, best first: a stack of (level, heading, a, b, bound), the best on top
     order = np.argsort(bound, kind="stable")
     stack = [(top, int(heads[i]), int(a[i]), int(b[i]), float(bound[i])) for i in order]
-    best, best_key = -1.0, (0, w, w)
+    best, best_key = float(floor), None
     while stack:
         level, h, a0, b0, bd = stack.pop()
         if bd <= best:
@@ -244,6 +270,8 @@ def correlative_match(
         cb = np.array([b0, b0 + half, b0, b0 + half])
         inside = (ca < side) & (cb < side)
         ca, cb = ca[inside], cb[inside]
+        inside = ~excluded(level - 1, ca, cb)
+        ca, cb = ca[inside], cb[inside]
         sc = scores(level - 1, np.full(ca.size, h), ca, cb)
         lookups += sc.size * n
         # pushed worst first (popped best first); among equal scores the one nearest the centre is popped first
@@ -251,10 +279,39 @@ def correlative_match(
         for i in np.lexsort((-keys, sc)):
             if sc[i] > best:
                 stack.append((level - 1, h, int(ca[i]), int(cb[i]), float(sc[i])))
+    if best_key is None:  # nothing above the floor
+        return CorrelativeResult(pose0.copy(), 0.0, lookups, candidates, len(thetas))
     h, a0, b0 = best_key
     return CorrelativeResult(
         np.array([pose0[0] + (a0 - w) * res, pose0[1] + (b0 - w) * res, float(thetas[h])]),
         max(best, 0.0), lookups, candidates, len(thetas),
+    )
+
+
+def runner_up(
+    table: LikelihoodTable,
+    source_xy: np.ndarray,
+    initial_pose: np.ndarray,
+    window_xy_m: float,
+    window_theta_rad: float,
+    best: CorrelativeResult,
+    separation_m: float,
+    ratio: float,
+    sensor_xy: np.ndarray | None = None,
+) -> CorrelativeResult:
+    """The best pose of the window farther than ``separation_m`` from ``best``'s, if it scores ``ratio`` of it.
+
+    A ratio test of the best match against the second-best distinct one (Lowe,
+    "Distinctive image features from scale-invariant keypoints", IJCV 2004, section 7.1,
+    for image features): a window that holds two alignments scoring alike (the same
+    corridor seen from two places along it, two identical doorways) cannot say which one
+    is right, however good the best one looks. Poses within ``separation_m`` of the best
+    are its own peak's shoulder. Score 0: no other alignment reaches ``ratio`` of the best
+    (the search is pruned at that floor).
+    """
+    return correlative_match(
+        table, source_xy, initial_pose, window_xy_m, window_theta_rad, sensor_xy,
+        exclude=(best.pose[:2], separation_m), floor=ratio * best.score,
     )
 
 

@@ -29,7 +29,7 @@ the keyframes around ``i`` (``i ± submap_half_width``), in ``i``'s frame, start
 prior relative pose; with ``search``, a match that fails there (no convergence, few
 correspondences, a low inlier ratio, a high residual) is tried once more from the best
 pose of a branch-and-bound correlative search over a window about the prior
-(:func:`search_start`, :mod:`mazebot.slam.correlative`): a closure accepted without the
+(:func:`search_window`, :mod:`mazebot.slam.correlative`): a closure accepted without the
 search is accepted with it too. Accepted only if
 
 1. ICP converged with at least ``min_correspondences`` matches, an inlier ratio
@@ -47,7 +47,9 @@ search is accepted with it too. Accepted only if
    farther than ``ambiguity_tolerance_m`` from the match, another alignment nearly as
    good: an inlier ratio of at least ``ambiguity_fitness_ratio`` of the match's and a
    residual at most ``ambiguity_rmse_ratio`` times its (relative, because at the edge
-   of the lidar's range a shifted copy always loses a few points).
+   of the lidar's range a shifted copy always loses a few points); and a closure the
+   correlative search found is refused when its window holds another alignment that
+   scores nearly as well (``search_ambiguity_ratio``, :meth:`WindowSearch.rival`).
 """
 
 from __future__ import annotations
@@ -58,7 +60,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mazebot.geometry import relative_pose, transform_points, wrap_angle
-from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
+from mazebot.slam.correlative import (
+    CorrelativeParams,
+    CorrelativeResult,
+    LikelihoodTable,
+    correlative_match,
+    runner_up,
+    select_points,
+)
 from mazebot.slam.ekf import rotate_information
 from mazebot.slam.icp import IcpParams, IcpResult, Target, match_scan
 from mazebot.slam.overlap import ObservedArea
@@ -216,10 +225,14 @@ def verify(
         window_xy_m=max(params.search.window_xy_m, limit_m),
         window_theta_rad=max(params.search.window_theta_rad, limit_rad),
     )
-    start = search_start(candidate.prior, target, source_xy, sensor_xy, search)
-    if np.allclose(start, candidate.prior):
+    window = search_window(candidate.prior, target, source_xy, sensor_xy, search)
+    if window is None or np.allclose(window.found.pose, candidate.prior):
         return verdict
-    verdict = _verify_from(start, candidate, target, source_xy, sensor_xy, icp, params, observed)
+    verdict = _verify_from(window.found.pose, candidate, target, source_xy, sensor_xy, icp, params, observed)
+    if (verdict.accepted or verdict.tentative) and params.search_ambiguity_ratio > 0:
+        rival = window.rival(params.search_peak_separation_m, params.search_ambiguity_ratio)
+        if rival:
+            verdict = _reject(candidate, "ambiguous", rival, fitness=verdict.fitness, rmse_m=verdict.rmse_m)
     # a tentative closure from the prior stays one unless the search's start did better
     return first if first.tentative and not (verdict.accepted or verdict.tentative) else verdict
 
@@ -346,14 +359,44 @@ def correction_limits(candidate: Candidate, params: LoopClosureParams) -> tuple[
     )
 
 
-def search_start(
+@dataclass(frozen=True)
+class WindowSearch:
+    """A branch-and-bound search over a closure's window: its best pose, and what it searched."""
+
+    found: CorrelativeResult
+    table: LikelihoodTable
+    source_xy: np.ndarray  # the points searched with (:func:`mazebot.slam.correlative.select_points`)
+    sensor_xy: np.ndarray
+    prior: np.ndarray
+    search: CorrelativeParams
+
+    def rival(self, separation_m: float, ratio: float) -> str:
+        """Empty, or why the window is ambiguous: another pose farther than ``separation_m`` from the best
+        scores at least ``ratio`` of it (:func:`mazebot.slam.correlative.runner_up`).
+
+        After metres of drift the window spans metres of corridor, and the best of two
+        look-alikes is as likely the wrong one: on the ACES log with odometry whose heading
+        drifts 7° a metre, a closure 7.5 m along a corridor from the right place was found by
+        the search and passed every other test of :func:`verify`.
+        """
+        other = runner_up(
+            self.table, self.source_xy, self.prior, self.search.window_xy_m, self.search.window_theta_rad,
+            self.found, separation_m, ratio, self.sensor_xy,
+        )
+        if other.score <= 0:
+            return ""
+        apart = math.hypot(*(other.pose[:2] - self.found.pose[:2]))
+        return f"another alignment {apart:.1f} m away scores {other.score / self.found.score:.2f} of the best"
+
+
+def search_window(
     prior: np.ndarray,
     target: Target,
     source_xy: np.ndarray,
     sensor_xy: np.ndarray,
     search: CorrelativeParams | None,
-) -> np.ndarray:
-    """Where ICP starts: the best pose of a branch-and-bound search about the prior, or the prior itself.
+) -> WindowSearch | None:
+    """Where ICP starts: the best pose of a branch-and-bound search about the prior (None: the prior itself).
 
     A prior that drifted by more than ICP's basin (half a metre after a long loop in a
     building) makes ICP miss a closure that is there (Hess et al., ICRA 2016, section V:
@@ -364,12 +407,14 @@ def search_start(
     """
     prior = np.asarray(prior, dtype=np.float64)
     if search is None or (search.window_xy_m <= 0 and search.window_theta_rad <= 0):
-        return prior
+        return None
     src = select_points(source_xy, sensor_xy, search)
     crop = (prior[:2], search.max_range_m + search.window_xy_m + 3.0 * search.sigma_m + 0.5)
     table = LikelihoodTable(target.points, search.resolution_m, search.sigma_m, search.levels, crop=crop)
     found = correlative_match(table, src, prior, search.window_xy_m, search.window_theta_rad, sensor_xy)
-    return found.pose if found.score >= search.min_score else prior
+    if found.score < search.min_score:
+        return None
+    return WindowSearch(found, table, src, np.asarray(sensor_xy, dtype=np.float64), prior, search)
 
 
 def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> bool:

@@ -444,7 +444,9 @@ class Slam:
         self.initial_pose = np.zeros(3) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
         p = self.params
         self.ekf = PoseEkf(self.initial_pose, p.initial_std, p.motion, p.filter_gate_chi2)
-        self.calibration = HeadingCalibration(p.calibration_memory_scans, limit=p.calibration_limit)
+        self.calibration = HeadingCalibration(
+            p.calibration_memory_scans, limit=p.calibration_limit, significance_chi2=p.calibration_significance_chi2
+        )
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()
         self.graph = PoseGraph()

@@ -11,7 +11,13 @@ import pytest
 from mazebot.geometry import transform_points as transform
 from mazebot.sim.world import World, rectangles_outline
 from mazebot.slam.carmen import read_carmen
-from mazebot.slam.correlative import CorrelativeParams, LikelihoodTable, correlative_match, select_points
+from mazebot.slam.correlative import (
+    CorrelativeParams,
+    LikelihoodTable,
+    correlative_match,
+    runner_up,
+    select_points,
+)
 from mazebot.slam.icp import IcpParams, Target, match_scan
 
 #: The largest offsets the issue asks for: ±0.5 m on each axis and ±30°.
@@ -139,3 +145,31 @@ def test_an_empty_scan_or_table_finds_nothing() -> None:
     assert found.score == 0.0
     found = correlative_match(LikelihoodTable(np.ones((5, 2)), 0.05, 0.1, 2), np.zeros((0, 2)), np.ones(3), 0.2, 0.1)
     np.testing.assert_array_equal(found.pose, np.ones(3)) and found.score == 0.0
+
+
+@pytest.mark.parametrize("levels", [0, 2, 4])
+def test_the_runner_up_is_the_exhaustive_best_outside_the_best_peak(intel_log_path: Path, levels: int) -> None:
+    """The best pose farther than the separation from the best one: branch and bound (pruned at the floor) finds
+    what scoring every candidate outside that disc finds, and nothing when no candidate reaches the floor."""
+    rng = np.random.default_rng(10 + levels)
+    for ref, new in _intel_pairs(intel_log_path, 4):
+        table = LikelihoodTable(transform(ref.pose, ref.points_xy(30.0)), 0.05, 0.1, levels,
+                                crop=(new.pose[:2], 9.0))
+        src = select_points(new.points_xy(30.0), None, REAL)
+        guess = new.pose + np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-0.1, 0.1)])
+        best = correlative_match(table, src, guess, 0.6, 0.2)
+        runner = runner_up(table, src, guess, 0.6, 0.2, best, 0.3, 0.0)
+        full = correlative_match(table, src, guess, 0.6, 0.2, exhaustive=True, exclude=(best.pose[:2], 0.3))
+        assert runner.score == pytest.approx(full.score, abs=1e-12) and 0 < runner.score <= best.score
+        assert np.hypot(*(runner.pose[:2] - best.pose[:2])) > 0.3
+        assert runner_up(table, src, guess, 0.6, 0.2, best, 0.3, full.score / best.score + 1e-6).score == 0.0
+
+
+def test_the_runner_up_of_a_repeated_place_scores_as_the_best() -> None:
+    """Two identical corners 2 m apart, the scan of one: both fit alike, and the runner-up says so."""
+    corner = np.array([[x, 0.0] for x in np.arange(0.0, 1.0, 0.02)] + [[0.0, y] for y in np.arange(0.02, 1.0, 0.02)])
+    table = LikelihoodTable(np.vstack([corner, corner + np.array([2.0, 0.0])]), 0.05, 0.05, 3)
+    best = correlative_match(table, corner - np.array([0.5, 0.5]), np.array([1.6, 0.5, 0.0]), 1.5, 0.1)
+    runner = runner_up(table, corner - np.array([0.5, 0.5]), np.array([1.6, 0.5, 0.0]), 1.5, 0.1, best, 1.0, 0.9)
+    assert best.score > 0.9 and runner.score == pytest.approx(best.score, abs=0.02)
+    np.testing.assert_allclose(sorted([best.pose[0], runner.pose[0]]), [0.5, 2.5], atol=0.06)

@@ -27,7 +27,8 @@ from pathlib import Path
 
 from mazebot.bench.quota_run import host_steal_s
 
-#: The control loop's period (``[control]`` runs at 100 Hz on the robot's own thread).
+#: The probe's period: a fifth of the control loop's default 50 ms, so a stop of a few
+#: milliseconds shows as well as one of a whole control period.
 PERIOD_S = 0.01
 #: The probe's real-time priority where SCHED_FIFO is allowed (the bench's control process uses one too).
 FIFO_PRIORITY = 50

@@ -56,9 +56,9 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0
 #: How long a stopped daemon or world may take to end before it is terminated, then killed.
 STOP_TIMEOUT_S = 15.0
-#: A control tick this late (ms) is counted apart in the results: ten control periods, the
-#: lateness a host's stop of the whole machine (its ~100 ms period) shows as, never a scheduling
-#: delay of the daemon on a machine of its own.
+#: A control tick this late (ms) is counted apart in the results: a whole control period (the
+#: default 50 ms) missed, as a host's stop of the whole machine (its ~100 ms period) shows, where
+#: a daemon on a machine of its own comes 1-2 ms late.
 LATE_TICK_MS = 50.0
 #: How often this process samples the resident memory of the others.
 RSS_PERIOD_S = 0.5

@@ -178,7 +178,8 @@ class BlindZoneMemory:
     bearing, and the robot turning on the spot for 4-7 s until the stuck recovery backed it
     off). Forgetting everything whenever SLAM distrusts the odometry (it did, for a while)
     forgets a leg inside the minimum range too, and a healthy run distrusts it now and then
-    (a disputed match at rest, a brief slip: 0-23 revolutions a run under a Pi 4's share).
+    (a disputed match at rest, a brief slip: 0-23 revolutions a run under a Pi 4's share,
+    57-251 a run of the cheap robot on the hand-built mazes).
     So each revolution's returns are placed by **SLAM's own pose of that revolution**, as
     the scan matcher found it (:meth:`fix`, with SLAM's correction of the odometry frame,
     ``map_from_odom``, after its update of that revolution): until SLAM has taken the

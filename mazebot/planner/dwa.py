@@ -184,25 +184,6 @@ class LocalCostmap:
         return cost
 
 
-def unseen_map_points(map_points: np.ndarray, seen_points: np.ndarray, half_cell_m: float) -> np.ndarray:
-    """The occupied map cells' centres (N, 2) that hold none of ``seen_points`` (robot frame).
-
-    A map cell stands for an obstacle anywhere inside it, so the costmap counts it as a disc
-    of half its diagonal: a board's face at the cell's edge stands up to 14 mm (2 cm cells)
-    nearer than it is, and a passage narrowed by a table leg closes in the planner while the
-    robot fits in the world. Where a return the lidar saw lies within ``half_cell_m`` of a
-    cell's centre (inside the cell, whatever its turn in the robot frame), that return is
-    where the cell's obstacle faces the robot, and the cell adds nothing but that pessimism;
-    cells no return confirms (the lidar's blind zone, behind the robot) stay.
-    """
-    cells = np.asarray(map_points, dtype=np.float64).reshape(-1, 2)
-    seen = np.asarray(seen_points, dtype=np.float64).reshape(-1, 2)
-    if not len(cells) or not len(seen):
-        return cells
-    d, _ = cKDTree(seen, balanced_tree=False, compact_nodes=False).query(cells, distance_upper_bound=half_cell_m)
-    return cells[~np.isfinite(d)]
-
-
 def _tree(points: np.ndarray) -> cKDTree | None:
     """A k-d tree of ``points`` (None when there are none), built for one planner tick.
 
@@ -840,14 +821,11 @@ class LocalPlanner:
 
         All points are robot-frame (N, 2) metres: ``scan_points`` the latest returns,
         ``map_points`` occupied map cells (each counted as a disc of
-        ``map_point_radius_m``, half its diagonal; a cell that holds one of ``scan_points``
-        counts by that return instead, :func:`unseen_map_points`), ``wall_points`` known wall surfaces, e.g.
+        ``map_point_radius_m``), ``wall_points`` known wall surfaces, e.g.
         :meth:`MazeGraph.wall_points_m <mazebot.planner.maze_graph.MazeGraph.wall_points_m>`
         moved with :func:`to_robot_frame` (the posts a map misses, closer than the lidar
         sees).
         """
-        if map_points is not None:  # a cell a return shows adds nothing but its pessimism
-            map_points = unseen_map_points(map_points, scan_points, map_point_radius_m * math.sqrt(0.5))
         if wall_points is not None and len(wall_points):
             scan_points = np.concatenate(
                 (np.asarray(scan_points).reshape(-1, 2), np.asarray(wall_points).reshape(-1, 2))

@@ -369,9 +369,10 @@ class FilterSection:
         "scans the heading calibration remembers (exponential forgetting)"))] = 1000.0
     calibration_limit: Annotated[float, Field(gt=0, le=1, description=(
         "the heading calibration's turn scale and its bias in rad per metre stay within plus or minus this"))] = 0.1
-    calibration_significance_chi2: Annotated[float, Field(ge=0, description=(
-        "apply each of the calibration's two estimates only by as much as its Wald statistic against zero "
-        "exceeds this (robust variance; 10.83: 0.1 %, one degree of freedom; 0: apply what was learnt)"))] = 0.0
+    calibration_false_alarm: Annotated[float, Field(ge=0, lt=1, description=(
+        "apply each of the calibration's two estimates only as far as its Wald statistic against zero passes a "
+        "test repeated after every matched scan, whose chance of passing anywhere in a run of white odometry "
+        "noise is at most this (0.001 on laser logs; 0: apply what was learnt)"))] = 0.0
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

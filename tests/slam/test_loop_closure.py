@@ -253,19 +253,30 @@ def test_a_candidate_next_to_an_accepted_closure_or_one_being_verified_is_not_ve
 ACES_LOG = "aces-corrected.log.gz"
 
 
-@pytest.fixture(scope="module")
-def aces() -> tuple[list, LoopClosureParams, IcpParams]:
-    """The ACES log's laser messages (corrected poses: the truth here) and the laser-log closure settings."""
+def _log_and_closure_settings(name: str) -> tuple[list, LoopClosureParams, IcpParams]:
+    """A log's laser messages (corrected poses: the truth here) and the laser-log closure settings."""
     from mazebot.config import load_config
     from mazebot.slam.carmen import read_carmen
     from mazebot.slam.slam import SlamParams
     from mazebot.slam.slam_cli import laser_log_params
     from tests.data_paths import carmen_log
 
-    lasers = read_carmen(carmen_log(ACES_LOG)).lasers
+    lasers = read_carmen(carmen_log(name)).lasers
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), closure_ambiguity=True)
     return lasers, params.loop, params.icp
+
+
+@pytest.fixture(scope="module")
+def aces() -> tuple[list, LoopClosureParams, IcpParams]:
+    """The ACES log and the laser-log closure settings."""
+    return _log_and_closure_settings(ACES_LOG)
+
+
+@pytest.fixture(scope="module")
+def intel() -> tuple[list, LoopClosureParams, IcpParams]:
+    """The Intel Research Lab log and the laser-log closure settings."""
+    return _log_and_closure_settings("intel.gfs.log")
 
 
 def _aces_points(record) -> np.ndarray:
@@ -277,8 +288,9 @@ def _aces_points(record) -> np.ndarray:
 
 
 def _aces_closure(aces, old: int, new: int, prior: np.ndarray, std_m: float, std_rad: float):
-    """Scan ``new`` of the ACES log verified against the submap of scans ``old ± 5`` (at their corrected poses,
-    in scan ``old``'s frame) from ``prior``; returns the verdict and the truth (the corrected relative pose)."""
+    """Scan ``new`` of a log (the ACES log, or another's ``aces``-shaped triple) verified against the submap of
+    scans ``old ± 5`` (at their corrected poses, in scan ``old``'s frame) from ``prior``; returns the verdict and
+    the truth (the corrected relative pose)."""
     from mazebot.geometry import transform_points
     from mazebot.slam.icp import Target
     from mazebot.slam.preprocess import voxel_downsample

@@ -259,7 +259,8 @@ class LoopSection:
         "refuse a closure the correlative search found when another pose of its window scores at least this "
         "share of the best (0: off) ..."))] = 0.0
     search_peak_separation_m: Annotated[float, Field(gt=0, description=(
-        "... counting poses this far from the best and farther (nearer ones are the best's own peak)"))] = 1.0
+        "... counting poses this far from the best and farther and parted from it by a dip in the score below "
+        "that share of theirs (nearer ones, and a ridge along a corridor, are the best's own peak)"))] = 1.0
     information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of a loop closure's ICP information"))] = 0.1
     dcs_phi: Annotated[float, Field(ge=0, description=(

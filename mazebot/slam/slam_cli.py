@@ -78,12 +78,6 @@ LASER_LOG_AMBIGUITY_RATIO = 0.9
 #: ... counting alignments farther than this from the best: twice ICP's 0.5 m correspondence gate, beyond
 #: which ICP started at one would not converge to the other (nearer, they are one basin)
 LASER_LOG_PEAK_SEPARATION_M = 1.0
-#: a sequential match whose point-to-line residual is larger is not taken (it goes to the correlative search over
-#: the whole window, then the heading retries): the Intel log with white odometry noise 0.1, seed 7, its matches
-#: over the whole log 17 mm median, 95 mm at the 99th percentile, 135 mm at most, where ICP from the prediction
-#: converged 30° off at the log's end with 202 mm and the last 18 scans were lost behind it. Residuals spread evenly
-#: over ICP's 0.5 m correspondence gate have an RMS of 0.29 m: half of that is a match no better than chance.
-LASER_LOG_MAX_MATCH_RMSE_M = 0.15
 #: the heading calibration applies an estimate only where its Wald statistic passes a test repeated after every
 #: matched scan whose chance of passing anywhere in a run of white odometry noise is this
 #: (:class:`mazebot.slam.ekf.HeadingCalibration`): white noise, whose estimates are zero but for their scatter,
@@ -243,7 +237,7 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = False, closure_
         grid=GridParams(resolution_m=0.05, max_free_range_m=20.0),
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match
-        max_match_rmse_m=LASER_LOG_MAX_MATCH_RMSE_M,
+        max_match_rmse_m=1.0,
         # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged
         # where the submap saw, the refused doorway scans are matched and the maps are more consistent (aligned
         # ATE lower on most Intel and every ACES run measured), but they turn about the start by more (Intel

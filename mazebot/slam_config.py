@@ -259,7 +259,8 @@ class LoopSection:
         "refuse a closure the correlative search found when another pose of its window scores at least this "
         "share of the best (0: off) ..."))] = 0.0
     search_peak_separation_m: Annotated[float, Field(gt=0, description=(
-        "... counting poses this far from the best and farther (nearer ones are the best's own peak)"))] = 1.0
+        "... counting poses this far from the best and farther and parted from it by a dip in the score below "
+        "that share of theirs (nearer ones, and a ridge along a corridor, are the best's own peak)"))] = 1.0
     information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of a loop closure's ICP information"))] = 0.1
     dcs_phi: Annotated[float, Field(ge=0, description=(
@@ -369,9 +370,10 @@ class FilterSection:
         "scans the heading calibration remembers (exponential forgetting)"))] = 1000.0
     calibration_limit: Annotated[float, Field(gt=0, le=1, description=(
         "the heading calibration's turn scale and its bias in rad per metre stay within plus or minus this"))] = 0.1
-    calibration_significance_chi2: Annotated[float, Field(ge=0, description=(
-        "apply each of the calibration's two estimates only by as much as its Wald statistic against zero "
-        "exceeds this (robust variance; 10.83: 0.1 %, one degree of freedom; 0: apply what was learnt)"))] = 0.0
+    calibration_false_alarm: Annotated[float, Field(ge=0, lt=1, description=(
+        "apply each of the calibration's two estimates only as far as its Wald statistic against zero passes a "
+        "test repeated after every matched scan, whose chance of passing anywhere in a run of white odometry "
+        "noise is at most this (0.001 on laser logs; 0: apply what was learnt)"))] = 0.0
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

@@ -98,6 +98,32 @@ class OdometryStep:
 
 
 @dataclass(frozen=True)
+class OdometryFix:
+    """SLAM moved the odometry frame under the map (``SharedState.map_from_odom``): from ``before`` to ``after``.
+
+    ``revolution_end_s`` is the end time (``Scan.end_time_s``) of the revolution whose update
+    gave ``after``; None when SLAM found the robot again (the lost robot's search, or the
+    pose its revolutions at rest agreed on), which vouches for no revolution of its own.
+    ``vouched``: SLAM stands by that revolution's pose (its scan match was taken, or the
+    odometry was trusted enough to paint it); False when it was held back unmatched (its pose
+    is only the odometry's, which SLAM just distrusted). ``serial`` counts the fixes (from 1), so
+    a reader can tell which it has not seen yet. A loop closure is not a fix: it moves the map
+    around the robot, not the odometry under it.
+    """
+
+    serial: int
+    revolution_end_s: float | None
+    before: tuple[float, float, float]
+    after: tuple[float, float, float]
+    vouched: bool
+
+
+#: Fixes kept in ``SharedState.odometry_fixes``: 256 revolutions, 46 s of an A1, far longer than
+#: the planner (their one reader, 5 Hz) ever goes without reading them while it drives.
+ODOMETRY_FIXES_KEPT = 256
+
+
+@dataclass(frozen=True)
 class Event:
     """Something the user may want to know that stopped nothing for long (a loop stall, a reconnect)."""
 
@@ -266,6 +292,10 @@ class SharedState:
     #: the correction from the odometry frame to the map frame, (x_m, y_m, theta_rad) (ROS
     #: ``map -> odom``); the odometry task publishes ``pose`` as this ⊕ odometry
     map_from_odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: each change of ``map_from_odom`` by a revolution's update or a re-localization, oldest first
+    #: (:class:`OdometryFix`; loop closures are not in it): the planner's blind-zone memory places
+    #: each revolution's returns with SLAM's own pose of that revolution
+    odometry_fixes: deque[OdometryFix] = field(default_factory=lambda: deque(maxlen=ODOMETRY_FIXES_KEPT))
     slam: SlamStats = field(default_factory=SlamStats)
     #: the live occupancy grid, in the map frame (the start pose); a new object with a new
     #: ``generation`` after a loop closure rebuilt it. Read it; never call ``take_dirty`` on it.

@@ -204,8 +204,8 @@ class Pilot:
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
         self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m)
-        #: SLAM's count of revolutions held back (``state.slam.held_back``) when the memory last took one in
-        self._held_back_seen = 0
+        #: the serial of SLAM's last odometry fix the memory took in (``state.odometry_fixes``)
+        self._fixes_seen = 0
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)
         self._drive_inputs: DriveInputs | None = None
         #: the inputs of the latest motion half, for one between the stages of a long goal half
@@ -537,32 +537,49 @@ class Pilot:
         """The latest revolution's valid returns, robot frame, moved to where the robot is now,
         and the returns remembered inside the lidar's blind zone (:class:`BlindZoneMemory`).
 
-        The memory is kept in the odometry frame, so it is only as good as the odometry since
-        each return was seen: once SLAM held a revolution back (the odometry known bad: a
-        slipping tyre, a dead encoder, the robot just found again) the memory is forgotten
-        (:meth:`BlindZoneMemory.clear`) and starts again from the next revolution.
+        The memory takes in each new revolution, then SLAM's fixes of the odometry frame since
+        the last call (:meth:`_take_fixes`): each revolution's returns end where SLAM has that
+        revolution, so a slipping tyre's odometry does not smear them, and a revolution SLAM
+        held back does not cost the memory what it held before.
         """
         scan = state.latest_scan
         if scan is None:
             return np.zeros((0, 2))
         history, odo = state.odometry_history, state.odometry
+        changed = False
         if self._scan_cache is None or self._scan_cache[0] != id(scan):
             lidar = self.params.lidar
             points = deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s, history,
                                            lidar.min_range_m, lidar.max_range_m, lidar.mount_xy_m)
             self._scan_cache = (id(scan), points)
-            if state.slam.held_back != self._held_back_seen:
-                self._held_back_seen = state.slam.held_back
-                self.blind_zone.clear()
-                state.blind_zone_points = self.blind_zone.snapshot()
             if history is not None and len(history) > 0:
                 then = history.pose_at(scan.end_time_s)
-                self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])))
-                state.blind_zone_points = self.blind_zone.snapshot()  # for the control loop's guard
+                self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])), scan.end_time_s)
+                changed = True
+        if self._take_fixes(state) or changed:  # SLAM's fixes after the scan: they may be of this revolution
+            state.blind_zone_points = self.blind_zone.snapshot()  # for the control loop's guard
         points = moved_since_scan(self._scan_cache[1], scan.end_time_s, state)
         if odo is None or len(self.blind_zone) == 0:
             return points
         return np.concatenate((points, self.blind_zone.points_robot((odo.x_m, odo.y_m, odo.theta_rad))))
+
+    def _take_fixes(self, state: SharedState) -> bool:
+        """SLAM's fixes of the odometry frame (``state.odometry_fixes``) not yet in the blind-zone memory,
+        into it in order; whether there were any.
+
+        Fixes can only be missed by a planner that did not drive for longer than the fixes are
+        kept (46 s): the memory then cannot tell where its returns are, and is forgotten.
+        """
+        fixes = state.odometry_fixes
+        if not fixes or fixes[-1].serial <= self._fixes_seen:
+            return False
+        if fixes[0].serial > self._fixes_seen + 1:
+            self.blind_zone.clear()
+        for fix in fixes:
+            if fix.serial > self._fixes_seen:
+                self.blind_zone.fix(fix.revolution_end_s, fix.before, fix.after, fix.vouched)
+        self._fixes_seen = fixes[-1].serial
+        return True
 
 
 def moved_since_scan(points_robot: np.ndarray, scan_time_s: float, state: SharedState) -> np.ndarray:

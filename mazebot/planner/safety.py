@@ -47,7 +47,7 @@ from typing import Generic, Protocol, TypeVar
 import numpy as np
 
 from mazebot.config import ControlConfig, RobotConfig
-from mazebot.geometry import inverse, transform_points
+from mazebot.geometry import compose, inverse, transform_points
 
 # the defaults below are the config's, each written once in mazebot.config
 _CONTROL = ControlConfig()
@@ -141,7 +141,8 @@ class BlindZoneMemory:
     Example::
 
         memory = BlindZoneMemory(min_range_m=0.15)
-        memory.add_scan(points_robot, pose_at_scan)        # once per revolution, odometry frame
+        memory.add_scan(points_robot, pose_at_scan, scan.end_time_s)   # once per revolution, odometry frame
+        memory.fix(fix.revolution_end_s, fix.before, fix.after, fix.vouched)   # each of SLAM's fixes
         extra = memory.points_robot(pose_now)               # what the scan cannot show now
 
     The RPLidar A1 reports nothing closer than 0.15 m (datasheet), more than the 0.09 m
@@ -175,8 +176,23 @@ class BlindZoneMemory:
     that stopped between two posts found the way ahead closed by its own copies of them
     (the fault suite's slipping tyre: copies of a post 0.11-0.15 m away over 80 degrees of
     bearing, and the robot turning on the spot for 4-7 s until the stuck recovery backed it
-    off). So the planner clears the memory (:meth:`clear`) whenever SLAM held a revolution
-    back for a bad odometry (:meth:`mazebot.planner.pilot.Pilot._scan_points`).
+    off). Forgetting everything whenever SLAM distrusts the odometry (it did, for a while)
+    forgets a leg inside the minimum range too, and a healthy run distrusts it now and then
+    (a disputed match at rest, a brief slip: 0-23 revolutions a run under a Pi 4's share,
+    57-251 a run of the cheap robot on the hand-built mazes).
+    So each revolution's returns are placed by **SLAM's own pose of that revolution**, as
+    the scan matcher found it (:meth:`fix`, with SLAM's correction of the odometry frame,
+    ``map_from_odom``, after its update of that revolution): until SLAM has taken the
+    revolution in (a revolution or two later) they stand where the odometry put them; then
+    SLAM's correction puts them where SLAM has the revolution, and from then on each
+    correction keeps them in their place in the map (what the odometry drifted, the scan
+    matches take out), so the odometry's errors do not carry into them. Returns of a
+    revolution SLAM placed with nothing but the odometry it distrusted (held back, its scan
+    match refused) or left out (it was behind, the revolution did not fit the map, the robot
+    was lost) are dropped: nothing vouches for where they were seen. The memory's points stay
+    in the odometry frame, so the control loop's guard reads them as before
+    (:meth:`snapshot`); a loop closure, which moves the map around the robot's surroundings
+    and not the odometry under them, leaves them alone.
 
     The previous revolution's near returns that the latest one could have seen are kept
     for that one revolution more: a thin thing (a 12 mm post standing alone, a board's
@@ -214,20 +230,23 @@ class BlindZoneMemory:
         self.still_rad = float(still_rad)
         self.revolutions = 0  # revolutions over which the odometry moved: the returns' age
         self._last_pose: tuple[float, float, float] | None = None
-        self._points = np.zeros((0, 3))  # odometry frame x, y and the revolution it was seen in
-        self._recent = np.zeros((0, 3))  # the last revolution's own near returns (the scan shows them)
-        self._previous = np.zeros((0, 3))  # the one before's, which the last could have shown (one more revolution)
+        # each row: odometry frame x, y; the revolution it was seen in (the age's count); that
+        # revolution's end time (what SLAM's fix names it by); 1 once SLAM placed it, else 0
+        self._points = np.zeros((0, _COLUMNS))
+        self._recent = np.zeros((0, _COLUMNS))  # the last revolution's own near returns (the scan shows them)
+        self._previous = np.zeros((0, _COLUMNS))  # the one before's, which the last could have shown (once more)
 
     def __len__(self) -> int:
         return int(self._points.shape[0] + self._previous.shape[0])
 
     def clear(self) -> None:
-        self._points = np.zeros((0, 3))
-        self._recent = np.zeros((0, 3))
-        self._previous = np.zeros((0, 3))
+        self._points = np.zeros((0, _COLUMNS))
+        self._recent = np.zeros((0, _COLUMNS))
+        self._previous = np.zeros((0, _COLUMNS))
 
-    def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float]) -> None:
-        """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``."""
+    def add_scan(self, points_robot: np.ndarray, pose: tuple[float, float, float], time_s: float = math.nan) -> None:
+        """One revolution's returns (robot frame, (N, 2)) seen from odometry ``pose``; ``time_s`` the
+        revolution's end, by which SLAM's fix of it names it (:meth:`fix`; NaN: no fix will place them)."""
         if self._moved_since_last(pose):
             self.revolutions += 1
         lx, ly = transform_points(pose, self.lidar_xy_m)[0]
@@ -237,13 +256,37 @@ class BlindZoneMemory:
         self._previous = self._recent[~unseen[self._points.shape[0]:]]
         kept = old[unseen]
         if kept.shape[0]:  # one return per voxel: a robot standing beside a wall adds its returns every revolution
+            kept = kept[np.argsort(-kept[:, 4], kind="stable")]  # a placed one before one SLAM may still drop
             _, first = np.unique(np.floor(kept[:, :2] / self.voxel_m).astype(np.int64), axis=0, return_index=True)
             kept = kept[np.sort(first)]
         self._points = kept[-self.max_points:]
         pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
         rx, ry = pts[:, 0] - self.lidar_xy_m[0], pts[:, 1] - self.lidar_xy_m[1]
         near = pts[np.hypot(rx, ry) < self.min_range_m + self.reach_m]
-        self._recent = np.column_stack((transform_points(pose, near), np.full(near.shape[0], float(self.revolutions))))
+        self._recent = np.column_stack((transform_points(pose, near), np.full(near.shape[0], float(self.revolutions)),
+                                        np.full(near.shape[0], float(time_s)), np.zeros(near.shape[0])))
+
+    def fix(
+        self,
+        revolution_end_s: float | None,
+        before: tuple[float, float, float],
+        after: tuple[float, float, float],
+        vouched: bool,
+    ) -> None:
+        """SLAM moved the odometry frame under the map from ``before`` to ``after`` (``map_from_odom``,
+        :class:`mazebot.state.OdometryFix`) with its update of the revolution that ended at
+        ``revolution_end_s`` (None: it found the robot again; no revolution of its own).
+
+        Returns SLAM placed before keep their place in the map: in the odometry frame they move
+        by ``after⁻¹ ∘ before``. That revolution's own returns were put where the odometry had it
+        at its end, which ``after`` maps to where SLAM has it: from now on they count as placed,
+        if SLAM ``vouched`` for that pose, else they are dropped. Returns of earlier revolutions
+        still unplaced are dropped: SLAM left those revolutions out.
+        """
+        move = compose(inverse(after), before)
+        self._points = _fixed(self._points, move, revolution_end_s, vouched)
+        self._recent = _fixed(self._recent, move, revolution_end_s, vouched)
+        self._previous = _fixed(self._previous, move, revolution_end_s, vouched)
 
     def _moved_since_last(self, pose: tuple[float, float, float]) -> bool:
         """Whether the odometry moved or turned since the previous revolution (the first one counts)."""
@@ -269,6 +312,23 @@ class BlindZoneMemory:
         out = np.concatenate((self._points[:, :2], self._previous[:, :2], self._recent[:, :2]))
         out.setflags(write=False)
         return out
+
+
+#: Columns of the blind-zone memory's rows: x, y (odometry frame), the revolution's count, its end time, placed.
+_COLUMNS = 5
+
+
+def _fixed(rows: np.ndarray, move: np.ndarray, revolution_end_s: float | None, vouched: bool) -> np.ndarray:
+    """:meth:`BlindZoneMemory.fix` on one array of rows: placed rows moved, that revolution's placed or dropped."""
+    placed = rows[:, 4] > 0
+    out = rows.copy()
+    out[placed, :2] = transform_points(move, rows[placed, :2])
+    if revolution_end_s is None:  # a re-localization: what only the odometry placed is not where it says
+        return out[placed]
+    this = ~placed & (rows[:, 3] == revolution_end_s)
+    earlier = ~placed & (rows[:, 3] < revolution_end_s)
+    out[this, 4] = 1.0
+    return out[~earlier & (vouched | ~this)]
 
 
 def with_remembered(

@@ -36,6 +36,7 @@ did does not depend on the CPU.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,7 +164,7 @@ def correlative_match(
     *,
     theta_step_rad: float | None = None,
     exhaustive: bool = False,
-    exclude: tuple[np.ndarray, float] | None = None,
+    exclude: Sequence[tuple[np.ndarray, float]] = (),
     floor: float = -1.0,
 ) -> CorrelativeResult:
     """The best-scoring pose of ``source_xy`` (N, 2, robot frame) within the window about ``initial_pose``.
@@ -175,8 +176,8 @@ def correlative_match(
     same best pose, ties aside, at many more lookups). Ties go to the candidate nearest
     the initial pose (smallest turn, then smallest shift).
 
-    ``exclude = (centre (2,), radius_m)`` leaves out every translation within ``radius_m``
-    of ``centre`` (at any heading), and only candidates scoring above ``floor`` count:
+    ``exclude``, discs ``(centre (2,), radius_m)``, leaves out every translation within
+    ``radius_m`` of a ``centre`` (at any heading), and only candidates scoring above ``floor`` count:
     :func:`runner_up` asks this for the best *other* alignment. Nothing above the floor
     gives score 0 at ``initial_pose``. The bounds stay bounds of the candidates left in,
     so branch and bound still returns the exhaustive answer, and the floor prunes from the
@@ -210,16 +211,17 @@ def correlative_match(
         return table.tables[level][gx, gy].mean(axis=1)
 
     def excluded(level: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        # a block of 2^level cells from (a, b) is left out when all its corners are (the disc is convex)
-        if exclude is None:
-            return np.zeros(np.shape(a), dtype=bool)
-        centre, radius = np.asarray(exclude[0], dtype=np.float64).reshape(2), float(exclude[1])
-        out = np.ones(np.shape(a), dtype=bool)
-        for da in (0, 2**level - 1):
-            for db in (0, 2**level - 1):
-                x0 = pose0[0] + (np.asarray(a) + da - w) * res - centre[0]
-                y0 = pose0[1] + (np.asarray(b) + db - w) * res - centre[1]
-                out &= np.hypot(x0, y0) <= radius
+        # a block of 2^level cells from (a, b) is left out when all its corners lie in one disc (a disc is convex)
+        out = np.zeros(np.shape(a), dtype=bool)
+        for centre_xy, radius_m in exclude:
+            centre, radius = np.asarray(centre_xy, dtype=np.float64).reshape(2), float(radius_m)
+            inside = np.ones(np.shape(a), dtype=bool)
+            for da in (0, 2**level - 1):
+                for db in (0, 2**level - 1):
+                    x0 = pose0[0] + (np.asarray(a) + da - w) * res - centre[0]
+                    y0 = pose0[1] + (np.asarray(b) + db - w) * res - centre[1]
+                    inside &= np.hypot(x0, y0) <= radius
+            out |= inside
         return out
 
     if exhaustive or table.levels == 0:
@@ -299,20 +301,47 @@ def runner_up(
     ratio: float,
     sensor_xy: np.ndarray | None = None,
 ) -> CorrelativeResult:
-    """The best pose of the window farther than ``separation_m`` from ``best``'s, if it scores ``ratio`` of it.
+    """The best *distinct* peak of the window other than ``best``, if it scores ``ratio`` of it.
 
     A ratio test of the best match against the second-best distinct one (Lowe,
     "Distinctive image features from scale-invariant keypoints", IJCV 2004, section 7.1,
     for image features): a window that holds two alignments scoring alike (the same
     corridor seen from two places along it, two identical doorways) cannot say which one
     is right, however good the best one looks. Poses within ``separation_m`` of the best
-    are its own peak's shoulder. Score 0: no other alignment reaches ``ratio`` of the best
-    (the search is pruned at that floor).
+    are its own peak's shoulder; so is a pose farther away joined to it by a ridge, the
+    score on the straight path between them never falling under ``ratio`` of the pose's
+    own (:func:`one_ridge`): along a corridor the table's score falls slowly away from the
+    right alignment, and the Intel log's right closures had their "runner-up" a metre along
+    that ridge at 0.91 of the best. Such a pose is left out with its own disc and the
+    search goes on. Score 0: no distinct peak reaches ``ratio`` of the best (the search is
+    pruned at that floor). Each round leaves out a disc of ``separation_m`` about a pose
+    outside every earlier one, so the rounds end within the window's area.
     """
-    return correlative_match(
-        table, source_xy, initial_pose, window_xy_m, window_theta_rad, sensor_xy,
-        exclude=(best.pose[:2], separation_m), floor=ratio * best.score,
-    )
+    discs = [(best.pose[:2], separation_m)]
+    while True:
+        other = correlative_match(
+            table, source_xy, initial_pose, window_xy_m, window_theta_rad, sensor_xy,
+            exclude=discs, floor=ratio * best.score,
+        )
+        if other.score <= 0 or not one_ridge(table, source_xy, best.pose, other, ratio):
+            return other
+        discs.append((other.pose[:2], separation_m))
+
+
+def one_ridge(
+    table: LikelihoodTable, source_xy: np.ndarray, best_pose: np.ndarray, other: CorrelativeResult, ratio: float
+) -> bool:
+    """Does the score on the straight path from ``best_pose`` to ``other`` stay at ``ratio`` of ``other``'s or above?
+
+    Then no valley parts them: one peak, stretched (a corridor's walls fit all along it,
+    only its door frames say where), not two places. The path is sampled at the table's
+    resolution, the heading turned evenly along it.
+    """
+    delta = np.asarray(other.pose, dtype=np.float64) - np.asarray(best_pose, dtype=np.float64)
+    delta[2] = math.remainder(float(delta[2]), 2.0 * math.pi)
+    steps = max(2, math.ceil(math.hypot(delta[0], delta[1]) / table.resolution_m))
+    path = np.asarray(best_pose, dtype=np.float64) + np.linspace(0.0, 1.0, steps + 1)[:, None] * delta
+    return bool(np.min(table.score(path, source_xy)) >= ratio * other.score)
 
 
 def _tie_keys(a: np.ndarray, b: np.ndarray, w: int) -> np.ndarray:

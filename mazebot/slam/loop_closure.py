@@ -371,8 +371,8 @@ class WindowSearch:
     search: CorrelativeParams
 
     def rival(self, separation_m: float, ratio: float) -> str:
-        """Empty, or why the window is ambiguous: another pose farther than ``separation_m`` from the best
-        scores at least ``ratio`` of it (:func:`mazebot.slam.correlative.runner_up`).
+        """Empty, or why the window is ambiguous: another peak farther than ``separation_m`` from the best,
+        not on the best's own ridge, scores at least ``ratio`` of it (:func:`mazebot.slam.correlative.runner_up`).
 
         After metres of drift the window spans metres of corridor, and the best of two
         look-alikes is as likely the wrong one: on the ACES log with odometry whose heading

@@ -445,7 +445,7 @@ class Slam:
         p = self.params
         self.ekf = PoseEkf(self.initial_pose, p.initial_std, p.motion, p.filter_gate_chi2)
         self.calibration = HeadingCalibration(
-            p.calibration_memory_scans, limit=p.calibration_limit, significance_chi2=p.calibration_significance_chi2
+            p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
         )
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()

@@ -12,7 +12,8 @@ or ``done``) one more job optimizes the whole graph and rebuilds the map from it
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
-composes it with the odometry into ``state.pose``), ``pose_covariance``, ``trajectory``
+composes it with the odometry into ``state.pose``; each move of it but a loop closure's is also
+logged in ``odometry_fixes``, with the revolution it came from), ``pose_covariance``, ``trajectory``
 (keyframe poses), ``scan_ms`` (CPU time of each update, for the benchmark) and ``slam``
 (counters).
 """
@@ -36,7 +37,7 @@ from mazebot.malloc_tuning import give_back_free_memory
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.relocalize import LocalizationGuard, SearchResult, search_pose
 from mazebot.slam.slam import LoopClosureJob, LoopClosureResult, Slam, SlamParams, SlamUpdate
-from mazebot.state import RunState, SharedState
+from mazebot.state import OdometryFix, RunState, SharedState
 from mazebot.steps import run_steps_async
 
 log = logging.getLogger(__name__)
@@ -392,6 +393,7 @@ class SlamTask:
             return self.trust.observe(state, slip[0] is not None, matched, at_rest, disputed[0] is not None)
 
         await asyncio.sleep(0)  # the guard's check and the update are two stretches, not one
+        held_back = self.trust.held_back
         cpu_s = [0.0]
         try:  # in stages, the loop free in between: a keyframe scan is too long for the control tick
             update = await run_steps_async(slam.update_steps(scan, history, paint=paint), cpu_s)
@@ -404,7 +406,7 @@ class SlamTask:
         if any(f.source == "slam" for f in state.faults):
             state.clear_faults("slam")
             state.note("slam", "SLAM processes scans again", self.clock.now_s())
-        _publish_update(state, slam, update)
+        _publish_update(state, slam, update, scan.end_time_s, update.matched or self.trust.held_back == held_back)
         state.slam.held_back = self.trust.held_back
         taken = self.rest.observe(at_rest, disputed[0])
         if taken is not None:
@@ -462,7 +464,7 @@ def _take_rest_pose(state: SharedState, slam: Slam, update: SlamUpdate, pose: np
     moved_m = math.hypot(float(pose[0] - update.pose[0]), float(pose[1] - update.pose[1]))
     turned_rad = abs(math.remainder(float(pose[2] - update.pose[2]), math.tau))
     slam.relocalized(pose, odom)
-    state.map_from_odom = tuple(float(v) for v in slam.map_from_odom)  # type: ignore[assignment]
+    _fix_odometry(state, slam.map_from_odom, None, vouched=True)
     message = (f"at rest, {REST_AGREE} revolutions in a row fit the map {100 * moved_m:.1f} cm / "
                f"{math.degrees(turned_rad):.1f}° from where the filter had the robot, which refused them: "
                "SLAM takes their pose")
@@ -483,7 +485,7 @@ def _lost(state: SharedState, guard: LocalizationGuard, clock: Clock) -> None:
 
 
 def _publish_relocalized(state: SharedState, slam: Slam, found: SearchResult, clock: Clock) -> None:
-    state.map_from_odom = tuple(float(v) for v in slam.map_from_odom)  # type: ignore[assignment]
+    _fix_odometry(state, slam.map_from_odom, None, vouched=True)
     moved_m = math.hypot(*(found.pose[:2] - found.guess[:2]))  # type: ignore[index]
     message = f"found the robot in the map again, {100 * moved_m:.0f} cm from where the odometry had it"
     state.clear_faults("localization")
@@ -525,9 +527,20 @@ async def _odometry_covering(state: SharedState, clock: Clock, time_s: float) ->
         await clock.sleep(0.005)
 
 
-def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate) -> None:
+def _fix_odometry(state: SharedState, map_from_odom: np.ndarray, revolution_end_s: float | None,
+                  vouched: bool) -> None:
+    """``map_from_odom`` published, and the move in ``state.odometry_fixes`` (:class:`OdometryFix`)."""
+    before, after = state.map_from_odom, (float(map_from_odom[0]), float(map_from_odom[1]), float(map_from_odom[2]))
+    last = state.odometry_fixes[-1].serial if state.odometry_fixes else 0
+    state.odometry_fixes.append(OdometryFix(last + 1, revolution_end_s, before, after, vouched))
+    state.map_from_odom = after
+
+
+def _publish_update(state: SharedState, slam: Slam, update: SlamUpdate, revolution_end_s: float,
+                    vouched: bool) -> None:
+    """One revolution's update published; ``vouched``: its pose was matched, or it was painted."""
     state.map = slam.grid
-    state.map_from_odom = tuple(float(v) for v in update.map_from_odom)  # type: ignore[assignment]
+    _fix_odometry(state, update.map_from_odom, revolution_end_s, vouched)
     state.pose_covariance = update.covariance
     if update.keyframe is not None:
         state.trajectory.append((float(update.pose[0]), float(update.pose[1])))
@@ -551,6 +564,8 @@ def _publish_closure(state: SharedState, slam: Slam, result: LoopClosureResult, 
         return
     state.map = slam.grid
     stats.map_rebuilds += rebuilt
+    # not an odometry fix: the closure moves the map (and the robot in it) around the robot's
+    # surroundings, which keep their place relative to the odometry
     state.map_from_odom = tuple(float(v) for v in slam.map_from_odom)  # type: ignore[assignment]
     trail = slam.keyframe_poses()[-(state.trajectory.maxlen or len(slam.keyframes)) :]
     state.trajectory = deque(((float(x), float(y)) for x, y, _ in trail), maxlen=state.trajectory.maxlen)

@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from mazebot.config import Config
+from mazebot.geometry import compose, inverse
 from mazebot.io.scan import Scan
 from mazebot.planner.pilot import Pilot, PilotParams
+from mazebot.planner.safety import CollisionGuard, with_remembered
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import OdometryPose
-from mazebot.state import SharedState
+from mazebot.state import OdometryFix, SharedState
 
 REVOLUTION_S = 0.18  # an A1's revolution
 
@@ -30,28 +32,46 @@ def _revolution(state: SharedState, end_s: float, x_m: float, post_ahead_m: floa
                              np.linspace(end_s - REVOLUTION_S, end_s, 360), rng > 0)
 
 
-def test_returns_remembered_in_the_blind_zone_are_forgotten_once_slam_holds_a_revolution_back() -> None:
-    # the blind-zone memory is kept in the odometry frame; a slipping tyre moves that frame under
-    # it (the fault suite's slip left copies of two posts around a robot standing between them,
-    # and it stood for seconds with no way forward): once SLAM holds a revolution back for a bad
-    # odometry, what the memory holds is no longer where it says
+def _slam_fix(state: SharedState, end_s: float, slam_pose: tuple[float, float, float], vouched: bool = True) -> None:
+    """SLAM's update of the revolution that ended at ``end_s`` as the SLAM task publishes it: its
+    pose ``slam_pose`` (map frame) gives ``map_from_odom``, and the move goes into ``odometry_fixes``."""
+    history = state.odometry_history
+    assert history is not None
+    after = tuple(float(v) for v in compose(slam_pose, inverse(history.pose_at(end_s))))
+    serial = state.odometry_fixes[-1].serial + 1 if state.odometry_fixes else 1
+    state.odometry_fixes.append(OdometryFix(serial, end_s, state.map_from_odom, after, vouched))  # type: ignore[arg-type]
+    state.map_from_odom = after  # type: ignore[assignment]
+
+
+def test_a_leg_in_the_blind_zone_seen_before_slam_holds_revolutions_back_is_still_avoided_after_them() -> None:
+    # a post seen at 0.30 and 0.20 m, then driven to 0.12 m: inside the lidar's minimum range. SLAM
+    # then holds revolutions back (a brief slip: the odometry said 1 cm more than the robot drove,
+    # which SLAM's match takes out; then one whose match it refused): the post must stay known,
+    # where it is, to the planner and to the control loop's guard
     pilot = Pilot(PilotParams.from_config(Config()))
     mount_x_m = pilot.params.lidar.mount_xy_m[0]
     state = SharedState()
     state.odometry_history = OdometryHistory(3.0)
-    post_x_m = 0.3 + mount_x_m  # in the odometry frame: 0.3 m ahead of the lidar at the start
-    _revolution(state, 1.0, 0.0, post_x_m - mount_x_m)  # seen at 0.30 m
-    pilot._scan_points(state)
-    _revolution(state, 1.2, 0.1, post_x_m - 0.1 - mount_x_m)  # seen at 0.20 m
-    pilot._scan_points(state)
-    _revolution(state, 1.4, 0.18, None)  # 0.12 m: inside the minimum range, the scan shows nothing
+    post_x_m = 0.3 + mount_x_m  # in the map: 0.3 m ahead of the lidar at the start
+    for end_s, x_m, seen in ((1.0, 0.0, True), (1.2, 0.1, True), (1.4, 0.18, False)):
+        _revolution(state, end_s, x_m, post_x_m - x_m - mount_x_m if seen else None)
+        pilot._scan_points(state)
+        _slam_fix(state, end_s, (x_m, 0.0, 0.0))  # trusted, painted
     ahead = pilot._scan_points(state)
     np.testing.assert_allclose(ahead, [[post_x_m - 0.18, 0.0]], atol=1e-9)  # remembered
-    assert len(state.blind_zone_points) == 1
 
-    state.slam.held_back += 1  # SLAM: that revolution only localized, its odometry was bad
-    _revolution(state, 1.6, 0.18, None)
-    assert pilot._scan_points(state).shape == (0, 2)
-    assert len(state.blind_zone_points) == 0
-    _revolution(state, 1.8, 0.18, None)  # the odometry trusted again: the memory starts again, empty
-    assert pilot._scan_points(state).shape == (0, 2)
+    _revolution(state, 1.6, 0.19, None)  # the odometry says 0.19 m, the robot is at 0.18 m
+    pilot._scan_points(state)
+    state.slam.held_back += 1
+    _slam_fix(state, 1.6, (0.18, 0.0, 0.0))  # held back, matched
+    _revolution(state, 1.8, 0.19, None)
+    pilot._scan_points(state)
+    state.slam.held_back += 1
+    _slam_fix(state, 1.8, (0.18, 0.0, 0.0), vouched=False)  # held back, its match refused
+    ahead = pilot._scan_points(state)
+    np.testing.assert_allclose(ahead, [[post_x_m - 0.18, 0.0]], atol=1e-9)  # still 0.12 m ahead of the centre
+    # the guard in the control loop: the scan shows nothing, the memory's copy stops a drive at the post
+    odo = state.odometry
+    assert odo is not None and state.blind_zone_points is not None
+    guard_points = with_remembered(np.zeros((0, 2)), state.blind_zone_points, (odo.x_m, odo.y_m, odo.theta_rad))
+    assert CollisionGuard(footprint_radius_m=pilot.params.robot.footprint_radius_m).check(guard_points, 0.2, 0.0).stop

@@ -465,3 +465,71 @@ def test_the_control_loops_guard_keeps_a_side_margin_beside_the_commanded_arc() 
     bare = CollisionGuard(footprint_radius_m=footprint, margin_m=guard.margin_m,
                           brake_decel_mps2=guard.brake_decel_mps2, latency_s=guard.latency_s)
     assert not bare.check(wall[None, :], v, w).stop  # the footprint alone let it run
+
+
+def _fix(memory: object, end_s: float | None, before: tuple[float, float, float], odom: tuple[float, float, float],
+         slam_pose: tuple[float, float, float], vouched: bool = True) -> tuple[float, float, float]:
+    """SLAM's fix of one revolution, as the SLAM task publishes it: ``map_from_odom`` from ``before`` to
+    the correction that takes the odometry's ``odom`` to SLAM's ``slam_pose``; returns that correction."""
+    from mazebot.geometry import compose, inverse
+
+    after = tuple(float(v) for v in compose(slam_pose, inverse(odom)))
+    memory.fix(end_s, before, after, vouched)  # type: ignore[attr-defined]
+    return after  # type: ignore[return-value]
+
+
+def test_the_blind_zone_places_each_revolution_where_slam_has_it_so_a_slipping_tyre_smears_nothing() -> None:
+    """The fault suite's slipping tyre: the robot stands between two posts while the odometry turns
+    3° a revolution (the tyre spins, the robot does not). Placed by the odometry, the posts' returns
+    smear round the robot and close the way between them; placed by SLAM's pose of each
+    revolution (the scan matches: the robot has not moved), they stay where the posts are."""
+    from mazebot.geometry import inverse, transform_points
+    from mazebot.planner.safety import BlindZoneMemory
+
+    posts = np.array([[0.12, 0.13], [0.12, -0.13]])  # 0.177 m away, 0.26 m apart: the way ahead is open
+    guard = CollisionGuard()
+    assert not guard.check(posts, 0.2, 0.0).stop
+
+    def run(with_fixes: bool) -> tuple[BlindZoneMemory, tuple[float, float, float]]:
+        memory = BlindZoneMemory(min_range_m=0.15)
+        correction = (0.0, 0.0, 0.0)
+        odom = (0.0, 0.0, 0.0)
+        for k in range(20):
+            odom = (0.0, 0.0, math.radians(3.0 * k))
+            memory.add_scan(posts, odom, float(k))  # the robot still: the posts where they were
+            if with_fixes:  # a slip: held back, but matched, so SLAM vouches for the pose
+                correction = _fix(memory, float(k), correction, odom, (0.0, 0.0, 0.0))
+        return memory, odom
+
+    memory, odom = run(with_fixes=True)
+    seen = memory.points_robot(odom)
+    assert len(seen) > 0
+    assert np.hypot(*(seen[:, None, :] - posts[None, :, :]).transpose(2, 0, 1)).min(axis=1).max() < 1e-6
+    snap = transform_points(inverse(odom), memory.snapshot())
+    assert np.hypot(*(snap[:, None, :] - posts[None, :, :]).transpose(2, 0, 1)).min(axis=1).max() < 1e-6
+    assert not guard.check(np.concatenate((seen, snap)), 0.2, 0.0).stop
+    # without SLAM's fixes (the odometry frame alone) copies lie in the way, within the body's half width
+    copies = run(with_fixes=False)[0].points_robot(odom)
+    ahead = copies[copies[:, 0] > 0]
+    assert np.abs(ahead[:, 1]).min() < guard.footprint_radius_m
+
+
+def test_the_blind_zone_drops_what_slam_did_not_place_and_keeps_what_it_did() -> None:
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15)
+    leg, other, third = np.array([[0.2, 0.0]]), np.array([[0.0, 0.2]]), np.array([[0.0, -0.2]])
+    c0 = (0.0, 0.0, 0.0)
+    memory.add_scan(leg, (0.0, 0.0, 0.0), 1.0)
+    c1 = _fix(memory, 1.0, c0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # placed
+    memory.add_scan(other, (0.01, 0.0, 0.0), 2.0)  # SLAM leaves this revolution out
+    memory.add_scan(third, (0.02, 0.0, 0.0), 3.0)
+    assert len(memory) == 2  # the leg (placed), revolution 2's returns (the last one's own are the scan's)
+    # revolution 3: held back, its match refused (its pose the distrusted odometry's); SLAM
+    # corrects the odometry by 1 cm along x meanwhile
+    c3 = _fix(memory, 3.0, c1, (0.02, 0.0, 0.0), (0.03, 0.0, 0.0), vouched=False)
+    np.testing.assert_allclose(memory.snapshot(), [[0.19, 0.0]], atol=1e-12)  # only the leg, kept in the map
+    # found again after being lost: what is placed keeps its place in the map, the rest goes
+    memory.add_scan(other, (0.02, 0.0, 0.0), 4.0)
+    _fix(memory, None, c3, (0.02, 0.0, 0.0), (0.0, 0.0, 0.0))
+    np.testing.assert_allclose(memory.snapshot(), [[0.22, 0.0]], atol=1e-12)  # the map's 0.2 m: -0.02 + 0.22

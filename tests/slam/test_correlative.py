@@ -15,6 +15,7 @@ from mazebot.slam.correlative import (
     CorrelativeParams,
     LikelihoodTable,
     correlative_match,
+    one_ridge,
     runner_up,
     select_points,
 )
@@ -158,8 +159,8 @@ def test_the_runner_up_is_the_exhaustive_best_outside_the_best_peak(intel_log_pa
         src = select_points(new.points_xy(30.0), None, REAL)
         guess = new.pose + np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-0.1, 0.1)])
         best = correlative_match(table, src, guess, 0.6, 0.2)
-        runner = runner_up(table, src, guess, 0.6, 0.2, best, 0.3, 0.0)
-        full = correlative_match(table, src, guess, 0.6, 0.2, exhaustive=True, exclude=(best.pose[:2], 0.3))
+        runner = correlative_match(table, src, guess, 0.6, 0.2, exclude=[(best.pose[:2], 0.3)], floor=0.0)
+        full = correlative_match(table, src, guess, 0.6, 0.2, exhaustive=True, exclude=[(best.pose[:2], 0.3)])
         assert runner.score == pytest.approx(full.score, abs=1e-12) and 0 < runner.score <= best.score
         assert np.hypot(*(runner.pose[:2] - best.pose[:2])) > 0.3
         assert runner_up(table, src, guess, 0.6, 0.2, best, 0.3, full.score / best.score + 1e-6).score == 0.0
@@ -173,3 +174,20 @@ def test_the_runner_up_of_a_repeated_place_scores_as_the_best() -> None:
     runner = runner_up(table, corner - np.array([0.5, 0.5]), np.array([1.6, 0.5, 0.0]), 1.5, 0.1, best, 1.0, 0.9)
     assert best.score > 0.9 and runner.score == pytest.approx(best.score, abs=0.02)
     np.testing.assert_allclose(sorted([best.pose[0], runner.pose[0]]), [0.5, 2.5], atol=0.06)
+
+
+def test_a_corridor_is_one_peak_stretched_along_it_not_two() -> None:
+    """A corridor whose only mark along it is a door frame's edge: shifted 1.8 m along it, the scan's walls still
+    fit and only the edge does not (0.98 of the best on the table). The score never dips between the two, so it
+    is the best's own ridge, not a second place: no distinct runner-up. (Two identical corners apart, below, are.)"""
+    wall = np.arange(0.0, 8.0, 0.02)
+    corridor = np.vstack([np.c_[wall, np.full_like(wall, 0.5)], np.c_[wall, np.full_like(wall, -0.5)],
+                          np.c_[np.full(15, 4.0), 0.5 + np.arange(15) * 0.02]])
+    table = LikelihoodTable(corridor, 0.05, 0.05, 3)
+    scan = corridor[np.abs(corridor[:, 0] - 4.0) <= 2.0] - np.array([4.0, 0.0])
+    guess = np.array([4.3, 0.1, 0.0])
+    best = correlative_match(table, scan, guess, 1.5, 0.1)
+    np.testing.assert_allclose(best.pose, [4.0, 0.0, 0.0], atol=1e-9)
+    along = correlative_match(table, scan, guess, 1.5, 0.1, exclude=[(best.pose[:2], 1.0)])
+    assert along.score >= 0.9 * best.score and one_ridge(table, scan, best.pose, along, 0.9)
+    assert runner_up(table, scan, guess, 1.5, 0.1, best, 1.0, 0.9).score == 0.0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -126,3 +127,32 @@ async def test_a_filter_a_few_degrees_off_at_rest_is_set_right_by_the_revolution
     assert abs(math.degrees(slam.ekf.mean[2])) < 0.2
     assert abs(math.degrees(state.map_from_odom[2])) < 0.2
     assert any("SLAM takes their pose" in e.message for e in state.events)
+
+
+async def test_each_move_of_the_odometry_frame_is_logged_with_the_revolution_it_came_from() -> None:
+    """``state.odometry_fixes``: one fix per revolution SLAM took in, named by the revolution's end
+    time; those held back with their match refused not vouched for; the pose taken at rest a fix
+    of no revolution; each fix starting where the one before ended, the last where SLAM is."""
+    config = Config()
+    state = SharedState()
+    history = OdometryHistory(horizon_s=1000.0)
+    history.append(0.0, 0.0, 0.0, 0.0)
+    history.append(1000.0, 0.0, 0.0, 0.0)
+    state.odometry_history = history
+    slam = Slam(SlamParams.from_config(config.slam, config.lidar), background=False, record_trajectory=False)
+    task = slam_task.SlamTask(state, RealClock(), slam)
+    ends = [1.0 + 0.2 * k for k in range(25 + 10)]
+    for end_s in ends[:25]:
+        assert await task.on_scan(_static_scan(end_s, np.zeros(3)))
+    slam.ekf.mean[2] += math.radians(2.9)  # the filter off at rest: its matches refused (held back)
+    for end_s in ends[25:]:
+        assert await task.on_scan(_static_scan(end_s, np.zeros(3)))
+    fixes = list(state.odometry_fixes)
+    assert [f.serial for f in fixes] == list(range(1, len(fixes) + 1))
+    assert [f.revolution_end_s for f in fixes if f.revolution_end_s is not None] == ends
+    assert all(f.vouched for f in fixes[:25])
+    refused = [f for f in fixes[25:] if f.revolution_end_s is not None][:REST_AGREE]
+    assert not any(f.vouched for f in refused)  # held back, matched by nothing but the odometry
+    assert sum(f.revolution_end_s is None for f in fixes) == 1  # the pose taken at rest
+    assert all(a.after == b.before for a, b in itertools.pairwise(fixes))
+    assert fixes[-1].after == state.map_from_odom

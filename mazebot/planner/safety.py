@@ -156,19 +156,24 @@ class BlindZoneMemory:
     travel during one revolution (0.18 s at 0.3 m/s: 5 cm), since a return's beam may
     have swept past before the robot came that close.
 
-    A return is also dropped ``max_age_revolutions`` revolutions of motion after it was
-    seen (40: 7 s of an A1 on the move): the odometry frame drifts, most of all in the
-    cheap robot's turns in place (slip, backlash), and a robot stuck turning beside a wall
-    otherwise gathers smeared copies of it that close in until nothing can move (a
-    hand-built 6×6 maze: 40 recoveries in a row). Only revolutions over which the
-    odometry moved (by ``still_m`` or turned by ``still_rad``) count: the frame does not
-    drift while the wheels stand, and a robot that stood by a table leg for seconds must
-    still know it is there when it turns towards it (a hand-built 8×8 maze: a leg in the
-    blind zone while the robot stood and turned on the spot for 11 s, then driven into;
-    its turns there still age the memory). Revolutions, not seconds, so a slow computer
-    forgets after as much motion as a fast one. ``lidar_xy_m`` is the lidar's mount
-    offset in the robot frame; one return is kept per ``voxel_m`` square, at most
-    ``max_points`` of them.
+    A return only the odometry placed is also dropped ``max_age_revolutions`` revolutions
+    of motion after it was seen (40: 7 s of an A1 on the move): the odometry frame drifts,
+    most of all in the cheap robot's turns in place (slip, backlash), and a robot stuck
+    turning beside a wall otherwise gathers smeared copies of it that close in until
+    nothing can move (a hand-built 6×6 maze: 40 recoveries in a row). A return SLAM placed
+    (below) is not aged: its place is SLAM's pose of its revolution, matched against the
+    map, whose error does not grow with the motion since (the odometry's does), so a robot
+    that turns and edges beside a table leg for a minute keeps it for as long as no
+    revolution could see it (a hand-built 8×8 maze: a 20 mm leg forgotten after 40
+    revolutions of motion beside it, its map cell cleared by grazing rays, then driven
+    into). Only revolutions over which the odometry moved (by ``still_m`` or turned by
+    ``still_rad``) count: the frame does not drift while the wheels stand, and a robot that
+    stood by a table leg for seconds must still know it is there when it turns towards it
+    (a hand-built 8×8 maze: a leg in the blind zone while the robot stood and turned on the
+    spot for 11 s, then driven into; its turns there still age what SLAM has not placed).
+    Revolutions, not seconds, so a slow computer forgets after as much motion as a fast
+    one. ``lidar_xy_m`` is the lidar's mount offset in the robot frame; one return is kept
+    per ``voxel_m`` square, at most ``max_points`` of them.
 
     The odometry frame is only a frame while the odometry is right: a tyre that slips turns
     the odometry by degrees a revolution, and returns seen over those revolutions land
@@ -252,7 +257,7 @@ class BlindZoneMemory:
         lx, ly = transform_points(pose, self.lidar_xy_m)[0]
         old = np.concatenate((self._points, self._recent))
         unseen = np.hypot(old[:, 0] - lx, old[:, 1] - ly) < self.min_range_m + self.motion_margin_m
-        unseen &= old[:, 2] > self.revolutions - self.max_age_revolutions
+        unseen &= (old[:, 4] > 0) | (old[:, 2] > self.revolutions - self.max_age_revolutions)  # placed: no age
         self._previous = self._recent[~unseen[self._points.shape[0]:]]
         kept = old[unseen]
         if kept.shape[0]:  # one return per voxel: a robot standing beside a wall adds its returns every revolution

@@ -533,3 +533,40 @@ def test_the_blind_zone_drops_what_slam_did_not_place_and_keeps_what_it_did() ->
     memory.add_scan(other, (0.02, 0.0, 0.0), 4.0)
     _fix(memory, None, c3, (0.02, 0.0, 0.0), (0.0, 0.0, 0.0))
     np.testing.assert_allclose(memory.snapshot(), [[0.22, 0.0]], atol=1e-12)  # the map's 0.2 m: -0.02 + 0.22
+
+
+def test_a_leg_slam_placed_is_kept_through_any_motion_beside_it_until_a_revolution_could_see_it() -> None:
+    """A robot turning on the spot 0.12 m from a 20 mm leg for 60 revolutions (more than the 40 of
+    motion the odometry's returns are kept for), its tyres slipping 5 % of each turn, SLAM placing
+    every revolution: the leg is still where it is, and a drive at it is stopped. What only the
+    odometry placed is gone after those revolutions; the leg goes once a revolution could see it."""
+    from mazebot.planner.safety import BlindZoneMemory
+
+    leg = (0.2, 0.0)
+
+    def turn_beside_the_leg(with_fixes: bool) -> tuple[BlindZoneMemory, tuple[float, float, float]]:
+        memory = BlindZoneMemory(min_range_m=0.15)
+        correction = (0.0, 0.0, 0.0)
+        memory.add_scan(_leg_returns((0.0, 0.0), leg), (0.0, 0.0, 0.0), 0.0)  # seen at 0.19 m
+        if with_fixes:
+            correction = _fix(memory, 0.0, correction, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        odom = (0.08, 0.0, 0.0)
+        for k in range(61):  # driven up to 0.12 m from it, then turning: no revolution shows it
+            true_heading = 0.1 * k
+            odom = (0.08, 0.0, 1.05 * true_heading)  # the odometry turns 5 % more than the robot
+            memory.add_scan(np.zeros((0, 2)), odom, float(k + 1))
+            if with_fixes:
+                correction = _fix(memory, float(k + 1), correction, odom, (0.08, 0.0, true_heading))
+        return memory, odom
+
+    memory, odom = turn_beside_the_leg(with_fixes=True)
+    assert memory.revolutions > memory.max_age_revolutions + 1
+    true_heading = 6.0
+    c, s = math.cos(true_heading), math.sin(true_heading)
+    leg_robot = [0.11 * c, -0.11 * s]  # its near face, 0.11 m ahead of the lidar, in the turned robot's frame
+    np.testing.assert_allclose(memory.points_robot(odom), [leg_robot], atol=1e-9)
+    facing = (odom[0], odom[1], odom[2] - true_heading)  # turned back to face it (the same correction)
+    assert CollisionGuard().check(memory.points_robot(facing), 0.2, 0.0).stop
+    assert len(turn_beside_the_leg(with_fixes=False)[0]) == 0  # the odometry's copy: aged out
+    memory.add_scan(np.zeros((0, 2)), (-0.2, 0.0, odom[2]), 62.0)  # backed off: this revolution could see it
+    assert len(memory) == 0

@@ -119,7 +119,7 @@ class OdometryFix:
 
 
 #: Fixes kept in ``SharedState.odometry_fixes``: 256 revolutions, 46 s of an A1, far longer than
-#: the planner (their one reader, 5 Hz) ever goes without reading them while it drives.
+#: the planner (their one reader, every tick at 5 Hz, stopped or driving) ever goes without reading them.
 ODOMETRY_FIXES_KEPT = 256
 
 

@@ -300,6 +300,10 @@ class Pilot:
                 state.motion_command = None
                 self.still.mark = None  # a pause is not standing still with a goal
             self._was_moving = False
+            # SLAM goes on fixing the odometry frame while the robot waits: the blind-zone memory follows
+            # it, so a pause longer than the fixes are kept does not cost the memory a leg beside the robot
+            if self._take_fixes(state):
+                state.blind_zone_points = self.blind_zone.snapshot()
             return False
         self._was_moving = True
         pose = (state.pose.x_m, state.pose.y_m, state.pose.theta_rad)
@@ -567,8 +571,10 @@ class Pilot:
         """SLAM's fixes of the odometry frame (``state.odometry_fixes``) not yet in the blind-zone memory,
         into it in order; whether there were any.
 
-        Fixes can only be missed by a planner that did not drive for longer than the fixes are
-        kept (46 s): the memory then cannot tell where its returns are, and is forgotten.
+        While the robot is stopped the planner takes them every tick (:meth:`_plan_steps`); while it
+        drives, here, after the newest revolution went in, so that its fix places it. Fixes can
+        only be missed by a planner that held a goal for longer than they are kept (46 s) without
+        driving: the memory then cannot tell where its returns are, and is forgotten.
         """
         fixes = state.odometry_fixes
         if not fixes or fixes[-1].serial <= self._fixes_seen:

@@ -11,7 +11,7 @@ from mazebot.planner.pilot import Pilot, PilotParams
 from mazebot.planner.safety import CollisionGuard, with_remembered
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import OdometryPose
-from mazebot.state import OdometryFix, SharedState
+from mazebot.state import ODOMETRY_FIXES_KEPT, OdometryFix, RunState, SharedState
 
 REVOLUTION_S = 0.18  # an A1's revolution
 
@@ -75,3 +75,31 @@ def test_a_leg_in_the_blind_zone_seen_before_slam_holds_revolutions_back_is_stil
     assert odo is not None and state.blind_zone_points is not None
     guard_points = with_remembered(np.zeros((0, 2)), state.blind_zone_points, (odo.x_m, odo.y_m, odo.theta_rad))
     assert CollisionGuard(footprint_radius_m=pilot.params.robot.footprint_radius_m).check(guard_points, 0.2, 0.0).stop
+
+
+def test_a_leg_in_the_blind_zone_is_kept_through_a_pause_longer_than_slams_fixes_are_kept() -> None:
+    # a post driven to 0.12 m from the centre (inside the lidar's minimum range); the user then
+    # stops the robot for longer than SLAM's fixes are kept, and SLAM goes on fixing the odometry
+    # frame every revolution: when the robot starts again, the post must still be known
+    pilot = Pilot(PilotParams.from_config(Config()))
+    mount_x_m = pilot.params.lidar.mount_xy_m[0]
+    state = SharedState()
+    state.odometry_history = OdometryHistory(3.0)
+    state.run_state = RunState.EXPLORING
+    post_x_m = 0.3 + mount_x_m
+    for end_s, x_m, seen in ((1.0, 0.0, True), (1.2, 0.1, True), (1.4, 0.18, False)):
+        _revolution(state, end_s, x_m, post_x_m - x_m - mount_x_m if seen else None)
+        pilot._scan_points(state)
+        _slam_fix(state, end_s, (x_m, 0.0, 0.0))
+    np.testing.assert_allclose(pilot._scan_points(state), [[post_x_m - 0.18, 0.0]], atol=1e-9)
+
+    state.run_state = RunState.STOPPED
+    for k in range(ODOMETRY_FIXES_KEPT + 44):  # one planner tick per revolution SLAM fixes at rest
+        end_s = 1.6 + 0.2 * k
+        state.odometry_history.append(end_s, 0.18, 0.0, 0.0)
+        _slam_fix(state, end_s, (0.18, 0.0, 0.0))
+        for _ in pilot.plan_steps(state, end_s):
+            pass
+    state.run_state = RunState.EXPLORING
+    _revolution(state, 1.6 + 0.2 * (ODOMETRY_FIXES_KEPT + 44), 0.18, None)
+    np.testing.assert_allclose(pilot._scan_points(state), [[post_x_m - 0.18, 0.0]], atol=1e-9)

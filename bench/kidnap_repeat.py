@@ -9,10 +9,11 @@ maze of that seed, explore drive, virtual time; the robot picked up and put down
 away, turned 20°), and one JSON line per run: the fault row (detected_ms, motors_zero_ms,
 recovered, map_intact, relocalized_s, passed) and what the guard logged (searches that found
 nothing, partial finds waiting for the next revolution, views refused as ambiguous,
-re-localizations). Loop-closure results land at fixed simulated times, but the search for
-the lost robot hands its answer over after the CPU time it took
-(:mod:`mazebot.bench.virtual_executor`), so a kidnap run can still differ from the next one
-of the same seed: repeat a seed to see the spread.
+re-localizations), and the run's end: done or not, coverage. Loop-closure results and the
+search for the lost robot land at fixed simulated times (:mod:`mazebot.bench.virtual_executor`),
+so a run is a function of its seed and kidnap time. ``--recovery-window-s`` lets each run go on
+that long after the kidnap (the suite's window ends it a few seconds after): long enough for
+the maze to be finished, it shows whether the robot mapped on or stood for good.
 """
 
 from __future__ import annotations
@@ -57,8 +58,12 @@ def main() -> None:
     parser.add_argument("seeds", type=int, nargs="+", help="one run per seed (repeat a seed to repeat its run)")
     parser.add_argument("--at-s", type=float, nargs="+", default=None,
                         help="kidnap at these simulated seconds instead of the suite's (each seed at each time)")
+    parser.add_argument("--recovery-window-s", type=float, default=None,
+                        help="let each run go on this long after the kidnap (default: the suite's)")
     args = parser.parse_args()
     kidnap = next(s for s in suite_specs("faults", 1, "explore", "virtual") if s.faults[0].name == "kidnap")
+    if args.recovery_window_s is not None:
+        kidnap = replace(kidnap, recovery_window_s=args.recovery_window_s)
     times = args.at_s or [kidnap.faults[0].at_s]
     for seed, at_s in ((seed, at_s) for seed in args.seeds for at_s in times):
         _run(replace(kidnap, seed=seed, faults=(replace(kidnap.faults[0], at_s=at_s),)))
@@ -80,7 +85,8 @@ def _run(spec: RunSpec) -> None:
     wall_s = round(time.perf_counter() - t0, 1)
     for row in metrics.get("faults") or [{}]:
         print(json.dumps({"seed": spec.seed, "at_s": spec.faults[0].at_s, "wall_s": wall_s,
-                          **{k: row.get(k) for k in ROW_KEYS}, "log": dict(tally.counts)}), flush=True)
+                          **{k: row.get(k) for k in ROW_KEYS}, "log": dict(tally.counts),
+                          "done": metrics.get("done"), "coverage": metrics.get("coverage")}), flush=True)
 
 
 if __name__ == "__main__":

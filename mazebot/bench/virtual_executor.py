@@ -1,4 +1,4 @@
-"""The lost-robot search on virtual time: it takes the CPU time it costs, not whatever the race gives.
+"""The lost-robot search and the loop closures on virtual time: each answers after a fixed cost, not a race.
 
 On virtual time (:mod:`mazebot.sim.virtual_time`) the loop's clock runs on while a job is in an
 executor, as fast as the loop can spin. The search for a lost robot
@@ -10,8 +10,12 @@ simulator 6× real time) and after 1.8 s on a loaded one (1×): a figure of the 
 not of the robot.
 
 Here such a job runs at once on the loop's thread (which costs no virtual time: the world waits)
-and its result is handed over after the CPU time it took, on the virtual clock: as if it ran on a
-core of its own (the Pi 4 has four) while the world went on.
+and its result is handed over ``SEARCH_LATENCY_S`` simulated seconds later: as if it ran on a
+Pi's core of its own (the Pi 4 has four) while the world went on. The hand-over once waited the
+job's own thread CPU time instead; that varied by tens of milliseconds from run to run of one
+seed (0.064–0.100 s for one search), and so did where the robot stood when it was found, and
+everything after: a fault run's outcome was not a function of its seed. The thread CPU time is
+still recorded (``cpu_s``) for the report.
 
 Loop-closure jobs still run in the daemon's executor (its worker process, on the other core), but
 their results no longer land whenever the worker happens to finish: that made SLAM's estimate,
@@ -51,10 +55,17 @@ WORKER_WAIT_MAX_S = 300.0
 #: submission on a simulator running ~15× real time. At 1 s the loop waits for the worker ~0.3 s
 #: of wall time in a 6×6 tour.
 LOOP_JOB_LATENCY_S = 1.0
+#: Simulated seconds from a lost-robot search's submission to its result reaching SLAM. A search
+#: costs the same whatever its window (:func:`mazebot.slam.relocalize.search_pose` coarsens its
+#: steps as it widens it): 64–100 ms of thread CPU on this machine in a 4×4 kidnap run, so a few
+#: hundred milliseconds on a Pi 4 core, three to five times slower. A fixed cost model, as for the
+#: loop-closure jobs, not a measurement.
+SEARCH_LATENCY_S = 0.4
 
 class CpuTimedExecutor(Executor):
-    """Plain callables run inline and finish after their thread CPU time; loop-closure jobs go to
-    ``inner`` and are handed over at a fixed time on the virtual clock (see the module docstring)."""
+    """Plain callables run inline and are handed over ``SEARCH_LATENCY_S`` later; loop-closure jobs
+    go to ``inner`` and are handed over ``LOOP_JOB_LATENCY_S`` after submission, both on the virtual
+    clock (see the module docstring)."""
 
     def __init__(self, inner: Executor, loop: asyncio.AbstractEventLoop) -> None:
         self._inner = inner
@@ -70,19 +81,19 @@ class CpuTimedExecutor(Executor):
         try:
             result = fn(*args, **kwargs)
         except Exception as exc:  # handed over like a thread's exception
-            self._later(time.thread_time() - start_s, future, functools.partial(future.set_exception, exc))
+            settle = functools.partial(future.set_exception, exc)
         else:
-            self._later(time.thread_time() - start_s, future, functools.partial(future.set_result, result))
+            settle = functools.partial(future.set_result, result)
+        self.cpu_s.append(time.thread_time() - start_s)
+        self._later(SEARCH_LATENCY_S, future, settle)
         return future
 
-    def _later(self, cpu_s: float, future: concurrent.futures.Future[Any], settle: Callable[[], None]) -> None:
-        self.cpu_s.append(cpu_s)
-
+    def _later(self, latency_s: float, future: concurrent.futures.Future[Any], settle: Callable[[], None]) -> None:
         def deliver() -> None:
             if not future.cancelled():  # the SLAM task stopped waiting for it
                 settle()
 
-        self._loop.call_later(cpu_s, deliver)
+        self._loop.call_later(latency_s, deliver)
 
     def _hand_over_later(
         self, running: concurrent.futures.Future[Any], latency_s: float

@@ -59,6 +59,11 @@ ODOMETRY_WAIT_REVOLUTIONS = 3
 ODOMETRY_FAULTS = frozenset({"encoders", "localization"})
 #: Revolutions in a row that fit the odometry (matched, no slip) before SLAM paints again.
 TRUSTED_AFTER = 5
+#: Matched revolutions (no slip, no odometry fault) after a re-localization or an odometry fault
+#: that confirm the robot's pose again: from then on revolutions at rest heal the trust too
+#: (:class:`OdometryTrust`). Two: one match could be a look-alike, a second from another place
+#: along the way with the odometry between them agreeing is not.
+POSE_CONFIRMED_AFTER = 2
 #: A revolution during which the wheel odometry moved less than this (metres, radians) was at rest.
 AT_REST_M, AT_REST_RAD = 0.002, 0.005
 #: Revolutions at rest in a row whose good ICP matches (``Slam.acceptable``, not degenerate) the
@@ -84,8 +89,11 @@ class OdometryTrust:
     cannot slip. Without that, a slip could stop the map for good: the robot drives on into
     walls the map does not hold yet, ICP then fits no revolution (the submap lacks what the
     scan sees, residuals of 6-9 cm), none is painted, no keyframe brings the new walls in,
-    and the explorer waits at rest for a target the map never resolves. Not after a fault
-    or a re-localization (:meth:`distrust`): there the pose itself is in doubt. And a
+    and the explorer waits at rest for a target the map never resolves. After a fault or a
+    re-localization (:meth:`distrust`) the pose itself is in doubt, so rest counts only once
+    ``POSE_CONFIRMED_AFTER`` revolutions were matched again: a robot set down where the map
+    has little (a kidnap) matched a few revolutions, drove on into walls the map did not hold
+    and stopped there, and without rest counting it stood for good, its pose right to 5 mm. And a
     revolution at rest whose good ICP match the filter refused (``disputed``) starts the
     count again, as a slip does in motion: it would be painted at the pose ICP disputes
     (:class:`RestMatches` settles that dispute).
@@ -113,6 +121,8 @@ class OdometryTrust:
             self.clean = 0
         elif matched or (at_rest and self.rest_heals):  # an unmatched revolution in motion proves nothing
             self.clean = min(self.clean + 1, self.trusted_after)
+            if matched and self.clean >= POSE_CONFIRMED_AFTER:
+                self.rest_heals = True  # the pose is confirmed: wheels at rest cannot spoil it
         trusted = self.clean >= self.trusted_after
         self.held_back += not trusted
         return trusted

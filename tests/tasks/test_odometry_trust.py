@@ -16,7 +16,14 @@ from mazebot.slam.relocalize import LocalizationGuard
 from mazebot.slam.slam import Slam, SlamParams
 from mazebot.state import Fault, SharedState
 from mazebot.tasks import slam_task
-from mazebot.tasks.slam_task import REST_AGREE, TRUSTED_AFTER, OdometryTrust, RestMatches, _at_rest
+from mazebot.tasks.slam_task import (
+    POSE_CONFIRMED_AFTER,
+    REST_AGREE,
+    TRUSTED_AFTER,
+    OdometryTrust,
+    RestMatches,
+    _at_rest,
+)
 from tests.tasks.test_slam_task import _static_scan
 
 
@@ -43,6 +50,24 @@ def test_after_a_re_localization_or_an_odometry_fault_rest_proves_nothing() -> N
     assert verdicts(trust, state, TRUSTED_AFTER, matched=True, at_rest=False)[-1]
     state.faults.append(Fault("encoders", "the left encoder counts nothing", 0.0))
     assert not trust.observe(state, False, True, True)
+    assert not any(verdicts(trust, state, 3 * TRUSTED_AFTER, matched=False, at_rest=True))
+
+
+def test_after_a_re_localization_the_matches_that_confirm_the_pose_let_rest_bring_the_painting_back() -> None:
+    """A kidnapped robot set down where the map has little: found, matched twice, then driven into
+    walls the map does not hold, where nothing matches, and stopped. Its pose is right; without
+    rest counting once the matches confirmed it, no revolution would ever be painted again."""
+    state = SharedState()
+    trust = OdometryTrust()
+    trust.distrust()  # found again
+    assert not any(verdicts(trust, state, POSE_CONFIRMED_AFTER, matched=True, at_rest=False))
+    assert not any(verdicts(trust, state, 30, matched=False, at_rest=False))  # driving, unmatched: no proof
+    held = verdicts(trust, state, TRUSTED_AFTER - POSE_CONFIRMED_AFTER, matched=False, at_rest=True)
+    assert held == [False] * (TRUSTED_AFTER - POSE_CONFIRMED_AFTER - 1) + [True]
+    # one match only is not enough: it could be a look-alike
+    trust = OdometryTrust()
+    trust.distrust()
+    assert not any(verdicts(trust, state, POSE_CONFIRMED_AFTER - 1, matched=True, at_rest=False))
     assert not any(verdicts(trust, state, 3 * TRUSTED_AFTER, matched=False, at_rest=True))
 
 

@@ -80,6 +80,7 @@ from mazebot.slam.icp import IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
+from mazebot.slam.match_residuals import MatchResiduals
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 from mazebot.slam.overlap import ObservedArea
 from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
@@ -460,6 +461,9 @@ class Slam:
         self.matched_scans = 0
         self.searches = 0  # correlative searches run (sequential matches)
         self.searches_won = 0  # ... whose match replaced ICP's from the prediction
+        self.matches_doubted = 0  # ... run because ICP's residual stood out of the recent matches' (match_residuals)
+        self.doubts_won = 0  # ... and whose match replaced that one
+        self._residuals = MatchResiduals(p.match_doubt_ratio, p.match_doubt_scans)
         self.closures_downweighted = 0  # loop closures the last optimization all but switched off
         self.closures_from_set = 0  # loop closures a set accepted after the thresholds refused them
         # closures verified as a set: recent ones in the graph, and tentative ones waiting (closure_set)
@@ -660,6 +664,8 @@ class Slam:
             self.time_offset.observe(float(match.pose[2]) - predicted_theta, rate - self._last_rate)
         self._last_rate = rate
         self.matched_scans += matched
+        if matched and match is not None:
+            self._residuals.add(match.rmse_m)
         self._last_match = match if matched else None
         pose = self.ekf.mean.copy()
         if (paint and matched and raw_increment is not None and self._last_matched_pose is not None
@@ -1133,7 +1139,8 @@ class Slam:
         error, and ICP settles in whichever local optimum is nearest, often a wall one
         door over or a few degrees off.
         """
-        return self._search_due or not self.acceptable(match) or self._prediction_uncertain()
+        return (self._search_due or not self.acceptable(match) or self._residuals.in_doubt(match.rmse_m)
+                or self._prediction_uncertain())
 
     def _prediction_uncertain(self) -> bool:
         p = self.params
@@ -1169,6 +1176,12 @@ class Slam:
 
         - ICP from the prediction failed: the refined match, if acceptable.
         - Re-localized and the prediction's match is acceptable: it stays.
+        - ICP's match is acceptable but its residual stands out of the recent matches'
+          (``match_doubt_ratio``, :mod:`mazebot.slam.match_residuals`): the search looks over
+          the whole window, as after a failure (the prediction that led ICP astray may be
+          farther off than its uncertainty says), and the refined match replaces ICP's if it
+          has the smaller residual and scores at least as well on the likelihood table: two
+          judges that do not share ICP's basin, so a right match in doubt is rarely replaced.
         - The prediction was only uncertain and both matches are acceptable: the refined one
           replaces ICP's if it scores ``corr_override_score`` more on the likelihood table (at
           least as well when ICP's left the window: it wandered beyond the prediction's
@@ -1189,7 +1202,9 @@ class Slam:
         relocalized = self._search_due
         self._search_due = False
         failed = not self.acceptable(match)
-        window_xy, window_theta = self._search_window(failed or relocalized)
+        doubted = not failed and self._residuals.in_doubt(match.rmse_m)
+        self.matches_doubted += doubted
+        window_xy, window_theta = self._search_window(failed or relocalized or doubted)
         src = select_points(prepared.points_match, prepared.sensor_xy, search)
         crop = (guess[:2], search.max_range_m + window_xy + 3.0 * search.sigma_m + 0.5)
         table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, search.levels, crop=crop)
@@ -1211,6 +1226,10 @@ class Slam:
         if math.hypot(delta[0], delta[1]) < 2.0 * search.resolution_m and abs(wrap_angle(delta[2])) < 0.01:
             return match  # the same alignment
         scores = table.score(np.array([match.pose, refined.pose]), src)
+        if doubted and refined.rmse_m < match.rmse_m and scores[1] >= scores[0]:
+            self.searches_won += 1
+            self.doubts_won += 1
+            return refined
         off = match.pose - guess
         outside = math.hypot(off[0], off[1]) > window_xy * math.sqrt(2.0) or abs(wrap_angle(off[2])) > window_theta
         margin = 0.0 if outside else p.corr_override_score

@@ -78,6 +78,11 @@ LASER_LOG_AMBIGUITY_RATIO = 0.9
 #: ... counting alignments farther than this from the best: twice ICP's 0.5 m correspondence gate, beyond
 #: which ICP started at one would not converge to the other (nearer, they are one basin)
 LASER_LOG_PEAK_SEPARATION_M = 1.0
+#: a sequential match whose residual exceeds this many times the median of the recent matches' is in doubt and
+#: searched over the whole correlative window (:mod:`mazebot.slam.match_residuals`): on the Intel log at
+#: ``0.1,0.1`` the right matches' 99th percentile is 6-7 times their median and a match 30° off 12 times; a doubt
+#: only asks the search for a second opinion, so the limit sits below the right matches' tail, not above it
+LASER_LOG_DOUBT_RATIO = 4.0
 #: the heading calibration applies an estimate only where its Wald statistic passes a test repeated after every
 #: matched scan whose chance of passing anywhere in a run of white odometry noise is this
 #: (:class:`mazebot.slam.ekf.HeadingCalibration`): white noise, whose estimates are zero but for their scatter,
@@ -252,6 +257,7 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = True, closure_a
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match
         max_match_rmse_m=1.0,
+        match_doubt_ratio=LASER_LOG_DOUBT_RATIO,  # a residual far out of the run's own is searched again
         # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged
         # where the submap saw, the refused doorway scans are matched and the maps are more consistent (aligned
         # ATE lower on most Intel and every ACES run measured), but they turn about the start by more (Intel
@@ -482,6 +488,8 @@ def run_carmen(
         "loop_closures_off_reference": closures_off_reference(slam, keyframe_scans, reference) if judged else None,
         "searches": slam.searches,
         "searches_won": slam.searches_won,
+        "matches_doubted": slam.matches_doubted,
+        "doubts_won": slam.doubts_won,
         "matches_seen_rescued": slam.matches_seen_rescued,
         "odom_noise": None if odom_noise is None else list(odom_noise),
         "odom_model": "log" if odom_noise is None and systematic is None else

@@ -90,7 +90,9 @@ LASER_LOG_DOUBT_RATIO = 4.0
 LASER_LOG_CALIBRATION_FALSE_ALARM = 0.001
 
 
-def laser_log_params(base: SlamParams, calibrate_heading: bool = True, closure_ambiguity: bool = False) -> SlamParams:
+def laser_log_params(
+    base: SlamParams, calibrate_heading: bool = True, closure_ambiguity: bool = False, match_doubt: bool = True
+) -> SlamParams:
     """SLAM settings for an indoor laser log (SICK LMS, metres between scans) from the maze ones.
 
     Every scan moves the robot more than the maze keyframe spacing, so every scan is a
@@ -257,7 +259,7 @@ def laser_log_params(base: SlamParams, calibrate_heading: bool = True, closure_a
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match
         max_match_rmse_m=1.0,
-        match_doubt_ratio=LASER_LOG_DOUBT_RATIO,  # a residual far out of the run's own is searched again
+        match_doubt_ratio=LASER_LOG_DOUBT_RATIO if match_doubt else 0.0,  # a residual far out of the run's own
         # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged
         # where the submap saw, the refused doorway scans are matched and the maps are more consistent (aligned
         # ATE lower on most Intel and every ACES run measured), but they turn about the start by more (Intel
@@ -395,6 +397,7 @@ def run_carmen(
     anchor_first_scan: bool = True,
     calibrate_odometry: bool = True,
     closure_ambiguity: bool = False,
+    match_doubt: bool = True,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
@@ -406,7 +409,8 @@ def run_carmen(
     SLAM's poses and at the reference's; 0 skips it. ``anchor_first_scan``: the finished map
     is re-anchored where the first scan registers against it (:func:`reanchor`).
     ``calibrate_odometry``: the odometry's heading calibrated online; ``closure_ambiguity``: a closure the
-    search found refused where its window holds a look-alike (both :func:`laser_log_params`).
+    search found refused where its window holds a look-alike; ``match_doubt``: a sequential match whose
+    residual stands out of the recent ones searched again (all three :func:`laser_log_params`).
     """
     log = read_carmen(log_path)
     if not log.lasers:
@@ -428,7 +432,9 @@ def run_carmen(
                 "to make odometry from its poses"
             )
     config = load_config(config_path)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity)
+    params = laser_log_params(
+        SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity, match_doubt
+    )
     # the map frame: the log's frame, anchored at its first pose; odometry starts there too
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
     slam = Slam(params, initial_pose=np.zeros(3))
@@ -717,7 +723,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     systematic = parse_systematic(args.odom_systematic) if args.odom_model == "systematic" else None
     stats = run_carmen(
         args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
-        args.consistency_scans, not args.no_reanchor, args.odom_calibration, args.closure_ambiguity,
+        args.consistency_scans, not args.no_reanchor, args.odom_calibration, args.closure_ambiguity, args.match_doubt,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -772,6 +778,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="refuse a loop closure the correlative search found when another alignment of its window, over 1 m "
         "from the best, scores 0.9 of it (a look-alike along a corridor); off by default",
+    )
+    run.add_argument(
+        "--match-doubt",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="search a sequential match again over the whole correlative window when its residual exceeds 4 times "
+        "the median of the last 50 matched scans', and take the search's match if it is better on residual, "
+        "inlier ratio and table score; on by default, --no-match-doubt turns it off",
     )
     run.add_argument("--seed", type=int, default=1, help="seed of the odometry noise (default 1)")
     run.add_argument("--max-scans", type=positive_int, default=None, metavar="N", help="only the first N scans")

@@ -1064,6 +1064,9 @@ class Slam:
         if p.correlative is not None and self._search_wanted(match, guess):
             yield
             match = yield from self._search_steps(prepared, guess, match)
+        if p.correlative is not None and self.acceptable(match) and self._residuals.in_doubt(match.rmse_m):
+            yield
+            match = yield from self._doubt_steps(prepared, guess, match)
         if self.acceptable(match) or not p.retry_headings_rad:
             return match
         best = None
@@ -1139,8 +1142,7 @@ class Slam:
         error, and ICP settles in whichever local optimum is nearest, often a wall one
         door over or a few degrees off.
         """
-        return (self._search_due or not self.acceptable(match) or self._residuals.in_doubt(match.rmse_m)
-                or self._prediction_uncertain())
+        return self._search_due or not self.acceptable(match) or self._prediction_uncertain()
 
     def _prediction_uncertain(self) -> bool:
         p = self.params
@@ -1176,15 +1178,6 @@ class Slam:
 
         - ICP from the prediction failed: the refined match, if acceptable.
         - Re-localized and the prediction's match is acceptable: it stays.
-        - ICP's match is acceptable but its residual stands out of the recent matches'
-          (``match_doubt_ratio``, :mod:`mazebot.slam.match_residuals`): the search looks over
-          the whole window, as after a failure (the prediction that led ICP astray may be
-          farther off than its uncertainty says), and the refined match replaces ICP's only if
-          it is better on every measure: a smaller residual, at least the inlier ratio, and at
-          least the score on the likelihood table. A smaller residual alone is no judge (a
-          match that keeps fewer inliers has one): on the Intel log at ``0.05,0.05`` seed 2
-          two doubted right matches were replaced by ones with 35 mm instead of 83-96 mm but
-          fewer inliers, 2° off, and the first 200 scans went from 0.14 to 0.18 m RMS.
         - The prediction was only uncertain and both matches are acceptable: the refined one
           replaces ICP's if it scores ``corr_override_score`` more on the likelihood table (at
           least as well when ICP's left the window: it wandered beyond the prediction's
@@ -1205,20 +1198,9 @@ class Slam:
         relocalized = self._search_due
         self._search_due = False
         failed = not self.acceptable(match)
-        doubted = not failed and self._residuals.in_doubt(match.rmse_m)
-        self.matches_doubted += doubted
-        window_xy, window_theta = self._search_window(failed or relocalized or doubted)
-        src = select_points(prepared.points_match, prepared.sensor_xy, search)
-        crop = (guess[:2], search.max_range_m + window_xy + 3.0 * search.sigma_m + 0.5)
-        table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, search.levels, crop=crop)
-        found = correlative_match(table, src, guess, window_xy, window_theta, prepared.sensor_xy)
-        if found.score < search.min_score:
-            return match
-        yield
-        refined = yield from match_scan_steps(
-            self.target, prepared.points_match, found.pose, p.icp, sensor_xy=prepared.sensor_xy
-        )
-        if not self.acceptable(refined):
+        window_xy, window_theta = self._search_window(failed or relocalized)
+        table, src, refined = yield from self._refined_search_steps(prepared, guess, window_xy, window_theta)
+        if refined is None or not self.acceptable(refined):
             return match
         if failed:
             self.searches_won += 1
@@ -1229,10 +1211,6 @@ class Slam:
         if math.hypot(delta[0], delta[1]) < 2.0 * search.resolution_m and abs(wrap_angle(delta[2])) < 0.01:
             return match  # the same alignment
         scores = table.score(np.array([match.pose, refined.pose]), src)
-        if doubted and refined.rmse_m < match.rmse_m and refined.fitness >= match.fitness and scores[1] >= scores[0]:
-            self.searches_won += 1
-            self.doubts_won += 1
-            return refined
         off = match.pose - guess
         outside = math.hypot(off[0], off[1]) > window_xy * math.sqrt(2.0) or abs(wrap_angle(off[2])) > window_theta
         margin = 0.0 if outside else p.corr_override_score
@@ -1242,6 +1220,60 @@ class Slam:
         icp_better = (refined.fitness >= match.fitness or refined.rmse_m <= match.rmse_m) and not refined.degenerate
         if scores[1] >= scores[0] + margin and icp_better:
             self.searches_won += 1
+            return refined
+        return match
+
+    def _refined_search_steps(
+        self, prepared: PreparedScan, guess: np.ndarray, window_xy_m: float, window_theta_rad: float
+    ) -> Generator[None, None, tuple[LikelihoodTable, np.ndarray, IcpResult | None]]:
+        """The correlative search over ``±window_xy_m`` / ``±window_theta_rad`` about ``guess``, ICP from its best pose.
+
+        Returns the likelihood table and the scan's points it scored (to score other poses
+        alike), and ICP's match (None when the search's best scored under ``min_score``).
+        """
+        p = self.params
+        search = p.correlative
+        assert search is not None and self.target is not None
+        src = select_points(prepared.points_match, prepared.sensor_xy, search)
+        crop = (guess[:2], search.max_range_m + window_xy_m + 3.0 * search.sigma_m + 0.5)
+        table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, search.levels, crop=crop)
+        found = correlative_match(table, src, guess, window_xy_m, window_theta_rad, prepared.sensor_xy)
+        if found.score < search.min_score:
+            return table, src, None
+        yield
+        refined = yield from match_scan_steps(
+            self.target, prepared.points_match, found.pose, p.icp, sensor_xy=prepared.sensor_xy
+        )
+        return table, src, refined
+
+    def _doubt_steps(
+        self, prepared: PreparedScan, guess: np.ndarray, match: IcpResult
+    ) -> Generator[None, None, IcpResult]:
+        """A second opinion on an acceptable match whose residual stands out of the recent matches'.
+
+        ``match_doubt_ratio`` (:mod:`mazebot.slam.match_residuals`): the correlative search
+        looks over its whole window about the prediction, as after a failure (the prediction
+        that led ICP astray may be farther off than its uncertainty says), ICP refines its
+        best pose, and that match replaces ``match`` only if it is better on every measure: a
+        smaller residual, at least the inlier ratio, and at least the score on the likelihood
+        table. A smaller residual alone is no judge (a match that keeps fewer inliers has
+        one): on the Intel log at ``0.05,0.05`` seed 2 two doubted right matches were replaced
+        by ones of 35 mm instead of 83-96 mm with fewer inliers, 2° off, and the first 200
+        scans went from 0.14 to 0.18 m RMS. Run after the usual search, so that where the
+        second opinion does not win, the scan is matched exactly as without the doubt.
+        """
+        p = self.params
+        search = p.correlative
+        assert search is not None and self.target is not None
+        self.matches_doubted += 1
+        table, src, refined = yield from self._refined_search_steps(
+            prepared, guess, search.window_xy_m, search.window_theta_rad
+        )
+        if refined is None or not self.acceptable(refined):
+            return match
+        scores = table.score(np.array([match.pose, refined.pose]), src)
+        if refined.rmse_m < match.rmse_m and refined.fitness >= match.fitness and scores[1] >= scores[0]:
+            self.doubts_won += 1
             return refined
         return match
 

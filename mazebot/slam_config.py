@@ -398,8 +398,8 @@ class MatchingSection:
     match_doubt_ratio: Annotated[float, Field(ge=0, description=(
         "a converged match whose residual exceeds this many times the median of the recent matched scans' is in "
         "doubt: the correlative search looks over its whole window, and its match replaces ICP's if it has the "
-        "smaller residual, at least the inlier ratio and at least the likelihood table's score (0: off; 4 on laser "
-        "logs)"))] = 0.0
+        "smaller residual, at least the inlier ratio and at least the likelihood table's score (0: off; 4 with slam "
+        "run --match-doubt)"))] = 0.0
     match_doubt_scans: Annotated[int, Field(ge=1, description=(
         "... the recent matched scans whose residuals that median is taken over"))] = 50
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain

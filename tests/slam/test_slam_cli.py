@@ -486,7 +486,7 @@ def test_a_real_match_whose_residual_stands_out_is_searched_again_and_put_right(
     odometry = reference.copy()
     odometry[-1] = compose(reference[-1], np.array([0.0, 0.0, np.radians(turn_deg)]))
     config = load_config(None)
-    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), match_doubt=True)
     assert params.match_doubt_ratio > 0
     slam, update = _match_of_last_scan(lasers, odometry, params)
     assert update.matched and slam.doubts_won >= 1

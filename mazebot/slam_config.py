@@ -395,6 +395,13 @@ class MatchingSection:
         "when a match fails, retry ICP from the prediction turned by these"))] = (0.05, -0.05, 0.1, -0.1)
     match_information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of ICP's information matrix (ICP is optimistic about itself)"))] = 0.5
+    match_doubt_ratio: Annotated[float, Field(ge=0, description=(
+        "a converged match whose residual exceeds this many times the median of the recent matched scans' is in "
+        "doubt: the correlative search looks over its whole window, and its match replaces ICP's if it has the "
+        "smaller residual, at least the inlier ratio and at least the likelihood table's score (0: off; 4 with slam "
+        "run --match-doubt)"))] = 0.0
+    match_doubt_scans: Annotated[int, Field(ge=1, description=(
+        "... the recent matched scans whose residuals that median is taken over"))] = 50
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
     corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
         "search also when the prediction's position std exceeds this ..."))] = 0.05

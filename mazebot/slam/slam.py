@@ -1347,10 +1347,10 @@ class Slam:
         self._verifying = list(candidates)
         ei, ej, z, omega = self.graph.edge_arrays
         # Keyframe 0's wall grid judged from every keyframe's faces (mazebot.slam.start_anchor) as soon
-        # as it has faces at rest, in any maze: its normals' mean at rest is one place's view, and a
-        # place biases it (0.32° at the 16x16 seed 8's start, a dead end 0.15 m from three walls,
-        # where the A1's angle offsets vary fastest with range; tied at wall_anchor_std_rad it turned
-        # the whole map by 0.28°). Without faces at rest, that mean is all there is.
+        # as it has faces at rest, in any maze: its normals' mean at rest is one place's view, and one
+        # place can read it off (0.32° in the bench's 16x16 seed 8, whose start is a dead end 0.15 m
+        # from three walls; tied at wall_anchor_std_rad it turned the whole map by 0.28°). Without
+        # faces at rest, that mean is all there is.
         faces = self._start_faces if self.anchor_face_spread_rad is not None else None
         anchor = self.anchor_wall_rad if faces is None else None
         return LoopClosureJob(

@@ -485,9 +485,9 @@ class WallSection:
     wall_anchor_std_rad: Annotated[float, Field(gt=0, description=(
         "trust in the anchor's wall direction (it fixes the wall grid of the whole map)"))] = 0.001
     wall_max_face_spread_rad: Annotated[float, Field(gt=0, description=(
-        "keyframe 0 anchors the wall grid only if the faces it sees at rest turn apart by at most this "
-        "(RMS about their mean): boards set by hand each stand at their own angle, and their mean "
-        "is not the maze's grid"))] = 0.005
+        "faces keyframe 0 sees at rest that turn apart by more than this (RMS about their mean) are boards set "
+        "by hand, each at its own angle (logged once; the anchor is judged from every keyframe's faces in "
+        "any maze)"))] = 0.005
 
 
 @dataclass(frozen=True)

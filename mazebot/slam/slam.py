@@ -578,7 +578,11 @@ class Slam:
 
     @property
     def anchor_on_grid(self) -> bool:
-        """Keyframe 0's walls anchor the wall grid: its faces at rest lie on one grid (or too few to tell)."""
+        """Keyframe 0's faces at rest lie on one grid (or are too few to tell): a maze of exact walls.
+
+        Either way the loop-closure jobs judge the anchor from every keyframe's faces once keyframe 0
+        has two of them (:meth:`_make_job`); this only tells the two kinds of maze apart.
+        """
         spread = self.anchor_face_spread_rad
         return spread is None or spread <= self.params.wall_max_face_spread_rad
 
@@ -1396,8 +1400,13 @@ class Slam:
         self._keyframes_since_optimization = 0
         self._verifying = list(candidates)
         ei, ej, z, omega = self.graph.edge_arrays
-        on_grid = self.anchor_on_grid
-        anchor = self.anchor_wall_rad if on_grid else None
+        # Keyframe 0's wall grid judged from every keyframe's faces (mazebot.slam.start_anchor) as soon
+        # as it has faces at rest, in any maze: its normals' mean at rest is one place's view, and one
+        # place can read it off (0.32° in the bench's 16x16 seed 8, whose start is a dead end 0.15 m
+        # from three walls; tied at wall_anchor_std_rad it turned the whole map by 0.28°). Without
+        # faces at rest, that mean is all there is.
+        faces = self._start_faces if self.anchor_face_spread_rad is not None else None
+        anchor = self.anchor_wall_rad if faces is None else None
         return LoopClosureJob(
             candidates=candidates,
             keyframes=list(self.keyframes),
@@ -1408,7 +1417,7 @@ class Slam:
             wall_reference_rad=self.wall_reference_rad,
             optimize_anyway=optimize_anyway,
             anchor_wall=None if anchor is None else (anchor, self.params.wall_anchor_std_rad),
-            start_faces=None if on_grid else self._start_faces,
+            start_faces=faces,
             known_fit=None if self.lattice_fit is None else (self.lattice_fit, self._lattice_fit_keyframes),
             set_members=tuple(self._set_members),
             set_waiting=tuple(self._set_waiting),

@@ -584,3 +584,69 @@ def test_express_sync_flag_sits_where_the_sdk_puts_it() -> None:
     assert np.flatnonzero(out.start).tolist() == [15]
     assert out.angle_deg[15] == 359.5 - 45 / 8
     assert out.angle_deg[16] == (360.0 - 45 / 8) % 360
+
+
+# --- the angles Slamtec's SDK gives, worked out by hand from its code ------------------
+#
+# Standard nodes (sl_lidar_driver.cpp ``convert``, the SDK 2 unpacker the same):
+#     angle_z_q14 = ((angle_q6_checkbit >> 1) << 8) / 90        (C integer division)
+# and the caller's degrees are angle_z_q14 * 90 / 16384. Legacy express capsules
+# (handler_capsules.cpp ``_onScanNodeCapsuleData``): the capsule's samples are spread from
+# its start angle to the next capsule's, q16, then
+#     angle_q6 = (raw_q16 - (offset_q3 << 13)) >> 10            (arithmetic shift: floor)
+# wrapped into 0..360°, the 6-bit offset read unsigned: bits 0-3 from the cabin's offset
+# byte (low nibble for the cabin's first sample, high for its second), bits 4-5 from the low
+# two bits of that sample's own distance word.
+
+
+def _hand_capsule(start_q6: int, dist_mm: int, offsets_q3: dict[int, int]) -> bytes:
+    """A legacy express capsule written byte by byte from the protocol's layout (not our encoder)."""
+    body = bytearray(struct.pack("<H", start_q6))
+    for cabin in range(16):
+        o1, o2 = offsets_q3.get(2 * cabin, 0), offsets_q3.get(2 * cabin + 1, 0)
+        words = ((dist_mm << 2) | (o1 >> 4), (dist_mm << 2) | (o2 >> 4))
+        body += struct.pack("<HHB", *words, (o1 & 0xF) | (o2 & 0xF) << 4)
+    checksum = 0
+    for b in body:
+        checksum ^= b
+    return bytes((0xA0 | (checksum & 0xF), 0x50 | (checksum >> 4))) + bytes(body)
+
+
+def test_express_angles_are_the_sdks_to_the_bit_floor_and_wrap_included() -> None:
+    # Capsule 643 q6 (10.046875°), the next 1162 q6: prev_q8 2572, cur_q8 4648, diff_q8 2076,
+    # angleInc_q16 = 2076 << 3 = 16608, raw_q16 of sample i = (2572 << 8) + 16608 i = 658432 + 16608 i.
+    #   sample 1, offset 0:   675040 >> 10 = 659 (659.22)            -> 10.296875°
+    #   sample 2, offset 63:  (691648 - 516096) >> 10 = 171 (171.44) -> 2.671875°
+    #   sample 3, offset 17:  (708256 - 139264) >> 10 = 555 (555.66: floor, not 556) -> 8.671875°
+    first = _hand_capsule(643, 500, {2: 63, 3: 17})
+    second = _hand_capsule(1162, 500, {1: 40})
+    # Capsule 1162 (q8 4648) before 1679 q6 (q8 6716): diff_q8 2068, angleInc_q16 16544.
+    # Its sample 1: raw 4648 << 8 + 16544 = 1206432, offset 40 (5°): (1206432 - 327680) >> 10 = 858 (858.16)
+    third = _hand_capsule(1679, 500, {})
+    out = decode_all(proto.ExpressScanDecoder(), first + second + third)
+    assert out.angle_deg[1:4].tolist() == [659 / 64, 171 / 64, 555 / 64]
+    assert out.angle_deg[33] == 858 / 64
+    # before 0°: capsule 64 q6 (q8 256) before 581 q6 (q8 2324): angleInc_q16 = 2068 << 3 = 16544;
+    # sample 1: 65536 + 16544 = 82080, offset 40: (82080 - 327680) >> 10 = -240 (-239.84, floor),
+    # + 360 << 6 -> 22800 -> 356.25° (truncation towards zero would give 356.265625°)
+    out = decode_all(proto.ExpressScanDecoder(), _hand_capsule(64, 500, {1: 40}) + _hand_capsule(581, 500, {})
+                     + _hand_capsule(1098, 500, {}))
+    assert out.angle_deg[1] == 22800 / 64
+    assert out.dist_mm[1] == 500.0
+
+
+def test_standard_angles_are_the_sdks_q6_before_its_q14_truncation() -> None:
+    # An A1's standard samples step irregularly (each range's angle offset is taken off on the
+    # device): 1234 mm at 68.578125° (q6 4389), 315 mm at 72.515625° (q6 4641), 298 mm at
+    # 73.453125° (q6 4701); quality 47, the first opens a revolution.
+    wire = bytes([47 << 2 | 0b01, (4389 << 1 | 1) & 0xFF, (4389 << 1 | 1) >> 8, (1234 * 4) & 0xFF, (1234 * 4) >> 8,
+                  47 << 2 | 0b10, (4641 << 1 | 1) & 0xFF, (4641 << 1 | 1) >> 8, (315 * 4) & 0xFF, (315 * 4) >> 8,
+                  47 << 2 | 0b10, (4701 << 1 | 1) & 0xFF, (4701 << 1 | 1) >> 8, (298 * 4) & 0xFF, (298 * 4) >> 8])
+    out = decode_all(proto.StandardScanDecoder(), wire)
+    assert as_tuples(out) == [(4389 / 64, 1234.0, 47, True), (4641 / 64, 315.0, 47, False),
+                              (4701 / 64, 298.0, 47, False)]
+    # the SDK's q14: (4389 << 8) / 90 = 12484 (12484.27), 68.5766°; (4641 << 8) / 90 = 13201
+    # (13201.07); (4701 << 8) / 90 = 13371 (13371.73): the device's q6 lies at most one q14
+    # step (90/16384°) above what the SDK hands its caller
+    sdk_deg = np.array([12484, 13201, 13371]) * 90 / 16384
+    assert np.all(out.angle_deg - sdk_deg >= 0) and np.all(out.angle_deg - sdk_deg < 90 / 16384)

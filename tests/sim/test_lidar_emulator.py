@@ -156,3 +156,65 @@ def test_lidar_params_follow_the_config() -> None:
     assert params.samples_per_rev == 358 and params.rev_per_s == 5.5
     assert params.mount_yaw_rad == pytest.approx(np.pi / 2)
     assert Path(MAZE).is_file()
+
+
+def _decoded_against_the_laser_spot(range_m: float, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """A flat wall ``range_m`` ahead of the emulated A1 (noise off), through the bytes and the decoder:
+    per sample within 40° of the wall's normal, the decoded bearing minus the bearing of the spot the
+    laser line lit (degrees), and the decoded point's distance from the wall's face (metres)."""
+    from mazebot.clock import RealClock
+    from mazebot.io.rplidar_models import MODELS
+    from mazebot.sim.lidar_emulator import legacy_offset_deg, standard_offset_deg
+    from mazebot.sim.lidar_samples import BEAM_AHEAD_RAD, BEAM_SIDE_M
+    from mazebot.sim.raycast import RayCaster
+    from mazebot.sim.world import World, rectangles_outline
+
+    wall = rectangles_outline(np.array([[range_m, -4.0, range_m + 0.02, 4.0]]))
+    world = World("wall", wall, np.zeros((0, 3)), (0.0, 0.0, 0.0), (-1.0, -5.0, range_m + 1.0, 5.0))
+    poses = PoseHistory()
+    poses.append(0.0, 0.0, 0.0, 0.0)
+    poses.append(10.0, 0.0, 0.0, 0.0)
+    model = MODELS["a1"]
+    head = SpinningLidar(world, LidarParams(rev_jitter=0.0, range_noise=0.0, dropout=0.0), np.random.default_rng(1))
+    emulator = RPLidarEmulator(head, poses, RealClock(), model=model)
+    answer = proto.TYPE_SCAN if mode == "standard" else proto.TYPE_EXPRESS
+    emulator.mode = next(m for m in model.modes if m.answer_type == answer)
+    head.angle_offset = standard_offset_deg if mode == "standard" else legacy_offset_deg
+    head.set_samples_per_rev(round(emulator.mode.samples_per_s / model.rev_per_s))
+    head.restart(0.0)
+    sent = head.advance(0.4, poses)
+    decoder = proto.scan_decoder(answer)
+    out = proto.DecodedSamples.concat([decoder.feed(emulator.encode(sent)), decoder.flush()])
+    n = len(out)  # in order; the capsules' last ones wait for a successor
+    assert n > 0.9 * len(sent)
+    np.testing.assert_allclose(out.dist_mm, np.rint(sent.dist_mm[:n]) if mode != "standard" else sent.dist_mm[:n])
+    # the spot: the laser line (BEAM_SIDE_M right of the centre, BEAM_AHEAD_RAD ahead of the raw angle) meets the wall
+    beam = -np.deg2rad(sent.angle_deg[:n]) + BEAM_AHEAD_RAD
+    ox, oy = BEAM_SIDE_M * np.sin(beam), -BEAM_SIDE_M * np.cos(beam)
+    along = RayCaster.for_world(world).cast_xy(ox, oy, beam, 12.0)
+    spot = np.arctan2(oy + along * np.sin(beam), ox + along * np.cos(beam))
+    bearing = -np.deg2rad(out.angle_deg)
+    err_deg = np.degrees((bearing - spot + np.pi) % (2 * np.pi) - np.pi)
+    face_m = out.dist_mm / 1000.0 * np.cos(bearing) - range_m
+    near_normal = (np.abs(spot) < np.radians(40)) & (out.dist_mm > 0)
+    return err_deg[near_normal], face_m[near_normal]
+
+
+@pytest.mark.parametrize("mode", ["standard", "express"])
+@pytest.mark.parametrize("range_m", [0.2, 0.35, 0.6, 1.0, 2.0])
+def test_the_decoded_bearing_is_the_spots_at_every_range(range_m: float, mode: str) -> None:
+    # Emulator -> bytes -> decoder against the geometry: what the A1's angle offsets put
+    # between a sample's raw angle and its direction (0-8° by range) must come back out of
+    # the decoder as the bearing of the spot the laser lit, on average and sample by sample,
+    # to what the formats carry: the SDK's offset (integer k = 98361 / dist_q2, one step
+    # 64 / 65536 rad = 0.056°, truncated: +0.026-0.031° on average against the exact
+    # geometry in standard mode), the angles' 1/64° (standard), and in express the offset's
+    # 1/8° (one rounding for a whole wall at one range: up to 1/16° more on average) and the
+    # SDK's floor. Every decoded point lies on the wall's face.
+    err_deg, face_m = _decoded_against_the_laser_spot(range_m, mode)
+    assert err_deg.size > 20
+    k_step_deg = np.degrees(64 / 65536)
+    assert abs(float(np.mean(err_deg))) < k_step_deg + (0.0 if mode == "standard" else 1 / 16)
+    assert float(np.std(err_deg)) < (0.03 if mode == "standard" else 0.06)
+    assert float(np.max(np.abs(err_deg))) < (0.1 if mode == "standard" else 0.2)
+    assert float(np.max(np.abs(face_m))) < (0.0003 if mode == "standard" else 0.001) * max(1.0, range_m)

@@ -203,7 +203,8 @@ class Pilot:
         self._last_reason: str | None = None
         self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
-        self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m)
+        self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m,
+                                          body_radius_m=params.robot.footprint_radius_m)
         #: the serial of SLAM's last odometry fix the memory took in (``state.odometry_fixes``)
         self._fixes_seen = 0
         #: what plan() hands to drive(): (three-state grid, origin_m, resolution_m, goal target_m)

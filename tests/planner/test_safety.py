@@ -570,3 +570,49 @@ def test_a_leg_slam_placed_is_kept_through_any_motion_beside_it_until_a_revoluti
     assert len(turn_beside_the_leg(with_fixes=False)[0]) == 0  # the odometry's copy: aged out
     memory.add_scan(np.zeros((0, 2)), (-0.2, 0.0, odom[2]), 62.0)  # backed off: this revolution could see it
     assert len(memory) == 0
+
+
+def test_a_robot_set_down_in_a_revolution_s_last_samples_does_not_keep_them_inside_its_body() -> None:
+    """The robot is picked up and set down 0.12 m ahead in the last milliseconds of a revolution. SLAM
+    matches that revolution (most of it was seen before) at the old pose, so the samples seen from the
+    new place, a wall 0.17 m ahead of it, are placed 0.17 m ahead of the old one. Found again, the
+    robot's body covers them: 0.05 m ahead, where no revolution can show the lidar past them. The next
+    revolution drops them; a leg beside the robot, seen before the kidnap, is kept."""
+    from mazebot.planner.safety import BlindZoneMemory
+
+    def kidnapped(body_radius_m: float) -> BlindZoneMemory:
+        memory = BlindZoneMemory(min_range_m=0.15, body_radius_m=body_radius_m)
+        # revolution 1, at odometry (0, 0, 0): the leg at (0.12, 0.19) of the map, then, set down at
+        # (0.12, 0, 0), the wall 0.17 m ahead of the new place, placed from where the odometry is
+        memory.add_scan(np.array([[0.12, 0.19], [0.17, 0.0]]), (0.0, 0.0, 0.0), 1.0)
+        correction = _fix(memory, 1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # SLAM vouches
+        _fix(memory, None, correction, (0.0, 0.0, 0.0), (0.12, 0.0, 0.0))  # found again, 0.12 m ahead
+        return memory
+
+    at_rest = (0.0, 0.0, 0.0)  # the odometry's pose, so its frame is the robot's
+    memory = kidnapped(body_radius_m=0.09)
+    ahead = memory.snapshot()  # what the control loop's guard reads
+    assert np.hypot(ahead[:, 0], ahead[:, 1]).min() < 0.06  # inside the body, as SLAM placed them
+    creep = CollisionGuard()
+    assert creep.check(ahead, 0.05, 0.0).stop
+    # the next revolution, at rest: the wall 0.17 m ahead, where it is; the memory lets go of its copy
+    memory.add_scan(np.array([[0.17, 0.0]]), at_rest, 2.0)
+    seen = memory.snapshot()
+    assert np.hypot(seen[:, 0], seen[:, 1]).min() > 0.16
+    np.testing.assert_allclose(memory.points_robot(at_rest), [[0.0, 0.19]], atol=1e-9)  # the leg stays
+    assert not creep.check(seen, 0.05, 0.0).stop  # creeping ahead: the wall is beyond the stopping distance
+    # without a body the copy stays for as long as the robot stands there
+    memory = kidnapped(body_radius_m=0.0)
+    memory.add_scan(np.array([[0.17, 0.0]]), at_rest, 2.0)
+    assert creep.check(memory.snapshot(), 0.05, 0.0).stop
+
+
+def test_a_return_the_body_touches_is_kept() -> None:
+    """A wall the robot stands against, its place a few millimetres off (SLAM's pose): not dropped."""
+    from mazebot.planner.safety import BlindZoneMemory
+
+    memory = BlindZoneMemory(min_range_m=0.15, body_radius_m=0.09)
+    memory.add_scan(np.array([[0.16, 0.0]]), (0.0, 0.0, 0.0), 1.0)
+    memory.add_scan(np.zeros((0, 2)), (0.075, 0.0, 0.0), 2.0)  # driven on: 0.085 m from it
+    np.testing.assert_allclose(memory.points_robot((0.075, 0.0, 0.0)), [[0.085, 0.0]], atol=1e-9)
+    assert CollisionGuard().check(memory.points_robot((0.075, 0.0, 0.0)), 0.05, 0.0).stop

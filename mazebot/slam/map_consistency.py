@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mazebot.geometry import relative_pose
-from mazebot.slam.icp import Target, match_scan
+from mazebot.slam.icp import IcpResult, Target, match_scan
 from mazebot.slam.preprocess import voxel_downsample
 from mazebot.slam_config import IcpParams
 
@@ -58,24 +58,53 @@ def scan_corrections(
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     if len(scans_xy) != poses.shape[0]:
         raise ValueError(f"{poses.shape[0]} poses but {len(scans_xy)} scans")
-    thinned = [np.asarray(s, dtype=np.float64).reshape(-1, 2) for s in scans_xy]
-    thinned = [s[voxel_downsample(s, voxel_m)] for s in thinned]
-    sensor = np.zeros(2)
+    thinned = thin_scans(scans_xy, voxel_m)
     out = []
     for k in judged:
-        distance = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
-        far_in_log = np.abs(np.arange(poses.shape[0]) - k) > exclude
-        near = np.flatnonzero((distance < radius_m) & far_in_log)
-        near = near[np.argsort(distance[near], kind="stable")[:max_scans]]
-        others = [(poses[j], thinned[j], sensor) for j in sorted(near) if thinned[j].shape[0]]
-        if len(others) < min_scans or thinned[k].shape[0] == 0:
-            continue
-        target = Target.from_scans(others, voxel_size_m=voxel_m, normal_radius_m=normal_radius_m)
-        found = match_scan(target, thinned[k], poses[k], icp, sensor_xy=sensor)
-        if not found.converged or found.fitness < min_fitness:
+        found = register_scan(poses, thinned, k, icp, exclude=exclude, radius_m=radius_m, voxel_m=voxel_m,
+                              normal_radius_m=normal_radius_m, max_scans=max_scans, min_scans=min_scans)
+        if found is None or not found.converged or found.fitness < min_fitness:
             continue
         out.append((float(k), *relative_pose(poses[k], found.pose)))
     return np.array(out, dtype=np.float64).reshape(-1, 4)
+
+
+def thin_scans(scans_xy: Sequence[np.ndarray], voxel_m: float) -> list[np.ndarray]:
+    """Each scan's points (sensor frame) thinned to one per ``voxel_m`` voxel, as :func:`register_scan` takes them."""
+    thinned = [np.asarray(s, dtype=np.float64).reshape(-1, 2) for s in scans_xy]
+    return [s[voxel_downsample(s, voxel_m)] for s in thinned]
+
+
+def register_scan(
+    poses: np.ndarray,
+    thinned: Sequence[np.ndarray],
+    k: int,
+    icp: IcpParams,
+    *,
+    exclude: int = 3,
+    radius_m: float = 10.0,
+    voxel_m: float = 0.05,
+    normal_radius_m: float = 0.3,
+    max_scans: int = 40,
+    min_scans: int = 5,
+) -> IcpResult | None:
+    """Scan ``k`` registered by ICP against the map of the others at ``poses``, from its own pose (map frame).
+
+    The others: those more than ``exclude`` scans away in the log, the ``max_scans`` nearest
+    within ``radius_m``; None when fewer than ``min_scans`` are (or scan ``k`` has no points).
+    ``thinned`` are the scans of :func:`thin_scans`. The result's information says which
+    directions the map fixes the scan in (``degenerate``: one it does not, along a corridor).
+    """
+    distance = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
+    far_in_log = np.abs(np.arange(poses.shape[0]) - k) > exclude
+    near = np.flatnonzero((distance < radius_m) & far_in_log)
+    near = near[np.argsort(distance[near], kind="stable")[:max_scans]]
+    sensor = np.zeros(2)
+    others = [(poses[j], thinned[j], sensor) for j in sorted(near.tolist()) if thinned[j].shape[0]]
+    if len(others) < min_scans or thinned[k].shape[0] == 0:
+        return None
+    target = Target.from_scans(others, voxel_size_m=voxel_m, normal_radius_m=normal_radius_m)
+    return match_scan(target, thinned[k], poses[k], icp, sensor_xy=sensor)
 
 
 def consistency(corrections: np.ndarray) -> dict[str, float]:

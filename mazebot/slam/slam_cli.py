@@ -60,6 +60,7 @@ from mazebot.slam.carmen import CarmenLog, LaserRecord, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
 from mazebot.slam.map_consistency import (
+    Neighbourhood,
     consistency,
     first_scan_heading_deg,
     judged_scans,
@@ -480,8 +481,7 @@ def run_carmen(
     edges = edge_chi2(slam, keyframe_scans, reference)
     # the map judged by itself, before it is re-anchored (a rigid move: only the first scan's row changes)
     judged_scans_ = judged_scans(len(points), consistency_scans or REANCHOR_NOISE_SCANS)
-    own = scan_corrections(before_anchoring, points, judged_scans_, params.icp, voxel_m=params.prepare.voxel_size_m,
-                           normal_radius_m=params.normals.radius_m)
+    own = scan_corrections(before_anchoring, points, judged_scans_, params.icp, neighbourhood(params))
     anchoring = reanchor(slam, own, heading_noise_rad(own)) if anchor_first_scan else None
     _, before_placing = slam.trajectory()
     placing = place_along_unobserved(slam, points, odometry, params) if place_start else None
@@ -715,6 +715,11 @@ def reanchor(slam: Slam, corrections: np.ndarray, heading_noise_rad: float | Non
     }
 
 
+def neighbourhood(params: SlamParams) -> Neighbourhood:
+    """The map a scan is judged against (:mod:`mazebot.slam.map_consistency`), its points thinned as the SLAM's."""
+    return Neighbourhood(voxel_m=params.prepare.voxel_size_m, normal_radius_m=params.normals.radius_m)
+
+
 #: the scans of the start whose odometry places the map along a direction the first scan does not fix: those
 #: before the odometry has travelled this far from the first pose. An in-place turn (the start of every log
 #: here) moves the robot a few centimetres a scan, and white odometry noise of 0.1 m per metre then errs by a
@@ -748,9 +753,8 @@ def place_along_unobserved(
     nothing = {"applied": False, "shift_m": None, "direction_deg": None, "scans": 0}
     if poses.shape[0] < 2 or odometry.shape[0] < poses.shape[0]:
         return nothing
-    thinned = thin_scans(points, params.prepare.voxel_size_m)
-    found = register_scan(poses, thinned, 0, params.icp, voxel_m=params.prepare.voxel_size_m,
-                          normal_radius_m=params.normals.radius_m)
+    around = neighbourhood(params)
+    found = register_scan(poses, thin_scans(points, around.voxel_m), 0, params.icp, around)
     if found is None or not found.converged or not found.degenerate:
         return nothing
     strength, directions = np.linalg.eigh(found.information[:2, :2])
@@ -788,8 +792,7 @@ def map_consistency(
     if reference is None:
         out["consistency_reference"] = None
         return out
-    corrections = scan_corrections(reference, points, judged, params.icp, voxel_m=params.prepare.voxel_size_m,
-                                   normal_radius_m=params.normals.radius_m)
+    corrections = scan_corrections(reference, points, judged, params.icp, neighbourhood(params))
     out["consistency_reference"] = {
         **consistency(corrections), "first_scan_heading_deg": first_scan_heading_deg(corrections)
     }

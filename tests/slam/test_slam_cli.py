@@ -233,7 +233,7 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
     """
     from mazebot.geometry import compose, inverse, relative_pose
     from mazebot.slam.map_consistency import judged_scans, scan_corrections
-    from mazebot.slam.slam_cli import heading_noise_rad, match_points, reanchor
+    from mazebot.slam.slam_cli import heading_noise_rad, match_points, neighbourhood, reanchor
 
     lasers = read_carmen(intel_log_path).lasers[:120]
     reference = np.array([r.pose for r in lasers])
@@ -246,8 +246,7 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
 
     def registered() -> np.ndarray:
         _, trajectory = slam.trajectory()
-        return scan_corrections(trajectory, points, judged_scans(len(points), 40), params.icp,
-                                voxel_m=params.prepare.voxel_size_m, normal_radius_m=params.normals.radius_m)
+        return scan_corrections(trajectory, points, judged_scans(len(points), 40), params.icp, neighbourhood(params))
 
     _, finished = slam.trajectory()
     own = registered()

@@ -285,8 +285,8 @@ def test_the_map_is_placed_along_the_start_corridor_where_the_start_odometry_put
     The first scan registered against the finished map is degenerate along the corridor, so
     the map is moved along it onto the start's odometry: the start's scans come back to within
     a few centimetres of the corrected poses, and nothing across the corridor or in heading
-    moves. With seed 1 the match did not slide, and the map moves by less than the odometry's
-    own error.
+    moves. With seed 1 the match did not slide: the start's odometry differs from the map by
+    less than its own error there, and the map stays.
     """
     from mazebot.slam.slam_cli import match_points, place_along_unobserved
 
@@ -304,10 +304,10 @@ def test_the_map_is_placed_along_the_start_corridor_where_the_start_odometry_put
     assert (off_before > 0.08) if slid else (off_before < 0.04)
 
     placed = place_along_unobserved(slam, match_points(lasers, params), odometry, params)
-    assert placed["applied"]
     direction = abs(placed["direction_deg"])
     assert min(direction, 180.0 - direction) < 10.0  # along the corridor: the map's x axis
-    assert (0.08 < abs(placed["shift_m"]) < 0.2) if slid else (abs(placed["shift_m"]) < 0.03)
+    assert placed["applied"] == slid  # a move within the odometry's own error is left alone
+    assert (0.08 < abs(placed["shift_m"]) < 0.2) if slid else (abs(placed["shift_m"]) < 1.5 * placed["noise_m"])
     _, after = slam.trajectory()
     assert np.median(np.hypot(*(after[start, :2] - reference[start, :2]).T)) < 0.04
     move = after - before

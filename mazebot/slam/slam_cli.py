@@ -11,9 +11,9 @@ odometry to :class:`mazebot.slam.slam.Slam` (loop closures inline), and writes i
 - ``trajectory.txt``: one line ``timestamp x y theta`` per scan (the log's timestamps;
   poses after the last optimization, in the log's frame: the map frame is anchored at
   the first laser pose of the log, where the first scan registers against the finished
-  map: :func:`reanchor`, off with ``--no-reanchor``; along a direction that registration
-  leaves open, where the start's odometry puts it: :func:`place_along_unobserved`, off with
-  ``--no-start-placement``);
+  map: :func:`reanchor`, off with ``--no-reanchor``; with ``--start-placement``, along a
+  direction that registration leaves open, where the start's odometry puts it:
+  :func:`place_along_unobserved`);
 - ``map.png``, ``map.pgm`` + ``map.yaml`` (ROS ``map_server``);
 
 and prints one JSON line of statistics, with the error of the trajectory against the
@@ -418,7 +418,7 @@ def run_carmen(
     calibrate_odometry: bool = True,
     closure_ambiguity: bool = False,
     match_doubt: bool = False,
-    place_start: bool = True,
+    place_start: bool = False,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
@@ -811,7 +811,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     stats = run_carmen(
         args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
         args.consistency_scans, not args.no_reanchor, args.odom_calibration, args.closure_ambiguity, args.match_doubt,
-        not args.no_start_placement,
+        args.start_placement,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -891,10 +891,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "registered against the finished map, sits at the log's first pose)",
     )
     run.add_argument(
-        "--no-start-placement",
+        "--start-placement",
         action="store_true",
-        help="keep the map where the first matches put it along a direction the first scan's registration against "
-        "the finished map leaves open (a corridor at the start; default: moved along it onto the start's odometry)",
+        help="move the finished map along a direction the first scan's registration against it leaves open (a "
+        "corridor at the start) onto the start's odometry, where the two differ by more than the odometry's own "
+        "error; off by default",
     )
     run.add_argument("--out", required=True, metavar="DIR", help="output directory")
     run.add_argument("--config", default=None, help="config file whose [slam] section is the starting point")

@@ -751,6 +751,13 @@ def place_along_unobserved(
     is within :data:`REANCHOR_SIGMAS` times the odometry's own error over the start's path (by
     the noise model learnt from the matches): as for the heading, a move within the noise of its
     measurement is noise (on the stand-in Intel run of seed 3 a move of 5 mm made it 1.6 mm worse).
+
+    ``slam run --start-placement``; off by default. Measured (branch ``reallogs13``): it moved the
+    Intel maps whose second scan slid (0.12-0.14 m) and no Radish map (their first scan's
+    registration is not degenerate), better on five (``0.1,0.1`` seed 1 0.239 -> 0.164 m, ``0.05``
+    seed 4 0.137 -> 0.094 m) and worse on six (``0.1,0.1`` seed 2 0.136 -> 0.199 m): along the corridor
+    nothing in the scans ties one visit of the start to another, and where the later visits sit
+    elsewhere along it than the start's own scans, moving the whole map moves the visits that were right.
     """
     _, poses = slam.trajectory()
     nothing = {"applied": False, "shift_m": None, "noise_m": None, "direction_deg": None, "scans": 0}

@@ -24,13 +24,31 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from mazebot.geometry import relative_pose
-from mazebot.slam.icp import Target, match_scan
+from mazebot.slam.icp import IcpResult, Target, match_scan
 from mazebot.slam.preprocess import voxel_downsample
 from mazebot.slam_config import IcpParams
+
+
+@dataclass(frozen=True)
+class Neighbourhood:
+    """The map a scan is registered against: which other scans make it, and how their points are thinned.
+
+    The scans more than ``exclude`` away in the log (not the neighbours it was matched
+    with), the ``max_scans`` nearest within ``radius_m``, at least ``min_scans`` of them;
+    points thinned to one per ``voxel_m`` voxel, normals over ``normal_radius_m``.
+    """
+
+    exclude: int = 3
+    radius_m: float = 10.0
+    voxel_m: float = 0.05
+    normal_radius_m: float = 0.3
+    max_scans: int = 40
+    min_scans: int = 5
 
 
 def scan_corrections(
@@ -38,44 +56,55 @@ def scan_corrections(
     scans_xy: Sequence[np.ndarray],
     judged: Sequence[int],
     icp: IcpParams,
+    around: Neighbourhood = Neighbourhood(),
     *,
-    exclude: int = 3,
-    radius_m: float = 10.0,
-    voxel_m: float = 0.05,
-    normal_radius_m: float = 0.3,
-    max_scans: int = 40,
-    min_scans: int = 5,
     min_fitness: float = 0.7,
 ) -> np.ndarray:
     """The ICP correction ``(dx_m, dy_m, dθ_rad)`` (in scan ``k``'s frame) of every judged scan ``k``.
 
     ``poses`` (N, 3) are the scans' poses (of the sensor), ``scans_xy`` their points in the
-    sensor frame. A scan with fewer than ``min_scans`` others within ``radius_m``, or whose
-    registration did not converge to at least ``min_fitness`` inliers, is left out (a
-    corridor seen once has nothing to be consistent with). Returns (M, 4): the scan's
-    index and its correction.
+    sensor frame. A scan with too few others ``around`` it, or whose registration did not
+    converge to at least ``min_fitness`` inliers, is left out (a corridor seen once has
+    nothing to be consistent with). Returns (M, 4): the scan's index and its correction.
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     if len(scans_xy) != poses.shape[0]:
         raise ValueError(f"{poses.shape[0]} poses but {len(scans_xy)} scans")
-    thinned = [np.asarray(s, dtype=np.float64).reshape(-1, 2) for s in scans_xy]
-    thinned = [s[voxel_downsample(s, voxel_m)] for s in thinned]
-    sensor = np.zeros(2)
+    thinned = thin_scans(scans_xy, around.voxel_m)
     out = []
     for k in judged:
-        distance = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
-        far_in_log = np.abs(np.arange(poses.shape[0]) - k) > exclude
-        near = np.flatnonzero((distance < radius_m) & far_in_log)
-        near = near[np.argsort(distance[near], kind="stable")[:max_scans]]
-        others = [(poses[j], thinned[j], sensor) for j in sorted(near) if thinned[j].shape[0]]
-        if len(others) < min_scans or thinned[k].shape[0] == 0:
-            continue
-        target = Target.from_scans(others, voxel_size_m=voxel_m, normal_radius_m=normal_radius_m)
-        found = match_scan(target, thinned[k], poses[k], icp, sensor_xy=sensor)
-        if not found.converged or found.fitness < min_fitness:
+        found = register_scan(poses, thinned, k, icp, around)
+        if found is None or not found.converged or found.fitness < min_fitness:
             continue
         out.append((float(k), *relative_pose(poses[k], found.pose)))
     return np.array(out, dtype=np.float64).reshape(-1, 4)
+
+
+def thin_scans(scans_xy: Sequence[np.ndarray], voxel_m: float) -> list[np.ndarray]:
+    """Each scan's points (sensor frame) thinned to one per ``voxel_m`` voxel, as :func:`register_scan` takes them."""
+    thinned = [np.asarray(s, dtype=np.float64).reshape(-1, 2) for s in scans_xy]
+    return [s[voxel_downsample(s, voxel_m)] for s in thinned]
+
+
+def register_scan(
+    poses: np.ndarray, thinned: Sequence[np.ndarray], k: int, icp: IcpParams, around: Neighbourhood = Neighbourhood()
+) -> IcpResult | None:
+    """Scan ``k`` registered by ICP against the map of the others ``around`` it at ``poses``, from its own pose.
+
+    None when too few others are there (or scan ``k`` has no points). ``thinned`` are the
+    scans of :func:`thin_scans`. The result (map frame) says by its information which
+    directions the map fixes the scan in (``degenerate``: one it does not, along a corridor).
+    """
+    distance = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
+    far_in_log = np.abs(np.arange(poses.shape[0]) - k) > around.exclude
+    near = np.flatnonzero((distance < around.radius_m) & far_in_log)
+    near = near[np.argsort(distance[near], kind="stable")[: around.max_scans]]
+    sensor = np.zeros(2)
+    others = [(poses[j], thinned[j], sensor) for j in sorted(near.tolist()) if thinned[j].shape[0]]
+    if len(others) < around.min_scans or thinned[k].shape[0] == 0:
+        return None
+    target = Target.from_scans(others, voxel_size_m=around.voxel_m, normal_radius_m=around.normal_radius_m)
+    return match_scan(target, thinned[k], poses[k], icp, sensor_xy=sensor)
 
 
 def consistency(corrections: np.ndarray) -> dict[str, float]:

@@ -9,7 +9,13 @@ import numpy as np
 from mazebot.geometry import compose
 from mazebot.sim.world import World
 from mazebot.slam.icp import IcpParams
-from mazebot.slam.map_consistency import consistency, first_scan_heading_deg, judged_scans, scan_corrections
+from mazebot.slam.map_consistency import (
+    Neighbourhood,
+    consistency,
+    first_scan_heading_deg,
+    judged_scans,
+    scan_corrections,
+)
 
 
 def _maze_scans(world: World, cast_scan, count: int, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -29,8 +35,8 @@ def _maze_scans(world: World, cast_scan, count: int, seed: int) -> tuple[np.ndar
 
 def _corrections(poses: np.ndarray, scans: list[np.ndarray]) -> np.ndarray:
     return scan_corrections(
-        poses, scans, judged_scans(len(scans), 12), IcpParams(), exclude=0, voxel_m=0.01, normal_radius_m=0.1,
-        max_scans=39,
+        poses, scans, judged_scans(len(scans), 12), IcpParams(),
+        Neighbourhood(exclude=0, voxel_m=0.01, normal_radius_m=0.1, max_scans=39),
     )
 
 

@@ -233,7 +233,7 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
     """
     from mazebot.geometry import compose, inverse, relative_pose
     from mazebot.slam.map_consistency import judged_scans, scan_corrections
-    from mazebot.slam.slam_cli import heading_noise_rad, match_points, reanchor
+    from mazebot.slam.slam_cli import heading_noise_rad, match_points, neighbourhood, reanchor
 
     lasers = read_carmen(intel_log_path).lasers[:120]
     reference = np.array([r.pose for r in lasers])
@@ -246,8 +246,7 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
 
     def registered() -> np.ndarray:
         _, trajectory = slam.trajectory()
-        return scan_corrections(trajectory, points, judged_scans(len(points), 40), params.icp,
-                                voxel_m=params.prepare.voxel_size_m, normal_radius_m=params.normals.radius_m)
+        return scan_corrections(trajectory, points, judged_scans(len(points), 40), params.icp, neighbourhood(params))
 
     _, finished = slam.trajectory()
     own = registered()
@@ -270,6 +269,51 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
     assert np.hypot(*(back[far, :2] - kept[far, :2]).T).max() < 0.02
     assert np.abs(wrap_angle(back[far, 2] - kept[far, 2])).max() < np.radians(0.1)
     assert np.sqrt(np.mean(np.sum((finished[:, :2] - reference[:, :2]) ** 2, axis=1))) < 0.15  # a sound run
+
+
+@pytest.mark.parametrize("seed, slid", [(10, True), (1, False)])
+def test_the_map_is_placed_along_the_start_corridor_where_the_start_odometry_puts_it(
+    intel_log_path: Path, seed: int, slid: bool
+) -> None:
+    """Along the corridor the Intel log starts in, the first scan says nothing: the start's odometry places the map.
+
+    The first 120 scans (the robot turns in place, drives down the corridor and comes back
+    past its start), odometry 0.05,0.05. With seed 10 the second scan's match against the
+    first slides a decimetre along the corridor from the corrected poses' increment (a local
+    optimum at a smaller residual), and every later scan hangs on it: the start's in-place
+    turn sits 0.1 m off the corrected poses while the odometry there is within centimetres.
+    The first scan registered against the finished map is degenerate along the corridor, so
+    the map is moved along it onto the start's odometry: the start's scans come back to within
+    a few centimetres of the corrected poses, and nothing across the corridor or in heading
+    moves. With seed 1 the match did not slide: the start's odometry differs from the map by
+    less than its own error there, and the map stays.
+    """
+    from mazebot.slam.slam_cli import match_points, place_along_unobserved
+
+    lasers = read_carmen(intel_log_path).lasers[:120]
+    reference = np.array([r.pose for r in lasers])
+    odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(seed))
+    odometry = compose(reference[0], relative_pose(odometry[0], odometry))
+    config = load_config(None)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    slam = _slam_over(lasers, odometry, params)
+    _, before = slam.trajectory()
+    start = np.arange(1, 12)  # the in-place turn at the start: scans 1-11 within 0.25 m of the first
+    assert np.all(np.hypot(*(reference[start, :2] - reference[0, :2]).T) < 0.3)
+    off_before = float(np.median(np.hypot(*(before[start, :2] - reference[start, :2]).T)))
+    assert (off_before > 0.08) if slid else (off_before < 0.04)
+
+    placed = place_along_unobserved(slam, match_points(lasers, params), odometry, params)
+    direction = abs(placed["direction_deg"])
+    assert min(direction, 180.0 - direction) < 10.0  # along the corridor: the map's x axis
+    assert placed["applied"] == slid  # a move within the odometry's own error is left alone
+    assert (0.08 < abs(placed["shift_m"]) < 0.2) if slid else (abs(placed["shift_m"]) < 1.5 * placed["noise_m"])
+    _, after = slam.trajectory()
+    assert np.median(np.hypot(*(after[start, :2] - reference[start, :2]).T)) < 0.04
+    move = after - before
+    np.testing.assert_allclose(move[1:, 2], 0.0, atol=1e-12)  # no turn
+    np.testing.assert_allclose(move[1:, :2], move[1:2, :2].repeat(len(move) - 1, axis=0), atol=1e-9)  # rigid
+    np.testing.assert_allclose(move[0], 0.0, atol=1e-12)  # the first scan, the anchor, stays
 
 
 def _first_scans(intel_log_path: Path, count: int, match_overlap_fitness: bool) -> tuple[list[bool], np.ndarray]:

@@ -37,6 +37,7 @@ from mazebot.config import (
     PlannerConfig,
     RobotConfig,
 )
+from mazebot.io.scan import Scan
 from mazebot.planner.dwa import (
     DynamicWindowPlanner,
     LocalPlanner,
@@ -135,7 +136,7 @@ class StandStill:
     revolutions: int = 0
     escalations: int = 0  # steps taken since the robot was last free (FREED_M from where it began)
     freed_from: tuple[float, float] | None = None
-    last_scan: int | None = None  # id of the last revolution counted
+    last_scan: object | None = None  # the last revolution counted, told apart by identity (held: an id() may be reused)
     painted_at_mark: int = 0  # SLAM's painted revolutions when the count (re)started
     painted: int = 0  # of the revolutions stood, how many SLAM painted (the explorer's clock)
     track: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=TRACK_POINTS))
@@ -144,8 +145,8 @@ class StandStill:
         self.mark, self.revolutions, self.escalations, self.freed_from, self.last_scan = None, 0, 0, None, None
         self.track.clear()
 
-    def observe(self, pose: tuple[float, float, float], scan_id: int | None, painted: int = 0) -> int:
-        """Count one planner tick at ``pose`` (``scan_id``: the latest revolution's identity;
+    def observe(self, pose: tuple[float, float, float], scan: object | None, painted: int = 0) -> int:
+        """Count one planner tick at ``pose`` (``scan``: the latest revolution, held to tell a new one;
         ``painted``: SLAM's count of painted revolutions, for the report).
 
         Returns the revolutions stood when they have just reached the limit (the count
@@ -159,11 +160,11 @@ class StandStill:
         mark = self.mark
         turned = 0.0 if mark is None else abs(math.remainder(pose[2] - mark[2], math.tau))
         if mark is None or math.dist(mark[:2], xy) > STILL_M or turned > STILL_RAD:
-            self.mark, self.revolutions, self.last_scan, self.painted_at_mark = pose, 0, scan_id, painted
+            self.mark, self.revolutions, self.last_scan, self.painted_at_mark = pose, 0, scan, painted
             return 0
-        if scan_id is None or scan_id == self.last_scan:
+        if scan is None or scan is self.last_scan:
             return 0
-        self.last_scan = scan_id
+        self.last_scan = scan
         self.revolutions += 1
         if self.revolutions < self.limit_revolutions:
             return 0
@@ -201,7 +202,11 @@ class Pilot:
         #: time-outs (stuck, blocked, aligning, backing off) count ticks run, not wall time
         self.drive_ticks = 0
         self._last_reason: str | None = None
-        self._scan_cache: tuple[int, np.ndarray] | None = None  # (id of the Scan, robot-frame points)
+        #: (the Scan, its robot-frame points). The Scan itself is held, not its ``id()``: once a
+        #: revolution is dropped, CPython may give a later one its address, and a cache keyed by
+        #: the id would then serve a revolution the planner skipped as the newest one (whether it
+        #: does depends on what other threads allocate, so a run would not be a function of its seed)
+        self._scan_cache: tuple[Scan, np.ndarray] | None = None
         #: returns the lidar saw close by and can no longer see (inside its minimum range)
         self.blind_zone = BlindZoneMemory(params.lidar.min_range_m, lidar_xy_m=params.lidar.mount_xy_m,
                                           body_radius_m=params.robot.footprint_radius_m)
@@ -448,7 +453,7 @@ class Pilot:
             return
         scan = state.latest_scan
         painted = max(0, state.slam.scans - state.slam.held_back)
-        stood = self.still.observe(pose, None if scan is None else id(scan), painted)
+        stood = self.still.observe(pose, scan, painted)
         if stood:
             self._stood_still(state, now_s, pose, stood)
 
@@ -552,11 +557,11 @@ class Pilot:
             return np.zeros((0, 2))
         history, odo = state.odometry_history, state.odometry
         changed = False
-        if self._scan_cache is None or self._scan_cache[0] != id(scan):
+        if self._scan_cache is None or self._scan_cache[0] is not scan:
             lidar = self.params.lidar
             points = deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s, history,
                                            lidar.min_range_m, lidar.max_range_m, lidar.mount_xy_m)
-            self._scan_cache = (id(scan), points)
+            self._scan_cache = (scan, points)
             if history is not None and len(history) > 0:
                 then = history.pose_at(scan.end_time_s)
                 self.blind_zone.add_scan(points, (float(then[0]), float(then[1]), float(then[2])), scan.end_time_s)

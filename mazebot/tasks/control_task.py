@@ -34,6 +34,7 @@ from mazebot.config import (
     RobotConfig,
 )
 from mazebot.io.motors import MotorWriteError
+from mazebot.io.scan import Scan
 from mazebot.planner.safety import (
     CollisionGuard,
     ControlWatchdog,
@@ -103,7 +104,7 @@ class MotorControl:
         )
         self.lidar_range_m = (lidar.min_range_m, lidar.max_range_m)
         self.lidar_mount_xy_m = lidar.mount_xy_m
-        self._scan_cache: tuple[int, np.ndarray] | None = None
+        self._scan_cache: tuple[Scan, np.ndarray] | None = None  # held, not its id(): see Pilot's
 
     @classmethod
     def from_config(cls, config: Config) -> Self:
@@ -179,9 +180,9 @@ class MotorControl:
         scan = state.latest_scan
         if scan is None:
             return None, None
-        if self._scan_cache is None or self._scan_cache[0] != id(scan):
+        if self._scan_cache is None or self._scan_cache[0] is not scan:
             self._scan_cache = (
-                id(scan),
+                scan,
                 deskewed_points_robot(scan.angle_rad, scan.range_m, scan.valid, scan.time_s,
                                       state.odometry_history, *self.lidar_range_m, mount_xy_m=self.lidar_mount_xy_m),
             )

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mazebot.config import Config
 from mazebot.geometry import compose, inverse
 from mazebot.io.scan import Scan
-from mazebot.planner.pilot import Pilot, PilotParams
+from mazebot.planner import pilot as pilot_module
+from mazebot.planner.pilot import Pilot, PilotParams, StandStill
 from mazebot.planner.safety import CollisionGuard, with_remembered
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.odometry import OdometryPose
@@ -41,6 +43,29 @@ def _slam_fix(state: SharedState, end_s: float, slam_pose: tuple[float, float, f
     serial = state.odometry_fixes[-1].serial + 1 if state.odometry_fixes else 1
     state.odometry_fixes.append(OdometryFix(serial, end_s, state.map_from_odom, after, vouched))  # type: ignore[arg-type]
     state.map_from_odom = after  # type: ignore[assignment]
+
+
+def test_a_revolution_that_takes_a_dropped_ones_address_is_read_as_new(monkeypatch: pytest.MonkeyPatch) -> None:
+    # CPython may give a new revolution the address, so the id(), of one already dropped. Every
+    # object given one id here is that reuse at its worst: a post 0.5 m ahead in one revolution,
+    # nothing in the next, the robot standing where it was. The planner must see the newer
+    # revolution, and the stand-still watch must count it
+    monkeypatch.setattr(pilot_module, "id", lambda obj: 1, raising=False)
+    pilot = Pilot(PilotParams.from_config(Config()))
+    state = SharedState()
+    state.odometry_history = OdometryHistory(3.0)
+    _revolution(state, 1.0, 0.0, 0.5)
+    assert pilot._scan_points(state).shape == (1, 2)
+    _revolution(state, 1.2, 0.0, None)
+    assert pilot._scan_points(state).shape == (0, 2)
+
+    still = StandStill(limit_revolutions=3)
+    scans = []
+    for end_s in (1.4, 1.6, 1.8, 2.0):
+        _revolution(state, end_s, 0.0, None)
+        scans.append(state.latest_scan)
+    counted = [still.observe((0.0, 0.0, 0.0), scan) for scan in scans]
+    assert counted == [0, 0, 0, 3]  # the first marks the place; three new revolutions stood
 
 
 def test_a_leg_in_the_blind_zone_seen_before_slam_holds_revolutions_back_is_still_avoided_after_them() -> None:

@@ -12,11 +12,11 @@ def test_counts_revolutions_not_ticks() -> None:
     """Planner ticks without a new revolution do not count: the clock is what the lidar saw."""
     still = StandStill(limit_revolutions=3)
     pose = (1.0, 2.0, 0.5)
-    assert still.observe(pose, scan_id=1) == 0  # the first tick only marks where it stands
+    assert still.observe(pose, 1) == 0  # the first tick only marks where it stands
     reached = [still.observe(pose, scan_id) for scan_id in (1, 1, 2, 2, 3, 3, 3)]
     assert reached == [0, 0, 0, 0, 0, 0, 0]
-    assert still.observe(pose, scan_id=4) == 3  # the third new revolution stood
-    assert still.observe(pose, scan_id=5) == 0  # and the count starts again
+    assert still.observe(pose, 4) == 3  # the third new revolution stood
+    assert still.observe(pose, 5) == 0  # and the count starts again
 
 
 def test_moving_or_turning_starts_the_count_again() -> None:

@@ -71,6 +71,10 @@ XY = tuple[float, float]
 #: Rollout points per clearance query between two stages of a DWA step (under a millisecond here, quiet).
 CLEARANCE_BLOCK = 256
 
+#: How far past the end of a recovery's straight move (metres) its clearance is judged, when it is
+#: chosen and while it is driven: a move stops short of what stands just beyond its end.
+ESCAPE_LOOK_PAST_M = 0.02
+
 
 # -- obstacles ---------------------------------------------------------------------------
 
@@ -923,27 +927,53 @@ class LocalPlanner:
     def _escape_move(self, pose: tuple[float, float, float], costmap: LocalCostmap) -> tuple[float, float]:
         """The short straight move that best opens up space: ``(turn_rad, +1 forward or -1 back)``.
 
-        Every direction is probed for ``escape_m``; a move qualifies when the clearance
-        along it never drops below where it starts (or the contact distance, if lower),
-        and the one ending farthest from obstacles wins, nudged towards the path. It is
-        driven forwards or backwards, whichever needs the smaller turn, so a robot that
-        drifted too close to a post backs straight out instead of turning on the spot.
+        Every direction is probed as :meth:`_recover` will judge the move while it drives it:
+        from each point along the move (every ``step_m``), the clearance over
+        :meth:`_escape_reach_m` ahead of it (the rest of the move and a little past its end) must
+        not drop below :meth:`_escape_floor_m` of the clearance there; the first point where it
+        does is where the drive will stop. A move qualifies when it will be driven at all, and
+        the one that stops farthest from obstacles wins, nudged towards the path. Judged over its
+        own length only, a move chosen beside a leg was refused the moment it began, and the
+        robot stood where it was. It is driven forwards or backwards, whichever needs the
+        smaller turn, so a robot that drifted too close to a post backs straight out instead of
+        turning on the spot.
         """
         angles = np.linspace(-math.pi, math.pi, 36, endpoint=False)
-        steps = np.linspace(0.0, self.escape_m, max(2, math.ceil(self.escape_m / 0.01) + 1))
+        step_m = self.dwa.step_m
+        moves = np.linspace(0.0, self.escape_m, max(2, math.ceil(self.escape_m / step_m) + 1))
+        far_m = self.escape_m + self._escape_reach_m(self.escape_m)
+        steps = np.union1d(moves, np.linspace(0.0, far_m, max(2, math.ceil(far_m / step_m) + 1)))
         probe = steps[None, :, None] * np.stack((np.cos(angles), np.sin(angles)), axis=-1)[:, None, :]
         clear = costmap.clearance_m(probe.reshape(-1, 2)).reshape(angles.size, steps.size)
-        floor = min(self.dwa.contact_m, float(clear[0, 0]) - 1e-3)
-        ok = clear.min(axis=1) >= floor
+        at = np.searchsorted(steps, moves)  # the move's points among the probed ones
+        drives = np.empty((angles.size, moves.size), dtype=bool)  # the drive goes on from this point
+        for k, moved_m in enumerate(moves):
+            ahead = (steps >= moved_m) & (steps <= moved_m + self._escape_reach_m(float(moved_m)) + 1e-9)
+            drives[:, k] = np.all(clear[:, ahead] >= self._escape_floor_m(clear[:, at[k]])[:, None], axis=1)
+        stops = np.where(drives.all(axis=1), moves.size - 1, np.argmin(drives, axis=1))
+        ok = stops > 0
         assert self.path is not None
         carrot = self.path.point_at(self.path.progress_m + self.dwa.lookahead_m)
         bearing = math.atan2(carrot[1] - pose[1], carrot[0] - pose[0]) - pose[2]
-        gain = np.minimum(clear[:, -1], self.dwa.contact_m + self.dwa.clearance_cap_m)
+        gain = np.minimum(clear[np.arange(angles.size), at[stops]], self.dwa.contact_m + self.dwa.clearance_cap_m)
         score = np.where(ok, gain + 0.01 * np.cos(angles - bearing), -np.inf)
         best = float(angles[int(np.argmax(score))]) if ok.any() else bearing
         if abs(best) <= math.pi / 2:
             return best, 1.0
         return math.remainder(best + math.pi, math.tau), -1.0
+
+    def _escape_reach_m(self, moved_m: float) -> float:
+        """How far ahead of the robot an escape move is judged once it has moved ``moved_m``: the
+        rest of the move and ``ESCAPE_LOOK_PAST_M`` past its end, and never less than its stopping
+        distance with the emergency stop's margin (as for the DWA's arcs). Judged only 2 cm ahead
+        near its end, the move ran into the guard's stop when a wall stood 3-5 cm past it."""
+        stop_m = float(self.dwa.stopping_distance_m(self.escape_speed_mps))
+        return max(max(self.escape_m - moved_m, 0.0) + ESCAPE_LOOK_PAST_M, stop_m)
+
+    def _escape_floor_m(self, clearance_here_m: np.ndarray) -> np.ndarray:
+        """The clearance an escape move may not drop below ahead of where it is: the clearance
+        there (it must not close in on anything), or the contact distance if that is lower."""
+        return np.minimum(self.dwa.contact_m, clearance_here_m - 1e-3)
 
     def _recover(
         self, pose: tuple[float, float, float], velocity: tuple[float, float], costmap: LocalCostmap, now_s: float
@@ -960,15 +990,11 @@ class LocalPlanner:
         if self._recovery is _Recovery.BACK_OFF:
             assert self._backoff_start is not None
             moved = math.dist(self._backoff_start, (pose[0], pose[1]))
-            # the rest of the move (2 cm past its end), and never less than its stopping distance with the
-            # emergency stop's margin (as for the DWA's arcs), every step_m: judged only 2 cm ahead near
-            # its end, the move ran into the guard's stop when a wall stood 3-5 cm past it
-            stop_m = float(self.dwa.stopping_distance_m(self.escape_speed_mps))
-            reach_m = max(max(self.escape_m - moved, 0.0) + 0.02, stop_m)
+            reach_m = self._escape_reach_m(moved)
             n = max(2, math.ceil(reach_m / self.dwa.step_m) + 1)
             ahead = self._escape_direction * np.linspace(0.0, reach_m, n)
             clear = costmap.clearance_m(np.column_stack((ahead, np.zeros(n))))
-            still_opening = bool(np.all(clear >= min(self.dwa.contact_m, float(clear[0]) - 1e-3)))
+            still_opening = bool(np.all(clear >= self._escape_floor_m(clear[:1])))
             # a slipping or blocked robot may never cover the distance: give it twice the time it needs
             in_time = now_s - self._backoff_since <= 2.0 * self.escape_m / self.escape_speed_mps + 0.5
             if moved < self.escape_m and in_time and still_opening:

@@ -427,3 +427,43 @@ def test_the_recovery_s_back_off_ends_before_the_emergency_stop_would_refuse_it(
         y += cmd.v_mps * 0.2 * math.sin(heading)
         heading += cmd.w_radps * 0.2
     assert backed > 0 and x < -0.02  # it did back out
+
+
+
+
+def test_every_escape_is_a_move_the_recovery_then_drives_not_one_refused_for_a_leg_past_its_end() -> None:
+    """Stuck in a passage 24 cm wide, a 2 cm leg ahead on the right, the way behind open: the
+    best move judged over its own 6 cm (forwards, 30 degrees left) keeps its clearance to its end
+    but not just past it, where the drive looks before it moves, so the robot turned and the move
+    was refused at once. Every escape must pick a move that is then driven (some of it, at
+    least), and never touch."""
+    from mazebot.config import Config
+    from mazebot.tasks.control_task import MotorControl
+
+    guard = MotorControl.from_config(Config()).safety.guard
+    xs = np.arange(-0.275, 0.5, 0.005)
+    ys = np.arange(-0.105, 0.135, 0.005)
+    a = np.linspace(0.0, math.tau, 24, endpoint=False)
+    scene = np.concatenate((
+        np.column_stack((xs, np.full(xs.size, 0.135))), np.column_stack((xs, np.full(xs.size, -0.105))),
+        np.column_stack((np.full(ys.size, -0.275), ys)),
+        np.column_stack((0.11 + 0.01 * np.cos(a), -0.07 + 0.01 * np.sin(a))),  # the leg
+    ))
+    local = LocalPlanner(stuck_timeout_s=1.0, blocked_timeout_s=0.4)
+    local.set_path([(0.0, 0.0), (1.0, 0.0)])
+    x = y = heading = 0.0
+    moved_m: dict[int, float] = {}  # by recovery
+    for k in range(60):
+        pts = to_robot_frame(scene, (x, y, heading))
+        cmd = local.step((x, y, heading), (0.0, 0.0), pts, None, 0.0, 0.2 * k)
+        if cmd.give_up:
+            break
+        assert not guard.check(pts, cmd.v_mps, cmd.w_radps).stop, (k, cmd)
+        if cmd.status is LocalStatus.RECOVERING:
+            moved_m[local.recoveries] = moved_m.get(local.recoveries, 0.0) + abs(cmd.v_mps) * 0.2
+        x += cmd.v_mps * 0.2 * math.cos(heading)  # an ideal robot that does as it is told
+        y += cmd.v_mps * 0.2 * math.sin(heading)
+        heading += cmd.w_radps * 0.2
+        assert min_distance(np.array([[x, y]]), scene) >= FOOTPRINT
+    assert len(moved_m) >= 2
+    assert min(moved_m.values()) >= 0.02, moved_m  # judged over its own 6 cm, the first moved 0 m

@@ -790,7 +790,12 @@ class LocalPlanner:
         self._escape_direction = -1.0
 
     def set_path(self, waypoints_m: Sequence[XY]) -> None:
-        """Follow a new path; the same path again (same waypoints) keeps the progress and timers."""
+        """Follow a new path; the same path again (same waypoints) keeps the progress and timers.
+
+        A recovery under way goes on to its end (a turn and a few centimetres, judged all the way)
+        before the new path is followed: a path re-planned as the map changes would otherwise
+        cut every escape beside a leg short after its turn, and the robot stood where it was.
+        """
         new = PathTrack(waypoints_m)
         same = self.path is not None and new.points.shape == self.path.points.shape
         if same and np.allclose(new.points, self.path.points, atol=1e-3):  # type: ignore[union-attr]
@@ -799,7 +804,6 @@ class LocalPlanner:
         self.recoveries = 0
         self._progress_mark = None
         self._blocked_since = None
-        self._recovery = None
         self._align_target = None
         self.status = LocalStatus.FOLLOWING
 
@@ -982,7 +986,11 @@ class LocalPlanner:
         if self._recovery is _Recovery.ROTATE:
             assert self._recovery_heading is not None
             w, done = self.aligner.command(pose[2], self._recovery_heading, velocity[1])
-            if not done:
+            # the aligner stops a turn where the yaw rate would carry it into its band a planner period
+            # on; the robot brakes sooner, and a straight move begun then (12-18 degrees short, measured
+            # on the cheap robot) is not the move judged: it waits until the heading is in the band
+            short = abs(math.remainder(self._recovery_heading - pose[2], math.tau)) > self.aligner.tolerance_rad
+            if not done or short:
                 return MotionCommand(0.0, w, DriveMode.RECOVER, self.status)
             self._recovery = _Recovery.BACK_OFF
             self._backoff_start = (pose[0], pose[1])

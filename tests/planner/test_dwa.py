@@ -467,3 +467,28 @@ def test_every_escape_is_a_move_the_recovery_then_drives_not_one_refused_for_a_l
         assert min_distance(np.array([[x, y]]), scene) >= FOOTPRINT
     assert len(moved_m) >= 2
     assert min(moved_m.values()) >= 0.02, moved_m  # judged over its own 6 cm, the first moved 0 m
+
+
+def test_the_escape_s_straight_move_begins_at_the_heading_it_was_chosen_for(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The aligner stops a turn where the measured yaw rate would carry it into its band a planner
+    period later; a robot that brakes at once stops short of that. The escape's straight move is
+    judged for the heading the escape chose, so it must not begin until the robot holds it."""
+    local = LocalPlanner(stuck_timeout_s=1.0, blocked_timeout_s=0.4)
+    local.set_path([(0.0, 0.0), (1.0, 0.0)])
+    monkeypatch.setattr(local, "_escape_move", lambda pose, costmap: (math.radians(70.0), -1.0))
+    wall = np.column_stack((np.full(41, 0.2), np.linspace(-0.2, 0.2, 41)))  # across the way ahead
+    x = y = heading = 0.0
+    w_now = 0.0  # the measured yaw rate: what was commanded, the robot brakes within the period
+    started_at = None
+    for k in range(60):
+        cmd = local.step((x, y, heading), (0.0, w_now), to_robot_frame(wall, (x, y, heading)), None, 0.0, 0.2 * k)
+        if cmd.status is LocalStatus.RECOVERING and abs(cmd.v_mps) > 0 and started_at is None:
+            started_at = heading
+        x += cmd.v_mps * 0.2 * math.cos(heading)
+        y += cmd.v_mps * 0.2 * math.sin(heading)
+        heading += cmd.w_radps * 0.2
+        w_now = cmd.w_radps
+        if started_at is not None:
+            break
+    assert started_at is not None
+    assert abs(math.degrees(started_at) - 70.0) <= math.degrees(local.aligner.reengage_rad)  # main: 14 degrees short

@@ -75,6 +75,18 @@ CLEARANCE_BLOCK = 256
 #: chosen and while it is driven: a move stops short of what stands just beyond its end.
 ESCAPE_LOOK_PAST_M = 0.02
 
+#: Planner ticks a recovery's turn may go on without its heading coming ``ESCAPE_TURN_PROGRESS_RAD``
+#: closer to the one the escape chose than it has been before the escape is given up. A turn the
+#: aligner hands over short comes to rest and is corrected within 1-3 ticks on the cheap robot
+#: (its 3 degrees of gearbox play taken up first); a robot that cannot turn further, or hunts about
+#: the heading, never gets there, and waiting for it held the robot where it stood.
+ESCAPE_TURN_IDLE_TICKS = 5
+
+#: The least turn (radians) that counts as the heading coming closer to an escape's: more than
+#: SLAM's corrections move a standing robot's heading (a few tenths of a degree), less than a
+#: planner tick's turn at the aligner's slowest rate (0.4 rad/s for 0.2 s: 4.6 degrees).
+ESCAPE_TURN_PROGRESS_RAD = math.radians(1.0)
+
 
 # -- obstacles ---------------------------------------------------------------------------
 
@@ -742,7 +754,8 @@ class LocalPlanner:
     ``stuck_progress_m`` (or the window stay blocked for ``blocked_timeout_s``) before
     recovery. Recovery turns in place, then drives ``escape_m`` straight (forwards or
     backwards, at ``escape_speed_mps``) along the direction that opens up the most space
-    without closing in on anything (see :meth:`_escape_move`), then re-plans;
+    without closing in on anything (see :meth:`_escape_move`), then re-plans; a turn that
+    stops coming closer to its heading gives the escape up (:meth:`_turn_stalled`);
     ``max_recoveries`` recoveries on one path make it give up.
     """
 
@@ -785,6 +798,8 @@ class LocalPlanner:
         self._blocked_since: float | None = None
         self._recovery: _Recovery | None = None
         self._recovery_heading: float | None = None
+        self._turn_closest_rad = math.inf  # the escape's turn: the least heading error it has reached
+        self._turn_idle_ticks = 0  # ... and the ticks since it last came closer
         self._backoff_start: XY | None = None
         self._backoff_since = 0.0
         self._escape_direction = -1.0
@@ -925,6 +940,7 @@ class LocalPlanner:
         self._recovery = _Recovery.ROTATE
         self._recovery_heading = pose[2] + turn
         self._escape_direction = direction
+        self._turn_closest_rad, self._turn_idle_ticks = math.inf, 0
         self.aligner.reset()
         return self._recover(pose, velocity, costmap, now_s)
 
@@ -979,6 +995,18 @@ class LocalPlanner:
         there (it must not close in on anything), or the contact distance if that is lower."""
         return np.minimum(self.dwa.contact_m, clearance_here_m - 1e-3)
 
+    def _turn_stalled(self, error_rad: float) -> bool:
+        """Whether an escape's turn, ``error_rad`` from its heading this tick, has gone
+        ``ESCAPE_TURN_IDLE_TICKS`` planner ticks without coming ``ESCAPE_TURN_PROGRESS_RAD`` closer
+        to it than before. Counted in what the robot did, so a turn that goes on closing in is
+        never cut, and one that does not ends within a bounded number of ticks (its turn over the
+        progress step, times the idle ticks, at most)."""
+        if error_rad < self._turn_closest_rad - ESCAPE_TURN_PROGRESS_RAD:
+            self._turn_closest_rad, self._turn_idle_ticks = error_rad, 0
+        else:
+            self._turn_idle_ticks += 1
+        return self._turn_idle_ticks >= ESCAPE_TURN_IDLE_TICKS
+
     def _recover(
         self, pose: tuple[float, float, float], velocity: tuple[float, float], costmap: LocalCostmap, now_s: float
     ) -> MotionCommand:
@@ -988,13 +1016,16 @@ class LocalPlanner:
             w, done = self.aligner.command(pose[2], self._recovery_heading, velocity[1])
             # the aligner stops a turn where the yaw rate would carry it into its band a planner period
             # on; the robot brakes sooner, and a straight move begun then (12-18 degrees short, measured
-            # on the cheap robot) is not the move judged: it waits until the heading is in the band
-            short = abs(math.remainder(self._recovery_heading - pose[2], math.tau)) > self.aligner.tolerance_rad
-            if not done or short:
-                return MotionCommand(0.0, w, DriveMode.RECOVER, self.status)
-            self._recovery = _Recovery.BACK_OFF
-            self._backoff_start = (pose[0], pose[1])
-            self._backoff_since = now_s
+            # on the cheap robot) is not the move judged: it waits until the heading is in the band,
+            # as long as the turn still comes closer to it
+            error_rad = abs(math.remainder(self._recovery_heading - pose[2], math.tau))
+            if not done or error_rad > self.aligner.tolerance_rad:
+                if not self._turn_stalled(error_rad):
+                    return MotionCommand(0.0, w, DriveMode.RECOVER, self.status)
+            else:
+                self._recovery = _Recovery.BACK_OFF
+                self._backoff_start = (pose[0], pose[1])
+                self._backoff_since = now_s
         if self._recovery is _Recovery.BACK_OFF:
             assert self._backoff_start is not None
             moved = math.dist(self._backoff_start, (pose[0], pose[1]))
@@ -1009,7 +1040,8 @@ class LocalPlanner:
                 return MotionCommand(
                     self._escape_direction * self.escape_speed_mps, 0.0, DriveMode.RECOVER, self.status
                 )
-        # done: back to following; the caller re-plans from here
+        # done, or given up (a turn that stalled, a move that would close in): back to following; the
+        # caller re-plans from here
         self._recovery = None
         self._progress_mark = (self.path.progress_m if self.path else 0.0, now_s)
         self.status = LocalStatus.FOLLOWING

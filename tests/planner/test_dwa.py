@@ -9,7 +9,7 @@ radius of any obstacle point.
 from __future__ import annotations
 
 import math
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 
 import numpy as np
 import pytest
@@ -492,3 +492,46 @@ def test_the_escape_s_straight_move_begins_at_the_heading_it_was_chosen_for(monk
             break
     assert started_at is not None
     assert abs(math.degrees(started_at) - 70.0) <= math.degrees(local.aligner.reengage_rad)  # main: 14 degrees short
+
+
+def _tyre_caught_past_60_degrees(commanded_radps: float, heading_rad: float, k: int) -> tuple[float, float]:
+    """A robot that turns as told up to 60 degrees and no further (a tyre caught on a cable):
+    ``(turned, measured)`` yaw rates."""
+    turned = commanded_radps if heading_rad + 0.2 * commanded_radps <= math.radians(60.0) else 0.0
+    return turned, turned
+
+
+def _rate_that_never_settles(commanded_radps: float, heading_rad: float, k: int) -> tuple[float, float]:
+    """A robot that turns as told and brakes at once, its measured yaw rate what was commanded
+    and 0.1 rad/s of jitter on top (a tyre rocking on an encoder slot's edge), so that it is
+    never seen to stand still: ``(turned, measured)``."""
+    return commanded_radps, commanded_radps + (0.1 if k % 2 else -0.1)
+
+
+@pytest.mark.parametrize("robot", [_tyre_caught_past_60_degrees, _rate_that_never_settles])
+def test_an_escape_whose_turn_stops_coming_closer_is_given_up_and_then_the_path(
+    monkeypatch: pytest.MonkeyPatch, robot: Callable[[float, float, int], tuple[float, float]]
+) -> None:
+    """The straight move waits for the heading it was chosen for, but not without end: a turn
+    that no longer comes closer to it (the robot cannot turn further, or hunts about the heading)
+    gives the escape up, the next escapes too, and then the path, so that the explorer plans anew.
+    Waiting without end, the robot stood through its first escape's turn for good."""
+    local = LocalPlanner(stuck_timeout_s=1.0, blocked_timeout_s=0.4)
+    local.set_path([(0.0, 0.0), (1.0, 0.0)])
+    monkeypatch.setattr(local, "_escape_move", lambda pose, costmap: (math.radians(70.0), -1.0))
+    wall = np.column_stack((np.full(41, 0.2), np.linspace(-0.2, 0.2, 41)))  # across the way ahead
+    x = y = heading = 0.0
+    w_now = 0.0
+    turning = longest = 0  # planner ticks of one escape's turn (a recovery's command that does not move)
+    for k in range(300):
+        cmd = local.step((x, y, heading), (0.0, w_now), to_robot_frame(wall, (x, y, heading)), None, 0.0, 0.2 * k)
+        if cmd.give_up:
+            break
+        turning = turning + 1 if cmd.mode is DriveMode.RECOVER and cmd.v_mps == 0.0 else 0
+        longest = max(longest, turning)
+        turned, w_now = robot(cmd.w_radps, heading, k)
+        x += cmd.v_mps * 0.2 * math.cos(heading)
+        y += cmd.v_mps * 0.2 * math.sin(heading)
+        heading += turned * 0.2
+    assert cmd.give_up
+    assert longest <= 15, longest  # the turn to 70 degrees takes 6 ticks (1.2 s)

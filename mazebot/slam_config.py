@@ -223,8 +223,9 @@ class LoopSection:
         "3 kept it at 10.6 mm)"))] = 3
     max_candidates: Annotated[int, Field(ge=1, description="candidates verified per attempt (nearest first)")] = 1
     anchor_candidate: Annotated[bool, Field(description=(
-        "verify keyframe 0 too whenever it is within the search radius (closures to it fix the map's "
-        "orientation about the start)"))] = False
+        "verify keyframe 0 too whenever it is in sight within max_search_radius_m, against its revolutions at "
+        "rest alone (closures to it turn the map about the start onto the start's own view: they anchor the "
+        "wall grid)"))] = True
     min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
     overlap_fitness: Annotated[bool, Field(description=(
         "a match below min_fitness still passes if its inlier ratio among the points the submap could have "
@@ -263,6 +264,9 @@ class LoopSection:
         "that share of theirs (nearer ones, and a ridge along a corridor, are the best's own peak)"))] = 1.0
     information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of a loop closure's ICP information"))] = 0.1
+    anchor_information_scale: Annotated[float, Field(gt=0, le=1, description=(
+        "... and of a closure to keyframe 0 matched against its revolutions at rest (its own view, measured "
+        "standing still: none of the submap's keyframes and their pose errors in it)"))] = 1.0
     dcs_phi: Annotated[float, Field(ge=0, description=(
         "dynamic covariance scaling (Agarwal et al., ICRA 2013): a closure whose chi2 exceeds this loses "
         "weight in the optimization (0: plain least squares)"))] = 11.34

@@ -218,8 +218,8 @@ def test_the_anchor_keyframe_is_tried_whenever_it_is_within_reach() -> None:
     anchored = find_candidates(poses, 55, var, var, replace(params, anchor_candidate=True))
     assert [c.old for c in anchored] == [5, 0]
     np.testing.assert_allclose(anchored[1].prior, relative_pose(poses[0], poses[55]))
-    # out of reach, it is not tried
-    far = replace(params, anchor_candidate=True, search_radius_m=0.3)
+    # out of reach of any candidate, it is not tried
+    far = replace(params, anchor_candidate=True, search_radius_m=0.3, max_search_radius_m=0.4)
     assert [c.old for c in find_candidates(poses, 55, var, var, far)] == [5]
 
 

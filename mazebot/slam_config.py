@@ -264,9 +264,6 @@ class LoopSection:
         "that share of theirs (nearer ones, and a ridge along a corridor, are the best's own peak)"))] = 1.0
     information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of a loop closure's ICP information"))] = 0.1
-    anchor_information_scale: Annotated[float, Field(gt=0, le=1, description=(
-        "... and of a closure to keyframe 0 matched against its revolutions at rest (its own view, measured "
-        "standing still: none of the submap's keyframes and their pose errors in it)"))] = 1.0
     dcs_phi: Annotated[float, Field(ge=0, description=(
         "dynamic covariance scaling (Agarwal et al., ICRA 2013): a closure whose chi2 exceeds this loses "
         "weight in the optimization (0: plain least squares)"))] = 11.34

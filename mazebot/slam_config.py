@@ -223,8 +223,9 @@ class LoopSection:
         "3 kept it at 10.6 mm)"))] = 3
     max_candidates: Annotated[int, Field(ge=1, description="candidates verified per attempt (nearest first)")] = 1
     anchor_candidate: Annotated[bool, Field(description=(
-        "verify keyframe 0 too whenever it is within the search radius (closures to it fix the map's "
-        "orientation about the start)"))] = False
+        "verify keyframe 0 too whenever it is in sight within max_search_radius_m, against its revolutions at "
+        "rest alone (closures to it turn the map about the start onto the start's own view: they anchor the "
+        "wall grid)"))] = True
     min_fitness: Annotated[float, Field(ge=0, le=1, description="accept: at least this share of points matched")] = 0.8
     overlap_fitness: Annotated[bool, Field(description=(
         "a match below min_fitness still passes if its inlier ratio among the points the submap could have "

@@ -176,12 +176,10 @@ def find_candidates(
     dist = np.hypot(poses[old, 0] - poses[new, 0], poses[old, 1] - poses[new, 1])
     radius = np.minimum(params.max_search_radius_m, params.search_radius_m + params.sigma_scale * np.sqrt(var_xy[old]))
     near = old[dist <= radius]
-    if near.size == 0:
-        return []
     order = near[np.argsort(dist[near], kind="stable")]
     chosen = list(order[: params.max_candidates])
-    if params.anchor_candidate and near[0] == 0 and 0 not in chosen:
-        chosen.append(0)  # the map's own frame: see LoopSection.anchor_candidate
+    if params.anchor_candidate and dist[0] <= params.max_search_radius_m and 0 not in chosen:
+        chosen.append(0)  # the map's own frame, as far as any candidate may be: see LoopSection.anchor_candidate
     out = []
     for i in chosen:
         sxy = max(params.min_std_m**2, float(var_xy[i]))

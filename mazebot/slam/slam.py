@@ -86,7 +86,7 @@ from mazebot.slam.overlap import ObservedArea
 from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
 from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
-from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan
+from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan, voxel_downsample
 from mazebot.slam.robust_closures import optimize_dcs
 from mazebot.slam.start_anchor import start_anchor_rad
 from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
@@ -133,6 +133,9 @@ class LoopClosureResult:
     downweighted: int = 0  # loop closures in the graph whose robust weight fell below 0.1 (robust_closures)
     # closures waiting for a set (``tentative`` verdicts, of this job or before) that the set accepted
     set_accepted: tuple[Verdict, ...] = ()
+    # the wall grid's direction in keyframe 0's frame and its std, measured by each closure to keyframe 0's
+    # revolutions at rest so far (this job's and before): the anchor (LoopClosureJob.start_turns)
+    start_turns: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass
@@ -157,6 +160,12 @@ class LoopClosureJob:
     # keyframe 0's faces at rest (its frame) where they turn apart: the anchor is then the maze's grid
     # judged from every keyframe's faces together (mazebot.slam.start_anchor), with anchor_wall's trust
     start_faces: Faces | None = None
+    # keyframe 0's revolutions at rest pooled (points, normals; its frame): a closure to keyframe 0 is matched
+    # against them alone (None: against the keyframes around it, as any closure)
+    rest_surface: tuple[np.ndarray, np.ndarray] | None = None
+    # the wall grid's direction in keyframe 0's frame and its std as closures to the rest surface measured it
+    # (earlier jobs'; this job adds its own): counted in the anchor beside the faces' (_anchor)
+    start_turns: tuple[tuple[float, float], ...] = ()
     rebuild_anyway: bool = False  # rebuild the grid however little the keyframes moved (the end of exploration)
     lattice_fit: PitchFit | None = None  # set by the run: the lattice the walls were fitted to
     # the last lattice fitted and the keyframes it was fitted with: taken again while the keyframes
@@ -193,27 +202,37 @@ class LoopClosureJob:
             lidar_in_old = compose(cand.prior, np.array([*new_kf.sensor_xy, 0.0]))[:2]
             if p.loop.max_range_m is not None:
                 source = source[np.hypot(*(source - new_kf.sensor_xy).T) <= p.loop.max_range_m]
-            target = build_target(
-                [self.keyframes[k] for k in window],
-                p.submap_voxel_m,
-                frame=self.poses[cand.old],
-                poses=[self.poses[k] for k in window],
-                clip=None if p.loop.max_range_m is None else (lidar_in_old, p.loop.max_range_m + 0.3),
-            )
+            clip = None if p.loop.max_range_m is None else (lidar_in_old, p.loop.max_range_m + 0.3)
+            loop = p.loop
+            if cand.old == 0 and self.rest_surface is not None:
+                # the start's own view: its inlier ratio counted where keyframe 0 saw (the new keyframe
+                # sees more than one scan of the start did)
+                window = range(1)
+                target = self._rest_target(clip)
+                loop = replace(loop, overlap_fitness=True)
+            else:
+                target = build_target(
+                    [self.keyframes[k] for k in window],
+                    p.submap_voxel_m,
+                    frame=self.poses[cand.old],
+                    poses=[self.poses[k] for k in window],
+                    clip=clip,
+                )
             observed = None
-            if p.loop.overlap_fitness:
+            if loop.overlap_fitness:
                 observed = ObservedArea.from_keyframes(
                     [relative_pose(self.poses[cand.old], self.poses[k]) for k in window],
                     [self.keyframes[k].sensor_xy for k in window],
                     [self.keyframes[k].ray_ends for k in window],
                 )
-            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, p.loop, observed))
+            verdicts.append(verify(cand, target, source, new_kf.sensor_xy, p.icp, loop, observed))
         set_accepted: list[Verdict] = []
         if p.loop.set_verify:
             verdicts, set_accepted = self._judged_as_set(verdicts)
         accepted = [v for v in verdicts if v.accepted] + set_accepted
         if not accepted and not self.optimize_anyway:
-            return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted))
+            return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns)
+        self.start_turns += self._turns_at_rest(accepted)
         # optimize the graph with the new constraints (first keyframe fixed), loop closures robust
         count = self.poses.shape[0]
         ei, ej, z, omega = self.edges
@@ -267,7 +286,48 @@ class LoopClosureJob:
             lattice_fit_keyframes=self.lattice_fit_keyframes,
             downweighted=int(np.sum(robust.weights < 0.1)),
             set_accepted=tuple(set_accepted),
+            start_turns=self.start_turns,
         )
+
+    def _turns_at_rest(self, accepted: list[Verdict]) -> tuple[tuple[float, float], ...]:
+        """The wall grid's direction in keyframe 0's frame (and its std) that each accepted closure to the rest
+        surface says.
+
+        The map's keyframes sit on the wall grid (the wall priors hold every one of them to it), so the
+        map turns about the start with the grid's vertex: a closure from keyframe ``n`` to keyframe 0's
+        revolutions at rest that turns ``n`` by ``ε`` against this snapshot (its correction's heading) says
+        the whole map, grid and all, stands turned by ``-ε`` about the start. The grid's direction in
+        keyframe 0's frame is then the snapshot's turned by ``ε``, with the match's heading std (its
+        information; :meth:`_anchor` trusts it less). Nothing in it depends on the angle the boards
+        around the start stand at.
+        """
+        if self.rest_surface is None or self.wall_reference_rad is None:
+            return ()
+        turns = []
+        for v in accepted:
+            if v.candidate.old != 0 or v.information[2, 2] <= 0:
+                continue
+            correction = float(wrap_angle(v.measurement[2] - v.candidate.prior[2]))
+            direction = wrap_quarter(self.wall_reference_rad - float(self.poses[0, 2]) + correction)
+            turns.append((direction, 1.0 / math.sqrt(float(v.information[2, 2]))))
+        return tuple(turns)
+
+    def _rest_target(self, clip: tuple[np.ndarray, float] | None) -> Target | None:
+        """Keyframe 0's revolutions at rest as a submap (its frame), within ``clip`` of the new keyframe's lidar.
+
+        The start's own view, measured while nothing moved: no de-skew, no odometry, and none of
+        the keyframes after it, whose headings carry the first turns' errors (the cheap robot's
+        slip), blurs it. A closure to it ties the map's turn to the start itself, through the
+        walls both scans see, whatever angle those boards stand at.
+        """
+        assert self.rest_surface is not None
+        points, normals = self.rest_surface
+        if clip is not None:
+            near = np.hypot(*(points - np.asarray(clip[0]).reshape(1, 2)).T) <= clip[1]
+            points, normals = points[near], normals[near]
+        if not len(points):
+            return None
+        return Target(points, self.keyframes[0].sensor_xy, normals)
 
     def _judged_as_set(self, verdicts: list[Verdict]) -> tuple[list[Verdict], list[Verdict]]:
         """This job's verdicts with the closures the set refused, and the waiting closures it accepted.
@@ -287,19 +347,25 @@ class LoopClosureJob:
 
 
     def _anchor(self) -> tuple[float, float] | None:
-        """Keyframe 0's wall direction and std for the wall priors: as given, or judged from every board.
+        """Keyframe 0's wall direction and std for the wall priors: as given, or judged from every board,
+        together with what the closures to the start at rest measured.
 
         Judged from every board, it is trusted as far as that fit says (never more than the
         anchor of exact walls): tied at ``wall_anchor_std_rad`` a direction 0.5° off turned the
-        whole map by as much (the bench's hand-built 8×8 seeds 3 and 6).
+        whole map by as much (the bench's hand-built 8×8 seeds 3 and 6). A closure to the start at
+        rest counts as one keyframe's view of the walls (``wall_prior_std_rad``), whatever its
+        match's information: the new keyframe's scan is taken moving and de-skewed by odometry (in
+        the bench's exact 6×6 scripted seed 3, turning at 0.93 rad/s, its heading stood 0.54° off the
+        truth where ICP said 0.14°, and taken at that std it turned the whole map by 0.5°).
         """
-        if self.start_faces is None or self.wall_reference_rad is None:
-            return self.anchor_wall
-        judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
-        if judged is None:
-            return None
-        direction, std = judged
-        return direction, max(std, self.params.wall_anchor_std_rad)
+        anchor = self.anchor_wall
+        if self.start_faces is not None and self.wall_reference_rad is not None:
+            judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
+            anchor = None if judged is None else (judged[0], max(judged[1], self.params.wall_anchor_std_rad))
+        turns = [(direction, max(std, self.params.wall_prior_std_rad)) for direction, std in self.start_turns]
+        if not turns:
+            return anchor
+        return _mean_turn(turns + ([] if anchor is None else [anchor]), self.params.wall_anchor_std_rad)
 
     def _fit_to_reuse(self) -> tuple[PitchFit, int] | None:
         """The known lattice fit (and its keyframes) if the walls fitted it and the keyframes grew little since.
@@ -497,6 +563,8 @@ class Slam:
         self._anchor_surfaces: list[tuple[np.ndarray, np.ndarray]] = []
         self._anchor_spread: tuple[float | None] | None = None  # the faces' spread, once judged
         self._start_faces: Faces | None = None  # ... and the faces themselves (keyframe 0's frame)
+        self._rest_surface: tuple[np.ndarray, np.ndarray] | None = None  # ... and the surfaces pooled (voxel filter)
+        self._start_turns: tuple[tuple[float, float], ...] = ()  # the anchor the closures to them measured
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
@@ -568,6 +636,8 @@ class Slam:
             normals = np.concatenate([nrm for _, nrm in self._anchor_surfaces])
             faces = wall_faces(points, normals, direction)
             self._start_faces = faces
+            first = voxel_downsample(points, self.params.submap_voxel_m)
+            self._rest_surface = (points[first], normals[first])
             self._anchor_spread = (face_spread(quarter_turns(faces.normal_rad - direction), faces.count),)
             self._anchor_surfaces = []
             spread = self._anchor_spread[0]
@@ -800,6 +870,7 @@ class Slam:
             self._set_members = [v for v in self._set_members if v.candidate.new >= oldest]
             self._set_waiting = [v for v in self._set_waiting if v.candidate.new >= oldest]
         self._note_lattice(result.lattice_fit, result.lattice_fit_keyframes)
+        self._start_turns = result.start_turns or self._start_turns
         if result.poses is None:
             return False
         self.closures_downweighted = result.downweighted
@@ -1418,6 +1489,8 @@ class Slam:
             optimize_anyway=optimize_anyway,
             anchor_wall=None if anchor is None else (anchor, self.params.wall_anchor_std_rad),
             start_faces=faces,
+            rest_surface=self._rest_surface,
+            start_turns=self._start_turns,
             known_fit=None if self.lattice_fit is None else (self.lattice_fit, self._lattice_fit_keyframes),
             set_members=tuple(self._set_members),
             set_waiting=tuple(self._set_waiting),
@@ -1458,6 +1531,14 @@ class Slam:
         if not candidates and not periodic:
             return None
         return self._make_job(candidates, poses, optimize_anyway=periodic)
+
+
+def _mean_turn(turns: Sequence[tuple[float, float]], floor_std_rad: float) -> tuple[float, float]:
+    """The inverse-variance mean (modulo 90°) of ``(direction_rad, std_rad)`` pairs, and its std (floored)."""
+    direction = np.array([d for d, _ in turns])
+    weight = 1.0 / np.array([std for _, std in turns]) ** 2
+    mean = 0.25 * math.atan2(float(weight @ np.sin(4.0 * direction)), float(weight @ np.cos(4.0 * direction)))
+    return mean, max(1.0 / math.sqrt(float(weight.sum())), floor_std_rad)
 
 
 def _segment_cells(grid: OccupancyGrid, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -208,18 +208,24 @@ def test_candidates_are_old_and_within_the_drift_scaled_radius() -> None:
 
 def test_the_anchor_keyframe_is_tried_whenever_it_is_within_reach() -> None:
     # the path comes back past keyframe 5, with keyframe 0 half a metre away: the nearest
-    # candidate is 5; keyframe 0 (the map's frame) is verified too only with anchor_candidate
+    # candidate is 5; keyframe 0 (the map's frame) is verified too only with anchor_candidate, as far
+    # as any candidate may be (max_search_radius_m), not only within the drift-scaled radius
     out = np.column_stack((np.arange(31) * 0.1, np.zeros(31), np.zeros(31)))
     back = np.column_stack((3.0 - np.arange(1, 31) * 0.1, np.full(30, 0.05), np.full(30, math.pi)))
     poses = np.vstack((out, back))[:56]  # keyframe 55 is at x = 0.5
     var = np.full(len(poses) - 1, 1e-8)
-    params = LoopClosureParams(min_keyframe_gap=40, search_radius_m=0.6, max_search_radius_m=1.0, max_candidates=1)
+    params = LoopClosureParams(
+        min_keyframe_gap=40, search_radius_m=0.6, max_search_radius_m=1.0, max_candidates=1, anchor_candidate=False
+    )
     assert [c.old for c in find_candidates(poses, 55, var, var, params)] == [5]
     anchored = find_candidates(poses, 55, var, var, replace(params, anchor_candidate=True))
     assert [c.old for c in anchored] == [5, 0]
     np.testing.assert_allclose(anchored[1].prior, relative_pose(poses[0], poses[55]))
-    # out of reach, it is not tried
-    far = replace(params, anchor_candidate=True, search_radius_m=0.3)
+    # beyond the drift-scaled radius (0.3 m) but within max_search_radius_m, it is tried
+    beyond = replace(params, anchor_candidate=True, search_radius_m=0.3)
+    assert [c.old for c in find_candidates(poses, 55, var, var, beyond)] == [5, 0]
+    # out of reach of any candidate, it is not tried
+    far = replace(params, anchor_candidate=True, search_radius_m=0.3, max_search_radius_m=0.4)
     assert [c.old for c in find_candidates(poses, 55, var, var, far)] == [5]
 
 

@@ -180,3 +180,57 @@ def test_an_exact_maze_s_start_is_judged_through_every_face_too(cast_scan) -> No
     judged = start_anchor_rad(job.start_faces, keyframes, poses, 0.0)
     assert judged is not None
     assert abs(math.degrees(math.remainder(judged[0], math.pi / 2))) < 0.1
+
+
+def test_a_closure_home_to_the_start_at_rest_measures_the_map_s_turn_about_the_start(hand_scene, cast_scan) -> None:
+    # The start's faces say where the grid lies only as well as its boards stand on it: anchored to
+    # their mean, the whole map turns about the start by the boards' turn. Back at the start, a
+    # closure to keyframe 0's revolutions at rest measures the map's turn itself, whatever the boards:
+    # the grid where the start's own view puts it. Counted as one keyframe's view beside the faces'
+    # anchor, it pulls the map's grid towards the maze's.
+    from mazebot.geometry import relative_pose
+    from mazebot.slam.loop_closure import Candidate
+    from mazebot.slam.preprocess import voxel_downsample
+
+    world, world_poses, truth = hand_scene
+    back = world_poses[0] + np.array([0.02, -0.03, 1.1])  # the robot home again, facing elsewhere
+    world_poses = np.vstack((world_poses, back))
+    truth = np.vstack((truth, back - np.array([*world_poses[0, :2], 0.0])))
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
+    revolutions = [keyframe_at(world, cast_scan, 0, world_poses[0], seed=100 + k) for k in range(REST_REVOLUTIONS)]
+    points = np.concatenate([kf.surface()[0] for kf in revolutions])
+    normals = np.concatenate([kf.surface()[1] for kf in revolutions])
+    first = voxel_downsample(points, 0.01)
+    rest = rest_surface(world, cast_scan, world_poses[0])
+    own = float(np.average(quarter_turns(rest.normal_rad - math.radians(MAZE_DEG)), weights=rest.count))
+    assert abs(math.degrees(own)) > 0.2  # the start's boards: their mean is off the maze's grid
+
+    def optimized(turn_deg: float, home: bool):
+        """The job on the map turned by ``turn_deg`` about the start, anchored to the start's faces' mean at
+        the two-way fit's std on the bench's hand-built mazes (0.3°), with the closure home or without."""
+        poses = truth.copy()
+        poses[1:] = turned_about(truth[0], truth[1:], math.radians(turn_deg))
+        for kf, pose in zip(keyframes, poses, strict=True):
+            kf.pose = pose.copy()
+        last = len(keyframes) - 1
+        closure = Candidate(0, last, relative_pose(poses[0], poses[last]), np.diag([0.02**2, 0.02**2, 0.01**2]), 0.04)
+        job = replace(
+            lattice_chain_job(keyframes, poses, None),
+            candidates=[closure] if home else [],
+            wall_reference_rad=math.radians(MAZE_DEG + turn_deg),  # the map's own grid: turned with it
+            anchor_wall=(math.radians(MAZE_DEG) + own, math.radians(0.3)),
+            rest_surface=(points[first], normals[first]),
+        )
+        result = job.run()
+        assert result.wall_reference_rad is not None
+        return result, abs(grid_error_deg(result.wall_reference_rad))
+
+    for turn_deg in (0.0, TURN_DEG, -TURN_DEG):
+        result, alone = optimized(turn_deg, home=False)
+        assert result.start_turns == ()
+        result, home = optimized(turn_deg, home=True)
+        assert [v.accepted for v in result.verdicts] == [True], turn_deg
+        # the closure's own measure of the grid in keyframe 0's frame: the maze's, however the map turned
+        assert len(result.start_turns) == 1 and abs(grid_error_deg(result.start_turns[0][0])) < 0.1, turn_deg
+        # ... and the grid the map settles on nearer the maze's than the faces' anchor alone leaves it
+        assert home < alone - 0.05, turn_deg

@@ -232,7 +232,8 @@ class LoopClosureJob:
         accepted = [v for v in verdicts if v.accepted] + set_accepted
         if not accepted and not self.optimize_anyway:
             return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns)
-        self.start_turns += self._turns_at_rest(accepted)
+        # this job's own, not kept in the job: a job computes the same whether it ran before or not
+        start_turns = self.start_turns + self._turns_at_rest(accepted)
         # optimize the graph with the new constraints (first keyframe fixed), loop closures robust
         count = self.poses.shape[0]
         ei, ej, z, omega = self.edges
@@ -247,7 +248,7 @@ class LoopClosureJob:
         vertices = self.poses
         reused = self._fit_to_reuse()
         priors, fit = wall_priors(
-            self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self._anchor(),
+            self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self._anchor(start_turns),
             known_fit=None if reused is None else reused[0],
         )
         if fit is not None:
@@ -286,7 +287,7 @@ class LoopClosureJob:
             lattice_fit_keyframes=self.lattice_fit_keyframes,
             downweighted=int(np.sum(robust.weights < 0.1)),
             set_accepted=tuple(set_accepted),
-            start_turns=self.start_turns,
+            start_turns=start_turns,
         )
 
     def _turns_at_rest(self, accepted: list[Verdict]) -> tuple[tuple[float, float], ...]:
@@ -346,9 +347,9 @@ class LoopClosureJob:
         return judged, decision.accepted
 
 
-    def _anchor(self) -> tuple[float, float] | None:
+    def _anchor(self, start_turns: tuple[tuple[float, float], ...]) -> tuple[float, float] | None:
         """Keyframe 0's wall direction and std for the wall priors: as given, or judged from every board,
-        together with what the closures to the start at rest measured.
+        together with what the closures to the start at rest measured (``start_turns``).
 
         Judged from every board, it is trusted as far as that fit says (never more than the
         anchor of exact walls): tied at ``wall_anchor_std_rad`` a direction 0.5° off turned the
@@ -362,7 +363,7 @@ class LoopClosureJob:
         if self.start_faces is not None and self.wall_reference_rad is not None:
             judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
             anchor = None if judged is None else (judged[0], max(judged[1], self.params.wall_anchor_std_rad))
-        turns = [(direction, max(std, self.params.wall_prior_std_rad)) for direction, std in self.start_turns]
+        turns = [(direction, max(std, self.params.wall_prior_std_rad)) for direction, std in start_turns]
         if not turns:
             return anchor
         return _mean_turn(turns + ([] if anchor is None else [anchor]), self.params.wall_anchor_std_rad)

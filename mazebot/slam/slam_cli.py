@@ -257,7 +257,7 @@ def laser_log_params(
             submap_half_width=5,
             attempt_every=1,
             closed_reach_keyframes=0,  # every candidate verified: measured below
-            anchor_candidate=False,  # measured below
+            anchor_candidate=False,  # keyframe 0 at rest is a maze robot's start; not measured on the logs
             min_fitness=0.6,
             overlap_fitness=False,  # measured: admitted wrong closures in the Intel log's last corridor
             max_rmse_m=0.05,

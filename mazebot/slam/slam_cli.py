@@ -503,7 +503,7 @@ def run_carmen(
     # a log without corrected poses (its laser poses are its odometry) has no reference to judge by
     judged = odom_noise is not None or systematic is not None or not same_motion(odometry, reference)
     learnt = slam.odometry_noise
-    judged_consistency = map_consistency(own, points, reference if judged else None, params, judged_scans_)
+    judged_consistency = map_consistency(own, points, reference if judged else None, params, judged_scans_, final)
     if not consistency_scans:
         judged_consistency = {}
     return {
@@ -676,6 +676,12 @@ def heading_noise_rad(corrections: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(others[:, 3] ** 2)))
 
 
+def anchor_move(anchor: np.ndarray, correction: np.ndarray) -> np.ndarray:
+    """The rigid move (map frame) that takes the first scan from where it registers (``anchor`` corrected by
+    ``correction``, in its own frame) onto ``anchor``: applied to every other pose, it re-anchors a map."""
+    return compose(anchor, inverse(compose(anchor, correction)))
+
+
 def reanchor(slam: Slam, corrections: np.ndarray, heading_noise_rad: float | None) -> dict[str, Any]:
     """Re-anchor the finished map where the first scan registers against it; returns what was done.
 
@@ -704,8 +710,7 @@ def reanchor(slam: Slam, corrections: np.ndarray, heading_noise_rad: float | Non
     significant = heading_noise_rad is None or abs(heading_rad) > REANCHOR_SIGMAS * heading_noise_rad
     applied = significant and abs(heading_rad) <= REANCHOR_MAX_RAD and shift_m <= REANCHOR_MAX_M
     if applied:
-        anchor = slam.keyframes[0].pose
-        move = compose(anchor, inverse(compose(anchor, c)))  # the registered first scan onto the anchor
+        move = anchor_move(slam.keyframes[0].pose, c)
         for keyframe in slam.keyframes[1:]:  # keyframe 0, the first scan, is where it registered: the anchor
             keyframe.pose = compose(move, keyframe.pose)
     return {
@@ -792,6 +797,7 @@ def map_consistency(
     reference: np.ndarray | None,
     params: SlamParams,
     judged: list[int],
+    trajectory: np.ndarray,
 ) -> dict[str, Any]:
     """The map's self-consistency (:mod:`mazebot.slam.map_consistency`) at the SLAM's poses and the reference's.
 
@@ -799,16 +805,27 @@ def map_consistency(
     :func:`reanchor`); the reference's are registered here, the same ``judged`` scans with
     the same points (:func:`match_points`). ``first_scan_heading_deg`` is what the map asks
     of the scan the map frame is anchored at: a reference whose own first pose sits off
-    its map turns every anchored figure.
+    its map turns every anchored figure. ``error_reference_reanchored`` measures that:
+    ``trajectory`` (the SLAM's final one) against the reference re-anchored where its own
+    first scan registers against its own map (:func:`anchor_move`, the rule :func:`reanchor`
+    follows for the SLAM's map, without its gate), None when that scan was not registered.
+    On the Radish logs Freiburg 101's first corrected pose sits 0.49°
+    off its own map, and the SLAM's maps, whose first scans sit on theirs, are 0.15-0.20 m
+    RMS off the reference as given and 0.06-0.07 m off it re-anchored.
     """
     out: dict[str, Any] = {"consistency": {**consistency(own), "first_scan_heading_deg": first_scan_heading_deg(own)}}
     if reference is None:
-        out["consistency_reference"] = None
-        return out
+        return {**out, "consistency_reference": None, "error_reference_reanchored": None}
     corrections = scan_corrections(reference, points, judged, params.icp, neighbourhood(params))
     out["consistency_reference"] = {
         **consistency(corrections), "first_scan_heading_deg": first_scan_heading_deg(corrections)
     }
+    first = corrections[corrections[:, 0] == 0]
+    out["error_reference_reanchored"] = None
+    if first.shape[0]:
+        reanchored = reference.copy()
+        reanchored[1:] = compose(anchor_move(reference[0], first[0, 1:]), reference[1:])
+        out["error_reference_reanchored"] = anchored_error(trajectory, reanchored)
     return out
 
 

@@ -134,7 +134,7 @@ def test_a_log_with_only_raw_odometry_runs_and_reports_no_errors(
     stats = json.loads(capsys.readouterr().out)
     assert stats["scans"] == 12 and stats["reference"] is None
     for key in ("error", "error_online", "error_odometry", "error_aligned", "relative_error",
-                "relative_error_odometry", "consistency_reference"):
+                "relative_error_odometry", "consistency_reference", "error_reference_reanchored"):
         assert stats[key] is None
     assert stats["consistency"]["scans"] >= 0  # the SLAM's own map is still judged by itself
     assert np.loadtxt(tmp_path / "o" / "trajectory.txt").shape == (12, 4)

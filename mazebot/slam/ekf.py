@@ -251,6 +251,17 @@ class PoseEkf:
         return nu
 
 
+def spent_wald_threshold(false_alarm: float, observations: int) -> float:
+    """The Wald statistic the ``n``-th of a test repeated after every observation asks for: χ²₁ at level
+    ``α / (n (n + 1))``, whose sum over every ``n`` is ``α`` (alpha spending, Lan & DeMets, Biometrika 1983;
+    :class:`HeadingCalibration`). 0 (no test) when ``false_alarm`` is 0."""
+    if false_alarm <= 0:
+        return 0.0
+    n = max(observations, 1)
+    level = false_alarm / (n * (n + 1.0))
+    return NormalDist().inv_cdf(1.0 - level / 2.0) ** 2  # χ² of one degree of freedom: a normal's square
+
+
 class HeadingCalibration:
     """Online calibration of the odometry's heading: ``dθ_true = (1 + s)·dθ + k·dx``.
 
@@ -389,11 +400,7 @@ class HeadingCalibration:
 
     def threshold(self) -> float:
         """The Wald statistic the current observation's test asks for: χ²₁ at level ``α / (n (n + 1))`` (0: no test)."""
-        if self.false_alarm <= 0:
-            return 0.0
-        n = max(self.observations, 1)
-        level = self.false_alarm / (n * (n + 1.0))
-        return NormalDist().inv_cdf(1.0 - level / 2.0) ** 2  # χ² of one degree of freedom: a normal's square
+        return spent_wald_threshold(self.false_alarm, self.observations)
 
     def _shrinkage(self) -> np.ndarray:
         w = self.wald()

@@ -736,7 +736,8 @@ class Slam:
         if match is not None and good_match and p.basin_probe_m > 0.0:
             assert self.target is not None
             match, widened_m2 = yield from probed_steps(
-                self.target, prepared.points_match, match, p.basin_probe_m, p.icp, prepared.sensor_xy
+                self.target, prepared.points_match, match, p.basin_probe_m, p.icp, self.ekf.covariance,
+                prepared.sensor_xy,
             )
             self.matches_widened += int(widened_m2 > 0.0)
         if match is not None and good_match:

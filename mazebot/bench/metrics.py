@@ -66,7 +66,8 @@ def turn_about_start(est_xy: np.ndarray, true_xy: np.ndarray) -> tuple[float, fl
     squares estimation of transformation parameters between two point patterns", IEEE PAMI 1991,
     without translation or scale), ``atan2(Σ t × e, Σ t · e)``. A map turned about the start as a
     whole shows a turn and a small RMS left; errors of its own, an RMS near the ATE's. None without
-    positions.
+    positions. (:func:`mazebot.slam.trajectory_metrics.rigid_alignment` fits a shift too, for logs
+    whose frames share no origin; here both start at the start, and the turn about it is the question.)
     """
     est = np.asarray(est_xy, dtype=np.float64).reshape(-1, 2)
     true = np.asarray(true_xy, dtype=np.float64).reshape(-1, 2)

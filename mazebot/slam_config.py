@@ -406,6 +406,11 @@ class MatchingSection:
         "run --match-doubt)"))] = 0.0
     match_doubt_scans: Annotated[int, Field(ge=1, description=(
         "... the recent matched scans whose residuals that median is taken over"))] = 50
+    basin_probe_m: Annotated[float, Field(ge=0, description=(
+        "ICP restarted this far to either side of an accepted match along its weakest position direction, where "
+        "the prediction is surer along it than this over the square root of 3; where ICP does not come back, the "
+        "match's information along that direction is widened to the span it cannot tell apart, and the odometry "
+        "decides there (mazebot.slam.basin_probe; 0: off)"))] = 0.0
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
     corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
         "search also when the prediction's position std exceeds this ..."))] = 0.05

@@ -57,6 +57,30 @@ def count_revisits(layout: Any, xy: np.ndarray, depth_m: float = REVISIT_DEPTH_M
     return count
 
 
+def turn_about_start(est_xy: np.ndarray, true_xy: np.ndarray) -> tuple[float, float] | None:
+    """The turn (radians) about the start that best carries the true positions onto the estimated
+    ones, and the RMS position error (metres) left once the estimate is turned back by it.
+
+    Both trajectories are in the map frame, whose origin is the start. The least-squares rotation
+    about that origin in closed form: the orthogonal Procrustes problem in the plane (Umeyama, "Least-
+    squares estimation of transformation parameters between two point patterns", IEEE PAMI 1991,
+    without translation or scale), ``atan2(Σ t × e, Σ t · e)``. A map turned about the start as a
+    whole shows a turn and a small RMS left; errors of its own, an RMS near the ATE's. None without
+    positions. (:func:`mazebot.slam.trajectory_metrics.rigid_alignment` fits a shift too, for logs
+    whose frames share no origin; here both start at the start, and the turn about it is the question.)
+    """
+    est = np.asarray(est_xy, dtype=np.float64).reshape(-1, 2)
+    true = np.asarray(true_xy, dtype=np.float64).reshape(-1, 2)
+    if est.shape[0] == 0 or est.shape != true.shape:
+        return None
+    dot = float(np.sum(true[:, 0] * est[:, 0] + true[:, 1] * est[:, 1]))
+    cross = float(np.sum(true[:, 0] * est[:, 1] - true[:, 1] * est[:, 0]))
+    turn = math.atan2(cross, dot) if dot or cross else 0.0
+    c, s = math.cos(turn), math.sin(turn)
+    turned = np.column_stack((c * true[:, 0] - s * true[:, 1], s * true[:, 0] + c * true[:, 1]))
+    return turn, float(np.sqrt(np.mean(np.sum((est - turned) ** 2, axis=1))))
+
+
 def map_to_world(start: tuple[float, float, float], xy: np.ndarray) -> np.ndarray:
     """Map-frame points (N, 2) in the world frame, the map frame being the start pose."""
     c, s = math.cos(start[2]), math.sin(start[2])
@@ -64,13 +88,20 @@ def map_to_world(start: tuple[float, float, float], xy: np.ndarray) -> np.ndarra
 
 
 def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footprint_radius_m: float) -> dict[str, Any]:
-    """``coverage`` and ``map_f1`` (with precision and recall) of SLAM's grid against the world."""
+    """``coverage`` and ``map_f1`` (with precision and recall) of SLAM's grid against the world.
+
+    Beside ``coverage`` (the share of the reachable cell centres the map knows free), where the rest
+    falls: ``uncovered_occupied`` on cells the map holds occupied (walls painted thick, or the map turned
+    or shifted so that the free space beside a wall lands on it), ``uncovered_unknown`` on cells it
+    holds neither free nor occupied, or off the map (never seen). The three add up to 1.
+    """
     from scipy import ndimage
 
     from mazebot.sim.raster import free_reachable, true_occupancy
 
     if grid is None or grid.shape[0] == 0:
-        return {"coverage": None, "map_f1": None, "map_precision": None, "map_recall": None}
+        return {"coverage": None, "uncovered_occupied": None, "uncovered_unknown": None,
+                "map_f1": None, "map_precision": None, "map_recall": None}
     res = grid.resolution_m
     # the truth raster reaches MARGIN_CELLS beyond the world's bounds: a map cell on the outer
     # wall whose centre lies just outside them is within the one-cell tolerance, not off the grid
@@ -93,6 +124,12 @@ def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footpr
     known = np.zeros(len(mr), dtype=bool)
     known[inside] = free[mr[inside], mc[inside]]
     coverage = float(known.sum() / max(1, len(known)))
+    # what the rest falls on: cells the map holds occupied (a wall painted there, or the map turned or
+    # shifted onto the free space beside a wall), or cells it has no word for (never seen, or off the map)
+    walls = grid.occupied_mask()
+    on_walls = np.zeros(len(mr), dtype=bool)
+    on_walls[inside] = walls[mr[inside], mc[inside]]
+    uncovered_occupied = float(on_walls.sum() / max(1, len(on_walls)))
     # walls: the map's occupied cells rasterized into the world grid
     er, ec = np.nonzero(grid.occupied_mask())
     est_xy = map_to_world(start, grid.to_world(er, ec))
@@ -109,6 +146,8 @@ def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footpr
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return {
         "coverage": round(coverage, 4),
+        "uncovered_occupied": round(uncovered_occupied, 4),
+        "uncovered_unknown": round(max(0.0, 1.0 - coverage - uncovered_occupied), 4),
         "map_f1": round(f1, 4),
         "map_precision": round(precision, 4),
         "map_recall": round(recall, 4),

@@ -19,8 +19,8 @@ from mazebot.sim.raster import true_occupancy
 SUMMARY_KEYS = (
     "time_s", "wall_s", "realtime_factor", "path_m", "avg_speed_mps", "coverage", "collisions", "revisits",
     "revisits_dfs",
-    "ate_rms_m", "ate_max_m", "heading_rms_deg", "map_f1", "scan_ms_p50", "scan_ms_p99",
-    "control_jitter_ms_p99", "cpu_percent", "rss_mb", "loop_closures",
+    "ate_rms_m", "ate_max_m", "heading_rms_deg", "ate_rms_turned_back_m", "uncovered_occupied", "uncovered_unknown",
+    "map_f1", "scan_ms_p50", "scan_ms_p99", "control_jitter_ms_p99", "cpu_percent", "rss_mb", "loop_closures",
 )
 
 

@@ -7,6 +7,9 @@ samples the estimated pose (SLAM's, ``state.pose``) ten times a second with the 
 at the instant the estimate describes: the simulated time shown by the encoder reading
 behind it (``state.pose_time_s``; the simulator steps every ``[sim] step_period_s``, so
 that is up to one step before the reading).
+``ate_turn_about_start_deg`` and ``ate_rms_turned_back_m`` split the ATE: the turn about the
+start that best fits the whole estimate to the truth, and the RMS left without it
+(:func:`mazebot.bench.metrics.turn_about_start`).
 Metrics that need a part the daemon does not have yet are ``None`` (``null`` in
 results.json), never guessed.
 
@@ -14,7 +17,8 @@ Map metrics compare SLAM's final grid with the world, after moving it into the w
 frame with the true start pose (the map frame is the robot's start pose):
 
 - ``coverage``: the share of the reachable free cells (:func:`mazebot.sim.raster.free_reachable`
-  at the map's resolution) whose map cell is known free (three-state);
+  at the map's resolution) whose map cell is known free (three-state); ``uncovered_occupied`` and
+  ``uncovered_unknown`` the shares whose map cell is occupied (painted wrong) or unknown (unseen);
 - ``map_f1``: F1 of the map's occupied cells against the true occupancy with a one-cell
   tolerance: precision = share of occupied map cells within one cell of a true wall
   cell, recall = share of true wall cells next to the reachable area (walls the lidar
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import resource
 import time
 from collections import deque
@@ -43,6 +48,7 @@ from mazebot.bench.metrics import (
     false_closures,
     map_metrics,
     relative_poses,
+    turn_about_start,
 )
 from mazebot.bench.scripted_drive import ScriptedDriver, dfs_tour, straighten
 from mazebot.bench.virtual_executor import CpuTimedExecutor
@@ -308,6 +314,7 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
     fault = state.active_fault
     scan_ms = np.asarray(state.scan_ms, dtype=float)
     maps = map_metrics(state.map, robot.world, start, robot.config.robot.footprint_radius_m)
+    turn = turn_about_start(est[:, :2], truth_rel[:, :2]) if len(truth) else None
     slam = state.slam
     return {
         "maze": spec.name,
@@ -325,6 +332,9 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "avg_speed_mps": round(path_m / time_s, 3) if time_s > 0 else None,
         # the fraction of the reachable free area the map knows as free
         "coverage": maps["coverage"],
+        # the reachable free space the coverage misses: on cells the map holds occupied, or unknown
+        "uncovered_occupied": maps["uncovered_occupied"],
+        "uncovered_unknown": maps["uncovered_unknown"],
         "collisions": int(robot.physics.collisions),
         "revisits": count_revisits(layout, truth[:, :2]) if layout is not None else None,
         # the back-tracking a depth-first tour of every cell (and back to the start) cannot
@@ -333,6 +343,9 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         "ate_rms_m": round(float(np.sqrt(np.mean(err_xy**2))), 4) if len(err_xy) else None,
         "ate_max_m": round(float(err_xy.max()), 4) if len(err_xy) else None,
         "heading_rms_deg": round(float(np.degrees(np.sqrt(np.mean(err_th**2)))), 3) if len(err_th) else None,
+        # the ATE split: the estimate's turn about the start as a whole, and the RMS left without it
+        "ate_turn_about_start_deg": round(math.degrees(turn[0]), 3) if turn is not None else None,
+        "ate_rms_turned_back_m": round(turn[1], 4) if turn is not None else None,
         "estimate": "slam",  # what produced the pose estimate the ATE measures
         # walls of the estimated map against the true walls (one-cell tolerance)
         "map_f1": maps["map_f1"],

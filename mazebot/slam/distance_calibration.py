@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from mazebot.slam.ekf import spent_wald_threshold
+from mazebot.slam.ekf import spent_chi2
 
 #: a match fixes the direction of travel unless its weak direction's translation lies within 60° of it
 #: (the cosine below): a corridor driven along, not one crossed
@@ -115,4 +115,4 @@ class DistanceCalibration:
 
     def threshold(self) -> float:
         """The Wald statistic the current observation's test asks for (0: no test)."""
-        return spent_wald_threshold(self.false_alarm, self.observations)
+        return spent_chi2(self.false_alarm, self.observations) if self.false_alarm > 0 else 0.0

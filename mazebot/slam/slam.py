@@ -22,7 +22,8 @@ Autonomous Mapping* (CMU 18-500 report), section III.B, with an EKF (Thrun, Burg
    starting from the prediction, retrying from turned guesses if the match is poor
    (:mod:`mazebot.slam.icp`, :mod:`mazebot.slam.keyframes`);
 4. **correct** the filter with the match (information form: a corridor's unobserved
-   direction keeps the odometry), and feed the calibrations;
+   direction keeps the odometry; with ``basin_probe_m`` also a direction along which ICP's
+   basin does not hold, :mod:`mazebot.slam.basin_probe`), and feed the calibrations;
 5. **keyframe**: after 0.10 m or 0.15 rad the scan is kept, added to the pose graph
    with an edge from the previous keyframe (odometry + ICP information), and the local
    submap is refreshed (:mod:`mazebot.slam.posegraph`);
@@ -72,6 +73,7 @@ import numpy as np
 
 from mazebot.geometry import compose, inverse, relative_pose, transform_points, wrap_angle
 from mazebot.io.scan import Scan
+from mazebot.slam.basin_probe import probed_steps
 from mazebot.slam.closure_set import ACCEPTED_BY_SET, Chain, judge
 from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
 from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
@@ -575,6 +577,7 @@ class Slam:
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
         self.matches_seen_rescued = 0  # sequential matches counted by their inliers where the submap saw
+        self.matches_widened = 0  # sequential matches whose basin did not hold along their weakest direction
         self._keyframes_since_target = 0
         # every scan's pose relative to the keyframe before it: the trajectory follows optimizations
         self._scan_log: list[tuple[float, int, np.ndarray]] = []
@@ -735,6 +738,13 @@ class Slam:
         matched = False
         predicted_theta = float(self.ekf.mean[2])
         good_match = match is not None and self.acceptable(match)
+        if match is not None and good_match and p.basin_probe_m > 0.0:
+            assert self.target is not None
+            match, widened_m2 = yield from probed_steps(
+                self.target, prepared.points_match, match, p.basin_probe_m, p.icp, self.ekf.covariance,
+                prepared.sensor_xy,
+            )
+            self.matches_widened += int(widened_m2 > 0.0)
         if match is not None and good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if callable(paint):

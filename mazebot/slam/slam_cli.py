@@ -526,6 +526,7 @@ def run_carmen(
         "matches_doubted": slam.matches_doubted,
         "doubts_won": slam.doubts_won,
         "matches_seen_rescued": slam.matches_seen_rescued,
+        "matches_widened": slam.matches_widened,
         "odom_noise": None if odom_noise is None else list(odom_noise),
         "odom_model": "log" if odom_noise is None and systematic is None else
         ("systematic" if systematic is not None else "white"),

@@ -375,6 +375,9 @@ class FilterSection:
         "apply each of the calibration's two estimates only as far as its Wald statistic against zero passes a "
         "test repeated after every matched scan, whose chance of passing anywhere in a run of white odometry "
         "noise is at most this (0.001 on laser logs; 0: apply what was learnt)"))] = 0.0
+    calibrate_distance: Annotated[bool, Field(description=(
+        "learn the odometry's distance scale (the wheels' mean diameter) from the scan matches that fix the "
+        "direction of travel, with the heading calibration's memory, limit and test"))] = False
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

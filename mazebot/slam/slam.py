@@ -76,6 +76,7 @@ from mazebot.io.scan import Scan
 from mazebot.slam.basin_probe import probed_steps
 from mazebot.slam.closure_set import ACCEPTED_BY_SET, Chain, judge
 from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
+from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
@@ -517,6 +518,9 @@ class Slam:
         self.calibration = HeadingCalibration(
             p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
         )
+        self.distance_calibration = DistanceCalibration(
+            p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
+        )
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()
         self.graph = PoseGraph()
@@ -544,6 +548,7 @@ class Slam:
         self._edge_var_theta: list[float] = []
         self._last_odom: np.ndarray | None = None
         self._last_matched_pose: np.ndarray | None = None  # filter pose after the previous scan, if matched
+        self._last_travel_fixed_pose: np.ndarray | None = None  # ... if its match fixed the direction of travel
         # the odometry noise learnt from the matches ([slam.motion] estimate), and the previous scan's
         # own match pose (not the filter's, which the odometry pulls towards itself)
         self.odometry_noise = OdometryNoiseEstimate(p.motion) if p.motion.estimate else None
@@ -719,7 +724,7 @@ class Slam:
             self.ekf.reset(compose(self.initial_pose, odom), self.ekf.covariance)
         else:
             raw_increment = relative_pose(self._last_odom, odom)
-            predicted_increment = self.calibration.correct(raw_increment)
+            predicted_increment = self.distance_calibration.correct(self.calibration.correct(raw_increment))
             self.ekf.predict(predicted_increment)
         self._last_odom = odom
         yield
@@ -757,6 +762,8 @@ class Slam:
                 and p.calibrate_heading):
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
+        if p.calibrate_distance:
+            self._observe_distance(match if matched and paint else None, raw_increment, pose)
         if self.odometry_noise is not None:
             self._learn_odometry_noise(match if matched and paint else None, predicted_increment)
 
@@ -895,6 +902,7 @@ class Slam:
         self.graph.vertices = self.keyframe_poses()
         self.ekf.reset(compose(correction, self.ekf.mean))
         self._last_matched_pose = None  # the map moved under the filter: no calibration sample
+        self._last_travel_fixed_pose = None  # ... nor a distance one
         self._last_match_pose = None  # ... nor an odometry noise sample
         if self.selector.last is not None:
             self.selector.accept(compose(correction, self.selector.last))
@@ -998,6 +1006,7 @@ class Slam:
         self.ekf.reset(pose, self.ekf.covariance)
         self._last_odom = np.asarray(odom, dtype=np.float64).copy()
         self._last_matched_pose = None
+        self._last_travel_fixed_pose = None
         self._last_match_pose = None
         self._last_match = None
         self._target_position = None
@@ -1363,6 +1372,15 @@ class Slam:
             return refined
         return match
 
+    def _observe_distance(self, match: IcpResult | None, raw_increment: np.ndarray | None, pose: np.ndarray) -> None:
+        """One sample of the odometry's distance scale if this scan's match and the previous scan's fixed the
+        pose along the direction of travel (:mod:`mazebot.slam.distance_calibration`): between two such scans the
+        corrected pose's step along the heading is the scan matches', not the odometry's."""
+        fixed = match is not None and fixes_travel(match.degenerate, match.weak_direction, float(pose[2]))
+        if fixed and raw_increment is not None and self._last_travel_fixed_pose is not None:
+            self.distance_calibration.observe(raw_increment, relative_pose(self._last_travel_fixed_pose, pose))
+        self._last_travel_fixed_pose = pose if fixed else None
+
     def _learn_odometry_noise(self, match: IcpResult | None, increment: np.ndarray | None) -> None:
         """One more sample of the odometry's noise if this scan and the previous one were matched.
 
@@ -1418,7 +1436,8 @@ class Slam:
             x, y, th = odometry.at(times_s)
             rel = relative_pose(end_odom, np.column_stack((np.ravel(x), np.ravel(y), np.ravel(th))))
             theta = rel[:, 2] if calibration is None else calibration.correct_many(rel[:, 0], rel[:, 2])
-            return rel[:, 0], rel[:, 1], theta
+            x, y = self.distance_calibration.correct_many(rel[:, 0], rel[:, 1])
+            return x, y, theta
 
         return pose_at
 

@@ -102,7 +102,8 @@ LASER_LOG_CALIBRATION_FALSE_ALARM = 0.001
 
 
 def laser_log_params(
-    base: SlamParams, calibrate_heading: bool = True, closure_ambiguity: bool = False, match_doubt: bool = False
+    base: SlamParams, calibrate_heading: bool = True, closure_ambiguity: bool = False, match_doubt: bool = False,
+    calibrate_distance: bool = False,
 ) -> SlamParams:
     """SLAM settings for an indoor laser log (SICK LMS, metres between scans) from the maze ones.
 
@@ -288,6 +289,7 @@ def laser_log_params(
         retry_headings_rad=(0.05, -0.05, 0.1, -0.1, 0.15, -0.15),
         wall_prior=False,
         calibrate_heading=calibrate_heading,
+        calibrate_distance=calibrate_distance,
         calibration_limit=0.5,  # a log's odometry comes undescribed: any wheel or track error a robot still drives with
         calibration_false_alarm=LASER_LOG_CALIBRATION_FALSE_ALARM,
         estimate_time_offset=False,
@@ -420,6 +422,7 @@ def run_carmen(
     closure_ambiguity: bool = False,
     match_doubt: bool = False,
     place_start: bool = False,
+    calibrate_distance: bool = False,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
@@ -433,7 +436,8 @@ def run_carmen(
     along the direction that registration leaves open onto the start's odometry (:func:`place_along_unobserved`).
     ``calibrate_odometry``: the odometry's heading calibrated online; ``closure_ambiguity``: a closure the
     search found refused where its window holds a look-alike; ``match_doubt``: a sequential match whose
-    residual stands out of the recent ones searched again (all three :func:`laser_log_params`).
+    residual stands out of the recent ones searched again; ``calibrate_distance``: the odometry's distance scale
+    calibrated online (all four :func:`laser_log_params`).
     """
     log = read_carmen(log_path)
     if not log.lasers:
@@ -456,7 +460,8 @@ def run_carmen(
             )
     config = load_config(config_path)
     params = laser_log_params(
-        SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity, match_doubt
+        SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity, match_doubt,
+        calibrate_distance,
     )
     # the map frame: the log's frame, anchored at its first pose; odometry starts there too
     odometry = compose(reference[0], relative_pose(odometry[0], odometry))
@@ -534,6 +539,14 @@ def run_carmen(
             "wald": [round(float(v), 2) for v in slam.calibration.wald()],
             "threshold": round(slam.calibration.threshold(), 2),  # the last test's
             "applied_scans": slam.calibration.applied_observations,  # matched scans after which it applied any
+        },
+        "odom_distance_calibration": None if not calibrate_distance else {
+            "scale": round(slam.distance_calibration.estimate, 5),
+            "learnt": round(slam.distance_calibration.learnt, 5),
+            "wald": round(slam.distance_calibration.wald(), 2),
+            "threshold": round(slam.distance_calibration.threshold(), 2),
+            "observations": slam.distance_calibration.observations,
+            "applied_scans": slam.distance_calibration.applied_observations,
         },
         "odom_noise_learnt": None if learnt is None else {
             "pairs": learnt.pairs,
@@ -837,7 +850,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     stats = run_carmen(
         args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
         args.consistency_scans, not args.no_reanchor, args.odom_calibration, args.closure_ambiguity, args.match_doubt,
-        args.start_placement,
+        args.start_placement, args.odom_distance_calibration,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -886,6 +899,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="calibrate the odometry's heading online from the scan matches (a turn scale and a drift per metre, "
         "as the robot does, each applied only as far as the matches show it beyond white noise): for wheel "
         "odometry with systematic errors; on by default, --no-odom-calibration turns it off",
+    )
+    run.add_argument(
+        "--odom-distance-calibration",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="calibrate the odometry's distance scale online from the scan matches that fix the direction of "
+        "travel (the wheels' mean diameter; applied only as far as the matches show it beyond white noise); "
+        "off by default",
     )
     run.add_argument(
         "--closure-ambiguity",

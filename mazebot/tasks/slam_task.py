@@ -6,9 +6,14 @@ loop free in between, so the 20 Hz control tick never waits for a whole keyframe
 hands back a loop-closure job (verification, pose-graph optimization, grid rebuild:
 tens to hundreds of milliseconds), it runs in ``executor`` (by default a worker process,
 :mod:`mazebot.slam.loop_worker`) while scans keep being processed; its result is merged
-with :meth:`Slam.apply` as soon as it is done. When the exploration ends (``returning``
-or ``done``) one more job optimizes the whole graph and rebuilds the map from it
-(:meth:`Slam.final_job`): the map the user keeps has the optimized keyframes' accuracy.
+with :meth:`Slam.apply` as soon as it is done. When the exploration ends one more job
+optimizes the whole graph and rebuilds the map from it (:meth:`Slam.final_job`): the map the
+user keeps has the optimized keyframes' accuracy. It waits for the robot back at its start
+and at rest (``state.home_at_rest``, the planner's word): its revolutions there
+(``HOME_REST_REVOLUTIONS`` of them, :meth:`Slam.observe_home_rest`) go with the job, which
+measures the map's turn about the start with them (:mod:`mazebot.slam.home_rest`); once it
+is merged ``state.slam.final_merged`` says so, and the planner says ``done``. A run that ends
+``done`` without that (a scripted drive, the planner's bound) gets the job then.
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
@@ -227,6 +232,7 @@ class SlamTask:
         self.job_noted = False  # the running job was said to run long
         self.search: asyncio.Future[SearchResult] | None = None
         self.final_done = False  # this exploration's final rebuild has been asked for
+        self.final_running = False  # ... and is the job in the executor
 
     async def run(self) -> None:
         """Wait for the next event and handle it, for ever; what is pending is cancelled on the way out."""
@@ -322,6 +328,7 @@ class SlamTask:
         """A loop-closure job's result merged into SLAM (in stages, as the updates) and published."""
         result = job.result()  # a crashed job is a SLAM fault, not silence
         self.job = None
+        final, self.final_running = self.final_running, False
         stats = self.state.slam
         stats.job_started_wall_s = None
         wall_s, cpu_s = time.perf_counter(), [0.0]
@@ -330,6 +337,10 @@ class SlamTask:
         stats.merge_cpu_s += cpu_s[0]
         stats.merges += 1
         _publish_closure(self.state, self.slam, result, rebuilt)
+        if final:
+            turn = result.home_turn
+            stats.home_turn_deg = None if turn is None else -math.degrees(turn.correction_rad)
+            stats.final_merged = True
         del result, job
         give_back_free_memory()  # the old grid and submap, the job's result: all freed at this one moment
 
@@ -418,6 +429,8 @@ class SlamTask:
             state.note("slam", "SLAM processes scans again", self.clock.now_s())
         _publish_update(state, slam, update, scan.end_time_s, update.matched or self.trust.held_back == held_back)
         state.slam.held_back = self.trust.held_back
+        if state.home_at_rest and at_rest and not self.final_done:
+            slam.observe_home_rest(scan, history)  # the start seen again at rest, for the final job
         taken = self.rest.observe(at_rest, disputed[0])
         if taken is not None:
             _take_rest_pose(state, slam, update, taken, self.clock)
@@ -438,15 +451,25 @@ class SlamTask:
         )
 
     def on_run_state(self) -> None:
-        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job)."""
-        run_state = self.state.run_state
+        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job).
+
+        Asked for once the robot is home with its revolutions at rest taken (or at ``done``,
+        however the run got there), when no other job runs.
+        """
+        state = self.state
+        run_state = state.run_state
         if run_state is RunState.EXPLORING:
             self.final_done = False
-        elif run_state in (RunState.RETURNING, RunState.DONE) and not self.final_done and self.job is None:
+            state.slam.final_merged = False
+            return
+        home = run_state is RunState.RETURNING and state.home_at_rest and self.slam.home_rest_ready
+        if (home or run_state is RunState.DONE) and not self.final_done and self.job is None:
             final = self.slam.final_job()
             if final is not None:
                 self.final_done = True
-                log.info("exploration over: optimizing the pose graph and rebuilding the map once more")
+                self.final_running = True
+                log.info("exploration over: optimizing the pose graph and rebuilding the map once more%s",
+                         ", with the revolutions at rest at home" if home else "")
                 self._start_job(final)
 
     async def _cancel_pending(self) -> None:

@@ -128,3 +128,53 @@ def test_a_leg_in_the_blind_zone_is_kept_through_a_pause_longer_than_slams_fixes
     state.run_state = RunState.EXPLORING
     _revolution(state, 1.6 + 0.2 * (ODOMETRY_FIXES_KEPT + 44), 0.18, None)
     np.testing.assert_allclose(pilot._scan_points(state), [[post_x_m - 0.18, 0.0]], atol=1e-9)
+
+
+def _home_pilot(monkeypatch: pytest.MonkeyPatch) -> tuple[Pilot, SharedState]:
+    """A pilot whose explorer says the robot is back at its start (``Phase.DONE``), on its way home."""
+    from mazebot.planner.exploration import Goal, Phase
+    from mazebot.slam.grid import OccupancyGrid
+
+    pilot = Pilot(PilotParams.from_config(Config()))
+    state = SharedState(run_state=RunState.RETURNING, started_at_s=0.0)
+    state.slam.anchored = True
+    state.map = OccupancyGrid()
+    pilot.run_number = state.run_number  # this run's explorer: the one below
+    done = Goal(Phase.DONE, (0.0, 0.0), [(0.0, 0.0)], [], "done: back at the start cell")
+
+    def at_home(*args: object):
+        yield
+        return done
+
+    monkeypatch.setattr(pilot.explorer, "update_steps", at_home)
+    return pilot, state
+
+
+def _stopped(state: SharedState) -> bool:
+    command = state.motion_command
+    return command is not None and command.v_mps == 0.0 and command.w_radps == 0.0
+
+
+def test_back_at_the_start_the_robot_stands_stopped_until_slam_s_final_map_is_merged(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pilot, state = _home_pilot(monkeypatch)
+    for k in range(10):  # SLAM takes its revolutions at rest and runs the final job meanwhile
+        state.sensors.lidar_revolutions = k
+        pilot.tick(state, 0.2 * k)
+        assert state.run_state is RunState.RETURNING and state.home_at_rest and _stopped(state)
+    state.slam.final_merged = True
+    pilot.tick(state, 2.0)
+    assert state.run_state is RunState.DONE and not state.home_at_rest and _stopped(state)
+
+
+def test_back_at_the_start_the_wait_for_slam_is_bounded_in_revolutions(monkeypatch: pytest.MonkeyPatch) -> None:
+    pilot, state = _home_pilot(monkeypatch)
+    state.sensors.lidar_revolutions = 100
+    pilot.tick(state, 0.0)
+    state.sensors.lidar_revolutions = 100 + pilot_module.HOME_WAIT_REVOLUTIONS - 1
+    pilot.tick(state, 1000.0)  # a slow CPU: much time, few revolutions; the wait goes on
+    assert state.run_state is RunState.RETURNING and _stopped(state)
+    state.sensors.lidar_revolutions += 1
+    pilot.tick(state, 1000.2)  # SLAM never merged: done without it, the motors stopped
+    assert state.run_state is RunState.DONE and not state.home_at_rest and _stopped(state)

@@ -1,0 +1,160 @@
+"""The start seen again at rest at the end of a run: how far the map stands turned about the start.
+
+The map is tied to the start: keyframe 0 is the map frame, and the wall grid's direction in
+it (the anchor of the wall priors, :mod:`mazebot.slam.start_anchor`) is judged from the few
+boards the start sees. Boards set by hand stand turned by a fraction of a degree each, so
+that judgement can be off by a few tenths of a degree, and the whole map, held to the grid,
+turns by as much about the start. A closure to the start taken moving cannot tell: its
+revolution is de-skewed with the odometry, and its heading errs by as much.
+
+When the maze is explored the robot comes back to its start cell and stops. Its
+revolutions there need neither de-skew nor odometry (nothing moves), and neither do
+keyframe 0's revolutions at rest: the two views of the same boards, from about the same
+place, match at ICP's accuracy. Each revolution at home is matched against keyframe 0's
+rest surface and verified as any loop closure to keyframe 0 is
+(:func:`mazebot.slam.loop_closure.verify`, the inlier ratio counted where keyframe 0 saw);
+the heading correction the matches agree on, against the pose the map gives the robot,
+is the map's turn about the start (Lu and Milios, "Globally consistent range scan alignment
+for environment mapping", Autonomous Robots 4, 1997: a scan pair's relative pose as a
+constraint with its own covariance).
+
+Example (what :class:`mazebot.slam.slam.LoopClosureJob` does with the final job's revolutions)::
+
+    turn = measure_home_turn(rest_target, observed, home, prior, icp_params, loop_params)
+    if turn is not None:
+        turn.correction_rad, turn.std_rad   # the map stands turned by -correction about the start
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from mazebot.geometry import compose, relative_pose, wrap_angle
+from mazebot.slam.icp import IcpParams, Target
+from mazebot.slam.loop_closure import Candidate, LoopClosureParams, verify
+from mazebot.slam.overlap import ObservedArea
+
+#: Revolutions at rest taken at home before the final map is made: a second of the A1's, at a
+#: robot that has arrived anyway. Five matches tell a revolution's noise from their agreement
+#: (``MIN_AGREEING``) and cost a few milliseconds of ICP each.
+HOME_REST_REVOLUTIONS = 5
+#: Matches that must pass every closure test and agree before the turn is taken: a majority of
+#: ``HOME_REST_REVOLUTIONS``, so one look-alike or one disturbed revolution cannot decide alone.
+MIN_AGREEING = 3
+#: How far (in units of a match's own heading std) a match may lie from the matches' median
+#: and still count as agreeing with them: three standard deviations.
+AGREE_SIGMAS = 3.0
+#: Optimizations of the final graph run again with the turn re-expressed (below), at most. The turn
+#: enters the pose graph through the wall grid's anchor, as the snapshot's grid turned by it; but the
+#: keyframes settle on the grid where their own boards say (each turned by a fraction of a degree), so
+#: the optimized map gives the robot a heading a little off the one measured. Re-expressed against the
+#: optimized map (a Gauss-Newton step on the one turn about the start), it is met within
+#: ``HOME_TURN_TOLERANCE_RAD`` after one or two more (the hand-built 6×6 maze of the tests: 0.28° -> 0.01°).
+HOME_RELINEARIZATIONS = 3
+#: What is left of the measured turn in the optimized map that needs no further optimization: a
+#: hundredth of a degree, a tenth of a millimetre a board's length (0.3 m) from the start.
+HOME_TURN_TOLERANCE_RAD = math.radians(0.01)
+
+
+@dataclass(frozen=True)
+class HomeRest:
+    """The robot's revolutions at rest at home, and where the map had it when the final job was made.
+
+    ``revolutions``: each revolution's match points (robot frame, (N, 2)) and the lidar's
+    position in the robot frame (2,). ``pose`` (3,): the robot's map pose (SLAM's filter,
+    at rest: the same for every revolution). ``prior_covariance`` (3×3): how uncertain that
+    pose is relative to keyframe 0 (the pose graph's chain from keyframe 0 to the newest
+    keyframe), as a closure to keyframe 0 from there would be judged.
+    """
+
+    revolutions: tuple[tuple[np.ndarray, np.ndarray], ...]
+    pose: np.ndarray
+    prior_covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class HomeTurn:
+    """What the revolutions at home said: the heading correction (rad) of the map's pose of the robot
+    in keyframe 0's frame, its std (rad), the position correction (m), and how many matches agreed of how many.
+
+    ``applied_rad`` is the correction as the anchor takes it: the measured one at first, re-expressed
+    against the optimized map (:func:`home_turn_left`) while the optimization does not meet it.
+    """
+
+    correction_rad: float
+    std_rad: float
+    shift_m: float
+    agreeing: int
+    revolutions: int
+    applied_rad: float
+
+
+def measure_home_turn(
+    rest_target: Target | None,
+    observed: ObservedArea | None,
+    home: HomeRest,
+    prior: np.ndarray,
+    icp: IcpParams,
+    loop: LoopClosureParams,
+) -> HomeTurn | None:
+    """The map's turn about the start from the revolutions at home, or None if they do not verify.
+
+    ``rest_target`` is keyframe 0's rest surface in its frame; ``observed`` what keyframe 0
+    saw (its inlier ratio is counted there); ``prior`` (3,) the robot's pose in keyframe 0's
+    frame as the map has it. The std is the larger of a match's own (ICP's information, without
+    the ``information_scale`` that discounts closures taken moving) and the matches' spread:
+    the revolutions at home see the same boards from the same place, so their errors are
+    not independent and averaging them buys nothing beyond the spread.
+    """
+    if rest_target is None or len(rest_target) == 0:
+        return None
+    loop = replace(loop, overlap_fitness=True)
+    distance_m = float(math.hypot(prior[0], prior[1]))
+    corrections, stds, shifts = [], [], []
+    for points, sensor_xy in home.revolutions:
+        source = points
+        if loop.max_range_m is not None:
+            source = points[np.hypot(*(points - sensor_xy).T) <= loop.max_range_m]
+        candidate = Candidate(0, -1, np.asarray(prior, dtype=np.float64), home.prior_covariance, distance_m)
+        verdict = verify(candidate, rest_target, source, sensor_xy, icp, loop, observed)
+        if not verdict.accepted or verdict.information[2, 2] <= 0:
+            continue
+        corrections.append(float(wrap_angle(verdict.measurement[2] - prior[2])))
+        # the match's own information: information_scale discounts a closure's for the de-skew and motion of
+        # a revolution taken moving, of which a revolution at rest has none
+        stds.append(math.sqrt(loop.information_scale / float(verdict.information[2, 2])))
+        shifts.append(float(np.hypot(*(verdict.measurement[:2] - prior[:2]))))
+    if len(corrections) < MIN_AGREEING:
+        return None
+    values, own = np.array(corrections), np.array(stds)
+    agree = np.abs(values - np.median(values)) <= AGREE_SIGMAS * own
+    if int(agree.sum()) < MIN_AGREEING:
+        return None
+    values, own = values[agree], own[agree]
+    spread = float(np.std(values, ddof=1))
+    correction = float(values.mean())
+    return HomeTurn(
+        correction_rad=correction,
+        std_rad=max(float(np.median(own)), spread),
+        shift_m=float(np.median(np.array(shifts)[agree])),
+        agreeing=int(agree.sum()),
+        revolutions=len(home.revolutions),
+        applied_rad=correction,
+    )
+
+
+def home_turn_left(snapshot: np.ndarray, optimized: np.ndarray, robot_pose: np.ndarray, turn: HomeTurn) -> float:
+    """How much of the measured turn (rad) the optimized map still lacks at the robot's pose at home.
+
+    ``snapshot`` and ``optimized`` (K, 3) are the keyframes' poses before and after the
+    optimization; ``robot_pose`` the robot's map pose in the snapshot. The robot keeps its place
+    relative to the newest keyframe; the measured heading in keyframe 0's frame is the snapshot's
+    corrected by ``turn.correction_rad``.
+    """
+    newest = len(snapshot) - 1
+    robot = compose(optimized[newest], relative_pose(snapshot[newest], robot_pose))
+    measured = float(relative_pose(snapshot[0], robot_pose)[2]) + turn.correction_rad
+    return float(wrap_angle(measured - float(relative_pose(optimized[0], robot)[2])))

@@ -60,19 +60,30 @@ HOME_TURN_TOLERANCE_RAD = math.radians(0.01)
 
 
 @dataclass(frozen=True)
-class HomeRest:
-    """The robot's revolutions at rest at home, and where the map had it when the final job was made.
+class HomeRevolution:
+    """One revolution at rest at home: its match points (robot frame, (N, 2)), the lidar's position in
+    the robot frame (2,), and the robot's map pose SLAM gave that revolution (3,)."""
 
-    ``revolutions``: each revolution's match points (robot frame, (N, 2)) and the lidar's
-    position in the robot frame (2,). ``pose`` (3,): the robot's map pose (SLAM's filter,
-    at rest: the same for every revolution). ``prior_covariance`` (3×3): how uncertain that
-    pose is relative to keyframe 0 (the pose graph's chain from keyframe 0 to the newest
-    keyframe), as a closure to keyframe 0 from there would be judged.
+    points: np.ndarray
+    sensor_xy: np.ndarray
+    pose: np.ndarray
+
+
+@dataclass(frozen=True)
+class HomeRest:
+    """The robot's revolutions at rest at home, and how uncertain their poses are relative to keyframe 0.
+
+    ``prior_covariance`` (3×3): the pose graph's chain from keyframe 0 to the newest keyframe,
+    as a closure to keyframe 0 from there would be judged.
     """
 
-    revolutions: tuple[tuple[np.ndarray, np.ndarray], ...]
-    pose: np.ndarray
+    revolutions: tuple[HomeRevolution, ...]
     prior_covariance: np.ndarray
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The robot's map pose at the newest revolution: where it stands when the final job is made."""
+        return self.revolutions[-1].pose
 
 
 @dataclass(frozen=True)
@@ -96,29 +107,31 @@ def measure_home_turn(
     rest_target: Target | None,
     observed: ObservedArea | None,
     home: HomeRest,
-    prior: np.ndarray,
+    first_pose: np.ndarray,
     icp: IcpParams,
     loop: LoopClosureParams,
 ) -> HomeTurn | None:
     """The map's turn about the start from the revolutions at home, or None if they do not verify.
 
     ``rest_target`` is keyframe 0's rest surface in its frame; ``observed`` what keyframe 0
-    saw (its inlier ratio is counted there); ``prior`` (3,) the robot's pose in keyframe 0's
-    frame as the map has it. The std is the larger of a match's own (ICP's information, without
-    the ``information_scale`` that discounts closures taken moving) and the matches' spread:
-    the revolutions at home see the same boards from the same place, so their errors are
-    not independent and averaging them buys nothing beyond the spread.
+    saw (its inlier ratio is counted there); ``first_pose`` (3,) keyframe 0's map pose: each
+    revolution starts from the robot's pose in keyframe 0's frame as the map had it. The std
+    is the larger of a match's own (ICP's information, without the ``information_scale`` that
+    discounts closures taken moving) and the matches' spread: the revolutions at home see the
+    same boards from the same place, so their errors are not independent and averaging them
+    buys nothing beyond the spread.
     """
     if rest_target is None or len(rest_target) == 0:
         return None
     loop = replace(loop, overlap_fitness=True)
-    distance_m = float(math.hypot(prior[0], prior[1]))
     corrections, stds, shifts = [], [], []
-    for points, sensor_xy in home.revolutions:
-        source = points
+    for revolution in home.revolutions:
+        source, sensor_xy = revolution.points, revolution.sensor_xy
         if loop.max_range_m is not None:
-            source = points[np.hypot(*(points - sensor_xy).T) <= loop.max_range_m]
-        candidate = Candidate(0, -1, np.asarray(prior, dtype=np.float64), home.prior_covariance, distance_m)
+            source = source[np.hypot(*(source - sensor_xy).T) <= loop.max_range_m]
+        prior = relative_pose(first_pose, revolution.pose)
+        distance_m = float(math.hypot(prior[0], prior[1]))
+        candidate = Candidate(0, -1, prior, home.prior_covariance, distance_m)
         verdict = verify(candidate, rest_target, source, sensor_xy, icp, loop, observed)
         if not verdict.accepted or verdict.information[2, 2] <= 0:
             continue
@@ -150,9 +163,9 @@ def home_turn_left(snapshot: np.ndarray, optimized: np.ndarray, robot_pose: np.n
     """How much of the measured turn (rad) the optimized map still lacks at the robot's pose at home.
 
     ``snapshot`` and ``optimized`` (K, 3) are the keyframes' poses before and after the
-    optimization; ``robot_pose`` the robot's map pose in the snapshot. The robot keeps its place
-    relative to the newest keyframe; the measured heading in keyframe 0's frame is the snapshot's
-    corrected by ``turn.correction_rad``.
+    optimization; ``robot_pose`` the robot's map pose in the snapshot (its newest revolution's).
+    The robot keeps its place relative to the newest keyframe; the measured heading in keyframe
+    0's frame is the snapshot's corrected by ``turn.correction_rad``.
     """
     newest = len(snapshot) - 1
     robot = compose(optimized[newest], relative_pose(snapshot[newest], robot_pose))

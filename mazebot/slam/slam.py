@@ -85,6 +85,7 @@ from mazebot.slam.home_rest import (
     HOME_TURN_TOLERANCE_RAD,
     MIN_AGREEING,
     HomeRest,
+    HomeRevolution,
     HomeTurn,
     home_turn_left,
     measure_home_turn,
@@ -364,8 +365,7 @@ class LoopClosureJob:
             return None
         first = self.keyframes[0]
         observed = ObservedArea.from_keyframes([np.zeros(3)], [first.sensor_xy], [first.ray_ends])
-        prior = relative_pose(self.poses[0], self.home_rest.pose)
-        return measure_home_turn(self._rest_target(None), observed, self.home_rest, prior, self.params.icp,
+        return measure_home_turn(self._rest_target(None), observed, self.home_rest, self.poses[0], self.params.icp,
                                  self.params.loop)
 
     def _rest_target(self, clip: tuple[np.ndarray, float] | None) -> Target | None:
@@ -635,8 +635,8 @@ class Slam:
         self._rest_surface: tuple[np.ndarray, np.ndarray] | None = None  # ... and the surfaces pooled (voxel filter)
         self._start_turns: tuple[tuple[float, float], ...] = ()  # the anchor the closures to them measured
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
-        # the robot's revolutions at rest at home at the end of an exploration (match points, lidar position)
-        self._home_revolutions: list[tuple[np.ndarray, np.ndarray]] = []
+        # the robot's revolutions at rest at home at the end of an exploration
+        self._home_revolutions: list[HomeRevolution] = []
         self.home_turn: HomeTurn | None = None  # what the last final job's revolutions at home said
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
@@ -1556,17 +1556,19 @@ class Slam:
     def observe_home_rest(self, scan: Scan, odometry: OdometrySource) -> None:
         """One revolution the robot stood still through, back at its start at the end of an exploration.
 
-        Kept (filtered; at rest the de-skew moves nothing) for the final job, which matches it
-        against keyframe 0's revolutions at rest (:mod:`mazebot.slam.home_rest`). Only the
-        newest ``HOME_REST_REVOLUTIONS`` are kept.
+        Kept (filtered; at rest the de-skew moves nothing) with the pose :meth:`update` gave it
+        (call it after the update) for the final job, which matches it against keyframe 0's
+        revolutions at rest (:mod:`mazebot.slam.home_rest`). Only the newest ``HOME_REST_REVOLUTIONS``
+        are kept.
         """
         prepared, _ = self.prepare(scan, odometry)
         points = np.asarray(prepared.points_match, dtype=np.float64)
-        self._home_revolutions.append((points, np.array(prepared.sensor_xy, dtype=np.float64)))
+        sensor_xy = np.array(prepared.sensor_xy, dtype=np.float64)
+        self._home_revolutions.append(HomeRevolution(points, sensor_xy, self.pose))
         del self._home_revolutions[:-HOME_REST_REVOLUTIONS]
 
     def _home_rest(self) -> HomeRest | None:
-        """The revolutions at home for the final job (at least ``MIN_AGREEING``), with the robot's pose now."""
+        """The revolutions at home for the final job (at least ``MIN_AGREEING``), with their uncertainty."""
         revolutions, self._home_revolutions = self._home_revolutions, []
         if len(revolutions) < MIN_AGREEING or len(self.keyframes) < 2:
             return None
@@ -1576,7 +1578,7 @@ class Slam:
             self.keyframe_poses()[:, :2], np.asarray(self._edge_var_xy), np.asarray(self._edge_var_theta), newest
         )
         sxy, sth = max(p.min_std_m**2, float(var_xy[0])), max(p.min_std_rad**2, float(var_th[0]))
-        return HomeRest(tuple(revolutions), self.pose, np.diag([sxy, sxy, sth]))
+        return HomeRest(tuple(revolutions), np.diag([sxy, sxy, sth]))
 
     def final_job(self) -> LoopClosureJob | None:
         """The whole graph optimized once more and the grid rebuilt from it: for the end of an exploration.

@@ -17,7 +17,7 @@ import pytest
 
 from mazebot.bench.metrics import turn_about_start
 from mazebot.geometry import compose
-from mazebot.slam.home_rest import HOME_REST_REVOLUTIONS, HomeRest
+from mazebot.slam.home_rest import HOME_REST_REVOLUTIONS, HomeRest, HomeRevolution
 from mazebot.slam.preprocess import voxel_downsample
 from mazebot.slam.wall_faces import quarter_turns
 from tests.slam.test_lattice_fit import chain_job as lattice_chain_job
@@ -45,8 +45,14 @@ def _scene(world, world_poses, truth, cast_scan):
     normals = np.concatenate([kf.surface()[1] for kf in revolutions])
     first = voxel_downsample(points, 0.01)
     home = [keyframe_at(world, cast_scan, 0, back, seed=200 + k) for k in range(HOME_REST_REVOLUTIONS)]
-    at_home = tuple((kf.match_points.astype(np.float64), kf.sensor_xy) for kf in home)
+    at_home = [(kf.match_points.astype(np.float64), kf.sensor_xy) for kf in home]
     return keyframes, truth, (points[first], normals[first]), at_home
+
+
+def _home(at_home, pose: np.ndarray) -> HomeRest:
+    """The revolutions at home, each at the map's ``pose`` of the robot, judged against a chain of 2 cm and 1°."""
+    revolutions = tuple(HomeRevolution(points, sensor_xy, pose.copy()) for points, sensor_xy in at_home)
+    return HomeRest(revolutions, np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2]))
 
 
 def test_revolutions_at_rest_at_home_turn_a_map_turned_about_the_start_back(hand_scene, cast_scan) -> None:
@@ -68,7 +74,7 @@ def test_revolutions_at_rest_at_home_turn_a_map_turned_about_the_start_back(hand
         ei, ej, z, _ = base.edges  # a sequential match's information (1 mm, 0.11°), as SLAM's edges claim
         info = np.tile(np.diag([1 / 0.001**2, 1 / 0.001**2, 1 / math.radians(0.11) ** 2]), (len(ei), 1, 1))
         # the map's pose of the robot at home: the newest keyframe's, turned with the map
-        home = HomeRest(at_home, poses[-1].copy(), np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2]))
+        home = _home(at_home, poses[-1])
         job = replace(
             base,
             edges=(ei, ej, z, info),
@@ -108,12 +114,12 @@ def test_revolutions_at_home_that_do_not_match_the_start_leave_the_map_as_it_is(
     keyframes, truth, surface, _ = _scene(world, world_poses, truth, cast_scan)
     elsewhere = compose(world_poses[0], np.array([0.3048, 0.0, 0.4]))
     revolutions = [keyframe_at(world, cast_scan, 0, elsewhere, seed=300 + k) for k in range(HOME_REST_REVOLUTIONS)]
-    at_home = tuple((kf.match_points.astype(np.float64), kf.sensor_xy) for kf in revolutions)
+    at_home = [(kf.match_points.astype(np.float64), kf.sensor_xy) for kf in revolutions]
     poses = truth.copy()
     for kf, pose in zip(keyframes, poses, strict=True):
         kf.pose = pose.copy()
     # the map thinks the robot is at the start: every revolution's walls lie a cell off
-    home = HomeRest(at_home, poses[-1].copy(), np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2]))
+    home = _home(at_home, poses[-1])
     base = replace(lattice_chain_job(keyframes, poses, None), wall_reference_rad=math.radians(MAZE_DEG),
                    rest_surface=surface, rebuild_anyway=True)
     without = base.run()

@@ -197,6 +197,8 @@ class SlamStats:
     final_merged: bool = False
     #: the map's turn about the start the revolutions at rest at home measured (degrees; None: not measured)
     home_turn_deg: float | None = None
+    #: ... and whether the final map was turned by it (the robot's heading at home followed the grid's turn)
+    home_turn_used: bool = False
 
 
 @dataclass

@@ -47,16 +47,21 @@ MIN_AGREEING = 3
 #: How far (in units of a match's own heading std) a match may lie from the matches' median
 #: and still count as agreeing with them: three standard deviations.
 AGREE_SIGMAS = 3.0
-#: Optimizations of the final graph run again with the turn re-expressed (below), at most. The turn
-#: enters the pose graph through the wall grid's anchor, as the snapshot's grid turned by it; but the
-#: keyframes settle on the grid where their own boards say (each turned by a fraction of a degree), so
-#: the optimized map gives the robot a heading a little off the one measured. Re-expressed against the
-#: optimized map (a Gauss-Newton step on the one turn about the start), it is met within
-#: ``HOME_TURN_TOLERANCE_RAD`` after one or two more (the hand-built 6×6 maze of the tests: 0.28° -> 0.01°).
+#: Optimizations of the final graph run again with the turn re-expressed, at most, after the first
+#: step (which also measures how far the robot follows the grid: ``HOME_MIN_FOLLOW``). The turn enters
+#: the pose graph through the wall grid's anchor, as the snapshot's grid turned by it; but the keyframes
+#: settle on the grid where their own boards say (each turned by a fraction of a degree), so the optimized
+#: map gives the robot a heading a little off the one measured. Re-expressed against the optimized map
+#: (secant steps on the one turn about the start), it is met within ``HOME_TURN_TOLERANCE_RAD`` after one
+#: or two more.
 HOME_RELINEARIZATIONS = 3
 #: What is left of the measured turn in the optimized map that needs no further optimization: a
 #: hundredth of a degree, a tenth of a millimetre a board's length (0.3 m) from the start.
 HOME_TURN_TOLERANCE_RAD = math.radians(0.01)
+#: How much of a turn of the wall grid the robot's heading at home must follow for its revolutions there
+#: to say the map's turn: at least half, so that the turn it sees is for the most part the map's. Where
+#: the keyframes around the start are held to keyframe 0 by closures, it follows a tenth or less of it.
+HOME_MIN_FOLLOW = 0.5
 
 
 @dataclass(frozen=True)
@@ -92,7 +97,9 @@ class HomeTurn:
     in keyframe 0's frame, its std (rad), the position correction (m), and how many matches agreed of how many.
 
     ``applied_rad`` is the correction as the anchor takes it: the measured one at first, re-expressed
-    against the optimized map (:func:`home_turn_left`) while the optimization does not meet it.
+    against the optimized map (:func:`home_turn_left`) while the optimization does not meet it;
+    ``follows`` how far the robot's heading at home followed a turn of the grid (None: not
+    tried, the map met the turn at once), and ``used`` whether the final map was turned by it.
     """
 
     correction_rad: float
@@ -101,6 +108,8 @@ class HomeTurn:
     agreeing: int
     revolutions: int
     applied_rad: float
+    follows: float | None = None
+    used: bool = True
 
 
 def measure_home_turn(

@@ -340,6 +340,7 @@ class SlamTask:
         if final:
             turn = result.home_turn
             stats.home_turn_deg = None if turn is None else -math.degrees(turn.correction_rad)
+            stats.home_turn_used = turn is not None and turn.used
             stats.final_merged = True
         del result, job
         give_back_free_memory()  # the old grid and submap, the job's result: all freed at this one moment

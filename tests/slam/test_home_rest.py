@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mazebot.bench.metrics import turn_about_start
-from mazebot.geometry import compose
+from mazebot.geometry import compose, relative_pose
 from mazebot.slam.home_rest import HOME_REST_REVOLUTIONS, HomeRest, HomeRevolution
 from mazebot.slam.preprocess import voxel_downsample
 from mazebot.slam.wall_faces import quarter_turns
@@ -97,7 +97,7 @@ def test_revolutions_at_rest_at_home_turn_a_map_turned_about_the_start_back(hand
         alone.append(turned)
         result, turned = final(turn_deg, with_home=True)
         turn = result.home_turn
-        assert turn is not None and turn.agreeing >= 3, turn_deg
+        assert turn is not None and turn.agreeing >= 3 and turn.used, turn_deg
         # the revolutions at home measure the map's turn about the start (against the truth: turn_deg) ...
         assert -math.degrees(turn.correction_rad) == pytest.approx(turn_deg, abs=0.05)
         assert 0.0 < math.degrees(turn.std_rad) < 0.2  # at rest: far tighter than the faces' 0.3°
@@ -106,6 +106,32 @@ def test_revolutions_at_rest_at_home_turn_a_map_turned_about_the_start_back(hand
     # up to 0.6° off (its boards' mean 0.6° off the maze's grid)
     assert max(abs(t) for t in home) < 0.1, home
     assert max(abs(t) for t in alone) > 0.25, alone
+
+
+def test_a_robot_home_whose_heading_does_not_follow_the_grid_leaves_the_map_as_it_is(hand_scene, cast_scan) -> None:
+    # Closures hold the keyframes around the start to keyframe 0; only the map beyond turns with the grid.
+    # The robot home sees the start's region, not the map's turn: its heading there says nothing of the grid.
+    world, world_poses, truth = hand_scene
+    keyframes, truth, surface, at_home = _scene(world, world_poses, truth, cast_scan)
+    poses = truth.copy()
+    poses[1:-1] = turned_about(truth[0], truth[1:-1], math.radians(TURN_DEG))  # home (the last) held right
+    for kf, pose in zip(keyframes, poses, strict=True):
+        kf.pose = pose.copy()
+    base = lattice_chain_job(keyframes, poses, None)
+    ei, ej, z, info = base.edges
+    last = len(poses) - 1
+    held = np.diag([1 / 0.0005**2, 1 / 0.0005**2, 1 / math.radians(0.02) ** 2])[None]  # closures home, at rest
+    edges = (np.append(ei, 0), np.append(ej, last), np.vstack([z, relative_pose(truth[0], truth[last])]),
+             np.concatenate([info, held]))
+    job = replace(base, edges=edges, wall_reference_rad=math.radians(MAZE_DEG + TURN_DEG), rest_surface=surface,
+                  rebuild_anyway=True)
+    without = job.run()
+    result = replace(job, home_rest=_home(at_home, poses[-1])).run()
+    turn = result.home_turn
+    assert turn is not None and abs(math.degrees(turn.correction_rad)) < 0.1  # the robot's heading: right
+    assert not turn.used and turn.follows is not None and turn.follows < 0.5
+    assert result.poses is not None and without.poses is not None
+    np.testing.assert_allclose(result.poses, without.poses)
 
 
 def test_revolutions_at_home_that_do_not_match_the_start_leave_the_map_as_it_is(hand_scene, cast_scan) -> None:

@@ -267,9 +267,16 @@ class LoopClosureJob:
                 np.array([v.measurement for v in accepted]),
                 np.array([v.information for v in accepted]),
             ))
+        if self.home_rest is not None and (home_turn is None or self.wall_reference_rad is None):
+            # revolutions at home that do not verify: the map stays as it is
+            return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns,
+                                     home_turn=home_turn)
         robust, gridded = self._optimize(parts, self._anchor(start_turns, home_turn))
         if home_turn is not None and gridded:
             robust, home_turn = self._held_to_home(parts, start_turns, home_turn, robust)
+            if not home_turn.used:  # not the map's turn: the map stays as it is
+                return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns,
+                                         home_turn=home_turn)
         optimization = robust.optimization
         wall_reference = wrap_quarter(float(robust.vertices[count, 2])) if gridded else None
         poses = robust.vertices[:count].copy()
@@ -353,7 +360,7 @@ class LoopClosureJob:
         robust: RobustResult,
     ) -> tuple[RobustResult, HomeTurn]:
         """The optimization that gives the robot at home the heading its revolutions there measured, if the grid
-        turns it; else the one without them (the turn left unused).
+        turns it (else the turn is marked unused, and the caller leaves the map as it is).
 
         The turn entered the anchor as the snapshot's grid turned by it. Whether the robot's heading at
         home follows a turn of the grid depends on the map: where closures tie the keyframes around the start
@@ -382,8 +389,7 @@ class LoopClosureJob:
             if follows is None:
                 follows = (left - left_again) / step
                 if follows < HOME_MIN_FOLLOW:
-                    without, _ = self._optimize(parts, self._anchor(start_turns, None))
-                    return without, replace(turn, follows=follows, used=False)
+                    return robust, replace(turn, follows=follows, used=False)
             turn, robust, left = tried, again, left_again
         return robust, replace(turn, follows=follows, used=True)
 
@@ -1625,8 +1631,7 @@ class Slam:
         rebuild from the optimized keyframes gives it their accuracy (on the bench's 6×6
         seed 20: coverage 0.9877 live, 0.9908 rebuilt). None while another job runs (ask
         again when it is merged) or with fewer than two keyframes. Run and merge it like
-        the jobs :meth:`update` hands out. The revolutions at rest at home (:meth:`observe_home_rest`)
-        go with it, and are used up.
+        the jobs :meth:`update` hands out.
         """
         if self.job_running or len(self.keyframes) < 2:
             return None
@@ -1635,7 +1640,24 @@ class Slam:
         self.job_running = True
         if self.taps.on_final_job:
             notify(self.taps.on_final_job, self, "slam.on_final_job")
-        return replace(job, rebuild_anyway=True, home_rest=self._home_rest())
+        return replace(job, rebuild_anyway=True)
+
+    def home_job(self) -> LoopClosureJob | None:
+        """The final job again with the revolutions at rest at home (:meth:`observe_home_rest`), which it uses up.
+
+        Its result turns the map about the start where they measured the map's turn
+        (:mod:`mazebot.slam.home_rest`); where they did not (they do not verify, or the robot's
+        heading at home does not follow the grid) it leaves the map and the keyframes as they are.
+        None while another job runs, or with too few revolutions at home or keyframes.
+        """
+        if self.job_running:
+            return None
+        home = self._home_rest()
+        if home is None:
+            return None
+        job = self._make_job([], None, optimize_anyway=True)
+        self.job_running = True
+        return replace(job, rebuild_anyway=True, home_rest=home)
 
     def _make_job(
         self, candidates: list[Candidate], poses: np.ndarray | None, *, optimize_anyway: bool

@@ -6,14 +6,14 @@ loop free in between, so the 20 Hz control tick never waits for a whole keyframe
 hands back a loop-closure job (verification, pose-graph optimization, grid rebuild:
 tens to hundreds of milliseconds), it runs in ``executor`` (by default a worker process,
 :mod:`mazebot.slam.loop_worker`) while scans keep being processed; its result is merged
-with :meth:`Slam.apply` as soon as it is done. When the exploration ends one more job
-optimizes the whole graph and rebuilds the map from it (:meth:`Slam.final_job`): the map the
-user keeps has the optimized keyframes' accuracy. It waits for the robot back at its start
-and at rest (``state.home_at_rest``, the planner's word): its revolutions there
-(``HOME_REST_REVOLUTIONS`` of them, :meth:`Slam.observe_home_rest`) go with the job, which
-measures the map's turn about the start with them (:mod:`mazebot.slam.home_rest`); once it
-is merged ``state.slam.final_merged`` says so, and the planner says ``done``. A run that ends
-``done`` without that (a scripted drive, the planner's bound) gets the job then.
+with :meth:`Slam.apply` as soon as it is done. When the exploration ends (``returning``
+or ``done``) one more job optimizes the whole graph and rebuilds the map from it
+(:meth:`Slam.final_job`): the map the user keeps has the optimized keyframes' accuracy.
+Once the robot is back at its start and at rest (``state.home_at_rest``, the planner's word),
+its revolutions there (``HOME_REST_REVOLUTIONS`` of them, :meth:`Slam.observe_home_rest`)
+go to one more job (:meth:`Slam.home_job`), which turns the map about the start where they
+measured its turn (:mod:`mazebot.slam.home_rest`); once that is merged
+``state.slam.final_merged`` says so, and the planner says ``done``.
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
@@ -232,7 +232,8 @@ class SlamTask:
         self.job_noted = False  # the running job was said to run long
         self.search: asyncio.Future[SearchResult] | None = None
         self.final_done = False  # this exploration's final rebuild has been asked for
-        self.final_running = False  # ... and is the job in the executor
+        self.home_done = False  # this exploration's job with the revolutions at rest at home has been asked for
+        self.home_running = False  # ... and is the job in the executor
 
     async def run(self) -> None:
         """Wait for the next event and handle it, for ever; what is pending is cancelled on the way out."""
@@ -328,7 +329,7 @@ class SlamTask:
         """A loop-closure job's result merged into SLAM (in stages, as the updates) and published."""
         result = job.result()  # a crashed job is a SLAM fault, not silence
         self.job = None
-        final, self.final_running = self.final_running, False
+        home, self.home_running = self.home_running, False
         stats = self.state.slam
         stats.job_started_wall_s = None
         wall_s, cpu_s = time.perf_counter(), [0.0]
@@ -337,7 +338,7 @@ class SlamTask:
         stats.merge_cpu_s += cpu_s[0]
         stats.merges += 1
         _publish_closure(self.state, self.slam, result, rebuilt)
-        if final:
+        if home:
             turn = result.home_turn
             stats.home_turn_deg = None if turn is None else -math.degrees(turn.correction_rad)
             stats.home_turn_used = turn is not None and turn.used
@@ -430,7 +431,7 @@ class SlamTask:
             state.note("slam", "SLAM processes scans again", self.clock.now_s())
         _publish_update(state, slam, update, scan.end_time_s, update.matched or self.trust.held_back == held_back)
         state.slam.held_back = self.trust.held_back
-        if state.home_at_rest and at_rest and not self.final_done:
+        if state.home_at_rest and at_rest and not self.home_done:
             slam.observe_home_rest(scan, history)  # the start seen again at rest, for the final job
         taken = self.rest.observe(at_rest, disputed[0])
         if taken is not None:
@@ -452,26 +453,29 @@ class SlamTask:
         )
 
     def on_run_state(self) -> None:
-        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job).
-
-        Asked for once the robot is home with its revolutions at rest taken (or at ``done``,
-        however the run got there), when no other job runs.
-        """
+        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job); once
+        the robot is home at rest with its revolutions there taken, the job with them (Slam.home_job)."""
         state = self.state
         run_state = state.run_state
         if run_state is RunState.EXPLORING:
-            self.final_done = False
+            self.final_done = self.home_done = False
             state.slam.final_merged = False
-            return
-        home = run_state is RunState.RETURNING and state.home_at_rest and self.slam.home_rest_ready
-        if (home or run_state is RunState.DONE) and not self.final_done and self.job is None:
+        elif run_state in (RunState.RETURNING, RunState.DONE) and not self.final_done and self.job is None:
             final = self.slam.final_job()
             if final is not None:
                 self.final_done = True
-                self.final_running = True
-                log.info("exploration over: optimizing the pose graph and rebuilding the map once more%s",
-                         ", with the revolutions at rest at home" if home else "")
+                log.info("exploration over: optimizing the pose graph and rebuilding the map once more")
                 self._start_job(final)
+        elif (run_state is RunState.RETURNING and state.home_at_rest and self.final_done and not self.home_done
+              and self.job is None and self.slam.home_rest_ready):
+            home = self.slam.home_job()
+            self.home_done = True
+            if home is None:  # too few keyframes: nothing to turn
+                state.slam.final_merged = True
+                return
+            self.home_running = True
+            log.info("back at the start at rest: the map's turn about the start measured with its revolutions there")
+            self._start_job(home)
 
     async def _cancel_pending(self) -> None:
         if self.job is not None:

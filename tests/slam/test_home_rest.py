@@ -130,8 +130,8 @@ def test_a_robot_home_whose_heading_does_not_follow_the_grid_leaves_the_map_as_i
     turn = result.home_turn
     assert turn is not None and abs(math.degrees(turn.correction_rad)) < 0.1  # the robot's heading: right
     assert not turn.used and turn.follows is not None and turn.follows < 0.5
-    assert result.poses is not None and without.poses is not None
-    np.testing.assert_allclose(result.poses, without.poses)
+    assert result.poses is None and result.grid is None  # nothing to apply: the map stays as it is
+    assert without.poses is not None  # (the same job without them optimizes and rebuilds)
 
 
 def test_revolutions_at_home_that_do_not_match_the_start_leave_the_map_as_it_is(hand_scene, cast_scan) -> None:
@@ -151,5 +151,5 @@ def test_revolutions_at_home_that_do_not_match_the_start_leave_the_map_as_it_is(
     without = base.run()
     result = replace(base, home_rest=home).run()
     assert result.home_turn is None
-    assert result.poses is not None and without.poses is not None
-    np.testing.assert_allclose(result.poses, without.poses)
+    assert result.poses is None and result.grid is None  # nothing to apply: the map stays as it is
+    assert without.poses is not None

@@ -98,9 +98,14 @@ class FakeSlam:
     anchored: bool = True
     final_jobs: int = 0
     home_revolutions: int = 0  # revolutions at rest at home handed over (observe_home_rest)
+    home_jobs: int = 0
 
     def observe_home_rest(self, scan: Scan, odometry: OdometryHistory) -> None:
         self.home_revolutions += 1
+
+    def home_job(self):  # the job with the revolutions at home: the same result as the others
+        self.home_jobs += 1
+        return self.run
 
     @property
     def home_rest_ready(self) -> bool:
@@ -195,33 +200,33 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
         state.run_state = RunState.RETURNING
         for k in range(3):
             await state.scans.put(_static_scan(1.2 + 0.2 * k, np.zeros(3)))
-        await _until(lambda: fake.scans == 4 and len(fake.applied_on) == 1)  # scan 2's job
-        # on the way home: the final map waits for the robot at rest at its start
-        assert fake.final_jobs == 0 and fake.home_revolutions == 0 and not state.slam.final_merged
+        await _until(lambda: fake.scans == 4 and len(fake.applied_on) == 2)  # scan 2's job, then the final one
+        state.run_state = RunState.DONE
+        await state.scans.put(_static_scan(2.0, np.zeros(3)))
+        await _until(lambda: fake.scans == 5)
+    assert fake.final_jobs == 1  # once, not once per scan nor again at done
+    assert state.slam.map_rebuilds == 2 and state.map is fake.grid
+    assert fake.home_jobs == 0 and fake.home_revolutions == 0  # a run that ends done without the rest at home
+
+
+async def test_back_at_the_start_at_rest_its_revolutions_go_to_one_more_job_before_done() -> None:
+    fake = FakeSlam()
+    async with _slam_task_on(fake) as state:
+        state.run_state = RunState.RETURNING
+        for k in range(3):
+            await state.scans.put(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
+        await _until(lambda: fake.scans == 3 and len(fake.applied_on) == 2)  # the final job, on the way home
+        assert fake.final_jobs == 1 and fake.home_revolutions == fake.home_jobs == 0
+        assert not state.slam.final_merged
         state.home_at_rest = True  # the planner: back at the start, motors stopped
         for k in range(2):
             await state.scans.put(_static_scan(2.0 + 0.2 * k, np.zeros(3)))
-        await _until(lambda: fake.scans == 6 and len(fake.applied_on) == 2)  # the final job, with them
-        assert fake.home_revolutions == 2 and fake.final_jobs == 1
-        await _until(lambda: state.slam.final_merged)  # the planner may say done
+        await _until(lambda: state.slam.final_merged)  # merged: the planner may say done
+        assert fake.home_revolutions == 2 and fake.home_jobs == 1 and len(fake.applied_on) == 3
         state.run_state = RunState.DONE
         await state.scans.put(_static_scan(3.0, np.zeros(3)))
-        await _until(lambda: fake.scans == 7)
-    assert fake.final_jobs == 1  # once, not once per scan nor again at done
-    assert fake.home_revolutions == 2  # none taken once the final job had them
-    assert state.slam.map_rebuilds == 2 and state.map is fake.grid
-
-
-async def test_a_run_that_ends_done_without_the_rest_at_home_still_gets_its_final_map() -> None:
-    fake = FakeSlam()  # a scripted drive, or the planner's wait at home ran out
-    async with _slam_task_on(fake) as state:
-        state.run_state = RunState.EXPLORING
-        await state.scans.put(_static_scan(1.0, np.zeros(3)))
-        await _until(lambda: fake.scans == 1)
-        state.run_state = RunState.DONE
-        await state.scans.put(_static_scan(1.2, np.zeros(3)))
-        await _until(lambda: fake.scans == 2 and state.slam.final_merged)
-    assert fake.final_jobs == 1 and fake.home_revolutions == 0
+        await _until(lambda: fake.scans == 6)
+    assert fake.final_jobs == 1 and fake.home_jobs == 1 and fake.home_revolutions == 2  # once each
 
 
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> None:

@@ -18,12 +18,12 @@ import pytest
 from mazebot.bench.metrics import turn_about_start
 from mazebot.geometry import compose, relative_pose
 from mazebot.slam.home_rest import HOME_REST_REVOLUTIONS, HomeRest, HomeRevolution
-from mazebot.slam.preprocess import voxel_downsample
 from mazebot.slam.wall_faces import quarter_turns
 from tests.slam.test_lattice_fit import chain_job as lattice_chain_job
 from tests.slam.test_start_anchor import (
+    HOME_AGAIN,
     MAZE_DEG,
-    REST_REVOLUTIONS,
+    home_again,
     rest_surface,
     turned_about,
 )
@@ -31,22 +31,15 @@ from tests.slam.test_start_anchor import hand_scene as hand_scene  # the fixture
 from tests.slam.test_wall_lattice import keyframe_at
 
 TURN_DEG = 0.5  # the map's turn about the start (the bench's runs that miss on coverage: 0.42-0.64°)
-HOME = np.array([0.02, -0.03, 1.1])  # where the robot stops back at the start: a little off, facing elsewhere
 
 
 def _scene(world, world_poses, truth, cast_scan):
-    """Keyframes (the route, then one at home), keyframe 0's rest surface, the revolutions at home (robot frame)."""
-    back = world_poses[0] + HOME
-    world_poses = np.vstack((world_poses, back))
-    truth = np.vstack((truth, back - np.array([*world_poses[0, :2], 0.0])))
-    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
-    revolutions = [keyframe_at(world, cast_scan, 0, world_poses[0], seed=100 + k) for k in range(REST_REVOLUTIONS)]
-    points = np.concatenate([kf.surface()[0] for kf in revolutions])
-    normals = np.concatenate([kf.surface()[1] for kf in revolutions])
-    first = voxel_downsample(points, 0.01)
+    """The scene home again (:func:`home_again`), and the revolutions at home (robot frame)."""
+    keyframes, truth, surface = home_again(world, world_poses, truth, cast_scan)
+    back = world_poses[0] + HOME_AGAIN
     home = [keyframe_at(world, cast_scan, 0, back, seed=200 + k) for k in range(HOME_REST_REVOLUTIONS)]
     at_home = [(kf.match_points.astype(np.float64), kf.sensor_xy) for kf in home]
-    return keyframes, truth, (points[first], normals[first]), at_home
+    return keyframes, truth, surface, at_home
 
 
 def _home(at_home, pose: np.ndarray) -> HomeRest:

@@ -193,12 +193,6 @@ class SlamStats:
     #: accepted loop closures: (old keyframe time_s, new keyframe time_s, measured pose of the new
     #: keyframe in the old one's frame (x_m, y_m, theta_rad)), for checking against ground truth
     closures: list[tuple[float, float, tuple[float, float, float]]] = field(default_factory=list)
-    #: the final map of this exploration (the whole graph optimized, the grid rebuilt) is merged
-    final_merged: bool = False
-    #: the map's turn about the start the revolutions at rest at home measured (degrees; None: not measured)
-    home_turn_deg: float | None = None
-    #: ... and whether the final map was turned by it (the robot's heading at home followed the grid's turn)
-    home_turn_used: bool = False
 
 
 @dataclass
@@ -324,9 +318,6 @@ class SharedState:
     blind_zone_points: np.ndarray | None = None
     #: CPU time of each planner tick, ms (graph update, goal choice, DWA)
     planner_ms: RecentValues = field(default_factory=lambda: RecentValues(20000))
-    #: the robot is back at its start at the end of the exploration and stands still with its motors
-    #: stopped: SLAM takes its revolutions at rest there for the final map (``SlamStats.final_merged``)
-    home_at_rest: bool = False
     #: what the planner decided and when, ``(time_s, text)``: new targets, blacklists, recoveries
     planner_events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=5000))
     # --- written by the recorder and the run saver (mazebot.tasks.record_task, persist_task) ---

@@ -346,9 +346,6 @@ def compute_metrics(spec: RunSpec, record: RunRecord, *, exit_code: int, wall_s:
         # the ATE split: the estimate's turn about the start as a whole, and the RMS left without it
         "ate_turn_about_start_deg": round(math.degrees(turn[0]), 3) if turn is not None else None,
         "ate_rms_turned_back_m": round(turn[1], 4) if turn is not None else None,
-        # the final map's turn about the start as the revolutions at rest at home measured it (None: not measured)
-        "home_turn_deg": None if slam.home_turn_deg is None else round(slam.home_turn_deg, 3),
-        "home_turn_used": slam.home_turn_used,
         "estimate": "slam",  # what produced the pose estimate the ATE measures
         # walls of the estimated map against the true walls (one-cell tolerance)
         "map_f1": maps["map_f1"],

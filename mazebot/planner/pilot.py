@@ -116,13 +116,6 @@ FREED_M = 0.3
 BACKOFF_M = 0.15
 #: The track is kept as points this far apart, this many of them (enough for the back-off).
 TRACK_STEP_M, TRACK_POINTS = 0.03, 20
-#: Back at the start, the robot stands still with its motors stopped until SLAM has merged the final
-#: map (its revolutions at rest there taken, the whole graph optimized, the grid rebuilt) or the lidar
-#: has turned this many revolutions, whichever comes first; then it says ``done``. Counted in
-#: revolutions, not seconds: a slow CPU gets as many. 60 revolutions are 11 s of an A1's: the robot
-#: slowing to rest (one or two), the revolutions taken at rest (``mazebot.slam.home_rest``, five), and
-#: the final job (0.1-1 s of CPU here on the bench's mazes, three to five times that on a Pi 4).
-HOME_WAIT_REVOLUTIONS = 60
 
 
 @dataclass
@@ -234,8 +227,6 @@ class Pilot:
         self.still = StandStill(params.planner.stand_still_revolutions)
         #: the back-off path while the pilot backs the robot off along its track, else None
         self._backoff: list[tuple[float, float]] | None = None
-        #: the lidar's revolution count when the robot stopped back at its start (None: it has not)
-        self._home_since: int | None = None
 
     # -- construction ------------------------------------------------------------------
 
@@ -313,8 +304,6 @@ class Pilot:
             if self._was_moving:  # stopped, done or faulted since the last tick: forget the path
                 self.local.clear()
                 state.motion_command = None
-                state.home_at_rest = False
-                self._home_since = None
                 self.still.mark = None  # a pause is not standing still with a goal
             self._was_moving = False
             # SLAM goes on fixing the odometry frame while the robot waits: the blind-zone memory follows
@@ -329,7 +318,6 @@ class Pilot:
             self.explorer = self._new_explorer((pose[0], pose[1]))
             self.local.clear()
             self._last_drive_inputs, self._give_up_pending = None, False
-            self._home_since = None
             self.still.reset()
             self._backoff = None
             log.info("exploration %d starts at (%.2f, %.2f) m", self.run_number, pose[0], pose[1])
@@ -353,8 +341,7 @@ class Pilot:
             self._hold(state, now_s, "waiting for the map to cover the robot")
             return False
         if goal.phase is Phase.DONE:
-            if not self._waiting_at_home(state, now_s):
-                self._finish(state, now_s)
+            self._finish(state, now_s)
             return False
         if goal.phase is Phase.RETURNING and state.run_state is RunState.EXPLORING:
             state.run_state = RunState.RETURNING
@@ -531,29 +518,7 @@ class Pilot:
         self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
         state.planner_status = why
 
-    def _waiting_at_home(self, state: SharedState, now_s: float) -> bool:
-        """Back at the start: stand still, motors stopped, while SLAM makes the final map (True: wait on).
-
-        SLAM takes the revolutions at rest there (``state.home_at_rest``) and says when the final
-        map is merged (``state.slam.final_merged``); at most ``HOME_WAIT_REVOLUTIONS`` revolutions.
-        """
-        revolutions = state.sensors.lidar_revolutions
-        if self._home_since is None:
-            self._home_since = revolutions
-            self.local.clear()
-        if state.slam.final_merged:
-            return False
-        if revolutions - self._home_since >= HOME_WAIT_REVOLUTIONS:
-            log.warning("back at the start: SLAM's final map is not merged after %d revolutions; done without it",
-                        revolutions - self._home_since)
-            return False
-        self._hold(state, now_s, "back at the start: SLAM measures the start at rest for the final map")
-        state.home_at_rest = True
-        return True
-
     def _finish(self, state: SharedState, now_s: float) -> None:
-        state.home_at_rest = False
-        self._home_since = None
         self.local.clear()
         self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
         state.run_state = RunState.DONE

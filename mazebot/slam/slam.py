@@ -79,22 +79,10 @@ from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_
 from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
-from mazebot.slam.home_rest import (
-    HOME_MIN_FOLLOW,
-    HOME_RELINEARIZATIONS,
-    HOME_REST_REVOLUTIONS,
-    HOME_TURN_TOLERANCE_RAD,
-    MIN_AGREEING,
-    HomeRest,
-    HomeRevolution,
-    HomeTurn,
-    home_turn_left,
-    measure_home_turn,
-)
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
-from mazebot.slam.loop_closure import Candidate, Verdict, chain_uncertainty, find_candidates, verify
+from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
 from mazebot.slam.match_residuals import MatchResiduals
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 from mazebot.slam.overlap import ObservedArea
@@ -102,7 +90,7 @@ from mazebot.slam.params import GridParams as GridParams  # re-exported: the fa�
 from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan, voxel_downsample
-from mazebot.slam.robust_closures import RobustResult, optimize_dcs
+from mazebot.slam.robust_closures import optimize_dcs
 from mazebot.slam.start_anchor import start_anchor_rad
 from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
@@ -151,9 +139,6 @@ class LoopClosureResult:
     # the wall grid's direction in keyframe 0's frame and its std, measured by each closure to keyframe 0's
     # revolutions at rest so far (this job's and before): the anchor (LoopClosureJob.start_turns)
     start_turns: tuple[tuple[float, float], ...] = ()
-    # what the revolutions at rest at home said about the map's turn about the start (the final job; None:
-    # none were taken, or they did not verify)
-    home_turn: HomeTurn | None = None
 
 
 @dataclass
@@ -194,9 +179,6 @@ class LoopClosureJob:
     # tentative ones waiting for support (mazebot.slam.closure_set)
     set_members: tuple[Verdict, ...] = ()
     set_waiting: tuple[Verdict, ...] = ()
-    # the robot's revolutions at rest at home at the end of the exploration (the final job), matched against
-    # the rest surface: the map's turn about the start at their own std in the anchor (mazebot.slam.home_rest)
-    home_rest: HomeRest | None = None
 
     def __call__(self) -> LoopClosureResult:
         """The job as a callable, so any executor runs it (``loop.run_in_executor(executor, job)``)."""
@@ -255,7 +237,6 @@ class LoopClosureJob:
             return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns)
         # this job's own, not kept in the job: a job computes the same whether it ran before or not
         start_turns = self.start_turns + self._turns_at_rest(accepted)
-        home_turn = self._home_turn()
         # optimize the graph with the new constraints (first keyframe fixed), loop closures robust
         count = self.poses.shape[0]
         ei, ej, z, omega = self.edges
@@ -267,18 +248,26 @@ class LoopClosureJob:
                 np.array([v.measurement for v in accepted]),
                 np.array([v.information for v in accepted]),
             ))
-        if self.home_rest is not None and (home_turn is None or self.wall_reference_rad is None):
-            # revolutions at home that do not verify: the map stays as it is
-            return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns,
-                                     home_turn=home_turn)
-        robust, gridded = self._optimize(parts, self._anchor(start_turns, home_turn))
-        if home_turn is not None and gridded:
-            robust, home_turn = self._held_to_home(parts, start_turns, home_turn, robust)
-            if not home_turn.used:  # not the map's turn: the map stays as it is
-                return LoopClosureResult(verdicts, set_accepted=tuple(set_accepted), start_turns=self.start_turns,
-                                         home_turn=home_turn)
+        vertices = self.poses
+        reused = self._fit_to_reuse()
+        priors, fit = wall_priors(
+            self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, self._anchor(start_turns),
+            known_fit=None if reused is None else reused[0],
+        )
+        if fit is not None:
+            self.lattice_fit = fit
+            self.lattice_fit_keyframes = len(self.keyframes) if reused is None else reused[1]
+        if priors is not None:  # vertex ``count``: the wall grid's direction, estimated with the poses
+            vertices = np.vstack([self.poses, priors.vertex])
+            parts.append((priors.i, priors.j, priors.z, priors.information))
+        edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
+        ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
+        closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k
+        robust = optimize_dcs(
+            vertices, (ai, aj, edges[2], edges[3]), closure, p.loop.dcs_phi, max_iterations=p.optimize_iterations
+        )
         optimization = robust.optimization
-        wall_reference = wrap_quarter(float(robust.vertices[count, 2])) if gridded else None
+        wall_reference = None if priors is None else wrap_quarter(float(robust.vertices[count, 2]))
         poses = robust.vertices[:count].copy()
         # rebuild the grid from the optimized keyframes if any moved noticeably
         delta = relative_pose(self.integrated_poses, poses)
@@ -302,7 +291,6 @@ class LoopClosureJob:
             downweighted=int(np.sum(robust.weights < 0.1)),
             set_accepted=tuple(set_accepted),
             start_turns=start_turns,
-            home_turn=home_turn,
         )
 
     def _turns_at_rest(self, accepted: list[Verdict]) -> tuple[tuple[float, float], ...]:
@@ -327,85 +315,6 @@ class LoopClosureJob:
             direction = wrap_quarter(self.wall_reference_rad - float(self.poses[0, 2]) + correction)
             turns.append((direction, 1.0 / math.sqrt(float(v.information[2, 2]))))
         return tuple(turns)
-
-    def _optimize(
-        self, parts: list[tuple[np.ndarray, ...]], anchor: tuple[float, float] | None
-    ) -> tuple[RobustResult, bool]:
-        """The graph of ``parts`` (the chain, the accepted closures) with the wall priors anchored at ``anchor``,
-        optimized (closures robust); and whether the wall grid's vertex is in it (the last vertex)."""
-        p = self.params
-        count = self.poses.shape[0]
-        vertices = self.poses
-        reused = self._fit_to_reuse()
-        priors, fit = wall_priors(
-            self.keyframes, self.poses, self.wall_reference_rad, p, p.lattice, anchor,
-            known_fit=None if reused is None else reused[0],
-        )
-        if fit is not None:
-            self.lattice_fit = fit
-            self.lattice_fit_keyframes = len(self.keyframes) if reused is None else reused[1]
-        if priors is not None:  # vertex ``count``: the wall grid's direction, estimated with the poses
-            vertices = np.vstack([self.poses, priors.vertex])
-            parts = [*parts, (priors.i, priors.j, priors.z, priors.information)]
-        edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
-        ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
-        closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k
-        robust = optimize_dcs(
-            vertices, (ai, aj, edges[2], edges[3]), closure, p.loop.dcs_phi, max_iterations=p.optimize_iterations
-        )
-        return robust, priors is not None
-
-    def _held_to_home(
-        self, parts: list[tuple[np.ndarray, ...]], start_turns: tuple[tuple[float, float], ...], turn: HomeTurn,
-        robust: RobustResult,
-    ) -> tuple[RobustResult, HomeTurn]:
-        """The optimization that gives the robot at home the heading its revolutions there measured, if the grid
-        turns it (else the turn is marked unused, and the caller leaves the map as it is).
-
-        The turn entered the anchor as the snapshot's grid turned by it. Whether the robot's heading at
-        home follows a turn of the grid depends on the map: where closures tie the keyframes around the start
-        to keyframe 0, the start's region holds its heading and only the map beyond it turns with the grid;
-        then the robot at home does not see the map's turn (the bench's hand-built 8×8 seeds 6 and 8: it
-        saw -0.11° and -0.32° of maps turned -0.64° and +0.66°), and its heading cannot say the grid's. One
-        step of the turn measured again against the optimized map (:func:`home_turn_left`) tells how far the
-        robot follows (``follows``); from ``HOME_MIN_FOLLOW`` on, the turn is re-expressed (secant steps on
-        that slope) until the optimized map meets it within ``HOME_TURN_TOLERANCE_RAD``. The first step is
-        taken whatever the map gave the robot: a heading met at once says nothing about how it follows.
-        """
-        assert self.home_rest is not None
-        count = self.poses.shape[0]
-        left = home_turn_left(self.poses, robust.vertices[:count], self.home_rest.pose, turn)
-        follows: float | None = None
-        for _ in range(1 + HOME_RELINEARIZATIONS):
-            if follows is not None and abs(left) <= HOME_TURN_TOLERANCE_RAD:
-                break
-            if follows is None:  # the first step also tells how far the robot follows: at least a std long
-                step = left if abs(left) >= turn.std_rad else math.copysign(turn.std_rad, left)
-            else:
-                step = left / follows
-            tried = replace(turn, applied_rad=turn.applied_rad + step)
-            again, _ = self._optimize(parts, self._anchor(start_turns, tried))
-            left_again = home_turn_left(self.poses, again.vertices[:count], self.home_rest.pose, tried)
-            if follows is None:
-                follows = (left - left_again) / step
-                if follows < HOME_MIN_FOLLOW:
-                    return robust, replace(turn, follows=follows, used=False)
-            turn, robust, left = tried, again, left_again
-        return robust, replace(turn, follows=follows, used=True)
-
-    def _home_turn(self) -> HomeTurn | None:
-        """The map's turn about the start from the revolutions at rest at home (None: none, or they did not verify).
-
-        Matched against keyframe 0's rest surface (:mod:`mazebot.slam.home_rest`), from the
-        pose the snapshot gives the robot in keyframe 0's frame. Only with a wall grid: the turn
-        enters the pose graph through the grid's anchor (:meth:`_anchor`).
-        """
-        if self.home_rest is None or self.rest_surface is None or self.wall_reference_rad is None:
-            return None
-        first = self.keyframes[0]
-        observed = ObservedArea.from_keyframes([np.zeros(3)], [first.sensor_xy], [first.ray_ends])
-        return measure_home_turn(self._rest_target(None), observed, self.home_rest, self.poses[0], self.params.icp,
-                                 self.params.loop)
 
     def _rest_target(self, clip: tuple[np.ndarray, float] | None) -> Target | None:
         """Keyframe 0's revolutions at rest as a submap (its frame), within ``clip`` of the new keyframe's lidar.
@@ -441,12 +350,9 @@ class LoopClosureJob:
         return judged, decision.accepted
 
 
-    def _anchor(
-        self, start_turns: tuple[tuple[float, float], ...], home_turn: HomeTurn | None = None
-    ) -> tuple[float, float] | None:
+    def _anchor(self, start_turns: tuple[tuple[float, float], ...]) -> tuple[float, float] | None:
         """Keyframe 0's wall direction and std for the wall priors: as given, or judged from every board,
-        together with what the closures to the start at rest measured (``start_turns``) and what the
-        revolutions at rest at home measured (``home_turn``).
+        together with what the closures to the start at rest measured (``start_turns``).
 
         Judged from every board, it is trusted as far as that fit says (never more than the
         anchor of exact walls): tied at ``wall_anchor_std_rad`` a direction 0.5° off turned the
@@ -455,18 +361,12 @@ class LoopClosureJob:
         match's information: the new keyframe's scan is taken moving and de-skewed by odometry (in
         the bench's exact 6×6 scripted seed 3, turning at 0.93 rad/s, its heading stood 0.54° off the
         truth where ICP said 0.14°, and taken at that std it turned the whole map by 0.5°).
-        The revolutions at home are taken at rest, as keyframe 0's were: they count at their own std.
-        A correction ``ε`` of the robot's heading in keyframe 0's frame says the map, grid and all,
-        stands turned by ``-ε`` about the start (as for a closure, :meth:`_turns_at_rest`).
         """
         anchor = self.anchor_wall
         if self.start_faces is not None and self.wall_reference_rad is not None:
             judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
             anchor = None if judged is None else (judged[0], max(judged[1], self.params.wall_anchor_std_rad))
         turns = [(direction, max(std, self.params.wall_prior_std_rad)) for direction, std in start_turns]
-        if home_turn is not None and self.wall_reference_rad is not None:
-            direction = wrap_quarter(self.wall_reference_rad - float(self.poses[0, 2]) + home_turn.applied_rad)
-            turns.append((direction, home_turn.std_rad))
         if not turns:
             return anchor
         return _mean_turn(turns + ([] if anchor is None else [anchor]), self.params.wall_anchor_std_rad)
@@ -674,9 +574,6 @@ class Slam:
         self._rest_surface: tuple[np.ndarray, np.ndarray] | None = None  # ... and the surfaces pooled (voxel filter)
         self._start_turns: tuple[tuple[float, float], ...] = ()  # the anchor the closures to them measured
         self._anchor_closed = False  # the robot moved: keyframe 0 keeps what it has measured
-        # the robot's revolutions at rest at home at the end of an exploration
-        self._home_revolutions: list[HomeRevolution] = []
-        self.home_turn: HomeTurn | None = None  # what the last final job's revolutions at home said
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
         self.matches_seen_rescued = 0  # sequential matches counted by their inliers where the submap saw
@@ -992,14 +889,6 @@ class Slam:
             self._set_waiting = [v for v in self._set_waiting if v.candidate.new >= oldest]
         self._note_lattice(result.lattice_fit, result.lattice_fit_keyframes)
         self._start_turns = result.start_turns or self._start_turns
-        if result.home_turn is not None:
-            self.home_turn = result.home_turn
-            turn = result.home_turn
-            log.info("at home at rest, %d of %d revolutions matched the start's: the robot's heading %.3f deg "
-                     "(std %.3f deg) off, %.1f mm; %s", turn.agreeing, turn.revolutions,
-                     -math.degrees(turn.correction_rad), math.degrees(turn.std_rad), 1e3 * turn.shift_m,
-                     "the map turned back about the start" if turn.used else
-                     f"not the map's turn (the robot follows {turn.follows:.2f} of the grid's): the map left as it was")
         if result.poses is None:
             return False
         self.closures_downweighted = result.downweighted
@@ -1584,43 +1473,6 @@ class Slam:
         "The local submap: the recent keyframes, and older ones close to the newest (KISS-ICP's local map).",
     )
 
-    @property
-    def home_revolutions(self) -> int:
-        """Revolutions at rest at home kept for the final job (:meth:`observe_home_rest`)."""
-        return len(self._home_revolutions)
-
-    @property
-    def home_rest_ready(self) -> bool:
-        """Enough revolutions at rest at home for the final job (``HOME_REST_REVOLUTIONS``)."""
-        return len(self._home_revolutions) >= HOME_REST_REVOLUTIONS
-
-    def observe_home_rest(self, scan: Scan, odometry: OdometrySource) -> None:
-        """One revolution the robot stood still through, back at its start at the end of an exploration.
-
-        Kept (filtered; at rest the de-skew moves nothing) with the pose :meth:`update` gave it
-        (call it after the update) for the final job, which matches it against keyframe 0's
-        revolutions at rest (:mod:`mazebot.slam.home_rest`). Only the newest ``HOME_REST_REVOLUTIONS``
-        are kept.
-        """
-        prepared, _ = self.prepare(scan, odometry)
-        points = np.asarray(prepared.points_match, dtype=np.float64)
-        sensor_xy = np.array(prepared.sensor_xy, dtype=np.float64)
-        self._home_revolutions.append(HomeRevolution(points, sensor_xy, self.pose))
-        del self._home_revolutions[:-HOME_REST_REVOLUTIONS]
-
-    def _home_rest(self) -> HomeRest | None:
-        """The revolutions at home for the final job (at least ``MIN_AGREEING``), with their uncertainty."""
-        revolutions, self._home_revolutions = self._home_revolutions, []
-        if len(revolutions) < MIN_AGREEING or len(self.keyframes) < 2:
-            return None
-        p = self.params.loop
-        newest = len(self.keyframes) - 1
-        var_xy, var_th = chain_uncertainty(
-            self.keyframe_poses()[:, :2], np.asarray(self._edge_var_xy), np.asarray(self._edge_var_theta), newest
-        )
-        sxy, sth = max(p.min_std_m**2, float(var_xy[0])), max(p.min_std_rad**2, float(var_th[0]))
-        return HomeRest(tuple(revolutions), np.diag([sxy, sxy, sth]))
-
     def final_job(self) -> LoopClosureJob | None:
         """The whole graph optimized once more and the grid rebuilt from it: for the end of an exploration.
 
@@ -1641,23 +1493,6 @@ class Slam:
         if self.taps.on_final_job:
             notify(self.taps.on_final_job, self, "slam.on_final_job")
         return replace(job, rebuild_anyway=True)
-
-    def home_job(self) -> LoopClosureJob | None:
-        """The final job again with the revolutions at rest at home (:meth:`observe_home_rest`), which it uses up.
-
-        Its result turns the map about the start where they measured the map's turn
-        (:mod:`mazebot.slam.home_rest`); where they did not (they do not verify, or the robot's
-        heading at home does not follow the grid) it leaves the map and the keyframes as they are.
-        None while another job runs, or with too few revolutions at home or keyframes.
-        """
-        if self.job_running:
-            return None
-        home = self._home_rest()
-        if home is None:
-            return None
-        job = self._make_job([], None, optimize_anyway=True)
-        self.job_running = True
-        return replace(job, rebuild_anyway=True, home_rest=home)
 
     def _make_job(
         self, candidates: list[Candidate], poses: np.ndarray | None, *, optimize_anyway: bool

@@ -9,11 +9,6 @@ tens to hundreds of milliseconds), it runs in ``executor`` (by default a worker 
 with :meth:`Slam.apply` as soon as it is done. When the exploration ends (``returning``
 or ``done``) one more job optimizes the whole graph and rebuilds the map from it
 (:meth:`Slam.final_job`): the map the user keeps has the optimized keyframes' accuracy.
-Once the robot is back at its start and at rest (``state.home_at_rest``, the planner's word),
-its revolutions there (``HOME_REST_REVOLUTIONS`` of them, :meth:`Slam.observe_home_rest`)
-go to one more job (:meth:`Slam.home_job`), which turns the map about the start where they
-measured its turn (:mod:`mazebot.slam.home_rest`); once that is merged
-``state.slam.final_merged`` says so, and the planner says ``done``.
 
 Written to the shared state (SLAM is their one writer): ``map`` (the occupancy grid; a
 new object with a new generation after a rebuild), ``map_from_odom`` (the odometry task
@@ -232,8 +227,6 @@ class SlamTask:
         self.job_noted = False  # the running job was said to run long
         self.search: asyncio.Future[SearchResult] | None = None
         self.final_done = False  # this exploration's final rebuild has been asked for
-        self.home_done = False  # this exploration's job with the revolutions at rest at home has been asked for
-        self.home_running = False  # ... and is the job in the executor
 
     async def run(self) -> None:
         """Wait for the next event and handle it, for ever; what is pending is cancelled on the way out."""
@@ -329,7 +322,6 @@ class SlamTask:
         """A loop-closure job's result merged into SLAM (in stages, as the updates) and published."""
         result = job.result()  # a crashed job is a SLAM fault, not silence
         self.job = None
-        home, self.home_running = self.home_running, False
         stats = self.state.slam
         stats.job_started_wall_s = None
         wall_s, cpu_s = time.perf_counter(), [0.0]
@@ -338,11 +330,6 @@ class SlamTask:
         stats.merge_cpu_s += cpu_s[0]
         stats.merges += 1
         _publish_closure(self.state, self.slam, result, rebuilt)
-        if home:
-            turn = result.home_turn
-            stats.home_turn_deg = None if turn is None else -math.degrees(turn.correction_rad)
-            stats.home_turn_used = turn is not None and turn.used
-            stats.final_merged = True
         del result, job
         give_back_free_memory()  # the old grid and submap, the job's result: all freed at this one moment
 
@@ -431,8 +418,6 @@ class SlamTask:
             state.note("slam", "SLAM processes scans again", self.clock.now_s())
         _publish_update(state, slam, update, scan.end_time_s, update.matched or self.trust.held_back == held_back)
         state.slam.held_back = self.trust.held_back
-        if state.home_at_rest and at_rest and not self.home_done:
-            slam.observe_home_rest(scan, history)  # the start seen again at rest, for the final job
         taken = self.rest.observe(at_rest, disputed[0])
         if taken is not None:
             _take_rest_pose(state, slam, update, taken, self.clock)
@@ -453,29 +438,16 @@ class SlamTask:
         )
 
     def on_run_state(self) -> None:
-        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job); once
-        the robot is home at rest with its revolutions there taken, the job with them (Slam.home_job)."""
-        state = self.state
-        run_state = state.run_state
+        """The maze is explored: once, the map rebuilt from the optimized keyframes (Slam.final_job)."""
+        run_state = self.state.run_state
         if run_state is RunState.EXPLORING:
-            self.final_done = self.home_done = False
-            state.slam.final_merged = False
+            self.final_done = False
         elif run_state in (RunState.RETURNING, RunState.DONE) and not self.final_done and self.job is None:
             final = self.slam.final_job()
             if final is not None:
                 self.final_done = True
                 log.info("exploration over: optimizing the pose graph and rebuilding the map once more")
                 self._start_job(final)
-        elif (run_state is RunState.RETURNING and state.home_at_rest and self.final_done and not self.home_done
-              and self.job is None and self.slam.home_rest_ready):
-            home = self.slam.home_job()
-            self.home_done = True
-            if home is None:  # too few keyframes: nothing to turn
-                state.slam.final_merged = True
-                return
-            self.home_running = True
-            log.info("back at the start at rest: the map's turn about the start measured with its revolutions there")
-            self._start_job(home)
 
     async def _cancel_pending(self) -> None:
         if self.job is not None:

@@ -232,7 +232,6 @@ def run_daemon_exploration(
     state.run_state = RunState.EXPLORING
     state.started_at_s = 0.0
     state.slam.anchored = True  # the stand-in's map needs no anchoring at rest
-    state.slam.final_merged = True  # ... and is final as it is: the planner need not wait for it at home
     # what the pilot reads of the map is three_state(), origin_m and resolution_m: the grid's face
     state.map = planner_map.grid if isinstance(planner_map, LidarMap) else truth  # type: ignore[assignment]
     still = StillClock()

@@ -64,27 +64,6 @@ def rest_surface(world, cast_scan, pose: np.ndarray) -> Faces:
     return wall_faces(points, normals, direction)
 
 
-#: Where the robot stops back at the start: a little off, facing elsewhere.
-HOME_AGAIN = np.array([0.02, -0.03, 1.1])
-
-
-def home_again(world, world_poses: np.ndarray, truth: np.ndarray, cast_scan):
-    """The scene with the robot home again (``HOME_AGAIN`` off the start) as its last keyframe: the keyframes,
-    their true map poses, and keyframe 0's ``REST_REVOLUTIONS`` revolutions at rest pooled (points, normals;
-    its frame), as SLAM keeps them."""
-    from mazebot.slam.preprocess import voxel_downsample
-
-    back = world_poses[0] + HOME_AGAIN
-    world_poses = np.vstack((world_poses, back))
-    truth = np.vstack((truth, back - np.array([*world_poses[0, :2], 0.0])))
-    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
-    revolutions = [keyframe_at(world, cast_scan, 0, world_poses[0], seed=100 + k) for k in range(REST_REVOLUTIONS)]
-    points = np.concatenate([kf.surface()[0] for kf in revolutions])
-    normals = np.concatenate([kf.surface()[1] for kf in revolutions])
-    first = voxel_downsample(points, 0.01)
-    return keyframes, truth, (points[first], normals[first])
-
-
 def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand_scene, cast_scan) -> None:
     world, world_poses, truth = hand_scene
     keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
@@ -211,9 +190,17 @@ def test_a_closure_home_to_the_start_at_rest_measures_the_map_s_turn_about_the_s
     # anchor, it pulls the map's grid towards the maze's.
     from mazebot.geometry import relative_pose
     from mazebot.slam.loop_closure import Candidate
+    from mazebot.slam.preprocess import voxel_downsample
 
     world, world_poses, truth = hand_scene
-    keyframes, truth, (points, normals) = home_again(world, world_poses, truth, cast_scan)
+    back = world_poses[0] + np.array([0.02, -0.03, 1.1])  # the robot home again, facing elsewhere
+    world_poses = np.vstack((world_poses, back))
+    truth = np.vstack((truth, back - np.array([*world_poses[0, :2], 0.0])))
+    keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(world_poses)]
+    revolutions = [keyframe_at(world, cast_scan, 0, world_poses[0], seed=100 + k) for k in range(REST_REVOLUTIONS)]
+    points = np.concatenate([kf.surface()[0] for kf in revolutions])
+    normals = np.concatenate([kf.surface()[1] for kf in revolutions])
+    first = voxel_downsample(points, 0.01)
     rest = rest_surface(world, cast_scan, world_poses[0])
     own = float(np.average(quarter_turns(rest.normal_rad - math.radians(MAZE_DEG)), weights=rest.count))
     assert abs(math.degrees(own)) > 0.2  # the start's boards: their mean is off the maze's grid
@@ -232,7 +219,7 @@ def test_a_closure_home_to_the_start_at_rest_measures_the_map_s_turn_about_the_s
             candidates=[closure] if home else [],
             wall_reference_rad=math.radians(MAZE_DEG + turn_deg),  # the map's own grid: turned with it
             anchor_wall=(math.radians(MAZE_DEG) + own, math.radians(0.3)),
-            rest_surface=(points, normals),
+            rest_surface=(points[first], normals[first]),
         )
         result = job.run()
         assert result.wall_reference_rad is not None

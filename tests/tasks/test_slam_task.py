@@ -97,19 +97,6 @@ class FakeSlam:
     params: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(prepare=PrepareParams()))
     anchored: bool = True
     final_jobs: int = 0
-    home_revolutions: int = 0  # revolutions at rest at home handed over (observe_home_rest)
-    home_jobs: int = 0
-
-    def observe_home_rest(self, scan: Scan, odometry: OdometryHistory) -> None:
-        self.home_revolutions += 1
-
-    def home_job(self):  # the job with the revolutions at home: the same result as the others
-        self.home_jobs += 1
-        return self.run
-
-    @property
-    def home_rest_ready(self) -> bool:
-        return self.home_revolutions >= 2
 
     def final_job(self):  # the end-of-exploration job: the same result as the others
         self.final_jobs += 1
@@ -206,27 +193,6 @@ async def test_when_the_exploration_ends_the_map_is_rebuilt_once_from_the_optimi
         await _until(lambda: fake.scans == 5)
     assert fake.final_jobs == 1  # once, not once per scan nor again at done
     assert state.slam.map_rebuilds == 2 and state.map is fake.grid
-    assert fake.home_jobs == 0 and fake.home_revolutions == 0  # a run that ends done without the rest at home
-
-
-async def test_back_at_the_start_at_rest_its_revolutions_go_to_one_more_job_before_done() -> None:
-    fake = FakeSlam()
-    async with _slam_task_on(fake) as state:
-        state.run_state = RunState.RETURNING
-        for k in range(3):
-            await state.scans.put(_static_scan(1.0 + 0.2 * k, np.zeros(3)))
-        await _until(lambda: fake.scans == 3 and len(fake.applied_on) == 2)  # the final job, on the way home
-        assert fake.final_jobs == 1 and fake.home_revolutions == fake.home_jobs == 0
-        assert not state.slam.final_merged
-        state.home_at_rest = True  # the planner: back at the start, motors stopped
-        for k in range(2):
-            await state.scans.put(_static_scan(2.0 + 0.2 * k, np.zeros(3)))
-        await _until(lambda: state.slam.final_merged)  # merged: the planner may say done
-        assert fake.home_revolutions == 2 and fake.home_jobs == 1 and len(fake.applied_on) == 3
-        state.run_state = RunState.DONE
-        await state.scans.put(_static_scan(3.0, np.zeros(3)))
-        await _until(lambda: fake.scans == 6)
-    assert fake.final_jobs == 1 and fake.home_jobs == 1 and fake.home_revolutions == 2  # once each
 
 
 async def test_lidar_task_drops_the_oldest_scan_when_slam_is_behind(caplog) -> None:

@@ -498,11 +498,11 @@ def test_a_laser_log_learns_its_odometrys_distance_scale_from_the_matches_that_f
 
 def test_a_laser_log_with_noisy_odometry_applies_its_distance_scale_while_it_drives() -> None:
     """Wheels 3 % too large under white odometry noise of 0.05,0.05: over the ACES log's first 100 scans (a
-    third of what fixes the direction of travel in the whole log) the scale's own scatter is still a third of
-    it, and a test against zero at a level spent over the run's looks would apply nothing yet (Wald 12 against a
-    threshold of 27). Its posterior mean is applied as it is learnt: within a percent of ``1/1.03 − 1``, and
-    the corridors driven so far take their length from it (0.08 m RMS against the corrected poses; 0.28 m with
-    nothing applied)."""
+    quarter of what fixes the direction of travel in the whole log) the scale's own scatter is still over a
+    quarter of it, and a test against zero at a level spent over the run's looks applies nothing yet (Wald 12
+    against a threshold of 27 at the 70th observation). Its posterior mean is applied as it is learnt: within a
+    percent of ``1/1.03 − 1``, and the corridors driven so far take their length from it (0.08 m RMS against the
+    corrected poses; 0.28 m with nothing applied)."""
     lasers = read_carmen(carmen_log("aces-corrected.log.gz")).lasers[:100]
     reference = np.array([r.pose for r in lasers])
     noisy = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))

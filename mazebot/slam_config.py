@@ -377,7 +377,8 @@ class FilterSection:
         "noise is at most this (0.001 on laser logs; 0: apply what was learnt)"))] = 0.0
     calibrate_distance: Annotated[bool, Field(description=(
         "learn the odometry's distance scale (the wheels' mean diameter) from the scan matches that fix the "
-        "direction of travel, with the heading calibration's memory, limit and test"))] = False
+        "direction of travel, with the heading calibration's memory and limit, applied as its posterior mean "
+        "under a prior of a couple of percent on the wheels"))] = False
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

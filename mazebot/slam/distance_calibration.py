@@ -7,21 +7,24 @@ fixes the pose along the direction of travel the error is corrected scan by scan
 corridor, where the match leaves that direction to the prediction, the map's steps take
 the odometry's length, and a corridor of 30 m comes out 0.6 m long at 2 %.
 
-The scale is learnt only from matches that fix the direction of travel: the increment of
-the corrected pose between two such scans, along the robot's heading (``Δx_slam``),
-against the raw odometry's ``dx`` gives ``Δx_slam − dx = m·dx``. The estimate is the
-heading calibration's gated one (:class:`mazebot.slam.ekf.HeadingCalibration`) with a
-single parameter: instrumental variables with the matched step ``Δx_slam`` as the
-instrument for ``dx`` (whose own noise would lean least squares towards zero), exponential
-forgetting, a Wald test against zero with the heteroscedasticity-robust variance (White
-1980, HC1) repeated after every observation at levels spent over the run (alpha
-spending), and the estimate shrunk by ``max(0, 1 − c_n / W)``: white odometry noise gets
-nothing applied.
+The scale is learnt only from matches that fix the direction of travel: the step between
+two such matches' poses along the robot's heading (``Δx_slam``), against the raw odometry's
+``dx``, gives ``Δx_slam − dx = m·dx``. The matches' own poses, not the filter's, which leans
+on the prediction and so on the scale already applied (a scale not yet applied would be
+learnt short of itself). The estimate: instrumental variables with the matched step
+``Δx_slam`` as the instrument for ``dx`` (whose own noise would lean least squares towards
+zero), exponential forgetting, and the heteroscedasticity-robust variance ``v`` (White 1980,
+HC1). What is applied is the estimate's posterior mean under a prior ``m ~ N(0, τ²)`` on how
+far a robot's wheels are off (:data:`WHEEL_SCALE_PRIOR_STD`): ``m·τ²/(τ² + v)``, nothing
+while one or two steps say little, nearly all once the steps driven pin the scale down, with
+no test to pass first (Gelman et al., *Bayesian Data Analysis*, 3rd ed., 2013, §2.5: the
+normal mean's posterior under a normal prior). White odometry noise gets its estimate's
+scatter, shrunk the same way.
 
 Example::
 
-    cal = DistanceCalibration(false_alarm=0.001)
-    cal.observe(raw_increment, slam_increment)   # between two matches that fix the direction of travel
+    cal = DistanceCalibration()
+    cal.observe(raw_increment, matched_increment)   # between two matches that fix the direction of travel
     cal.correct(increment)                         # what the filter predicts with
 """
 
@@ -31,11 +34,14 @@ import math
 
 import numpy as np
 
-from mazebot.slam.ekf import spent_chi2
-
 #: a match fixes the direction of travel unless its weak direction's translation lies within 60° of it
 #: (the cosine below): a corridor driven along, not one crossed
 WEAK_ALONG_TRAVEL_COS = 0.5
+
+#: the prior's standard deviation of the wheels' mean scale: a robot's wheels are a couple of percent off their
+#: nominal diameter (tyres compressed under the robot's weight, worn, or a diameter taken from a datasheet), so an
+#: estimate whose own standard deviation is a fifth of this is applied at 96 %, one as uncertain as this at half
+WHEEL_SCALE_PRIOR_STD = 0.02
 
 
 def fixes_travel(degenerate: bool, weak_direction: np.ndarray | None, heading_rad: float) -> bool:
@@ -52,20 +58,20 @@ def fixes_travel(degenerate: bool, weak_direction: np.ndarray | None, heading_ra
 
 
 class DistanceCalibration:
-    """The odometry's distance scale ``m``, learnt from scan matches, applied where they show it (module docstring)."""
+    """The odometry's distance scale ``m``, learnt from scan matches, applied as far as they pin it down (module
+    docstring)."""
 
     def __init__(
         self,
         memory_scans: float = 1000.0,
-        prior_std: float = 0.05,
+        prior_std: float = WHEEL_SCALE_PRIOR_STD,
         noise_std_m: float = 0.01,
         limit: float = 0.1,
-        false_alarm: float = 0.0,
     ) -> None:
         self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
         self.limit = float(limit)
-        self.false_alarm = float(false_alarm)
-        self.estimate = 0.0  # m applied: the learnt one, shrunk by the significance test
+        self.prior_var = float(prior_std) ** 2
+        self.estimate = 0.0  # m applied: the learnt one's posterior mean
         self.learnt = 0.0  # m as estimated
         self._cross = (float(noise_std_m) / float(prior_std)) ** 2  # Σ λⁿ⁻ⁱ z φ with the prior's share
         self._zy = 0.0
@@ -86,8 +92,8 @@ class DistanceCalibration:
         return dx * factor, dy * factor
 
     def observe(self, raw_increment: np.ndarray, true_increment: np.ndarray) -> None:
-        """One step: the raw odometry increment and the increment SLAM found for the same interval, both between
-        matches that fix the direction of travel."""
+        """One step: the raw odometry increment and the increment between the matches that fixed the direction of
+        travel at its two ends."""
         phi = float(raw_increment[0])
         if phi == 0.0:
             return
@@ -101,18 +107,17 @@ class DistanceCalibration:
         self._meat = lam**2 * self._meat + residual**2 * z**2
         self._weight = lam * self._weight + 1.0
         self.learnt = float(np.clip(self._zy / self._cross, -self.limit, self.limit))
-        w, c = self.wald(), self.threshold()
-        self.estimate = self.learnt * (1.0 - c / w) if w > c else 0.0
+        var = self.variance()
+        self.estimate = self.learnt * self.prior_var / (self.prior_var + var) if math.isfinite(var) else 0.0
         self.applied_observations += int(self.estimate != 0.0)
 
-    def wald(self) -> float:
-        """The learnt scale's Wald statistic against zero (robust variance with HC1's correction; 0 before there
-        are two observations)."""
+    def variance(self) -> float:
+        """The learnt scale's robust variance (HC1's correction; infinite before there are two observations)."""
         if self._weight <= 1.0:
-            return 0.0
-        var = self._meat / self._cross**2 * self._weight / (self._weight - 1.0)
-        return self.learnt**2 / var if var > 0 else 0.0
+            return math.inf
+        return self._meat / self._cross**2 * self._weight / (self._weight - 1.0)
 
-    def threshold(self) -> float:
-        """The Wald statistic the current observation's test asks for (0: no test)."""
-        return spent_chi2(self.false_alarm, self.observations) if self.false_alarm > 0 else 0.0
+    def wald(self) -> float:
+        """The learnt scale's Wald statistic against zero (0 before there are two observations)."""
+        var = self.variance()
+        return self.learnt**2 / var if 0.0 < var < math.inf else 0.0

@@ -518,9 +518,7 @@ class Slam:
         self.calibration = HeadingCalibration(
             p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
         )
-        self.distance_calibration = DistanceCalibration(
-            p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
-        )
+        self.distance_calibration = DistanceCalibration(p.calibration_memory_scans, limit=p.calibration_limit)
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()
         self.graph = PoseGraph()
@@ -763,7 +761,7 @@ class Slam:
             self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
         self._last_matched_pose = pose if matched else None
         if p.calibrate_distance:
-            self._observe_distance(match if matched and paint else None, raw_increment, pose)
+            self._observe_distance(match if matched and paint else None, raw_increment)
         if self.odometry_noise is not None:
             self._learn_odometry_noise(match if matched and paint else None, predicted_increment)
 
@@ -1372,14 +1370,14 @@ class Slam:
             return refined
         return match
 
-    def _observe_distance(self, match: IcpResult | None, raw_increment: np.ndarray | None, pose: np.ndarray) -> None:
+    def _observe_distance(self, match: IcpResult | None, raw_increment: np.ndarray | None) -> None:
         """One sample of the odometry's distance scale if this scan's match and the previous scan's fixed the
-        pose along the direction of travel (:mod:`mazebot.slam.distance_calibration`): between two such scans the
-        corrected pose's step along the heading is the scan matches', not the odometry's."""
-        fixed = match is not None and fixes_travel(match.degenerate, match.weak_direction, float(pose[2]))
-        if fixed and raw_increment is not None and self._last_travel_fixed_pose is not None:
-            self.distance_calibration.observe(raw_increment, relative_pose(self._last_travel_fixed_pose, pose))
-        self._last_travel_fixed_pose = pose if fixed else None
+        pose along the direction of travel (:mod:`mazebot.slam.distance_calibration`): the step between the two
+        matches' poses, which the prediction (scaled by what is already applied) does not lean on."""
+        fixed = match is not None and fixes_travel(match.degenerate, match.weak_direction, float(match.pose[2]))
+        if fixed and match is not None and raw_increment is not None and self._last_travel_fixed_pose is not None:
+            self.distance_calibration.observe(raw_increment, relative_pose(self._last_travel_fixed_pose, match.pose))
+        self._last_travel_fixed_pose = match.pose.copy() if fixed and match is not None else None
 
     def _learn_odometry_noise(self, match: IcpResult | None, increment: np.ndarray | None) -> None:
         """One more sample of the odometry's noise if this scan and the previous one were matched.

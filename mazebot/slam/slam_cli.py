@@ -544,7 +544,8 @@ def run_carmen(
             "scale": round(slam.distance_calibration.estimate, 5),
             "learnt": round(slam.distance_calibration.learnt, 5),
             "wald": round(slam.distance_calibration.wald(), 2),
-            "threshold": round(slam.distance_calibration.threshold(), 2),
+            "std": round(math.sqrt(slam.distance_calibration.variance()), 5)
+            if slam.distance_calibration.observations > 1 else None,
             "observations": slam.distance_calibration.observations,
             "applied_scans": slam.distance_calibration.applied_observations,
         },

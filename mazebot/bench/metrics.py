@@ -131,7 +131,7 @@ def map_metrics(grid: Any, world: Any, start: tuple[float, float, float], footpr
     on_walls[inside] = walls[mr[inside], mc[inside]]
     uncovered_occupied = float(on_walls.sum() / max(1, len(on_walls)))
     # walls: the map's occupied cells rasterized into the world grid
-    er, ec = np.nonzero(grid.occupied_mask())
+    er, ec = np.nonzero(walls)
     est_xy = map_to_world(start, grid.to_world(er, ec))
     wc = np.floor((est_xy[:, 0] - origin[0]) / res).astype(int)
     wr = np.floor((est_xy[:, 1] - origin[1]) / res).astype(int)

@@ -9,6 +9,7 @@ from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.io.encoders import WheelEncoders
 from mazebot.sim.backend import sim_hardware_builder, simulated_robot
+from tests.sim.test_sim_robot import lidar_lead_over_physics
 
 
 async def test_each_encoder_reading_shows_the_world_at_the_moment_of_the_read() -> None:
@@ -36,7 +37,7 @@ def test_the_lidar_on_its_own_timer_measures_no_pose_the_physics_has_not_reached
 
     config = Config()
     slow = SlowCpu(callback_cost_s=0.0045, stall_every_s=0.5, stalls_s=(0.1, 0.25, 0.15))
-    ahead_s: list[float] = []
+    lead: list[list[float]] = []  # the head's lead over the physics, filled while the run goes on
 
     async def run() -> int:
         clock = RealClock()  # the virtual loop's time
@@ -44,15 +45,7 @@ def test_the_lidar_on_its_own_timer_measures_no_pose_the_physics_has_not_reached
             hardware = await sim_hardware_builder(size=(4, 4), seed=2)(config, clock, stack)
             robot = simulated_robot(hardware)
             robot.kit.motor1.throttle, robot.kit.motor2.throttle = 0.5, 0.5  # spins in place
-            advance = robot.lidar_head.advance
-
-            def checked_advance(now_s: float, poses):  # type: ignore[no-untyped-def]
-                samples = advance(now_s, poses)
-                if len(samples):
-                    ahead_s.append(float(samples.time_s.max()) - float(robot.time_s))
-                return samples
-
-            robot.lidar_head.advance = checked_advance  # type: ignore[method-assign]
+            lead.append(lidar_lead_over_physics(robot))
             ((name, factory),) = hardware.extra_tasks
             sim = asyncio.create_task(factory(), name=name)
             scans_seen = 0
@@ -68,6 +61,7 @@ def test_the_lidar_on_its_own_timer_measures_no_pose_the_physics_has_not_reached
             return scans_seen
 
     assert run_virtual(asyncio.wait_for(run(), 60.0), slow=slow) == 15
+    (ahead_s,) = lead
     assert len(ahead_s) > 100
     # within one physics sub-step (2.5 ms at 400 Hz), the physics' own resolution
     assert max(ahead_s) <= 1.0 / 400.0, max(ahead_s)

@@ -157,6 +157,8 @@ def sim_hardware_builder(
         )
         if paced:
             robot.attach_lidar(emulator)
+        else:  # its own timer: the world first, then the samples measured in it
+            emulator.world_catch_up = lambda: robot.step_when_behind(clock.now_s())
         line = SimLidarLine(emulator, catch_up)
         stack.push_async_callback(line.close)
         lidar = RPLidar.from_config(

@@ -148,6 +148,12 @@ class RPLidarEmulator:
         #: True: a streaming task of its own sends the samples every SEND_PERIOD_S. False:
         #: the simulator calls ``pump`` from its own tick instead (``SimulatedRobot.attach_lidar``)
         self.self_paced = self_paced
+        #: brings the simulated world up to the clock's time (the backend steps the physics):
+        #: a self-paced emulator calls it before its head measures, so no sample is taken
+        #: from a pose the physics has not reached. Without it, on a slowed virtual CPU the
+        #: streaming timer fired after a loop stall before the simulator's tick, and held
+        #: the robot's last pose for every sample of the stall (up to 0.26 s of a turn)
+        self.world_catch_up: Callable[[], None] | None = None
         # --- fault injection (mazebot.sim.faults): what a sick A1 does on its serial line ---
         #: the device core hangs: it neither answers nor streams (a brown-out, a stuck firmware)
         self.frozen = False
@@ -339,6 +345,8 @@ class RPLidarEmulator:
         if self.motor_jammed:
             self.head.restart(self.clock.now_s())  # the head stands still: nothing measured
             return False
+        if self.self_paced and self.world_catch_up is not None:
+            self.world_catch_up()
         samples = self.head.advance(self.clock.now_s(), self.poses)
         if samples.start.any():
             self.stats.revolution_starts_s.extend(samples.time_s[samples.start].tolist())

@@ -167,6 +167,17 @@ class SimulatedRobot:
             (right if side else left).emit(step, start_s + share * dt_s)
         self._record(now_s)
 
+    def step_when_behind(self, now_s: float) -> None:
+        """:meth:`step` to ``now_s`` if the world is more than one physics sub-step behind it.
+
+        What a self-paced lidar emulator calls before it measures. Within a sub-step the pose it
+        would hold is the physics' own resolution, and the loop's passes (a microsecond each on the
+        virtual clock) leave the world that far behind all the time: stepping there would only
+        move the sub-steps' boundaries.
+        """
+        if self.time_s is None or now_s - self.time_s > 1.0 / self.physics.params.rate_hz:
+            self.step(now_s)
+
     def _record(self, now_s: float) -> None:
         x, y, th = self.physics.pose
         self.poses.append(now_s, x, y, th)

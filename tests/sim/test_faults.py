@@ -186,6 +186,24 @@ def test_kidnap_puts_the_robot_0_2_m_away_turned_20_degrees_where_it_fits() -> N
         robot.physics.teleport(robot.world.segments[0][0], robot.world.segments[0][1], 0.0)
 
 
+def test_a_kidnapped_robot_is_put_down_where_it_can_roll_on_until_the_daemon_must_have_stopped_it() -> None:
+    """Its wheels turn on, so it rolls on from where it is put down: in front of a wall it
+    touched the wall at once (a 6x6 fault run: 60 ms after the kidnap), a contact no daemon can
+    avoid. Here, driving at a wall 0.2 m ahead, it is put down elsewhere and rolls 0.7 s (the
+    500 ms to notice and 200 ms to stop the fault suite gives the daemon) without a contact."""
+    robot = _robot()
+    physics = robot.physics
+    physics.teleport(0.15, 0.15, math.radians(90.0))
+    physics.set_throttle(0.5, 0.5)
+    for _ in range(20):
+        physics.step(0.01)
+    assert physics.body_velocity[0] > 0.1 and physics.collisions == 0
+    FAULTS["kidnap"].begin(FaultInjector([], robot, RealClock(), seed=5).ctx)
+    for _ in range(70):
+        physics.step(0.01)
+    assert physics.collisions == 0
+
+
 def test_a_weak_motor_runs_slower_and_is_put_back_when_the_fault_ends() -> None:
     robot = _robot()
     injector = FaultInjector([], robot, RealClock())

@@ -120,6 +120,21 @@ def test_encoder_pins_keep_a_bounded_edge_history() -> None:
         robot.close()
 
 
+def lidar_lead_over_physics(robot: SimulatedRobot) -> list[float]:
+    """From now on, how far each batch of the robot's lidar samples lies past its last physics step (s)."""
+    ahead_s: list[float] = []
+    advance = robot.lidar_head.advance
+
+    def checked_advance(now_s: float, poses):  # type: ignore[no-untyped-def]
+        samples = advance(now_s, poses)
+        if len(samples):
+            ahead_s.append(float(samples.time_s.max()) - float(robot.time_s))
+        return samples
+
+    robot.lidar_head.advance = checked_advance  # type: ignore[method-assign]
+    return ahead_s
+
+
 def test_the_robot_tick_paces_the_lidar_from_poses_already_reached() -> None:
     """The daemon's wiring: the robot's tick has the emulator send, and the real driver decodes it.
 
@@ -141,16 +156,7 @@ def test_the_robot_tick_paces_the_lidar_from_poses_already_reached() -> None:
     clock = RealClock()
     emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, self_paced=False)
     robot.attach_lidar(emulator)
-    ahead_s: list[float] = []
-    advance = robot.lidar_head.advance
-
-    def checked_advance(now_s: float, poses):  # type: ignore[no-untyped-def]
-        samples = advance(now_s, poses)
-        if len(samples):
-            ahead_s.append(float(samples.time_s.max()) - float(robot.time_s))
-        return samples
-
-    robot.lidar_head.advance = checked_advance  # type: ignore[method-assign]
+    ahead_s = lidar_lead_over_physics(robot)
 
     async def run() -> list[int]:
         sim = asyncio.create_task(robot.run(clock))

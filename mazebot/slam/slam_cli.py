@@ -210,6 +210,17 @@ def laser_log_params(
       gain (0.257 → 0.208, 0.317 → 0.182 m), but at ``0.1`` seeds 7 and 9 are worse than main
       (seeds 1-3 better; median of the five 0.155 → 0.193 m) and both systematic-odometry runs
       are no better (ACES 0.219 → 0.225, Intel 0.161 → 0.166 m; branch ``reallogs6``);
+    - the submap's points smoothed onto their local lines (``[slam.normals] smooth`` stays true;
+      ``--config`` with false turns it off): over the logs' 0.3 m neighbourhoods the smoothing
+      moves 5.5 % of a Seattle scan's points by more than 2 cm (the SICK's range noise is about
+      1 cm), and every sequential match against a submap placed at the corrected poses turns
+      +0.035° (± 0.009°, 90 scans, paired) against the points as measured: the first corridor's
+      heading walks off by 1.5° over 35 m before any closure (0.58° unsmoothed). Off, the Radish
+      logs went from 5 to 8 of 9 runs within 0.20 m (Seattle 0.234 / 0.333 / 0.280 → 0.066 /
+      0.137 / 0.138 m) and the Intel log at ``0.05,0.05`` seeds 1-3 improved (0.122 / 0.108 /
+      0.154 → 0.088 / 0.098 / 0.130 m), but at ``0.1,0.1`` seed 1 lost a stretch near its end
+      (0.239 → 0.953 m), seed 3 got worse (0.297 → 0.604 m) and the stand-in's ACES seed 1 too
+      (0.296 → 0.320 m; branch ``seattle15``);
     - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
       (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
       every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the

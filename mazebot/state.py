@@ -170,6 +170,9 @@ class SlamStats:
     drop_notes: list[str] = field(default_factory=list)
     keyframes: int = 0
     held_back: int = 0  # revolutions that only localized, not painted: the odometry was known bad
+    #: SLAM holds revolutions back since a slip and matched none in motion: revolutions at rest
+    #: bring its trust in the wheels back, so the pilot stands still until they have
+    rest_wanted: bool = False
     #: revolutions left out because the odometry had not reached their end within the wait (its
     #: encoder edges late beyond it): de-skewed and judged with a held pose they looked lost
     uncovered: int = 0

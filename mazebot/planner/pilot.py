@@ -328,6 +328,9 @@ class Pilot:
         if not state.slam.anchored:  # SLAM fuses revolutions at rest into the map's anchor (20, ~3.6 s)
             self._hold(state, now_s, "waiting for SLAM to anchor the map (standing still)")
             return False
+        if state.slam.rest_wanted:  # SLAM paints nothing and matches nothing in motion: rest heals its trust
+            self._hold(state, now_s, "standing still: SLAM takes the wheels' motion again after a slip")
+            return False
         three = grid.three_state()
         yield
         # the explorer's clock: revolutions SLAM painted into the map (what can resolve a target)

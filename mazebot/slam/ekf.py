@@ -420,10 +420,26 @@ class TimeOffsetCalibration:
     and predict with the odometry of the wrong moment. While the robot turns steadily the
     filter cannot tell (every pose is off by the same ``ω·D``), but when the turn rate
     changes between two scans by ``Δω`` the scan match disagrees with the odometry
-    prediction by ``ν_θ ≈ −(D − S)·Δω``, ``S`` the offset already applied. Recursive least
-    squares on that relation (the idea of online temporal calibration, Qin & Shen, IROS
-    2018) keeps ``S`` tracking ``D``; only scans with ``|Δω|`` above ``min_rate_change``
-    (turns starting or ending) are used.
+    prediction by ``ν_θ ≈ −(D − S)·Δω``, ``S`` the offset applied to that scan (the idea of
+    online temporal calibration, Qin & Shen, IROS 2018). Only scans with ``|Δω|`` above
+    ``min_rate_change`` (turns starting or ending) are used. With ``φ = −Δω`` each such
+    scan gives ``y = ν_θ + φ·(S − S₀) = φ·δ``, ``δ = D − S₀`` the offset beyond the start value
+    ``S₀``, and ``δ`` is estimated by least squares with exponential forgetting (``memory_scans``)
+    and a prior of ``prior_std_s`` about zero.
+
+    **Applied only as far as the matches show it.** The turn rate is the odometry's over
+    its last 20 ms; with cheap encoders (the bench's cheap robot: 20 counts a motor
+    revolution, backlash) its changes between scans are mostly the counts' quantization,
+    and the innovation is the turn's slip and backlash, not a stamp offset: on the bench's
+    hand-built 8×8 seed 6 the two were uncorrelated (ρ = −0.05 over 259 turn starts, 0.02
+    over 257 ends), yet the plain estimate wandered to 4–10 ms and every turn left the
+    filter's heading ``ω·S`` off (0.4° at 1.2 rad/s) while the true stamps were within
+    0.5 ms of the samples. So, as the heading calibration does, ``δ`` is tested against zero
+    by its Wald statistic ``W = δ̂² / var`` (the heteroscedasticity-robust variance of White,
+    Econometrica 1980, with HC1's ``n / (n − 1)``) at a level ``false_alarm`` spent over the
+    tests (:func:`spent_chi2`), and ``S = S₀ + δ̂·max(0, 1 − c/W)``: nothing while the
+    evidence is within what noise gives, all of it once a real offset stands out (stamps
+    12 ms late with a clean rate: ``W`` in the thousands after 300 turn changes).
 
     Example::
 
@@ -441,19 +457,25 @@ class TimeOffsetCalibration:
         min_rate_change: float = 0.2,
         limits_s: tuple[float, float] = (-0.05, 0.1),
         max_innovation_rad: float = 0.05,
+        false_alarm: float = 0.001,
     ) -> None:
-        self.offset_s = float(initial_s)
+        self.initial_s = float(initial_s)
+        self.offset_s = self.initial_s
+        self.learnt_s = 0.0  # δ̂: the offset beyond initial_s as estimated, before the test shrinks it
         self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
-        self._p = float(prior_std_s) ** 2
-        self._max_p = self._p
-        self._noise_var = float(noise_std_rad) ** 2
+        self._prior = float(noise_std_rad) ** 2 / float(prior_std_s) ** 2  # the prior's share in Σφ²
         self.min_rate_change = float(min_rate_change)
         self.limits_s = limits_s
         self.max_innovation_rad = float(max_innovation_rad)
+        self.false_alarm = float(false_alarm)
+        self._phi2 = 0.0  # Σ λⁿ⁻ⁱ φ²
+        self._phiy = 0.0  # Σ λⁿ⁻ⁱ φ y
+        self._meat = 0.0  # Σ λ²⁽ⁿ⁻ⁱ⁾ φ² r²
+        self._weight = 0.0  # the observations as the forgetting weighs them (HC1's n)
         self.observations = 0
 
     def observe(self, innovation_theta_rad: float, rate_change_radps: float) -> None:
-        """One RLS step on ``ν_θ = φ·(D − S)`` with ``φ = −Δω``; folds the estimate into ``offset_s``.
+        """One observation ``ν_θ = φ·(D − S)`` with ``φ = −Δω``; sets ``offset_s`` from the tested estimate.
 
         Innovations beyond ``max_innovation_rad`` (a bad match, a slip) are ignored.
         """
@@ -461,12 +483,31 @@ class TimeOffsetCalibration:
         innovation = float(wrap_angle(innovation_theta_rad))
         if abs(phi) < self.min_rate_change or abs(innovation) > self.max_innovation_rad:
             return
-        p = min(self._p / self.forgetting, self._max_p)
-        gain = p * phi / (self._noise_var + phi * p * phi)
-        residual_s = gain * innovation
-        self.offset_s = float(np.clip(self.offset_s + residual_s, *self.limits_s))
-        self._p = (1.0 - gain * phi) * p
+        y = innovation + phi * (self.offset_s - self.initial_s)
+        residual = y - phi * self.learnt_s
+        lam = self.forgetting
+        self._phi2 = lam * self._phi2 + phi * phi
+        self._phiy = lam * self._phiy + phi * y
+        self._meat = lam**2 * self._meat + (phi * residual) ** 2
+        self._weight = lam * self._weight + 1.0
         self.observations += 1
+        self.learnt_s = self._phiy / (self._phi2 + self._prior)
+        applied = self.learnt_s * self._shrinkage()
+        self.offset_s = float(np.clip(self.initial_s + applied, *self.limits_s))
+
+    def wald(self) -> float:
+        """The learnt offset's Wald statistic against zero (robust variance, HC1; 0 before two observations)."""
+        if self._weight <= 1.0:
+            return 0.0
+        var = self._meat / (self._phi2 + self._prior) ** 2 * self._weight / (self._weight - 1.0)
+        return self.learnt_s**2 / var if var > 0 else 0.0
+
+    def _shrinkage(self) -> float:
+        if self.false_alarm <= 0:
+            return 1.0
+        w = self.wald()
+        c = spent_chi2(self.false_alarm, self.observations)
+        return 1.0 - c / w if w > c else 0.0
 
 
 def odometry_increment(odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarray:

@@ -97,6 +97,13 @@ class OdometryTrust:
     revolution at rest whose good ICP match the filter refused (``disputed``) starts the
     count again, as a slip does in motion: it would be painted at the pose ICP disputes
     (:class:`RestMatches` settles that dispute).
+
+    Rest heals only a robot that stops, and an explorer goes on driving to its goal: after a
+    slip in a turn, a robot that drove on one revolution short of ``trusted_after`` left the
+    last keyframe's walls behind, ICP fitted none of the next revolutions (residuals of 4-11
+    cm against the 3 cm limit), and the filter dead-reckoned the cheap odometry through the
+    turns until the guard called the robot lost. ``rest_wanted`` says so: held back, not
+    matched in motion, and rest would heal; the pilot then stands still until the trust is back.
     """
 
     def __init__(self, trusted_after: int = TRUSTED_AFTER) -> None:
@@ -104,11 +111,15 @@ class OdometryTrust:
         self.clean = trusted_after  # revolutions in a row that fit the odometry
         self.held_back = 0  # revolutions not painted, in all
         self.rest_heals = True  # the last distrust was a slip: revolutions at rest count as clean
+        #: held back, the last revolution in motion not matched, and revolutions at rest would heal the
+        #: trust: the robot should stand still until they have (it stays so until trusted or distrusted)
+        self.rest_wanted = False
 
     def distrust(self) -> None:
         """The odometry is known bad from now on (a fault, a re-localization)."""
         self.clean = 0
         self.rest_heals = False
+        self.rest_wanted = False
 
     def observe(self, state: SharedState, slipped: bool, matched: bool, at_rest: bool = False,
                 disputed: bool = False) -> bool:
@@ -125,6 +136,8 @@ class OdometryTrust:
                 self.rest_heals = True  # the pose is confirmed: wheels at rest cannot spoil it
         trusted = self.clean >= self.trusted_after
         self.held_back += not trusted
+        unmatched_in_motion = not matched and not at_rest
+        self.rest_wanted = not trusted and self.rest_heals and (self.rest_wanted or unmatched_in_motion)
         return trusted
 
 
@@ -386,8 +399,9 @@ class SlamTask:
         if verdict == "lost":
             self.on_lost(scan, history)
             return False
-        if verdict == "skip":
-            return False  # does not fit the map: SLAM must not paint it in
+        if verdict == "skip":  # does not fit the map: SLAM must not paint it in, nor rest wait for it
+            self.trust.rest_wanted = state.slam.rest_wanted = False
+            return False
         predicted = guard.guess
         slip: list[tuple[float, float] | None] = [None]
         disputed: list[np.ndarray | None] = [None]  # a good match the filter refused
@@ -418,6 +432,7 @@ class SlamTask:
             state.note("slam", "SLAM processes scans again", self.clock.now_s())
         _publish_update(state, slam, update, scan.end_time_s, update.matched or self.trust.held_back == held_back)
         state.slam.held_back = self.trust.held_back
+        state.slam.rest_wanted = self.trust.rest_wanted
         taken = self.rest.observe(at_rest, disputed[0])
         if taken is not None:
             _take_rest_pose(state, slam, update, taken, self.clock)
@@ -430,6 +445,7 @@ class SlamTask:
     def on_lost(self, scan: Scan, history: OdometryHistory) -> None:
         """The guard lost the robot: a ``localization`` fault, and a search for it in the executor."""
         self.trust.distrust()
+        self.state.slam.rest_wanted = False
         _lost(self.state, self.guard, self.clock)
         guess = self.guard.guess
         assert guess is not None  # check() predicted the pose of the revolution it calls lost

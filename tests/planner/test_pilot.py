@@ -11,7 +11,9 @@ from mazebot.io.scan import Scan
 from mazebot.planner import pilot as pilot_module
 from mazebot.planner.pilot import Pilot, PilotParams, StandStill
 from mazebot.planner.safety import CollisionGuard, with_remembered
+from mazebot.planner.wheel_control import DriveMode
 from mazebot.slam.ekf import OdometryHistory
+from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.odometry import OdometryPose
 from mazebot.state import ODOMETRY_FIXES_KEPT, OdometryFix, RunState, SharedState
 
@@ -128,3 +130,24 @@ def test_a_leg_in_the_blind_zone_is_kept_through_a_pause_longer_than_slams_fixes
     state.run_state = RunState.EXPLORING
     _revolution(state, 1.6 + 0.2 * (ODOMETRY_FIXES_KEPT + 44), 0.18, None)
     np.testing.assert_allclose(pilot._scan_points(state), [[post_x_m - 0.18, 0.0]], atol=1e-9)
+
+
+def test_the_pilot_stands_still_while_slam_wants_rest_to_trust_the_wheels_again() -> None:
+    """SLAM holds its revolutions back since a slip and fits none in motion: the pilot stops the
+    wheels (revolutions at rest heal the trust) and drives on once SLAM no longer asks for rest."""
+    config = Config()
+    pilot = Pilot(PilotParams.from_config(config))
+    state = SharedState()
+    state.run_state = RunState.EXPLORING
+    state.started_at_s = 0.0
+    state.slam.anchored = True
+    state.map = OccupancyGrid()
+    state.slam.rest_wanted = True
+    pilot.tick(state, 1.0)
+    assert state.motion_command is not None
+    assert state.motion_command.mode == DriveMode.STOP.value
+    assert (state.motion_command.v_mps, state.motion_command.w_radps) == (0.0, 0.0)
+    assert "after a slip" in state.planner_status
+    state.slam.rest_wanted = False
+    pilot.tick(state, 1.2)
+    assert "after a slip" not in state.planner_status

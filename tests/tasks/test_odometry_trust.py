@@ -181,3 +181,37 @@ async def test_each_move_of_the_odometry_frame_is_logged_with_the_revolution_it_
     assert sum(f.revolution_end_s is None for f in fixes) == 1  # the pose taken at rest
     assert all(a.after == b.before for a, b in itertools.pairwise(fixes))
     assert fixes[-1].after == state.map_from_odom
+
+
+def test_after_a_slip_a_robot_that_matches_nothing_in_motion_is_asked_to_stand_until_rest_heals_the_trust() -> None:
+    """A slip in a turn, a few matched revolutions, then the robot drives past the last keyframe's
+    walls: ICP fits nothing, no revolution in motion can earn the trust back, and without standing
+    still the filter dead-reckons until the guard calls the robot lost. ``rest_wanted`` asks for
+    the rest that heals it, and lets go once it has."""
+    state = SharedState()
+    trust = OdometryTrust()
+    assert not trust.observe(state, True, True)  # the slip
+    assert not any(verdicts(trust, state, TRUSTED_AFTER - 1, matched=True, at_rest=False))
+    assert not trust.rest_wanted  # matching in motion: the trust comes back by itself
+    assert not trust.observe(state, False, False)  # driven past the submap's walls: nothing fits
+    assert trust.rest_wanted
+    assert not any(verdicts(trust, state, 3, matched=False, at_rest=False))  # still driving: still wanted
+    assert trust.rest_wanted
+    assert trust.rest_wanted
+    assert verdicts(trust, state, 1, matched=False, at_rest=True) == [True]  # one short of it: one revolution at rest
+    assert not trust.rest_wanted  # trusted again: painted at rest, the robot drives on
+
+
+def test_rest_is_not_wanted_where_it_would_not_heal_the_trust() -> None:
+    """After a re-localization rest proves nothing until matches confirm the pose: standing still
+    there would stand for ever, so rest is not asked for (nor after the guard lost the robot)."""
+    state = SharedState()
+    trust = OdometryTrust()
+    trust.distrust()
+    assert not any(verdicts(trust, state, 10, matched=False, at_rest=False))
+    assert not trust.rest_wanted
+    assert not trust.observe(state, True, True)  # a slip: rest heals
+    trust.observe(state, False, False)
+    assert trust.rest_wanted
+    trust.distrust()
+    assert not trust.rest_wanted

@@ -87,7 +87,10 @@ class DistanceCalibration:
         return out
 
     def correct_many(self, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Corrected translations of many increments."""
+        """Corrected translations of many increments (the arrays themselves while nothing is applied: every
+        revolution's de-skew passes through here, with the calibration off too)."""
+        if self.estimate == 0.0:
+            return dx, dy
         factor = 1.0 + self.estimate
         return dx * factor, dy * factor
 

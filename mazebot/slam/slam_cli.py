@@ -917,8 +917,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action=argparse.BooleanOptionalAction,
         default=False,
         help="calibrate the odometry's distance scale online from the scan matches that fix the direction of "
-        "travel (the wheels' mean diameter; applied only as far as the matches show it beyond white noise); "
-        "off by default",
+        "travel (the wheels' mean diameter; applied as its posterior mean under a prior of a couple of percent on "
+        "the wheels); off by default",
     )
     run.add_argument(
         "--closure-ambiguity",

@@ -10,15 +10,11 @@ start by that error (0.6° on a 6×6 maze measured: 2 cm at its far side, a one-
 of cells beside every wall painted occupied).
 
 So the faces seen at rest are measured one by one: surface points split by the grid
-axis their normal faces, then into faces by gaps across and along, and where two boards
-meet in line (a post between them, no gap the lidar sees) at the step across between
-them; each long enough face gets its own direction by least squares (the line's slope
-against the grid axis), kept only if its standard error is small, so that the lidar's
-noise over a short stretch does not pose as a turned board. A line fitted through two
-boards in line takes their step for a turn: two boards turned +0.2° and −0.75° whose
-faces stand a few millimetres apart came out as one face turned −2.2° (the bench's
-hand-built 8×8 seed 6, seen from the start). The spread of those directions about their
-mean says whether the faces lie on one grid (:func:`face_spread`).
+axis their normal faces, then into faces by gaps across and along; each long enough face
+gets its own direction by least squares (the line's slope against the grid axis), kept
+only if its standard error is small, so that the lidar's noise over a short stretch does
+not pose as a turned board. The spread of those directions about their mean says whether
+the faces lie on one grid (:func:`face_spread`).
 """
 
 from __future__ import annotations
@@ -41,24 +37,6 @@ FACE_GAP_ACROSS_M = 0.004
 #: ... and points of one face more than this apart along it are two faces (a gap at a post,
 #: a shadow): each is its own board.
 FACE_GAP_ALONG_M = 0.05
-
-#: Two boards in line are cut apart where the lines fitted to the face's two sides of a cut
-#: stand farther apart than this across at the cut (the cut itself where the two lines fit
-#: best: segmentation by least squares, Pavlidis & Horowitz, "Segmentation of plane curves",
-#: IEEE Trans. Computers, 1974). Neighbouring boards of a maze built by hand stand about 6 mm
-#: apart across (RMS: offsets of 4 mm, thicknesses of 6-20 mm), a post's face as much; the
-#: emulated A1's revolutions at rest, pooled, leave an exact maze's straight wall up to about
-#: 2 mm off one line (its angle offsets at short range).
-FACE_STEP_M = 0.003
-
-#: ... and only where the step stands this many of its own standard errors out of the points'
-#: scatter about the two lines: the cut is the best of all of a face's points, so noise alone
-#: makes its largest step stand out by three or so.
-FACE_STEP_SIGNIFICANCE = 5.0
-
-#: ... and the points this close to the cut on either side are left out: the surface's
-#: smoothing onto local lines (a few centimetres) turns a step into a ramp.
-FACE_STEP_MARGIN_M = 0.015
 
 #: A face needs this many points ...
 FACE_MIN_POINTS = 20
@@ -108,17 +86,13 @@ class Faces:
 NO_FACES = Faces(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.intp))
 
 
-def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float, *, cut_at_steps: bool = False) -> Faces:
+def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> Faces:
     """The straight faces among surface points of one place (module docstring), in their frame.
 
     ``points`` (N, 2) and ``normals`` (N, 2) are a place's surface points (a keyframe's
     frame); ``grid_rad`` the wall grid's direction in that frame (modulo 90°), which sorts
     the points by the axis their normals face. A face's own direction is its least-squares
-    line's; only faces that pass the module's tests are kept. ``cut_at_steps``: boards in
-    line are cut apart where the face steps across (``FACE_STEP_M``), for the many
-    revolutions pooled at rest; one revolution's points, taken moving, are too few and too
-    sparse to tell a step of a few millimetres from the lidar's own (the emulated A1's
-    single revolutions of an exact maze's walls cut at 2-4 mm "steps").
+    line's; only faces that pass the module's tests are kept.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
@@ -135,7 +109,7 @@ def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float, *, cut_
         for side in (1.0, -1.0):
             keep = side * normal >= cos_tol
             nominal = axis * math.pi / 2 + (0.0 if side > 0 else math.pi)  # the normal's angle on the grid
-            for a, b in _faces(across[keep], along[keep], cut_at_steps):
+            for a, b in _faces(across[keep], along[keep]):
                 fitted = _slope(a, b)
                 if fitted is None:
                     continue
@@ -177,8 +151,8 @@ def face_spread(turns_rad: np.ndarray, counts: np.ndarray) -> float | None:
     return math.sqrt(float(np.average((turns - mean) ** 2, weights=weights)))
 
 
-def _faces(across: np.ndarray, along: np.ndarray, cut_at_steps: bool) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The points of one axis and side split into faces: by gaps across, then by gaps along (then at steps)."""
+def _faces(across: np.ndarray, along: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The points of one axis and side split into faces: by gaps across, then by gaps along."""
     faces = []
     order = np.argsort(across)
     across, along = across[order], along[order]
@@ -187,80 +161,9 @@ def _faces(across: np.ndarray, along: np.ndarray, cut_at_steps: bool) -> list[tu
         by_along = np.argsort(b)
         a, b = a[by_along], b[by_along]
         for piece in np.split(np.arange(b.size), np.flatnonzero(np.diff(b) > FACE_GAP_ALONG_M) + 1):
-            if cut_at_steps:
-                faces += _cut_at_steps(a[piece], b[piece])
-            elif _long_enough(b[piece]):
+            if piece.size >= FACE_MIN_POINTS and b[piece[-1]] - b[piece[0]] >= FACE_MIN_LENGTH_M:
                 faces.append((a[piece], b[piece]))
     return faces
-
-
-def _long_enough(along: np.ndarray) -> bool:
-    """A face of these points (sorted along it) has enough of them over enough length."""
-    return along.size >= FACE_MIN_POINTS and along[-1] - along[0] >= FACE_MIN_LENGTH_M
-
-
-def _cut_at_steps(across: np.ndarray, along: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """One face's points (sorted along it) cut into boards where it steps across (``FACE_STEP_M``)."""
-    pieces, todo = [], [(across, along)]
-    while todo:
-        a, b = todo.pop()
-        if not _long_enough(b):
-            continue
-        cut = _best_cut(a, b)
-        if cut is None:
-            pieces.append((a, b))
-            continue
-        todo += [(a[b < cut - FACE_STEP_MARGIN_M], b[b < cut - FACE_STEP_MARGIN_M]),
-                 (a[b > cut + FACE_STEP_MARGIN_M], b[b > cut + FACE_STEP_MARGIN_M])]
-    return pieces
-
-
-def _best_cut(across: np.ndarray, along: np.ndarray) -> float | None:
-    """Where along the face two lines fit its points best, if they stand more than ``FACE_STEP_M`` apart there.
-
-    The two lines' residuals for every cut at once, from running sums: the points before
-    the ``k``-th and from it on each get their own least-squares line.
-    """
-    origin_a, origin_b = float(across.mean()), float(along.mean())  # centred: the running sums keep their digits
-    across, along = across - origin_a, along - origin_b
-    before = _running_lines(across, along)
-    after = tuple(part[::-1] for part in _running_lines(across[::-1], along[::-1]))
-    k = np.arange(3, across.size - 2)  # at least three points on either side of the cut
-    if not k.size:
-        return None
-    residual = before[2][k - 1] + after[2][k]
-    best = int(k[np.argmin(residual)])
-    at = 0.5 * float(along[best - 1] + along[best])
-    # each side's line at the cut, and the variance of that value (the points' scatter about both lines)
-    scatter = float(residual.min()) / max(1, across.size - 4)
-    step, variance = 0.0, 0.0
-    for sign, (mean_a, mean_b, _, slope, spread), count in (
-        (1.0, (part[best - 1] for part in before), best),
-        (-1.0, (part[best] for part in after), across.size - best),
-    ):
-        step += sign * float(mean_a + slope * (at - mean_b))
-        variance += scatter * (1.0 / count + (at - float(mean_b)) ** 2 / max(float(spread), 1e-12))
-    if abs(step) <= max(FACE_STEP_M, FACE_STEP_SIGNIFICANCE * math.sqrt(variance)):
-        return None
-    return at + origin_b
-
-
-def _running_lines(
-    across: np.ndarray, along: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The least-squares line of ``across`` against ``along`` over the first ``k + 1`` points, for every ``k``.
-
-    ``(mean across, mean along, residual sum of squares, slope, along's sum of squares about its mean)``,
-    each (N,); a single point's line is flat.
-    """
-    n = np.arange(1, across.size + 1, dtype=np.float64)
-    mean_a, mean_b = np.cumsum(across) / n, np.cumsum(along) / n
-    var_b = np.cumsum(along * along) - n * mean_b * mean_b
-    var_a = np.cumsum(across * across) - n * mean_a * mean_a
-    cov = np.cumsum(across * along) - n * mean_a * mean_b
-    spread = var_b > 1e-12
-    slope = np.divide(cov, var_b, out=np.zeros_like(cov), where=spread)
-    return mean_a, mean_b, np.maximum(var_a - slope * cov, 0.0), slope, var_b
 
 
 def _slope(across: np.ndarray, along: np.ndarray) -> float | None:

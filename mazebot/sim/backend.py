@@ -26,7 +26,6 @@ from mazebot.hardware import Hardware, HardwareBuilder
 from mazebot.io.encoders import WheelEncoders
 from mazebot.io.motors import DifferentialMotors
 from mazebot.io.rplidar import RPLidar
-from mazebot.io.rplidar_models import MODELS
 from mazebot.io.serial_link import ByteLink, memory_link_pair
 from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.robot import SimulatedRobot
@@ -151,14 +150,7 @@ def sim_hardware_builder(
         encoders.before_read = catch_up  # a reading shows the wheels as they are at the clock's time
         robot.encoders = encoders
 
-        paced = config.sim.lidar_paced_by_robot
-        emulator = RPLidarEmulator(
-            robot.lidar_head, robot.poses, clock, model=MODELS[config.sim.lidar_model], self_paced=not paced
-        )
-        if paced:
-            robot.attach_lidar(emulator)
-        else:  # its own timer: the world first, then the samples measured in it
-            emulator.world_catch_up = lambda: robot.step_when_behind(clock.now_s())
+        emulator = robot.make_lidar(clock)
         line = SimLidarLine(emulator, catch_up)
         stack.push_async_callback(line.close)
         lidar = RPLidar.from_config(

@@ -25,8 +25,6 @@ from typing import Any
 from mazebot.clock import RealClock
 from mazebot.config import Config
 from mazebot.doctor import Parts, SystemProbe
-from mazebot.io.rplidar_models import MODELS
-from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.pty_lidar import pty_device
 from mazebot.sim.robot import SimulatedRobot
 from mazebot.sim.world_source import make_world
@@ -89,7 +87,7 @@ async def sim_parts(config: Config, fault: str | None = None) -> AsyncIterator[P
     robot = SimulatedRobot(world, robot_config(config, fault), seed=config.sim.seed, clock=clock)
     robot.step(clock.now_s())
     robot.kit.before_write = lambda: robot.catch_up(clock.now_s())  # a throttle acts from its write on
-    emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, model=MODELS[config.sim.lidar_model])
+    emulator = robot.make_lidar(clock)
     if fault == "lidar-silent":
         emulator.frozen = True
     elif fault == "lidar-health":

@@ -27,6 +27,7 @@ from mazebot.io.encoders import WheelEncoders
 from mazebot.io.motors import FakeMotorKit
 from mazebot.io.rplidar_models import MODELS
 from mazebot.sim.encoder_signals import QuadratureSignal
+from mazebot.sim.lidar_emulator import RPLidarEmulator
 from mazebot.sim.lidar_samples import LidarParams, PoseHistory, SpinningLidar
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
 from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
@@ -167,7 +168,7 @@ class SimulatedRobot:
             (right if side else left).emit(step, start_s + share * dt_s)
         self._record(now_s)
 
-    def step_when_behind(self, now_s: float) -> None:
+    def step_when_behind(self, now_s: float) -> bool:
         """:meth:`step` to ``now_s`` if the world is more than one physics sub-step behind it.
 
         What a self-paced lidar emulator calls before it measures. Within a sub-step the pose it
@@ -177,12 +178,39 @@ class SimulatedRobot:
         """
         if self.time_s is None or now_s - self.time_s > 1.0 / self.physics.params.rate_hz:
             self.step(now_s)
+            return True
+        return False
 
     def _record(self, now_s: float) -> None:
         x, y, th = self.physics.pose
         self.poses.append(now_s, x, y, th)
         if not self.trajectory or now_s - self.trajectory[-1][0] >= 0.05:
             self.trajectory.append((now_s, x, y, th))
+
+    def make_lidar(self, clock: Clock, after_step: Callable[[], None] | None = None) -> RPLidarEmulator:
+        """This robot's RPLidar emulator (``[sim] lidar_model``), measuring only poses its physics has reached.
+
+        Every world that serves the daemon a lidar builds it here (the daemon's backend, the
+        world process of the CPU-quota bench, the doctor's parts), so none serves an easier or
+        an older device than the others. With ``[sim] lidar_paced_by_robot`` the robot's tick
+        has it send (:meth:`attach_lidar`); on its own timer it steps the world to the clock's
+        time before it measures (:meth:`step_when_behind`): otherwise the samples of up to a
+        tick (longer after a loop stall) are measured from the last pose the physics reached
+        while the robot turns on. ``after_step`` is called after such a step, as :meth:`run`
+        calls it after its own (the world process sends the step's encoder edges there).
+        """
+        paced = self.config.sim.lidar_paced_by_robot
+        emulator = RPLidarEmulator(self.lidar_head, self.poses, clock, model=MODELS[self.config.sim.lidar_model],
+                                   self_paced=not paced)
+        if paced:
+            self.attach_lidar(emulator)
+        else:
+            def world_catch_up() -> None:
+                if self.step_when_behind(clock.now_s()) and after_step is not None:
+                    after_step()
+
+            emulator.world_catch_up = world_catch_up
+        return emulator
 
     def attach_lidar(self, emulator: Any) -> None:
         """Let this robot's tick pace the lidar emulator (one built with ``self_paced=False``).

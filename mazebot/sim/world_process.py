@@ -153,7 +153,6 @@ async def serve_world(
 ) -> None:
     """Build the world, serve its lidar on a pty, and run it on the real clock until told to stop."""
     from mazebot.clock import RealClock
-    from mazebot.sim.lidar_emulator import RPLidarEmulator
     from mazebot.sim.pty_lidar import pty_device
     from mazebot.sim.robot import SimulatedRobot
     from mazebot.sim.world_source import make_world
@@ -176,10 +175,6 @@ async def serve_world(
     robot = SimulatedRobot(world, config, seed=config.sim.seed if seed is None else seed, clock=clock,
                            pin_factory=factory)
     robot.step(clock.now_s())
-    paced = config.sim.lidar_paced_by_robot
-    emulator = RPLidarEmulator(robot.lidar_head, robot.poses, clock, self_paced=not paced)
-    if paced:
-        robot.attach_lidar(emulator)
     counts = {"motor_writes": 0, "edges_sent": 0}
 
     def on_motor() -> None:
@@ -219,6 +214,7 @@ async def serve_world(
             report_tx.send(("truth", clock.now_s(), x, y, th, int(robot.physics.collisions)))
             await clock.sleep(TRUTH_PERIOD_S)
 
+    emulator = robot.make_lidar(clock, after_step=send_edges)
     loop.add_reader(motor_rx.fileno(), on_motor)
     loop.add_reader(control_rx.fileno(), on_control)
     start_s = clock.now_s()

@@ -182,6 +182,56 @@ def test_the_robot_tick_paces_the_lidar_from_poses_already_reached() -> None:
     assert all(abs(n - per_rev) <= 0.05 * per_rev for n in sizes)  # whole revolutions (±3 % jitter)
 
 
+def test_a_lidar_on_its_own_timer_steps_the_world_before_it_measures_wherever_it_is_built() -> None:
+    """Every world that serves a lidar builds it with ``make_lidar`` (the daemon's backend, the
+    CPU-quota bench's world process, the doctor): on its own timer (the default) the emulator
+    sends every few milliseconds between the robot's 10 ms ticks, and it used to measure those
+    samples from the last pose the physics had reached while the robot spun on. Now it steps the
+    world first, and the step's own hook (the world process sends its encoder edges there) runs."""
+    import asyncio
+    import contextlib
+
+    from mazebot.io.rplidar import RPLidar
+    from mazebot.io.rplidar_models import MODELS
+    from mazebot.sim.backend import SimLidarLine
+    from mazebot.sim.virtual_time import run_virtual
+
+    config = Config()
+    assert not config.sim.lidar_paced_by_robot  # the default this test is about
+    robot = SimulatedRobot(_open_world(), config, seed=4)
+    robot.kit.motor1.throttle, robot.kit.motor2.throttle = 0.5, -0.5  # spin in place
+    clock = RealClock()
+    hooked_steps: list[float] = []
+    emulator = robot.make_lidar(clock, after_step=lambda: hooked_steps.append(float(robot.time_s or 0.0)))
+    assert emulator.self_paced and emulator.model is MODELS[config.sim.lidar_model]
+    ahead_s = lidar_lead_over_physics(robot)
+
+    async def run() -> int:
+        sim = asyncio.create_task(robot.run(clock))
+        line = SimLidarLine(emulator)
+        seen = 0
+        try:
+            async with RPLidar(line.connect, clock, spin_up_s=0.1) as lidar:
+                scans = lidar.scans()
+                async with contextlib.aclosing(scans):  # type: ignore[type-var]
+                    async for _ in scans:
+                        seen += 1
+                        if seen == 8:
+                            break
+        finally:
+            sim.cancel()
+            await line.close()
+        return seen
+
+    assert run_virtual(asyncio.wait_for(run(), 60.0)) == 8
+    assert len(ahead_s) > 50  # a send every ~20 ms for ~1.6 s
+    assert max(ahead_s) <= 1.0 / config.sim.physics_rate_hz  # within the physics' own sub-step
+    assert hooked_steps  # the steps the lidar made ran the world's hook
+
+    config.sim.lidar_model = "s2"
+    assert robot.make_lidar(clock).model is MODELS["s2"]  # the configured device, in every world
+
+
 def test_a_steps_edges_come_in_the_order_they_happened_on_both_wheels_each_with_its_own_time() -> None:
     # lgpio hands the edges of all lines to one thread in the order of their stamps: a reader
     # anywhere in a step's edges finds both wheels counted up to the same moment. A world step

@@ -101,6 +101,9 @@ class IcpParams:
     stop_translation_m: Annotated[float, Field(gt=0, description=(
         "ICP refines until its step is below this ..."))] = 5e-4
     stop_rotation_rad: Annotated[float, Field(gt=0, description="... and this rotation")] = 5e-4
+    finish_measured: Annotated[bool, Field(description=(
+        "once ICP has stopped against the submap's points smoothed onto their lines, it iterates on against the "
+        "points as measured until it stops again (the smoothing's basin, the measured points' optimum)"))] = False
     max_correspondence_m: Annotated[float, Field(gt=0, description=(
         "first distance gate of ICP correspondences (about the initial pose error)"))] = 0.3
     min_correspondence_m: Annotated[float, Field(gt=0, description=(

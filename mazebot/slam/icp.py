@@ -28,6 +28,15 @@ outlier rejection, and a convergence test of at most 150 iterations or a step be
    problems", ICRA 2016: solution remapping).
 6. **Stop** when the step is below ``stop_translation_m`` / ``stop_rotation_rad``; the
    result counts as converged when the last step met the seed's criteria.
+7. **Finish on the points as measured** (``finish_measured``, with a submap smoothed onto
+   its local lines): from there the residuals are taken to each target point where it was
+   measured, ``r_i − lift_i`` (the smoothing moved it by ``lift_i`` along its normal; the
+   association stays the smoothed submap's), until the step stops again. The thin
+   smoothed lines give ICP its wide basin (no noisy band's bumps to stop it short); the
+   measured points its optimum, which the smoothing shifts where a neighbourhood is no
+   line (a corner, a door frame) by a few hundredths of a degree a match, always the same
+   way along a corridor. Coarse to fine, as a multi-resolution matcher (Olson, ICRA 2009)
+   finds the basin on a blurred table and the pose on the fine one.
 
 The rotation column of the Jacobian is scaled by the points' RMS lever arm ``L`` so the
 Hessian has one unit (m⁻²) and its eigenvalues can be compared.
@@ -112,7 +121,9 @@ class Target:
     ``points_xy`` (M, 2) in the target (world) frame. ``viewpoints_xy`` (2,) or (M, 2)
     are the lidar positions the points were seen from; with them the normals point
     towards free space and ICP only matches surfaces that face the scanning lidar.
-    ``normals`` (M, 2) may be given instead of estimated (e.g. from a known world).
+    ``normals`` (M, 2) may be given instead of estimated (e.g. from a known world);
+    ``lift_m`` (M,) says how far smoothing moved each point along its normal (ICP's last
+    iterations use the points as measured, ``[slam.icp] finish_measured``).
     Estimated normals use the ``normal_neighbours`` nearest points within
     ``normal_radius_m``; points whose neighbourhood spreads more than ``max_line_spread``
     (eigenvalue ratio) across the line are dropped (see :func:`estimate_normals`).
@@ -131,6 +142,7 @@ class Target:
         normal_neighbours: int = 10,
         normal_radius_m: float = 0.1,
         max_line_spread: float = 0.2,
+        lift_m: np.ndarray | None = None,
     ) -> None:
         pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
         view = (
@@ -149,6 +161,9 @@ class Target:
             normals = np.where(flip[:, None], -normals, normals)
         self.points = pts[good]
         self.normals = normals[good]
+        #: (M,) how far each point was moved along its normal onto its local line (the submap's smoothing,
+        #: :func:`mazebot.slam.keyframes.line_offsets`): ``points + lift_m · normals`` are the points as measured
+        self.lift_m = np.zeros(self.points.shape[0]) if lift_m is None else np.asarray(lift_m, dtype=np.float64)[good]
         # |nᵀ(v − q)|: the range from the viewpoint projected on the normal, what the point's
         # own range noise moves it by along the normal (0 without viewpoints: exact points)
         self.normal_range_m = (
@@ -265,6 +280,9 @@ def match_scan_steps(
     iterations = 0
     if len(target) == 0 or src.shape[0] == 0:
         return _give_up(prior, 0)
+    # 7. (below) once converged on the smoothed submap, on to the points as measured
+    finish = p.finish_measured and bool(np.any(target.lift_m))
+    measured = False
 
     for iterations in range(1, p.max_iterations + 1):
         if iterations % ITERATIONS_PER_STAGE == 0:
@@ -289,6 +307,8 @@ def match_scan_steps(
         # 4. point-to-line residuals r = nᵀ(R p + t − q) to the matched target points q, Cauchy weights
         n = target.normals[j]
         r = np.einsum("ij,ij->i", n, moved[rows] - target.points[j])
+        if measured:
+            r = r - target.lift_m[j]
         e, w, var = _robust_weights(p, r, n, (src[rows] - sensor) @ rot.T, target.normal_range_m[j])
 
         # 5. linearized least squares, unobservable directions kept at the prior
@@ -302,7 +322,9 @@ def match_scan_steps(
         step_t, step_r = math.hypot(step[0], step[1]), abs(float(step[2]))
         converged = step_t < p.converged_translation_m and step_r < p.converged_rotation_rad
         if step_t < p.stop_translation_m and step_r < p.stop_rotation_rad:
-            break
+            if not finish or measured:
+                break
+            measured = True
 
     assert last is not None  # at least one iteration ran: max_iterations >= 1
     pose[2] = math.remainder(pose[2], math.tau)

@@ -106,6 +106,7 @@ class Keyframe:
         "_faces",
         "_hits",
         "_lattice",
+        "_lift",
         "_match",
         "_ray_count",
         "_ray_ends",
@@ -147,6 +148,8 @@ class Keyframe:
         self.normal_params = normal_params or NormalParams()
         #: (points, normals) packed (:func:`pack`), once computed
         self._surface: tuple[np.ndarray, np.ndarray] | None = None
+        #: how far the smoothing moved each surface point along its normal, packed, with the surface
+        self._lift: np.ndarray | None = None
         self._walls: tuple[float, float, int] | None = None
         self._lattice: LatticeFaces | None = None
         self._faces: Faces | None = None
@@ -178,7 +181,8 @@ class Keyframe:
         self._match = arrays.get("match", self._match)
         self._ray_ends = arrays.get("ray_ends", self._ray_ends)
         self._ray_hit_bits = arrays.get("ray_hit_bits", self._ray_hit_bits)
-        if "surface_points" in arrays and "surface_normals" in arrays:
+        if "surface_points" in arrays and "surface_normals" in arrays and "surface_lift" in arrays:
+            self._lift = arrays["surface_lift"]
             self._surface = (arrays["surface_points"], arrays["surface_normals"])
 
     def caches(self) -> dict[str, Any]:
@@ -211,7 +215,7 @@ class Keyframe:
         kf.integrated_pose, kf.normal_params, kf._ray_count = integrated_pose, normal_params, ray_count
         kf._hits = kf._match = kf._ray_ends = _NO_POINTS
         kf._ray_hit_bits = np.zeros(0, dtype=np.uint8)
-        kf._surface, kf._walls, kf._lattice, kf._faces = None, None, None, None
+        kf._surface, kf._lift, kf._walls, kf._lattice, kf._faces = None, None, None, None, None
         kf.use_packed(arrays)
         return kf
 
@@ -257,6 +261,18 @@ class Keyframe:
         points, normals = self.packed_surface()
         return unpack(points, POINT_STEP_M), unpack(normals, NORMAL_STEP)
 
+    def packed_lift(self) -> np.ndarray:
+        """:meth:`lift_m` as kept (:func:`pack`'s), computed with the surface if need be."""
+        self.packed_surface()
+        assert self._lift is not None  # set before the surface
+        return self._lift
+
+    @property
+    def lift_m(self) -> np.ndarray:
+        """(N,) how far the smoothing moved each surface point along its normal: ``points + lift_m · normals``
+        are the hits as measured (zero where ``[slam.normals] smooth`` is off)."""
+        return unpack(self.packed_lift(), POINT_STEP_M)
+
     def packed_surface(self) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`surface` as kept (:func:`pack`'s int16 or float32), computed if need be: no copy made."""
         surface = self._surface
@@ -269,9 +285,9 @@ class Keyframe:
             flip = np.einsum("ij,ij->i", nrm, view - pts) < 0
             nrm = np.where(flip[:, None], -nrm, nrm)
             pts, nrm = pts[good], nrm[good]
-            if p.smooth:
-                pts = smooth_onto_lines(pts, nrm, p.radius_m, p.neighbours)
-            surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
+            lift = line_offsets(pts, nrm, p.radius_m, p.neighbours) if p.smooth else np.zeros(pts.shape[0])
+            surface = (pack(pts - lift[:, None] * nrm, POINT_STEP_M), pack(nrm, NORMAL_STEP))
+            self._lift = pack(lift, POINT_STEP_M)
             self._surface = surface  # a race with another thread computes the same values
         return surface
 
@@ -369,7 +385,12 @@ class Keyframe:
 
 
 def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: float, neighbours: int) -> np.ndarray:
-    """Each point moved along its normal onto the line through the mean of its neighbours.
+    """Each point moved along its normal onto the line through the mean of its neighbours (:func:`line_offsets`)."""
+    return points_xy - line_offsets(points_xy, normals, radius_m, neighbours)[:, None] * normals
+
+
+def line_offsets(points_xy: np.ndarray, normals: np.ndarray, radius_m: float, neighbours: int) -> np.ndarray:
+    """(N,) each point's distance along its normal from the line through the mean of its neighbours.
 
     The A1's range noise (~1 % of the range) scatters a wall's points by centimetres
     across the wall; the local line (the PCA of :func:`mazebot.slam.icp.estimate_normals`)
@@ -378,10 +399,15 @@ def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: floa
     optimum by a good fraction of its starting error (moving least squares, Alexa et al.,
     "Computing and rendering point set surfaces", IEEE TVCG 2003, reduced to lines).
     Points keep their position along the wall, so corners stay where they were.
+
+    Moving each point by minus its offset (:func:`smooth_onto_lines`) is not free of bias where
+    the neighbourhood is no line (a corner, a door frame: the normal tilted, the mean to one
+    side), and that bias turns every match the same way on sparse scans: ICP only starts on
+    the smoothed points and finishes on the measured ones (``[slam.icp] finish_measured``).
     """
     m = points_xy.shape[0]
     if m == 0:
-        return points_xy.copy()
+        return np.zeros(0)
     k = min(neighbours, m)
     dist, idx = cKDTree(points_xy).query(points_xy, k=k, distance_upper_bound=radius_m)
     dist, idx = dist.reshape(m, k), idx.reshape(m, k)
@@ -392,8 +418,7 @@ def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: floa
     pad = np.vstack((points_xy, np.zeros((1, 2))))
     w = ok.astype(np.float64)
     mean = np.einsum("mk,mkd->md", w, pad[idx]) / np.maximum(w.sum(axis=1), 1.0)[:, None]
-    offset = np.einsum("md,md->m", points_xy - mean, normals)
-    return points_xy - offset[:, None] * normals
+    return np.asarray(np.einsum("md,md->m", points_xy - mean, normals))
 
 
 def map_rays(
@@ -488,6 +513,7 @@ def build_target_steps(
     if not kept:
         return None
     surfaces = [keyframes[k].packed_surface() for k in kept]
+    lifts = [keyframes[k].packed_lift() for k in kept]
     base = None if frame is None else np.asarray(frame, dtype=np.float64)
     pose_rows = []
     for k in kept:
@@ -507,6 +533,7 @@ def build_target_steps(
     counts = np.array([pts.shape[0] for pts, _ in surfaces])
     local = unpack_all([pts for pts, _ in surfaces], POINT_STEP_M)
     local_nrm = unpack_all([nrm for _, nrm in surfaces], NORMAL_STEP)
+    lift = unpack_all(lifts, POINT_STEP_M)
     c, sn = np.repeat(cos, counts), np.repeat(sin, counts)
     points = np.column_stack(
         (
@@ -518,13 +545,13 @@ def build_target_steps(
     views = np.repeat(views_kf, counts, axis=0)
     if clip is not None:
         near = np.hypot(*(points - np.asarray(clip[0], dtype=np.float64).reshape(1, 2)).T) <= clip[1]
-        points, normals, views = points[near], normals[near], views[near]
+        points, normals, views, lift = points[near], normals[near], views[near], lift[near]
         if points.shape[0] == 0:
             return None
     yield
     first = voxel_downsample(points, voxel_m)
     yield
-    return Target(points[first], views[first], normals[first])
+    return Target(points[first], views[first], normals[first], lift_m=lift[first])
 build_target = all_at_once(
     build_target_steps,
     """The union of the keyframes' points and normals as an ICP target, one point per voxel.

@@ -258,7 +258,10 @@ def laser_log_params(
         prepare=replace(
             base.prepare, min_range_m=0.1, max_range_m=30.0, voxel_size_m=0.05, mount_x_m=0.0, mount_y_m=0.0
         ),
-        icp=replace(base.icp, max_correspondence_m=0.5, min_correspondence_m=0.1, range_noise_ratio=0.0),
+        icp=replace(
+            base.icp, max_correspondence_m=0.5, min_correspondence_m=0.1, range_noise_ratio=0.0,
+            finish_measured=True,  # the smoothed submap's basin, the measured points' optimum: measured below
+        ),
         normals=replace(base.normals, radius_m=0.3),
         motion=motion,
         loop=replace(

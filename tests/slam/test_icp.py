@@ -214,6 +214,30 @@ def test_a_wall_off_as_a_whole_makes_the_clustered_information_honest_about_it()
     assert np.all((ratio >= 1.0) & (ratio < 1.5))
 
 
+def test_icp_finishes_on_the_points_as_measured_not_where_smoothing_moved_them() -> None:
+    """A room whose north wall the submap's smoothing moved 3 cm towards the lidar (``lift_m`` says by how
+    much): stopped on the smoothed points the match sits 2 cm off; finished on the points as measured
+    (``finish_measured``) within a millimetre of the true pose."""
+    walls = _box_room()
+    north = walls[:, 1] > 1.9
+    smoothed = walls.copy()
+    smoothed[north, 1] -= 0.03
+    lift = np.where(north, -0.03, 0.0)  # the normals face the lidar: north wall's (0, -1); measured = q + lift n
+    target = Target(smoothed, np.zeros(2), lift_m=lift)
+    measured = target.points + target.lift_m[:, None] * target.normals
+    inside = (measured[:, 1] > 1.9) & (np.abs(measured[:, 0]) < 1.8)  # the north wall, away from the corners
+    assert np.allclose(measured[inside, 1], 2.0)
+    rng = np.random.default_rng(0)
+    src = walls[::3] + rng.normal(0.0, 0.005, (walls[::3].shape[0], 2))
+    start = np.array([0.05, -0.04, 0.03])
+    stopped = match_scan(target, src, start, IcpParams())
+    finished = match_scan(target, src, start, IcpParams(finish_measured=True))
+    assert abs(stopped.pose[1]) > 0.01
+    assert np.hypot(*finished.pose[:2]) < 0.001
+    assert abs(finished.pose[2]) < 0.001
+    assert finished.converged
+
+
 def test_the_clustered_information_is_the_hessians_shape_never_surer_and_symmetric(
     maze_world: World, maze_target: Target, cast_scan
 ) -> None:

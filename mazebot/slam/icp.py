@@ -31,7 +31,9 @@ outlier rejection, and a convergence test of at most 150 iterations or a step be
 7. **Finish on the points as measured** (``finish_measured``, with a submap smoothed onto
    its local lines): from there the residuals are taken to each target point where it was
    measured, ``r_i − lift_i`` (the smoothing moved it by ``lift_i`` along its normal; the
-   association stays the smoothed submap's), until the step stops again. The thin
+   association stays the smoothed submap's and the gate of step 3 stays where it was, so
+   the inlier ratio a match is judged by is the smoothed stage's), until the step stops
+   again. The thin
    smoothed lines give ICP its wide basin (no noisy band's bumps to stop it short); the
    measured points its optimum, which the smoothing shifts where a neighbourhood is no
    line (a corner, a door frame) by a few hundredths of a degree a match, always the same
@@ -299,10 +301,12 @@ def match_scan_steps(
         if m < p.min_correspondences:
             return _give_up(prior, iterations, m / src.shape[0])
 
-        # 3. outlier gate for the next iteration: mean + 3 std of the accepted distances
-        mean_d = float(d.sum()) / m
-        std_d = math.sqrt(max(0.0, float(d @ d) / m - mean_d * mean_d))
-        gate_m = min(gate_m, max(p.min_correspondence_m, mean_d + 3.0 * std_d))
+        # 3. outlier gate for the next iteration: mean + 3 std of the accepted distances (held while
+        # finishing, step 7: the finish moves where the residuals point, not which points are inliers)
+        if not measured:
+            mean_d = float(d.sum()) / m
+            std_d = math.sqrt(max(0.0, float(d @ d) / m - mean_d * mean_d))
+            gate_m = min(gate_m, max(p.min_correspondence_m, mean_d + 3.0 * std_d))
 
         # 4. point-to-line residuals r = nᵀ(R p + t − q) to the matched target points q, Cauchy weights
         n = target.normals[j]

@@ -220,7 +220,14 @@ def laser_log_params(
       0.137 / 0.138 m) and the Intel log at ``0.05,0.05`` seeds 1-3 improved (0.122 / 0.108 /
       0.154 → 0.088 / 0.098 / 0.130 m), but at ``0.1,0.1`` seed 1 lost a stretch near its end
       (0.239 → 0.953 m), seed 3 got worse (0.297 → 0.604 m) and the stand-in's ACES seed 1 too
-      (0.296 → 0.320 m; branch ``seattle15``);
+      (0.296 → 0.320 m; branch ``seattle15``). ICP finishing on the points as measured once it has
+      stopped on the smoothed ones (``[slam.icp] finish_measured``, off; ``--config`` with true turns
+      it on) keeps the smoothed submap's basin and drops its turn (+0.009° ± 0.009° a match, the
+      first corridor 0.96°): the Radish logs better on 6 of 9 runs, 6 of 9 within 0.20 m (Seattle
+      0.100 / 0.085 / 0.094, ACES 0.120 / 0.265 / 0.142 m; Freiburg 101 worse, 0.159 / 0.248 /
+      0.217 m), the Intel log better on 4 of 6 (``0.05`` seed 1 0.098 / 0.258 m, within both limits;
+      ``0.1`` seed 3 0.297 → 0.248 m, nothing lost), but ``0.05`` seed 2 0.108 → 0.162, ``0.1`` seed 1
+      0.239 → 0.275 and the stand-in's ACES seed 1 0.296 → 0.515 m (branch ``smooth16``);
     - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
       (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
       every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the
@@ -258,10 +265,7 @@ def laser_log_params(
         prepare=replace(
             base.prepare, min_range_m=0.1, max_range_m=30.0, voxel_size_m=0.05, mount_x_m=0.0, mount_y_m=0.0
         ),
-        icp=replace(
-            base.icp, max_correspondence_m=0.5, min_correspondence_m=0.1, range_noise_ratio=0.0,
-            finish_measured=True,  # the smoothed submap's basin, the measured points' optimum: measured below
-        ),
+        icp=replace(base.icp, max_correspondence_m=0.5, min_correspondence_m=0.1, range_noise_ratio=0.0),
         normals=replace(base.normals, radius_m=0.3),
         motion=motion,
         loop=replace(

@@ -167,12 +167,13 @@ class Keyframe:
         """The arrays it keeps, as kept (int16 or float32, the ray flags as bits), by name.
 
         For :mod:`mazebot.slam.shared_keyframes`, which moves them into shared memory; the
-        surface's two arrays are there once it is computed.
+        surface's three arrays (points, normals, the smoothing's lift) are there once it is computed.
         """
         arrays = {"hits": self._hits, "match": self._match, "ray_ends": self._ray_ends,
                   "ray_hit_bits": self._ray_hit_bits}
-        if self._surface is not None:
+        if self._surface is not None and self._lift is not None:
             arrays["surface_points"], arrays["surface_normals"] = self._surface
+            arrays["surface_lift"] = self._lift
         return arrays
 
     def use_packed(self, arrays: dict[str, np.ndarray]) -> None:

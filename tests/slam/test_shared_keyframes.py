@@ -30,7 +30,7 @@ def _keyframe(index: int, seed: int = 0) -> Keyframe:
 
 
 def _same(a: Keyframe, b: Keyframe) -> None:
-    for name in ("hits", "match_points", "ray_ends", "ray_hit", "points", "normals", "sensor_xy"):
+    for name in ("hits", "match_points", "ray_ends", "ray_hit", "points", "normals", "lift_m", "sensor_xy"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
 

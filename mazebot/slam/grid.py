@@ -28,6 +28,16 @@ cells went from log odds 2.3 to -1.7 while the robot turned in place 12 cm from 
 then drove into the leg). What was seen from outside the blind zone now stays until the
 robot sees the place again from outside it.
 
+Past ``wall_range_m`` from where it starts (the range up to which SLAM lets a hit mark a
+wall, :func:`mazebot.slam.keyframes.map_rays`) a beam likewise lowers only cells not believed
+occupied. Its hit there is too imprecise to mark a wall (range noise and a heading error grow
+with the range: 0.5° is 3.5 cm at 4 m), and so is where it passes: a far beam that runs along a
+wall or past its end at a grazing angle crosses the cells holding the wall's face. Such beams,
+revolution after revolution, erased a wall the robot had marked from close by (a hand-built
+contest maze, walls turned a degree to the cells), and the robot driving beside it again was
+said lost. They still clear unknown and free space; a wall goes only when a near beam, precise
+enough to have marked it, passes through it.
+
 The array grows: when a scan reaches past its edge it is reallocated with a margin,
 content kept at the same world coordinates. Frame: ``grid[row, col]``, row 0 south,
 column 0 west, cell (row, col) spanning ``origin + (col, row) * resolution`` — the ROS
@@ -97,7 +107,9 @@ class OccupancyGrid:
     occupied above ``occupied_prob``, free below ``free_prob``), ``max_free_range_m``
     the length up to which a no-return beam clears space, ``margin_m`` the extra room
     added on each side when the grid grows, ``blind_range_m`` the stretch at the start of
-    every beam that clears no occupied cell (the lidar's minimum range; module docstring).
+    every beam that clears no occupied cell (the lidar's minimum range; module docstring),
+    ``wall_range_m`` (None: no limit) the distance past which a beam clears no occupied cell
+    either (the range within which SLAM's hits mark walls; module docstring).
     """
 
     def __init__(
@@ -113,6 +125,7 @@ class OccupancyGrid:
         margin_m: float = 1.0,
         trace_step: float = 0.5,
         blind_range_m: float = 0.0,
+        wall_range_m: float | None = None,
     ) -> None:
         if resolution_m <= 0:
             raise ValueError(f"resolution_m must be positive, got {resolution_m}")
@@ -133,6 +146,9 @@ class OccupancyGrid:
         self.margin_m = float(margin_m)
         self.trace_step = float(trace_step)
         self.blind_range_m = float(blind_range_m)
+        if wall_range_m is not None and wall_range_m <= blind_range_m:
+            raise ValueError(f"need wall_range_m > blind_range_m, got {wall_range_m}, {blind_range_m}")
+        self.wall_range_m = None if wall_range_m is None else float(wall_range_m)
         self.generation = 0
         self.cell_offset_m = (0.0, 0.0)  # where the cells' corners lie, modulo the resolution (rebuild)
         self._clear()
@@ -244,10 +260,14 @@ class OccupancyGrid:
         start_c = (starts - offset) / self.resolution_m - origin
         end_c = (ends - offset) / self.resolution_m - origin
         end_cell = np.floor(end_c).astype(np.int64)
-        past_blind = self._past_blind_zone(start_c, end_c)
-        free_c, free_r = self._trace_free(past_blind, end_c, end_cell, hit, drop_hit_cells=False)
+        past_blind = self._along(start_c, end_c, self.blind_range_m)
+        past_walls = self._along(start_c, end_c, self.wall_range_m) if self.wall_range_m is not None else end_c
+        free_c, free_r = self._trace_free(past_blind, past_walls, end_cell, hit, drop_hit_cells=False)
         hit_c, hit_r = end_cell[hit, 0], end_cell[hit, 1]
         blind_c, blind_r = self._trace_free(start_c, past_blind, end_cell, hit, drop_hit_cells=False)
+        if self.wall_range_m is not None:  # past the walls' range too, occupied cells stay as they are
+            far_c, far_r = self._trace_free(past_walls, end_c, end_cell, hit, drop_hit_cells=False)
+            blind_c, blind_r = np.concatenate((blind_c, far_c)), np.concatenate((blind_r, far_r))
 
         # one update per cell per scan, a hit winning over a miss: mark a window, then update
         end_lo, end_hi = _xy_bounds(end_cell)
@@ -302,13 +322,13 @@ class OccupancyGrid:
         scale = np.divide(cap, length, out=np.zeros_like(cap), where=length > 0)
         return starts, starts + vec * scale[:, None], hit
 
-    def _past_blind_zone(self, start_c: np.ndarray, end_c: np.ndarray) -> np.ndarray:
-        """Where each beam (cell units) leaves the blind zone: ``blind_range_m`` along it, at most its end."""
-        if self.blind_range_m <= 0.0:
+    def _along(self, start_c: np.ndarray, end_c: np.ndarray, distance_m: float) -> np.ndarray:
+        """The point ``distance_m`` along each beam (cell units), at most its end."""
+        if distance_m <= 0.0:
             return start_c
         vec = end_c - start_c
         length = np.hypot(vec[:, 0], vec[:, 1])
-        skip = np.minimum(self.blind_range_m / self.resolution_m, length)
+        skip = np.minimum(distance_m / self.resolution_m, length)
         scale = np.divide(skip, length, out=np.zeros_like(length), where=length > 0)
         return start_c + vec * scale[:, None]
 

@@ -43,6 +43,7 @@ class GridParams(GridSection):
     and the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there)."""
 
     blind_range_m: float = LidarConfig().min_range_m
+    wall_range_m: float | None = None  # beams clear no occupied cell past this (the range hits mark walls within)
 
     def new_grid(self) -> OccupancyGrid:
         return OccupancyGrid(**section_values(self))
@@ -117,7 +118,8 @@ class SlamParams(FilterSection, MatchingSection, KeyframeSection, GraphSection, 
             normals=slam.normals,
             motion=as_params(MotionNoise, slam.motion),
             loop=loop,
-            grid=as_params(GridParams, slam.grid, blind_range_m=lidar.min_range_m),
+            grid=as_params(GridParams, slam.grid, blind_range_m=lidar.min_range_m,
+                           wall_range_m=slam.map.map_max_range_m or None),
             map_smoothing=slam.smoothing if slam.map_smooth_endpoints else None,
             correlative=slam.search if slam.correlative else None,
             lattice=lattice,

@@ -512,10 +512,6 @@ class MapSection:
         "the lidar's range noise, std as a fraction of the range (A1: about 1 %)"))] = 0.01
     map_hit_depth_m: Annotated[float, Field(ge=0, le=0.05, description=(
         "a hit marks the cell this far behind the wall's face (under the wall thickness)"))] = 0.006
-    map_min_incidence_deg: Annotated[float, Field(ge=0, lt=90, description=(
-        "a nearer hit meeting its wall at a smaller angle marks no wall either: its beam, running along the "
-        "wall, would clear more of the cells the face passes through than its hit marks (every beam stops "
-        "clearing a cell's diagonal from the surface it hits; 0: nearer hits all mark)"))] = 20.0
 
 
 #: The sections whose fields :class:`mazebot.slam.slam.SlamParams` holds side by side.

@@ -31,12 +31,16 @@ robot sees the place again from outside it.
 Past ``wall_range_m`` from where it starts (the range up to which SLAM lets a hit mark a
 wall, :func:`mazebot.slam.keyframes.map_rays`) a beam likewise lowers only cells not believed
 occupied. Its hit there is too imprecise to mark a wall (range noise and a heading error grow
-with the range: 0.5° is 3.5 cm at 4 m), and so is where it passes: a far beam that runs along a
-wall or past its end at a grazing angle crosses the cells holding the wall's face. Such beams,
-revolution after revolution, erased a wall the robot had marked from close by (a hand-built
-contest maze, walls turned a degree to the cells), and the robot driving beside it again was
-said lost. They still clear unknown and free space; a wall goes only when a near beam, precise
-enough to have marked it, passes through it.
+with the range: 0.5° is 3.5 cm at 4 m), and so is where it passes. Cells are squares and a
+wall is rarely on their edges (a maze built by hand stands a degree turned to them): a cell the
+wall's face passes through is partly free, and a beam running along the wall at a grazing
+angle, or past its end, crosses that free part and clears the whole cell, revolution after
+revolution, while its hit marks one cell far along, or none. Measured: the hand-built contest
+maze apec2011, lattice priors off, a 1 m wall marked at the clamp from close by, then cleared
+to the other clamp within 13 s by beams from 1.2-4 m down its corridor; the robot driving
+beside it again saw 11 % of its hits on "free" cells and was said lost. Far beams still clear
+unknown and free space; a wall goes only when a near beam, precise enough to have marked it,
+passes through it (a moved box, a door).
 
 The array grows: when a scan reaches past its edge it is reallocated with a margin,
 content kept at the same world coordinates. Frame: ``grid[row, col]``, row 0 south,

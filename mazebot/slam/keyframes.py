@@ -29,7 +29,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mazebot.geometry import relative_pose
-from mazebot.slam.beam_incidence import free_stop_m, incidence_sin
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
@@ -403,8 +402,6 @@ def map_rays(
     smoothing: EndpointSmoothing | None = None,
     range_noise_rel: float = 0.0,
     hit_depth_m: float = 0.0,
-    clearance_m: float = 0.0,
-    min_incidence_rad: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The scan's rays for the occupancy grid, robot frame: ``(ends (K, 2), hit (K,), origins (K, 2))``.
 
@@ -427,13 +424,6 @@ def map_rays(
     noise) would otherwise mark the free cell in front in most revolutions, the wall
     would show two cells thick and the free space end one cell short of it. Keep it
     below the thinnest wall (the maze's is 12 mm) so the marked cell is still on it.
-
-    With ``clearance_m`` (the grid's cell diagonal) no beam clears the last stretch
-    before its hit where it runs within that distance of the surface it hits: cells there
-    may hold the surface (:mod:`mazebot.slam.beam_incidence`). A hit nearer than
-    ``max_range_m`` that meets its surface at less than ``min_incidence_rad`` becomes a
-    no-return ray too: its beam would clear more of the cells the face passes through
-    than its hit marks. Steep hits, which the face is marked from, are as before.
     """
     beams = prepared.beams()
     ends, hit, origins = beams.endpoints, beams.hit.copy(), beams.origins
@@ -441,28 +431,17 @@ def map_rays(
         n = prepared.points_full.shape[0]  # the hits come first, in scan order
         ends = ends.copy()
         ends[:n] = smooth_endpoints(ends[:n], origins[:n], smoothing)
-    if max_range_m is None and hit_depth_m <= 0.0 and clearance_m <= 0.0:
+    if max_range_m is None and hit_depth_m <= 0.0:
         return ends, hit, origins
     vec = ends - origins
     length = np.hypot(vec[:, 0], vec[:, 1])
     ends = ends.copy()
-    clear_m = length.copy()  # how much of each beam clears space
-    unmarked = np.zeros(hit.shape, dtype=bool)  # hits that become no-return rays
     if max_range_m is not None:
         far = hit & (length > max_range_m)
-        clear_m[far] = length[far] * (1.0 - 3.0 * range_noise_rel) if range_noise_rel > 0 else max_range_m
-        unmarked |= far
-    if clearance_m > 0.0:
-        n = prepared.points_full.shape[0]
-        sin_incidence = np.ones(hit.shape)
-        sin_incidence[:n] = incidence_sin(ends[:n], origins[:n])
-        unmarked |= hit & (sin_incidence < math.sin(min_incidence_rad))
-        clear_m[unmarked] = np.minimum(clear_m[unmarked], length[unmarked] - free_stop_m(
-            sin_incidence[unmarked], clearance_m))
-    if unmarked.any():
-        scale = np.maximum(clear_m[unmarked], 0.0) / np.maximum(length[unmarked], 1e-12)
-        ends[unmarked] = origins[unmarked] + vec[unmarked] * scale[:, None]
-        hit[unmarked] = False
+        if far.any():
+            clear_m = length[far] * (1.0 - 3.0 * range_noise_rel) if range_noise_rel > 0 else max_range_m
+            ends[far] = origins[far] + vec[far] * (clear_m / length[far])[:, None]
+            hit[far] = False
     if hit_depth_m > 0.0:
         deep = hit & (length > 0.0)
         ends[deep] += vec[deep] * (hit_depth_m / length[deep])[:, None]

@@ -40,10 +40,11 @@ from mazebot.slam_config import (
 @dataclass(frozen=True)
 class GridParams(GridSection):
     """Occupancy grid settings, the ``[slam.grid]`` section (see :class:`mazebot.slam.grid.OccupancyGrid`),
-    and the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there)."""
+    the lidar's minimum range: beams erase no occupied cell that close (the sensor cannot see there), and
+    ``[slam.map] map_max_range_m``: nor farther than hits mark walls (too imprecise there to erase one)."""
 
     blind_range_m: float = LidarConfig().min_range_m
-    wall_range_m: float | None = None  # beams clear no occupied cell past this (the range hits mark walls within)
+    wall_range_m: float | None = None
 
     def new_grid(self) -> OccupancyGrid:
         return OccupancyGrid(**section_values(self))

@@ -768,9 +768,7 @@ class Slam:
         yield
 
         # 5. keyframe: into the pose graph, and a new local submap
-        rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel, p.map_hit_depth_m,
-                        clearance_m=math.sqrt(2.0) * p.grid.resolution_m,
-                        min_incidence_rad=math.radians(p.map_min_incidence_deg))
+        rays = map_rays(prepared, p.map_max_range_m, p.map_smoothing, p.range_noise_rel, p.map_hit_depth_m)
         keyframe = None
         if not paint:
             pass  # localizing only: the map and the graph stay as they are

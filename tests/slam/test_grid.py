@@ -15,6 +15,7 @@ from mazebot.sim.raster import true_occupancy
 from mazebot.sim.world import World
 from mazebot.slam.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
+from mazebot.slam.params import SlamParams
 
 RES_M = 0.02
 
@@ -326,3 +327,39 @@ def test_a_thin_leg_seen_from_afar_stays_while_the_robot_stands_in_its_blind_zon
     # the robot's own place is free all the same: the blind zone makes free what held no wall
     r, c = grid.to_cell(np.array([[0.3, 0.09]]))
     assert grid.three_state()[r[0], c[0]] == FREE
+
+
+def _wall_turned_to_the_cells(grid: OccupancyGrid, revolutions: int) -> None:
+    """A wall's face 3 cm long above y = 1.5 cm, marked from 0.15 m below by beams straight at it."""
+    xs = np.arange(2.0, 3.0, 0.005)
+    for _ in range(revolutions):
+        origins = np.column_stack((xs, np.full(xs.shape, -0.15)))
+        grid.integrate(origins[0], np.column_stack((xs, np.full(xs.shape, 0.015))), np.ones(xs.shape, dtype=bool),
+                       origins)
+
+
+def test_far_beams_grazing_a_wall_clear_no_cell_of_it_near_beams_do() -> None:
+    # the daemon's grid: a beam past [slam.map] map_max_range_m (where hits mark walls) lowers no wall cell
+    grid = SlamParams().grid.new_grid()
+    wall = np.column_stack((np.arange(2.01, 3.0, 0.02), np.full(50, 0.01)))  # the cells holding the face
+
+    def states(xy: np.ndarray) -> np.ndarray:
+        rows, cols = grid.to_cell(xy)
+        return grid.three_state()[rows, cols]
+
+    _wall_turned_to_the_cells(grid, 10)
+    assert (states(wall) == OCCUPIED).all()
+    # beams from 2-4 m down the corridor, rising 3 mm over 4 m: they pass under the face (y < 1.5 cm)
+    # in the cells that hold it, and go on past the wall's end (no return: what a far hit becomes)
+    origin = np.array([-0.5, 0.008])
+    ends = np.column_stack((np.full(5, 3.5), np.linspace(0.008, 0.011, 5)))
+    for _ in range(30):
+        grid.integrate(origin, ends, np.zeros(5, dtype=bool), np.broadcast_to(origin, ends.shape))
+    assert (states(wall) == OCCUPIED).all()  # the far beams cleared no cell of the wall
+    assert (states(np.array([[3.3, 0.01], [0.5, 0.01]])) == FREE).all()  # past its end and near the lidar they clear
+    # a near beam passes where the wall stood (taken away): it clears it as before
+    near = np.array([2.5, -0.3])
+    for _ in range(30):
+        grid.integrate(near, np.array([[2.5, 0.5]]), np.zeros(1, dtype=bool), near[None])
+    assert states(np.array([[2.5, 0.01]]))[0] == FREE
+    assert grid.wall_range_m == SlamParams().map_max_range_m

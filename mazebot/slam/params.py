@@ -44,7 +44,7 @@ class GridParams(GridSection):
     ``[slam.map] map_max_range_m``: nor farther than hits mark walls (too imprecise there to erase one)."""
 
     blind_range_m: float = LidarConfig().min_range_m
-    wall_range_m: float | None = None
+    wall_range_m: float | None = MapSection().map_max_range_m
 
     def new_grid(self) -> OccupancyGrid:
         return OccupancyGrid(**section_values(self))

@@ -288,7 +288,7 @@ def laser_log_params(
         ),
         correlative=None if base.correlative is None else search,  # [slam] correlative = false turns both off
         lattice=None,  # no maze: no wall lattice
-        grid=GridParams(resolution_m=0.05, max_free_range_m=20.0),
+        grid=GridParams(resolution_m=0.05, max_free_range_m=20.0, wall_range_m=None),  # hits mark walls at any range
         map_max_range_m=20.0,
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match
         max_match_rmse_m=1.0,

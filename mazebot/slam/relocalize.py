@@ -136,6 +136,11 @@ class ScanFit:
     def contradiction(self) -> float:
         return self.contradicting / max(1, self.known)
 
+    @classmethod
+    def count(cls, known: np.ndarray, contradicting: np.ndarray, on_walls: np.ndarray) -> ScanFit:
+        """The fit of the hits :func:`hit_classes` classified (its three boolean arrays, or a part of each)."""
+        return cls(int(known.sum()), int(contradicting.sum()), int(on_walls.sum()))
+
 
 @dataclass(frozen=True)
 class SearchResult:
@@ -153,7 +158,7 @@ class SearchResult:
 def scan_fit(grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
     """Look hits (N, 2, map frame) up in the grid: see :class:`ScanFit`."""
     _, known, contradicting, on_walls = _classify(grid, hits_map, free_margin_cells)
-    return ScanFit(int(known.sum()), int(contradicting.sum()), int(on_walls.sum()))
+    return ScanFit.count(known, contradicting, on_walls)
 
 
 def hit_classes(
@@ -496,7 +501,7 @@ class LocalizationGuard:
         hits = hits_in_map(scan, slam.map_from_odom, odometry, time_offset_s=slam.time_offset.offset_s,
                            mount_xy_m=mount, stride=p.stride)
         known, contradicting, on_walls = hit_classes(slam.grid, hits, p.free_margin_cells)
-        fit = ScanFit(int(known.sum()), int(contradicting.sum()), int(on_walls.sum()))
+        fit = ScanFit.count(known, contradicting, on_walls)
         self.last_fit = fit
         if self.lost:
             # search with every revolution, even one the map hardly knows at the odometry's wrong
@@ -508,7 +513,7 @@ class LocalizationGuard:
             # a suspect revolution counts towards the streak but never ends it: it may be the one
             # the robot was picked up in, or a healthy one with a few stray hits
             later = _later_half(scan, p.stride)
-            later_fit = ScanFit(int(known[later].sum()), int(contradicting[later].sum()), int(on_walls[later].sum()))
+            later_fit = ScanFit.count(known[later], contradicting[later], on_walls[later])
             suspect = fit.contradiction > p.suspect_contradiction or (
                 later_fit.known >= p.min_known_hits // p.stride and later_fit.contradiction > p.suspect_contradiction)
             self._misfits = min(self._misfits + 1, p.lost_after - 1) if suspect else 0

@@ -59,6 +59,7 @@ from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.carmen import CarmenLog, LaserRecord, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
+from mazebot.slam.loop_closure import ObservedDirections
 from mazebot.slam.map_consistency import (
     Neighbourhood,
     consistency,
@@ -655,16 +656,23 @@ def closures_off_reference(
     slam: Slam, keyframe_scans: dict[int, tuple[int, bool]], reference: np.ndarray
 ) -> dict[str, int]:
     """How many accepted loop closures are off the reference's relative pose by more than
-    :data:`CLOSURE_OFF_M` or :data:`CLOSURE_OFF_RAD`, all and those a set accepted."""
-    out = {"off": 0, "set_off": 0}
+    :data:`CLOSURE_OFF_M` or :data:`CLOSURE_OFF_RAD`, all and those a set accepted; and how many
+    left a direction free (``degenerate``: judged in the directions they constrain alone, their
+    position along a corridor being the chain's) and of those how many are off."""
+    out = {"off": 0, "set_off": 0, "degenerate": 0, "degenerate_off": 0}
     for c in slam.closures:
         if c.old not in keyframe_scans or c.new not in keyframe_scans:
             continue
         truth = relative_pose(reference[keyframe_scans[c.old][0]], reference[keyframe_scans[c.new][0]])
         e = relative_pose(truth, c.measurement)
-        if math.hypot(float(e[0]), float(e[1])) > CLOSURE_OFF_M or abs(float(wrap_angle(e[2]))) > CLOSURE_OFF_RAD:
+        e[2] = float(wrap_angle(e[2]))
+        if c.free_information is not None:  # the error's free component is no error of the closure's
+            e = ObservedDirections.of(c.free_information).constrained_part(e, np.eye(3))
+            out["degenerate"] += 1
+        if math.hypot(float(e[0]), float(e[1])) > CLOSURE_OFF_M or abs(float(e[2])) > CLOSURE_OFF_RAD:
             out["off"] += 1
             out["set_off"] += int(c.by_set)
+            out["degenerate_off"] += int(c.free_information is not None)
     return out
 
 

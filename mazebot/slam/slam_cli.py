@@ -222,6 +222,12 @@ def laser_log_params(
       0.154 → 0.088 / 0.098 / 0.130 m), but at ``0.1,0.1`` seed 1 lost a stretch near its end
       (0.239 → 0.953 m), seed 3 got worse (0.297 → 0.604 m) and the stand-in's ACES seed 1 too
       (0.296 → 0.320 m; branch ``seattle15``);
+    - a closure whose match leaves a direction free refused (``[slam.loop] accept_degenerate`` passes through
+      from ``--config``, false): accepted in the directions it constrains, matched again at the chain's place
+      along the corridor, 6 of 622 such closures were off the corrected poses there over 21 runs and the
+      stand-in's ACES seed 1 improved (0.296 -> 0.267 m), but Seattle (0.23-0.33 -> 0.30-0.35 m), the
+      stand-in's ACES seeds 2-3 and Intel seeds 1 and 3 got worse (the maps about as consistent, turned
+      differently about the start); the Intel log at ``0.1,0.1`` improved on all three seeds (branch ``corridor17``);
     - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
       (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
       every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the

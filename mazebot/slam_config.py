@@ -238,7 +238,8 @@ class LoopSection:
     max_rmse_m: Annotated[float, Field(gt=0, description="accept: point-to-line RMS at most this")] = 0.012
     min_correspondences: Annotated[int, Field(ge=3, description="accept: at least this many matched points")] = 40
     accept_degenerate: Annotated[bool, Field(description=(
-        "accept matches that leave a direction unconstrained"))] = False
+        "accept matches that leave a direction unconstrained (a straight corridor), with information, "
+        "correction and chi2 test in the directions they constrain only"))] = False
     gate_chi2: Annotated[float, Field(gt=0, description=(
         "accept: correction consistent with odometry (chi2, 3 dof; 11.34: 99 %)"))] = 11.34
     max_correction_m: Annotated[float, Field(gt=0, description=(

@@ -82,7 +82,7 @@ from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
-from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
+from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, verify
 from mazebot.slam.match_residuals import MatchResiduals
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 from mazebot.slam.overlap import ObservedArea
@@ -477,6 +477,8 @@ class ClosureRecord:
     new_time_s: float
     measurement: np.ndarray
     by_set: bool = False  # a tentative closure the set accepted (mazebot.slam.closure_set)
+    # the edge's information (3×3, ``new``'s frame) when it leaves a direction free (a degenerate match), else None
+    free_information: np.ndarray | None = None
 
 
 class Slam:
@@ -926,7 +928,8 @@ class Slam:
         self.graph.add_edge(c.old, c.new, v.measurement, v.information)
         self.closures.append(
             ClosureRecord(c.old, c.new, self.keyframes[c.old].time_s, self.keyframes[c.new].time_s, v.measurement,
-                          by_set=v.reason == ACCEPTED_BY_SET)
+                          by_set=v.reason == ACCEPTED_BY_SET,
+                          free_information=v.information if ObservedDirections.of(v.information).dof < 3 else None)
         )
         if self.params.loop.set_verify:
             self._set_members.append(v)

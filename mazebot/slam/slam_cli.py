@@ -59,6 +59,7 @@ from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.carmen import CarmenLog, LaserRecord, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
+from mazebot.slam.loop_closure import ObservedDirections
 from mazebot.slam.map_consistency import (
     Neighbourhood,
     consistency,
@@ -221,6 +222,12 @@ def laser_log_params(
       0.154 → 0.088 / 0.098 / 0.130 m), but at ``0.1,0.1`` seed 1 lost a stretch near its end
       (0.239 → 0.953 m), seed 3 got worse (0.297 → 0.604 m) and the stand-in's ACES seed 1 too
       (0.296 → 0.320 m; branch ``seattle15``);
+    - a closure whose match leaves a direction free refused (``[slam.loop] accept_degenerate`` passes through
+      from ``--config``, false): accepted in the directions it constrains, matched again at the chain's place
+      along the corridor, 6 of 622 such closures were off the corrected poses there over 21 runs and the
+      stand-in's ACES seed 1 improved (0.296 -> 0.267 m), but Seattle (0.23-0.33 -> 0.30-0.35 m), the
+      stand-in's ACES seeds 2-3 and Intel seeds 1 and 3 got worse (the maps about as consistent, turned
+      differently about the start); the Intel log at ``0.1,0.1`` improved on all three seeds (branch ``corridor17``);
     - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
       (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
       every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the
@@ -655,16 +662,23 @@ def closures_off_reference(
     slam: Slam, keyframe_scans: dict[int, tuple[int, bool]], reference: np.ndarray
 ) -> dict[str, int]:
     """How many accepted loop closures are off the reference's relative pose by more than
-    :data:`CLOSURE_OFF_M` or :data:`CLOSURE_OFF_RAD`, all and those a set accepted."""
-    out = {"off": 0, "set_off": 0}
+    :data:`CLOSURE_OFF_M` or :data:`CLOSURE_OFF_RAD`, all and those a set accepted; and how many
+    left a direction free (``degenerate``: judged in the directions they constrain alone, their
+    position along a corridor being the chain's) and of those how many are off."""
+    out = {"off": 0, "set_off": 0, "degenerate": 0, "degenerate_off": 0}
     for c in slam.closures:
         if c.old not in keyframe_scans or c.new not in keyframe_scans:
             continue
         truth = relative_pose(reference[keyframe_scans[c.old][0]], reference[keyframe_scans[c.new][0]])
         e = relative_pose(truth, c.measurement)
-        if math.hypot(float(e[0]), float(e[1])) > CLOSURE_OFF_M or abs(float(wrap_angle(e[2]))) > CLOSURE_OFF_RAD:
+        e[2] = float(wrap_angle(e[2]))
+        if c.free_information is not None:  # the error's free component is no error of the closure's
+            e = ObservedDirections.of(c.free_information).constrained_part(e, np.eye(3))
+            out["degenerate"] += 1
+        if math.hypot(float(e[0]), float(e[1])) > CLOSURE_OFF_M or abs(float(e[2])) > CLOSURE_OFF_RAD:
             out["off"] += 1
             out["set_off"] += int(c.by_set)
+            out["degenerate_off"] += int(c.free_information is not None)
     return out
 
 

@@ -11,6 +11,8 @@ import pytest
 from mazebot.geometry import compose, relative_pose
 from mazebot.io.scan import Scan
 from mazebot.sim.world import World, rectangles_outline
+from mazebot.slam.correlative import CorrelativeParams
+from mazebot.slam.ekf import rotate_information
 from mazebot.slam.icp import IcpParams
 from mazebot.slam.keyframes import Keyframe, build_target
 from mazebot.slam.loop_closure import (
@@ -353,3 +355,71 @@ def test_a_right_closure_the_search_finds_on_real_scans_is_kept(aces, old: int, 
     assert verdict.accepted, (verdict.reason, verdict.detail)
     error = relative_pose(truth, verdict.measurement)
     assert np.hypot(error[0], error[1]) < 0.05 and abs(error[2]) < math.radians(1.0)
+
+
+@pytest.fixture(scope="module")
+def twin_corridors() -> World:
+    """Two straight corridors 1.5 m wide along x, 40 m long, 2.5 m apart centre to centre: within the lidar's
+    range each is a featureless corridor, and a scan in one fits the other shifted across by 2.5 m."""
+    rects = [
+        [-20.0, -0.80, 20.0, -0.75],  # corridor A: y in [-0.75, 0.75]
+        [-20.0, 0.75, 20.0, 1.75],  # the block between the two
+        [-20.0, 3.25, 20.0, 3.30],  # corridor B: y in [1.75, 3.25]
+    ]
+    return World(
+        name="twin corridors",
+        segments=rectangles_outline(np.array(rects)),
+        circles=np.zeros((0, 3)),
+        start_pose=(0.0, 0.0, 0.0),
+        bounds_m=(-20.0, -0.8, 20.0, 3.3),
+    )
+
+
+CORRIDOR_RANGE_M = 6.0  # the corridor's ends lie beyond it: the scans are degenerate along x
+
+
+def _corridor_closure(world: World, cast_scan, new_true: np.ndarray, params: LoopClosureParams):
+    """Keyframes in corridor A about the origin; the scan at ``new_true``, believed 0.6 m further along, 0.1 m
+    across and 1° turned from it (a chain σ of 0.3 m and 1.5°). Returns the verdict and the candidate."""
+    old = np.zeros(3)
+    olds = [_keyframe(world, compose(old, d), cast_scan, k, CORRIDOR_RANGE_M) for k, d in
+            enumerate(np.array([[-0.3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.3, 0.05, 0.05]]))]
+    target = build_target(olds, 0.01, frame=old)
+    new = _keyframe(world, new_true, cast_scan, 99, CORRIDOR_RANGE_M)
+    estimate = compose(new_true, np.array([0.6, -0.1, math.radians(1.0)]))
+    candidate = Candidate(0, 1, relative_pose(old, estimate), np.diag([0.3**2, 0.3**2, math.radians(1.5) ** 2]),
+                          float(np.hypot(*estimate[:2])))
+    return verify(candidate, target, new.match_points, new.sensor_xy, IcpParams(), params), candidate
+
+
+def test_a_closure_along_a_straight_corridor_corrects_only_what_it_sees(twin_corridors: World, cast_scan) -> None:
+    # Back in corridor A with the chain 0.6 m off along it and 0.1 m across: the match fixes the offset across
+    # and the heading, not the position along it. Accepted (accept_degenerate) with the offset across and the
+    # heading measured, the prior's position along the corridor, and no information along it (Zhang, Kaess &
+    # Singh, ICRA 2016). ICP restarted one cell along the corridor lands on the same alignment across it: not
+    # another place (the ambiguity test judged along the free direction refused every such closure).
+    new_true = np.array([0.4, 0.15, 0.03])
+    params = LoopClosureParams(accept_degenerate=True, max_rmse_m=0.03, correction_sigmas=3.0, min_fitness=0.6)
+    verdict, candidate = _corridor_closure(twin_corridors, cast_scan, new_true, params)
+    assert verdict.accepted, (verdict.reason, verdict.detail)
+    truth = relative_pose(np.zeros(3), new_true)
+    assert abs(verdict.measurement[1] - truth[1]) < 0.01
+    assert abs(verdict.measurement[2] - truth[2]) < math.radians(0.2)
+    assert abs(verdict.measurement[0] - candidate.prior[0]) < 0.01  # along the corridor: where the chain had it
+    info_old = rotate_information(verdict.information, -float(verdict.measurement[2]))  # back in A's axes
+    assert info_old[0, 0] < 1e-4 * info_old[1, 1]  # along the corridor: nothing (a trace of the heading)
+    assert np.linalg.matrix_rank(verdict.information, tol=1e-9 * np.abs(verdict.information).max()) == 2
+
+
+def test_a_closure_onto_the_parallel_corridor_is_refused(twin_corridors: World, cast_scan) -> None:
+    # The robot is in corridor B and the chain knows it within its 0.3 m; the old keyframes in corridor A, 2.5 m
+    # across, are within the laser logs' 5 m search radius. A's scans fit B's shifted across by 2.5 m, but the
+    # correction across is constrained, so the chain's bounds refuse it, with the closure search about the prior
+    # as the laser logs run it (its window 1.5 m: B's lower wall on A's upper one faces the wrong way).
+    new_true = np.array([0.4, 2.5 + 0.15, 0.03])
+    search = CorrelativeParams(resolution_m=0.05, sigma_m=0.1, window_xy_m=1.5, window_theta_rad=0.2, levels=5,
+                               max_range_m=10.0, max_points=250, min_score=0.3)
+    params = LoopClosureParams(accept_degenerate=True, max_rmse_m=0.03, correction_sigmas=3.0, min_fitness=0.6,
+                               ambiguity_shift_m=0.0, max_correction_m=1.5, max_correction_rad=0.2, search=search)
+    verdict, _ = _corridor_closure(twin_corridors, cast_scan, new_true, params)
+    assert not verdict.accepted, verdict.measurement

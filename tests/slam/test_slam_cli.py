@@ -400,9 +400,28 @@ def test_closures_verified_as_a_set_on_the_intel_log_are_right(
     assert code == 0
     stats = json.loads(capsys.readouterr().out)
     assert stats["loop_closures_set"] >= 5
-    assert stats["loop_closures_off_reference"] == {"off": 0, "set_off": 0}
+    assert stats["loop_closures_off_reference"] == {"off": 0, "set_off": 0, "degenerate": 0, "degenerate_off": 0}
     assert stats["error"]["rms_m"] < 0.15
 
+
+@pytest.mark.slow
+def test_closures_along_corridors_on_the_intel_log_are_right_where_they_constrain(
+    intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``[slam.loop] accept_degenerate``: closures whose match leaves the position along a corridor free are
+    accepted, and every one is within 0.3 m and 2° of the relative pose of GMapping's corrected poses in the
+    directions it constrains (its position along the corridor is the chain's; real data, the first 250 scans)."""
+    config = tmp_path / "degenerate.toml"
+    config.write_text("[slam.loop]\naccept_degenerate = true\n", encoding="utf-8")
+    code = main(["slam", "run", "--carmen", str(intel_log_path), "--odom-noise", "0.05,0.05", "--seed", "1",
+                 "--max-scans", "250", "--consistency-scans", "0", "--config", str(config),
+                 "--out", str(tmp_path / "intel")])
+    assert code == 0
+    stats = json.loads(capsys.readouterr().out)
+    off = stats["loop_closures_off_reference"]
+    assert off["degenerate"] >= 5
+    assert off["degenerate_off"] == 0 and off["off"] == 0
+    assert stats["error"]["rms_m"] < 0.15
 
 def _slam_over(lasers: list[LaserRecord], odometry: np.ndarray, params: SlamParams) -> Slam:
     """The laser-log SLAM run over ``lasers`` with ``odometry`` (N, 3) as ``run_carmen`` runs it."""

@@ -412,6 +412,11 @@ class MatchingSection:
         "the prediction is surer along it than this over the square root of 3; where ICP does not come back, the "
         "match's information along that direction is widened to the span it cannot tell apart, and the odometry "
         "decides there (mazebot.slam.basin_probe; 0: off)"))] = 0.0
+    surface_point_share: Annotated[float, Field(ge=0, le=1, description=(
+        "an accepted match's information is capped by the covariance of the scan's likelihood on the correlative "
+        "table ([slam.search]) over +-3 cells and +-3 heading steps about it (Olson, ICRA 2009): ICP's and that "
+        "covariance added; each scan point counts as this share of an independent observation (1: Olson's; 0: off, "
+        "ICP's information alone; needs [slam] correlative)"))] = 0.0
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
     corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
         "search also when the prediction's position std exceeds this ..."))] = 0.05

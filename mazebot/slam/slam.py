@@ -77,6 +77,7 @@ from mazebot.slam.basin_probe import probed_steps
 from mazebot.slam.closure_set import ACCEPTED_BY_SET, Chain, judge
 from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
 from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
+from mazebot.slam.match_surface import capped_information, surface_covariance
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
@@ -576,6 +577,9 @@ class Slam:
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
         self.matches_seen_rescued = 0  # sequential matches counted by their inliers where the submap saw
         self.matches_widened = 0  # sequential matches whose basin did not hold along their weakest direction
+        # with surface_point_share: each capped match's CPU ms (table, surface) and how many sat off the surface's mode
+        self.surface_costs_ms: list[tuple[float, float]] = []
+        self.surfaces_mode_off = 0
         self._keyframes_since_target = 0
         # every scan's pose relative to the keyframe before it: the trajectory follows optimizations
         self._scan_log: list[tuple[float, int, np.ndarray]] = []
@@ -743,6 +747,8 @@ class Slam:
                 prepared.sensor_xy,
             )
             self.matches_widened += int(widened_m2 > 0.0)
+        if match is not None and good_match and p.surface_point_share > 0.0:
+            match = self._surface_capped(prepared, match)
         if match is not None and good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if callable(paint):
@@ -1369,6 +1375,38 @@ class Slam:
             self.doubts_won += 1
             return refined
         return match
+
+    def _surface_capped(self, prepared: PreparedScan, match: IcpResult) -> IcpResult:
+        """``match`` with its information no larger than the likelihood surface about it allows.
+
+        The surface (:mod:`mazebot.slam.match_surface`, Olson's covariance of the scan's
+        likelihood on the correlative table about the match) is added to ICP's covariance, as
+        the filter and the pose graph will take it (``match_information_scale`` of ICP's):
+        wide where the submap cannot tell neighbouring poses apart, about zero where it can.
+        Needs ``[slam] correlative`` (its table's cell, smoothing and points); without it the
+        match stays as it is.
+        """
+        p = self.params
+        search = p.correlative
+        if search is None or self.target is None:
+            return match
+        start_s = time.thread_time()
+        src = select_points(prepared.points_match, prepared.sensor_xy, search)
+        reach_m = search.max_range_m + 4.0 * search.resolution_m + 3.0 * search.sigma_m + 0.5
+        table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, 0, crop=(match.pose[:2], reach_m))
+        built_s = time.thread_time()
+        surface = surface_covariance(
+            table, src, match.pose, search.sigma_m, prepared.sensor_xy, point_share=p.surface_point_share
+        )
+        self.surface_costs_ms.append((1e3 * (built_s - start_s), 1e3 * (time.thread_time() - built_s)))
+        self.surfaces_mode_off += int(surface.mode_off)
+        scale = p.match_information_scale
+
+        def capped(information: np.ndarray) -> np.ndarray:
+            return capped_information(information * scale, surface.covariance) / scale
+
+        graph = None if match.graph_information is None else capped(match.graph_information)
+        return replace(match, information=capped(match.information), graph_information=graph)
 
     def _observe_distance(self, match: IcpResult | None, raw_increment: np.ndarray | None) -> None:
         """One sample of the odometry's distance scale if this scan's match and the previous scan's fixed the

@@ -407,6 +407,11 @@ def slam_clock(times_s: np.ndarray) -> np.ndarray:
     return clock
 
 
+def _median_ms(values_ms: list[float]) -> float | None:
+    """The median of per-call CPU times (ms), None when there were none."""
+    return round(float(np.median(values_ms)), 3) if values_ms else None
+
+
 def _parse_noise(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -534,6 +539,10 @@ def run_carmen(
         "loop_closures_off_reference": closures_off_reference(slam, keyframe_scans, reference) if judged else None,
         "searches": slam.searches,
         "searches_won": slam.searches_won,
+        "surface_capped": len(slam.surface_costs_ms),
+        "surface_mode_off": slam.surfaces_mode_off,
+        "surface_table_ms_p50": _median_ms([c[0] for c in slam.surface_costs_ms]),
+        "surface_ms_p50": _median_ms([c[1] for c in slam.surface_costs_ms]),
         "matches_doubted": slam.matches_doubted,
         "doubts_won": slam.doubts_won,
         "matches_seen_rescued": slam.matches_seen_rescued,

@@ -77,7 +77,6 @@ from mazebot.slam.basin_probe import probed_steps
 from mazebot.slam.closure_set import ACCEPTED_BY_SET, Chain, judge
 from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
 from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
-from mazebot.slam.match_surface import capped_information, surface_covariance
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
@@ -85,6 +84,7 @@ from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, bui
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.loop_closure import Candidate, Verdict, find_candidates, verify
 from mazebot.slam.match_residuals import MatchResiduals
+from mazebot.slam.match_surface import capped_information, surface_covariance
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 from mazebot.slam.overlap import ObservedArea
 from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
@@ -1393,7 +1393,8 @@ class Slam:
         start_s = time.thread_time()
         src = select_points(prepared.points_match, prepared.sensor_xy, search)
         reach_m = search.max_range_m + 4.0 * search.resolution_m + 3.0 * search.sigma_m + 0.5
-        table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, 0, crop=(match.pose[:2], reach_m))
+        crop = (match.pose[:2], reach_m)
+        table = LikelihoodTable(self.target.points, search.resolution_m, search.sigma_m, 0, crop=crop)
         built_s = time.thread_time()
         surface = surface_covariance(
             table, src, match.pose, search.sigma_m, prepared.sensor_xy, point_share=p.surface_point_share

@@ -417,6 +417,9 @@ class MatchingSection:
         "table ([slam.search]) over +-3 cells and +-3 heading steps about it (Olson, ICRA 2009): ICP's and that "
         "covariance added; each scan point counts as this share of an independent observation (1: Olson's; 0: off, "
         "ICP's information alone; needs [slam] correlative)"))] = 0.0
+    surface_cap_edges: Annotated[bool, Field(description=(
+        "... and the pose graph's sequential edge takes the capped information too (false: the filter's correction "
+        "only, the edge keeps ICP's)"))] = True
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
     corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
         "search also when the prediction's position std exceeds this ..."))] = 0.05

@@ -1381,7 +1381,8 @@ class Slam:
 
         The surface (:mod:`mazebot.slam.match_surface`, Olson's covariance of the scan's
         likelihood on the correlative table about the match) is added to ICP's covariance, as
-        the filter and the pose graph will take it (``match_information_scale`` of ICP's):
+        the filter and (with ``surface_cap_edges``) the pose graph's sequential edge will take
+        it (``match_information_scale`` of ICP's):
         wide where the submap cannot tell neighbouring poses apart, about zero where it can.
         Needs ``[slam] correlative`` (its table's cell, smoothing and points); without it the
         match stays as it is.
@@ -1406,6 +1407,8 @@ class Slam:
         def capped(information: np.ndarray) -> np.ndarray:
             return capped_information(information * scale, surface.covariance) / scale
 
+        if not p.surface_cap_edges:  # the edge keeps ICP's information (graph_information wins over information)
+            return replace(match, information=capped(match.information), graph_information=match.edge_information)
         graph = None if match.graph_information is None else capped(match.graph_information)
         return replace(match, information=capped(match.information), graph_information=graph)
 

@@ -169,6 +169,11 @@ class DriveConfig(Section):
     track_width_m: float = Field(
         0.15, gt=0.03, lt=1.0, description="distance between the wheels' contact points"
     )
+    gearbox_backlash_deg: float = Field(
+        0.0, ge=0.0, lt=20.0,
+        description="play between each encoder's shaft and its wheel: after a reversal the odometry "
+        "takes this much counted wheel angle as play, not travel (0: no play; the cheap robot's gearbox has 3)",
+    )
     max_speed_mps: float = Field(
         0.3, gt=0, le=ABSOLUTE_MAX_SPEED_MPS, description="forward speed limit (absolute 0.5)"
     )

@@ -14,6 +14,7 @@ import functools
 import gc
 import importlib
 import logging
+import math
 import signal
 import time
 from collections.abc import Awaitable, Callable, Iterator
@@ -343,7 +344,7 @@ async def run_daemon(
         # (the pose must not jump back to the origin), SLAM (the map), planner and control
         odometry = DiffDriveOdometry(
             config.encoders.ticks_per_rev, config.drive.wheel_diameter_m, config.drive.track_width_m,
-            config.drive.wheel_diameter_ratio,
+            config.drive.wheel_diameter_ratio, math.radians(config.drive.gearbox_backlash_deg),
         )
         slam_params = SlamParams.from_config(config.slam, config.lidar, config.planner)
         if session is not None:  # recorded, saved or resumed

@@ -23,6 +23,7 @@ identical output files.
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -101,7 +102,8 @@ class Replayer:
         self.slam = Slam(params, background=True, record_trajectory=True)
         drive = config.drive
         self.odometry = DiffDriveOdometry(
-            config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio
+            config.encoders.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio,
+            math.radians(drive.gearbox_backlash_deg),
         )
         self.history = OdometryHistory(config.slam.odometry_history_s)
         self.steps = recording.message_counts.get("/mazebot/slam", 0) > 0

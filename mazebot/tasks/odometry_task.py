@@ -51,7 +51,8 @@ async def run(
     """
     # a restarted task carries on from the same odometry and history: the pose never jumps
     odometry = odometry or DiffDriveOdometry(
-        enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio
+        enc_cfg.ticks_per_rev, drive.wheel_diameter_m, drive.track_width_m, drive.wheel_diameter_ratio,
+        math.radians(drive.gearbox_backlash_deg),
     )
     history = state.odometry_history or OdometryHistory(history_s)
     state.odometry_history = history

@@ -14,12 +14,12 @@ on the prediction and so on the scale already applied (a scale not yet applied w
 learnt short of itself). The estimate: instrumental variables with the matched step
 ``Δx_slam`` as the instrument for ``dx`` (whose own noise would lean least squares towards
 zero), exponential forgetting, and the heteroscedasticity-robust variance ``v`` (White 1980,
-HC1). What is applied is the estimate's posterior mean under a prior ``m ~ N(0, τ²)`` on how
-far a robot's wheels are off (:data:`WHEEL_SCALE_PRIOR_STD`): ``m·τ²/(τ² + v)``, nothing
-while one or two steps say little, nearly all once the steps driven pin the scale down, with
-no test to pass first (Gelman et al., *Bayesian Data Analysis*, 3rd ed., 2013, §2.5: the
-normal mean's posterior under a normal prior). White odometry noise gets its estimate's
-scatter, shrunk the same way.
+HC1; :class:`mazebot.slam.forgotten_regression.ForgottenRegression`). What is applied is the
+estimate's posterior mean under a prior ``m ~ N(0, τ²)`` on how far a robot's wheels are off
+(:data:`WHEEL_SCALE_PRIOR_STD`): ``m·τ²/(τ² + v)``, nothing while one or two steps say little,
+nearly all once the steps driven pin the scale down, with no test to pass first (Gelman et al.,
+*Bayesian Data Analysis*, 3rd ed., 2013, §2.5: the normal mean's posterior under a normal
+prior). White odometry noise gets its estimate's scatter, shrunk the same way.
 
 Example::
 
@@ -33,6 +33,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from mazebot.slam.forgotten_regression import ForgottenRegression
 
 #: a match fixes the direction of travel unless its weak direction's translation lies within 60° of it
 #: (the cosine below): a corridor driven along, not one crossed
@@ -73,10 +75,10 @@ class DistanceCalibration:
         self.prior_var = float(prior_std) ** 2
         self.estimate = 0.0  # m applied: the learnt one's posterior mean
         self.learnt = 0.0  # m as estimated
-        self._cross = (float(noise_std_m) / float(prior_std)) ** 2  # Σ λⁿ⁻ⁱ z φ with the prior's share
-        self._zy = 0.0
-        self._meat = 0.0  # Σ λ²⁽ⁿ⁻ⁱ⁾ r² z²: the sandwich's meat
-        self._weight = 0.0  # the observations as the forgetting weighs them (HC1's n)
+        # the instrumental-variable fit, the prior's share in its cross products
+        self._fit = ForgottenRegression(
+            self.forgetting, np.array([[(float(noise_std_m) / float(prior_std)) ** 2]]), limit=self.limit
+        )
         self.observations = 0
         self.applied_observations = 0  # observations after which an estimate was applied
 
@@ -101,26 +103,17 @@ class DistanceCalibration:
         if phi == 0.0:
             return
         z = float(true_increment[0])
-        y = z - phi
         self.observations += 1
-        residual = y - phi * self.learnt
-        lam = self.forgetting
-        self._cross = lam * self._cross + z * phi
-        self._zy = lam * self._zy + z * y
-        self._meat = lam**2 * self._meat + residual**2 * z**2
-        self._weight = lam * self._weight + 1.0
-        self.learnt = float(np.clip(self._zy / self._cross, -self.limit, self.limit))
+        self._fit.update(np.array([z]), np.array([phi]), z - phi)
+        self.learnt = float(self._fit.estimate[0])
         var = self.variance()
         self.estimate = self.learnt * self.prior_var / (self.prior_var + var) if math.isfinite(var) else 0.0
         self.applied_observations += int(self.estimate != 0.0)
 
     def variance(self) -> float:
         """The learnt scale's robust variance (HC1's correction; infinite before there are two observations)."""
-        if self._weight <= 1.0:
-            return math.inf
-        return self._meat / self._cross**2 * self._weight / (self._weight - 1.0)
+        return float(self._fit.variance()[0])
 
     def wald(self) -> float:
         """The learnt scale's Wald statistic against zero (0 before there are two observations)."""
-        var = self.variance()
-        return self.learnt**2 / var if 0.0 < var < math.inf else 0.0
+        return float(self._fit.wald()[0])

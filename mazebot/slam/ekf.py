@@ -41,6 +41,7 @@ from statistics import NormalDist
 import numpy as np
 
 from mazebot.geometry import compose, relative_pose, wrap_angle
+from mazebot.slam.forgotten_regression import ForgottenRegression
 from mazebot.slam_config import MotionSection
 
 
@@ -271,7 +272,8 @@ class HeadingCalibration:
     once enough turns are seen). The gated estimate therefore takes the matched turn
     ``Δθ_slam`` as the instrument for ``dθ`` (instrumental variables, Söderström & Stoica,
     *Instrumental Variable Methods for System Identification*, 1983): ``θ̂ = (Σ λⁿ⁻ⁱ zφᵀ)⁻¹
-    Σ λⁿ⁻ⁱ z y`` with ``z = (Δθ_slam, dx)``, ``φ = (dθ, dx)``, the same forgetting. Each of
+    Σ λⁿ⁻ⁱ z y`` with ``z = (Δθ_slam, dx)``, ``φ = (dθ, dx)``, the same forgetting
+    (:class:`mazebot.slam.forgotten_regression.ForgottenRegression`, with its variance). Each of
     ``s`` and ``k`` is tested against zero by its Wald statistic ``W = θ̂² / var``, its
     variance the heteroscedasticity-robust ("sandwich") one (White, Econometrica 1980: the
     residuals' own spread, whatever the odometry's noise; a turn of a radian is noisier than
@@ -317,12 +319,9 @@ class HeadingCalibration:
         self._noise_var = float(noise_std_rad) ** 2
         self.limit = float(limit)
         self.false_alarm = float(false_alarm)
-        self._weight = 0.0  # the observations as the forgetting weighs them (HC1's n)
         self.applied_observations = 0  # observations after which an estimate was applied
-        # the instrumental-variable sums (the prior's share in the cross products) and the residuals' outer products
-        self._cross = self._noise_var * np.linalg.inv(self._p)
-        self._zy = np.zeros(2)
-        self._meat = np.zeros((2, 2))
+        # the gated estimate's instrumental-variable fit, the prior's share in its cross products
+        self._fit = ForgottenRegression(self.forgetting, self._noise_var * np.linalg.inv(self._p), limit=self.limit)
         self.observations = 0
 
     @property
@@ -365,27 +364,15 @@ class HeadingCalibration:
 
     def _observe_gated(self, phi: np.ndarray, y: float, matched_turn_rad: float) -> None:
         """The instrumental-variable step and the significance test (the class docstring)."""
-        z = np.array([matched_turn_rad, float(phi[1])])
-        residual = y - phi @ self.learnt
-        lam = self.forgetting
-        self._cross = lam * self._cross + np.outer(z, phi)
-        self._zy = lam * self._zy + z * y
-        # weights forget as the sums do: the sandwich's meat with the weights squared
-        self._meat = lam**2 * self._meat + residual**2 * np.outer(z, z)
-        self._weight = lam * self._weight + 1.0
-        self.learnt = np.clip(np.linalg.solve(self._cross, self._zy), -self.limit, self.limit)
+        self._fit.update(np.array([matched_turn_rad, float(phi[1])]), phi, y)
+        self.learnt = self._fit.estimate
         self.estimate = self.learnt * self._shrinkage()
         self.applied_observations += int(np.any(self.estimate != 0))
 
     def wald(self) -> np.ndarray:
         """Each learnt parameter's Wald statistic against zero (``θ̂² / var``, robust variance with HC1's
         correction; 0 before there are more observations than parameters)."""
-        if self._weight <= 2.0:
-            return np.zeros(2)
-        bread = np.linalg.inv(self._cross)
-        var = np.diag(bread @ self._meat @ bread.T) * self._weight / (self._weight - 2.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(var > 0, np.square(self.learnt) / np.where(var > 0, var, 1.0), 0.0)
+        return self._fit.wald()
 
     def threshold(self) -> float:
         """The Wald statistic the current observation's test asks for: χ²₁ at level ``α / (n (n + 1))`` (0: no test)."""
@@ -425,7 +412,8 @@ class TimeOffsetCalibration:
     ``min_rate_change`` (turns starting or ending) are used. With ``φ = −Δω`` each such
     scan gives ``y = ν_θ + φ·(S − S₀) = φ·δ``, ``δ = D − S₀`` the offset beyond the start value
     ``S₀``, and ``δ`` is estimated by least squares with exponential forgetting (``memory_scans``)
-    and a prior of ``prior_std_s`` about zero.
+    and a prior of ``prior_std_s`` about zero, never forgotten
+    (:class:`mazebot.slam.forgotten_regression.ForgottenRegression`, with its variance).
 
     **Applied only as far as the matches show it.** The turn rate is the odometry's over
     its last 20 ms; with cheap encoders (the bench's cheap robot: 20 counts a motor
@@ -463,15 +451,14 @@ class TimeOffsetCalibration:
         self.offset_s = self.initial_s
         self.learnt_s = 0.0  # δ̂: the offset beyond initial_s as estimated, before the test shrinks it
         self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
-        self._prior = float(noise_std_rad) ** 2 / float(prior_std_s) ** 2  # the prior's share in Σφ²
         self.min_rate_change = float(min_rate_change)
         self.limits_s = limits_s
         self.max_innovation_rad = float(max_innovation_rad)
         self.false_alarm = float(false_alarm)
-        self._phi2 = 0.0  # Σ λⁿ⁻ⁱ φ²
-        self._phiy = 0.0  # Σ λⁿ⁻ⁱ φ y
-        self._meat = 0.0  # Σ λ²⁽ⁿ⁻ⁱ⁾ φ² r²
-        self._weight = 0.0  # the observations as the forgetting weighs them (HC1's n)
+        # least squares (the instrument is φ itself), the prior's share added to Σ λⁿ⁻ⁱ φ² at every solve, never
+        # forgotten
+        prior = float(noise_std_rad) ** 2 / float(prior_std_s) ** 2
+        self._fit = ForgottenRegression(self.forgetting, np.zeros((1, 1)), fixed_prior=np.array([[prior]]))
         self.observations = 0
 
     def observe(self, innovation_theta_rad: float, rate_change_radps: float) -> None:
@@ -484,23 +471,15 @@ class TimeOffsetCalibration:
         if abs(phi) < self.min_rate_change or abs(innovation) > self.max_innovation_rad:
             return
         y = innovation + phi * (self.offset_s - self.initial_s)
-        residual = y - phi * self.learnt_s
-        lam = self.forgetting
-        self._phi2 = lam * self._phi2 + phi * phi
-        self._phiy = lam * self._phiy + phi * y
-        self._meat = lam**2 * self._meat + (phi * residual) ** 2
-        self._weight = lam * self._weight + 1.0
+        self._fit.update(np.array([phi]), np.array([phi]), y)
         self.observations += 1
-        self.learnt_s = self._phiy / (self._phi2 + self._prior)
+        self.learnt_s = float(self._fit.estimate[0])
         applied = self.learnt_s * self._shrinkage()
         self.offset_s = float(np.clip(self.initial_s + applied, *self.limits_s))
 
     def wald(self) -> float:
         """The learnt offset's Wald statistic against zero (robust variance, HC1; 0 before two observations)."""
-        if self._weight <= 1.0:
-            return 0.0
-        var = self._meat / (self._phi2 + self._prior) ** 2 * self._weight / (self._weight - 1.0)
-        return self.learnt_s**2 / var if var > 0 else 0.0
+        return float(self._fit.wald()[0])
 
     def _shrinkage(self) -> float:
         if self.false_alarm <= 0:

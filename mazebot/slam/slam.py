@@ -1374,10 +1374,12 @@ class Slam:
         """One sample of the odometry's distance scale if this scan's match and the previous scan's fixed the
         pose along the direction of travel (:mod:`mazebot.slam.distance_calibration`): the step between the two
         matches' poses, which the prediction (scaled by what is already applied) does not lean on."""
-        fixed = match is not None and fixes_travel(match.degenerate, match.weak_direction, float(match.pose[2]))
-        if fixed and match is not None and raw_increment is not None and self._last_travel_fixed_pose is not None:
+        if match is None or not fixes_travel(match.degenerate, match.weak_direction, float(match.pose[2])):
+            self._last_travel_fixed_pose = None
+            return
+        if raw_increment is not None and self._last_travel_fixed_pose is not None:
             self.distance_calibration.observe(raw_increment, relative_pose(self._last_travel_fixed_pose, match.pose))
-        self._last_travel_fixed_pose = match.pose.copy() if fixed and match is not None else None
+        self._last_travel_fixed_pose = match.pose.copy()
 
     def _learn_odometry_noise(self, match: IcpResult | None, increment: np.ndarray | None) -> None:
         """One more sample of the odometry's noise if this scan and the previous one were matched.

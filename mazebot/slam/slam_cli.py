@@ -227,7 +227,8 @@ def laser_log_params(
       along the corridor, 6 of 622 such closures were off the corrected poses there over 21 runs and the
       stand-in's ACES seed 1 improved (0.296 -> 0.267 m), but Seattle (0.23-0.33 -> 0.30-0.35 m), the
       stand-in's ACES seeds 2-3 and Intel seeds 1 and 3 got worse (the maps about as consistent, turned
-      differently about the start); the Intel log at ``0.1,0.1`` improved on all three seeds (branch ``corridor17``);
+      differently about the start); the Intel log at ``0.1,0.1`` improved on seeds 1-3 and 10 but got worse on
+      seeds 4-9 and lost a stretch of seeds 7 and 9 (max 6.5 and 2.2 m; branch ``corridor17``);
     - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
       (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
       every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the

@@ -385,6 +385,19 @@ def test_a_scan_through_a_doorway_is_matched_where_the_submap_saw(intel_log_path
     assert turn_error_deg(poses) < 2.0
 
 
+def _intel_first_250_scans(
+    intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], config_toml: str
+) -> dict:
+    """``slam run``'s stats on the Intel log's first 250 scans (white noise 0.05, seed 1) with ``config_toml``."""
+    config = tmp_path / "extra.toml"
+    config.write_text(config_toml, encoding="utf-8")
+    code = main(["slam", "run", "--carmen", str(intel_log_path), "--odom-noise", "0.05,0.05", "--seed", "1",
+                 "--max-scans", "250", "--consistency-scans", "0", "--config", str(config),
+                 "--out", str(tmp_path / "intel")])
+    assert code == 0
+    return dict(json.loads(capsys.readouterr().out))
+
+
 @pytest.mark.slow
 def test_closures_verified_as_a_set_on_the_intel_log_are_right(
     intel_log_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -392,13 +405,7 @@ def test_closures_verified_as_a_set_on_the_intel_log_are_right(
     """``[slam.loop] set_verify``: closures refused by a quality threshold they missed a little, accepted
     because several closures nearby agree with them, and every one of them within 0.3 m and 2° of the
     relative pose of GMapping's corrected poses (real data, the first 250 scans)."""
-    config = tmp_path / "set.toml"
-    config.write_text("[slam.loop]\nset_verify = true\n", encoding="utf-8")
-    code = main(["slam", "run", "--carmen", str(intel_log_path), "--odom-noise", "0.05,0.05", "--seed", "1",
-                 "--max-scans", "250", "--consistency-scans", "0", "--config", str(config),
-                 "--out", str(tmp_path / "intel")])
-    assert code == 0
-    stats = json.loads(capsys.readouterr().out)
+    stats = _intel_first_250_scans(intel_log_path, tmp_path, capsys, "[slam.loop]\nset_verify = true\n")
     assert stats["loop_closures_set"] >= 5
     assert stats["loop_closures_off_reference"] == {"off": 0, "set_off": 0, "degenerate": 0, "degenerate_off": 0}
     assert stats["error"]["rms_m"] < 0.15
@@ -411,13 +418,7 @@ def test_closures_along_corridors_on_the_intel_log_are_right_where_they_constrai
     """``[slam.loop] accept_degenerate``: closures whose match leaves the position along a corridor free are
     accepted, and every one is within 0.3 m and 2° of the relative pose of GMapping's corrected poses in the
     directions it constrains (its position along the corridor is the chain's; real data, the first 250 scans)."""
-    config = tmp_path / "degenerate.toml"
-    config.write_text("[slam.loop]\naccept_degenerate = true\n", encoding="utf-8")
-    code = main(["slam", "run", "--carmen", str(intel_log_path), "--odom-noise", "0.05,0.05", "--seed", "1",
-                 "--max-scans", "250", "--consistency-scans", "0", "--config", str(config),
-                 "--out", str(tmp_path / "intel")])
-    assert code == 0
-    stats = json.loads(capsys.readouterr().out)
+    stats = _intel_first_250_scans(intel_log_path, tmp_path, capsys, "[slam.loop]\naccept_degenerate = true\n")
     off = stats["loop_closures_off_reference"]
     assert off["degenerate"] >= 5
     assert off["degenerate_off"] == 0 and off["off"] == 0

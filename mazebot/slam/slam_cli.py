@@ -57,7 +57,7 @@ from mazebot.argtypes import non_negative_int, positive_int
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
-from mazebot.slam.carmen import CarmenLog, LaserRecord, read_carmen
+from mazebot.slam.carmen import CarmenLog, LaserRecord, one_laser, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
 from mazebot.slam.loop_closure import ObservedDirections
@@ -513,7 +513,7 @@ def run_carmen(
     residual stands out of the recent ones searched again; ``calibrate_distance``: the odometry's distance scale
     calibrated online (all four :func:`laser_log_params`).
     """
-    log = read_carmen(log_path)
+    log = one_laser(read_carmen(log_path))
     if not log.lasers:
         raise UsageError(f"{log_path}: no laser messages (FLASER, RLASER or ROBOTLASER1)")
     lasers = log.lasers[:max_scans] if max_scans else log.lasers

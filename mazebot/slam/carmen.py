@@ -140,6 +140,22 @@ def parse_carmen(
     return log
 
 
+def one_laser(log: CarmenLog) -> CarmenLog:
+    """The log with the messages of one laser only: the front one's, as ``ROBOTLASER1`` if it has them.
+
+    A robot with a front and a rear laser logs both (``FLASER`` and ``RLASER``), and a
+    converted log may hold the front laser twice (``ROBOTLASER1`` and ``FLASER``). Taken
+    together they would be one sensor seen from two places, or each scan twice; the SLAM
+    tracks one laser. ``ROBOTLASER1`` carries its own geometry and the laser's mounting,
+    so it wins over ``FLASER``; ``RLASER`` is used only when the log has nothing else.
+    """
+    for kind in ("ROBOTLASER1", "FLASER", "RLASER"):
+        chosen = [r for r in log.lasers if r.kind == kind]
+        if chosen:
+            return CarmenLog(lasers=chosen, odometry=log.odometry)
+    return log
+
+
 #: The first two bytes of every gzip member (RFC 1952, section 2.3.1).
 GZIP_MAGIC = b"\x1f\x8b"
 

@@ -201,3 +201,18 @@ def test_consecutive_corrected_scans_need_no_turn_with_the_beam_angles_read(name
     if name.startswith("aces"):  # 180 beams: centred in their 1° (−89.5° + i) is half a beam off, and shows
         centred = _pair_corrections(path, lambda n: np.radians(-90.0 + (np.arange(n) + 0.5) * 180.0 / n))
         assert float(np.median(centred[:, 1])) > 0.004
+
+
+def test_the_slam_tracks_one_laser_the_front_one() -> None:
+    """A front and a rear laser (or the front laser written twice) are not one sensor's scans."""
+    from mazebot.slam.carmen import one_laser
+
+    robotlaser = ("ROBOTLASER1 0 -1.5 3.0 1.0 8.0 0.01 0 4 1.0 2.0 3.0 4.0 0 "
+                  "1.0 2.0 0.5 0.9 2.0 0.5 0.1 0.0 0.2 0.1 0.0 20.0 host 20.1")
+    rear = _flaser(ranges="5 5 5 5").replace("FLASER", "RLASER")
+    both = parse_carmen([_flaser(), rear, _flaser(), rear, "ODOM 1.5 2.5 0.25 0.3 0.1 0.0 30.0 host 30.1"])
+    front = one_laser(both)
+    assert [r.kind for r in front.lasers] == ["FLASER", "FLASER"] and len(front.odometry) == 1
+    assert [r.kind for r in one_laser(parse_carmen([rear, rear])).lasers] == ["RLASER", "RLASER"]
+    twice = parse_carmen([_flaser(), robotlaser, _flaser(), robotlaser])
+    assert [r.kind for r in one_laser(twice).lasers] == ["ROBOTLASER1", "ROBOTLASER1"]

@@ -3,7 +3,8 @@ poses.
 
 Each small log is the Intel log's first scans with their corrected poses, and a raw
 odometry drawn from them (:func:`mazebot.slam.slam_cli.noisy_odometry`) written where the
-layout keeps it: the ``FLASER`` odometry fields, ``ODOM`` lines between the scans, or a
+layout keeps it: the ``FLASER`` odometry fields, ``ODOM`` lines between the scans (also
+re-based onto each scan's corrected pose, as in the corrected Radish logs), or a
 ``ROBOTLASER1``'s robot pose with the laser mounted ahead of the robot.
 """
 
@@ -69,6 +70,16 @@ def _layouts(intel_log_path: Path) -> dict[str, tuple[list[str], np.ndarray, np.
         if k:  # one reading between two scans, and one at the scan's own stamp
             odom_lines.append(_odom(0.5 * (raw[k - 1, :3] + raw[k, :3]), 0.5 * (stamps[k - 1] + t)))
         odom_lines += [_odom(raw[k, :3], t), _flaser(r, c, c, t)]  # the message's odometry fields: corrected
+    rebased = []  # after each scan an ODOM line stamped 0 at its corrected pose, the odometry's motion from there
+    for k, (r, c, t) in enumerate(zip(ranges, corrected, stamps, strict=True)):
+        if k:
+            base, since = corrected[k - 1], raw[k - 1, :3]
+            middle = 0.5 * (raw[k - 1, :3] + raw[k, :3])
+            rebased.append(_odom(compose(base, relative_pose(since, middle)), 0.5 * (stamps[k - 1] + t)))
+            rebased.append(_odom(compose(base, relative_pose(since, raw[k, :3])), t))
+        else:
+            rebased.append(_odom(raw[k, :3], t))
+        rebased += [_flaser(r, c, c, t), _odom(c, 0.0)]
     robot_corrected = compose(corrected, inverse(MOUNT))  # the laser sits MOUNT ahead of the robot
     laser_raw = compose(raw[:, :3], MOUNT)
     robotlaser = []
@@ -78,6 +89,7 @@ def _layouts(intel_log_path: Path) -> dict[str, tuple[list[str], np.ndarray, np.
         "flaser_odometry_fields": (flaser, corrected, raw[:, :3]),
         "odom_lines_interleaved": (odom_lines, corrected, raw[:, :3]),
         "robotlaser1": (robotlaser, corrected, laser_raw),
+        "odom_lines_rebased": (rebased, corrected, raw[:, :3]),
     }
 
 
@@ -86,7 +98,9 @@ def _same_relative(a: np.ndarray, b: np.ndarray) -> None:
     np.testing.assert_allclose(relative_pose(a[0], a), relative_pose(b[0], b), atol=2e-5)
 
 
-@pytest.mark.parametrize("layout", ["flaser_odometry_fields", "odom_lines_interleaved", "robotlaser1"])
+@pytest.mark.parametrize(
+    "layout", ["flaser_odometry_fields", "odom_lines_interleaved", "robotlaser1", "odom_lines_rebased"]
+)
 def test_the_slam_gets_the_raw_odometry_and_is_judged_against_the_corrected_poses(
     layout: str, intel_log_path: Path
 ) -> None:

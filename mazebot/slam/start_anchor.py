@@ -74,25 +74,41 @@ def start_anchor_rad(
     they only place the faces on their stretches. Every keyframe after the first adds its
     faces (:meth:`mazebot.slam.keyframes.Keyframe.wall_faces`, cached).
     """
-    places = [(rest, poses[0])] + [(keyframes[k].wall_faces(), poses[k]) for k in range(1, len(keyframes))]
-    owners, stretches, directions = [], [], []
-    for place, (faces, pose) in enumerate(places):
-        if not len(faces):
-            continue
-        owners.append(np.full(len(faces), place))
-        stretches.append(stretch_keys(faces.placed(pose), reference_rad))
-        base = float(faces.normal_rad[0])
-        directions.append(base + quarter_turns(faces.normal_rad - base))  # one quadrant per place
-    if not owners or owners[0][0] != 0:
+    places = [rest] + [keyframes[k].wall_faces() for k in range(1, len(keyframes))]
+    seen = [place for place, faces in enumerate(places) if len(faces)]  # places without faces left out
+    if not seen or seen[0] != 0:
         return None
-    _, owner = np.unique(np.concatenate(owners), return_inverse=True)  # places without faces left out; 0 stays 0
-    owner = owner.reshape(-1)
-    _, stretch = np.unique(np.concatenate(stretches), axis=0, return_inverse=True)
+    faces = Faces.joined([places[place] for place in seen])
+    counts = np.array([len(places[place]) for place in seen])
+    owner = np.repeat(np.arange(len(seen)), counts)  # 0 stays keyframe 0 at rest
+    _, stretch = np.unique(stretch_keys(placed_each(faces, np.asarray(poses)[seen], counts), reference_rad),
+                           axis=0, return_inverse=True)
     stretch = stretch.reshape(-1)
     if not np.isin(stretch[owner == 0], stretch[owner != 0]).any():
         return None  # nothing keyframe 0 saw has been seen again: its faces alone are no anchor
-    direction, std = _two_way_fit(owner, stretch, np.concatenate(directions))
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    base = np.repeat(faces.normal_rad[starts], counts)  # each place's first face: one quadrant per place
+    direction, std = _two_way_fit(owner, stretch, base + quarter_turns(faces.normal_rad - base))
     return float(quarter_turns(np.array([direction]))[0]), std
+
+
+def placed_each(faces: Faces, poses: np.ndarray, counts: np.ndarray) -> Faces:
+    """The faces of several places, joined, each place's in the frame where its pose places it.
+
+    ``faces`` are the places' faces joined in order, ``counts`` (P,) how many are each
+    place's and ``poses`` (P, 3) the places' poses: the same values as
+    :meth:`Faces.placed` place by place, to the bit (each place's cosine and sine from
+    ``math``, the same sums in the same order), in one pass over all faces. Judging the
+    start's anchor places every keyframe's faces in each loop-closure job, and place by
+    place the numpy calls' own overhead cost more than their arithmetic.
+    """
+    heading = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    c = np.repeat([math.cos(float(t)) for t in heading[:, 2]], counts)
+    s = np.repeat([math.sin(float(t)) for t in heading[:, 2]], counts)
+    x0, y0, turn = (np.repeat(heading[:, i], counts) for i in range(3))
+    x, y = faces.centre_xy[:, 0], faces.centre_xy[:, 1]
+    centre = np.column_stack((x0 + c * x - s * y, y0 + s * x + c * y))
+    return Faces(centre, faces.normal_rad + turn, faces.half_length_m, faces.count)
 
 
 def stretch_keys(faces: Faces, reference_rad: float) -> np.ndarray:

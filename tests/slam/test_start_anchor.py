@@ -16,7 +16,7 @@ import pytest
 from mazebot.sim.hand_maze import HandBuild, hand_built_world
 from mazebot.sim.maze_generator import generate_maze
 from mazebot.slam.slam import LoopClosureJob
-from mazebot.slam.start_anchor import start_anchor_rad
+from mazebot.slam.start_anchor import placed_each, start_anchor_rad
 from mazebot.slam.wall_faces import Faces, quarter_turns, wall_faces
 from tests.slam.test_lattice_fit import chain_job as lattice_chain_job
 from tests.slam.test_wall_lattice import keyframe_at, route_poses
@@ -84,6 +84,23 @@ def test_the_start_s_grid_through_every_board_is_the_maze_s_in_a_turned_map(hand
         # the anchor is in keyframe 0's frame; keyframe 0 stands where it truly stood
         assert abs(grid_error_deg(anchor + truth[0, 2])) < 0.1, turn_deg
         assert 0.0 < math.degrees(std) < 1.0  # the fit's own std: less than a board's turn
+
+
+def test_every_keyframe_s_faces_placed_in_one_pass_lie_on_the_maze_s_grid_as_placed_one_by_one(
+    hand_scene, cast_scan
+) -> None:
+    world, world_poses, truth = hand_scene
+    places = [keyframe_at(world, cast_scan, k, p, seed=k).wall_faces() for k, p in enumerate(world_poses)]
+    seen = [k for k, faces in enumerate(places) if len(faces)]
+    assert len(seen) >= 10
+    poses = truth[seen]
+    counts = np.array([len(places[k]) for k in seen])
+    at_once = placed_each(Faces.joined([places[k] for k in seen]), poses, counts)
+    one_by_one = Faces.joined([places[k].placed(pose) for k, pose in zip(seen, poses, strict=True)])
+    for name in Faces.__dataclass_fields__:  # the same values to the bit: the start's anchor does not move
+        assert np.array_equal(getattr(at_once, name), getattr(one_by_one, name)), name
+    # placed at the true poses, every face's normal lies on the maze's grid within a hand-set board's turn
+    assert np.abs(np.degrees(quarter_turns(at_once.normal_rad - math.radians(MAZE_DEG)))).max() < 3.0
 
 
 def chain_job(keyframes, poses, start: Faces | None) -> LoopClosureJob:

@@ -45,7 +45,11 @@ from mazebot.sim.sim_pins import BoundedHistoryPin, SimPinFactory
 #: How often the world reports the true pose to the parent (seconds of the real clock).
 TRUTH_PERIOD_S = 0.2
 #: After a SIGTERM, how long the world waits for the daemon to stop (and close its motor line) first.
-SIGTERM_GRACE_S = 5.0
+#: A SIGTERM to the process group reaches the daemon while it may still be starting, and on a
+#: loaded machine its start and its stop (the wheels braked through this world's motor line) took
+#: longer than 5 s: the brake then met a world already gone. The bench's parent stops the world
+#: once the daemon has ended, whenever that is; this only bounds a world whose parent is gone.
+SIGTERM_GRACE_S = 60.0
 #: The head of one message of edges: the clock time of its first edge (the monotonic clock both
 #: processes read); then one :func:`edge_byte` per edge, in order; then each edge's time after the
 #: first one's, seconds, float32 (``array("f")``, this machine's byte order: both ends are on it).

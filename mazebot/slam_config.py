@@ -380,6 +380,10 @@ class FilterSection:
         "learn the odometry's distance scale (the wheels' mean diameter) from the scan matches that fix the "
         "direction of travel, with the heading calibration's memory and limit, applied as its posterior mean "
         "under a prior of a couple of percent on the wheels"))] = False
+    calibrate_lever_arm: Annotated[bool, Field(description=(
+        "learn where the tracked sensor sits relative to the point the odometry measures from the matched "
+        "turns, with the heading calibration's memory and test (on for laser logs, whose laser may sit ahead "
+        "of the wheels; the robot's lidar mount is configured in [lidar])"))] = False
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

@@ -82,6 +82,7 @@ from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
 from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
+from mazebot.slam.lever_arm import LeverArmCalibration
 from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, verify
 from mazebot.slam.match_residuals import MatchResiduals
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
@@ -521,6 +522,7 @@ class Slam:
             p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
         )
         self.distance_calibration = DistanceCalibration(p.calibration_memory_scans, limit=p.calibration_limit)
+        self.lever_arm = LeverArmCalibration(p.calibration_memory_scans, false_alarm=p.calibration_false_alarm)
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()
         self.graph = PoseGraph()
@@ -719,12 +721,13 @@ class Slam:
         self.scans += 1
 
         # 2. predict: the odometry increment since the last scan moves the filter
-        raw_increment = predicted_increment = None
+        raw_increment = calibrated_increment = predicted_increment = None
         if self._last_odom is None:
             self.ekf.reset(compose(self.initial_pose, odom), self.ekf.covariance)
         else:
             raw_increment = relative_pose(self._last_odom, odom)
-            predicted_increment = self.distance_calibration.correct(self.calibration.correct(raw_increment))
+            calibrated_increment = self.distance_calibration.correct(self.calibration.correct(raw_increment))
+            predicted_increment = self.lever_arm.correct(calibrated_increment)
             self.ekf.predict(predicted_increment)
         self._last_odom = odom
         yield
@@ -758,9 +761,13 @@ class Slam:
             self._residuals.add(match.rmse_m)
         self._last_match = match if matched else None
         pose = self.ekf.mean.copy()
-        if (paint and matched and raw_increment is not None and self._last_matched_pose is not None
-                and p.calibrate_heading):
-            self.calibration.observe(raw_increment, relative_pose(self._last_matched_pose, pose))
+        if (paint and matched and raw_increment is not None and calibrated_increment is not None
+                and self._last_matched_pose is not None):
+            matched_step = relative_pose(self._last_matched_pose, pose)
+            if p.calibrate_heading:
+                self.calibration.observe(raw_increment, matched_step)
+            if p.calibrate_lever_arm:
+                self.lever_arm.observe(calibrated_increment, matched_step)
         self._last_matched_pose = pose if matched else None
         if p.calibrate_distance:
             self._observe_distance(match if matched and paint else None, raw_increment)

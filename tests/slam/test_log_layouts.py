@@ -177,8 +177,9 @@ def test_the_aces_log_on_its_robots_own_wheels_is_mapped_where_the_wheels_drift_
     """ACES's ``ODOM`` lines hold the robot's wheel odometry re-based onto each corrected pose.
 
     Read back, the first 150 scans' odometry is metres off the corrected poses (5.5 m RMS:
-    the wheels' own drift, not the reference); the SLAM on it stays within 0.3 m of them
-    (0.20 m). Read in file order, the lines leaked the reference (odometry within 1 m)
+    the wheels' own drift, not the reference); the SLAM on it stays within 0.4 m of them
+    (0.31 m RMS, max 0.68 m, with the laser's lever arm applied while its test passes; 0.20 m
+    without it). Read in file order, the lines leaked the reference (odometry within 1 m)
     and the SLAM was 4 m off by scan 130.
     """
     from tests.data_paths import carmen_log
@@ -188,4 +189,4 @@ def test_the_aces_log_on_its_robots_own_wheels_is_mapped_where_the_wheels_drift_
     stats = json.loads(capsys.readouterr().out)
     assert stats["odom_model"] == "log" and stats["reference"] == "the log's poses"
     assert stats["error_odometry"]["rms_m"] > 3.0
-    assert stats["error"]["rms_m"] < 0.3 and stats["error"]["max_m"] < 0.6
+    assert stats["error"]["rms_m"] < 0.4 and stats["error"]["max_m"] < 0.8

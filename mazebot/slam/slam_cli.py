@@ -304,7 +304,12 @@ def laser_log_params(
         # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged
         # where the submap saw, the refused doorway scans are matched and the maps are more consistent (aligned
         # ATE lower on most Intel and every ACES run measured), but they turn about the start by more (Intel
-        # 0.05 seed 3: 0.154 -> 0.573 m, ACES 0.145 / 0.317 / 0.161 -> 0.474 / 0.368 / 0.569 m; branch reallogs4)
+        # 0.05 seed 3: 0.154 -> 0.573 m, ACES 0.145 / 0.317 / 0.161 -> 0.474 / 0.368 / 0.569 m; branch reallogs4).
+        # Nor only where the robot turned in place (``turn_overlap_fitness`` false): it matches ACES' second scan,
+        # whose refused match leaves the odometry's turn (1.2-1.4 degrees with the stand-in's odometry) in the map,
+        # but the re-anchoring then no longer acts, and the chain's own turn of the far side stays: the stand-in's
+        # ACES 0.296 / 0.294 / 0.383 -> 0.421 / 0.522 / 0.563 m, white ACES 0.145 / 0.317 / 0.161 -> 0.330 /
+        # 0.309 / 0.297 m; nothing else changed (branch standin18)
         retry_headings_rad=(0.05, -0.05, 0.1, -0.1, 0.15, -0.15),
         wall_prior=False,
         calibrate_heading=calibrate_heading,

@@ -379,7 +379,8 @@ class FilterSection:
     calibrate_distance: Annotated[bool, Field(description=(
         "learn the odometry's distance scale (the wheels' mean diameter) from the scan matches that fix the "
         "direction of travel, with the heading calibration's memory and limit, applied as its posterior mean "
-        "under a prior of a couple of percent on the wheels"))] = False
+        "under a prior of a couple of percent on the wheels: a tyre's rolling diameter is that far off the one "
+        "configured unless measured (slam run on laser logs: its own flag, off)"))] = True
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

@@ -21,6 +21,12 @@ nearly all once the steps driven pin the scale down, with no test to pass first 
 *Bayesian Data Analysis*, 3rd ed., 2013, §2.5: the normal mean's posterior under a normal
 prior). White odometry noise gets its estimate's scatter, shrunk the same way.
 
+The prior enters there once, not in the fit as well: a prior's share in the fit's cross products
+(``σ²/τ²`` for an assumed step noise ``σ``) would shrink the estimate a second time, by as much as
+the steps' ``Σ dx²`` is short of it. A robot's steps between two revolutions are a few
+centimetres, matched to about a millimetre: with ``σ`` 1 cm (a laser log's) a 4×4 maze's tour
+learnt half of a wheel scale 2 % off, the steps themselves saying 1.99 %.
+
 Example::
 
     cal = DistanceCalibration()
@@ -67,7 +73,6 @@ class DistanceCalibration:
         self,
         memory_scans: float = 1000.0,
         prior_std: float = WHEEL_SCALE_PRIOR_STD,
-        noise_std_m: float = 0.01,
         limit: float = 0.1,
     ) -> None:
         self.forgetting = 1.0 - 1.0 / max(float(memory_scans), 1.0)
@@ -75,10 +80,8 @@ class DistanceCalibration:
         self.prior_var = float(prior_std) ** 2
         self.estimate = 0.0  # m applied: the learnt one's posterior mean
         self.learnt = 0.0  # m as estimated
-        # the instrumental-variable fit, the prior's share in its cross products
-        self._fit = ForgottenRegression(
-            self.forgetting, np.array([[(float(noise_std_m) / float(prior_std)) ** 2]]), limit=self.limit
-        )
+        # the instrumental-variable fit of the steps alone: the prior is applied once, to its result (docstring)
+        self._fit = ForgottenRegression(self.forgetting, np.zeros((1, 1)), limit=self.limit)
         self.observations = 0
         self.applied_observations = 0  # observations after which an estimate was applied
 
@@ -100,9 +103,9 @@ class DistanceCalibration:
         """One step: the raw odometry increment and the increment between the matches that fixed the direction of
         travel at its two ends."""
         phi = float(raw_increment[0])
-        if phi == 0.0:
-            return
         z = float(true_increment[0])
+        if phi == 0.0 or z == 0.0:
+            return  # says nothing of the scale (and a first step with z·φ = 0 would leave the fit undefined)
         self.observations += 1
         self._fit.update(np.array([z]), np.array([phi]), z - phi)
         self.learnt = float(self._fit.estimate[0])

@@ -381,6 +381,11 @@ class FilterSection:
         "direction of travel, with the heading calibration's memory and limit, applied as its posterior mean "
         "under a prior of a couple of percent on the wheels: a tyre's rolling diameter is that far off the one "
         "configured unless measured (slam run on laser logs: its own flag, off)"))] = True
+    distance_step_noise_m: Annotated[float, Field(ge=0, le=0.1, description=(
+        "the distance calibration's fit takes the wheels' prior in as this much noise on each matched step (0: "
+        "the prior applied once, to the fit's result; a robot's steps between revolutions are a few centimetres, "
+        "matched to about a millimetre, where 0.01 halves the scale a small maze's tour learns; laser logs: 0.01)"
+        ))] = 0.0
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

@@ -23,7 +23,7 @@ from mazebot.slam.slam import Slam
 pytestmark = pytest.mark.slow  # a simulated tour of a 4x4 maze
 
 CHEAP_WHEEL_RATIO = 1.0305  # the cheap robot's right over left wheel (1.015 / 0.985), calibrated
-ATE_RMS_TARGET_M = 0.015  # the hand-built maze's ATE target (issue's item 5)
+ATE_RMS_TARGET_M = 0.015  # the hand-built mazes' ATE RMS target (BENCHMARKS.md)
 SIGMAS = 3.0  # how far the learnt scale may stand off the truth in its own standard deviations
 
 

@@ -37,6 +37,7 @@ def _tour(wheel_mean_scale: float) -> tuple[dict, Slam]:
             "wheel_diameter_right_scale": wheel_mean_scale,
         },
         "drive": {"wheel_diameter_ratio": CHEAP_WHEEL_RATIO},
+        "slam": {"filter": {"calibrate_distance": True}},
     })
     seen: list[Slam] = []
     metrics, _ = run_one(config, RunSpec(None, (4, 4), 1, "scripted", max_sim_s=120.0), watch_slam=seen.append)

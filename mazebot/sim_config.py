@@ -106,8 +106,7 @@ class SimConfig(Section):
     robot_build: Literal["exact", "cheap"] = Field(
         "exact",
         description="cheap: a robot of cheap parts, for keys not set in this file (20-line encoders, wheels 3 % "
-        "apart and their mean 1 % larger than [drive] wheel_diameter_m says, 5 % slip in turns, 3 deg of gearbox "
-        "backlash; see CHEAP_ROBOT in sim_config.py)",
+        "apart, 5 % slip in turns, 3 deg of gearbox backlash; see CHEAP_ROBOT in config.py)",
     )
     # the true robot where it differs from what the other sections say (what `mazebot calibrate` finds)
     track_width_scale: float = Field(
@@ -146,21 +145,14 @@ class SimConfig(Section):
         return self
 
 
-#: The cheap robot's true mean wheel diameter over the configured ``[drive] wheel_diameter_m``: a
-#: maker takes the tyre's diameter from its datasheet or a ruler, and the rolling diameter of a
-#: tyre compressed under the robot's weight is typically 0.5-2 % off it (Borenstein & Feng,
-#: *Measurement and correction of systematic odometry errors in mobile robots*, IEEE T-RA 1996:
-#: the scale error ``E_s``), so every straight the odometry measures is that much off too.
-CHEAP_WHEEL_MEAN_SCALE = 1.01
-
 #: ``[sim] robot_build = "cheap"``: a robot of cheap parts. A 20-slot encoder disc on each wheel
-#: shaft (the kits' optical interrupters); wheels 3 % apart in diameter (moulded tyres) and their
-#: mean :data:`CHEAP_WHEEL_MEAN_SCALE` of the configured one; tyres that scrub 5 % of the turn away
-#: in place; and the few degrees of play of a plastic gearbox between the motor and the wheel.
+#: shaft (the kits' optical interrupters); wheels 3 % apart in diameter (moulded tyres); tyres
+#: that scrub 5 % of the turn away in place; and the few degrees of play of a plastic gearbox
+#: between the motor and the wheel.
 CHEAP_ROBOT: dict[tuple[str, str], object] = {
     ("encoders", "counts_per_rev"): 20,
-    ("sim", "wheel_diameter_left_scale"): 0.985 * CHEAP_WHEEL_MEAN_SCALE,
-    ("sim", "wheel_diameter_right_scale"): 1.015 * CHEAP_WHEEL_MEAN_SCALE,
+    ("sim", "wheel_diameter_left_scale"): 0.985,
+    ("sim", "wheel_diameter_right_scale"): 1.015,
     ("sim", "turn_slip"): 0.05,
     ("sim", "backlash_deg"): 3.0,
 }

@@ -379,9 +379,7 @@ class FilterSection:
     calibrate_distance: Annotated[bool, Field(description=(
         "learn the odometry's distance scale (the wheels' mean diameter) from the scan matches that fix the "
         "direction of travel, with the heading calibration's memory and limit, applied as its posterior mean "
-        "under a prior of a couple of percent on the wheels: a tyre's rolling diameter is that far off the one "
-        "configured unless measured (off: on the default simulated robot, 0.2 % off, it cost 0.0004-0.0005 of "
-        "coverage; slam run on laser logs: its own flag)"))] = False
+        "under a prior of a couple of percent on the wheels"))] = False
     distance_step_noise_m: Annotated[float, Field(ge=0, le=0.1, description=(
         "the distance calibration's fit takes the wheels' prior in as this much noise on each matched step (0: "
         "the prior applied once, to the fit's result; a robot's steps between revolutions are a few centimetres, "

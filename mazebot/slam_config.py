@@ -384,6 +384,11 @@ class FilterSection:
         "learn where the tracked sensor sits relative to the point the odometry measures from the matched "
         "turns, with the heading calibration's memory and test (on for laser logs, whose laser may sit ahead "
         "of the wheels; the robot's lidar mount is configured in [lidar])"))] = False
+    distance_step_noise_m: Annotated[float, Field(ge=0, le=0.1, description=(
+        "the distance calibration's fit takes the wheels' prior in as this much noise on each matched step (0: "
+        "the prior applied once, to the fit's result; a robot's steps between revolutions are a few centimetres, "
+        "matched to about a millimetre, where 0.01 halves the scale a small maze's tour learns; laser logs: 0.01)"
+        ))] = 0.0
     lidar_time_offset_s: Annotated[float, Field(ge=-0.05, le=0.1, description=(
         "how late the lidar's time stamps are against the odometry's (start value)"))] = 0.0
     estimate_time_offset: Annotated[bool, Field(description=(

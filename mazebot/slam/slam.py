@@ -521,7 +521,9 @@ class Slam:
         self.calibration = HeadingCalibration(
             p.calibration_memory_scans, limit=p.calibration_limit, false_alarm=p.calibration_false_alarm
         )
-        self.distance_calibration = DistanceCalibration(p.calibration_memory_scans, limit=p.calibration_limit)
+        self.distance_calibration = DistanceCalibration(
+            p.calibration_memory_scans, limit=p.calibration_limit, step_noise_m=p.distance_step_noise_m
+        )
         self.lever_arm = LeverArmCalibration(p.calibration_memory_scans, false_alarm=p.calibration_false_alarm)
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()

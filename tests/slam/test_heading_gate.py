@@ -7,7 +7,7 @@ predicted 8.6° off with a heading standard deviation of 4.8°; ICP from there c
 the other way under the inlier limit, and the correlative search over its whole window finds
 an alignment 19° off the corrected increment (inlier ratio 0.50, residual 76 mm) that passes
 every limit of the match's own: taken, it turns the map by 19° for the next 150 scans. It lies
-5.7 of the prediction's standard deviations from it; ICP from the prediction turned by 0.15 rad
+5.7 of the prediction's standard deviations from it; ICP from the prediction turned by −0.05 rad
 finds the right one within 2° (inlier ratio 0.66, residual 128 mm).
 """
 

@@ -230,7 +230,9 @@ def laser_log_params(
       smoothing-off figures to the digit, but seed 3 stays 0.604 m: its 4-5° steps are matches within the
       gate, from predictions 6-14° off that ICP followed only partway; and with the smoothing off, guard or
       not, the stand-in's ACES seeds 2 and 3 are lost (0.294 / 0.383 -> 6.67 / 2.98 m) and its Intel seed 1
-      is worse (0.106 -> 0.180 m; branch ``radish18``);
+      is worse (0.106 -> 0.180 m). With the smoothing on the gate left nine of ten runs at main's figures
+      (Intel ``0.1`` seeds 2-3, ``0.05`` seed 1, Seattle 1, ACES 2, the stand-in's four) and Intel ``0.1`` seed 1
+      better (0.239 -> 0.167 m; branch ``radish18``);
     - a closure whose match leaves a direction free refused (``[slam.loop] accept_degenerate`` passes through
       from ``--config``, false): accepted in the directions it constrains, matched again at the chain's place
       along the corridor, 6 of 622 such closures were off the corrected poses there over 21 runs and the

@@ -417,6 +417,10 @@ class MatchingSection:
         "run --match-doubt)"))] = 0.0
     match_doubt_scans: Annotated[int, Field(ge=1, description=(
         "... the recent matched scans whose residuals that median is taken over"))] = 50
+    match_heading_sigmas: Annotated[float, Field(ge=0, description=(
+        "a sequential match whose heading differs from the prediction's by more than this many of the prediction's "
+        "heading standard deviations is looked at again: the correlative search and the heading retries look for "
+        "an acceptable match within it, which replaces it; where none is, it stands (0: off)"))] = 0.0
     basin_probe_m: Annotated[float, Field(ge=0, description=(
         "ICP restarted this far to either side of an accepted match along its weakest position direction, where "
         "the prediction is surer along it than this over the square root of 3; where ICP does not come back, the "

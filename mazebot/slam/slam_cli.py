@@ -231,6 +231,17 @@ def laser_log_params(
       0.154 → 0.088 / 0.098 / 0.130 m), but at ``0.1,0.1`` seed 1 lost a stretch near its end
       (0.239 → 0.953 m), seed 3 got worse (0.297 → 0.604 m) and the stand-in's ACES seed 1 too
       (0.296 → 0.320 m; branch ``seattle15``);
+    - a sequential match turned from the prediction by more than the prediction's heading uncertainty
+      allows taken as it is (``[slam.matching] match_heading_sigmas`` passes through from ``--config``, 0):
+      unsmoothed, seed 1's lost stretch is scan 761 matched 19° off, 5.7 of the prediction's standard
+      deviations from it, where a heading retry finds the right match within them. With the gate at 4
+      and the smoothing off seed 1 holds (0.953 → 0.184 m; main 0.239) and the other runs measured are the
+      smoothing-off figures to the digit, but seed 3 stays 0.604 m: its 4-5° steps are matches within the
+      gate, from predictions 6-14° off that ICP followed only partway; and with the smoothing off, guard or
+      not, the stand-in's ACES seeds 2 and 3 are lost (0.294 / 0.383 -> 6.67 / 2.98 m) and its Intel seed 1
+      is worse (0.106 -> 0.180 m). With the smoothing on the gate left nine of ten runs at main's figures
+      (Intel ``0.1`` seeds 2-3, ``0.05`` seed 1, Seattle 1, ACES 2, the stand-in's four) and Intel ``0.1`` seed 1
+      better (0.239 -> 0.167 m; branch ``radish18``);
     - a closure whose match leaves a direction free refused (``[slam.loop] accept_degenerate`` passes through
       from ``--config``, false): accepted in the directions it constrains, matched again at the chain's place
       along the corridor, 6 of 622 such closures were off the corrected poses there over 21 runs and the

@@ -502,7 +502,7 @@ class WallSection:
     anchor_links: Annotated[bool, Field(description=(
         "the anchor judged from every keyframe's faces links the keyframes by the pose graph's edges (the chain "
         "of matches and the closures, at their heading std), so the boards far from the start count too; off: "
-        "by the faces they share alone"))] = True
+        "by the faces they share alone (main's fit)"))] = False
 
 
 @dataclass(frozen=True)

@@ -512,6 +512,10 @@ class WallSection:
         "faces keyframe 0 sees at rest that turn apart by more than this (RMS about their mean) are boards set "
         "by hand, each at its own angle (logged once; the anchor is judged from every keyframe's faces in "
         "any maze)"))] = 0.005
+    anchor_links: Annotated[bool, Field(description=(
+        "the anchor judged from every keyframe's faces links the keyframes by the pose graph's edges (the chain "
+        "of matches and the closures, at their heading std), so the boards far from the start count too; off: "
+        "by the faces they share alone (main's fit)"))] = False
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,7 @@ from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan, voxel_downsample
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.start_anchor import start_anchor_rad
+from mazebot.slam.start_anchor import heading_links, start_anchor_rad
 from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
@@ -366,7 +366,8 @@ class LoopClosureJob:
         """
         anchor = self.anchor_wall
         if self.start_faces is not None and self.wall_reference_rad is not None:
-            judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad)
+            links = heading_links(self.edges, len(self.keyframes)) if self.params.anchor_links else None
+            judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad, links)
             anchor = None if judged is None else (judged[0], max(judged[1], self.params.wall_anchor_std_rad))
         turns = [(direction, max(std, self.params.wall_prior_std_rad)) for direction, std in start_turns]
         if not turns:

@@ -251,3 +251,57 @@ def test_a_closure_home_to_the_start_at_rest_measures_the_map_s_turn_about_the_s
         assert len(result.start_turns) == 1 and abs(grid_error_deg(result.start_turns[0][0])) < 0.1, turn_deg
         # ... and the grid the map settles on nearer the maze's than the faces' anchor alone leaves it
         assert home < alone - 0.05, turn_deg
+
+
+class _Place:
+    """A keyframe as :func:`start_anchor_rad` reads it: its wall faces only."""
+
+    def __init__(self, faces: Faces) -> None:
+        self._faces = faces
+
+    def wall_faces(self) -> Faces:
+        return self._faces
+
+
+def _faces_within(pose: np.ndarray, boards: list[tuple[float, float, float]], reach_m: float,
+                  rng: np.random.Generator, noise_rad: float) -> Faces:
+    """The boards ``(x, y, normal_rad)`` (map frame) within ``reach_m`` of ``pose`` (heading 0) as its faces,
+    each direction read with ``noise_rad`` of scatter (one revolution's partial view of a board)."""
+    rows = [(x - pose[0], y - pose[1], normal + rng.normal(0.0, noise_rad), 0.14)
+            for x, y, normal in boards if math.hypot(x - pose[0], y - pose[1]) <= reach_m]
+    table = np.array(rows).reshape(-1, 4)
+    return Faces(table[:, :2], table[:, 2], table[:, 3], np.full(len(table), 100))
+
+
+def test_the_start_s_grid_counts_the_boards_far_along_the_chain_not_only_the_start_s_two() -> None:
+    # Keyframe 0 sees two boards at rest, both turned 1° the same way (the start's boards can: the
+    # bench's 8x8 seed 8's four were turned +0.3 … +0.7°); twenty boards down the corridor stand on the
+    # grid. Each keyframe sees the boards within 0.2 m, each reading scattered by 0.4° (what the fit's
+    # faces scatter by on the bench's hand-built mazes), and the chain of matches measures each turn
+    # to 0.05°. Linked by the faces alone, the start's grid is the start's two boards, a degree off at
+    # a std of half a degree; linked by the chain too, it is every board's: within twice its own std of
+    # the maze's grid on every draw, within once on at least half (an honest std: 68 % expected).
+    from mazebot.geometry import relative_pose
+    from mazebot.slam.start_anchor import heading_links
+
+    turn_rad, edge_std_rad = math.radians(-1.0), math.radians(0.05)
+    boards = [(0.0, 0.15, -math.pi / 2 + turn_rad), (0.0, -0.15, math.pi / 2 + turn_rad)]
+    boards += [(0.3 * k, side * 0.15, -side * math.pi / 2) for k in range(1, 11) for side in (1.0, -1.0)]
+    along = np.arange(0.0, 3.01, 0.1)
+    poses = np.column_stack((along, np.zeros_like(along), np.zeros_like(along)))  # the grid lies at 0
+    within = 0
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        rest = _faces_within(poses[0], boards, 0.2, rng, 0.0)
+        keyframes = [_Place(rest)] + [_Place(_faces_within(p, boards, 0.2, rng, math.radians(0.4))) for p in poses[1:]]
+        i, j = np.arange(len(poses) - 1), np.arange(1, len(poses))
+        z = relative_pose(poses[i], poses[j])
+        z[:, 2] += rng.normal(0.0, edge_std_rad, i.size)
+        information = np.tile(np.diag([1e4, 1e4, edge_std_rad**-2]), (i.size, 1, 1))
+        alone = start_anchor_rad(rest, keyframes, poses, 0.0)  # type: ignore[arg-type]
+        linked = start_anchor_rad(rest, keyframes, poses, 0.0, heading_links((i, j, z, information), len(poses)))  # type: ignore[arg-type]
+        assert alone is not None and linked is not None
+        assert abs(alone[0]) > 1.5 * alone[1]  # pinned to the start's two boards
+        assert abs(linked[0]) <= 2.0 * linked[1] and abs(math.degrees(linked[0])) < 0.35, seed
+        within += abs(linked[0]) <= linked[1]
+    assert within >= 5

@@ -417,7 +417,7 @@ class MatchingSection:
         "a moving revolution's match also carries the de-skew's error: the motion model's variance of the "
         "revolution's odometry increment is added to the match's covariance along the direction of travel, where "
         "only the few points facing it hold the match (mazebot.slam.deskew_variance; false: ICP's Hessian alone)"
-    ))] = True
+    ))] = False
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
     corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
         "search also when the prediction's position std exceeds this ..."))] = 0.05

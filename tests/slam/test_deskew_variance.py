@@ -85,11 +85,10 @@ def test_the_claimed_sigma_along_a_corridor_is_the_spread_of_the_true_errors() -
     behind, all seen at two instants of the revolution and de-skewed by an odometry that counts
     10 mm at a time. ICP's Hessian (the filter's share of it, as the filter takes it) claims the
     place along the corridor to about 2 mm; the matches' true errors along it spread more than
-    twice that. With the de-skew's variance (the motion model's for the revolution's travel, as
-    the robot's defaults have it) the claim is within a factor 2 of the spread.
+    twice that. With the de-skew's variance (the motion model's for the revolution's travel, the
+    robot's default motion model) the claim is within a factor 2 of the spread.
     """
     params = SlamParams.from_config(Config().slam, Config().lidar)
-    assert params.match_deskew_variance  # the robot's default
     starts, ends = _corridor_segments()
     submap = _submap(starts, ends)
     rng = np.random.default_rng(7)

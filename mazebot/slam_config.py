@@ -426,6 +426,11 @@ class MatchingSection:
         "the prediction is surer along it than this over the square root of 3; where ICP does not come back, the "
         "match's information along that direction is widened to the span it cannot tell apart, and the odometry "
         "decides there (mazebot.slam.basin_probe; 0: off)"))] = 0.0
+    match_deskew_variance: Annotated[bool, Field(description=(
+        "a moving revolution's match also carries the de-skew's error: the motion model's variance of the "
+        "revolution's odometry increment is added to the match's covariance along the direction of travel, where "
+        "only the few points facing it hold the match (mazebot.slam.deskew_variance; false: ICP's Hessian alone)"
+    ))] = False
     # the correlative search (``[slam.search]``) also where the prediction itself is uncertain
     corr_uncertain_std_m: Annotated[float, Field(gt=0, description=(
         "search also when the prediction's position std exceeds this ..."))] = 0.05

@@ -24,7 +24,9 @@ Autonomous Mapping* (CMU 18-500 report), section III.B, with an EKF (Thrun, Burg
    (:mod:`mazebot.slam.icp`, :mod:`mazebot.slam.keyframes`);
 4. **correct** the filter with the match (information form: a corridor's unobserved
    direction keeps the odometry; with ``basin_probe_m`` also a direction along which ICP's
-   basin does not hold, :mod:`mazebot.slam.basin_probe`), and feed the calibrations;
+   basin does not hold, :mod:`mazebot.slam.basin_probe`; a moving revolution's match loosened
+   along the direction of travel by the de-skew's error, :mod:`mazebot.slam.deskew_variance`),
+   and feed the calibrations;
 5. **keyframe**: after 0.10 m or 0.15 rad the scan is kept, added to the pose graph
    with an edge from the previous keyframe (odometry + ICP information), and the local
    submap is refreshed (:mod:`mazebot.slam.posegraph`);
@@ -77,6 +79,7 @@ from mazebot.io.scan import Scan
 from mazebot.slam.basin_probe import probed_steps
 from mazebot.slam.closure_set import ACCEPTED_BY_SET, Chain, judge
 from mazebot.slam.correlative import LikelihoodTable, correlative_match, select_points
+from mazebot.slam.deskew_variance import deskew_information
 from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
@@ -752,6 +755,8 @@ class Slam:
                 prepared.sensor_xy,
             )
             self.matches_widened += int(widened_m2 > 0.0)
+        if match is not None and good_match and p.match_deskew_variance and predicted_increment is not None:
+            match = self._deskewed(match, predicted_increment, predicted_theta)
         if match is not None and good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if callable(paint):
@@ -1462,6 +1467,21 @@ class Slam:
             self.odometry_noise.observe(increment, relative_pose(self._last_match_pose, match.pose))
             self.ekf.noise = self.odometry_noise.noise
         self._last_match_pose = None if match is None else match.pose.copy()
+
+    def _deskewed(self, match: IcpResult, increment: np.ndarray, heading_rad: float) -> IcpResult:
+        """``match`` with the de-skew's variance along the direction of travel (:mod:`mazebot.slam.deskew_variance`).
+
+        The variance is the motion model's for the revolution's ``increment``, as the filter's
+        prediction takes it. The filter and the sequential edge take ``match_information_scale``
+        of the information; the variance is added before that scale at its share, so that after
+        it the match's covariance has the motion model's variance more along the travel.
+        """
+        p = self.params
+        variance_per_m = self.ekf.noise.xy_m2_per_m * p.match_information_scale
+        info = deskew_information(match.information, increment, heading_rad, variance_per_m)
+        graph = (None if match.graph_information is None
+                 else deskew_information(match.graph_information, increment, heading_rad, variance_per_m))
+        return replace(match, information=info, graph_information=graph)
 
     def _sequential_information(self, z: np.ndarray, odom: np.ndarray) -> np.ndarray:
         """Information of the edge previous keyframe → this one: odometry plus, if matched, ICP.

@@ -321,6 +321,7 @@ def laser_log_params(
         filter_gate_chi2=1e6,  # the odometry noise model is rough here; never refuse a converged match
         max_match_rmse_m=1.0,
         match_doubt_ratio=LASER_LOG_DOUBT_RATIO if match_doubt else 0.0,  # a residual far out of the run's own
+        match_deskew_variance=False,  # a laser log's scan carries one stamp: nothing is de-skewed
         # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged
         # where the submap saw, the refused doorway scans are matched and the maps are more consistent (aligned
         # ATE lower on most Intel and every ACES run measured), but they turn about the start by more (Intel

@@ -47,6 +47,7 @@ import argparse
 import json
 import math
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -72,7 +73,7 @@ from mazebot.slam.map_consistency import (
 )
 from mazebot.slam.map_export import write_map_png, write_ros_map
 from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
-from mazebot.slam.slam import GridParams, Slam, SlamParams
+from mazebot.slam.slam import GridParams, Slam, SlamParams, SlamUpdate
 from mazebot.slam.trajectory_metrics import aligned_error, anchored_error, relative_error
 
 #: the odometry noise a laser log's SLAM starts from, before the scan matches have measured it
@@ -493,6 +494,23 @@ def slam_clock(times_s: np.ndarray) -> np.ndarray:
     return clock
 
 
+def from_first_pose(odometry: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``odometry`` (N, 3) moved rigidly to start at the log's first pose: the map frame is the log's,
+    anchored there, so the SLAM's poses and the corrected ones share a frame from the first scan on."""
+    return compose(reference[0], relative_pose(odometry[0], odometry))
+
+
+def log_updates(slam: Slam, lasers: Sequence[LaserRecord], odometry: np.ndarray) -> Iterator[SlamUpdate]:
+    """Each scan of ``lasers`` handed to ``slam`` with the odometry up to it, in the log's order: one update
+    a scan, yielded before the next scan is read so that a caller can look at the SLAM between them."""
+    history = OdometryHistory(horizon_s=1e12)
+    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
+    for k, record in enumerate(lasers):
+        history.append(clock[k], *odometry[k])
+        scan = record.to_scan()
+        yield slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+
+
 def _parse_noise(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -561,21 +579,16 @@ def run_carmen(
         SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity, match_doubt,
         calibrate_distance, calibrate_lever_arm,
     )
-    # the map frame: the log's frame, anchored at its first pose; odometry starts there too
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))
+    odometry = from_first_pose(odometry, reference)
     slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
     online = np.zeros_like(reference)
     scan_ms = []
     keyframe_scans: dict[int, tuple[int, bool]] = {}  # keyframe -> (the scan that made it, was it matched)
     wall0 = time.perf_counter()
-    clock = slam_clock(times)
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        scan = replace(scan, time_s=np.full(len(scan), clock[k]))
+    updates = log_updates(slam, lasers, odometry)
+    for k in range(len(lasers)):
         cpu0 = time.thread_time()
-        update = slam.update(scan, history)
+        update = next(updates)  # the scan's conversion (microseconds) is counted with its update
         scan_ms.append((time.thread_time() - cpu0) * 1e3)
         online[k] = update.pose
         if update.keyframe is not None:

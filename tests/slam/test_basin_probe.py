@@ -9,12 +9,10 @@ import numpy as np
 import pytest
 
 from mazebot.config import load_config
-from mazebot.geometry import compose, relative_pose
 from mazebot.slam.basin_probe import basin_variance_m2, weakest_position_direction, widened_along
 from mazebot.slam.carmen import read_carmen
-from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.slam import Slam, SlamParams
-from mazebot.slam.slam_cli import laser_log_params, noisy_odometry, slam_clock
+from mazebot.slam.slam_cli import from_first_pose, laser_log_params, log_updates, noisy_odometry
 
 
 def test_the_covariance_is_widened_along_one_direction_only() -> None:
@@ -57,18 +55,12 @@ def test_the_second_scan_no_longer_claims_the_start_corridor(intel_log_path: Pat
     lasers = read_carmen(intel_log_path).lasers[:12]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.1, 0.1, np.random.default_rng(1))
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))  # as run_carmen: from the first pose
     config = load_config(None)
     params = replace(laser_log_params(SlamParams.from_config(config.slam, config.lidar)), basin_probe_m=probe_m)
     slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
     first_edge = None
     poses = np.zeros_like(reference)
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        update = slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    for k, update in enumerate(log_updates(slam, lasers, from_first_pose(odometry, reference))):
         poses[k] = update.pose
         if k == 1:
             assert update.matched and update.keyframe == 1

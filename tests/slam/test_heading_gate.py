@@ -19,11 +19,10 @@ import numpy as np
 import pytest
 
 from mazebot.config import load_config
-from mazebot.geometry import compose, relative_pose, wrap_angle
+from mazebot.geometry import wrap_angle
 from mazebot.slam.carmen import read_carmen
-from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.slam import Slam, SlamParams
-from mazebot.slam.slam_cli import laser_log_params, noisy_odometry, slam_clock
+from mazebot.slam.slam_cli import from_first_pose, laser_log_params, log_updates, noisy_odometry
 from tests.data_paths import carmen_log
 
 #: the scan whose match seed 1 took 19° off, unsmoothed
@@ -39,18 +38,12 @@ def online_turn_deg(heading_sigmas: float) -> np.ndarray:
     lasers = read_carmen(log_path).lasers[: DOOR_SCAN + AFTER_SCANS]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.1, 0.1, np.random.default_rng(1))
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))  # as run_carmen: from the first pose
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
     params = replace(params, normals=replace(params.normals, smooth=False), match_heading_sigmas=heading_sigmas)
     slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    headings = np.zeros(len(lasers))
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        headings[k] = slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history).pose[2]
+    updates = log_updates(slam, lasers, from_first_pose(odometry, reference))
+    headings = np.array([update.pose[2] for update in updates])
     before = DOOR_SCAN - 1
     carried = headings[before] + (reference[DOOR_SCAN:, 2] - reference[before, 2])
     return np.degrees(wrap_angle(headings[DOOR_SCAN:] - carried))

@@ -16,7 +16,7 @@ from mazebot.geometry import compose, relative_pose, wrap_angle
 from mazebot.slam.carmen import LaserRecord, read_carmen
 from mazebot.slam.map_export import read_ros_map
 from mazebot.slam.slam import Slam, SlamParams
-from mazebot.slam.slam_cli import laser_log_params, noisy_odometry
+from mazebot.slam.slam_cli import from_first_pose, laser_log_params, log_updates, noisy_odometry
 from tests.data_paths import carmen_log
 
 
@@ -233,14 +233,14 @@ def test_a_map_turned_about_its_first_scan_is_turned_back(intel_log_path: Path) 
     the first scan asks for the 1° back, and the map returns to where it was; the
     unperturbed map's first scan asks for less than the map's own scatter and is left alone.
     """
-    from mazebot.geometry import compose, inverse, relative_pose
+    from mazebot.geometry import compose, inverse
     from mazebot.slam.map_consistency import judged_scans, scan_corrections
     from mazebot.slam.slam_cli import heading_noise_rad, match_points, neighbourhood, reanchor
 
     lasers = read_carmen(intel_log_path).lasers[:120]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))
+    odometry = from_first_pose(odometry, reference)
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
     slam = _slam_over(lasers, odometry, params)
@@ -316,7 +316,7 @@ def test_the_map_is_placed_along_the_start_corridor_where_the_start_odometry_put
     lasers = read_carmen(intel_log_path).lasers[:120]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(seed))
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))
+    odometry = from_first_pose(odometry, reference)
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
     slam = _slam_over(lasers, odometry, params)
@@ -341,28 +341,15 @@ def test_the_map_is_placed_along_the_start_corridor_where_the_start_odometry_put
 
 def _first_scans(intel_log_path: Path, count: int, match_overlap_fitness: bool) -> tuple[list[bool], np.ndarray]:
     """Run the laser-log SLAM over the log's first ``count`` scans (``0.05,0.05`` seed 10): matched?, poses."""
-    from mazebot.slam.ekf import OdometryHistory
-    from mazebot.slam.slam import Slam
-    from mazebot.slam.slam_cli import slam_clock
-
     lasers = read_carmen(intel_log_path).lasers[:count]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(10))
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))  # as run_carmen: from the first pose
+    odometry = from_first_pose(odometry, reference)
     config = load_config(None)
     params = replace(laser_log_params(SlamParams.from_config(config.slam, config.lidar)),
                      match_overlap_fitness=match_overlap_fitness)
-    slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    matched, poses = [], []
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        update = slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
-        matched.append(update.matched)
-        poses.append(update.pose)
-    return matched, np.array(poses)
+    updates = list(log_updates(Slam(params, initial_pose=np.zeros(3)), lasers, odometry))
+    return [update.matched for update in updates], np.array([update.pose for update in updates])
 
 
 def test_a_scan_through_a_doorway_is_matched_where_the_submap_saw(intel_log_path: Path) -> None:
@@ -426,17 +413,9 @@ def test_closures_along_corridors_on_the_intel_log_are_right_where_they_constrai
 
 def _slam_over(lasers: list[LaserRecord], odometry: np.ndarray, params: SlamParams) -> Slam:
     """The laser-log SLAM run over ``lasers`` with ``odometry`` (N, 3) as ``run_carmen`` runs it."""
-    from mazebot.slam.ekf import OdometryHistory
-    from mazebot.slam.slam import Slam
-    from mazebot.slam.slam_cli import slam_clock
-
     slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    for _ in log_updates(slam, lasers, odometry):
+        pass
     return slam
 
 
@@ -526,7 +505,7 @@ def test_a_laser_log_with_noisy_odometry_applies_its_distance_scale_while_it_dri
     lasers = read_carmen(carmen_log("aces-corrected.log.gz")).lasers[:100]
     reference = np.array([r.pose for r in lasers])
     noisy = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))
-    odometry = _scaled_odometry(compose(reference[0], relative_pose(noisy[0], noisy)), 1.03)
+    odometry = _scaled_odometry(from_first_pose(noisy, reference), 1.03)
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), calibrate_distance=True)
     slam = _slam_over(lasers, odometry, params)
@@ -612,17 +591,8 @@ def test_the_sequential_test_still_applies_a_real_drift(intel_log_path: Path, bi
 
 def _match_of_last_scan(lasers: list[LaserRecord], odometry: np.ndarray, params: SlamParams) -> tuple[Slam, object]:
     """The laser-log SLAM over ``lasers`` with ``odometry``; the last scan's update."""
-    from mazebot.slam.ekf import OdometryHistory
-    from mazebot.slam.slam_cli import slam_clock
-
     slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    update = None
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        update = slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
+    *_, update = log_updates(slam, lasers, odometry)
     return slam, update
 
 

@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 from mazebot.config import load_config
-from mazebot.geometry import compose, relative_pose, wrap_angle
+from mazebot.geometry import wrap_angle
 from mazebot.slam.carmen import read_carmen
-from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.slam import Slam, SlamParams
-from mazebot.slam.slam_cli import laser_log_params, noisy_odometry, slam_clock
+from mazebot.slam.slam_cli import from_first_pose, laser_log_params, log_updates, noisy_odometry
 from tests.data_paths import carmen_log
 
 #: the first corridor's scans, westward, before any loop closure
@@ -34,19 +33,13 @@ def corridor_turn_deg(smooth: bool) -> float:
     lasers = read_carmen(carmen_log("seattle-corrected.log.gz")).lasers[:CORRIDOR_SCANS]
     reference = np.array([r.pose for r in lasers])
     odometry = noisy_odometry(reference, 0.05, 0.05, np.random.default_rng(1))
-    odometry = compose(reference[0], relative_pose(odometry[0], odometry))  # as run_carmen: from the first pose
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
     params = replace(params, normals=replace(params.normals, smooth=smooth))
     slam = Slam(params, initial_pose=np.zeros(3))
-    history = OdometryHistory(horizon_s=1e12)
-    clock = slam_clock(np.array([r.timestamp_s for r in lasers]))
-    error_deg = np.zeros(len(lasers))
-    for k, record in enumerate(lasers):
-        history.append(clock[k], *odometry[k])
-        scan = record.to_scan()
-        update = slam.update(replace(scan, time_s=np.full(len(scan), clock[k])), history)
-        error_deg[k] = np.degrees(wrap_angle(float(update.pose[2] - reference[k, 2])))
+    updates = log_updates(slam, lasers, from_first_pose(odometry, reference))
+    headings = np.array([update.pose[2] for update in updates])
+    error_deg = np.degrees(wrap_angle(headings - reference[:, 2]))
     assert not slam.closures  # the sequential matches alone
     return float(error_deg[-10:].mean() - error_deg[:10].mean())
 

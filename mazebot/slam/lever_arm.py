@@ -21,6 +21,14 @@ does, and applied only as far as each coordinate's Wald statistic passes the sam
 alpha-spending test (:func:`mazebot.slam.ekf.spent_chi2`): odometry made from a log's own
 laser poses has no lever arm, and nothing is applied there.
 
+**Held once shown.** A laser's mount does not move. The alpha-spending test decides once that a
+coordinate is not zero (a sequential test stops at its first rejection: Wald, *Sequential
+Analysis*, 1947; the spent level bounds the chance that it ever passes on pure noise); from then
+on that coordinate is applied as the fit's estimate, still refined by every observation, rather
+than re-tested after each one. Re-tested, an estimate whose Wald statistic sits near the growing
+threshold is applied on some stretches and withdrawn on others, and each switch moves the
+prediction of every turn by ``(R(θ) − I) m``.
+
 Example::
 
     arm = LeverArmCalibration(memory_scans=1000.0, limit_m=0.5, false_alarm=0.001)
@@ -58,7 +66,8 @@ class LeverArmCalibration:
         self.false_alarm = float(false_alarm)
         self.observations = 0  # matched steps that turned enough to be used
         self.applied_observations = 0  # observations after which any coordinate was applied
-        self.estimate = np.zeros(2)  # applied: the learnt m shrunk by the significance test
+        self.estimate = np.zeros(2)  # applied: the learnt m shrunk by the significance test, whole once shown
+        self.shown = np.zeros(2, dtype=bool)  # coordinates whose test has passed: held from then on
 
     @property
     def learnt(self) -> np.ndarray:
@@ -87,7 +96,9 @@ class LeverArmCalibration:
         for row, gap in ((np.array([c - 1.0, -s]), gap_x), (np.array([s, c - 1.0]), gap_y)):
             self._fit.update(row, row, gap)
         self.observations += 1
-        self.estimate = self._fit.estimate * self._shrinkage()
+        shrinkage = self._shrinkage()
+        self.shown |= shrinkage > 0.0
+        self.estimate = self._fit.estimate * np.where(self.shown, 1.0, shrinkage)
         self.applied_observations += int(np.any(self.estimate != 0.0))
 
     def wald(self) -> np.ndarray:

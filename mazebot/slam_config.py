@@ -384,6 +384,11 @@ class FilterSection:
         "learn where the tracked sensor sits relative to the point the odometry measures from the matched "
         "turns, with the heading calibration's memory and test (on for laser logs, whose laser may sit ahead "
         "of the wheels; the robot's lidar mount is configured in [lidar])"))] = False
+    lever_arm_held: Annotated[bool, Field(description=(
+        "a lever arm coordinate whose test has once passed stays applied as the fit's estimate, still refined by "
+        "every matched turn, instead of being re-tested and withdrawn whenever its Wald statistic falls under "
+        "the threshold (a laser's mount does not move; false: applied only while the test passes, shrunk by it)"
+        ))] = False
     distance_step_noise_m: Annotated[float, Field(ge=0, le=0.1, description=(
         "the distance calibration's fit takes the wheels' prior in as this much noise on each matched step (0: "
         "the prior applied once, to the fit's result; a robot's steps between revolutions are a few centimetres, "

@@ -529,7 +529,9 @@ class Slam:
         self.distance_calibration = DistanceCalibration(
             p.calibration_memory_scans, limit=p.calibration_limit, step_noise_m=p.distance_step_noise_m
         )
-        self.lever_arm = LeverArmCalibration(p.calibration_memory_scans, false_alarm=p.calibration_false_alarm)
+        self.lever_arm = LeverArmCalibration(
+            p.calibration_memory_scans, false_alarm=p.calibration_false_alarm, held=p.lever_arm_held
+        )
         self.time_offset = TimeOffsetCalibration(p.lidar_time_offset_s)
         self.grid = p.grid.new_grid()
         self.graph = PoseGraph()

@@ -366,7 +366,7 @@ class HeadingCalibration:
         """The instrumental-variable step and the significance test (the class docstring)."""
         self._fit.update(np.array([matched_turn_rad, float(phi[1])]), phi, y)
         self.learnt = self._fit.estimate
-        self.estimate = self.learnt * self._shrinkage()
+        self.estimate = self.learnt * significance_shrinkage(self.wald(), self.threshold())
         self.applied_observations += int(np.any(self.estimate != 0))
 
     def wald(self) -> np.ndarray:
@@ -380,11 +380,14 @@ class HeadingCalibration:
             return 0.0
         return spent_chi2(self.false_alarm, self.observations)
 
-    def _shrinkage(self) -> np.ndarray:
-        w = self.wald()
-        c = self.threshold()
-        with np.errstate(divide="ignore"):
-            return np.where(w > c, 1.0 - c / np.where(w > 0, w, 1.0), 0.0)
+
+def significance_shrinkage(wald: np.ndarray | float, threshold: float) -> np.ndarray:
+    """What share of each estimate to apply: nothing while its Wald statistic ``W`` is under ``threshold``
+    ``c``, then ``1 − c/W`` (positive-part shrinkage: an estimate just past its test is applied only by
+    as much as it stands out of the noise, so that crossing the threshold moves nothing abruptly)."""
+    w = np.asarray(wald, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.where(w > threshold, 1.0 - threshold / np.where(w > 0, w, 1.0), 0.0)
 
 
 def spent_chi2(false_alarm: float, observations: int) -> float:
@@ -484,9 +487,7 @@ class TimeOffsetCalibration:
     def _shrinkage(self) -> float:
         if self.false_alarm <= 0:
             return 1.0
-        w = self.wald()
-        c = spent_chi2(self.false_alarm, self.observations)
-        return 1.0 - c / w if w > c else 0.0
+        return float(significance_shrinkage(self.wald(), spent_chi2(self.false_alarm, self.observations)))
 
 
 def odometry_increment(odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from mazebot.slam.ekf import spent_chi2
+from mazebot.slam.ekf import significance_shrinkage, spent_chi2
 from mazebot.slam.forgotten_regression import ForgottenRegression
 
 #: A matched step turning less than this says too little about the lever arm to be worth a row
@@ -104,7 +104,7 @@ class LeverArmCalibration:
         for row, gap in ((np.array([c - 1.0, -s]), gap_x), (np.array([s, c - 1.0]), gap_y)):
             self._fit.update(row, row, gap)
         self.observations += 1
-        shrinkage = self._shrinkage()
+        shrinkage = significance_shrinkage(self.wald(), self.threshold())
         self.shown |= shrinkage > 0.0
         self.estimate = self._fit.estimate * (np.where(self.shown, 1.0, shrinkage) if self.held else shrinkage)
         self.applied_observations += int(np.any(self.estimate != 0.0))
@@ -116,9 +116,3 @@ class LeverArmCalibration:
     def threshold(self) -> float:
         """The Wald statistic the current observation's test asks for (0: no test, everything applied)."""
         return spent_chi2(self.false_alarm, self.observations) if self.false_alarm > 0 else 0.0
-
-    def _shrinkage(self) -> np.ndarray:
-        w = self.wald()
-        c = self.threshold()
-        with np.errstate(divide="ignore"):
-            return np.where(w > c, 1.0 - c / np.where(w > 0, w, 1.0), 0.0)

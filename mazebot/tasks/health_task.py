@@ -401,13 +401,22 @@ class HealthMonitor:
                 what = "no lidar data yet" if scan is None else f"no lidar data for {silent_s:.1f} s"
                 if bytes_flow:
                     what = f"lidar bytes arrive but make no revolution for {silent_s:.1f} s"
-                message = f"{what}: check the lidar's USB cable and power; reconnecting by itself"
+                message = f"{what}: {self._lidar_advice(scan is None)}; reconnecting by itself"
                 log.warning("%s", message)
                 state.raise_fault("lidar", message, now_s)
         elif active:
             state.clear_faults("lidar")
             state.note("lidar", "lidar data flows again", now_s)
             log.info("lidar data flows again")
+
+    def _lidar_advice(self, never_scanned: bool) -> str:
+        """What to check. Before the first revolution the driver's own last error is this start-up's
+        and says more than a guess (a lidar of the family at another serial speed names the speed to
+        set); later it may be an old outage's, so the usual causes are named instead."""
+        said = self.lidar.stats.last_error if self.lidar is not None else ""
+        if never_scanned and said:
+            return said
+        return "check the lidar's USB cable and power"
 
     def _edge_step(self, edge_s: float | None, step_s: float) -> tuple[float, float | None]:
         """(seconds of the wheels' own time the counts cover beyond what the last check judged, the

@@ -502,7 +502,7 @@ class _LidarBytes:
     """The driver as the health monitor sees it: bytes read so far, bytes waiting."""
 
     def __init__(self) -> None:
-        self.stats = type("Stats", (), {"bytes_received": 0})()
+        self.stats = type("Stats", (), {"bytes_received": 0, "last_error": ""})()
         self.waiting = 0
 
     def bytes_waiting(self) -> int:
@@ -548,6 +548,22 @@ def test_a_silent_lidar_is_a_fault_on_a_slow_loop_and_after_a_stall() -> None:
     assert not state.faults
     monitor.check(state, 0.9)
     assert state.run_state is RunState.FAULT and "no lidar data" in state.faults[0].message
+
+
+def test_a_lidar_silent_from_start_up_is_said_in_the_drivers_own_words() -> None:
+    """A lidar set to the wrong serial speed never answers; the driver finds it at another speed and
+    says which to set. The fault the page shows says that too, not only "check the cable"."""
+    said = "no answer at 115200 baud on /dev/ttyUSB0: an S2M1 speaks 1000000, set [lidar] baudrate"
+    state = SharedState(run_state=RunState.IDLE)
+    lidar = _LidarBytes()
+    lidar.stats.last_error = said
+    monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=0.0, lidar=lidar)
+    for k in range(1, 30):
+        monitor.check(state, 0.1 * k)
+        if state.faults:
+            break
+    assert state.faults and said in state.faults[0].message
+    assert state.faults[0].message.startswith("no lidar data yet: ")
 
 
 def test_lidar_bytes_that_never_make_a_revolution_are_a_fault_too() -> None:

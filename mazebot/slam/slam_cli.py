@@ -119,149 +119,60 @@ def laser_log_params(
     alike (``range_noise_ratio`` 0): a SICK's range noise is about a centimetre whatever
     the range, not the A1's 1 % of it.
 
-    ``calibrate_heading`` (on by default; ``slam run --no-odom-calibration`` turns it off): the odometry's
-    heading calibrated online from the scan matches as on the robot
-    (:class:`mazebot.slam.ekf.HeadingCalibration`). Real wheel odometry turns every corner
-    by the track width's error and drifts on every straight by the wheels' (Borenstein &
-    Feng 1996), a bias the learnt noise would otherwise take in whole, widening every
-    prediction and so the correlative window to all of ±30° on nearly every scan, where a
-    look-alike can win. Its estimates may reach ±0.5 (a turn scale of 50 %, a drift of
-    0.5 rad a metre), not the maze robot's ±0.1: a log's odometry comes undescribed.
-    Measured (branch ``reallogs7``): with systematic odometry four times the model's
-    defaults it kept the Intel log (seeds 1-3) and ACES seed 2 that main lost, and the
-    Intel log with the defaults' systematic odometry went from 0.161 to 0.107 m; but with
-    white odometry noise it learns a bias that is not there and the Freiburg 101 maps
-    turned about their start (0.152 / 0.200 / 0.178 -> 0.271 / 0.286 / 0.190 m, the maps
-    themselves as consistent): not the default. Since branch ``reallogs8`` each estimate is
-    applied only as far as the matches show it beyond white noise
-    (since branch ``reallogs9`` by a test whose level is spent over the run's matched scans,
-    :data:`LASER_LOG_CALIBRATION_FALSE_ALARM`, so that white noise opens it nowhere in a run, not
-    only not at its end): with the look-alike test below the stand-in (odometry four times the
-    systematic model's defaults) held every run, better than main on five of six (Intel seed 1
-    0.183 -> 0.095 m, ACES seed 2 11.27 -> 0.150 m); still not the default: the defaults'
-    systematic odometry on Intel 0.161 -> 0.189 m (branch ``reallogs8``). With the sequential
-    test it is the default: it applied nothing after any matched scan of every white-noise run
-    measured (the Intel and Radish logs, and the defaults' systematic odometry on Intel, which
-    therefore compute what they computed without it), and alone it held all six runs of the
-    stand-in that the logs' settings without it lose two of (Intel 0.183 / 0.412 / lost ->
-    0.106 / 0.177 / 0.096 m, ACES 0.278 / 11.27 / lost -> 0.296 / 0.294 / 0.383 m).
+    Each choice below was measured on the Intel and Radish logs, with white and systematic
+    odometry noise and the logs' own wheel odometry; the figures, per branch named here, are in
+    ``docs/benchmarks-history.md`` (search for the branch's name).
 
-    ``calibrate_lever_arm`` (on by default; ``slam run --no-lever-arm`` turns it off): where the laser sits
-    relative to the point the log's odometry measures, learnt from the matched turns and applied to each
-    odometry step (:class:`mazebot.slam.lever_arm.LeverArmCalibration`), with the heading calibration's
-    test: odometry made from the log's laser poses (``--odom-noise``) has no lever arm, and nothing is
-    applied there. On the corrected logs' own wheel odometry the turns put ACES's laser about 7 cm and the
-    Intel log's about 10 cm ahead of the odometry's centre (the logs' ``PARAM robot_frontlaser_offset``
-    says 0).
+    ``calibrate_heading`` (on; ``slam run --no-odom-calibration`` turns it off): real wheel odometry
+    turns every corner by the track width's error and drifts on every straight by the wheels'
+    (Borenstein & Feng 1996); the learnt noise would otherwise take that bias in whole, widening every
+    prediction and so the correlative window, where a look-alike can win. Its estimates may reach ±0.5,
+    not the maze robot's ±0.1: a log's odometry comes undescribed. Each estimate is applied only once a
+    test repeated after every matched scan shows it beyond white noise, at a level spent over the whole
+    run (:data:`LASER_LOG_CALIBRATION_FALSE_ALARM`): on white noise it applies nothing, so those runs
+    compute what they computed without it, while it holds the runs with systematic odometry that are
+    lost without it (branches ``reallogs7``–``reallogs9``).
 
-    ``closure_ambiguity`` (``slam run --closure-ambiguity``; off by default): a closure the
-    correlative search found is refused when another alignment of its window scores
-    :data:`LASER_LOG_AMBIGUITY_RATIO` of the best (:meth:`mazebot.slam.loop_closure.WindowSearch.rival`).
-    It refuses the 7.5 m look-alike of the ACES log with drifting odometry, but at ``0.1,0.1``
-    it lost the Intel log's end on seed 7 (0.118 -> 0.702 m) and a stretch of seed 2 (branch
-    ``reallogs8``). Traced (branch ``reallogs9``): seed 2's refused closure was right (0.2 m off),
-    its "runner-up" a metre along the same corridor with no dip in the score between them, the
-    best's own ridge: such a pose no longer counts (:func:`mazebot.slam.correlative.runner_up`),
-    and seed 2 keeps main's figures. Seed 7's was right too (1.4 cm off), but its rival, 1.6 m
-    along the corridor, is parted from it by a dip and ICP fits it as well (15 mm): a real
-    ambiguity, refused. The map is lost after it at the log's end, where ICP from the prediction
-    converges 30° off with a 202 mm residual and is taken (``max_match_rmse_m`` 1 m); main's
-    ICP there happened not to converge. A 0.15 m limit refused that match but lost the ACES log
-    with the stand-in's odometry (seed 3: 3.30 m): not kept. So not the default.
+    ``calibrate_lever_arm`` (on; ``slam run --no-lever-arm`` turns it off): where the laser sits relative to
+    the point the log's odometry measures, learnt from the matched turns with the same test
+    (:class:`mazebot.slam.lever_arm.LeverArmCalibration`). Odometry made from the laser's poses
+    (``--odom-noise``) has none, and nothing is applied there; the corrected logs' own wheel odometry
+    puts ACES's laser about 7 cm and the Intel log's about 10 cm ahead of the odometry's centre, where
+    their ``PARAM robot_frontlaser_offset`` says 0.
 
-    ``match_doubt`` (``slam run --match-doubt``; off by default): a sequential match whose residual
-    exceeds :data:`LASER_LOG_DOUBT_RATIO` times the median of the recent matches' is searched again
-    over the whole correlative window, and the search's match replaces it only if it is better on
-    residual, inlier ratio and table score (:meth:`mazebot.slam.slam.Slam._doubt_steps`). On real
-    Intel scans it puts right a match ICP took 40° off at a 0.17 m residual from an odometry
-    heading 25-30° off. On the runs measured it replaced 0-4 matches per run and the maps were no
-    better: the stand-in's Intel seed 3 0.096 -> 0.101 m, ``0.1,0.1`` seed 7 0.118 / 0.451 ->
-    0.124 / 0.580 m, where none was replaced main's figures to the digit (branch ``reallogs12``).
+    ``closure_ambiguity`` (``slam run --closure-ambiguity``; off): a searched closure is refused when
+    another alignment of its window, parted from the best by a dip in the score, scores
+    :data:`LASER_LOG_AMBIGUITY_RATIO` of it. It refuses a 7.5 m look-alike on ACES with drifting odometry
+    but also right closures in long Intel corridors (branches ``reallogs8``, ``reallogs9``): not the default.
 
-    Loop closures (measured on the Intel log, ``--odom-noise 0.05,0.05``, seed 1):
+    ``match_doubt`` (``slam run --match-doubt``; off): a sequential match whose residual exceeds
+    :data:`LASER_LOG_DOUBT_RATIO` times the recent median is searched again and replaced only by a match
+    better on residual, inlier ratio and score. It puts right a 40° wrong match on real Intel scans but
+    left the measured maps no better (branch ``reallogs12``).
 
-    - verified with the whole scan (``max_range_m`` None): the maze's 2 m crop leaves a
-      few dozen points of a 2 m wide corridor, and 202 of 499 candidates failed for
-      "few correspondences", 164 as "degenerate";
-    - searched up to 5 m away and allowed to move a pose by up to 1.5 m: before the
-      closures across the long corridors the online estimate is off by up to 1.3 m, so
-      the 3 m / 0.5 m limits kept exactly the closures that were needed; and by more
-      than that when the chain's own uncertainty says so (3 standard deviations of its
-      drift, ``correction_sigmas``): a building's loops are longer than any fixed cap
-      (Intel seed 7: 1.8 m of drift after the first 35 m corridor);
-    - keyframe 0 is *not* verified as an extra candidate (``anchor_candidate`` stays off):
-      it helped where the map is turned about the start (ACES seed 2 0.61 → 0.40 m, Seattle
-      seed 1 0.34 → 0.30 m) but lost ACES with systematic odometry (seed 1: 1.47 → 9.66 m)
-      and cost Intel seed 4 (0.140 → 0.178 m);
-    - the inlier ratio over all points, not only where the submap saw (``overlap_fitness``
-      stays off): the overlap-aware ratio turned ~20 "low inlier ratio" rejections per Radish
-      log into closures and made the ACES maps more consistent, but on the Intel log it let
-      closures in along the last long corridor that lost its end (``0.05,0.05`` seed 4 and
-      ``0.1,0.1`` seed 2: max error 0.27 / 0.47 → 1.99 / 1.97 m; without it 0.26 m);
-    - every candidate verified (``closed_reach_keyframes`` 0): after a loop of tens of metres
-      the closures back onto the start pull the chain over a metre, and the robust
-      optimization gives an isolated one little weight; skipping those next to an accepted
-      one (the maze's setting) left the Intel log's seed 2 (``0.05,0.05``, 200 scans) at
-      0.165 m RMS where all of them give less than 0.15 m;
-    - no wall prior: the maze's walls lie on one right-angle grid, this building's do not
-      (a diagonal north-east corner, and the inner corridors are bowed in the log's own
-      corrected poses), so the prior bent headings towards a grid that is not there;
-    - ICP's information from its Hessian, not clustered by wall (``[slam.icp]
-      information_cluster_rad`` stays 0; ``--config`` with 0.35 turns it on): clustered, with
-      the same shares of it for the filter (0.5) and the closures (0.1), the Intel log at
-      ``0.05,0.05`` improved on 8 of 10 seeds (median 0.130 → 0.121 m), the Radish logs on 8
-      of 9 runs and both systematic-odometry runs (ACES 0.219 → 0.194, Intel 0.161 → 0.139 m),
-      but at ``0.1,0.1`` it was worse on 7 of 10 seeds and lost the last 18 scans of seed 7
-      (32° off at the end, 6.8 m max): a less sure match makes the filter's prediction less sure, the
-      correlative window wider, and a look-alike won at the end of the log (branch
-      ``reallogs5``). With the filter's and the closures' shares raised to 1 as well it was
-      worse on the Radish logs and with systematic odometry. Clustered for the pose graph's
-      edges only (``information_cluster_filter`` false, the filter keeping the Hessian's), seed 7
-      at ``0.1,0.1`` keeps its end (0.173 m; main 0.118) and Intel ``0.05`` seed 10 and ACES seed 2
-      gain (0.257 → 0.208, 0.317 → 0.182 m), but at ``0.1`` seeds 7 and 9 are worse than main
-      (seeds 1-3 better; median of the five 0.155 → 0.193 m) and both systematic-odometry runs
-      are no better (ACES 0.219 → 0.225, Intel 0.161 → 0.166 m; branch ``reallogs6``);
-    - the submap's points smoothed onto their local lines (``[slam.normals] smooth`` stays true;
-      ``--config`` with false turns it off): over the logs' 0.3 m neighbourhoods the smoothing
-      moves 5.5 % of a Seattle scan's points by more than 2 cm (the SICK's range noise is about
-      1 cm), and every sequential match against a submap placed at the corrected poses turns
-      +0.035° (± 0.009°, 90 scans, paired) against the points as measured: the first corridor's
-      heading walks off by 1.5° over 35 m before any closure (0.58° unsmoothed). Off, the Radish
-      logs went from 5 to 8 of 9 runs within 0.20 m (Seattle 0.234 / 0.333 / 0.280 → 0.066 /
-      0.137 / 0.138 m) and the Intel log at ``0.05,0.05`` seeds 1-3 improved (0.122 / 0.108 /
-      0.154 → 0.088 / 0.098 / 0.130 m), but at ``0.1,0.1`` seed 1 lost a stretch near its end
-      (0.239 → 0.953 m), seed 3 got worse (0.297 → 0.604 m) and the stand-in's ACES seed 1 too
-      (0.296 → 0.320 m; branch ``seattle15``);
-    - a sequential match turned from the prediction by more than the prediction's heading uncertainty
-      allows taken as it is (``[slam.matching] match_heading_sigmas`` passes through from ``--config``, 0):
-      unsmoothed, seed 1's lost stretch is scan 761 matched 19° off, 5.7 of the prediction's standard
-      deviations from it, where a heading retry finds the right match within them. With the gate at 4
-      and the smoothing off seed 1 holds (0.953 → 0.184 m; main 0.239) and the other runs measured are the
-      smoothing-off figures to the digit, but seed 3 stays 0.604 m: its 4-5° steps are matches within the
-      gate, from predictions 6-14° off that ICP followed only partway; and with the smoothing off, guard or
-      not, the stand-in's ACES seeds 2 and 3 are lost (0.294 / 0.383 -> 6.67 / 2.98 m) and its Intel seed 1
-      is worse (0.106 -> 0.180 m). With the smoothing on the gate left nine of ten runs at main's figures
-      (Intel ``0.1`` seeds 2-3, ``0.05`` seed 1, Seattle 1, ACES 2, the stand-in's four) and Intel ``0.1`` seed 1
-      better (0.239 -> 0.167 m; branch ``radish18``). Over the rest of the table (Intel seeds 4-10 at 0.1, 2-10 at 0.05,
-      ACES 1 and 3, Seattle 2-3, Freiburg 101 1-3) it acted on 7 scans, on 6 of them where the prediction was
-      4.0-4.4 standard deviations off and ICP's match right, and three times a heading retry within the gate that
-      fitted worse (residual 135-169 mm against 19-57 mm) replaced the right match: Intel ``0.1`` seed 7 0.118 ->
-      0.171 m, ``0.05`` seed 10 0.257 -> 0.259 m, Freiburg 101 seed 1 0.152 / 0.367 -> 0.173 / 0.754 m, the other
-      20 runs to the digit (branch ``guard19``): not the default;
-    - a closure whose match leaves a direction free refused (``[slam.loop] accept_degenerate`` passes through
-      from ``--config``, false): accepted in the directions it constrains, matched again at the chain's place
-      along the corridor, 6 of 622 such closures were off the corrected poses there over 21 runs and the
-      stand-in's ACES seed 1 improved (0.296 -> 0.267 m), but Seattle (0.23-0.33 -> 0.30-0.35 m), the
-      stand-in's ACES seeds 2-3 and Intel seeds 1 and 3 got worse (the maps about as consistent, turned
-      differently about the start); the Intel log at ``0.1,0.1`` improved on seeds 1-3 and 10 but got worse on
-      seeds 4-9 and lost a stretch of seeds 7 and 9 (max 6.5 and 2.2 m; branch ``corridor17``);
-    - each closure judged alone (``[slam.loop] set_verify`` off): verified as a set
-      (:mod:`mazebot.slam.closure_set`), 19-24 more closures per ACES run were accepted and
-      every ACES run got better (seed 2 0.317 → 0.170, systematic 0.219 → 0.196 m), but the
-      Intel log did not gain (``0.05`` seed 10 0.257 → 0.251, ``0.1`` seed 2 0.136 → 0.131, but
-      systematic 0.161 → 0.189, ``0.1`` seeds 7 and 9 0.118 → 0.167 and 0.155 → 0.199 m),
-      Freiburg and Seattle went either way, and the 16x16 maze tour with it kept 0 false
-      closures at 3.6 mm ATE against main's 3.0 (branch ``reallogs6``).
+    Loop closures:
+
+    - verified with the whole scan (``max_range_m`` None): the maze's 2 m crop leaves a few dozen
+      points of a 2 m wide corridor;
+    - searched up to 5 m away and allowed to move a pose by up to 1.5 m, or by more where the chain's
+      own uncertainty says so (3 standard deviations of its drift, ``correction_sigmas``): a building's
+      loops are longer than any fixed cap;
+    - keyframe 0 not verified as an extra candidate (``anchor_candidate`` off): it lost ACES with
+      systematic odometry;
+    - the inlier ratio over all points (``overlap_fitness`` off): the overlap-aware ratio let wrong
+      closures in along the Intel log's last long corridor;
+    - every candidate verified (``closed_reach_keyframes`` 0): after a loop of tens of metres the
+      closures back onto the start each carry weight the robust optimization needs;
+    - no wall prior: a building's walls do not lie on one right-angle grid.
+
+    Options that pass through from ``--config``, each better on some logs and worse on others, so off:
+    ICP's information clustered by wall (``[slam.icp] information_cluster_rad``; branches ``reallogs5``,
+    ``reallogs6``); no smoothing of the submap's points onto their local lines (``[slam.normals] smooth``
+    false: the smoothing turns each Seattle match +0.035°, yet without it Intel at ``0.1,0.1`` loses a
+    stretch; branch ``seattle15``); a sequential match turned beyond ``[slam.matching]
+    match_heading_sigmas`` of the prediction searched again (branches ``radish18``, ``guard19``); closures
+    accepted in the directions they constrain (``[slam.loop] accept_degenerate``; branch ``corridor17``);
+    closures verified as a set rather than each alone (``[slam.loop] set_verify``; branch ``reallogs6``).
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
@@ -302,7 +213,7 @@ def laser_log_params(
             min_keyframe_gap=30,
             submap_half_width=5,
             attempt_every=1,
-            closed_reach_keyframes=0,  # every candidate verified: measured below
+            closed_reach_keyframes=0,  # every candidate verified: see the docstring
             anchor_candidate=False,  # keyframe 0 at rest is a maze robot's start; not measured on the logs
             min_fitness=0.6,
             overlap_fitness=False,  # measured: admitted wrong closures in the Intel log's last corridor
@@ -328,10 +239,8 @@ def laser_log_params(
         max_match_rmse_m=1.0,
         match_doubt_ratio=LASER_LOG_DOUBT_RATIO if match_doubt else 0.0,  # a residual far out of the run's own
         match_deskew_variance=False,  # a laser log's scan carries one stamp: nothing is de-skewed
-        # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged
-        # where the submap saw, the refused doorway scans are matched and the maps are more consistent (aligned
-        # ATE lower on most Intel and every ACES run measured), but they turn about the start by more (Intel
-        # 0.05 seed 3: 0.154 -> 0.573 m, ACES 0.145 / 0.317 / 0.161 -> 0.474 / 0.368 / 0.569 m; branch reallogs4)
+        # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged where
+        # the submap saw, the maps are more consistent but turn about the start by more (branch reallogs4)
         retry_headings_rad=(0.05, -0.05, 0.1, -0.1, 0.15, -0.15),
         wall_prior=False,
         calibrate_heading=calibrate_heading,

@@ -19,6 +19,7 @@ the faces lie on one grid (:func:`face_spread`).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -113,10 +114,9 @@ def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> Face
                 fitted = _slope(a, b)
                 if fitted is None:
                     continue
-                mid_along = float(b.mean())
-                mid_across = float(a.mean())
+                slope, mid_across, mid_along = fitted
                 centre = (mid_across, mid_along) if axis == 0 else (mid_along, mid_across)
-                rows.append((*centre, nominal + sign * math.atan(fitted), 0.5 * float(b[-1] - b[0]), a.size))
+                rows.append((*centre, nominal + sign * math.atan(slope), 0.5 * float(b[-1] - b[0]), a.size))
     if not rows:
         return NO_FACES
     table = np.array(rows)
@@ -152,27 +152,45 @@ def face_spread(turns_rad: np.ndarray, counts: np.ndarray) -> float | None:
 
 
 def _faces(across: np.ndarray, along: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The points of one axis and side split into faces: by gaps across, then by gaps along."""
+    """The points of one axis and side split into faces: by gaps across, then by gaps along.
+
+    A face is a run of one part's points, so a part of fewer than ``FACE_MIN_POINTS`` holds
+    none and is passed over unsorted: most parts are a point or two (a post's round side,
+    noise between two boards), and sorting each cost a dozen numpy calls for nothing.
+    """
     faces = []
     order = np.argsort(across)
     across, along = across[order], along[order]
-    for part in np.split(np.arange(across.size), np.flatnonzero(np.diff(across) > FACE_GAP_ACROSS_M) + 1):
-        a, b = across[part], along[part]
+    for lo, hi in _runs(np.diff(across) > FACE_GAP_ACROSS_M):
+        if hi - lo < FACE_MIN_POINTS:
+            continue
+        a, b = across[lo:hi], along[lo:hi]
         by_along = np.argsort(b)
         a, b = a[by_along], b[by_along]
-        for piece in np.split(np.arange(b.size), np.flatnonzero(np.diff(b) > FACE_GAP_ALONG_M) + 1):
-            if piece.size >= FACE_MIN_POINTS and b[piece[-1]] - b[piece[0]] >= FACE_MIN_LENGTH_M:
-                faces.append((a[piece], b[piece]))
+        for first, end in _runs(np.diff(b) > FACE_GAP_ALONG_M):
+            if end - first >= FACE_MIN_POINTS and b[end - 1] - b[first] >= FACE_MIN_LENGTH_M:
+                faces.append((a[first:end].copy(), b[first:end].copy()))
     return faces
 
 
-def _slope(across: np.ndarray, along: np.ndarray) -> float | None:
-    """The slope of ``across`` against ``along`` by least squares, or None if its standard error is too large."""
-    centred = along - along.mean()
+def _runs(gap_after: np.ndarray) -> list[tuple[int, int]]:
+    """``[first, end)`` of each run of points between the gaps, where ``gap_after`` (N - 1,) marks a gap
+    after each point: the parts ``np.split`` would cut at ``flatnonzero(gap_after) + 1``."""
+    cuts = [0, *(np.flatnonzero(gap_after) + 1).tolist(), gap_after.size + 1]
+    return list(itertools.pairwise(cuts))
+
+
+def _slope(across: np.ndarray, along: np.ndarray) -> tuple[float, float, float] | None:
+    """The slope of ``across`` against ``along`` by least squares and the two means, or None if its
+    standard error is too large. Each mean is taken once: the fit and the face's centre share them."""
+    mean_along = along.mean()
+    mean_across = across.mean()
+    centred = along - mean_along
     spread = float(centred @ centred)
-    slope = float(centred @ (across - across.mean())) / spread
-    residual = across - across.mean() - slope * centred
+    across_centred = across - mean_across
+    slope = float(centred @ across_centred) / spread
+    residual = across_centred - slope * centred
     stderr = math.sqrt(float(residual @ residual) / max(1, across.size - 2) / spread)
     if math.atan(stderr) > FACE_MAX_STDERR_RAD:
         return None
-    return slope
+    return slope, float(mean_across), float(mean_along)

@@ -93,3 +93,32 @@ def test_boards_set_by_hand_leave_the_start_no_anchor_and_exact_walls_keep_it(se
     exact = standing_slam("exact", seed, cast_scan)
     assert exact.anchor_face_spread_rad is not None and math.degrees(exact.anchor_face_spread_rad) < 0.2
     assert exact.anchor_on_grid
+
+
+def test_faces_among_scattered_returns_are_the_boards_and_the_runs_are_np_split_s_parts() -> None:
+    """Three boards of known turns among 400 scattered single returns (noise, posts' round sides): each part
+    too small to hold a face is passed over unsorted, and the boards' turns come out as drawn; the runs
+    between gaps are the parts ``np.split`` cuts, first and last included."""
+    from mazebot.slam.wall_faces import _runs
+
+    rng = np.random.default_rng(3)
+    turns_deg = {"left": 0.6, "right": -0.5, "ahead": 0.2}
+    parts = [
+        board((0.0, 0.15), math.radians(turns_deg["left"]), 0.5, -1.0, rng),
+        board((0.0, -0.15), math.radians(turns_deg["right"]), 0.5, 1.0, rng),
+        board((0.45, 0.0), math.pi / 2 + math.radians(turns_deg["ahead"]), 0.28, 1.0, rng),
+    ]
+    scattered = rng.uniform(-0.6, 0.6, (1200, 2))
+    off_boards = (np.abs(np.abs(scattered[:, 1]) - 0.15) > 0.03) & (np.abs(scattered[:, 0] - 0.45) > 0.03)
+    scattered = scattered[off_boards][:400]  # none within 3 cm across of a board: they are not its points
+    axis = rng.integers(0, 4, 400) * (math.pi / 2)  # normals on the grid's axes: every side gets its share
+    scattered_normals = np.column_stack((np.cos(axis), np.sin(axis)))
+    points = np.concatenate([p for p, _ in parts] + [scattered])
+    normals = np.concatenate([n for _, n in parts] + [scattered_normals])
+    turns, counts = face_turns(points, normals, 0.0)
+    assert sorted(np.degrees(turns)) == pytest.approx(sorted(turns_deg.values()), abs=0.1)
+    assert sorted(counts.tolist()) == sorted(len(p) for p, _ in parts)  # every board point, no scattered one
+
+    for gaps in (np.array([], bool), np.array([False]), np.array([True, False, True, True]), rng.random(50) > 0.7):
+        expected = np.split(np.arange(gaps.size + 1), np.flatnonzero(gaps) + 1)
+        assert [(int(p[0]), int(p[-1]) + 1) for p in expected] == _runs(gaps)

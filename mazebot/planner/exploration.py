@@ -113,13 +113,6 @@ __all__ = [
 ]
 
 
-#: Give-ups on the same first link of the way home before it is closed: one can be a passing
-#: trouble (a hand-built 8x8 maze, seed 3 priors on: one give-up, the link closed at once, the
-#: run 42 s longer); a robot that cannot pass gives up again and again (every 4-30 s beside a
-#: table leg).
-HOME_GIVE_UPS = 2
-
-
 class Phase(enum.StrEnum):
     """Where the run is: the planner's part of the run state."""
 
@@ -424,7 +417,6 @@ class Explorer:
         #: links of the way home the local planner could not pass (each a frozenset of its two cells)
         self.closed_home_links: set[frozenset[Cell]] = set()
         self._home_route: list[Cell] | None = None  # the cells of the last way home planned, robot's first
-        self._home_give_ups: dict[frozenset[Cell], int] = {}  # give-ups on each first link of the way home
         self.updates = 0
         self._discovered: dict[tuple[Cell, Direction | None], int] = {}
         self._target: _Target | None = None
@@ -582,7 +574,7 @@ class Explorer:
         self._blacklist(target, "the local planner could not reach it")
 
     def _close_home_link(self) -> None:
-        """The way home's first link could not be driven (``HOME_GIVE_UPS`` times): route around it from now on.
+        """The way home's first link could not be driven: route around it from now on.
 
         The start is no target to blacklist, and the same open links give the same way home,
         so without this the robot plans the passage it just failed, for ever (a hand-built
@@ -598,9 +590,6 @@ class Explorer:
         link = frozenset(route[:2])
         if link in self.closed_home_links:
             return
-        self._home_give_ups[link] = self._home_give_ups.get(link, 0) + 1
-        if self._home_give_ups[link] < HOME_GIVE_UPS:
-            return
         self.closed_home_links.add(link)
         self.events.append(f"closed the way home from cell {route[0]} to {route[1]} "
                            "(the local planner could not pass it): routing around it")
@@ -612,7 +601,6 @@ class Explorer:
         self.blacklisted_points_m.clear()
         self.closed_home_links.clear()
         self._home_route = None
-        self._home_give_ups.clear()
         self._discovered.clear()
         self._history.clear()
         self._given_up.clear()

@@ -414,9 +414,6 @@ class Explorer:
         self.mode: Literal["maze", "frontier"] = "frontier" if mode == "frontier" else "maze"
         self.blacklisted_links: set[tuple[Cell, Direction | None]] = set()
         self.blacklisted_points_m: list[tuple[float, float]] = []
-        #: links of the way home the local planner could not pass (each a frozenset of its two cells)
-        self.closed_home_links: set[frozenset[Cell]] = set()
-        self._home_route: list[Cell] | None = None  # the cells of the last way home planned, robot's first
         self.updates = 0
         self._discovered: dict[tuple[Cell, Direction | None], int] = {}
         self._target: _Target | None = None
@@ -565,42 +562,16 @@ class Explorer:
 
     def report_unreachable(self, now_s: float | None = None) -> None:
         """The local planner could not reach the current goal: blacklist it and choose again."""
-        if self.phase is Phase.RETURNING:
-            self._close_home_link()
-            return
         target = self._target
         if target is None or self.phase is not Phase.EXPLORING:
             return
         self._blacklist(target, "the local planner could not reach it")
-
-    def _close_home_link(self) -> None:
-        """The way home's first link could not be driven: route around it from now on.
-
-        The start is no target to blacklist, and the same open links give the same way home,
-        so without this the robot plans the passage it just failed, for ever (a hand-built
-        8x8 maze: a table leg beside a corner left the planner's margins no lane past it,
-        and the robot turned on the spot for 300 s on a clean map). Where the maze has no
-        other way, the way home stays that passage: the grid route would take the robot
-        anywhere the coarse grid sees a gap, and the pilot's stand-still watch stops a robot
-        that cannot make it, saying where.
-        """
-        route = self._home_route
-        if route is None or len(route) < 2:
-            return
-        link = frozenset(route[:2])
-        if link in self.closed_home_links:
-            return
-        self.closed_home_links.add(link)
-        self.events.append(f"closed the way home from cell {route[0]} to {route[1]} "
-                           "(the local planner could not pass it): routing around it")
 
     def reset(self) -> None:
         """Start a new run: forget the phase, targets and blacklists (the graph follows the map)."""
         self.phase = Phase.EXPLORING
         self.blacklisted_links.clear()
         self.blacklisted_points_m.clear()
-        self.closed_home_links.clear()
-        self._home_route = None
         self._discovered.clear()
         self._history.clear()
         self._given_up.clear()
@@ -1002,11 +973,7 @@ class Explorer:
                 return Goal(Phase.DONE, target, [target], [start_cell], "done: back at the start cell")
             robot = frame.cell_of(pose[0], pose[1])
             heading = _heading_index(pose[2], frame.angle_rad)
-            route = shortest_cell_path(self._home_neighbours, robot, start_cell, heading, self.turn_cost_cells)
-            if route is None and self.closed_home_links:  # no way round: that passage again (the pilot's
-                # stand-still watch stops a robot that cannot make it, and says where)
-                route = shortest_cell_path(self.graph.open_neighbours, robot, start_cell, heading, self.turn_cost_cells)
-            self._home_route = route
+            route = shortest_cell_path(self.graph.open_neighbours, robot, start_cell, heading, self.turn_cost_cells)
             if route is not None:
                 cells = merge_straight(route)
                 waypoints = cell_waypoints(cells, frame.cell_center_m)
@@ -1024,13 +991,6 @@ class Explorer:
         path = costmap.plan((pose[0], pose[1]), target)
         waypoints = _ending_at(shortcut(path, costmap) if path else [], target)
         return Goal(Phase.RETURNING, target, waypoints, [], "return to start")
-
-    def _home_neighbours(self, cell: Cell) -> list[Cell]:
-        """The maze graph's open neighbours of ``cell`` but for the links closed on the way home."""
-        open_cells = self.graph.open_neighbours(cell)
-        if not self.closed_home_links:
-            return open_cells
-        return [n for n in open_cells if frozenset((cell, n)) not in self.closed_home_links]
 
     # -- target bookkeeping --------------------------------------------------------------
 

@@ -682,35 +682,3 @@ def test_a_frontier_with_new_cells_where_one_was_resolved_is_still_a_goal() -> N
         known_to_m = max(known_to_m, goal.target_m[0] + 1.0)
     assert not explorer.closed_points_m, explorer.events
     assert goals and goals[-1] > 2.0 and known_to_m > 3.05, (goals, known_to_m)  # to the corridor's end
-
-
-# A loop: from (1, 1) the way home is west then south; the other way round the inner wall is longer.
-LOOP_MAZE = """
-o---o---o---o
-|           |
-o   o---o   o
-| S         |
-o---o---o---o
-"""
-
-
-def test_a_way_home_the_local_planner_cannot_pass_is_closed_and_routed_around() -> None:
-    # A table leg beside a corner can leave the local planner no lane past it: the robot gives the
-    # goal up. The start is no target to blacklist; on main the explorer ignored the give-up on the
-    # way home and planned the same passage again, and the robot turned on the spot for 300 s.
-    world = world_from_layout(parse_maze(LOOP_MAZE, CELL), 0.012)
-    grid, origin = known_map(world)
-    explorer = Explorer(start_xy_m=world.start_pose[:2])
-    pose = (*centre((1, 1)), math.pi)
-    goal = explorer.update(grid, origin, RES, pose, revolutions=revs(0.0))
-    assert goal is not None and goal.phase is Phase.RETURNING
-    assert goal.cells[:2] == [(1, 1), (0, 1)], goal.cells  # the short way: west, then south
-    explorer.report_unreachable()
-    goal = explorer.update(grid, origin, RES, pose, revolutions=revs(0.5))
-    assert goal is not None and goal.phase is Phase.RETURNING
-    assert goal.cells[0] == (1, 1) and goal.cells[1] == (2, 1) and goal.cells[-1] == (0, 0), goal.cells
-    assert any("closed the way home from cell (1, 1) to (0, 1)" in e for e in explorer.events), explorer.events
-    # the robot, once round, gets home and is done
-    goal = explorer.update(grid, origin, RES, (*centre((0, 0)), math.pi), revolutions=revs(5.0))
-    assert goal is not None and goal.phase is Phase.DONE
-

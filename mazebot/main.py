@@ -320,7 +320,6 @@ async def run_daemon(
             # imported there is locked for the others: https://docs.python.org/3/library/importlib.html)
             await asyncio.to_thread(_import_the_robot)
         from mazebot.planner.pilot import Pilot, PilotParams
-        from mazebot.planner.wheel_control import WheelGainEstimator
         from mazebot.slam.loop_worker import LoopClosureExecutor
         from mazebot.slam.odometry import DiffDriveOdometry
         from mazebot.slam.slam import Slam, SlamParams
@@ -368,11 +367,8 @@ async def run_daemon(
         # __getattr__, which Python 3.12's runtime protocol checks no longer look at
         has_bytes = hasattr(hardware.lidar, "bytes_waiting")  # the tests' fakes count no bytes
         lidar_activity = cast(LidarActivity, hardware.lidar) if has_bytes else None
-        # the weak-motor check's nominal motor: the feed-forward's ([drive], [control]) at the control rate
-        wheel_gains = WheelGainEstimator(config.drive.max_wheel_speed_mps, config.control.motor_deadband,
-                                         config.daemon.control_period_s, latency_s=0.0)
         monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s, lidar=lidar_activity,
-                                wheel_gains=wheel_gains)
+                                wheel_gains=health_task.wheel_gains_from_config(config))
         supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))

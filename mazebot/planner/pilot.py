@@ -116,6 +116,11 @@ FREED_M = 0.3
 BACKOFF_M = 0.15
 #: The track is kept as points this far apart, this many of them (enough for the back-off).
 TRACK_STEP_M, TRACK_POINTS = 0.03, 20
+#: A robot that stays within this of a spot (metres, any heading) for ``WRIGGLE_FACTOR`` times the
+#: stand-still revolutions is stuck too, however it turns and shuffles there: the local planner's
+#: recoveries turn it and move it 3-6 cm, which starts the stand-still count again each time (a
+#: hand-built 8x8 maze: 300 s beside a table leg, the watch acting three times).
+WRIGGLE_M, WRIGGLE_FACTOR = 0.1, 3
 
 
 @dataclass
@@ -140,9 +145,14 @@ class StandStill:
     painted_at_mark: int = 0  # SLAM's painted revolutions when the count (re)started
     painted: int = 0  # of the revolutions stood, how many SLAM painted (the explorer's clock)
     track: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=TRACK_POINTS))
+    wriggle_mark: tuple[float, float] | None = None  # where the robot was when the wriggle count began
+    wriggle_revolutions: int = 0  # revolutions since, all within WRIGGLE_M of it
+    wriggle_painted_at: int = 0  # SLAM's painted revolutions when the wriggle count began
+    wriggled: bool = False  # the last count that reached its limit was the wriggle count
 
     def reset(self) -> None:
         self.mark, self.revolutions, self.escalations, self.freed_from, self.last_scan = None, 0, 0, None, None
+        self.wriggle_mark, self.wriggle_revolutions = None, 0
         self.track.clear()
 
     def observe(self, pose: tuple[float, float, float], scan: object | None, painted: int = 0) -> int:
@@ -157,20 +167,35 @@ class StandStill:
             self.track.append(xy)
         if self.freed_from is not None and math.dist(self.freed_from, xy) >= FREED_M:
             self.escalations, self.freed_from = 0, None
+        if self.wriggle_mark is None or math.dist(self.wriggle_mark, xy) > WRIGGLE_M:
+            self.wriggle_mark, self.wriggle_revolutions, self.wriggle_painted_at = xy, 0, painted
         mark = self.mark
         turned = 0.0 if mark is None else abs(math.remainder(pose[2] - mark[2], math.tau))
+        new_scan = scan is not None and scan is not self.last_scan
         if mark is None or math.dist(mark[:2], xy) > STILL_M or turned > STILL_RAD:
             self.mark, self.revolutions, self.last_scan, self.painted_at_mark = pose, 0, scan, painted
-            return 0
-        if scan is None or scan is self.last_scan:
+            # the robot moved or turned, yet within WRIGGLE_M: that revolution counts as wriggling
+            return self._wriggled(xy, painted) if new_scan else 0
+        if not new_scan:
             return 0
         self.last_scan = scan
         self.revolutions += 1
         if self.revolutions < self.limit_revolutions:
-            return 0
+            return self._wriggled(xy, painted)
         stood, self.revolutions = self.revolutions, 0
+        self.wriggle_mark, self.wriggle_revolutions, self.wriggle_painted_at, self.wriggled = xy, 0, painted, False
         self.painted, self.painted_at_mark = painted - self.painted_at_mark, painted
         return stood
+
+    def _wriggled(self, xy: tuple[float, float], painted: int) -> int:
+        """One more revolution within WRIGGLE_M: the revolutions wriggled once they reach the limit, else 0."""
+        self.wriggle_revolutions += 1
+        if self.wriggle_revolutions < WRIGGLE_FACTOR * self.limit_revolutions:
+            return 0
+        wriggled, self.wriggle_revolutions, self.wriggle_mark, self.wriggled = self.wriggle_revolutions, 0, xy, True
+        self.painted, self.wriggle_painted_at = painted - self.wriggle_painted_at, painted
+        self.mark, self.revolutions = None, 0  # the stand-still count starts again from here too
+        return wriggled
 
     def backoff_path(self, xy_m: tuple[float, float]) -> list[tuple[float, float]]:
         """Waypoints from ``xy_m`` back along the track, ``BACKOFF_M`` of it (empty: no track behind)."""
@@ -473,7 +498,8 @@ class Pilot:
         if still.freed_from is None:
             still.freed_from = (pose[0], pose[1])
         where = f"({pose[0]:.2f}, {pose[1]:.2f})"
-        what = (f"stood still for {stood} lidar revolutions at {where}, SLAM painted {still.painted} of them "
+        how = f"stayed within {WRIGGLE_M:.2f} m" if still.wriggled else "stood still"
+        what = (f"{how} for {stood} lidar revolutions at {where}, SLAM painted {still.painted} of them "
                 f"({state.planner_status})")  # revolutions as its ticks saw them: two in one tick count once
         backoff = still.backoff_path((pose[0], pose[1])) if still.escalations == 2 else []
         if still.escalations == 1:

@@ -264,6 +264,14 @@ def _lag_step(dt_s: float, tau_s: float) -> float:
 SILENT_SHARE = 0.15
 #: An update this many control periods after the previous one finds the wheel gain window stale.
 LATE_PERIODS = 2.0
+#: A window is judged only when the nominal motor's travel over it spans this many encoder ticks.
+#: Its speeds are read from edge-dated travel, which is off by up to a tick at each end of the
+#: window: with 10 ticks a healthy wheel's gain is within 20 % and the ratio of two healthy
+#: wheels stays above 0.8 / 1.2 = 0.67, over the weak-motor verdict's 0.6. A cheap 20-line
+#: encoder (80 ticks a turn, 2.6 mm each) turning in place at 4 cm/s counts 3 ticks in 0.2 s:
+#: its healthy right motor was said to give "only 59 %" (a hand-built 8x8 maze, the robot
+#: turning on the spot); the default 210-line encoder counts 33 ticks there.
+MIN_WINDOW_TICKS = 10
 
 
 class WheelGainEstimator:
@@ -312,7 +320,9 @@ class WheelGainEstimator:
     suite's weak motor, injected at 18 different moments, was said 250-300 ms after it
     weakened, except once, when that motor crawled below 3 cm/s for 1.1 s first (1.3 s).
     Battery sag and unmatched motors scale both sides alike or by a few per cent;
-    comparing the two sides is the health monitor's job.
+    comparing the two sides is the health monitor's job. ``tick_m``, the wheel travel of one
+    counted encoder tick, raises ``min_speed_mps`` for a coarse encoder so that a window spans
+    ``MIN_WINDOW_TICKS`` ticks (below that one tick decides the gain).
     """
 
     def __init__(
@@ -325,6 +335,7 @@ class WheelGainEstimator:
         brake_time_constant_s: float = 0.06,
         window_s: float = 0.2,
         min_speed_mps: float = 0.03,
+        tick_m: float = 0.0,
     ) -> None:
         if max_wheel_speed_mps <= 0 or not 0.0 <= deadband < 1.0 or period_s <= 0 or time_constant_s < 0:
             raise ValueError(
@@ -336,7 +347,8 @@ class WheelGainEstimator:
         self.period_s = float(period_s)
         self.time_constant_s = float(time_constant_s)
         self.window_s = float(window_s)
-        self.min_speed_mps = float(min_speed_mps)
+        # the encoder's resolution sets a floor too: a window must span MIN_WINDOW_TICKS ticks of travel
+        self.min_speed_mps = max(float(min_speed_mps), MIN_WINDOW_TICKS * float(tick_m) / self.window_s)
         self.brake_time_constant_s = float(brake_time_constant_s)
         self._keep = _lag_step(self.period_s, self.time_constant_s)
         self._keep_braking = _lag_step(self.period_s, self.brake_time_constant_s)

@@ -57,6 +57,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from mazebot.clock import Clock
+from mazebot.config import Config
 from mazebot.planner.wheel_control import LATE_PERIODS, WheelGainEstimator
 from mazebot.state import SharedState
 
@@ -124,6 +125,14 @@ class _Wheel:
     other_ticks: int = 0
     other_idle: bool = True  # the other wheel was not driven at any driven check of the stretch
     moving: int = 0  # it was turning this way (+1 forward, -1 back, 0 not) just before the silence began
+
+
+def wheel_gains_from_config(config: Config) -> WheelGainEstimator:
+    """The weak-motor check's nominal motor: the feed-forward's (``[drive]``, ``[control]``) at the
+    control rate, judged only over travel its encoders resolve (``[encoders]``: a tick's travel)."""
+    tick_m = config.wheel_circumference_m / config.encoders.ticks_per_rev
+    return WheelGainEstimator(config.drive.max_wheel_speed_mps, config.control.motor_deadband,
+                              config.daemon.control_period_s, latency_s=0.0, tick_m=tick_m)
 
 
 class WheelTravelGains:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 
-from mazebot.planner.pilot import BACKOFF_M, StandStill
+from mazebot.planner.pilot import BACKOFF_M, WRIGGLE_FACTOR, StandStill
 
 
 def test_counts_revolutions_not_ticks() -> None:
@@ -49,3 +49,20 @@ def test_no_track_no_backoff() -> None:
     still = StandStill()
     still.observe((0.0, 0.0, 0.0), 1)
     assert still.backoff_path((0.0, 0.0)) == []
+
+
+def test_wriggling_on_a_spot_is_standing_still_too() -> None:
+    """Turned and shuffled 5 cm back and forth each revolution (the local planner's recoveries):
+    each move starts the stand-still count again, but the robot never left its spot."""
+    still = StandStill(limit_revolutions=3)
+    shuffle = itertools.cycle([(0.0, 0.0, 0.0), (0.05, 0.0, 0.6), (0.02, 0.04, -0.6)])
+    reached = [still.observe(next(shuffle), scan_id) for scan_id in range(1, 1 + WRIGGLE_FACTOR * 3)]
+    assert reached[:-1] == [0] * (WRIGGLE_FACTOR * 3 - 1) and reached[-1] == WRIGGLE_FACTOR * 3, reached
+    assert still.wriggled
+
+
+def test_driving_on_slowly_is_no_wriggling() -> None:
+    """4 cm a revolution, turning a little each time: the robot leaves its spot, nothing is said."""
+    still = StandStill(limit_revolutions=3)
+    reached = [still.observe((0.04 * k, 0.0, 0.2 * (k % 2)), k) for k in range(1, 60)]
+    assert not any(reached), reached

@@ -18,10 +18,11 @@ from mazebot.config import Config
 from mazebot.io.scan import Scan
 from mazebot.planner.wheel_control import DriveMode, WheelGainEstimator
 from mazebot.sim.physics import PhysicsParams, RobotPhysics
+from mazebot.sim.robot import physics_params
 from mazebot.sim.world import World
 from mazebot.state import MotionRequest, RunState, SharedState
 from mazebot.tasks import control_task
-from mazebot.tasks.health_task import HealthMonitor
+from mazebot.tasks.health_task import HealthMonitor, wheel_gains_from_config
 
 STOP, DRIVE, TURN = DriveMode.STOP, DriveMode.DRIVE, DriveMode.TURN
 
@@ -39,13 +40,16 @@ class WheelsOnTheFloor:
     control tick's speed estimate sees them late and in bursts.
     """
 
-    def __init__(self, seed: int = 1, edge_lags: tuple[int, ...] = (0,)) -> None:
-        self.config = Config()
+    def __init__(self, seed: int = 1, edge_lags: tuple[int, ...] = (0,), config: Config | None = None) -> None:
+        self.config = Config() if config is None else config
         floor = World("floor", np.zeros((0, 4)), np.zeros((0, 3)), (0.0, 0.0, 0.0), (-100.0, -100.0, 100.0, 100.0))
-        self.physics = RobotPhysics(PhysicsParams(), floor, floor.start_pose, np.random.default_rng(seed))
+        params = PhysicsParams() if config is None else physics_params(config)  # the configured robot's own parts
+        self.physics = RobotPhysics(params, floor, floor.start_pose, np.random.default_rng(seed))
         self.control = control_task.MotorControl.from_config(self.config)
         self.state = SharedState(run_state=RunState.EXPLORING)
-        self.monitor = HealthMonitor(startup_grace_s=1e9)
+        # as the daemon builds it when given a config; the defaults' nominal motor otherwise
+        gains = None if config is None else wheel_gains_from_config(config)
+        self.monitor = HealthMonitor(startup_grace_s=1e9, wheel_gains=gains)
         self.ticks_per_rad = self.config.encoders.ticks_per_rev / math.tau
         self.metres_per_tick = math.pi * self.config.drive.wheel_diameter_m / self.config.encoders.ticks_per_rev
         self.now_s = 0.0
@@ -184,6 +188,16 @@ def test_a_motor_at_40_percent_is_said_when_the_encoder_edges_come_late(case: st
     """Said once the edges of its weak periods are counted: the 400 ms and the edges' lag."""
     wheels = WheelsOnTheFloor(1, edge_lags=LATE_EDGES_READ_OFTEN)
     assert _weak_left_said_after_s(wheels, case) <= 0.4 + 0.05 * max(LATE_EDGES_READ_OFTEN) + 1e-9
+
+
+def _cheap_robot() -> Config:
+    """The robot of cheap parts (``[sim] robot_build = "cheap"``): 20-line encoders, 80 ticks a turn."""
+    return Config.model_validate({"sim": {"robot_build": "cheap"}})
+
+
+def test_a_motor_at_40_percent_is_said_with_coarse_encoders_when_driving() -> None:
+    """The coarse encoders still tell a weak motor where they resolve the speed: driving on."""
+    assert _weak_left_said_after_s(WheelsOnTheFloor(1, config=_cheap_robot()), "driving straight") <= 0.4 + 1e-9
 
 
 def _steady_drive(state: SharedState, monitor: HealthMonitor, times_s: list[float],
@@ -328,3 +342,42 @@ def test_a_check_copies_the_writes_since_it_last_looked_and_the_last_one_it_saw(
             raise RuntimeError("deque mutated during iteration")
 
     assert list(_tail(Appending(full), since_s)) == full  # then the whole history, at once
+
+
+# -- recorded: a healthy turn in place on the cheap robot's 20-line encoders --------------------------
+#: a hand-built 8x8 maze (seed 8, the cheap robot, priors off): the robot turned on the spot at
+#: about 4 cm/s a wheel, healthy motors (0.97 apart); each wheel's encoder ticked every 60 ms.
+#: (time s, left, right) of the throttle writes, and (time s, left m, right m) of the travel, dated
+#: by the edges, as ``state.throttle_history`` and ``state.wheel_travel`` held them
+TURN_ON_COARSE_ENCODERS_THROTTLES = [
+    (0.0, -0.1663, 0.158), (0.05, -0.1576, 0.1497), (0.1, -0.1452, 0.1687), (0.15, -0.1472, 0.1574),
+    (0.2, -0.1384, 0.1442), (0.25, -0.1435, 0.148), (0.3, -0.166, 0.1388), (0.35, -0.1255, 0.1314),
+    (0.4, -0.1511, 0.121), (0.45, -0.1434, 0.1457), (0.5, -0.1302, 0.1265), (0.55, -0.1243, 0.119),
+    (0.6, -0.1439, 0.1385), (0.65, -0.1336, 0.1276), (0.7, -0.1188, 0.1438), (0.75, -0.1119, 0.1236),
+]
+TURN_ON_COARSE_ENCODERS_TRAVEL = [
+    (-0.0789, 0.0, 0.0), (-0.059, 0.0, 0.00259), (-0.0024, -0.00251, 0.00259), (0.0255, -0.00251, 0.00518),
+    (0.0576, -0.00503, 0.00518), (0.0906, -0.00503, 0.00777), (0.1116, -0.00754, 0.00777),
+    (0.1482, -0.00754, 0.01036), (0.1672, -0.01006, 0.01036), (0.2012, -0.01006, 0.01295),
+    (0.225, -0.01257, 0.01295), (0.2567, -0.01257, 0.01555), (0.2864, -0.01509, 0.01555),
+    (0.315, -0.01509, 0.01814), (0.3446, -0.0176, 0.01814), (0.378, -0.0176, 0.02073),
+    (0.4034, -0.02011, 0.02073), (0.465, -0.02263, 0.02332), (0.5251, -0.02263, 0.02591),
+    (0.5268, -0.02514, 0.02591), (0.597, -0.02766, 0.02591), (0.6062, -0.02766, 0.0285),
+    (0.6685, -0.03017, 0.0285), (0.6869, -0.03017, 0.03109), (0.7419, -0.03268, 0.03109),
+]
+
+
+def test_a_recorded_healthy_turn_on_coarse_encoders_is_no_weak_motor() -> None:
+    """Three ticks a window decided the gain: the monitor the daemon builds for the cheap robot
+    (its encoders' tick in the fit's floor) says nothing, where a fit without it said "59 %"."""
+    state = SharedState(run_state=RunState.EXPLORING)
+    monitor = HealthMonitor(startup_grace_s=1e9, wheel_gains=wheel_gains_from_config(_cheap_robot()))
+    travel = iter(TURN_ON_COARSE_ENCODERS_TRAVEL)
+    pending = next(travel)
+    for now_s, left, right in TURN_ON_COARSE_ENCODERS_THROTTLES:
+        while pending is not None and pending[0] <= now_s:
+            state.wheel_travel.append(pending)
+            pending = next(travel, None)
+        state.throttle_history.append((now_s, left, right))
+        monitor.check_motors(state, now_s)
+    assert [e.message for e in state.events if e.source == "motors"] == []

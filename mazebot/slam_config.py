@@ -529,7 +529,7 @@ class WallSection:
     anchor_start_view: Annotated[bool, Field(description=(
         "where the faces keyframe 0 sees at rest lie on one grid (walls set square), the anchor judged from every "
         "keyframe's faces is averaged with their own mean, each weighted by its std (the faces' spread over their "
-        "number less one); off: the judged anchor alone"))] = True
+        "number less one); off: the judged anchor alone"))] = False
 
 
 @dataclass(frozen=True)

@@ -216,7 +216,7 @@ def test_an_exact_maze_s_start_holds_the_grid_its_own_square_faces_read_at_rest(
     assert layout is not None
     start = np.array(world.start_pose)
     config = Config()
-    slam = Slam(SlamParams.from_config(config.slam, config.lidar, config.planner))
+    slam = Slam(replace(SlamParams.from_config(config.slam, config.lidar, config.planner), anchor_start_view=True))
     odometry = OdometryHistory()
     odometry.append(0.0, 0.0, 0.0, 0.0)
     odometry.append(1e3, 0.0, 0.0, 0.0)

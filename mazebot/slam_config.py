@@ -526,6 +526,10 @@ class WallSection:
         "the anchor judged from every keyframe's faces links the keyframes by the pose graph's edges (the chain "
         "of matches and the closures, at their heading std), so the boards far from the start count too; off: "
         "by the faces they share alone (main's fit)"))] = False
+    anchor_start_view: Annotated[bool, Field(description=(
+        "where the faces keyframe 0 sees at rest lie on one grid (walls set square), the anchor judged from every "
+        "keyframe's faces is averaged with their own mean, each weighted by its std (the faces' spread over their "
+        "number less one); off: the judged anchor alone"))] = False
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ from scipy.sparse import csc_matrix
 from scipy.sparse.linalg import spsolve
 
 from mazebot.slam.keyframes import Keyframe
-from mazebot.slam.wall_faces import Faces, quarter_turns
+from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns
 
 #: Faces on one side within this across ...
 STRETCH_ACROSS_M = 0.05
@@ -116,6 +116,30 @@ def start_anchor_rad(
     turns = None if links is None else _place_turns(links, poses)
     direction, std = _two_way_fit(owner, stretch, base + quarter_turns(faces.normal_rad - base), turns, len(places))
     return float(quarter_turns(np.array([direction]))[0]), std
+
+
+def start_view_rad(rest: Faces, max_spread_rad: float) -> tuple[float, float] | None:
+    """The wall grid as keyframe 0's faces at rest alone put it (its frame, modulo 90°), and the std of that mean.
+
+    Where the start's faces lie on one grid (they turn apart by no more than ``max_spread_rad``,
+    RMS: walls set square), each is a reading of the same direction, and their mean, weighted by
+    points, is the start's own view of the grid; its std is the standard error of that mean,
+    the faces' spread about it over ``n - 1`` degrees of freedom (``spread / sqrt(n - 1)``, the
+    spread being the points-weighted RMS about the mean). Pooled over the revolutions at rest,
+    those faces read the exact mazes' grid within ~0.1°, where the fit over every keyframe's faces
+    (:func:`start_anchor_rad`, which lets each stretch turn by a board's spread) put it 0.2° off at
+    a std of 0.16° (the bench's 16×16 scripted seed 18). None with fewer than two faces, or faces
+    that turn apart (boards set by hand: their mean is the start's boards', not the maze's).
+    """
+    if len(rest) < 2:
+        return None
+    base = float(rest.normal_rad[0])
+    turns = quarter_turns(rest.normal_rad - base)
+    spread = face_spread(turns, rest.count)
+    if spread is None or spread > max_spread_rad:
+        return None
+    mean = float(np.average(turns, weights=rest.count))
+    return float(quarter_turns(np.array([base + mean]))[0]), spread / math.sqrt(len(rest) - 1)
 
 
 def placed_each(faces: Faces, poses: np.ndarray, counts: np.ndarray) -> Faces:

@@ -43,7 +43,8 @@ def test_once_explored_a_correction_under_the_thresholds_repaints_the_walls_wher
     painted = truth.copy()
     painted[1:, 1] += STALE_M
     # the chain as its matches saw it, no wall priors: the optimization keeps the true poses
-    job = replace(chain_job(keyframes, truth, None), integrated_poses=painted, anchor_wall=None, wall_reference_rad=None)
+    chain = chain_job(keyframes, truth, None)
+    job = replace(chain, integrated_poses=painted, anchor_wall=None, wall_reference_rad=None)
     stale = painted_at(keyframes, painted)
 
     exploring = job.run()

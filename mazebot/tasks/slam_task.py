@@ -292,7 +292,7 @@ class SlamTask:
         After the final job (the exploration over) every job is told so: the map it may rebuild is the
         one the robot keeps ([slam.graph] rebuild_after_exploration).
         """
-        if self.final_done and not job.exploration_over:
+        if self.final_done and isinstance(job, LoopClosureJob) and not job.exploration_over:
             job = replace(job, exploration_over=True)
         self.job = asyncio.get_running_loop().run_in_executor(self.executor, job)
         self.job_since_s, self.job_noted = self.clock.now_s(), False

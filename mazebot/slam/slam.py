@@ -347,7 +347,8 @@ class LoopClosureJob:
         While exploring, only when a keyframe moved beyond the thresholds (a rebuild costs tens of
         milliseconds on a 16×16 maze, and the next ones come soon). Once the exploration is over the
         map is the one the robot keeps, and a keyframe moved 5–8 mm (under the 1 cm threshold) leaves
-        stretches of wall a 2 cm cell over where they were painted, so any move rebuilds it.
+        stretches of wall a 2 cm cell over where they were painted, so with ``rebuild_after_exploration``
+        any move rebuilds it (an option: on the bench's coverage it helped one contest maze and cost another).
         """
         p = self.params
         if self.rebuild_anyway or moved_m > p.rebuild_threshold_m or turned_rad > p.rebuild_threshold_rad:

@@ -49,9 +49,9 @@ def test_once_explored_a_correction_under_the_thresholds_repaints_the_walls_wher
 
     exploring = job.run()
     assert exploring.grid is None  # moved less than the thresholds: the stale map stays
-    off = replace(job, exploration_over=True, params=SlamParams(rebuild_after_exploration=False)).run()
-    assert off.grid is None  # [slam.graph] rebuild_after_exploration = false: as while exploring
-    explored = replace(job, exploration_over=True).run()
+    off = replace(job, exploration_over=True).run()
+    assert off.grid is None  # [slam.graph] rebuild_after_exploration off (the default): as while exploring
+    explored = replace(job, exploration_over=True, params=SlamParams(rebuild_after_exploration=True)).run()
     assert explored.grid is not None and explored.poses is not None
     np.testing.assert_allclose(explored.poses[:, :2], truth[:, :2], atol=0.002)
 

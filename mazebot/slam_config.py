@@ -494,6 +494,11 @@ class GraphSection:
     rebuild_threshold_m: Annotated[float, Field(ge=0, description=(
         "rebuild the map when optimization moved a keyframe farther than this ..."))] = 0.01
     rebuild_threshold_rad: Annotated[float, Field(ge=0, description="... or turned one more than this")] = 0.005
+    rebuild_after_exploration: Annotated[bool, Field(description=(
+        "once the exploration is over (the robot returning home, or home), every optimization that moves a "
+        "keyframe rebuilds the map, however little: the map the robot keeps follows the graph's last "
+        "corrections instead of lagging them by up to the thresholds above (off: alljapan-015's coverage 0.9943 -> "
+        "0.9989 with it, shi2's 0.9952 -> 0.9913)"))] = False
 
 
 @dataclass(frozen=True)

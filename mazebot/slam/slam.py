@@ -175,6 +175,9 @@ class LoopClosureJob:
     # (earlier jobs'; this job adds its own): counted in the anchor beside the faces' (_anchor)
     start_turns: tuple[tuple[float, float], ...] = ()
     rebuild_anyway: bool = False  # rebuild the grid however little the keyframes moved (the end of exploration)
+    # set by the run once the exploration is over: with [slam.graph] rebuild_after_exploration, a job that
+    # moves any keyframe rebuilds the grid (the map the robot keeps, not lagging the graph by the thresholds)
+    exploration_over: bool = False
     lattice_fit: PitchFit | None = None  # set by the run: the lattice the walls were fitted to
     # the last lattice fitted and the keyframes it was fitted with: taken again while the keyframes
     # grew by less than wall_priors.LATTICE_REFIT_GROWTH (None: fit it)
@@ -279,7 +282,7 @@ class LoopClosureJob:
         moved = float(np.max(np.hypot(delta[:, 0], delta[:, 1])))
         turned = float(np.max(np.abs(delta[:, 2])))
         grid = None
-        if self.rebuild_anyway or moved > p.rebuild_threshold_m or turned > p.rebuild_threshold_rad:
+        if self._rebuild_due(moved, turned):
             grid = p.grid.new_grid()
             offset = cell_offset_on_lattice(self.lattice_fit, self.wall_reference_rad, grid.resolution_m)
             grid.rebuild((kf.rays(poses[k]) for k, kf in enumerate(self.keyframes)), cell_offset_m=offset)
@@ -337,6 +340,20 @@ class LoopClosureJob:
         if not len(points):
             return None
         return Target(points, self.keyframes[0].sensor_xy, normals)
+
+    def _rebuild_due(self, moved_m: float, turned_rad: float) -> bool:
+        """Whether the optimized keyframes are painted into a new grid.
+
+        While exploring, only when a keyframe moved beyond the thresholds (a rebuild costs tens of
+        milliseconds on a 16×16 maze, and the next ones come soon). Once the exploration is over the
+        map is the one the robot keeps, and a keyframe moved 5–8 mm (under the 1 cm threshold) leaves
+        stretches of wall a 2 cm cell over where they were painted, so with ``rebuild_after_exploration``
+        any move rebuilds it (an option: on the bench's coverage it helped one contest maze and cost another).
+        """
+        p = self.params
+        if self.rebuild_anyway or moved_m > p.rebuild_threshold_m or turned_rad > p.rebuild_threshold_rad:
+            return True
+        return self.exploration_over and p.rebuild_after_exploration and (moved_m > 0.0 or turned_rad > 0.0)
 
     def _judged_as_set(self, verdicts: list[Verdict]) -> tuple[list[Verdict], list[Verdict]]:
         """This job's verdicts with the closures the set refused, and the waiting closures it accepted.

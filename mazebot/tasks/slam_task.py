@@ -27,6 +27,7 @@ import math
 import time
 from collections import deque
 from concurrent.futures import Executor
+from dataclasses import replace
 
 import numpy as np
 
@@ -286,7 +287,13 @@ class SlamTask:
                 and self.clock.now_s() - self.job_since_s >= SLOW_JOB_S)
 
     def _start_job(self, job: LoopClosureJob) -> None:
-        """A loop-closure job into the executor (the job itself, so a LoopClosureExecutor can ship it)."""
+        """A loop-closure job into the executor (the job itself, so a LoopClosureExecutor can ship it).
+
+        After the final job (the exploration over) every job is told so: the map it may rebuild is the
+        one the robot keeps ([slam.graph] rebuild_after_exploration).
+        """
+        if self.final_done and isinstance(job, LoopClosureJob) and not job.exploration_over:
+            job = replace(job, exploration_over=True)
         self.job = asyncio.get_running_loop().run_in_executor(self.executor, job)
         self.job_since_s, self.job_noted = self.clock.now_s(), False
         self.state.slam.job_started_wall_s = time.perf_counter()

@@ -160,12 +160,13 @@ def _emulated_a1_at_rest(world, pose: np.ndarray, revolutions: int) -> list:
     return scans
 
 
-def test_an_exact_maze_s_start_is_judged_through_every_face_too(cast_scan) -> None:
-    # 16x16 seed 8 starts in a dead end, three walls 0.15-0.2 m away. In the bench's run keyframe
-    # 0's normals there, averaged over the revolutions at rest, read the wall grid 0.32° off, and
-    # tied at wall_anchor_std_rad that turned the whole map about the start by 0.28°. The
-    # loop-closure jobs judge the start's grid from every keyframe's faces instead, as in a maze
-    # built by hand: within a tenth of a degree here.
+def _exact_start_and_tour(seed: int, cast_scan, **param_changes):
+    """A 16x16 exact maze's start after the revolutions at rest (emulated A1), and keyframes along the
+    first cells of its tour at true poses in the map frame (seeing the start's faces again).
+
+    Returns the SLAM, the true start pose (world frame), the keyframes (keyframe 0 the SLAM's own)
+    and their poses in the map frame, whose origin is the true start pose.
+    """
     from mazebot.bench.scripted_drive import dfs_tour
     from mazebot.config import Config
     from mazebot.geometry import relative_pose
@@ -173,27 +174,36 @@ def test_an_exact_maze_s_start_is_judged_through_every_face_too(cast_scan) -> No
     from mazebot.slam.ekf import OdometryHistory
     from mazebot.slam.slam import Slam, SlamParams
 
-    world = world_from_layout(generate_maze(16, 16, seed=8))
+    world = world_from_layout(generate_maze(16, 16, seed=seed))
     layout = world.maze
     assert layout is not None
     start = np.array(world.start_pose)
     config = Config()
-    slam = Slam(SlamParams.from_config(config.slam, config.lidar, config.planner))
+    slam = Slam(replace(SlamParams.from_config(config.slam, config.lidar, config.planner), **param_changes))
     odometry = OdometryHistory()
     odometry.append(0.0, 0.0, 0.0, 0.0)
     odometry.append(1e3, 0.0, 0.0, 0.0)
     for scan in _emulated_a1_at_rest(world, start, slam.params.anchor_revolutions):
         slam.update(scan, odometry)
-    assert slam.anchored and slam.anchor_on_grid  # exact walls: the faces at rest lie on one grid
-    job = slam._make_job([], None, optimize_anyway=True)
-    assert job.start_faces is not None and job.anchor_wall is None  # judged, not the normals' mean
-    # keyframes along the first cells of the tour (true poses in the map frame) see those faces again
-    cells = dfs_tour(layout)[1:16]
     rng = np.random.default_rng(2)
+    cells = dfs_tour(layout)[1:16]
     world_poses = [np.array([*layout.cell_center_m(c), rng.uniform(-math.pi, math.pi)]) for c in cells]
     keyframes = [slam.keyframes[0]]
     keyframes += [keyframe_at(world, cast_scan, k + 1, p, seed=k) for k, p in enumerate(world_poses)]
     poses = np.vstack([np.zeros(3)] + [relative_pose(start, p) for p in world_poses])
+    return slam, start, keyframes, poses
+
+
+def test_an_exact_maze_s_start_is_judged_through_every_face_too(cast_scan) -> None:
+    # 16x16 seed 8 starts in a dead end, three walls 0.15-0.2 m away. In the bench's run keyframe
+    # 0's normals there, averaged over the revolutions at rest, read the wall grid 0.32° off, and
+    # tied at wall_anchor_std_rad that turned the whole map about the start by 0.28°. The
+    # loop-closure jobs judge the start's grid from every keyframe's faces instead, as in a maze
+    # built by hand: within a tenth of a degree here.
+    slam, _, keyframes, poses = _exact_start_and_tour(8, cast_scan)
+    assert slam.anchored and slam.anchor_on_grid  # exact walls: the faces at rest lie on one grid
+    job = slam._make_job([], None, optimize_anyway=True)
+    assert job.start_faces is not None and job.anchor_wall is None  # judged, not the normals' mean
     judged = start_anchor_rad(job.start_faces, keyframes, poses, 0.0)
     assert judged is not None
     assert abs(math.degrees(math.remainder(judged[0], math.pi / 2))) < 0.1
@@ -204,30 +214,8 @@ def test_an_exact_maze_s_start_holds_the_grid_its_own_square_faces_read_at_rest(
     # spread, and with the start's three faces it put the grid 0.15-0.2° off the maze's (the bench's
     # tour: its whole map turned +0.19° about the start, ATE RMS 13.2 mm). The start's faces at rest lie
     # on one grid: their mean, at its own standard error, joins the judged anchor.
-    from mazebot.bench.scripted_drive import dfs_tour
-    from mazebot.config import Config
-    from mazebot.geometry import relative_pose
-    from mazebot.sim.world import world_from_layout
-    from mazebot.slam.ekf import OdometryHistory
-    from mazebot.slam.slam import Slam, SlamParams
-
-    world = world_from_layout(generate_maze(16, 16, seed=18))
-    layout = world.maze
-    assert layout is not None
-    start = np.array(world.start_pose)
-    config = Config()
-    slam = Slam(replace(SlamParams.from_config(config.slam, config.lidar, config.planner), anchor_start_view=True))
-    odometry = OdometryHistory()
-    odometry.append(0.0, 0.0, 0.0, 0.0)
-    odometry.append(1e3, 0.0, 0.0, 0.0)
-    for scan in _emulated_a1_at_rest(world, start, slam.params.anchor_revolutions):
-        slam.update(scan, odometry)
+    slam, start, keyframes, poses = _exact_start_and_tour(18, cast_scan, anchor_start_view=True)
     assert slam.anchored and slam.anchor_on_grid
-    rng = np.random.default_rng(2)
-    world_poses = [np.array([*layout.cell_center_m(c), rng.uniform(-math.pi, math.pi)]) for c in dfs_tour(layout)[1:16]]
-    keyframes = [slam.keyframes[0]]
-    keyframes += [keyframe_at(world, cast_scan, k + 1, p, seed=k) for k, p in enumerate(world_poses)]
-    poses = np.vstack([np.zeros(3)] + [relative_pose(start, p) for p in world_poses])
     job = replace(slam._make_job([], None, optimize_anyway=True), keyframes=keyframes, poses=poses)
     anchor = job._anchor(())
     assert anchor is not None

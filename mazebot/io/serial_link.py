@@ -173,7 +173,7 @@ class _BufferedProtocol(asyncio.Protocol):
         return self._eof or self._error is not None
 
 
-class NonBlockingSerial(serial.Serial):
+class NonBlockingSerial(serial.Serial):  # type: ignore[misc]  # pyserial has no type information
     """pyserial's POSIX port whose non-blocking read (``timeout=0``) is one ``os.read``.
 
     pyserial-asyncio's transport calls ``read`` each time the event loop finds the port

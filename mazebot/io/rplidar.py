@@ -807,6 +807,8 @@ class RPLidar:
             due_s = min(wait_s, DECODE_INTERVAL_S - (now_s - batch_since_s))
             if await self._take_when_due(due_s, batch, arrivals):
                 continue
+            if batch:  # a read instead: back when the batch is due at the latest
+                wait_s = due_s
             try:
                 data = await self._read(max(wait_s, 0.0))
             except TimeoutError:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from mazebot.clock import Beat
 from mazebot.cpu_budget import CpuBudget, RecentValues
 from mazebot.taps import notify
 
@@ -291,6 +292,9 @@ class SharedState:
     #: time-stamped odometry poses of the last seconds (de-skew and SLAM's filter); written by
     #: the odometry task, read by SLAM; None until the odometry task starts
     odometry_history: OdometryHistory | None = None
+    #: ticked by the odometry task after each reading: tasks that need to run about as often, at no
+    #: particular moment, run in its wake-ups instead of waking the loop themselves (:class:`Beat`)
+    odometry_beat: Beat = field(default_factory=Beat)
     # --- written by SLAM ---------------------------------------------------------------
     #: the correction from the odometry frame to the map frame, (x_m, y_m, theta_rad) (ROS
     #: ``map -> odom``); the odometry task publishes ``pose`` as this ⊕ odometry

@@ -178,6 +178,10 @@ async def _run_daemon(
 
         loop.add_reader(control_rx.fileno(), on_control)
 
+        # the recorder and the driver run in the odometry's wake-ups (:class:`mazebot.clock.Beat`):
+        # the harness's own timers would wake the daemon's loop 15 times a second, charged to its CPU
+        record_beats = max(1, round(RECORD_PERIOD_S * config.encoders.odometry_rate_hz))
+
         async def recorder() -> None:
             logged_s = -math.inf
             while True:
@@ -193,14 +197,14 @@ async def _run_daemon(
                     if len(rows):
                         run["odometry"].extend(rows.ravel().tolist())
                         logged_s = float(rows[-1, 0])
-                await clock.sleep(RECORD_PERIOD_S)
+                await state.odometry_beat.wait(record_beats, timeout_s=2 * RECORD_PERIOD_S)
 
         async def explore() -> None:
             """Press start as the user would, then wait for the planner to say done."""
             await clock.sleep(1.0)  # the lidar spins up and SLAM publishes its first map
             state.commands.put_nowait("start")
             while state.run_state not in (RunState.DONE, RunState.FAULT):
-                await clock.sleep(0.2)
+                await state.odometry_beat.wait(2 * record_beats, timeout_s=4 * RECORD_PERIOD_S)
             run["done"] = state.run_state is RunState.DONE
 
         async def drive_then_stop() -> None:

@@ -802,10 +802,13 @@ class RPLidar:
                 rhythm.reset()
                 continue
             wait_s = last_data_s + self._no_data_timeout_s - now_s
-            if batch:  # come back when the batch is due
-                wait_s = min(wait_s, DECODE_INTERVAL_S - (now_s - batch_since_s))
-                if await self._take_when_due(wait_s, batch, arrivals):
-                    continue
+            # come back when the batch is due, even one whose first byte has not come yet: on a link
+            # that notes its chunks' arrival the first chunk needs no wake-up of its own either
+            due_s = min(wait_s, DECODE_INTERVAL_S - (now_s - batch_since_s))
+            if await self._take_when_due(due_s, batch, arrivals):
+                continue
+            if batch:  # a read instead: back when the batch is due at the latest
+                wait_s = due_s
             try:
                 data = await self._read(max(wait_s, 0.0))
             except TimeoutError:
@@ -823,12 +826,14 @@ class RPLidar:
         """Sleep until the batch is due, then add every byte that came meanwhile; False: read instead.
 
         On a link that notes when its chunks came (:meth:`SerialLink.take_arrived`) and on the
-        daemon's clock (the link's times are the loop's), a batch under way needs no wake-up per
-        chunk: its bytes are taken at once when it is due, each chunk stamped with its own
-        arrival, as a read per chunk stamped them. One timer a decode interval instead of a read,
-        a timer and a task for each chunk (~50 a second from the simulator's pty, one every few
-        milliseconds from a USB serial adapter). Not while a read is outstanding (it would miss
-        the bytes taken), nor on a failed link (the read says how it failed).
+        daemon's clock (the link's times are the loop's), a batch needs no wake-up per chunk,
+        its first one included: its bytes are taken at once when it is due (a decode interval
+        after the last decode), each chunk stamped with its own arrival, as a read per chunk
+        stamped them. One timer a decode interval instead of a read, a timer and a task for each
+        chunk (~50 a second from the simulator's pty, one every few milliseconds from a USB
+        serial adapter), and no read to wake the task for a batch's first chunk. Not while a read
+        is outstanding (it would miss the bytes taken), nor on a failed link (the read says how
+        it failed).
         """
         take = getattr(self._link, "take_arrived", None)
         if take is None or self._reader is not None or not isinstance(self._clock, RealClock):

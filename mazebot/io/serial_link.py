@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import os
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -172,6 +173,47 @@ class _BufferedProtocol(asyncio.Protocol):
         return self._eof or self._error is not None
 
 
+class NonBlockingSerial(serial.Serial):  # type: ignore[misc]  # pyserial has no type information
+    """pyserial's POSIX port whose non-blocking read (``timeout=0``) is one ``os.read``.
+
+    pyserial-asyncio's transport calls ``read`` each time the event loop finds the port
+    readable (every chunk the USB adapter delivers: ~40 a second from the simulator's
+    pseudo-terminal, one every few milliseconds from a CP2102). pyserial's read, written for
+    every timeout, makes a ``Timeout`` object, asks ``select`` again whether the port (and
+    its cancel pipe) is readable, then reads: ~25 µs of Python and a second system call per
+    chunk on this machine. With ``timeout=0`` on a port opened ``O_NONBLOCK`` (as pyserial
+    opens it) a single ``os.read`` gives the same bytes when there are some, and a failure
+    the same :class:`serial.SerialException`. A read of no bytes is ambiguous on a raw tty
+    (nothing waiting, or a disconnected device that stays readable): pyserial's own read
+    tells them apart (``b""``, or its exception), as before. The cancel pipe serves blocking
+    reads from another thread, which this link never makes. Any other timeout reads the
+    pyserial way.
+    """
+
+    def read(self, size: int = 1) -> bytes:
+        if self._timeout != 0 or not self.is_open or size <= 0:
+            return bytes(super().read(size))
+        try:
+            data = os.read(self.fd, size)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            raise serial.SerialException(f"read failed: {exc}") from exc
+        if not data:  # nothing waiting (a raw tty's read returns 0 then) or a device gone: pyserial tells them apart
+            return bytes(super().read(size))
+        return data
+
+
+def _serial_port(port: str, baudrate: int) -> serial.SerialBase:
+    """The port, not yet open, non-blocking: a device path as :class:`NonBlockingSerial`, a pyserial
+    URL (``loop://``, ``socket://``...) the way :func:`serial.serial_for_url` makes it."""
+    if "://" in port or os.name != "posix":
+        return serial.serial_for_url(port, baudrate=baudrate, timeout=0, do_not_open=True)
+    ser = NonBlockingSerial(None, baudrate=baudrate, timeout=0)
+    ser.port = port
+    return ser
+
+
 class SerialLink:
     """The lidar's USB serial adapter, through pyserial-asyncio.
 
@@ -200,7 +242,7 @@ class SerialLink:
         is missing or cannot be opened.
         """
         try:
-            ser = serial.serial_for_url(port, baudrate=baudrate, timeout=0, do_not_open=True)
+            ser = _serial_port(port, baudrate)
             ser.dtr = False  # applied at open: the motor must not stop
             ser.open()
         except (serial.SerialException, OSError, ValueError) as exc:

@@ -98,6 +98,7 @@ async def run(
             state.pose.y_m = y
             state.pose.theta_rad = th
             state.wheel_ticks = (now_s, reading.left_ticks, reading.right_ticks)
+        state.odometry_beat.tick()  # the tasks that follow the odometry's wake-ups run next
         await clock.sleep(period_s)
 
 

@@ -461,3 +461,88 @@ def test_the_child_and_motor_control_stop_for_a_return_only_the_planner_remember
             state.safety_stop = ""
             view.safety_stop = ""
         assert verdicts == {0: False, 1: True, 2: False}  # nothing; the leg ahead; the leg beside (to the right)
+
+
+class _IdleChild:
+    """A control process that stays alive: its sentinel (a pipe nobody writes) never becomes readable."""
+
+    def __init__(self) -> None:
+        self._rx, self._tx = os.pipe()
+        self.sentinel = self._rx
+        self.pid = 0
+        self.exitcode: int | None = None
+
+    def join(self, timeout: float | None = None) -> None:
+        return None
+
+    def kill(self) -> None:
+        self.exitcode = -9
+
+    def close(self) -> None:
+        for fd in (self._rx, self._tx):
+            with contextlib.suppress(OSError):  # closed already (the task closes a child that exited)
+                os.close(fd)
+
+
+def _outputs_taken(beat_period_s: float | None, monkeypatch: pytest.MonkeyPatch) -> tuple[list[float], list[float]]:
+    """The loop times at which the main side took the child's outputs over 1 s of virtual time,
+    and the times of the odometry's beats (every ``beat_period_s``; None: no odometry)."""
+    from mazebot.sim.virtual_time import run_virtual
+
+    taken: list[float] = []
+    beats: list[float] = []
+    child = _IdleChild()
+    monkeypatch.setattr(control_process, "start_child", lambda *args: (child, _NullPipe()))
+    monkeypatch.setattr(control_process, "_take_output",
+                        lambda *args: taken.append(asyncio.get_running_loop().time()))
+
+    async def main() -> None:
+        config = Config()
+        link = ControlLink.create(config)
+        state = SharedState()
+        task = asyncio.create_task(control_process.run(link, Recorder(), state, ControlHeartbeat(RealClock()),
+                                                       config, lambda: None))
+        loop = asyncio.get_running_loop()
+        end_s = loop.time() + 1.0
+        while loop.time() < end_s:
+            if beat_period_s is None:
+                await asyncio.sleep(0.01)
+                continue
+            await asyncio.sleep(beat_period_s)
+            beats.append(loop.time())
+            state.odometry_beat.tick()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
+        link.close()
+
+    run_virtual(main(), start_s=100.0)
+    child.close()
+    return taken, beats
+
+
+class _NullPipe:
+    def send_bytes(self, data: bytes) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def test_the_child_s_outputs_are_taken_in_the_odometry_s_wake_ups_and_without_it_each_period(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # with the odometry beating at 40 Hz, each take follows a beat in the same wake-up (no timer of
+    # its own: the loop's clock has not moved), and no control period goes without one
+    period_s = Config().daemon.control_period_s
+    taken, beats = _outputs_taken(0.025, monkeypatch)
+    after_beats = [t for t in taken if beats[0] < t <= beats[-1] + 1e-3]  # the task's last take (cancelled) aside
+    assert len(after_beats) >= len(beats) - 1
+    for t in after_beats:
+        since_beat_s = t - max(b for b in beats if b <= t)
+        assert since_beat_s < 1e-4  # a pass or two of the loop (1 µs each on virtual time)
+    # no odometry (a test's state, a stalled task): the outputs are still taken every control period
+    taken, _ = _outputs_taken(None, monkeypatch)
+    taken = [t for t in taken if t <= 101.0]
+    gaps = np.diff(taken)
+    assert len(taken) >= 18
+    assert gaps.max() <= period_s + 1e-3

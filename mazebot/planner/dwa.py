@@ -49,7 +49,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Generator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -746,7 +746,8 @@ class LocalPlanner:
     without closing in on anything (see :meth:`_escape_move`), then re-plans;
     ``max_recoveries`` recoveries on one path make it give up. With ``recoveries_per_place`` they
     count on one *place* instead, whatever the paths: the count starts again only once the robot
-    is ``FREED_M`` from where its first recovery began (or after a give-up). A way home re-planned
+    is ``FREED_M`` from where its first recovery began (or at a give-up, whose recovery move is the
+    first of the next count and runs on while the caller keeps the path). A way home re-planned
     every tick gives new waypoints each time, and a count per path never reached its limit there.
     """
 
@@ -927,17 +928,20 @@ class LocalPlanner:
         self._blocked_since = None
         self._progress_mark = None
         self.status = LocalStatus.RECOVERING
-        if self.recoveries > self.max_recoveries:
+        give_up = self.recoveries > self.max_recoveries
+        if give_up and not self.recoveries_per_place:
             self._recovery = None
-            if self.recoveries_per_place:  # the give-up used them: the next count starts here
-                self.recoveries, self._recoveries_at = 0, None
             return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status, give_up=True, choice=choice)
+        if give_up:  # counted per place: said, and this recovery is the first of the next count
+            self.recoveries, self._recoveries_at = 1, (pose[0], pose[1])
         turn, direction = self._escape_move(pose, costmap)
         self._recovery = _Recovery.ROTATE
         self._recovery_heading = pose[2] + turn
         self._escape_direction = direction
         self.aligner.reset()
-        return self._recover(pose, velocity, costmap, now_s)
+        command = self._recover(pose, velocity, costmap, now_s)
+        # the caller re-plans on a give-up; a path it keeps (the same waypoints) goes on with the recovery
+        return replace(command, give_up=True, choice=choice) if give_up else command
 
     def _escape_move(self, pose: tuple[float, float, float], costmap: LocalCostmap) -> tuple[float, float]:
         """The short straight move that best opens up space: ``(turn_rad, +1 forward or -1 back)``.

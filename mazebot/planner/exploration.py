@@ -454,6 +454,8 @@ class Explorer:
         self.beyond_closed: set[tuple[Cell, Direction | None]] = set()
         #: why the robot cannot get home (the only way passes a closed passage), else None
         self.no_way_home: str | None = None
+        #: the closed passages were opened once already because they closed the only way home
+        self._home_retested = False
 
     # -- the tick ------------------------------------------------------------------------
 
@@ -600,6 +602,7 @@ class Explorer:
         self._closed_version += 1
         self.beyond_closed.clear()
         self.no_way_home = None
+        self._home_retested = False
 
     def _choose_mode(self) -> None:
         if self.mode_setting != "auto":
@@ -1003,7 +1006,9 @@ class Explorer:
                 waypoints = cell_waypoints(cells, frame.cell_center_m)
                 return Goal(Phase.RETURNING, target, waypoints, cells, "return to start")
             if self.closed_passages and shortest_cell_path(self.graph.open_neighbours, robot, start_cell) is not None:
-                return self._no_way_home(target, pose)  # the only way home is a closed passage
+                if self._retest_home():  # the only way home is a closed passage: once, it is tried again
+                    return self._return_goal(grid, origin, resolution_m, pose)
+                return self._no_way_home(target, pose)
             # no open-link route (a link misread as a wall): plan on the grid instead
             costmap = self._costmap_for(grid, origin, resolution_m)
             path = costmap.plan((pose[0], pose[1]), target)
@@ -1016,6 +1021,8 @@ class Explorer:
         costmap = self._costmap_for(grid, origin, resolution_m)
         path = costmap.plan((pose[0], pose[1]), target)
         if path is None and self.closed_passages:
+            if self._retest_home():
+                return self._return_goal(grid, origin, resolution_m, pose)
             return self._no_way_home(target, pose)
         waypoints = _ending_at(shortcut(path, costmap) if path else [], target)
         return Goal(Phase.RETURNING, target, waypoints, [], "return to start")
@@ -1141,6 +1148,23 @@ class Explorer:
                 f"{len(new)} unknown links or cells reachable only through a closed passage given up "
                 f"({len(self.beyond_closed)} so far)"
             )
+
+    def _retest_home(self) -> bool:
+        """The closed passages close the only way home: open them all again, once a run (True if it did).
+
+        A give-up while returning can be a passing trouble the lane check took for a closed passage
+        (a hand-built 8x8 maze: the robot stood 135 revolutions at a corner, then drove through it
+        once the goal was given up); home is worth a second try before the motors stop for good.
+        """
+        if self._home_retested:
+            return False
+        self._home_retested = True
+        closed = "; ".join(p.describe() for p in self.closed_passages)
+        self.closed_passages.clear()
+        self._closed_version += 1
+        self._costmap = None
+        self.events.append(f"the only way home passes {closed}: opened again, tried once more")
+        return True
 
     def _no_way_home(self, target: tuple[float, float], pose: tuple[float, float, float]) -> Goal:
         """The goal when the only way home passes a closed passage: stay; :attr:`no_way_home` says why."""

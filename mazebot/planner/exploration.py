@@ -598,6 +598,11 @@ class Explorer:
         self._last_grid_search = None
         self._frontier_unknown = None
         self._target = None
+        self.forget_closed()
+
+    def forget_closed(self) -> None:
+        """Forget every closed passage (a new run, or a start pressed after the robot said it had no way
+        home: the user may have moved what closed it)."""
         self.closed_passages.clear()
         self._closed_version += 1
         self.beyond_closed.clear()

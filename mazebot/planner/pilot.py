@@ -578,6 +578,7 @@ class Pilot:
         log.warning("%s", text)
         state.planner_events.append((now_s, text))
         state.raise_fault("planner", text, now_s, latched=True)
+        self.explorer.forget_closed()  # a start tries the passage again (what closed it may have been moved)
 
     def _report_give_up(self, state: SharedState, now_s: float, target_m: tuple[float, float]) -> None:
         log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)

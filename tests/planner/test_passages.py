@@ -14,7 +14,8 @@ import math
 import numpy as np
 
 from mazebot.planner.dwa import LocalCostmap, LocalPlanner
-from mazebot.planner.passages import first_unreachable
+from mazebot.planner.global_path import GridCostmap
+from mazebot.planner.passages import across_path_m, first_unreachable, rasterise_segments
 
 HALF_CORRIDOR_M = 0.146  # 1 ft pitch less a 12 mm wall, halved
 LEG_RADIUS_M = 0.01
@@ -77,3 +78,27 @@ def test_recoveries_count_per_place_when_the_path_is_replanned_every_tick() -> N
         heading += cmd.w_radps * 0.1
         assert float(np.min(np.hypot(box[:, 0] - x, box[:, 1] - y))) >= 0.09
     assert gave_up, "120 s boxed in with the path re-planned every tick, and the local planner never gave up"
+
+
+def test_a_closed_segment_is_a_wall_for_the_grid_planner() -> None:
+    """Outside a maze a closed passage is a segment across the path, drawn into the grid costmap as a wall.
+
+    A ring of corridors (a 1.0 x 0.6 m box round an inner wall from x 0.24 to 0.76 m at y 0.3 m, 2 cm
+    cells): from the east end of the bottom corridor to its west end the short way is straight along
+    it; with the bottom corridor closed at its middle the route goes round the top.
+    """
+    res = 0.02
+    grid = np.zeros((30, 50), dtype=np.int8)  # rows: y, 0.6 m; columns: x, 1.0 m; all free
+    grid[0, :] = grid[-1, :] = grid[:, 0] = grid[:, -1] = 100  # the outer walls
+    grid[15, 12:38] = 100  # the inner wall: corridors 0.22 m wide at both ends of it
+    origin = (0.0, 0.0)
+    start, goal = (0.85, 0.15), (0.15, 0.15)
+    straight = GridCostmap(grid, origin, res, footprint_radius_m=0.09, clearance_m=0.0).plan(start, goal)
+    assert straight is not None and max(y for _, y in straight) < 0.3  # along the bottom corridor
+    segment = across_path_m(np.array([[0.5, 0.15], [0.45, 0.15], [0.4, 0.15]]), 1)
+    closed = rasterise_segments([segment], grid.shape, origin, res)
+    assert closed[math.floor(0.15 / res), math.floor(0.45 / res)]
+    around = GridCostmap(grid, origin, res, footprint_radius_m=0.09, clearance_m=0.0, closed_cells=closed).plan(
+        start, goal
+    )
+    assert around is not None and max(y for _, y in around) > 0.3  # round the top

@@ -426,6 +426,7 @@ class Pilot:
         self._last_drive_inputs = inputs
         if self._give_up_pending:  # a motion half between the stages gave up: the explorer hears it now
             self._give_up_pending = False
+            self._check_passage(state, now_s)  # on what that motion half saw
             self._report_give_up(state, now_s, inputs.target_m)
         yield from self._follow_steps(state, now_s, inputs, interim=False)
 
@@ -491,6 +492,7 @@ class Pilot:
                 self.local.clear()
         elif cmd.give_up and interim:
             self._give_up_pending = True
+            self._lane_inputs = LaneInputs(pose, scan_xy, map_xy, walls_xy, inputs)
         elif cmd.give_up:
             self._lane_inputs = LaneInputs(pose, scan_xy, map_xy, walls_xy, inputs)
             self._check_passage(state, now_s)

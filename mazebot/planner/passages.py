@@ -10,7 +10,7 @@ recovers, gives up, and the global planner sends it the same way again.
 When the local planner (or the stand-still watch) gives up, :func:`first_unreachable` asks the
 local costmap the DWA used whether the path ahead has a lane at all: a flood fill over the
 robot centres that keep the contact distance, from where the robot stands, in a window about
-it. A path point with no such centre near it is past a closed passage: the explorer then
+it. A path point no such centre comes near marks a closed passage: the explorer then
 remembers the passage (:class:`ClosedPassage`; the cell link crossed there in a maze, a short
 segment across the path elsewhere) and plans round it. A path that still has a lane is a
 passing trouble (a spurious map cell, a moment of bad luck in the DWA's samples) and nothing

@@ -251,6 +251,12 @@ class PlannerConfig(Section):
     map_window_m: float = Field(
         0.8, gt=0.2, le=5.0, description="radius of map and wall points around the robot given to the DWA"
     )
+    close_passages: bool = Field(
+        True,
+        description="a give-up where the local map leaves no lane for the robot's body closes that passage "
+        "(a maze link, else a short segment) for the routes until the map there changes; the local planner's "
+        "recoveries count per place (0.3 m) instead of per re-planned path",
+    )
 
 
 class ControlConfig(Section):

@@ -49,7 +49,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Generator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -714,6 +714,11 @@ class MotionCommand:
     choice: DwaChoice | None = field(default=None, repr=False)
 
 
+#: A robot counts as free of where it had to be helped (recovered, or acted on by the stand-still
+#: watch) once it is this far from there (metres): a cell of a 1 ft maze.
+FREED_M = 0.3
+
+
 class _Recovery(enum.Enum):
     ROTATE = "rotate"
     BACK_OFF = "back_off"
@@ -739,7 +744,11 @@ class LocalPlanner:
     recovery. Recovery turns in place, then drives ``escape_m`` straight (forwards or
     backwards, at ``escape_speed_mps``) along the direction that opens up the most space
     without closing in on anything (see :meth:`_escape_move`), then re-plans;
-    ``max_recoveries`` recoveries on one path make it give up.
+    ``max_recoveries`` recoveries on one path make it give up. With ``recoveries_per_place`` they
+    count on one *place* instead, whatever the paths: the count starts again only once the robot
+    is ``FREED_M`` from where its first recovery began (or at a give-up, whose recovery move is the
+    first of the next count and runs on while the caller keeps the path). A way home re-planned
+    every tick gives new waypoints each time, and a count per path never reached its limit there.
     """
 
     def __init__(
@@ -756,6 +765,7 @@ class LocalPlanner:
         escape_m: float = 0.06,
         escape_speed_mps: float = 0.06,
         max_recoveries: int = _PLANNER.max_recoveries,
+        recoveries_per_place: bool = _PLANNER.close_passages,
     ) -> None:
         self.dwa = dwa or DynamicWindowPlanner()
         # the turn is re-decided once per planner period: predict the heading that far ahead
@@ -772,6 +782,8 @@ class LocalPlanner:
         self.escape_m = float(escape_m)
         self.escape_speed_mps = float(escape_speed_mps)
         self.max_recoveries = int(max_recoveries)
+        self.recoveries_per_place = bool(recoveries_per_place)
+        self._recoveries_at: XY | None = None  # where the first recovery of the count began (per place)
         self.path: PathTrack | None = None
         self.status = LocalStatus.IDLE
         self.recoveries = 0
@@ -792,7 +804,8 @@ class LocalPlanner:
         if same and np.allclose(new.points, self.path.points, atol=1e-3):  # type: ignore[union-attr]
             return
         self.path = new
-        self.recoveries = 0
+        if not self.recoveries_per_place:
+            self.recoveries = 0
         self._progress_mark = None
         self._blocked_since = None
         self._recovery = None
@@ -833,6 +846,9 @@ class LocalPlanner:
         if self.path is None:
             self.status = LocalStatus.IDLE
             return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status)
+        at = self._recoveries_at
+        if at is not None and math.dist(at, (pose[0], pose[1])) >= FREED_M:  # free of that place: count afresh
+            self.recoveries, self._recoveries_at = 0, None
         path = self.path
         xy = np.array([[pose[0], pose[1]]])
         s, _ = path.project(xy, path.progress_m - 0.1, path.progress_m + 0.5)
@@ -907,18 +923,25 @@ class LocalPlanner:
         choice: DwaChoice | None,
     ) -> MotionCommand:
         self.recoveries += 1
+        if self.recoveries_per_place and self._recoveries_at is None:
+            self._recoveries_at = (pose[0], pose[1])
         self._blocked_since = None
         self._progress_mark = None
         self.status = LocalStatus.RECOVERING
-        if self.recoveries > self.max_recoveries:
+        give_up = self.recoveries > self.max_recoveries
+        if give_up and not self.recoveries_per_place:
             self._recovery = None
             return MotionCommand(0.0, 0.0, DriveMode.STOP, self.status, give_up=True, choice=choice)
+        if give_up:  # counted per place: said, and this recovery is the first of the next count
+            self.recoveries, self._recoveries_at = 1, (pose[0], pose[1])
         turn, direction = self._escape_move(pose, costmap)
         self._recovery = _Recovery.ROTATE
         self._recovery_heading = pose[2] + turn
         self._escape_direction = direction
         self.aligner.reset()
-        return self._recover(pose, velocity, costmap, now_s)
+        command = self._recover(pose, velocity, costmap, now_s)
+        # the caller re-plans on a give-up; a path it keeps (the same waypoints) goes on with the recovery
+        return replace(command, give_up=True, choice=choice) if give_up else command
 
     def _escape_move(self, pose: tuple[float, float, float], costmap: LocalCostmap) -> tuple[float, float]:
         """The short straight move that best opens up space: ``(turn_rad, +1 forward or -1 back)``.

@@ -93,6 +93,7 @@ from mazebot.planner.global_path import (
     shortest_cell_path,
 )
 from mazebot.planner.maze_graph import Cell, Direction, MazeGraph
+from mazebot.planner.passages import ClosedPassage, across_path_m, occupied_near, rasterise_segments
 from mazebot.slam.grid import FREE, UNKNOWN
 from mazebot.steps import all_at_once_method
 
@@ -441,9 +442,20 @@ class Explorer:
         #: route costs (:func:`cell_costs`) by (start cell, heading), while the graph's links stay the same:
         #: the robot spends about a second in a cell, five planner ticks on the same links and start
         self._route_costs: dict[tuple[Cell, int | None], dict[Cell, float]] = {}
-        self._route_costs_version = -1
+        self._route_costs_version: tuple[int, int] = (-1, -1)
         #: what happened to targets since the caller last emptied it (blacklists, with why)
         self.events: list[str] = []
+        #: passages the robot could not take (:mod:`.passages`): routes go round them until the map there changes
+        self.closed_passages: list[ClosedPassage] = []
+        self._closed_version = 0  # counts the changes of closed_passages (route caches key on it)
+        #: the closed links as pairs of cells, for the current maze frame (with the version and frame read)
+        self._closed_links: tuple[int, object, frozenset[frozenset[Cell]]] = (0, None, frozenset())
+        #: unknown links and unseen cells reachable only through a closed passage: given up, said once
+        self.beyond_closed: set[tuple[Cell, Direction | None]] = set()
+        #: why the robot cannot get home (the only way passes a closed passage), else None
+        self.no_way_home: str | None = None
+        #: the closed passages were opened once already because they closed the only way home
+        self._home_retested = False
 
     # -- the tick ------------------------------------------------------------------------
 
@@ -470,6 +482,7 @@ class Explorer:
         if self.mode_setting != "frontier":
             self.graph.update(grid, grid_origin_m, resolution_m)
             yield
+        self._expire_closed(grid, grid_origin_m, resolution_m)
         self._choose_mode()
         if self.phase is Phase.DONE:
             return Goal(Phase.DONE, self.start_xy_m, [self.start_xy_m], reason="done: back at the start")
@@ -585,6 +598,16 @@ class Explorer:
         self._last_grid_search = None
         self._frontier_unknown = None
         self._target = None
+        self.forget_closed()
+
+    def forget_closed(self) -> None:
+        """Forget every closed passage (a new run, or a start pressed after the robot said it had no way
+        home: the user may have moved what closed it)."""
+        self.closed_passages.clear()
+        self._closed_version += 1
+        self.beyond_closed.clear()
+        self.no_way_home = None
+        self._home_retested = False
 
     def _choose_mode(self) -> None:
         if self.mode_setting != "auto":
@@ -609,6 +632,8 @@ class Explorer:
             graph.mark_looked_into(robot)  # been there: nothing more to see inside it
         heading = _heading_index(pose[2], frame.angle_rad)
         costs = self._costs_from(robot, heading)
+        if self.closed_passages:
+            self._note_beyond_closed(robot, costs)
         links: list[tuple[Cell, Direction | None]] = []
         for cell in sorted(costs):
             links.extend((cell, side) for side in graph.unknown_sides(cell))
@@ -649,7 +674,7 @@ class Explorer:
         target = self._track((choice.cell, choice.side), position, choice.cost, at_goal=choice.cell == robot)
         if target is None:  # just blacklisted (no progress): choose again among the rest
             return self._maze_goal(pose) if candidates[1:] else None
-        route = shortest_cell_path(graph.open_neighbours, robot, choice.cell, heading, self.turn_cost_cells)
+        route = shortest_cell_path(self._neighbours(), robot, choice.cell, heading, self.turn_cost_cells)
         side = "its inside" if choice.side is None else f"its {choice.side.name} side"
         what = f"look at {side} of cell {choice.cell}"
         cells = merge_straight(route or [choice.cell])
@@ -668,20 +693,27 @@ class Explorer:
         the search reads nothing else of the graph).
         """
         graph = self.graph
-        if self._route_costs_version != graph.open_version:
+        version = (graph.open_version, self._closed_version)
+        if self._route_costs_version != version:
             self._route_costs.clear()
-            self._route_costs_version = graph.open_version
+            self._route_costs_version = version
         key = (cell, heading)
         costs = self._route_costs.get(key)
         if costs is None:
-            costs = self._route_costs[key] = cell_costs(graph.open_neighbours, cell, heading, self.turn_cost_cells)
+            costs = self._route_costs[key] = cell_costs(self._neighbours(), cell, heading, self.turn_cost_cells)
         return costs
 
     # -- frontier mode -------------------------------------------------------------------
 
     def _costmap_for(self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float) -> GridCostmap:
         if self._costmap is None:
-            self._costmap = GridCostmap(grid, origin, resolution_m, self.footprint_radius_m, self.clearance_m)
+            closed = None
+            if self.closed_passages:
+                segments = [p.segment_m for p in self.closed_passages]
+                closed = rasterise_segments(segments, grid.shape, origin, resolution_m)
+            self._costmap = GridCostmap(
+                grid, origin, resolution_m, self.footprint_radius_m, self.clearance_m, closed_cells=closed
+            )
         return self._costmap
 
     def _frontier_goal_steps(
@@ -973,11 +1005,15 @@ class Explorer:
                 return Goal(Phase.DONE, target, [target], [start_cell], "done: back at the start cell")
             robot = frame.cell_of(pose[0], pose[1])
             heading = _heading_index(pose[2], frame.angle_rad)
-            route = shortest_cell_path(self.graph.open_neighbours, robot, start_cell, heading, self.turn_cost_cells)
+            route = shortest_cell_path(self._neighbours(), robot, start_cell, heading, self.turn_cost_cells)
             if route is not None:
                 cells = merge_straight(route)
                 waypoints = cell_waypoints(cells, frame.cell_center_m)
                 return Goal(Phase.RETURNING, target, waypoints, cells, "return to start")
+            if self.closed_passages and shortest_cell_path(self.graph.open_neighbours, robot, start_cell) is not None:
+                if self._retest_home():  # the only way home is a closed passage: once, it is tried again
+                    return self._return_goal(grid, origin, resolution_m, pose)
+                return self._no_way_home(target, pose)
             # no open-link route (a link misread as a wall): plan on the grid instead
             costmap = self._costmap_for(grid, origin, resolution_m)
             path = costmap.plan((pose[0], pose[1]), target)
@@ -989,8 +1025,157 @@ class Explorer:
             return Goal(Phase.DONE, target, [target], [], "done: back at the start")
         costmap = self._costmap_for(grid, origin, resolution_m)
         path = costmap.plan((pose[0], pose[1]), target)
+        if path is None and self.closed_passages:
+            if self._retest_home():
+                return self._return_goal(grid, origin, resolution_m, pose)
+            return self._no_way_home(target, pose)
         waypoints = _ending_at(shortcut(path, costmap) if path else [], target)
         return Goal(Phase.RETURNING, target, waypoints, [], "return to start")
+
+    # -- passages the robot could not take -------------------------------------------------
+
+    def close_passage(
+        self, path_m: np.ndarray, k: int, three_state: np.ndarray, origin_m: tuple[float, float], resolution_m: float
+    ) -> ClosedPassage:
+        """Remember that no lane reached point ``k`` of the path ``path_m`` ((M, 2) map frame, in order):
+        in a maze the link the path crosses nearest to it, elsewhere a short segment across the path.
+
+        Routes go round it from the next update (:meth:`_neighbours`, :meth:`_costmap_for`) until the
+        map near it changes (:meth:`_expire_closed`).
+        """
+        pts = np.asarray(path_m, dtype=np.float64).reshape(-1, 2)
+        where = (float(pts[k, 0]), float(pts[k, 1]))
+        evidence = occupied_near(three_state, origin_m, resolution_m, where)
+        crossing = self._crossing_near(pts, k) if self.mode == "maze" else None
+        if crossing is None:
+            passage = ClosedPassage(where, None, None, across_path_m(pts, k), evidence)
+        else:
+            a, b = crossing
+            frame = self.graph.frame
+            assert frame is not None  # a crossing needs cells
+            side = Direction.between(a, b)
+            passage = ClosedPassage(
+                where, (a, side), (frame.cell_center_m(a), frame.cell_center_m(b)), self._boundary_m(a, side), evidence
+            )
+        self.closed_passages.append(passage)
+        self._closed_version += 1
+        self.no_way_home = None
+        self.events.append(
+            f"closed for this robot: {passage.describe()} (no lane for its body on the local map; "
+            f"{evidence.shape[0]} occupied cells near it): routes go round it until the map there changes"
+        )
+        return passage
+
+    def _crossing_near(self, pts: np.ndarray, k: int) -> tuple[Cell, Cell] | None:
+        """The two cells of the link the path crosses nearest (along the path) to its point ``k``."""
+        frame = self.graph.frame
+        if frame is None or pts.shape[0] < 2:
+            return None
+        cells = [frame.cell_of(float(x), float(y)) for x, y in pts]
+        best: tuple[int, tuple[Cell, Cell]] | None = None
+        for i in range(1, len(cells)):
+            a, b = cells[i - 1], cells[i]
+            if abs(a[0] - b[0]) + abs(a[1] - b[1]) != 1:
+                continue
+            gap = abs(i - k)
+            if best is None or gap < best[0]:
+                best = (gap, (a, b))
+        return None if best is None else best[1]
+
+    def _boundary_m(self, cell: Cell, side: Direction) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The two posts (map frame) of ``cell``'s side ``side``: the link's boundary."""
+        frame = self.graph.frame
+        assert frame is not None
+        c = frame.cell_size_m
+        i, j = cell
+        corners = {
+            Direction.E: ((i + 1, j), (i + 1, j + 1)),
+            Direction.N: ((i, j + 1), (i + 1, j + 1)),
+            Direction.W: ((i, j), (i, j + 1)),
+            Direction.S: ((i, j), (i + 1, j)),
+        }[side]
+        uv = np.array(corners, dtype=np.float64) * c
+        xy = frame.to_map(uv)
+        return ((float(xy[0, 0]), float(xy[0, 1])), (float(xy[1, 0]), float(xy[1, 1])))
+
+    def _neighbours(self) -> Callable[[Cell], list[Cell]]:
+        """The graph's open neighbours without the closed links (the graph's own function when none is)."""
+        closed = self._closed_link_pairs()
+        if not closed:
+            return self.graph.open_neighbours
+        graph = self.graph
+
+        def neighbours(cell: Cell) -> list[Cell]:
+            return [n for n in graph.open_neighbours(cell) if frozenset((cell, n)) not in closed]
+
+        return neighbours
+
+    def _closed_link_pairs(self) -> frozenset[frozenset[Cell]]:
+        """The closed links as pairs of neighbouring cells in the current frame (kept while both stay)."""
+        frame = self.graph.frame
+        version, kept_frame, pairs = self._closed_links
+        if version == self._closed_version and kept_frame is frame:
+            return pairs
+        found = set()
+        for passage in self.closed_passages:
+            if passage.cells_m is None or frame is None:
+                continue
+            a, b = (frame.cell_of(*xy) for xy in passage.cells_m)
+            if abs(a[0] - b[0]) + abs(a[1] - b[1]) == 1:
+                found.add(frozenset((a, b)))
+        pairs = frozenset(found)
+        self._closed_links = (self._closed_version, frame, pairs)
+        if kept_frame is not frame:
+            self._route_costs_version = (-1, -1)  # the same version, other cells: the costs kept are stale
+        return pairs
+
+    def _expire_closed(self, grid: np.ndarray, origin: tuple[float, float], resolution_m: float) -> None:
+        """Forget the closed passages whose map has changed (the map may have been wrong there): tried again."""
+        for passage in list(self.closed_passages):
+            if passage.map_changed(grid, origin, resolution_m):
+                self.closed_passages.remove(passage)
+                self._closed_version += 1
+                self.no_way_home = None
+                self.events.append(f"{passage.describe()} open again: the map near it changed, it is tried again")
+
+    def _note_beyond_closed(self, robot: Cell, costs: dict[Cell, float]) -> None:
+        """Give up (once, counted) the unknowns reachable only through closed passages."""
+        graph = self.graph
+        beyond: set[tuple[Cell, Direction | None]] = set()
+        for cell in graph.reachable(robot) - costs.keys():
+            beyond.update((cell, side) for side in graph.unknown_sides(cell))
+            if graph.needs_look(cell):
+                beyond.add((cell, None))
+        new = beyond - self.beyond_closed
+        if new:
+            self.beyond_closed |= new
+            self.events.append(
+                f"{len(new)} unknown links or cells reachable only through a closed passage given up "
+                f"({len(self.beyond_closed)} so far)"
+            )
+
+    def _retest_home(self) -> bool:
+        """The closed passages close the only way home: open them all again, once a run (True if it did).
+
+        A give-up while returning can be a passing trouble the lane check took for a closed passage
+        (a hand-built 8x8 maze: the robot stood 135 revolutions at a corner, then drove through it
+        once the goal was given up); home is worth a second try before the motors stop for good.
+        """
+        if self._home_retested:
+            return False
+        self._home_retested = True
+        closed = "; ".join(p.describe() for p in self.closed_passages)
+        self.closed_passages.clear()
+        self._closed_version += 1
+        self._costmap = None
+        self.events.append(f"the only way home passes {closed}: opened again, tried once more")
+        return True
+
+    def _no_way_home(self, target: tuple[float, float], pose: tuple[float, float, float]) -> Goal:
+        """The goal when the only way home passes a closed passage: stay; :attr:`no_way_home` says why."""
+        closed = "; ".join(p.describe() for p in self.closed_passages)
+        self.no_way_home = f"no way home at ({pose[0]:.2f}, {pose[1]:.2f}) for this robot: {closed} closed"
+        return Goal(Phase.RETURNING, target, [(float(pose[0]), float(pose[1]))], [], "no way home")
 
     # -- target bookkeeping --------------------------------------------------------------
 

@@ -180,6 +180,8 @@ class GridCostmap:
     ``1 + wall_cost * exp(-(d - r) / wall_decay_m)``, where ``d`` is the distance to the
     nearest obstacle and ``r`` the inflation radius: paths keep away from walls where
     there is room. ``clearance_m_grid`` is ``d`` in metres, for the callers that need it.
+    ``closed_cells`` (a mask of the grid's shape) marks cells blocked as if occupied: the
+    passages the robot could not take (:mod:`mazebot.planner.passages`).
     """
 
     def __init__(
@@ -192,12 +194,15 @@ class GridCostmap:
         wall_cost: float = 4.0,
         wall_decay_m: float = 0.05,
         unknown_is_free: bool = False,
+        closed_cells: np.ndarray | None = None,
     ) -> None:
         grid = np.asarray(three_state)
         self.origin_m = (float(origin_m[0]), float(origin_m[1]))
         self.resolution_m = float(resolution_m)
         self.inflation_m = float(footprint_radius_m + clearance_m)
         blocked = grid == OCCUPIED
+        if closed_cells is not None:  # passages the robot could not take, as walls (:mod:`.passages`)
+            blocked = blocked | closed_cells
         if not unknown_is_free:
             blocked = blocked | (grid != FREE)
         self.known_free = grid == FREE

@@ -39,7 +39,9 @@ from mazebot.config import (
 )
 from mazebot.io.scan import Scan
 from mazebot.planner.dwa import (
+    FREED_M,
     DynamicWindowPlanner,
+    LocalCostmap,
     LocalPlanner,
     LocalStatus,
     map_points_robot,
@@ -47,6 +49,7 @@ from mazebot.planner.dwa import (
 )
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import MazeGraph
+from mazebot.planner.passages import LANE_STEP_M, LANE_WINDOW_M, first_unreachable
 from mazebot.planner.safety import BlindZoneMemory, deskewed_points_robot, reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
@@ -108,10 +111,18 @@ class DriveInputs(NamedTuple):
     target_m: tuple[float, float]
 
 
+class LaneInputs(NamedTuple):
+    """What the DWA saw on the latest motion half (robot frame), to ask for a lane when it gives up."""
+
+    pose: tuple[float, float, float]
+    scan_xy: np.ndarray
+    map_xy: np.ndarray
+    walls_xy: np.ndarray | None
+    drive: DriveInputs
+
+
 #: The robot counts as standing still while it stays within this of where it was (metres, radians).
 STILL_M, STILL_RAD = 0.03, 0.15
-#: Once the pilot has had to act, it counts as free again after moving this far from there.
-FREED_M = 0.3
 #: The back-off drives this far back along the robot's own track (metres): known free, it came that way.
 BACKOFF_M = 0.15
 #: The track is kept as points this far apart, this many of them (enough for the back-off).
@@ -252,6 +263,8 @@ class Pilot:
         self.still = StandStill(params.planner.stand_still_revolutions)
         #: the back-off path while the pilot backs the robot off along its track, else None
         self._backoff: list[tuple[float, float]] | None = None
+        #: what the DWA saw on the latest regular motion half (for the lane check of a give-up)
+        self._lane_inputs: LaneInputs | None = None
 
     # -- construction ------------------------------------------------------------------
 
@@ -303,6 +316,7 @@ class Pilot:
             goal_tolerance_m=min(0.04, 0.7 * p.planner.goal_tolerance_m),
             stuck_timeout_s=p.planner.stuck_timeout_s,
             max_recoveries=p.planner.max_recoveries,
+            recoveries_per_place=p.planner.close_passages,
         )
 
     # -- the tick ------------------------------------------------------------------------
@@ -365,6 +379,9 @@ class Pilot:
             return False
         self._note_events(state, now_s, goal.reason if goal is not None else None, pose)
         state.coverage = self._coverage()
+        if self.explorer.no_way_home is not None:
+            self._no_way_home(state, now_s, self.explorer.no_way_home)
+            return False
         if goal is None:
             self._hold(state, now_s, "waiting for the map to cover the robot")
             return False
@@ -409,6 +426,7 @@ class Pilot:
         self._last_drive_inputs = inputs
         if self._give_up_pending:  # a motion half between the stages gave up: the explorer hears it now
             self._give_up_pending = False
+            self._check_passage(state, now_s)  # on what that motion half saw
             self._report_give_up(state, now_s, inputs.target_m)
         yield from self._follow_steps(state, now_s, inputs, interim=False)
 
@@ -464,7 +482,7 @@ class Pilot:
         )
         if not state.run_state.moving:  # stopped while the stages ran
             return
-        if cmd.status is LocalStatus.RECOVERING and not self._recovering:
+        if cmd.status is LocalStatus.RECOVERING and not self._recovering and not cmd.give_up:
             where = f"{pose[0]:.2f}, {pose[1]:.2f}"
             state.planner_events.append((now_s, f"stuck: recovery {self.local.recoveries} at {where}"))
         self._recovering = cmd.status is LocalStatus.RECOVERING
@@ -474,7 +492,10 @@ class Pilot:
                 self.local.clear()
         elif cmd.give_up and interim:
             self._give_up_pending = True
+            self._lane_inputs = LaneInputs(pose, scan_xy, map_xy, walls_xy, inputs)
         elif cmd.give_up:
+            self._lane_inputs = LaneInputs(pose, scan_xy, map_xy, walls_xy, inputs)
+            self._check_passage(state, now_s)
             self._report_give_up(state, now_s, target_m)
         self._command(state, MotionRequest(cmd.v_mps, cmd.w_radps, cmd.mode.value, now_s))
         if interim:  # the watch acts on the explorer: only between goal halves, never inside one
@@ -483,6 +504,7 @@ class Pilot:
         painted = max(0, state.slam.scans - state.slam.held_back)
         stood = self.still.observe(pose, scan, painted)
         if stood:
+            self._lane_inputs = LaneInputs(pose, scan_xy, map_xy, walls_xy, inputs)
             self._stood_still(state, now_s, pose, stood)
 
     def _stood_still(self, state: SharedState, now_s: float, pose: tuple[float, float, float], stood: int) -> None:
@@ -504,6 +526,7 @@ class Pilot:
         backoff = still.backoff_path((pose[0], pose[1])) if still.escalations == 2 else []
         if still.escalations == 1:
             text = f"{what}: giving the goal up"
+            self._check_passage(state, now_s)
             self.explorer.report_unreachable()
             self.local.clear()
         elif backoff:
@@ -519,6 +542,45 @@ class Pilot:
         log.warning("%s", text)
         state.planner_events.append((now_s, text))
         self._note_events(state, now_s, None, pose)
+
+    def _check_passage(self, state: SharedState, now_s: float) -> bool:
+        """On a give-up: is the path ahead without a lane for the robot's body? Then the explorer closes
+        the passage there and plans round it (:mod:`mazebot.planner.passages`). True if it did.
+
+        The lane is asked of the costmap the DWA had on the latest motion half (the scan, the
+        occupied map cells, the walls the graph knows, inflated alike), so it agrees with the DWA.
+        """
+        lane, path = self._lane_inputs, self.local.path
+        if not self.params.planner.close_passages or lane is None or path is None:
+            return False
+        costmap = LocalCostmap(
+            lane.scan_xy if lane.walls_xy is None else np.concatenate((lane.scan_xy, lane.walls_xy)),
+            lane.map_xy,
+            lane.drive.resolution_m * math.sqrt(0.5),
+            self.local.dwa.footprint_radius_m,
+            self.local.dwa.clearance_m,
+        )
+        # the path ahead, from the robot's progress to past the lane's window, in steps of the lane's grid
+        s_m = np.arange(path.progress_m, path.progress_m + 2.0 * LANE_WINDOW_M, 2 * LANE_STEP_M)
+        path_m = path.points_at(np.minimum(s_m, path.length_m))
+        k = first_unreachable(costmap, to_robot_frame(path_m, lane.pose), self.local.dwa.contact_m)
+        if k is None:
+            return False
+        drive = lane.drive
+        self.explorer.close_passage(path_m, k, drive.three, drive.origin_m, drive.resolution_m)
+        self._note_events(state, now_s, None, lane.pose)
+        return True
+
+    def _no_way_home(self, state: SharedState, now_s: float, why: str) -> None:
+        """The only way home passes a closed passage: stop the motors, say where (a latched fault)."""
+        self.local.clear()
+        self._backoff = None
+        self._command(state, MotionRequest(0.0, 0.0, DriveMode.STOP.value, now_s))
+        text = f"{why}; stopped (start tries again)"
+        log.warning("%s", text)
+        state.planner_events.append((now_s, text))
+        state.raise_fault("planner", text, now_s, latched=True)
+        self.explorer.forget_closed()  # a start tries the passage again (what closed it may have been moved)
 
     def _report_give_up(self, state: SharedState, now_s: float, target_m: tuple[float, float]) -> None:
         log.info("giving up on the goal at (%.2f, %.2f) m: the local planner cannot reach it", *target_m)

@@ -28,6 +28,7 @@ ranges instead of revealing the perfect one; ``--kind room`` is the room with cy
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 from dataclasses import dataclass, field
@@ -380,6 +381,28 @@ def test_a_robot_whose_map_stops_changing_never_stands_for_ever(stand_still_revo
     # a step each stand_still_revolutions (5 revolutions a second here), three steps at most
     assert result.longest_still_s < 3 * stand_still_revolutions / 5.0 + 5.0
     assert result.collisions == 0
+
+
+def test_a_table_leg_that_closes_a_corridor_is_gone_round_and_the_robot_comes_home() -> None:
+    """A 2 cm leg on the centre line of the corridor between cells (1, 1) and (1, 2) of a braided 4x4 maze.
+
+    The link stays open on the map (the leg stands 6 cm off the boundary line), but no lane is left
+    for the body (0.126 m either side of the leg for a 0.2 m robot with the DWA's margin). The
+    maze has another way round (through (1, 0), (2, 0), ... (1, 3)). Without the closed passage the
+    planner sent the robot at the leg again and again: it stood there until the stand-still watch
+    stopped it with a fault, not done, half the maze unseen.
+    """
+    world = maze_world(2, "braided", 4)
+    assert world.maze is not None
+    x, y = world.maze.cell_center_m((1, 2))
+    leg = (x, y - (world.maze.cell_size_m / 2 - 0.06), 0.02)
+    world = dataclasses.replace(world, circles=np.array([leg]))
+    result = run_daemon_exploration(world, seed=2, time_limit_s=240.0, config=Config())
+    assert result.done, f"not done after {result.time_s:.0f} s: {result.fault}"
+    assert result.collisions == 0
+    assert result.coverage >= 0.98
+    assert math.dist(result.final_xy_m, result.start_xy_m) <= 0.07
+    assert [p.link for p in result.explorer.closed_passages] == [((1, 1), Direction.N)]  # where the leg stands
 
 
 def main(argv: list[str]) -> None:

@@ -259,14 +259,15 @@ def test_local_planner_stops_at_the_goal() -> None:
     assert (cmd.v_mps, cmd.w_radps) == (0.0, 0.0)
 
 
-def test_local_planner_recovers_then_gives_up_when_walled_in() -> None:
+@pytest.mark.parametrize("per_place", [False, True])
+def test_local_planner_recovers_then_gives_up_when_walled_in(per_place: bool) -> None:
     # a box around the robot, open nowhere; the goal lies beyond its east wall
     t = np.linspace(-0.15, 0.15, 31)
     box = np.concatenate(
         [np.column_stack((np.full(31, e), t)) for e in (-0.15, 0.15)]
         + [np.column_stack((t, np.full(31, e))) for e in (-0.15, 0.15)]
     )
-    local = LocalPlanner(stuck_timeout_s=2.0, blocked_timeout_s=0.5, max_recoveries=2)
+    local = LocalPlanner(stuck_timeout_s=2.0, blocked_timeout_s=0.5, max_recoveries=2, recoveries_per_place=per_place)
     local.set_path([(0.0, 0.0), (1.0, 0.0)])
     statuses = []
     x = y = heading = 0.0
@@ -282,7 +283,8 @@ def test_local_planner_recovers_then_gives_up_when_walled_in() -> None:
         heading += cmd.w_radps * 0.1
         assert min_distance(np.array([[x, y]]), box) >= FOOTPRINT
     assert LocalStatus.RECOVERING in statuses
-    assert cmd.give_up and cmd.mode is DriveMode.STOP
+    # counted per path the give-up stops; counted per place its recovery move is the next count's first
+    assert cmd.give_up and cmd.mode is (DriveMode.RECOVER if per_place else DriveMode.STOP)
 
 
 def to_robot_frame(points_world: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:

@@ -682,3 +682,56 @@ def test_a_frontier_with_new_cells_where_one_was_resolved_is_still_a_goal() -> N
         known_to_m = max(known_to_m, goal.target_m[0] + 1.0)
     assert not explorer.closed_points_m, explorer.events
     assert goals and goals[-1] > 2.0 and known_to_m > 3.05, (goals, known_to_m)  # to the corridor's end
+
+
+# A ring of six cells: home (0, 0) is two cells west of (2, 0) along the bottom row, four round the top.
+RING_MAZE = """
+o---o---o---o
+|           |
+o   o---o   o
+| S         |
+o---o---o---o
+"""
+
+
+def _path_between(a: Cell, b: Cell) -> tuple[np.ndarray, int]:
+    """Points every 2 cm from cell ``a``'s centre to ``b``'s, and the index of the first past their boundary."""
+    (ax, ay), (bx, by) = centre(a), centre(b)
+    t = np.linspace(0.0, 1.0, round(CELL / 0.02) + 1)
+    path = np.column_stack((ax + t * (bx - ax), ay + t * (by - ay)))
+    return path, int(np.argmax(t > 0.5))
+
+
+def test_a_closed_passage_is_gone_round_on_the_way_home() -> None:
+    world = world_from_layout(parse_maze(RING_MAZE, CELL), 0.012)
+    grid, origin = known_map(world)
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (*centre((2, 0)), math.pi)
+    goal = explorer.update(grid, origin, RES, pose, revolutions=revs(0.0))
+    assert goal is not None and goal.phase is Phase.RETURNING and goal.cells == [(2, 0), (0, 0)]
+    path, k = _path_between((2, 0), (1, 0))
+    passage = explorer.close_passage(path, k, grid, origin, RES)
+    assert passage.link == ((2, 0), Direction.W)
+    assert any(e.startswith("closed for this robot: the passage W of cell (2, 0)") for e in explorer.events)
+    goal = explorer.update(grid, origin, RES, pose, revolutions=revs(1.0))
+    assert goal is not None and goal.phase is Phase.RETURNING
+    assert goal.cells == [(2, 0), (2, 1), (0, 1), (0, 0)]  # round the top of the ring
+    assert explorer.no_way_home is None
+
+
+def test_a_closed_only_way_home_is_tried_once_more_then_said_with_where() -> None:
+    world, grid, origin = t_maze()
+    explorer = Explorer(start_xy_m=world.start_pose[:2])
+    pose = (*centre((3, 1)), math.pi)
+    path, k = _path_between((3, 1), (2, 1))
+    explorer.update(grid, origin, RES, pose, revolutions=revs(0.0))
+    explorer.close_passage(path, k, grid, origin, RES)
+    goal = explorer.update(grid, origin, RES, pose, revolutions=revs(1.0))
+    # the first time the way home is closed it is opened again: the give-up may have been a passing trouble
+    assert goal is not None and goal.cells == [(3, 1), (0, 1), (0, 0)] and explorer.no_way_home is None
+    assert any("opened again, tried once more" in e for e in explorer.events)
+    explorer.close_passage(path, k, grid, origin, RES)
+    goal = explorer.update(grid, origin, RES, pose, revolutions=revs(2.0))
+    assert goal is not None and goal.waypoints_m == [pose[:2]]  # stay
+    assert explorer.no_way_home is not None
+    assert "no way home" in explorer.no_way_home and "the passage W of cell (3, 1)" in explorer.no_way_home

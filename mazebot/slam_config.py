@@ -162,6 +162,8 @@ class NormalParams:
         "smallest / largest eigenvalue of a neighbourhood that is a line"))] = 0.2
     smooth: Annotated[bool, Field(description=(
         "move each point onto the line fitted through its neighbours"))] = True
+    smooth_scan: Annotated[bool, Field(description=(
+        "with smooth, match each scan's own points smoothed onto their lines the same way (off: as measured)"))] = False
 
 
 @dataclass(frozen=True)

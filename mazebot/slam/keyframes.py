@@ -261,16 +261,7 @@ class Keyframe:
         """:meth:`surface` as kept (:func:`pack`'s int16 or float32), computed if need be: no copy made."""
         surface = self._surface
         if surface is None:
-            p = self.normal_params
-            pts = self.hits
-            view = np.broadcast_to(self.sensor_xy, pts.shape)
-            nrm, good = estimate_normals(pts, p.neighbours, p.radius_m, p.max_line_spread, view)
-            # orient towards the lidar: the side of the wall the scan saw
-            flip = np.einsum("ij,ij->i", nrm, view - pts) < 0
-            nrm = np.where(flip[:, None], -nrm, nrm)
-            pts, nrm = pts[good], nrm[good]
-            if p.smooth:
-                pts = smooth_onto_lines(pts, nrm, p.radius_m, p.neighbours)
+            pts, nrm = line_surface(self.hits, self.sensor_xy, self.normal_params)
             surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
             self._surface = surface  # a race with another thread computes the same values
         return surface
@@ -366,6 +357,49 @@ class Keyframe:
             self.ray_hit,
             np.broadcast_to(self.sensor_xy, ends.shape),
         )
+
+
+def oriented_normals(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> tuple[np.ndarray, np.ndarray]:
+    """``(normals, usable)`` of a scan's hits (robot frame), each normal turned towards the lidar at ``sensor_xy``."""
+    view = np.broadcast_to(sensor_xy, hits_xy.shape)
+    nrm, good = estimate_normals(hits_xy, params.neighbours, params.radius_m, params.max_line_spread, view)
+    # orient towards the lidar: the side of the wall the scan saw
+    flip = np.einsum("ij,ij->i", nrm, view - hits_xy) < 0
+    return np.where(flip[:, None], -nrm, nrm), good
+
+
+def line_surface(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> tuple[np.ndarray, np.ndarray]:
+    """A keyframe's surface: ``(points, normals)`` of the hits with a usable normal, smoothed if ``params.smooth``."""
+    nrm, good = oriented_normals(hits_xy, sensor_xy, params)
+    pts, nrm = hits_xy[good], nrm[good]
+    if params.smooth:
+        pts = smooth_onto_lines(pts, nrm, params.radius_m, params.neighbours)
+    return pts, nrm
+
+
+def smoothed_match_points(
+    hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams, voxel_m: float
+) -> np.ndarray:
+    """A scan's points to match, smoothed onto their lines as the submap's are, thinned to one per ``voxel_m``.
+
+    ICP pairs a scan's points as measured with a submap whose points were moved onto
+    their local lines (:func:`smooth_onto_lines`). On a straight wall that pairing is
+    unbiased, but where a neighbourhood is not one clean line (the ends of short faces
+    facing the lidar a few metres off, door frames, pillars between alcoves) the submap's
+    surface is moved off the measured one by millimetres in a way the raw scan is not,
+    and the match turns by a few hundredths of a degree, the same way scan after scan
+    along a corridor. The scan's hits smoothed the same way (the same neighbourhoods, the
+    same rule) meet a submap made like themselves. Hits without a usable normal (isolated
+    points, corners) keep their measured position; the thinning is
+    :func:`mazebot.slam.preprocess.voxel_downsample`'s, as for the unsmoothed points.
+    """
+    pts = np.array(hits_xy, dtype=np.float64).reshape(-1, 2)
+    if pts.shape[0] == 0:
+        return pts
+    nrm, good = oriented_normals(pts, sensor_xy, params)
+    if np.any(good):
+        pts[good] = smooth_onto_lines(pts[good], nrm[good], params.radius_m, params.neighbours)
+    return pts[voxel_downsample(pts, voxel_m)]
 
 
 def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: float, neighbours: int) -> np.ndarray:

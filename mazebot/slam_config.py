@@ -162,6 +162,10 @@ class NormalParams:
         "smallest / largest eigenvalue of a neighbourhood that is a line"))] = 0.2
     smooth: Annotated[bool, Field(description=(
         "move each point onto the line fitted through its neighbours"))] = True
+    smooth_whole_face_only: Annotated[bool, Field(description=(
+        "with smooth, move only points whose neighbours all lie within radius_m on their own face"))] = False
+    smooth_scan: Annotated[bool, Field(description=(
+        "with smooth, match each scan's own points smoothed onto their lines the same way (off: as measured)"))] = False
 
 
 @dataclass(frozen=True)

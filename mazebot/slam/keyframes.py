@@ -261,16 +261,7 @@ class Keyframe:
         """:meth:`surface` as kept (:func:`pack`'s int16 or float32), computed if need be: no copy made."""
         surface = self._surface
         if surface is None:
-            p = self.normal_params
-            pts = self.hits
-            view = np.broadcast_to(self.sensor_xy, pts.shape)
-            nrm, good = estimate_normals(pts, p.neighbours, p.radius_m, p.max_line_spread, view)
-            # orient towards the lidar: the side of the wall the scan saw
-            flip = np.einsum("ij,ij->i", nrm, view - pts) < 0
-            nrm = np.where(flip[:, None], -nrm, nrm)
-            pts, nrm = pts[good], nrm[good]
-            if p.smooth:
-                pts = smooth_onto_lines(pts, nrm, p.radius_m, p.neighbours)
+            pts, nrm = line_surface(self.hits, self.sensor_xy, self.normal_params)
             surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
             self._surface = surface  # a race with another thread computes the same values
         return surface
@@ -368,7 +359,54 @@ class Keyframe:
         )
 
 
-def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: float, neighbours: int) -> np.ndarray:
+def oriented_normals(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> tuple[np.ndarray, np.ndarray]:
+    """``(normals, usable)`` of a scan's hits (robot frame), each normal turned towards the lidar at ``sensor_xy``."""
+    view = np.broadcast_to(sensor_xy, hits_xy.shape)
+    nrm, good = estimate_normals(hits_xy, params.neighbours, params.radius_m, params.max_line_spread, view)
+    # orient towards the lidar: the side of the wall the scan saw
+    flip = np.einsum("ij,ij->i", nrm, view - hits_xy) < 0
+    return np.where(flip[:, None], -nrm, nrm), good
+
+
+def line_surface(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> tuple[np.ndarray, np.ndarray]:
+    """A keyframe's surface: ``(points, normals)`` of the hits with a usable normal, smoothed if ``params.smooth``."""
+    nrm, good = oriented_normals(hits_xy, sensor_xy, params)
+    pts, nrm = hits_xy[good], nrm[good]
+    if params.smooth:
+        pts = smooth_onto_lines(pts, nrm, params.radius_m, params.neighbours, params.smooth_whole_face_only)
+    return pts, nrm
+
+
+def smoothed_match_points(
+    hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams, voxel_m: float
+) -> np.ndarray:
+    """A scan's points to match, smoothed onto their lines as the submap's are, thinned to one per ``voxel_m``.
+
+    ICP pairs a scan's points as measured with a submap whose points were moved onto
+    their local lines (:func:`smooth_onto_lines`). On a straight wall that pairing is
+    unbiased, but where a neighbourhood is not one clean line (the ends of short faces
+    facing the lidar a few metres off, door frames, pillars between alcoves) the submap's
+    surface is moved off the measured one by millimetres in a way the raw scan is not,
+    and the match turns by a few hundredths of a degree, the same way scan after scan
+    along a corridor. The scan's hits smoothed the same way (the same neighbourhoods, the
+    same rule) meet a submap made like themselves. Hits without a usable normal (isolated
+    points, corners) keep their measured position; the thinning is
+    :func:`mazebot.slam.preprocess.voxel_downsample`'s, as for the unsmoothed points.
+    """
+    pts = np.array(hits_xy, dtype=np.float64).reshape(-1, 2)
+    if pts.shape[0] == 0:
+        return pts
+    nrm, good = oriented_normals(pts, sensor_xy, params)
+    if np.any(good):
+        pts[good] = smooth_onto_lines(
+            pts[good], nrm[good], params.radius_m, params.neighbours, params.smooth_whole_face_only
+        )
+    return pts[voxel_downsample(pts, voxel_m)]
+
+
+def smooth_onto_lines(
+    points_xy: np.ndarray, normals: np.ndarray, radius_m: float, neighbours: int, whole_face_only: bool = False
+) -> np.ndarray:
     """Each point moved along its normal onto the line through the mean of its neighbours.
 
     The A1's range noise (~1 % of the range) scatters a wall's points by centimetres
@@ -378,6 +416,14 @@ def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: floa
     optimum by a good fraction of its starting error (moving least squares, Alexa et al.,
     "Computing and rendering point set surfaces", IEEE TVCG 2003, reduced to lines).
     Points keep their position along the wall, so corners stay where they were.
+
+    ``whole_face_only``: a point is moved only where all ``neighbours`` nearest points lie
+    within ``radius_m`` and on its own face (normals within 45°); elsewhere it keeps its
+    measured position. A neighbourhood the points do not fill (a face shorter than the
+    neighbourhood, its ends, sparse points a few metres off, a corner) fits a line that
+    is an extrapolation of a few points, and moving the point onto it moves the submap's
+    surface off the measured one: on a real corridor with alcoves on one side, that turns
+    each match of a scan as measured by hundredths of a degree, the same way every scan.
     """
     m = points_xy.shape[0]
     if m == 0:
@@ -393,6 +439,8 @@ def smooth_onto_lines(points_xy: np.ndarray, normals: np.ndarray, radius_m: floa
     w = ok.astype(np.float64)
     mean = np.einsum("mk,mkd->md", w, pad[idx]) / np.maximum(w.sum(axis=1), 1.0)[:, None]
     offset = np.einsum("md,md->m", points_xy - mean, normals)
+    if whole_face_only:
+        offset = np.where(ok.all(axis=1), offset, 0.0)
     return points_xy - offset[:, None] * normals
 
 

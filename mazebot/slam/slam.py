@@ -84,7 +84,14 @@ from mazebot.slam.distance_calibration import DistanceCalibration, fixes_travel
 from mazebot.slam.ekf import HeadingCalibration, PoseEkf, TimeOffsetCalibration, rotate_information
 from mazebot.slam.grid import OccupancyGrid
 from mazebot.slam.icp import IcpResult, Target, match_scan_steps
-from mazebot.slam.keyframes import Keyframe, KeyframeSelector, build_target, build_target_steps, map_rays
+from mazebot.slam.keyframes import (
+    Keyframe,
+    KeyframeSelector,
+    build_target,
+    build_target_steps,
+    map_rays,
+    smoothed_match_points,
+)
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.lever_arm import LeverArmCalibration
 from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, verify
@@ -1546,7 +1553,14 @@ class Slam:
         if offset_s:
             scan = replace(scan, time_s=scan.time_s - offset_s)
         odom = odometry_pose_at(odometry, scan.end_time_s)
-        return prepare_scan(scan, self._deskew_motion(odometry, odom), self.params.prepare), odom
+        prepared = prepare_scan(scan, self._deskew_motion(odometry, odom), self.params.prepare)
+        normals = self.params.normals
+        if normals.smooth and normals.smooth_scan:
+            # matched like the submap is made (keyframes.smoothed_match_points); the map keeps the hits as measured
+            voxel_m = self.params.prepare.voxel_size_m
+            match = smoothed_match_points(prepared.points_full, prepared.sensor_xy, normals, voxel_m)
+            prepared = replace(prepared, points_match=match)
+        return prepared, odom
 
     def _deskew_motion(self, odometry: OdometrySource, end_odom: np.ndarray) -> PoseAtTime:
         """``pose_at_time`` for de-skew: odometry poses in the frame of the scan's end, heading calibrated."""

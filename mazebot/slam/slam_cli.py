@@ -169,10 +169,13 @@ def laser_log_params(
     ICP's information clustered by wall (``[slam.icp] information_cluster_rad``; branches ``reallogs5``,
     ``reallogs6``); no smoothing of the submap's points onto their local lines (``[slam.normals] smooth``
     false: the smoothing turns each Seattle match +0.035°, yet without it Intel at ``0.1,0.1`` loses a
-    stretch; branch ``seattle15``); a sequential match turned beyond ``[slam.matching]
-    match_heading_sigmas`` of the prediction searched again (branches ``radish18``, ``guard19``); closures
-    accepted in the directions they constrain (``[slam.loop] accept_degenerate``; branch ``corridor17``);
-    closures verified as a set rather than each alone (``[slam.loop] set_verify``; branch ``reallogs6``).
+    stretch; branch ``seattle15``); the scan's points smoothed as the submap's are (``[slam.normals]
+    smooth_scan``) or only points whose whole neighbourhood is one face smoothed (``smooth_whole_face_only``),
+    each removing that turn and each worse on other logs (branch ``wheels21``); a sequential match turned
+    beyond ``[slam.matching] match_heading_sigmas`` of the prediction searched again (branches ``radish18``,
+    ``guard19``); closures accepted in the directions they constrain (``[slam.loop] accept_degenerate``;
+    branch ``corridor17``); closures verified as a set rather than each alone (``[slam.loop] set_verify``;
+    branch ``reallogs6``).
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°

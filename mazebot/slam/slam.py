@@ -394,7 +394,8 @@ class LoopClosureJob:
         anchor = self.anchor_wall
         if self.start_faces is not None and self.wall_reference_rad is not None:
             links = heading_links(self.edges, len(self.keyframes)) if self.params.anchor_links else None
-            judged = start_anchor_fit(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad, links)
+            judged = start_anchor_fit(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad, links,
+                                      judge_boards=self.params.anchor_start_view)
             floor = self.params.wall_anchor_std_rad
             anchor = None if judged is None else (judged.direction_rad, max(judged.std_rad, floor))
             anchor = self._with_start_view(anchor, judged)
@@ -417,13 +418,13 @@ class LoopClosureJob:
         """
         if not self.params.anchor_start_view or self.start_faces is None:
             return anchor
-        board_std = BOARD_TURN_STD_RAD if judged is None else judged.board_std_rad
+        board_std = BOARD_TURN_STD_RAD if judged is None or judged.board_std_rad is None else judged.board_std_rad
         view = start_view_rad(self.start_faces, self.params.wall_max_face_spread_rad, board_std)
         if view is None:
             return anchor
         floor = self.params.wall_anchor_std_rad  # two faces in line by chance say nothing tighter than this
         view = (view[0], max(view[1], floor))
-        if anchor is None or judged is None:
+        if anchor is None or judged is None or judged.view_board_share is None:
             return view
         return joined_with_view(anchor, view, board_std**2 * judged.view_board_share, floor)
 

@@ -80,11 +80,12 @@ class StartFit:
 
     direction_rad: float  # g at rest, keyframe 0's frame, modulo 90°
     std_rad: float  # the fit's own std of it
-    board_std_rad: float  # the boards' own turn, estimated from every face (:func:`board_turn_std_rad`)
+    # the boards' own turn, estimated from every face (:func:`board_turn_std_rad`); None unless asked for
+    board_std_rad: float | None
     # how much of the start's own view's boards' turn the fit's direction carries (Σ_s H_s V_s: H_s the fit's
     # direction's sensitivity to the turn of stretch s, V_s the view's weight on it): their covariance is
     # this times board_std_rad² (the view and the fit read the same boards; :func:`joined_with_view`)
-    view_board_share: float
+    view_board_share: float | None
 
 
 def start_anchor_rad(
@@ -105,8 +106,12 @@ def start_anchor_fit(
     poses: np.ndarray,
     reference_rad: float,
     links: Links | None = None,
+    judge_boards: bool = False,
 ) -> StartFit | None:
     """Keyframe 0's anchor direction in its own frame (modulo 90°), ``g`` at rest (module docstring), and its std.
+
+    With ``judge_boards`` also the boards' own turn and what the direction carries of the start's
+    own view's boards (:class:`StartFit`; what joining that view needs, and only that).
 
     The std is the fit's own (its normal matrix's inverse at ``g``): ~0.3° on the bench's
     hand-built 8×8 mazes, where the direction came out 0.02-0.65° off the maze's grid.
@@ -142,13 +147,15 @@ def start_anchor_fit(
     turns = None if links is None else _place_turns(links, poses)
     directions = base + quarter_turns(faces.normal_rad - base)
     fit = _two_way_fit(owner, stretch, directions, turns, len(places))
+    direction = float(quarter_turns(np.array([fit.direction_rad]))[0])
+    if not judge_boards:
+        return StartFit(direction, fit.std_rad, None, None)
     board_std = board_turn_std_rad(directions, owner, stretch, fit.residual_rad)
     rest_rows = len(rest)  # keyframe 0 at rest is the first place: its faces the first rows
     walls = int(stretch.max()) + 1
     carried = np.bincount(stretch, weights=fit.sensitivity, minlength=walls)
     viewed = np.bincount(stretch[:rest_rows], weights=rest.count / float(np.sum(rest.count)), minlength=walls)
-    return StartFit(float(quarter_turns(np.array([fit.direction_rad]))[0]), fit.std_rad, board_std,
-                    float(carried @ viewed))
+    return StartFit(direction, fit.std_rad, board_std, float(carried @ viewed))
 
 
 #: Below this many stretches of wall seen the boards' own turn is mostly the prior's

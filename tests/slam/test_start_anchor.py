@@ -363,7 +363,7 @@ def test_the_start_s_own_view_is_trusted_no_more_than_its_few_boards_turned_by_h
     board_stds = []
     for seed in range(60):
         rest, keyframes, poses = _turned_corridor(np.random.default_rng(seed), math.radians(0.7))
-        fit = start_anchor_fit(rest, keyframes, poses, 0.0)  # type: ignore[arg-type]
+        fit = start_anchor_fit(rest, keyframes, poses, 0.0, judge_boards=True)  # type: ignore[arg-type]
         assert fit is not None
         board_stds.append(math.degrees(fit.board_std_rad))
         view = start_view_rad(rest, max_spread_rad, fit.board_std_rad)
@@ -392,7 +392,7 @@ def test_walls_set_square_give_the_start_s_own_view_its_full_weight() -> None:
 
     for seed in range(5):
         rest, keyframes, poses = _turned_corridor(np.random.default_rng(seed), 0.0, boards_along=40)
-        fit = start_anchor_fit(rest, keyframes, poses, 0.0)  # type: ignore[arg-type]
+        fit = start_anchor_fit(rest, keyframes, poses, 0.0, judge_boards=True)  # type: ignore[arg-type]
         assert fit is not None
         assert math.degrees(fit.board_std_rad) < 0.2
         view = start_view_rad(rest, 0.005, fit.board_std_rad)

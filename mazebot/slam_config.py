@@ -537,8 +537,8 @@ class WallSection:
         "by the faces they share alone (main's fit)"))] = False
     anchor_start_view: Annotated[bool, Field(description=(
         "where the faces keyframe 0 sees at rest lie on one grid (walls set square), the anchor judged from every "
-        "keyframe's faces is averaged with their own mean, each weighted by its std (the faces' spread over their "
-        "number less one); off: the judged anchor alone"))] = False
+        "keyframe's faces is joined by their own mean, at a std of their spread and of the boards' own turn (estimated "
+        "from every keyframe's faces), counting the boards both read once; off: the judged anchor alone"))] = False
 
 
 @dataclass(frozen=True)

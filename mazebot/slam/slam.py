@@ -103,7 +103,14 @@ from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan, voxel_downsample
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.start_anchor import heading_links, start_anchor_rad, start_view_rad
+from mazebot.slam.start_anchor import (
+    BOARD_TURN_STD_RAD,
+    StartFit,
+    heading_links,
+    joined_with_view,
+    start_anchor_fit,
+    start_view_rad,
+)
 from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
@@ -394,29 +401,39 @@ class LoopClosureJob:
         anchor = self.anchor_wall
         if self.start_faces is not None and self.wall_reference_rad is not None:
             links = heading_links(self.edges, len(self.keyframes)) if self.params.anchor_links else None
-            judged = start_anchor_rad(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad, links)
-            anchor = None if judged is None else (judged[0], max(judged[1], self.params.wall_anchor_std_rad))
-            anchor = self._with_start_view(anchor)
+            judged = start_anchor_fit(self.start_faces, self.keyframes, self.poses, self.wall_reference_rad, links,
+                                      judge_boards=self.params.anchor_start_view)
+            floor = self.params.wall_anchor_std_rad
+            anchor = None if judged is None else (judged.direction_rad, max(judged.std_rad, floor))
+            anchor = self._with_start_view(anchor, judged)
         turns = [(direction, max(std, self.params.wall_prior_std_rad)) for direction, std in start_turns]
         if not turns:
             return anchor
         return _mean_turn(turns + ([] if anchor is None else [anchor]), self.params.wall_anchor_std_rad)
 
-    def _with_start_view(self, judged: tuple[float, float] | None) -> tuple[float, float] | None:
+    def _with_start_view(
+        self, anchor: tuple[float, float] | None, judged: StartFit | None
+    ) -> tuple[float, float] | None:
         """The anchor judged from every board, joined by the start's own view of square walls (``anchor_start_view``).
 
         Where keyframe 0's faces at rest lie on one grid, their mean is a reading of the maze's grid
-        with an honest std of its own (:func:`mazebot.slam.start_anchor.start_view_rad`): the two
-        readings' inverse-variance mean. Faces that turn apart (boards set by hand) leave the judged
-        anchor as it is, and so does the option off.
+        with a std of its own (:func:`mazebot.slam.start_anchor.start_view_rad`), the boards' own turn
+        as every keyframe's faces show it included (before the fit has any, a board set by hand's).
+        The judged fit reads the start's boards too: the two are joined at the covariance of that
+        shared turn (:func:`mazebot.slam.start_anchor.joined_with_view`). Faces that turn apart
+        (boards set by hand) leave the judged anchor as it is, and so does the option off.
         """
         if not self.params.anchor_start_view or self.start_faces is None:
-            return judged
-        view = start_view_rad(self.start_faces, self.params.wall_max_face_spread_rad)
+            return anchor
+        board_std = BOARD_TURN_STD_RAD if judged is None or judged.board_std_rad is None else judged.board_std_rad
+        view = start_view_rad(self.start_faces, self.params.wall_max_face_spread_rad, board_std)
         if view is None:
-            return judged
+            return anchor
         floor = self.params.wall_anchor_std_rad  # two faces in line by chance say nothing tighter than this
-        return _mean_turn([(view[0], max(view[1], floor))] + ([] if judged is None else [judged]), floor)
+        view = (view[0], max(view[1], floor))
+        if anchor is None or judged is None or judged.view_board_share is None:
+            return view
+        return joined_with_view(anchor, view, board_std**2 * judged.view_board_share, floor)
 
     def _fit_to_reuse(self) -> tuple[PitchFit, int] | None:
         """The known lattice fit (and its keyframes) if the walls fitted it and the keyframes grew little since.

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import csc_matrix
@@ -73,6 +74,20 @@ FACE_STD_ITERATIONS = 3
 FACE_STD_MIN_RAD = math.radians(0.02)
 
 
+@dataclass(frozen=True)
+class StartFit:
+    """What :func:`start_anchor_fit` judged: keyframe 0's grid and std, and how far its boards stand turned."""
+
+    direction_rad: float  # g at rest, keyframe 0's frame, modulo 90°
+    std_rad: float  # the fit's own std of it
+    # the boards' own turn, estimated from every face (:func:`board_turn_std_rad`); None unless asked for
+    board_std_rad: float | None
+    # how much of the start's own view's boards' turn the fit's direction carries (Σ_s H_s V_s: H_s the fit's
+    # direction's sensitivity to the turn of stretch s, V_s the view's weight on it): their covariance is
+    # this times board_std_rad² (the view and the fit read the same boards; :func:`joined_with_view`)
+    view_board_share: float | None
+
+
 def start_anchor_rad(
     rest: Faces,
     keyframes: Sequence[Keyframe],
@@ -80,7 +95,23 @@ def start_anchor_rad(
     reference_rad: float,
     links: Links | None = None,
 ) -> tuple[float, float] | None:
+    """Keyframe 0's anchor direction in its own frame (modulo 90°) and its std: :func:`start_anchor_fit`'s."""
+    fit = start_anchor_fit(rest, keyframes, poses, reference_rad, links)
+    return None if fit is None else (fit.direction_rad, fit.std_rad)
+
+
+def start_anchor_fit(
+    rest: Faces,
+    keyframes: Sequence[Keyframe],
+    poses: np.ndarray,
+    reference_rad: float,
+    links: Links | None = None,
+    judge_boards: bool = False,
+) -> StartFit | None:
     """Keyframe 0's anchor direction in its own frame (modulo 90°), ``g`` at rest (module docstring), and its std.
+
+    With ``judge_boards`` also the boards' own turn and what the direction carries of the start's
+    own view's boards (:class:`StartFit`; what joining that view needs, and only that).
 
     The std is the fit's own (its normal matrix's inverse at ``g``): ~0.3° on the bench's
     hand-built 8×8 mazes, where the direction came out 0.02-0.65° off the maze's grid.
@@ -114,22 +145,114 @@ def start_anchor_rad(
     if not np.isin(stretch[owner == 0], stretch[owner != 0]).any():
         return None  # nothing keyframe 0 saw has been seen again: its faces alone are no anchor
     turns = None if links is None else _place_turns(links, poses)
-    direction, std = _two_way_fit(owner, stretch, base + quarter_turns(faces.normal_rad - base), turns, len(places))
-    return float(quarter_turns(np.array([direction]))[0]), std
+    directions = base + quarter_turns(faces.normal_rad - base)
+    fit = _two_way_fit(owner, stretch, directions, turns, len(places))
+    direction = float(quarter_turns(np.array([fit.direction_rad]))[0])
+    if not judge_boards:
+        return StartFit(direction, fit.std_rad, None, None)
+    board_std = board_turn_std_rad(directions, owner, stretch, fit.residual_rad)
+    rest_rows = len(rest)  # keyframe 0 at rest is the first place: its faces the first rows
+    walls = int(stretch.max()) + 1
+    carried = np.bincount(stretch, weights=fit.sensitivity, minlength=walls)
+    viewed = np.bincount(stretch[:rest_rows], weights=rest.count / float(np.sum(rest.count)), minlength=walls)
+    return StartFit(direction, fit.std_rad, board_std, float(carried @ viewed))
 
 
-def start_view_rad(rest: Faces, max_spread_rad: float) -> tuple[float, float] | None:
+#: Below this many stretches of wall seen the boards' own turn is mostly the prior's
+#: (``BOARD_TURN_STD_RAD``): :func:`board_turn_std_rad` weighs the prior as this many stretches.
+BOARD_PRIOR_STRETCHES = 4
+
+#: The median of a chi-square variable of one degree of freedom: the median of ``z**2`` for a
+#: standard normal ``z`` (what a robust scale matches the faces' squared deviations to).
+_CHI2_1_MEDIAN = 0.454936
+
+
+def board_turn_std_rad(
+    direction_rad: np.ndarray, owner: np.ndarray, stretch: np.ndarray, residual_rad: np.ndarray
+) -> float:
+    """The boards' own turn (RMS about the maze's grid) as the faces show it, the faces' own scatter taken out.
+
+    ``direction_rad`` (F,) is each face's direction in its place's frame, ``owner`` (F,) its place,
+    ``stretch`` (F,) its stretch of wall and ``residual_rad`` (F,) what the two-way fit left of it.
+    The differences of the faces' directions within one place do not depend on its heading: a face's
+    deviation from the mean of its place's ``k`` faces (on ``k`` stretches) has the variance
+    ``(1 - 1/k) (σ_board² + σ_face²)`` (a one-way layout, Scheffé 1959, ch. 7). The faces' own scatter
+    ``σ_face`` is the fit's residuals', each scaled by its leverage in the additive two-way layout
+    (``1/m + 1/k``, ``m`` the faces on its stretch; a stretch seen once fits its face exactly and says
+    nothing of it). Each variance is a median matched to a chi-square of one degree of freedom, so that
+    a few faces put on the wrong stretch do not set it (Rousseeuw & Croux, JASA 1993, for medians as
+    scale estimators). Near zero on walls set square, ~0.7° on the simulator's boards set by hand. With
+    few stretches it is pulled towards a board set by hand (``BOARD_TURN_STD_RAD``, weighed as
+    ``BOARD_PRIOR_STRETCHES`` stretches): a start seen from few places trusts its own boards little.
+    """
+    k, place_mean = _group_counts_means(direction_rad, owner)
+    m, _ = _group_counts_means(direction_rad, stretch)
+    several = k >= 2
+    walls = int(np.unique(stretch[several]).size)
+    leverage = 1.0 / m + 1.0 / k
+    fitted = several & (m >= 2) & (leverage < MAX_LEVERAGE)
+    if not walls or not fitted.any():
+        return BOARD_TURN_STD_RAD
+    total = _median_variance((direction_rad - place_mean)[several] ** 2 * (k / np.maximum(k - 1.0, 1.0))[several])
+    face = _median_variance(residual_rad[fitted] ** 2 / (1.0 - leverage[fitted]))
+    prior = BOARD_PRIOR_STRETCHES * BOARD_TURN_STD_RAD**2
+    return math.sqrt((prior + walls * max(0.0, total - face)) / (BOARD_PRIOR_STRETCHES + walls))
+
+
+#: Faces whose leverage in the two-way fit is above this are left out of the faces' scatter: the
+#: fit follows them too closely for their residuals to say much.
+MAX_LEVERAGE = 0.75
+
+
+def _group_counts_means(value: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each value's group's size and mean (both (F,))."""
+    _, index, count = np.unique(group, return_inverse=True, return_counts=True)
+    index = index.reshape(-1)
+    mean = np.bincount(index, weights=value) / count
+    return count[index], mean[index]
+
+
+def _median_variance(squared: np.ndarray) -> float:
+    """The variance of normal deviations whose squares are ``squared``: their median over χ²₁'s."""
+    return float(np.median(squared)) / _CHI2_1_MEDIAN
+
+
+def joined_with_view(judged: tuple[float, float], view: tuple[float, float], covariance_rad2: float,
+                     floor_std_rad: float) -> tuple[float, float]:
+    """Two readings of the start's grid ``(direction_rad, std_rad)`` whose errors share ``covariance_rad2``, joined.
+
+    The least-variance weighting of two correlated estimates (Bar-Shalom & Campo, "The effect of the
+    common process noise on the two-sensor fused-track covariance", IEEE TAES 1986): the view's weight
+    ``(V_j - C) / (V_j + V_v - 2C)`` (within [0, 1]) and the variance that weighting leaves. With ``C = 0``
+    the inverse-variance mean; where both read the same boards, the view counts for what it adds, not
+    twice. Modulo 90°; the std floored at ``floor_std_rad``.
+    """
+    judged_var, view_var = judged[1] ** 2, view[1] ** 2
+    covariance = min(max(covariance_rad2, 0.0), math.sqrt(judged_var * view_var))
+    spread = judged_var + view_var - 2.0 * covariance
+    weight = 1.0 if spread <= 0.0 else min(max((judged_var - covariance) / spread, 0.0), 1.0)
+    variance = (1 - weight) ** 2 * judged_var + weight**2 * view_var + 2 * weight * (1 - weight) * covariance
+    step = float(quarter_turns(np.array([view[0] - judged[0]]))[0])
+    direction = float(quarter_turns(np.array([judged[0] + weight * step]))[0])
+    return direction, max(math.sqrt(max(variance, 0.0)), floor_std_rad)
+
+
+def start_view_rad(rest: Faces, max_spread_rad: float, board_std_rad: float = 0.0) -> tuple[float, float] | None:
     """The wall grid as keyframe 0's faces at rest alone put it (its frame, modulo 90°), and the std of that mean.
 
     Where the start's faces lie on one grid (they turn apart by no more than ``max_spread_rad``,
     RMS: walls set square), each is a reading of the same direction, and their mean, weighted by
-    points, is the start's own view of the grid; its std is the standard error of that mean,
-    the faces' spread about it over ``n - 1`` degrees of freedom (``spread / sqrt(n - 1)``, the
-    spread being the points-weighted RMS about the mean). Pooled over the revolutions at rest,
-    those faces read the exact mazes' grid within ~0.1°, where the fit over every keyframe's faces
-    (:func:`start_anchor_rad`, which lets each stretch turn by a board's spread) put it 0.2° off at
-    a std of 0.16° (the bench's 16×16 scripted seed 18). None with fewer than two faces, or faces
-    that turn apart (boards set by hand: their mean is the start's boards', not the maze's).
+    points, is the start's own view of the grid. Its std has two parts. The faces' spread about
+    the mean over ``n - 1`` degrees of freedom (``spread / sqrt(n - 1)``, the spread being the
+    points-weighted RMS about the mean) is what the faces disagree by. A board's own turn is
+    common to every point of its face, and the start's few boards may all stand turned the same
+    way, which no spread among them shows: ``board_std_rad / sqrt(boards)``, ``boards`` the
+    distinct stretches of wall the faces lie on and ``board_std_rad`` the boards' turn estimated
+    from every keyframe's faces (:func:`board_turn_std_rad`: near zero on walls set square, where
+    pooled over the revolutions at rest the view reads the grid within ~0.1° and the fit over
+    every keyframe's faces put it 0.2° off at a std of 0.16°, the bench's 16×16 scripted seed 18;
+    ~0.7° on boards set by hand, whose mean is the start's boards', not the maze's). None with
+    fewer than two faces, or faces that turn apart.
     """
     if len(rest) < 2:
         return None
@@ -139,7 +262,9 @@ def start_view_rad(rest: Faces, max_spread_rad: float) -> tuple[float, float] | 
     if spread is None or spread > max_spread_rad:
         return None
     mean = float(np.average(turns, weights=rest.count))
-    return float(quarter_turns(np.array([base + mean]))[0]), spread / math.sqrt(len(rest) - 1)
+    boards = int(np.unique(stretch_keys(rest, base + mean), axis=0).shape[0])
+    std = math.sqrt(spread**2 / (len(rest) - 1) + board_std_rad**2 / boards)
+    return float(quarter_turns(np.array([base + mean]))[0]), std
 
 
 def placed_each(faces: Faces, poses: np.ndarray, counts: np.ndarray) -> Faces:
@@ -216,9 +341,19 @@ def _place_diagonal(places: int, walls: int) -> csc_matrix:
     return csc_matrix((ones, (np.arange(places), np.arange(places))), shape=(places + walls, places + walls))
 
 
+@dataclass(frozen=True)
+class _Fit:
+    """:func:`_two_way_fit`'s answer: place 0's grid and std, the faces' residuals and weights in it."""
+
+    direction_rad: float
+    std_rad: float
+    residual_rad: np.ndarray  # (F,): what the fit left of each face's direction
+    sensitivity: np.ndarray  # (F,): how much place 0's grid moves with each face's direction
+
+
 def _two_way_fit(
     owner: np.ndarray, stretch: np.ndarray, direction: np.ndarray, turns: Links | None = None, count: int = 0
-) -> tuple[float, float]:
+) -> _Fit:
     """``g`` of place 0 from ``direction = g[owner] + β[stretch]`` (module docstring) by least squares, and its std.
 
     Each stretch's turn has the prior ``0 ± BOARD_TURN_STD_RAD``; each face the same std, which
@@ -254,4 +389,6 @@ def _two_way_fit(
         face_std = max(math.sqrt(float(residual @ residual) / max(1, owner.size - seen)), FACE_STD_MIN_RAD)
     unit = np.zeros(places + walls)
     unit[0] = 1.0
-    return float(solution[0]), math.sqrt(float(spsolve(normal, unit)[0]))
+    gain = spsolve(normal, unit)  # the row of the normal matrix's inverse at place 0's grid
+    sensitivity = face_w**2 * (gain[owner] + gain[places + stretch])
+    return _Fit(float(solution[0]), math.sqrt(float(gain[0])), residual, sensitivity)

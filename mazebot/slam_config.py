@@ -538,7 +538,9 @@ class WallSection:
     anchor_start_view: Annotated[bool, Field(description=(
         "where the faces keyframe 0 sees at rest lie on one grid (walls set square), the anchor judged from every "
         "keyframe's faces is joined by their own mean, at a std of their spread and of the boards' own turn (estimated "
-        "from every keyframe's faces), counting the boards both read once; off: the judged anchor alone"))] = False
+        "from every keyframe's faces), counting the boards both read once, while that turn is within "
+        "wall_max_face_spread_rad (boards turned by hand keep the judged anchor); "
+        "off: the judged anchor alone"))] = False
 
 
 @dataclass(frozen=True)

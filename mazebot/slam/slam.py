@@ -422,10 +422,19 @@ class LoopClosureJob:
         The judged fit reads the start's boards too: the two are joined at the covariance of that
         shared turn (:func:`mazebot.slam.start_anchor.joined_with_view`). Faces that turn apart
         (boards set by hand) leave the judged anchor as it is, and so does the option off.
+
+        The view is taken only while the boards' own turn, as every keyframe's faces show it, is
+        within ``wall_max_face_spread_rad``: the same bound that tells the start's faces of walls set
+        square from boards set by hand, here read from hundreds of stretches instead of two to four.
+        A hand-built maze whose start's few boards happen to lie square among themselves (its boards'
+        turn 0.6-0.9°) then keeps the judged anchor, as with the option off; before any stretch is
+        seen again the estimate is the prior's (a board set by hand), so the first jobs keep it too.
         """
         if not self.params.anchor_start_view or self.start_faces is None:
             return anchor
         board_std = BOARD_TURN_STD_RAD if judged is None or judged.board_std_rad is None else judged.board_std_rad
+        if board_std > self.params.wall_max_face_spread_rad:
+            return anchor  # boards turned as by hand: the start's few are no better a reading than the fit's
         view = start_view_rad(self.start_faces, self.params.wall_max_face_spread_rad, board_std)
         if view is None:
             return anchor

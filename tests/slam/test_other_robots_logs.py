@@ -8,6 +8,7 @@ back the same) and that the reader and the SLAM take each change from the log it
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -142,3 +143,16 @@ def test_a_turn_the_odometry_did_not_log_is_found_by_the_scans() -> None:
     heading_error_deg = np.degrees(np.abs(wrap_angle(relative_pose(reference, poses)[:, 2])))
     assert heading_error_deg[27:].max() < 5.0
     assert np.hypot(*(poses[27:, :2] - reference[27:, :2]).T).max() < 0.5
+
+
+def test_slam_run_counts_the_odometrys_gaps_and_searches_them_when_asked(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mazebot.cli import main
+
+    log = str(carmen_log("seattle-corrected.log.gz"))
+    for flag, searched in (([], False), (["--odometry-gaps"], True)):
+        args = ["slam", "run", "--carmen", log, "--max-scans", "30", "--consistency-scans", "0", *flag]
+        assert main([*args, "--out", str(tmp_path / str(searched))]) == 0
+        stats = json.loads(capsys.readouterr().out)
+        assert stats["odometry_gaps"] == 1 and stats["odometry_gaps_searched"] is searched

@@ -30,7 +30,7 @@ from __future__ import annotations
 import gzip
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -137,6 +137,47 @@ def parse_carmen(
                 log.odometry.append(_parse_odom(tokens, number))
         except (ValueError, IndexError) as error:
             raise CarmenLogError(f"{source} line {number}: bad {kind} message ({error})") from None
+    return with_no_echo_code(log, flaser_max_range_m)
+
+
+#: a log's largest range is its code for a beam without an echo when at least this share of its
+#: old-style laser messages hold it (and :data:`NO_ECHO_MIN_SCANS` of them): a surface at exactly the
+#: log's farthest distance is seen from one place, a code from everywhere (ACES: 50.0 m in 239 of
+#: its 440 scans, the reading below it once)
+NO_ECHO_SCAN_SHARE = 0.01
+NO_ECHO_MIN_SCANS = 3
+
+
+def no_echo_code(records: list[LaserRecord]) -> float | None:
+    """The range ``records`` write for a beam without an echo, if they write one: their largest, held widely.
+
+    A SICK LMS reports its maximum (81.83 m; 81.87-81.91 m on the Seattle and Freiburg 101
+    logs), but a log may have been written with another (the ACES log's 50.0 m) and a
+    short-range laser has its own (a Hokuyo URG's 4 or 5.6 m). Taken as a return, the code
+    is a wall at that distance in every direction without an echo. None when the largest
+    range is not repeated over :data:`NO_ECHO_SCAN_SHARE` of the messages.
+    """
+    maxima = np.array([float(np.max(r.range_m)) for r in records if r.range_m.size])
+    if maxima.size == 0:
+        return None
+    largest = float(np.max(maxima))
+    holding = int(np.count_nonzero(maxima == largest))
+    return largest if holding >= max(NO_ECHO_MIN_SCANS, NO_ECHO_SCAN_SHARE * maxima.size) else None
+
+
+def with_no_echo_code(log: CarmenLog, flaser_max_range_m: float) -> CarmenLog:
+    """``log`` with its old-style laser messages' maximum range lowered to the code they use, if lower.
+
+    ``FLASER``/``RLASER`` lines carry no maximum range; the default (a SICK's 81 m) holds
+    for the logs a SICK wrote, and the log's own code (:func:`no_echo_code`) for those written
+    with another. ``ROBOTLASER1`` messages carry theirs in their header.
+    """
+    for kind in ("FLASER", "RLASER"):
+        records = [r for r in log.lasers if r.kind == kind]
+        code = no_echo_code(records)
+        if code is None or code >= flaser_max_range_m:
+            continue
+        log.lasers = [replace(r, max_range_m=code) if r.kind == kind else r for r in log.lasers]
     return log
 
 

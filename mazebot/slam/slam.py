@@ -621,6 +621,8 @@ class Slam:
         self._set_members: list[Verdict] = []
         self._set_waiting: list[Verdict] = []
         self._search_due = False  # the next match searches (the robot was just re-localized)
+        self._motion_unknown = False  # the next scan's odometry step is unknown (expect_unknown_motion)
+        self._search_any_heading = False  # ... so its search spans every heading
         # per-edge variances of the sequential chain (loop closure search radius)
         self._edge_var_xy: list[float] = []
         self._edge_var_theta: list[float] = []
@@ -805,6 +807,8 @@ class Slam:
             calibrated_increment = self.distance_calibration.correct(self.calibration.correct(raw_increment))
             predicted_increment = self.lever_arm.correct(calibrated_increment)
             self.ekf.predict(predicted_increment)
+        if self._motion_unknown:
+            self._forget_motion()
         self._last_odom = odom
         yield
 
@@ -812,6 +816,7 @@ class Slam:
         match = None
         if self.target is not None and len(self.target) and prepared.points_match.shape[0]:
             match = yield from self._match_steps(prepared)
+        self._search_any_heading = False  # (a scan without points or submap searched nothing)
 
         # 4. correct the filter (unobserved directions keep the odometry)
         matched = False
@@ -1098,6 +1103,32 @@ class Slam:
         self._target_position = None
         self._search_due = True
         self._rebuild_target()
+
+    def expect_unknown_motion(self) -> None:
+        """The odometry says nothing of the step to the next scan: it was silent while the laser went on.
+
+        A log whose odometry has a hole (the Seattle log's scan 27: three seconds, an 80° turn,
+        no odometry reading between the two scans) hands the SLAM a step of zero where the robot
+        moved. Its prediction is then no prediction: the filter's covariance is widened to the
+        whole correlative window in position and to every heading, the match is searched over
+        that window and every heading (Olson's correlative search without a motion prior, ICRA
+        2009), and the step teaches neither the odometry's calibration nor its noise (the raw
+        increment is not what the wheels did).
+        """
+        self._motion_unknown = True
+
+    def _forget_motion(self) -> None:
+        """The prediction widened to everything the search can cover; no calibration or noise sample from this step."""
+        self._motion_unknown = False
+        search = self.params.correlative
+        window_m = search.window_xy_m if search is not None else self.params.icp.max_correspondence_m
+        widened = self.ekf.covariance + np.diag([window_m**2, window_m**2, math.pi**2])
+        self.ekf.reset(self.ekf.mean, widened)
+        self._search_due = True
+        self._search_any_heading = search is not None
+        self._last_matched_pose = None
+        self._last_travel_fixed_pose = None
+        self._last_match_pose = None
 
     def rebuild_map(self) -> OccupancyGrid:
         """Rebuild the grid from every keyframe at its current pose (offline tools, at the end)."""
@@ -1430,6 +1461,9 @@ class Slam:
         self._search_due = False
         failed = not self.usable(match)
         window_xy, window_theta = self._search_window(failed or relocalized)
+        if self._search_any_heading:  # the odometry said nothing of this step's turn
+            window_theta = math.pi
+            self._search_any_heading = False
         table, src, refined = yield from self._refined_search_steps(prepared, guess, window_xy, window_theta)
         if refined is None or not self.acceptable(refined):
             return match

@@ -519,8 +519,9 @@ async def run(state: SharedState, clock: Clock, monitor: HealthMonitor, beat_per
 
     With ``beat_period_s`` (the odometry's period, on the real clock) each check runs in the
     odometry's wake-up (:class:`mazebot.clock.Beat`) every ``MOTOR_PERIOD_S`` of its beats
-    instead of on a timer of its own: 20 wake-ups of the event loop a second fewer (each
-    costs the kernel's return from ``epoll_wait`` and a pass of asyncio's machinery before
+    instead of on a timer of its own: up to 20 wake-ups of the event loop a second fewer
+    (about 10 under the quota bench, where the others fell in another task's wake-up; each
+    costs the kernel's return from ``epoll_wait`` and a pass of asyncio's machinery besides
     the check's own ~70 µs), and the checks see the encoder counts of a reading just taken.
     Without beats for ``BEAT_TIMEOUT_PERIODS`` check periods it checks on its own time.
     """

@@ -369,7 +369,9 @@ async def run_daemon(
         lidar_activity = cast(LidarActivity, hardware.lidar) if has_bytes else None
         monitor = HealthMonitor(config.daemon.lidar_silence_s, config.daemon.startup_grace_s, lidar=lidar_activity,
                                 wheel_gains=health_task.wheel_gains_from_config(config))
-        supervisor.start("health", lambda: health_task.run(state, clock, monitor), restart=True)
+        # on the real clock the checks run in the odometry's wake-ups (health_task.run)
+        beat_s = 1.0 / config.encoders.odometry_rate_hz if _on_the_monotonic_clock(clock, loop) else None
+        supervisor.start("health", lambda: health_task.run(state, clock, monitor, beat_s), restart=True)
         heartbeat = ControlHeartbeat(clock)  # the control loop's ticks feed the systemd watchdog
         pilot = Pilot(PilotParams.from_config(config))
         if autonomous:

@@ -381,3 +381,81 @@ def test_a_recorded_healthy_turn_on_coarse_encoders_is_no_weak_motor() -> None:
         state.throttle_history.append((now_s, left, right))
         monitor.check_motors(state, now_s)
     assert [e.message for e in state.events if e.source == "motors"] == []
+
+
+def _checks_and_beats(beat_period_s: float | None, beats_until_s: float,
+                      follow: bool = True) -> tuple[list[tuple[str, float]], list[float], SharedState]:
+    """The health task's checks (kind, loop time) over 2 s of virtual time from 100 s, the odometry's
+    beats (every ``beat_period_s`` until ``beats_until_s``; None: none), and the state: a lidar whose
+    one revolution ended at 100 s. ``follow``: the task is told the odometry's period (the real clock)."""
+    import asyncio
+    import contextlib
+
+    from mazebot.sim.virtual_time import run_virtual
+    from mazebot.tasks import health_task
+
+    checks: list[tuple[str, float]] = []
+    beats: list[float] = []
+    state = SharedState(run_state=RunState.EXPLORING)
+    one = np.ones(1)
+    state.latest_scan = Scan(0 * one, one, one.astype(np.uint8), 100.0 * one, one.astype(bool))  # ended at 100 s
+    monitor = HealthMonitor(lidar_silence_s=0.4, startup_grace_s=0.0)
+
+    class Noted:
+        def check(self, state: SharedState, now_s: float) -> None:
+            checks.append(("all", asyncio.get_running_loop().time()))
+            monitor.check(state, now_s)
+
+        def check_motors(self, state: SharedState, now_s: float) -> None:
+            checks.append(("motors", asyncio.get_running_loop().time()))
+            monitor.check_motors(state, now_s)
+
+    async def main() -> None:
+        from mazebot.clock import RealClock
+
+        period_s = beat_period_s if follow else None
+        task = asyncio.create_task(health_task.run(state, RealClock(), Noted(), period_s))  # type: ignore[arg-type]
+        loop = asyncio.get_running_loop()
+        while loop.time() < 102.0:
+            if beat_period_s is None or loop.time() >= beats_until_s:
+                await asyncio.sleep(0.01)
+                continue
+            await asyncio.sleep(beat_period_s)
+            beats.append(loop.time())
+            state.odometry_beat.tick()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+    run_virtual(main(), start_s=100.0)
+    return checks, beats, state
+
+
+def _lidar_fault_s(state: SharedState) -> float:
+    return min(f.time_s for f in state.faults if f.source == "lidar")
+
+
+def test_the_checks_run_in_the_odometry_s_wake_ups_and_on_their_own_time_once_the_beats_stop() -> None:
+    """On the real clock the checks wake the loop no more than the odometry does: each follows a
+    beat in the same pass (the loop's clock unmoved), every second beat of 40 Hz, the lidar's
+    check every other one; once the beats stop they come on their own time, never so late that a
+    lidar check judges nothing. The lidar, silent since 100 s, is said at the same moment as
+    with checks on their own timer (silence allowed 0.4 s: said within a check period of 100.4 s)."""
+    from mazebot.tasks.health_task import LATE_CHECK_PERIODS, MOTOR_PERIOD_S, PERIOD_S
+
+    checks, beats, state = _checks_and_beats(0.025, beats_until_s=101.0)
+    with_beats = [t for _, t in checks if beats[0] <= t <= beats[-1]]
+    assert len(with_beats) >= 0.5 * len(beats) - 1
+    for t in with_beats:
+        assert t - max(b for b in beats if b <= t) < 1e-4  # in the beat's wake-up
+    assert np.diff(with_beats).max() < MOTOR_PERIOD_S + 1e-3  # every second beat
+    assert [kind for kind, _ in checks[:4]] == ["all", "motors", "all", "motors"]
+    # the beats stop at 101 s: on their own time, the lidar's checks never late
+    alone = [t for kind, t in checks if kind == "all" and t > beats[-1]]
+    assert len(alone) >= 6
+    assert np.diff(alone).max() < LATE_CHECK_PERIODS * PERIOD_S
+    assert 100.4 < _lidar_fault_s(state) <= 100.4 + PERIOD_S + MOTOR_PERIOD_S
+    # on its own timer (the virtual clock's runs: no odometry period given) the same silence is said alike
+    own, _, own_state = _checks_and_beats(0.025, beats_until_s=101.0, follow=False)
+    assert np.allclose(np.diff([t for _, t in own]), MOTOR_PERIOD_S, atol=1e-4)
+    assert abs(_lidar_fault_s(own_state) - _lidar_fault_s(state)) <= PERIOD_S

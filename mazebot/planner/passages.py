@@ -12,9 +12,10 @@ local costmap the DWA used whether the path ahead has a lane at all: a flood fil
 robot centres that keep the contact distance, from where the robot stands, in a window about
 it. The lane is judged on the DWA's own costmap (the occupied map cells as discs of half their
 diagonal), not on the exact surfaces: a lane the body fits but the local planner cannot drive
-is no lane for this robot (beside a table leg on a hand-built 8x8 maze the body clears the leg
-by 20.7 mm at best, but the DWA's map cells leave 2.6 mm less than its contact distance: a
-check on the exact surfaces found a lane there and left the robot to wriggle beside it). A path point no such centre comes near marks a closed passage: the explorer then
+is no lane for this robot. Beside a table leg on a hand-built 8x8 maze the body would clear the
+leg by 20.7 mm, but the DWA's map cells leave its centre 2.6 mm short of the contact distance:
+a check on the exact surfaces would find a lane there and close nothing while the robot stands
+beside it. A path point no such centre comes near marks a closed passage: the explorer then
 remembers the passage (:class:`ClosedPassage`; the cell link crossed there in a maze, a short
 segment across the path elsewhere) and plans round it. A path that still has a lane is a
 passing trouble (a spurious map cell, a moment of bad luck in the DWA's samples) and nothing

@@ -91,7 +91,8 @@ def test_a_corner_the_body_passes_with_the_margin_is_a_lane_on_the_dwas_own_cost
     """
     corner = recorded_give_up("corner")
     path = corner["path"]
-    assert first_unreachable(LocalCostmap(true_surface_points(corner), footprint_radius_m=0.09), path, CONTACT_M) is None
+    truth = LocalCostmap(true_surface_points(corner), footprint_radius_m=0.09)
+    assert first_unreachable(truth, path, CONTACT_M) is None
     assert first_unreachable(dwa_costmap(corner), path, CONTACT_M) is None
 
 
@@ -106,7 +107,8 @@ def test_a_leg_the_dwas_costmap_leaves_no_lane_past_is_no_lane() -> None:
     """
     leg = recorded_give_up("leg")
     path = leg["path"]
-    assert first_unreachable(LocalCostmap(true_surface_points(leg), footprint_radius_m=0.09), path, CONTACT_M) is None
+    truth = LocalCostmap(true_surface_points(leg), footprint_radius_m=0.09)
+    assert first_unreachable(truth, path, CONTACT_M) is None
     k = first_unreachable(dwa_costmap(leg), path, CONTACT_M)
     assert k is not None
     leg_xy = leg["true_leg"][np.argmin(np.hypot(leg["true_leg"][:, 0], leg["true_leg"][:, 1])), :2]

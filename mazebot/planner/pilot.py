@@ -44,6 +44,7 @@ from mazebot.planner.dwa import (
     LocalCostmap,
     LocalPlanner,
     LocalStatus,
+    cells_without_hits,
     map_points_robot,
     to_robot_frame,
 )
@@ -474,6 +475,8 @@ class Pilot:
             walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
         scan_xy = self._scan_points(state)
+        if self.params.planner.hits_replace_cells:
+            map_xy = cells_without_hits(map_xy, scan_xy, pose, origin_m, resolution_m)
         self.drive_ticks += 1
         tick_time_s = self.drive_ticks * self.params.period_s  # a late tick is one tick, not its lateness
         yield

@@ -119,8 +119,9 @@ def test_map_cells_taken_as_the_hits_they_hold_leave_the_lane_the_body_has_past_
     """``[planner] hits_replace_cells``: the same give-up beside the leg, each occupied map cell that holds
     a hit of the revolution counted as its hits rather than a disc of half its diagonal.
 
-    Along the path ahead the costmap's clearance then stays within 1 cm of the true surfaces'
-    (median within 5 mm; as discs: 6-13 mm short), and the lane the body has past the leg is found.
+    At the path points ahead the costmap's clearance is then within 1 cm of the true surfaces' (4.3 mm at
+    the median; as discs 12.5 mm short at the median, up to 19.4 mm), and the lane the body has past the
+    leg is found.
     """
     leg = recorded_give_up("leg")
     (x, y, theta, origin_x, origin_y, cell_m), = leg["frame"]

@@ -257,6 +257,11 @@ class PlannerConfig(Section):
         "(a maze link, else a short segment) for the routes until the map there changes; the local planner's "
         "recoveries count per place (0.3 m) instead of per re-planned path",
     )
+    hits_replace_cells: bool = Field(
+        False,
+        description="the local planner and its lane check take an occupied map cell that holds a hit of the "
+        "latest revolution as that hit (the surface measured) instead of a disc of half the cell's diagonal",
+    )
 
 
 class ControlConfig(Section):

@@ -130,6 +130,35 @@ def map_points_robot(
     return np.column_stack((c * wx[keep] + s * wy[keep], -s * wx[keep] + c * wy[keep]))
 
 
+def cells_without_hits(
+    map_xy: np.ndarray,
+    hits_xy: np.ndarray,
+    pose: tuple[float, float, float],
+    origin_m: XY,
+    resolution_m: float,
+) -> np.ndarray:
+    """The occupied map cells of ``map_xy`` (their centres, robot frame (N, 2)) that hold none of ``hits_xy``.
+
+    A map cell stands for an obstacle somewhere inside it, so the local costmap counts it as a disc
+    of half its diagonal: up to 14 mm of a 2 cm cell in front of the surface. Where a hit of the
+    latest revolution (robot frame (M, 2), the robot at ``pose`` in the map frame) lies in the cell,
+    the surface is measured there and the hit stands for it; cells without one keep their disc.
+    """
+    cells = np.asarray(map_xy, dtype=np.float64).reshape(-1, 2)
+    hits = np.asarray(hits_xy, dtype=np.float64).reshape(-1, 2)
+    if cells.shape[0] == 0 or hits.shape[0] == 0:
+        return cells
+
+    def keys(points: np.ndarray) -> np.ndarray:
+        x, y, th = pose
+        c, s = math.cos(th), math.sin(th)
+        col = np.floor((x + c * points[:, 0] - s * points[:, 1] - origin_m[0]) / resolution_m).astype(np.int64)
+        row = np.floor((y + s * points[:, 0] + c * points[:, 1] - origin_m[1]) / resolution_m).astype(np.int64)
+        return row * (1 << 32) + col
+
+    return cells[~np.isin(keys(cells), keys(hits))]
+
+
 class LocalCostmap:
     """Robot-centred obstacles with exact clearance queries, inflated by the robot.
 

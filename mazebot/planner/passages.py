@@ -10,7 +10,12 @@ recovers, gives up, and the global planner sends it the same way again.
 When the local planner (or the stand-still watch) gives up, :func:`first_unreachable` asks the
 local costmap the DWA used whether the path ahead has a lane at all: a flood fill over the
 robot centres that keep the contact distance, from where the robot stands, in a window about
-it. A path point no such centre comes near marks a closed passage: the explorer then
+it. The lane is judged on the DWA's own costmap (the occupied map cells as discs of half their
+diagonal), not on the exact surfaces: a lane the body fits but the local planner cannot drive
+is no lane for this robot. Beside a table leg on a hand-built 8x8 maze the body would clear the
+leg by 20.7 mm, but the DWA's map cells leave its centre 2.6 mm short of the contact distance:
+a check on the exact surfaces would find a lane there and close nothing while the robot stands
+beside it. A path point no such centre comes near marks a closed passage: the explorer then
 remembers the passage (:class:`ClosedPassage`; the cell link crossed there in a maze, a short
 segment across the path elsewhere) and plans round it. A path that still has a lane is a
 passing trouble (a spurious map cell, a moment of bad luck in the DWA's samples) and nothing
@@ -35,10 +40,17 @@ from mazebot.planner.maze_graph import Cell, Direction
 from mazebot.slam.grid import FREE, OCCUPIED
 
 #: The lane is searched in a square this far either side of the robot (metres): a cell and a third
-#: of a 1 ft maze, enough to see past the next link, small enough for one give-up's CPU (~6 400 centres).
+#: of a 1 ft maze, enough to see past the next link, small enough for one give-up's CPU (~26 000 centres).
 LANE_WINDOW_M = 0.4
-#: The robot centres tried are this far apart (metres): finer than the 25 mm lanes beside a table leg.
-LANE_STEP_M = 0.01
+#: The robot centres tried are this far apart (metres), 8-connected. The clearance changes by at most
+#: the distance moved, so a lane is lost to the grid only where its centre line keeps less than
+#: half a step's diagonal (3.5 mm) over the contact distance, and a lane found dips at most that far
+#: below it between two centres. At 1 cm and 4-connected (7 mm, and a diagonal lane narrower than a
+#: step's diagonal split in two) the check said "no lane" at a corner of a hand-built 8x8 maze whose
+#: lane kept 4.1 mm over the contact distance on the DWA's own costmap, which drives through it.
+LANE_STEP_M = 0.005
+#: The path ahead is judged at points this far apart (metres).
+PATH_STEP_M = 0.02
 #: A path point counts as reached when a reachable centre lies within this of it (metres): the path
 #: runs through cell centres, the robot may pass beside it (half the body's free play in a 1 ft corridor).
 LANE_REACH_M = 0.05
@@ -56,7 +68,7 @@ def first_unreachable(
     """The index of the first point of ``path_robot`` (robot frame, (M, 2), in order along the path)
     that no lane reaches, or None when every point inside the window is reached.
 
-    A lane is a 4-connected set of robot centres, ``LANE_STEP_M`` apart, each at least
+    A lane is an 8-connected set of robot centres, ``LANE_STEP_M`` apart, each at least
     ``contact_m`` from every obstacle of ``costmap`` (the DWA's contact distance), starting at the
     centres within ``LANE_REACH_M`` of the robot. None of those: the robot is wedged, index 0.
     Points within ``LANE_REACH_M`` of the window's edge are not judged (a lane may leave it).
@@ -66,7 +78,7 @@ def first_unreachable(
     xx, yy = np.meshgrid(axis, axis)  # [row = y, col = x]
     clear = costmap.clearance_m(np.column_stack((xx.ravel(), yy.ravel())), upper_bound_m=contact_m + LANE_STEP_M)
     free = (clear >= contact_m).reshape(n, n)
-    labels, _ = ndimage.label(free)
+    labels, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))  # 8-connected: diagonal lanes too
     near_robot = np.hypot(xx, yy) <= LANE_REACH_M
     starts = np.unique(labels[near_robot & free])
     if starts.size == 0:

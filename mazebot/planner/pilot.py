@@ -44,12 +44,13 @@ from mazebot.planner.dwa import (
     LocalCostmap,
     LocalPlanner,
     LocalStatus,
+    cells_without_hits,
     map_points_robot,
     to_robot_frame,
 )
 from mazebot.planner.exploration import Explorer, Phase
 from mazebot.planner.maze_graph import MazeGraph
-from mazebot.planner.passages import LANE_STEP_M, LANE_WINDOW_M, first_unreachable
+from mazebot.planner.passages import LANE_WINDOW_M, PATH_STEP_M, first_unreachable
 from mazebot.planner.safety import BlindZoneMemory, deskewed_points_robot, reframe_points
 from mazebot.planner.wheel_control import DiffDriveKinematics, DriveMode
 from mazebot.state import MotionRequest, RunState, SharedState
@@ -474,6 +475,8 @@ class Pilot:
             walls_xy = to_robot_frame(self.explorer.graph.wall_points_m(pose[:2], window_m), pose)
         velocity = self.kinematics.body_velocity(*state.wheel_speeds_mps)
         scan_xy = self._scan_points(state)
+        if self.params.planner.hits_replace_cells:
+            map_xy = cells_without_hits(map_xy, scan_xy, pose, origin_m, resolution_m)
         self.drive_ticks += 1
         tick_time_s = self.drive_ticks * self.params.period_s  # a late tick is one tick, not its lateness
         yield
@@ -560,8 +563,8 @@ class Pilot:
             self.local.dwa.footprint_radius_m,
             self.local.dwa.clearance_m,
         )
-        # the path ahead, from the robot's progress to past the lane's window, in steps of the lane's grid
-        s_m = np.arange(path.progress_m, path.progress_m + 2.0 * LANE_WINDOW_M, 2 * LANE_STEP_M)
+        # the path ahead, from the robot's progress to past the lane's window
+        s_m = np.arange(path.progress_m, path.progress_m + 2.0 * LANE_WINDOW_M, PATH_STEP_M)
         path_m = path.points_at(np.minimum(s_m, path.length_m))
         k = first_unreachable(costmap, to_robot_frame(path_m, lane.pose), self.local.dwa.contact_m)
         if k is None:

@@ -10,13 +10,15 @@ wider than twice that distance.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
-from mazebot.planner.dwa import LocalCostmap, LocalPlanner
+from mazebot.planner.dwa import LocalCostmap, LocalPlanner, cells_without_hits
 from mazebot.planner.global_path import GridCostmap
 from mazebot.planner.passages import across_path_m, first_unreachable, rasterise_segments
 
+GIVE_UPS_CSV = Path(__file__).parent / "data" / "lane_give_ups.csv"
 HALF_CORRIDOR_M = 0.146  # 1 ft pitch less a 12 mm wall, halved
 LEG_RADIUS_M = 0.01
 CONTACT_M = 0.10  # footprint 0.09 m + the DWA's 0.01 m margin
@@ -47,6 +49,93 @@ def test_a_leg_that_leaves_no_lane_is_found_past_it_and_one_that_leaves_a_lane_i
     # a leg against the wall leaves the corridor's whole lane: 0.146 - 0.1 either side of the centre line
     wide = corridor_with_leg(HALF_CORRIDOR_M - LEG_RADIUS_M)
     assert first_unreachable(LocalCostmap(wide, footprint_radius_m=0.09), path_ahead(), CONTACT_M) is None
+
+
+def recorded_give_up(situation: str) -> dict[str, np.ndarray]:
+    """One recorded give-up of ``data/lane_give_ups.csv`` (see its README): points by kind, robot frame."""
+    rows: dict[str, list[list[float]]] = {}
+    for line in GIVE_UPS_CSV.read_text().splitlines():
+        if line.startswith("#"):
+            continue
+        name, kind, *values = line.split(",")
+        if name == situation:
+            rows.setdefault(kind, []).append([float(v) for v in values])
+    return {kind: np.array(values) for kind, values in rows.items()}
+
+
+def true_surface_points(give_up: dict[str, np.ndarray], step_m: float = 0.001) -> np.ndarray:
+    """The simulator's true walls and legs near the robot, as points ``step_m`` apart."""
+    points = []
+    for x1, y1, x2, y2 in give_up["true_segment"]:
+        t = np.linspace(0.0, 1.0, max(2, math.ceil(math.hypot(x2 - x1, y2 - y1) / step_m) + 1))
+        points.append(np.column_stack((x1 + t * (x2 - x1), y1 + t * (y2 - y1))))
+    for x, y, r in give_up.get("true_leg", np.zeros((0, 3))):
+        a = np.linspace(0.0, math.tau, math.ceil(math.tau * r / step_m), endpoint=False)
+        points.append(np.column_stack((x + r * np.cos(a), y + r * np.sin(a))))
+    return np.concatenate(points)
+
+
+def dwa_costmap(give_up: dict[str, np.ndarray]) -> LocalCostmap:
+    """The costmap the pilot builds for the lane check: scan and graph walls exact, 2 cm map cells as discs."""
+    return LocalCostmap(np.concatenate((give_up["scan"], give_up["wall"])), give_up["map"],
+                        0.02 * math.sqrt(0.5), footprint_radius_m=0.09)
+
+
+def test_a_corner_the_body_passes_with_the_margin_is_a_lane_on_the_dwas_own_costmap() -> None:
+    """The cheap robot's give-up beside a table leg in the inside corner of a turn (hand-built 8x8, seed 2).
+
+    The true surfaces leave the body 25 mm (the margin 15 mm) at the narrowest; the DWA's own costmap,
+    its map cells as discs of half their diagonal, 4.1 mm over the contact distance, in a lane that
+    runs diagonally to the robot's grid and is 12 mm wide: centres 1 cm apart and 4-connected split it
+    and said "no lane" there, which closed the only way home.
+    """
+    corner = recorded_give_up("corner")
+    path = corner["path"]
+    truth = LocalCostmap(true_surface_points(corner), footprint_radius_m=0.09)
+    assert first_unreachable(truth, path, CONTACT_M) is None
+    assert first_unreachable(dwa_costmap(corner), path, CONTACT_M) is None
+
+
+def test_a_leg_the_dwas_costmap_leaves_no_lane_past_is_no_lane() -> None:
+    """The give-up beside a table leg on the way home that the DWA could not drive past (hand-built 8x8, seed 8).
+
+    The true surfaces would let the body by with 20.7 mm to spare, but the DWA's map cells, discs of
+    half their diagonal, leave its centre at best 2.6 mm short of the contact distance: every forward
+    arc is inadmissible and the robot stands. The lane check judges the costmap the DWA drives on, so
+    it says "no lane" where this robot's planner has none; the first path point it cannot reach is
+    the one beside the leg.
+    """
+    leg = recorded_give_up("leg")
+    path = leg["path"]
+    truth = LocalCostmap(true_surface_points(leg), footprint_radius_m=0.09)
+    assert first_unreachable(truth, path, CONTACT_M) is None
+    k = first_unreachable(dwa_costmap(leg), path, CONTACT_M)
+    assert k is not None
+    leg_xy = leg["true_leg"][np.argmin(np.hypot(leg["true_leg"][:, 0], leg["true_leg"][:, 1])), :2]
+    assert math.dist(path[k], leg_xy) <= CONTACT_M + LEG_RADIUS_M + 0.05  # within a lane's reach of the leg
+
+
+def test_map_cells_taken_as_the_hits_they_hold_leave_the_lane_the_body_has_past_the_leg() -> None:
+    """``[planner] hits_replace_cells``: the same give-up beside the leg, each occupied map cell that holds
+    a hit of the revolution counted as its hits rather than a disc of half its diagonal.
+
+    At the path points ahead the costmap's clearance is then within 1 cm of the true surfaces' (4.3 mm at
+    the median; as discs 12.5 mm short at the median, up to 19.4 mm), and the lane the body has past the
+    leg is found.
+    """
+    leg = recorded_give_up("leg")
+    (x, y, theta, origin_x, origin_y, cell_m), = leg["frame"]
+    cells = cells_without_hits(leg["map"], leg["scan"], (x, y, theta), (origin_x, origin_y), cell_m)
+    assert 0 < cells.shape[0] < leg["map"].shape[0]  # the cells behind the measured faces stay
+    costmap = LocalCostmap(np.concatenate((leg["scan"], leg["wall"])), cells, cell_m * math.sqrt(0.5),
+                           footprint_radius_m=0.09)
+    path = leg["path"]
+    ahead = np.all(np.abs(path) < 0.35, axis=1)
+    truth = LocalCostmap(true_surface_points(leg), footprint_radius_m=0.09)
+    error_m = costmap.clearance_m(path[ahead]) - truth.clearance_m(path[ahead])
+    assert np.max(np.abs(error_m)) <= 0.01
+    assert np.median(np.abs(error_m)) <= 0.005
+    assert first_unreachable(costmap, path, CONTACT_M) is None
 
 
 def test_recoveries_count_per_place_when_the_path_is_replanned_every_tick() -> None:

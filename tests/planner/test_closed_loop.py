@@ -384,7 +384,7 @@ def test_a_robot_whose_map_stops_changing_never_stands_for_ever(stand_still_revo
 
 
 def test_a_table_leg_that_closes_a_corridor_is_gone_round_and_the_robot_comes_home() -> None:
-    """A 2 cm leg on the centre line of the corridor between cells (1, 1) and (1, 2) of a braided 4x4 maze.
+    """A 4 cm leg on the centre line of the corridor between cells (1, 1) and (1, 2) of a braided 4x4 maze.
 
     The link stays open on the map (the leg stands 6 cm off the boundary line), but no lane is left
     for the body (0.126 m either side of the leg for a 0.2 m robot with the DWA's margin). The

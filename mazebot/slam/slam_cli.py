@@ -161,6 +161,9 @@ def laser_log_params(
       systematic odometry;
     - the inlier ratio over all points (``overlap_fitness`` off): the overlap-aware ratio let wrong
       closures in along the Intel log's last long corridor;
+    - a candidate at least 30 keyframes old, or 30 m of travel at the keyframes' median spacing where they
+      lie farther apart than a metre (``min_gap_m``): at half the scan rate ACES's 30 keyframes are 60 m
+      and closes fewer loops (:func:`mazebot.slam.loop_closure.keyframe_gap`);
     - every candidate verified (``closed_reach_keyframes`` 0): after a loop of tens of metres the
       closures back onto the start each carry weight the robust optimization needs;
     - no wall prior: a building's walls do not lie on one right-angle grid.
@@ -214,6 +217,7 @@ def laser_log_params(
             search_radius_m=1.0,
             max_search_radius_m=5.0,
             min_keyframe_gap=30,
+            min_gap_m=30.0,  # 30 keyframes at the corrected logs' metre a scan; fewer where the scans lie farther apart
             submap_half_width=5,
             attempt_every=1,
             closed_reach_keyframes=0,  # every candidate verified: see the docstring

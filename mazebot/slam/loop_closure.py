@@ -10,8 +10,9 @@ unambiguous match).
 
 **Candidates** (:func:`find_candidates`). For the newest keyframe ``n`` and every
 keyframe ``i`` at least ``min_keyframe_gap`` keyframes older (younger ones are in the
-local submap already; with ``min_gap_m``, fewer where the keyframes lie far apart: :func:`keyframe_gap`), the uncertainty of the relative pose ``x_i⁻¹ x_n`` accumulated
-along the chain of sequential edges ``i → n`` is propagated to first order:
+local submap already; with ``min_gap_m``, fewer where the keyframes lie far apart:
+:func:`keyframe_gap`), the uncertainty of the relative pose ``x_i⁻¹ x_n`` accumulated along the chain
+of sequential edges ``i → n`` is propagated to first order:
 
     σ²_xy(i, n) = Σ_k σ²_xy,k + σ²_θ,k · |t_n − t_k|²,     σ²_θ(i, n) = Σ_k σ²_θ,k
 

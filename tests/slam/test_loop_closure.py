@@ -458,10 +458,11 @@ def test_the_keyframe_gap_is_travel_where_keyframes_lie_far_apart() -> None:
 
 
 def test_laser_logs_at_half_the_scan_rate_are_offered_the_whole_logs_loops(aces) -> None:
-    """ACES's corrected poses (the truth) at every scan and at every second: with the laser-log settings, the
-    even scans offered a loop candidate are nearly as many either way, and offered the same place (the count
-    of 30 keyframes alone offers 28 of the whole log's 41 at half the rate: its gap is 60 m there)."""
+    """ACES's corrected poses (the truth) at every scan and at every second: with the laser-log settings and the
+    gap as 30 m of travel, the even scans offered a loop candidate are nearly as many either way, and offered the
+    same place (the count of 30 keyframes alone offers 28 of the whole log's 41 at half the rate: 60 m there)."""
     lasers, loop, _ = aces
+    loop = replace(loop, min_gap_m=30.0)  # [slam.loop] min_gap_m = 30, an option on laser logs
     poses = np.array([r.pose for r in lasers])
 
     def offered(every: int) -> dict[int, int]:

@@ -217,6 +217,10 @@ class LoopSection:
     sigma_scale: Annotated[float, Field(ge=0, description=(
         "search radius grows by this many std of the drift"))] = 3.0
     min_keyframe_gap: Annotated[int, Field(ge=2, description="a candidate is at least this many keyframes old")] = 40
+    min_gap_m: Annotated[float, Field(ge=0, description=(
+        "... or, where the keyframes lie farther apart, this much travel: the gap in keyframes is this over "
+        "the median spacing of the keyframes so far, never more than min_keyframe_gap (0: the count alone; "
+        "a laser log's scans may lie 1 m or 2 m apart)"))] = 0.0
     submap_half_width: Annotated[int, Field(ge=0, le=100, description=(
         "candidate submap: keyframes i-k .. i+k"))] = 6
     attempt_every: Annotated[int, Field(ge=1, description="look for loop closures every this many keyframes")] = 3

@@ -10,8 +10,9 @@ unambiguous match).
 
 **Candidates** (:func:`find_candidates`). For the newest keyframe ``n`` and every
 keyframe ``i`` at least ``min_keyframe_gap`` keyframes older (younger ones are in the
-local submap already), the uncertainty of the relative pose ``x_i⁻¹ x_n`` accumulated
-along the chain of sequential edges ``i → n`` is propagated to first order:
+local submap already; with ``min_gap_m``, fewer where the keyframes lie far apart:
+:func:`keyframe_gap`), the uncertainty of the relative pose ``x_i⁻¹ x_n`` accumulated along the chain
+of sequential edges ``i → n`` is propagated to first order:
 
     σ²_xy(i, n) = Σ_k σ²_xy,k + σ²_θ,k · |t_n − t_k|²,     σ²_θ(i, n) = Σ_k σ²_θ,k
 
@@ -163,6 +164,26 @@ def chain_uncertainty(
     return out_xy, out_th
 
 
+def keyframe_gap(poses: np.ndarray, new: int, params: LoopSection) -> int:
+    """How many keyframes older than ``new`` a candidate must be: ``min_keyframe_gap``, or fewer where it is
+    ``min_gap_m`` of travel at the median spacing of keyframes ``0 .. new``.
+
+    The gap keeps out the keyframes the robot has just passed, which the local submap holds already: a
+    distance, which a count of keyframes stands for only at one spacing. A laser log at half its scan
+    rate puts its scans twice as far apart, and a gap of 30 scans would ask for 60 m of travel where the
+    whole log asked for 30. The median, not the mean: in-place turns make keyframes a few centimetres
+    apart. Never more than the count: at a denser spacing the count is what spans the local submap.
+    """
+    gap = params.min_keyframe_gap
+    if params.min_gap_m <= 0 or new < 1:
+        return gap
+    xy = np.asarray(poses, dtype=np.float64)[: new + 1, :2]
+    spacing_m = float(np.median(np.hypot(*np.diff(xy, axis=0).T)))
+    if spacing_m <= 0:
+        return gap
+    return max(2, min(gap, round(params.min_gap_m / spacing_m)))
+
+
 def find_candidates(
     poses: np.ndarray,
     new: int,
@@ -172,7 +193,7 @@ def find_candidates(
 ) -> list[Candidate]:
     """Old keyframes within the uncertainty-scaled search radius of keyframe ``new``, nearest first."""
     poses = np.asarray(poses, dtype=np.float64)
-    last_old = new - params.min_keyframe_gap
+    last_old = new - keyframe_gap(poses, new, params)
     if last_old < 0:
         return []
     var_xy, var_th = chain_uncertainty(poses[:, :2], edge_var_xy, edge_var_theta, new)

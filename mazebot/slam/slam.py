@@ -94,7 +94,7 @@ from mazebot.slam.keyframes import (
 )
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.lever_arm import LeverArmCalibration
-from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, verify
+from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, keyframe_gap, verify
 from mazebot.slam.match_residuals import MatchResiduals
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 from mazebot.slam.overlap import ObservedArea
@@ -218,7 +218,8 @@ class LoopClosureJob:
             # the prior from this snapshot: an optimization may have moved both ends since it was found
             cand = replace(found, prior=relative_pose(self.poses[found.old], self.poses[found.new]))
             lo = max(0, cand.old - p.loop.submap_half_width)
-            hi = min(cand.new - p.loop.min_keyframe_gap // 2, cand.old + p.loop.submap_half_width) + 1
+            gap = keyframe_gap(self.poses, cand.new, p.loop)
+            hi = min(cand.new - gap // 2, cand.old + p.loop.submap_half_width) + 1
             window = range(lo, max(hi, cand.old + 1))
             # both sides within the same range of the new keyframe's lidar: the inlier ratio then
             # measures agreement, not how much farther one scan happened to see than the other

@@ -161,6 +161,8 @@ def laser_log_params(
       systematic odometry;
     - the inlier ratio over all points (``overlap_fitness`` off): the overlap-aware ratio let wrong
       closures in along the Intel log's last long corridor;
+    - a candidate at least 30 keyframes old: 30 m at the corrected logs' metre a scan, 60 m at half their
+      scan rate;
     - every candidate verified (``closed_reach_keyframes`` 0): after a loop of tens of metres the
       closures back onto the start each carry weight the robust optimization needs;
     - no wall prior: a building's walls do not lie on one right-angle grid.
@@ -173,7 +175,10 @@ def laser_log_params(
     smooth_scan``) or only points whose whole neighbourhood is one face smoothed (``smooth_whole_face_only``),
     each removing that turn and each worse on other logs (branch ``wheels21``); a sequential match turned
     beyond ``[slam.matching] match_heading_sigmas`` of the prediction searched again (branches ``radish18``,
-    ``guard19``); closures accepted in the directions they constrain (``[slam.loop] accept_degenerate``;
+    ``guard19``); the loop candidates' gap as travel where the scans lie farther apart than a metre
+    (``[slam.loop] min_gap_m`` 30: :func:`mazebot.slam.loop_closure.keyframe_gap`; every log at its own rate the
+    same to the digit, at half the rate ACES and Intel better, Freiburg 101 worse; branch ``rate22``); closures
+    accepted in the directions they constrain (``[slam.loop] accept_degenerate``;
     branch ``corridor17``); closures verified as a set rather than each alone (``[slam.loop] set_verify``;
     branch ``reallogs6``).
 

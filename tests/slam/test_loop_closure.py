@@ -423,3 +423,58 @@ def test_a_closure_onto_the_parallel_corridor_is_refused(twin_corridors: World, 
                                ambiguity_shift_m=0.0, max_correction_m=1.5, max_correction_rad=0.2, search=search)
     verdict, _ = _corridor_closure(twin_corridors, cast_scan, new_true, params)
     assert not verdict.accepted, verdict.measurement
+
+
+def test_the_keyframe_gap_is_travel_where_keyframes_lie_far_apart() -> None:
+    """A 40 m loop driven one and a half times, a keyframe every metre or every two: the last keyframe is
+    offered the same place either way (30 keyframes stand for 30 m at a metre apart, not 60 m at two)."""
+    from mazebot.slam.loop_closure import keyframe_gap
+
+    radius_m = 40.0 / math.tau
+
+    def loop_at(spacing_m: float) -> np.ndarray:
+        s = np.arange(0.0, 60.0 + 1e-9, spacing_m) / radius_m
+        return np.column_stack((radius_m * np.cos(s), radius_m * np.sin(s), s + math.pi / 2))
+
+    params = LoopClosureParams(
+        min_keyframe_gap=30, min_gap_m=30.0, search_radius_m=0.6, max_search_radius_m=1.0, max_candidates=1,
+        anchor_candidate=False,
+    )
+    places = {}
+    for spacing_m in (1.0, 2.0):
+        poses = loop_at(spacing_m)
+        new = round(44.0 / spacing_m)  # 44 m along: back at the place of 4 m
+        var = np.full(len(poses) - 1, 1e-8)
+        found = find_candidates(poses, new, var, var, params)
+        assert len(found) == 1
+        places[spacing_m] = poses[found[0].old, :2]
+    np.testing.assert_allclose(places[1.0], places[2.0], atol=1e-9)  # the truth: the place 4 m along
+    np.testing.assert_allclose(places[1.0], loop_at(1.0)[4, :2], atol=1e-9)
+    # a metre apart or closer, the count is today's; 2 m apart, half of it; never under 2
+    assert keyframe_gap(loop_at(1.0), 50, params) == 30
+    assert keyframe_gap(loop_at(0.5), 50, params) == 30
+    assert keyframe_gap(loop_at(2.0), 25, params) == 15
+    assert keyframe_gap(loop_at(2.0), 25, replace(params, min_gap_m=0.0)) == 30
+
+
+def test_laser_logs_at_half_the_scan_rate_are_offered_the_whole_logs_loops(aces) -> None:
+    """ACES's corrected poses (the truth) at every scan and at every second: with the laser-log settings and the
+    gap as 30 m of travel, the even scans offered a loop candidate are nearly as many either way, and offered the
+    same place (the count of 30 keyframes alone offers 28 of the whole log's 41 at half the rate: 60 m there)."""
+    lasers, loop, _ = aces
+    loop = replace(loop, min_gap_m=30.0)  # [slam.loop] min_gap_m = 30, an option on laser logs
+    poses = np.array([r.pose for r in lasers])
+
+    def offered(every: int) -> dict[int, int]:
+        """Even scan -> the scan of its candidate, on the chain of every ``every``-th scan."""
+        chain = poses[::every]
+        var = np.full(len(chain) - 1, 1e-8)
+        found = {k * every: find_candidates(chain, k, var, var, loop) for k in range(len(chain))}
+        return {k: cands[0].old * every for k, cands in found.items() if k % 2 == 0 and cands}
+
+    whole, half = offered(1), offered(2)
+    shared = sorted(set(whole) & set(half))
+    assert len(whole) == 41
+    assert len(shared) >= 0.85 * len(whole)  # 37
+    apart_m = [float(np.hypot(*(poses[whole[k], :2] - poses[half[k], :2]))) for k in shared]
+    assert np.median(apart_m) <= 0.5

@@ -18,14 +18,18 @@ pipeline that assumes *our* lasers shows up as a run that breaks:
 - :func:`wider_field`: the same beams in a ``ROBOTLASER1`` of a wider field of view (a URG's
   240°, a UTM-30LX's 270°), the beams outside the SICK's 180° without an echo: a format the
   old ``FLASER`` line cannot carry (it has no geometry);
+- :func:`as_rawlaser`: the same beams as CARMEN's laser driver logs them, a ``RAWLASER1`` with its
+  own geometry and no pose (the reader places it on the ``ODOM`` readings), the format of a log
+  from CARMEN's logger that only the laser driver and the base wrote;
 - :func:`worse_wheels`: the robot's own odometry with a scale error per wheel, a track-width
   error and a heading bias that drifts (:mod:`mazebot.slam.odometry_errors` applied to the
   odometry's own increments rather than to the reference's).
 
 :func:`write_log` writes the result as CARMEN text, the corrected poses in the laser
 messages' pose fields and the odometry either in the ``FLASER`` odometry fields or, for
-``ROBOTLASER1``, in an ``ODOM`` line before each laser message (the robot pose fields
-then hold the corrected robot pose, as CARMEN's logger writes them): ``mazebot slam run``
+``ROBOTLASER1`` and ``RAWLASER1``, in an ``ODOM`` line before each laser message (the robot pose
+fields of a ``ROBOTLASER1`` then hold the corrected robot pose, as CARMEN's logger writes them; a
+``RAWLASER1`` has none, and its log no corrected poses): ``mazebot slam run``
 reads it as any other log, and main's code can read it too. Values are written with
 Python's shortest round-trip ``repr``: a log rewritten without a transformation gives
 the same run to the digit.
@@ -91,6 +95,11 @@ def wider_field(record: LaserRecord, field_rad: float, code_m: float) -> LaserRe
     return replace(record, angle_rad=angles, range_m=ranges, kind="ROBOTLASER1", max_range_m=code_m)
 
 
+def as_rawlaser(record: LaserRecord) -> LaserRecord:
+    """The scan as a ``RAWLASER1``: its own beams, angles and maximum range; its poses are not written."""
+    return replace(record, kind="RAWLASER1")
+
+
 def worse_wheels(odometry: np.ndarray, model: SystematicOdometryModel, seed: int) -> np.ndarray:
     """The odometry (N, 3) with ``model``'s wheel, track and heading-bias errors on top of its own, from ``seed``.
 
@@ -127,6 +136,15 @@ def robotlaser_line(record: LaserRecord) -> str:
     pose = _numbers(record.pose)
     return (f"ROBOTLASER1 {head} {record.range_m.size} {_numbers(record.range_m)} 0 {pose} {pose} "
             f"0 0 0 0 0 {stamp} degraded {stamp}")
+
+
+def rawlaser_line(record: LaserRecord) -> str:
+    """A ``RAWLASER1`` line with the record's own geometry (CARMEN's ``carmen_logwrite_write_laser_laser``)."""
+    step = float(record.angle_rad[1] - record.angle_rad[0]) if record.angle_rad.size > 1 else 0.0
+    field = step * (record.angle_rad.size - 1)
+    head = f"0 {_number(record.angle_rad[0])} {_number(field)} {_number(step)} {_number(record.max_range_m)} 0.01 0"
+    stamp = _number(record.timestamp_s)
+    return f"RAWLASER1 {head} {record.range_m.size} {_numbers(record.range_m)} 0 {stamp} degraded {stamp}"
 
 
 def odom_line(pose: np.ndarray, timestamp_s: float) -> str:
@@ -169,8 +187,8 @@ def write_log(
 ) -> None:
     """The scans and the odometry at each as CARMEN text (gzip when ``path`` ends in ``.gz``).
 
-    ``FLASER`` records carry the odometry in their own fields; ``ROBOTLASER1`` records get an
-    ``ODOM`` line just before them. With ``stream`` (:func:`odometry_stream`), its readings are
+    ``FLASER`` records carry the odometry in their own fields; ``ROBOTLASER1`` and ``RAWLASER1``
+    records get an ``ODOM`` line just before them. With ``stream`` (:func:`odometry_stream`), its readings are
     written instead, each where it stood in the original file among the laser messages.
     """
     lines = ["# CARMEN Logfile, degraded by mazebot.slam.log_degrade"]
@@ -180,10 +198,10 @@ def write_log(
         while i < len(readings) and readings[i].line_number < record.line_number:
             lines.append(odom_line(readings[i].pose, readings[i].timestamp_s))
             i += 1
-        if record.kind == "ROBOTLASER1":
+        if record.kind in ("ROBOTLASER1", "RAWLASER1"):
             if not readings:
                 lines.append(odom_line(pose, record.timestamp_s))
-            lines.append(robotlaser_line(record))
+            lines.append(robotlaser_line(record) if record.kind == "ROBOTLASER1" else rawlaser_line(record))
         else:
             lines.append(flaser_line(record, pose))
     lines += [odom_line(o.pose, o.timestamp_s) for o in readings[i:]]

@@ -451,8 +451,29 @@ def _parse_rawlaser(tokens: list[str], number: int) -> LaserRecord:
     if max_range <= 0.0:
         raise ValueError(f"maximum_range must be positive, got {max_range}")
     timestamp = float(tokens[10 + n + n_rem])
-    angles = start_angle + np.arange(n) * resolution
+    angles = start_angle + np.arange(n) * beam_step_rad(float(_fov), float(resolution), n)
     return LaserRecord(angles, ranges, np.zeros(3), np.zeros(3), timestamp, float(max_range), number, tokens[0])
+
+
+#: how far a laser header's ``angular_resolution`` may be from ``field_of_view / (num_readings - 1)`` and still
+#: be the same step: CARMEN's logger prints both with six decimals (``%f``), half a unit of the last is 5e-7 rad
+HEADER_STEP_TOLERANCE_RAD = 1e-6
+
+
+def beam_step_rad(fov_rad: float, resolution_rad: float, n: int) -> float:
+    """The angle between a laser header's beams: ``fov_rad / (n - 1)`` where that is its ``resolution_rad``.
+
+    CARMEN's driver sets the field of view to span the beams exactly (``(n - 1)`` steps: π over
+    181 or 361 beams, π minus a step over 180 or 360: ``src/laser/laser_main.c``,
+    ``set_laser_config_structure``), and its logger prints both with six decimals: 0.5° as
+    0.008727 rad, 4e-4 of the step off, 1.3e-4 rad (0.007°) by the last of 361 beams, while
+    the field of view's rounding spreads over all of them. A header whose two disagree by
+    more than the printing (a field of view written as ``n`` steps) is read by its resolution.
+    """
+    if n < 2:
+        return resolution_rad
+    spread = fov_rad / (n - 1)
+    return spread if abs(spread - resolution_rad) <= HEADER_STEP_TOLERANCE_RAD else resolution_rad
 
 
 def _parse_param(tokens: list[str]) -> tuple[str, str]:

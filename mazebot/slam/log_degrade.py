@@ -139,9 +139,14 @@ def robotlaser_line(record: LaserRecord) -> str:
 
 
 def rawlaser_line(record: LaserRecord) -> str:
-    """A ``RAWLASER1`` line with the record's own geometry (CARMEN's ``carmen_logwrite_write_laser_laser``)."""
-    step = float(record.angle_rad[1] - record.angle_rad[0]) if record.angle_rad.size > 1 else 0.0
-    field = step * (record.angle_rad.size - 1)
+    """A ``RAWLASER1`` line with the record's own geometry (CARMEN's ``carmen_logwrite_write_laser_laser``).
+
+    The field of view is the span of the beams as they are (first to last), so that the reader's
+    step (:func:`mazebot.slam.carmen.beam_step_rad`) gives back the same angles.
+    """
+    n = record.angle_rad.size
+    field = float(record.angle_rad[-1] - record.angle_rad[0]) if n > 1 else 0.0
+    step = field / (n - 1) if n > 1 else 0.0
     head = f"0 {_number(record.angle_rad[0])} {_number(field)} {_number(step)} {_number(record.max_range_m)} 0.01 0"
     stamp = _number(record.timestamp_s)
     return f"RAWLASER1 {head} {record.range_m.size} {_numbers(record.range_m)} 0 {stamp} degraded {stamp}"

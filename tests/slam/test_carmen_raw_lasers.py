@@ -149,6 +149,7 @@ def test_slam_run_on_a_rawlaser1_log_gives_the_originals_trajectory(
     odometry = from_first_pose(log_odometry(log), reference)
     raw = tmp_path / "raw.log.gz"
     write_log(raw, [as_rawlaser(r) for r in log.lasers], odometry)
+    assert {r.kind for r in read_carmen(raw).lasers} == {"RAWLASER1"}  # no pose in it: the ODOM lines place the scans
     trajectories = []
     for path in (carmen_log("seattle-corrected.log.gz"), raw):
         out = tmp_path / path.name.split(".")[0]

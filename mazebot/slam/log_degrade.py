@@ -18,6 +18,8 @@ pipeline that assumes *our* lasers shows up as a run that breaks:
 - :func:`wider_field`: the same beams in a ``ROBOTLASER1`` of a wider field of view (a URG's
   240°, a UTM-30LX's 270°), the beams outside the SICK's 180° without an echo: a format the
   old ``FLASER`` line cannot carry (it has no geometry);
+- :func:`narrower_field`: the beams of a SICK LMS set to 100°, for ``FLASER`` lines whose field of
+  view only the log's ``PARAM laser_front_laser_fov`` says;
 - :func:`as_rawlaser`: the same beams as CARMEN's laser driver logs them, a ``RAWLASER1`` with its
   own geometry and no pose (the reader places it on the ``ODOM`` readings), the format of a log
   from CARMEN's logger that only the laser driver and the base wrote;
@@ -93,6 +95,12 @@ def wider_field(record: LaserRecord, field_rad: float, code_m: float) -> LaserRe
     angles = np.concatenate((angles[0] - pad[::-1], angles, angles[-1] + pad))
     ranges = np.concatenate((np.full(extra, code_m), record.range_m, np.full(extra, code_m)))
     return replace(record, angle_rad=angles, range_m=ranges, kind="ROBOTLASER1", max_range_m=code_m)
+
+
+def narrower_field(record: LaserRecord, field_rad: float) -> LaserRecord:
+    """The beams within ``field_rad`` centred ahead: a SICK LMS set to 100° (``laser_front_laser_fov 100``)."""
+    keep = np.abs(record.angle_rad) <= field_rad / 2.0 + 1e-9
+    return replace(record, angle_rad=record.angle_rad[keep], range_m=record.range_m[keep])
 
 
 def as_rawlaser(record: LaserRecord) -> LaserRecord:
@@ -188,15 +196,17 @@ def odometry_stream(log: CarmenLog, odometry: np.ndarray) -> list[OdometryRecord
 
 def write_log(
     path: str | Path, lasers: Sequence[LaserRecord], odometry: np.ndarray,
-    stream: Sequence[OdometryRecord] = (),
+    stream: Sequence[OdometryRecord] = (), params: dict[str, str] | None = None,
 ) -> None:
     """The scans and the odometry at each as CARMEN text (gzip when ``path`` ends in ``.gz``).
 
     ``FLASER`` records carry the odometry in their own fields; ``ROBOTLASER1`` and ``RAWLASER1``
     records get an ``ODOM`` line just before them. With ``stream`` (:func:`odometry_stream`), its readings are
-    written instead, each where it stood in the original file among the laser messages.
+    written instead, each where it stood in the original file among the laser messages. ``params``
+    are written first as ``PARAM`` lines, as CARMEN's logger writes the parameters it was started with.
     """
     lines = ["# CARMEN Logfile, degraded by mazebot.slam.log_degrade"]
+    lines += [f"PARAM {name} {value} 0.0 degraded 0.0" for name, value in (params or {}).items()]
     readings = sorted(stream, key=lambda o: o.line_number)
     i = 0
     for record, pose in zip(lasers, np.asarray(odometry).reshape(-1, 3), strict=True):

@@ -1,4 +1,4 @@
-"""CARMEN laser logs: ``FLASER``, ``RLASER``, ``ROBOTLASER1`` and ``ODOM`` lines.
+"""CARMEN laser logs: ``FLASER``, ``RLASER``, ``ROBOTLASER1``/``2``, ``RAWLASER1``-``4``, ``ODOM`` and ``PARAM`` lines.
 
 The format of the CARMEN robot toolkit's ``logger`` (carmen/src/logger, "CARMEN Logfile"
 header), one message per line, fields separated by blanks::
@@ -10,7 +10,26 @@ header), one message per line, fields separated by blanks::
            [remission values] laser_pose_x laser_pose_y laser_pose_theta robot_pose_x
            robot_pose_y robot_pose_theta laser_tv laser_rv forward_safety_dist
            side_safety_dist turn_axis ipc_timestamp ipc_hostname logger_timestamp
+    RAWLASER1 laser_type start_angle field_of_view angular_resolution maximum_range
+           accuracy remission_mode num_readings [range_readings] num_remissions
+           [remission values] ipc_timestamp ipc_hostname logger_timestamp
     ODOM x y theta tv rv accel ipc_timestamp ipc_hostname logger_timestamp
+    PARAM param_name param_value ipc_timestamp ipc_hostname logger_timestamp
+
+(CARMEN 0.7's ``src/logger/writelog.c``: its header and ``carmen_logwrite_write_laser_laser``,
+``carmen_logwrite_write_robot_laser``, ``carmen_logwrite_write_param``.) ``ROBOTLASER2`` is
+``ROBOTLASER1``'s format for the rear laser; ``RAWLASER2``-``4`` are ``RAWLASER1``'s for the
+laser driver's lasers 2-4. A ``RAWLASERn`` is the laser driver's message: its own geometry
+(angles in radians), no pose. CARMEN's robot module gives each scan the pose of the odometry
+interpolated at its time, moved by the laser's mounting (``robot_frontlaser_offset`` ahead,
+``robot_frontlaser_side_offset`` to the left, in metres, ``robot_frontlaser_angular_offset``
+added to the heading, radians; ``rearlaser`` for the rear laser, whose ``RAWLASERn`` is
+``robot_frontlaser_id`` / ``robot_rearlaser_id``, 1 and 2 by default: ``src/robot/robot_laser.c``,
+``construct_laser_message``); the reader does the same (:func:`with_odometry_poses`). The laser
+driver's ``PARAM laser_front_laser_fov`` (``laser_rear_laser_fov`` for the rear one) is the field
+of view in degrees, 180 or 100 for a SICK (``src/laser/laser_main.c``, ``interpret_params``, which
+refuses radians), and its scan starts at minus half of it (``set_laser_config_structure``): the
+geometry of the ``FLASER``/``RLASER`` lines of a log that has the parameter.
 
 Old-style ``FLASER``/``RLASER`` lines do not carry their geometry: the front laser is a
 SICK LMS covering 180° from the right (−90°) counter-clockwise, ``fov / num_readings``
@@ -21,8 +40,8 @@ points sit up to 0.5° off towards the right, and the consecutive scans placed a
 corrected poses agree better read at 0.5°, 17.20 against 17.46 mm median distance
 between neighbouring points). Their pose ``x y theta`` is the
 laser's pose; in a ``*.gfs.log`` it is the pose GMapping corrected, which is why the
-Intel log serves as ground truth for scan matching. Other messages (``PARAM``,
-``NEFF``, ``#`` comments, ...) are skipped.
+Intel log serves as ground truth for scan matching. Other messages (``NEFF``, ``SYNC``,
+``#`` comments, ...) are skipped.
 """
 
 from __future__ import annotations
@@ -36,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from mazebot.errors import UsageError
+from mazebot.geometry import compose, wrap_angle
 from mazebot.io.scan import Scan
 
 
@@ -103,26 +123,42 @@ class OdometryRecord:
 
 @dataclass
 class CarmenLog:
-    """The laser and odometry messages of a log, in file order."""
+    """The laser and odometry messages of a log, in file order, and its ``PARAM`` values by name."""
 
     lasers: list[LaserRecord] = field(default_factory=list)
     odometry: list[OdometryRecord] = field(default_factory=list)
+    params: dict[str, str] = field(default_factory=dict)
+
+
+#: the laser driver's messages: their geometry in their header, no pose (the reader places them on the odometry)
+RAWLASER_KINDS = ("RAWLASER1", "RAWLASER2", "RAWLASER3", "RAWLASER4")
+#: messages in the ``ROBOTLASER1`` format
+ROBOTLASER_KINDS = ("ROBOTLASER1", "ROBOTLASER2")
+#: messages whose ``pose`` is the laser's and ``odom_pose`` the robot's: the one relative to the other is the
+#: laser's mounting on the robot (a ``FLASER``'s two poses are both the laser's)
+MOUNTED_KINDS = ROBOTLASER_KINDS + RAWLASER_KINDS
+#: ``PARAM`` names of the field of view (degrees) behind ``FLASER`` and ``RLASER`` lines
+FOV_PARAMS_DEG = {"FLASER": "laser_front_laser_fov", "RLASER": "laser_rear_laser_fov"}
+#: a field of view ``PARAM`` at most this many degrees is a value in radians, which CARMEN's driver refuses
+FOV_RADIANS_BELOW_DEG = 2.0 * math.pi
 
 
 def parse_carmen(
     lines: Iterable[str],
     source: str = "<text>",
-    flaser_fov_rad: float = math.pi,
+    flaser_fov_rad: float | None = None,
     flaser_max_range_m: float = 81.0,
 ) -> CarmenLog:
     """Parse the lines of a CARMEN log.
 
     ``flaser_fov_rad`` and ``flaser_max_range_m`` describe the laser behind old-style
-    ``FLASER``/``RLASER`` lines (a SICK LMS by default: 180°, no return reported as
-    81.83 m). A malformed line raises :class:`CarmenLogError` naming ``source`` and
-    the line number.
+    ``FLASER``/``RLASER`` lines (a SICK LMS by default: no return reported as 81.83 m);
+    without ``flaser_fov_rad`` the field of view is the log's ``PARAM`` (:data:`FOV_PARAMS_DEG`),
+    else 180°. A malformed line raises :class:`CarmenLogError` naming ``source`` and the
+    line number.
     """
     log = CarmenLog()
+    param_lines: dict[str, int] = {}
     for number, line in enumerate(lines, start=1):
         tokens = line.split()
         if not tokens or tokens[0].startswith("#"):
@@ -130,14 +166,141 @@ def parse_carmen(
         kind = tokens[0]
         try:
             if kind in ("FLASER", "RLASER"):
-                log.lasers.append(_parse_flaser(tokens, number, flaser_fov_rad, flaser_max_range_m))
-            elif kind == "ROBOTLASER1":
+                log.lasers.append(_parse_flaser(tokens, number, math.pi, flaser_max_range_m))
+            elif kind in ROBOTLASER_KINDS:
                 log.lasers.append(_parse_robotlaser(tokens, number))
+            elif kind in RAWLASER_KINDS:
+                log.lasers.append(_parse_rawlaser(tokens, number))
             elif kind == "ODOM":
                 log.odometry.append(_parse_odom(tokens, number))
+            elif kind == "PARAM":
+                name, value = _parse_param(tokens)
+                log.params[name] = value
+                param_lines[name] = number
         except (ValueError, IndexError) as error:
             raise CarmenLogError(f"{source} line {number}: bad {kind} message ({error})") from None
+    try:
+        log = with_field_of_view(log, flaser_fov_rad)
+        log = with_odometry_poses(log)
+    except _BadParam as error:
+        number = param_lines[error.name]
+        raise CarmenLogError(f"{source} line {number}: bad PARAM message ({error})") from None
     return with_no_echo_code(log, flaser_max_range_m)
+
+
+class _BadParam(ValueError):
+    """A ``PARAM`` the reader uses whose value is not what it should be; names the parameter."""
+
+    def __init__(self, name: str, value: str, why: str) -> None:
+        super().__init__(f"{name} {value!r}: {why}")
+        self.name = name
+
+
+def _param_float(params: dict[str, str], name: str, default: float) -> float:
+    """The parameter ``name`` as a finite number, ``default`` when the log does not set it."""
+    if name not in params:
+        return default
+    try:
+        value = float(params[name])
+    except ValueError:
+        raise _BadParam(name, params[name], "not a number") from None
+    if not math.isfinite(value):
+        raise _BadParam(name, params[name], "not a finite number")
+    return value
+
+
+def with_field_of_view(log: CarmenLog, fov_rad: float | None) -> CarmenLog:
+    """``log`` with its ``FLASER``/``RLASER`` beams spread over ``fov_rad``, else the log's ``PARAM``, else 180°.
+
+    Such lines carry no geometry; CARMEN's laser driver took it from its parameters (a SICK
+    LMS of 180° or 100°, the scan starting at minus half of it), and its logger writes the
+    parameters into the log. A field of view outside (2π°, 360°] is refused: the driver takes
+    degrees and refuses one in radians (π or 100° in radians, ``interpret_params``); so does the reader,
+    which refuses any value up to 2π.
+    """
+    for kind, name in FOV_PARAMS_DEG.items():
+        fov = fov_rad
+        if fov is None:
+            fov_deg = _param_float(log.params, name, 180.0)
+            if not FOV_RADIANS_BELOW_DEG < fov_deg <= 360.0:
+                raise _BadParam(name, log.params[name], "not a field of view in degrees (over 2π, at most 360)")
+            fov = math.radians(fov_deg)
+        if fov == math.pi:
+            continue  # as parsed
+        log.lasers = [
+            replace(r, angle_rad=flaser_angles_rad(r.range_m.size, fov)) if r.kind == kind else r for r in log.lasers
+        ]
+    return log
+
+
+def laser_mounts(params: dict[str, str]) -> dict[str, np.ndarray]:
+    """The pose (x_m ahead, y_m left, theta_rad) of the front and rear lasers on the robot, by ``RAWLASERn`` kind.
+
+    CARMEN's robot module reads the front laser from ``RAWLASER<robot_frontlaser_id>`` (1 by
+    default) and the rear one from ``RAWLASER<robot_rearlaser_id>`` (2), and places each at
+    ``robot_<front|rear>laser_offset``, ``..._side_offset`` and ``..._angular_offset`` on
+    the robot; a log without them has its lasers at the robot's origin.
+    """
+    mounts = {}
+    for which, default_id in (("rear", 2), ("front", 1)):  # the front laser wins where both name one RAWLASER
+        prefix = f"robot_{which}laser"
+        laser_id = _param_float(params, f"{prefix}_id", float(default_id))
+        mount = np.array([_param_float(params, f"{prefix}_{part}", 0.0)
+                          for part in ("offset", "side_offset", "angular_offset")])
+        mounts[f"RAWLASER{int(laser_id)}"] = mount
+    return mounts
+
+
+def odometry_at(
+    odometry: list[OdometryRecord], times_s: np.ndarray, line_numbers: np.ndarray
+) -> np.ndarray | None:
+    """The robot's odometry pose (N, 3) at each of the given messages, or None without two ``ODOM`` readings.
+
+    ``ODOM`` poses are interpolated in time between the readings around each message (the
+    heading unwrapped), as CARMEN's robot module does for each laser message; where the
+    stamps do not increase (logs whose stamps were rounded), time says nothing, and each
+    message takes the last reading before it in the file.
+    """
+    if len(odometry) < 2:
+        return None
+    t = np.array([o.timestamp_s for o in odometry])
+    p = np.array([o.pose for o in odometry])
+    if np.all(np.diff(t) > 0):
+        th = np.unwrap(p[:, 2])
+        return np.column_stack(
+            (np.interp(times_s, t, p[:, 0]), np.interp(times_s, t, p[:, 1]), wrap_angle(np.interp(times_s, t, th)))
+        )
+    lines = np.array([o.line_number for o in odometry])
+    before = np.searchsorted(lines, line_numbers) - 1
+    return p[np.maximum(before, 0)]
+
+
+def with_odometry_poses(log: CarmenLog) -> CarmenLog:
+    """``log`` with each ``RAWLASERn`` message placed on the odometry at its time: ``odom_pose`` the robot's,
+    ``pose`` the laser's (the robot's moved by the laser's mounting in the log's ``PARAM`` lines, :func:`laser_mounts`).
+
+    The laser driver's messages carry no pose; CARMEN's robot module gives each the odometry
+    interpolated at its time (:func:`odometry_at`). Without two ``ODOM`` readings they stay
+    at the origin (a log without odometry). The laser's pose is the odometry's, not a
+    corrected one: such a log has no reference of its own.
+    """
+    raw = [k for k, r in enumerate(log.lasers) if r.kind in RAWLASER_KINDS]
+    if not raw:
+        return log
+    mounts = laser_mounts(log.params)
+    moving = any(np.any(o.pose) for o in log.odometry)  # all zero: the log has no odometry
+    readings = log.odometry if moving else []
+    times = np.array([log.lasers[k].timestamp_s for k in raw])
+    lines = np.array([log.lasers[k].line_number for k in raw])
+    robot = odometry_at(readings, times, lines)
+    if robot is None:
+        return log
+    lasers = list(log.lasers)
+    for row, k in enumerate(raw):
+        mount = mounts.get(lasers[k].kind, np.zeros(3))
+        lasers[k] = replace(lasers[k], pose=compose(robot[row], mount), odom_pose=robot[row])
+    log.lasers = lasers
+    return log
 
 
 #: a log's largest range is its code for a beam without an echo when at least this share of its
@@ -170,30 +333,45 @@ def with_no_echo_code(log: CarmenLog, flaser_max_range_m: float) -> CarmenLog:
 
     ``FLASER``/``RLASER`` lines carry no maximum range; the default (a SICK's 81 m) holds
     for the logs a SICK wrote, and the log's own code (:func:`no_echo_code`) for those written
-    with another. ``ROBOTLASER1`` messages carry theirs in their header.
+    with another. ``RAWLASERn`` messages carry the laser's nominal maximum, which CARMEN's
+    driver sets above a SICK's no-echo reading (81.90 m against 81.83 m: ``src/laser/laser_main.c``,
+    ``set_laser_config_structure``), so theirs is lowered to the code the same way.
+    ``ROBOTLASER1`` messages are taken as their header says.
     """
-    for kind in ("FLASER", "RLASER"):
+    for kind in ("FLASER", "RLASER", *RAWLASER_KINDS):
         records = [r for r in log.lasers if r.kind == kind]
         code = no_echo_code(records)
-        if code is None or code >= flaser_max_range_m:
+        if code is None:
             continue
-        log.lasers = [replace(r, max_range_m=code) if r.kind == kind else r for r in log.lasers]
+        log.lasers = [
+            replace(r, max_range_m=code) if r.kind == kind and code < r.max_range_m else r for r in log.lasers
+        ]
     return log
+
+
+#: the laser messages in the order :func:`one_laser` chooses them: the front laser's first
+LASER_PREFERENCE = (
+    "ROBOTLASER1", "FLASER", "RAWLASER1", "ROBOTLASER2", "RLASER", "RAWLASER2", "RAWLASER3", "RAWLASER4",
+)
 
 
 def one_laser(log: CarmenLog) -> CarmenLog:
     """The log with the messages of one laser only: the front one's, as ``ROBOTLASER1`` if it has them.
 
     A robot with a front and a rear laser logs both (``FLASER`` and ``RLASER``), and a
-    converted log may hold the front laser twice (``ROBOTLASER1`` and ``FLASER``). Taken
-    together they would be one sensor seen from two places, or each scan twice; the SLAM
-    tracks one laser. ``ROBOTLASER1`` carries its own geometry and the laser's mounting,
-    so it wins over ``FLASER``; ``RLASER`` is used only when the log has nothing else.
+    converted log may hold the front laser twice (``ROBOTLASER1`` and ``FLASER``); CARMEN's
+    logger writes each scan as the driver's ``RAWLASERn`` and again as the robot module's
+    ``ROBOTLASERn`` or ``FLASER``. Taken together they would be one sensor seen from two
+    places, or each scan twice; the SLAM tracks one laser. ``ROBOTLASER1`` carries its own
+    geometry and the laser's mounting, so it wins over ``FLASER``, whose pose may be a
+    corrected one, over ``RAWLASER1``, which has none; the rear laser (``ROBOTLASER2``,
+    ``RLASER``, ``RAWLASER2``) and the driver's lasers 3-4 are used only when the log has
+    nothing else (:data:`LASER_PREFERENCE`).
     """
-    for kind in ("ROBOTLASER1", "FLASER", "RLASER"):
+    for kind in LASER_PREFERENCE:
         chosen = [r for r in log.lasers if r.kind == kind]
         if chosen:
-            return CarmenLog(lasers=chosen, odometry=log.odometry)
+            return CarmenLog(lasers=chosen, odometry=log.odometry, params=log.params)
     return log
 
 
@@ -238,6 +416,16 @@ def _count(tokens: list[str], index: int, what: str) -> int:
     return n
 
 
+def flaser_angles_rad(n: int, fov_rad: float) -> np.ndarray:
+    """The angles of ``n`` beams over ``fov_rad`` from its right-hand end, as CARMEN's SICK driver spreads them.
+
+    An odd count includes both ends of the field of view (181 beams over 180° at 1°), an even
+    one leaves the last end out (180 at 1°): ``src/laser/laser_main.c``, ``set_laser_config_structure``.
+    """
+    spans = n - 1 if n % 2 == 1 and n > 1 else n
+    return -fov_rad / 2.0 + np.arange(n) * (fov_rad / max(spans, 1))
+
+
 def _parse_flaser(tokens: list[str], number: int, fov_rad: float, max_range_m: float) -> LaserRecord:
     n = _count(tokens, 1, "num_readings")
     expected = 2 + n + 6 + 3
@@ -246,9 +434,59 @@ def _parse_flaser(tokens: list[str], number: int, fov_rad: float, max_range_m: f
     ranges = _floats(tokens, 2, n, "ranges")
     poses = _floats(tokens, 2 + n, 6, "poses")
     timestamp = float(tokens[2 + n + 6])
-    spans = n - 1 if n % 2 == 1 and n > 1 else n  # an odd count includes both ends of the field of view
-    angles = -fov_rad / 2.0 + np.arange(n) * (fov_rad / max(spans, 1))
+    angles = flaser_angles_rad(n, fov_rad)
     return LaserRecord(angles, ranges, poses[:3], poses[3:], timestamp, max_range_m, number, tokens[0])
+
+
+def _parse_rawlaser(tokens: list[str], number: int) -> LaserRecord:
+    """A ``RAWLASERn`` line; its poses are left at zero for :func:`with_odometry_poses` to fill."""
+    head = _floats(tokens, 2, 6, "laser header")  # start_angle fov resolution max_range accuracy remission_mode
+    start_angle, _fov, resolution, max_range = head[:4]
+    n = _count(tokens, 8, "num_readings")
+    ranges = _floats(tokens, 9, n, "ranges")
+    n_rem = _count(tokens, 9 + n, "num_remissions")
+    expected = 10 + n + n_rem + 3
+    if len(tokens) != expected:
+        raise ValueError(f"{n} readings and {n_rem} remissions need {expected} fields, found {len(tokens)}")
+    if max_range <= 0.0:
+        raise ValueError(f"maximum_range must be positive, got {max_range}")
+    timestamp = float(tokens[10 + n + n_rem])
+    angles = start_angle + np.arange(n) * beam_step_rad(float(_fov), float(resolution), n)
+    return LaserRecord(angles, ranges, np.zeros(3), np.zeros(3), timestamp, float(max_range), number, tokens[0])
+
+
+#: how far a laser header's ``angular_resolution`` may be from ``field_of_view / (num_readings - 1)`` and still
+#: be the same step: CARMEN's logger prints both with six decimals (``%f``), half a unit of the last is 5e-7 rad
+HEADER_STEP_TOLERANCE_RAD = 1e-6
+
+
+def beam_step_rad(fov_rad: float, resolution_rad: float, n: int) -> float:
+    """The angle between a laser header's beams: ``fov_rad / (n - 1)`` where that is its ``resolution_rad``.
+
+    CARMEN's driver sets the field of view to span the beams exactly (``(n - 1)`` steps: π over
+    181 or 361 beams, π minus a step over 180 or 360: ``src/laser/laser_main.c``,
+    ``set_laser_config_structure``), and its logger prints both with six decimals: 0.5° as
+    0.008727 rad, 4e-4 of the step off, 1.3e-4 rad (0.007°) by the last of 361 beams, while
+    the field of view's rounding spreads over all of them. A header whose two disagree by
+    more than the printing (a field of view written as ``n`` steps) is read by its resolution.
+    """
+    if n < 2:
+        return resolution_rad
+    spread = fov_rad / (n - 1)
+    return spread if abs(spread - resolution_rad) <= HEADER_STEP_TOLERANCE_RAD else resolution_rad
+
+
+def _parse_param(tokens: list[str]) -> tuple[str, str]:
+    """``PARAM name value [ipc_timestamp ipc_hostname logger_timestamp]``: the name and the value.
+
+    CARMEN's logger writes the three trailing fields; the value is everything between the
+    name and them (a parameter may be a string with blanks). A line shorter than that (a
+    log written by hand or by another tool) gives the field after the name.
+    """
+    if len(tokens) < 3:
+        raise ValueError(f"PARAM needs a name and a value, found {len(tokens)} fields")
+    value = " ".join(tokens[2:-3]) if len(tokens) >= 6 else tokens[2]
+    return tokens[1], value
 
 
 def _parse_robotlaser(tokens: list[str], number: int) -> LaserRecord:

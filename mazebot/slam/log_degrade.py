@@ -18,14 +18,20 @@ pipeline that assumes *our* lasers shows up as a run that breaks:
 - :func:`wider_field`: the same beams in a ``ROBOTLASER1`` of a wider field of view (a URG's
   240°, a UTM-30LX's 270°), the beams outside the SICK's 180° without an echo: a format the
   old ``FLASER`` line cannot carry (it has no geometry);
+- :func:`narrower_field`: the beams of a SICK LMS set to 100°, for ``FLASER`` lines whose field of
+  view only the log's ``PARAM laser_front_laser_fov`` says;
+- :func:`as_rawlaser`: the same beams as CARMEN's laser driver logs them, a ``RAWLASER1`` with its
+  own geometry and no pose (the reader places it on the ``ODOM`` readings), the format of a log
+  from CARMEN's logger that only the laser driver and the base wrote;
 - :func:`worse_wheels`: the robot's own odometry with a scale error per wheel, a track-width
   error and a heading bias that drifts (:mod:`mazebot.slam.odometry_errors` applied to the
   odometry's own increments rather than to the reference's).
 
 :func:`write_log` writes the result as CARMEN text, the corrected poses in the laser
 messages' pose fields and the odometry either in the ``FLASER`` odometry fields or, for
-``ROBOTLASER1``, in an ``ODOM`` line before each laser message (the robot pose fields
-then hold the corrected robot pose, as CARMEN's logger writes them): ``mazebot slam run``
+``ROBOTLASER1`` and ``RAWLASER1``, in an ``ODOM`` line before each laser message (the robot pose
+fields of a ``ROBOTLASER1`` then hold the corrected robot pose, as CARMEN's logger writes them; a
+``RAWLASER1`` has none, and its log no corrected poses): ``mazebot slam run``
 reads it as any other log, and main's code can read it too. Values are written with
 Python's shortest round-trip ``repr``: a log rewritten without a transformation gives
 the same run to the digit.
@@ -91,6 +97,17 @@ def wider_field(record: LaserRecord, field_rad: float, code_m: float) -> LaserRe
     return replace(record, angle_rad=angles, range_m=ranges, kind="ROBOTLASER1", max_range_m=code_m)
 
 
+def narrower_field(record: LaserRecord, field_rad: float) -> LaserRecord:
+    """The beams within ``field_rad`` centred ahead: a SICK LMS set to 100° (``laser_front_laser_fov 100``)."""
+    keep = np.abs(record.angle_rad) <= field_rad / 2.0 + 1e-9
+    return replace(record, angle_rad=record.angle_rad[keep], range_m=record.range_m[keep])
+
+
+def as_rawlaser(record: LaserRecord) -> LaserRecord:
+    """The scan as a ``RAWLASER1``: its own beams, angles and maximum range; its poses are not written."""
+    return replace(record, kind="RAWLASER1")
+
+
 def worse_wheels(odometry: np.ndarray, model: SystematicOdometryModel, seed: int) -> np.ndarray:
     """The odometry (N, 3) with ``model``'s wheel, track and heading-bias errors on top of its own, from ``seed``.
 
@@ -129,6 +146,20 @@ def robotlaser_line(record: LaserRecord) -> str:
             f"0 0 0 0 0 {stamp} degraded {stamp}")
 
 
+def rawlaser_line(record: LaserRecord) -> str:
+    """A ``RAWLASER1`` line with the record's own geometry (CARMEN's ``carmen_logwrite_write_laser_laser``).
+
+    The field of view is the span of the beams as they are (first to last), so that the reader's
+    step (:func:`mazebot.slam.carmen.beam_step_rad`) gives back the same angles.
+    """
+    n = record.angle_rad.size
+    field = float(record.angle_rad[-1] - record.angle_rad[0]) if n > 1 else 0.0
+    step = field / (n - 1) if n > 1 else 0.0
+    head = f"0 {_number(record.angle_rad[0])} {_number(field)} {_number(step)} {_number(record.max_range_m)} 0.01 0"
+    stamp = _number(record.timestamp_s)
+    return f"RAWLASER1 {head} {record.range_m.size} {_numbers(record.range_m)} 0 {stamp} degraded {stamp}"
+
+
 def odom_line(pose: np.ndarray, timestamp_s: float) -> str:
     """An ``ODOM`` line at ``pose``, velocities and acceleration zero."""
     stamp = _number(timestamp_s)
@@ -165,25 +196,27 @@ def odometry_stream(log: CarmenLog, odometry: np.ndarray) -> list[OdometryRecord
 
 def write_log(
     path: str | Path, lasers: Sequence[LaserRecord], odometry: np.ndarray,
-    stream: Sequence[OdometryRecord] = (),
+    stream: Sequence[OdometryRecord] = (), params: dict[str, str] | None = None,
 ) -> None:
     """The scans and the odometry at each as CARMEN text (gzip when ``path`` ends in ``.gz``).
 
-    ``FLASER`` records carry the odometry in their own fields; ``ROBOTLASER1`` records get an
-    ``ODOM`` line just before them. With ``stream`` (:func:`odometry_stream`), its readings are
-    written instead, each where it stood in the original file among the laser messages.
+    ``FLASER`` records carry the odometry in their own fields; ``ROBOTLASER1`` and ``RAWLASER1``
+    records get an ``ODOM`` line just before them. With ``stream`` (:func:`odometry_stream`), its readings are
+    written instead, each where it stood in the original file among the laser messages. ``params``
+    are written first as ``PARAM`` lines, as CARMEN's logger writes the parameters it was started with.
     """
     lines = ["# CARMEN Logfile, degraded by mazebot.slam.log_degrade"]
+    lines += [f"PARAM {name} {value} 0.0 degraded 0.0" for name, value in (params or {}).items()]
     readings = sorted(stream, key=lambda o: o.line_number)
     i = 0
     for record, pose in zip(lasers, np.asarray(odometry).reshape(-1, 3), strict=True):
         while i < len(readings) and readings[i].line_number < record.line_number:
             lines.append(odom_line(readings[i].pose, readings[i].timestamp_s))
             i += 1
-        if record.kind == "ROBOTLASER1":
+        if record.kind in ("ROBOTLASER1", "RAWLASER1"):
             if not readings:
                 lines.append(odom_line(pose, record.timestamp_s))
-            lines.append(robotlaser_line(record))
+            lines.append(robotlaser_line(record) if record.kind == "ROBOTLASER1" else rawlaser_line(record))
         else:
             lines.append(flaser_line(record, pose))
     lines += [odom_line(o.pose, o.timestamp_s) for o in readings[i:]]

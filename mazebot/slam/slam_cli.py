@@ -58,7 +58,7 @@ from mazebot.argtypes import non_negative_int, positive_int
 from mazebot.config import load_config
 from mazebot.errors import EXIT_OK, UsageError
 from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
-from mazebot.slam.carmen import CarmenLog, LaserRecord, one_laser, read_carmen
+from mazebot.slam.carmen import MOUNTED_KINDS, CarmenLog, LaserRecord, odometry_at, one_laser, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
 from mazebot.slam.loop_closure import ObservedDirections
@@ -309,29 +309,20 @@ def log_odometry(log: CarmenLog) -> np.ndarray:
     The SLAM tracks the laser, so the odometry is the laser's: a ``ROBOTLASER1`` gives the
     laser's pose and the robot's, and the laser's mounting on the robot (the one relative
     to the other, in the same message) is applied to the robot's odometry (``ODOM`` or,
-    without it, its robot pose). ``FLASER`` poses are the laser's already.
+    without it, its robot pose); so does a ``RAWLASERn``, placed by the reader on the same
+    ``ODOM`` readings with the log's ``PARAM`` mounting (:func:`mazebot.slam.carmen.with_odometry_poses`).
+    ``FLASER`` poses are the laser's already.
     """
     rebased = rebased_odometry(log)
     if rebased is not None:
         return rebased
     times = np.array([r.timestamp_s for r in log.lasers])
     odom = log.odometry if any(np.any(o.pose) for o in log.odometry) else []
-    robot = np.array([r.odom_pose for r in log.lasers]).reshape(-1, 3)
-    if len(odom) >= 2:
-        t = np.array([o.timestamp_s for o in odom])
-        p = np.array([o.pose for o in odom])
-        if np.all(np.diff(t) > 0):
-            th = np.unwrap(p[:, 2])
-            robot = np.column_stack(
-                (np.interp(times, t, p[:, 0]), np.interp(times, t, p[:, 1]), wrap_angle(np.interp(times, t, th)))
-            )
-        else:
-            lines = np.array([o.line_number for o in odom])
-            before = np.searchsorted(lines, [r.line_number for r in log.lasers]) - 1
-            robot = p[np.maximum(before, 0)]
+    interpolated = odometry_at(odom, times, np.array([r.line_number for r in log.lasers]))
+    robot = np.array([r.odom_pose for r in log.lasers]).reshape(-1, 3) if interpolated is None else interpolated
     mount = np.zeros((len(log.lasers), 3))
     for k, r in enumerate(log.lasers):
-        if r.kind == "ROBOTLASER1":
+        if r.kind in MOUNTED_KINDS:
             mount[k] = relative_pose(r.odom_pose, r.pose)  # the laser in the robot frame
     return compose(robot, mount)
 
@@ -529,7 +520,7 @@ def run_carmen(
     """
     log = one_laser(read_carmen(log_path))
     if not log.lasers:
-        raise UsageError(f"{log_path}: no laser messages (FLASER, RLASER or ROBOTLASER1)")
+        raise UsageError(f"{log_path}: no laser messages (FLASER, RLASER, ROBOTLASER1/2 or RAWLASER1-4)")
     lasers = log.lasers[:max_scans] if max_scans else log.lasers
     reference = np.array([r.pose for r in lasers]).reshape(-1, 3)
     times = np.array([r.timestamp_s for r in lasers])

@@ -51,7 +51,7 @@ def test_hits_on_corridor_cells_never_marked_still_contradict_the_map() -> None:
     grid = _room()
     _wear_away(grid)
     corridor = np.column_stack((np.full(21, 0.6), np.linspace(-0.3, 0.3, 21)))
-    corridor = np.concatenate((corridor, corridor + [0.1, 0.0]))
+    corridor = np.vstack((corridor, corridor + np.array([0.1, 0.0])))
     fit = scan_fit(grid, corridor)
     assert fit.known == corridor.shape[0]
     assert fit.contradiction > 0.9

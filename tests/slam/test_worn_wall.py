@@ -55,3 +55,13 @@ def test_hits_on_corridor_cells_never_marked_still_contradict_the_map() -> None:
     fit = scan_fit(grid, corridor)
     assert fit.known == corridor.shape[0]
     assert fit.contradiction > 0.9
+
+
+def test_the_memory_of_a_board_moves_with_the_grid_when_it_grows() -> None:
+    grid = _room()
+    _wear_away(grid)
+    grid.integrate(np.array([0.81, 0.0]), np.array([[6.0, 5.0]]), np.array([False]))  # a beam past the edge: regrown
+    board = np.column_stack((np.full(WALL_Y_M.size, WALL_X_M), WALL_Y_M))
+    rows, cols = grid.to_cell(board)
+    assert grid.ever_occupied[rows, cols].all()
+    assert scan_fit(grid, board).contradiction <= 0.10

@@ -37,6 +37,12 @@ shift them by a fraction of a cell (:meth:`OccupancyGrid.rebuild`): a maze's thi
 then lie along cell centres rather than on the boundaries, where each would blacken two
 cells and take a cell's width of free space from the corridor beside it.
 
+Beside the log odds each cell keeps whether it was ever believed occupied (:attr:`OccupancyGrid.ever_occupied`,
+one byte a cell against the log odds' four). A board marked from close by can be worn to the free clamp
+by far beams grazing it (a wall turned a degree to the rows of cells crosses them, and a grazing beam
+clears a cell its face only partly fills); the map then holds free a place where the robot saw a wall.
+The lost-robot guard (:mod:`mazebot.slam.relocalize`) does not count hits there as evidence of being lost.
+
 For the websocket deltas, :meth:`OccupancyGrid.take_dirty` returns the cells whose
 three-state value (-1 unknown, 0 free, 100 occupied) changed since the previous call;
 ``generation`` counts reallocations and rebuilds, after which clients need a full map.
@@ -142,6 +148,8 @@ class OccupancyGrid:
         self._origin_cells = (0, 0)  # (col, row) index of cell (0, 0) in the infinite lattice
         self._reported = np.zeros((0, 0), dtype=np.int8)  # three-state last handed out
         self._touched = np.zeros((0, 0), dtype=bool)  # cells updated since take_dirty (bounded memory)
+        #: bool [row, col]: the cell's log odds rose above the occupied threshold at some time (module docstring)
+        self.ever_occupied = np.zeros((0, 0), dtype=bool)
 
     def holding(
         self, log_odds: np.ndarray, origin_cells: tuple[int, int], cell_offset_m: tuple[float, float]
@@ -159,6 +167,7 @@ class OccupancyGrid:
         grid.cell_offset_m = (float(cell_offset_m[0]), float(cell_offset_m[1]))
         grid._touched = np.zeros(grid.log_odds.shape, dtype=bool)
         grid._reported = grid.three_state()
+        grid.ever_occupied = grid.occupied_mask()  # what was worn away before it was kept is not known
         return grid
 
     # -- frame -------------------------------------------------------------------------
@@ -274,6 +283,8 @@ class OccupancyGrid:
         hit_flat = (hr + lo[1]) * cols + (hc + lo[0])
         flat[free_flat] = np.maximum(flat[free_flat] + self.l_miss, self.l_min)
         flat[hit_flat] = np.minimum(flat[hit_flat] + self.l_hit, self.l_max)
+        # only a hit raises a cell: its cells are the only ones that can cross the threshold
+        self.ever_occupied.reshape(-1)[hit_flat[flat[hit_flat] > self.occupied_logodds]] = True
         touched = self._touched.reshape(-1)
         touched[free_flat] = True
         touched[hit_flat] = True
@@ -370,14 +381,17 @@ class OccupancyGrid:
         grown = np.zeros((new_rows, new_cols), dtype=np.float32)
         reported = np.full((new_rows, new_cols), UNKNOWN, dtype=np.int8)
         touched = np.zeros((new_rows, new_cols), dtype=bool)
+        ever = np.zeros((new_rows, new_cols), dtype=bool)
         dr, dc = orow - new_or, oc - new_oc
         if rows and cols:  # the content, what clients were told and pending changes move together
             grown[dr : dr + rows, dc : dc + cols] = self.log_odds
             reported[dr : dr + rows, dc : dc + cols] = self._reported
             touched[dr : dr + rows, dc : dc + cols] = self._touched
+            ever[dr : dr + rows, dc : dc + cols] = self.ever_occupied
         self.log_odds = grown
         self._reported = reported
         self._touched = touched
+        self.ever_occupied = ever
         self._origin_cells = (new_oc, new_or)
         self.generation += 1
 

@@ -11,7 +11,10 @@ odometry predicts:
   sample time). A hit deep inside space the map knows to be free (every cell within
   ``free_margin_cells`` free) contradicts the map; a hit next to a wall agrees. The
   contradiction ratio is ``contradicting / known`` (hits in unknown space say nothing,
-  so exploring new corridors does not look like being lost).
+  so exploring new corridors does not look like being lost). A cell the map once held
+  occupied never contradicts, however free it is now: a board marked from close by and
+  then worn free by far beams grazing it (:mod:`mazebot.slam.grid`) is still a board,
+  while a kidnapped robot's hits fall on corridor cells that were never walls.
 - **lost**: ``lost_after`` revolutions in a row contradicting the map more than
   ``max_contradiction`` mean the robot does not know where it is. Those revolutions
   never reach SLAM (the map stays as it was), the daemon raises a ``localization``
@@ -194,7 +197,10 @@ def _classify(
     dr, dc = _offsets(m)
     around = lo[rows[:, None] + dr, cols[:, None] + dc]  # (N, (2m+1)²): each hit's neighbourhood, one gather
     here = around[:, dr.size // 2]
-    free_all = (around < grid.free_logodds).all(axis=1)
+    # free now and never a wall: a board worn free by far beams grazing it is still where the robot
+    # saw it (:attr:`OccupancyGrid.ever_occupied`); a kidnapped robot's hits fall on corridor cells
+    ever = grid.ever_occupied[rows[:, None] + dr, cols[:, None] + dc]
+    free_all = ((around < grid.free_logodds) & ~ever).all(axis=1)
     near = (np.abs(dr) <= 1) & (np.abs(dc) <= 1)
     wall_near = (around[:, near] > grid.occupied_logodds).any(axis=1)
     known = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near

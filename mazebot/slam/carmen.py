@@ -438,20 +438,31 @@ def _parse_flaser(tokens: list[str], number: int, fov_rad: float, max_range_m: f
     return LaserRecord(angles, ranges, poses[:3], poses[3:], timestamp, max_range_m, number, tokens[0])
 
 
-def _parse_rawlaser(tokens: list[str], number: int) -> LaserRecord:
-    """A ``RAWLASERn`` line; its poses are left at zero for :func:`with_odometry_poses` to fill."""
+def _laser_block(tokens: list[str], trailing: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The laser part ``RAWLASERn`` and ``ROBOTLASERn`` lines share, and where what follows it starts.
+
+    ``laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode
+    num_readings [ranges] num_remissions [remissions]``, then ``trailing`` fields. Returns the
+    header's six numbers, the ranges and the index after the remissions.
+    """
     head = _floats(tokens, 2, 6, "laser header")  # start_angle fov resolution max_range accuracy remission_mode
-    start_angle, _fov, resolution, max_range = head[:4]
     n = _count(tokens, 8, "num_readings")
     ranges = _floats(tokens, 9, n, "ranges")
     n_rem = _count(tokens, 9 + n, "num_remissions")
-    expected = 10 + n + n_rem + 3
-    if len(tokens) != expected:
-        raise ValueError(f"{n} readings and {n_rem} remissions need {expected} fields, found {len(tokens)}")
+    after = 10 + n + n_rem
+    if len(tokens) != after + trailing:
+        raise ValueError(f"{n} readings and {n_rem} remissions need {after + trailing} fields, found {len(tokens)}")
+    return head, ranges, after
+
+
+def _parse_rawlaser(tokens: list[str], number: int) -> LaserRecord:
+    """A ``RAWLASERn`` line; its poses are left at zero for :func:`with_odometry_poses` to fill."""
+    head, ranges, after = _laser_block(tokens, 3)
+    start_angle, fov, resolution, max_range = head[:4]
     if max_range <= 0.0:
         raise ValueError(f"maximum_range must be positive, got {max_range}")
-    timestamp = float(tokens[10 + n + n_rem])
-    angles = start_angle + np.arange(n) * beam_step_rad(float(_fov), float(resolution), n)
+    timestamp = float(tokens[after])
+    angles = start_angle + np.arange(ranges.size) * beam_step_rad(float(fov), float(resolution), ranges.size)
     return LaserRecord(angles, ranges, np.zeros(3), np.zeros(3), timestamp, float(max_range), number, tokens[0])
 
 
@@ -490,18 +501,11 @@ def _parse_param(tokens: list[str]) -> tuple[str, str]:
 
 
 def _parse_robotlaser(tokens: list[str], number: int) -> LaserRecord:
-    head = _floats(tokens, 2, 6, "laser header")  # start_angle fov resolution max_range accuracy remission_mode
+    head, ranges, tail = _laser_block(tokens, 11 + 3)
     start_angle, _fov, resolution, max_range = head[:4]
-    n = _count(tokens, 8, "num_readings")
-    ranges = _floats(tokens, 9, n, "ranges")
-    n_rem = _count(tokens, 9 + n, "num_remissions")
-    tail = 10 + n + n_rem
-    expected = tail + 11 + 3
-    if len(tokens) != expected:
-        raise ValueError(f"{n} readings and {n_rem} remissions need {expected} fields, found {len(tokens)}")
     poses = _floats(tokens, tail, 6, "poses")
     timestamp = float(tokens[tail + 11])
-    angles = start_angle + np.arange(n) * resolution
+    angles = start_angle + np.arange(ranges.size) * resolution
     return LaserRecord(angles, ranges, poses[:3], poses[3:], timestamp, float(max_range), number, tokens[0])
 
 

@@ -36,6 +36,7 @@ from mazebot.tasks import control_process
 from mazebot.tasks.control_process import ChildView, ControlLink
 from mazebot.tasks.control_task import MotorControl
 from mazebot.tasks.supervisor import Supervisor
+from tests.odometry_beats import tick_odometry_beats
 
 
 def _wall_scan(distance_m: float, time_s: float) -> Scan:
@@ -502,15 +503,7 @@ def _outputs_taken(beat_period_s: float | None, monkeypatch: pytest.MonkeyPatch)
         state = SharedState()
         task = asyncio.create_task(control_process.run(link, Recorder(), state, ControlHeartbeat(RealClock()),
                                                        config, lambda: None))
-        loop = asyncio.get_running_loop()
-        end_s = loop.time() + 1.0
-        while loop.time() < end_s:
-            if beat_period_s is None:
-                await asyncio.sleep(0.01)
-                continue
-            await asyncio.sleep(beat_period_s)
-            beats.append(loop.time())
-            state.odometry_beat.tick()
+        await tick_odometry_beats(state, beats, asyncio.get_running_loop().time() + 1.0, beat_period_s)
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await task

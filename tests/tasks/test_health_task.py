@@ -23,6 +23,7 @@ from mazebot.sim.world import World
 from mazebot.state import MotionRequest, RunState, SharedState
 from mazebot.tasks import control_task
 from mazebot.tasks.health_task import HealthMonitor, wheel_gains_from_config
+from tests.odometry_beats import tick_odometry_beats
 
 STOP, DRIVE, TURN = DriveMode.STOP, DriveMode.DRIVE, DriveMode.TURN
 
@@ -415,14 +416,7 @@ def _checks_and_beats(beat_period_s: float | None, beats_until_s: float,
 
         period_s = beat_period_s if follow else None
         task = asyncio.create_task(health_task.run(state, RealClock(), Noted(), period_s))  # type: ignore[arg-type]
-        loop = asyncio.get_running_loop()
-        while loop.time() < 102.0:
-            if beat_period_s is None or loop.time() >= beats_until_s:
-                await asyncio.sleep(0.01)
-                continue
-            await asyncio.sleep(beat_period_s)
-            beats.append(loop.time())
-            state.odometry_beat.tick()
+        await tick_odometry_beats(state, beats, 102.0, beat_period_s, stop_beats_s=beats_until_s)
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task

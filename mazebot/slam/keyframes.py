@@ -476,7 +476,9 @@ def smooth_onto_lines(
     return points_xy - offset[:, None] * normals
 
 
-def _face_span_m(points_xy: np.ndarray, normals: np.ndarray, neighbours_xy: np.ndarray, on_face: np.ndarray) -> np.ndarray:
+def _face_span_m(
+    points_xy: np.ndarray, normals: np.ndarray, neighbours_xy: np.ndarray, on_face: np.ndarray
+) -> np.ndarray:
     """(M,) the length of its line, in metres, that each point's neighbours on its face cover.
 
     ``neighbours_xy`` (M, k, 2) and ``on_face`` (M, k) as :func:`smooth_onto_lines` makes them;

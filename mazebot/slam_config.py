@@ -169,8 +169,6 @@ class NormalParams:
     smooth_max_span_m: Annotated[float, Field(ge=0, description=(
         "with smooth, move only points whose neighbours on their face span at most this length of their line "
         "(0: no limit)"))] = 0.0
-    smooth_max_range_m: Annotated[float, Field(ge=0, description=(
-        "with smooth, move only points within this range of the lidar that saw them (0: no limit)"))] = 0.0
 
 
 @dataclass(frozen=True)

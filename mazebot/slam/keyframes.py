@@ -373,7 +373,9 @@ def line_surface(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParam
     nrm, good = oriented_normals(hits_xy, sensor_xy, params)
     pts, nrm = hits_xy[good], nrm[good]
     if params.smooth:
-        pts = _smoothed(pts, nrm, sensor_xy, params)
+        pts = smooth_onto_lines(
+            pts, nrm, params.radius_m, params.neighbours, params.smooth_whole_face_only, params.smooth_max_span_m
+        )
     return pts, nrm
 
 
@@ -398,26 +400,11 @@ def smoothed_match_points(
         return pts
     nrm, good = oriented_normals(pts, sensor_xy, params)
     if np.any(good):
-        pts[good] = _smoothed(pts[good], nrm[good], sensor_xy, params)
+        pts[good] = smooth_onto_lines(
+            pts[good], nrm[good], params.radius_m, params.neighbours, params.smooth_whole_face_only,
+            params.smooth_max_span_m,
+        )
     return pts[voxel_downsample(pts, voxel_m)]
-
-
-def _smoothed(points_xy: np.ndarray, normals: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> np.ndarray:
-    """:func:`smooth_onto_lines` with ``params``' rules; with ``smooth_max_range_m``, points farther from the
-    lidar at ``sensor_xy`` keep their measured positions (they still count as their neighbours' neighbours).
-
-    A SICK's beams fan out with range: 0.5° apart is 2.6 cm at 3 m and 7 cm at 8 m, and the
-    footprint grows alike, so far off a neighbourhood of ten points covers a stretch of wall
-    where a building is not one line (pillars, door frames, the ends of short faces).
-    """
-    smoothed = smooth_onto_lines(
-        points_xy, normals, params.radius_m, params.neighbours, params.smooth_whole_face_only,
-        params.smooth_max_span_m,
-    )
-    if params.smooth_max_range_m > 0.0:
-        far = np.hypot(*(points_xy - np.asarray(sensor_xy).reshape(1, 2)).T) > params.smooth_max_range_m
-        smoothed[far] = points_xy[far]
-    return smoothed
 
 
 def smooth_onto_lines(

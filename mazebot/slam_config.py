@@ -166,6 +166,9 @@ class NormalParams:
         "with smooth, move only points whose neighbours all lie within radius_m on their own face"))] = False
     smooth_scan: Annotated[bool, Field(description=(
         "with smooth, match each scan's own points smoothed onto their lines the same way (off: as measured)"))] = False
+    smooth_max_span_m: Annotated[float, Field(ge=0, description=(
+        "with smooth, move only points whose neighbours on their face span at most this length of their line "
+        "(0: no limit)"))] = 0.0
 
 
 @dataclass(frozen=True)

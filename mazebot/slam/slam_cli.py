@@ -173,7 +173,10 @@ def laser_log_params(
     false: the smoothing turns each Seattle match +0.035°, yet without it Intel at ``0.1,0.1`` loses a
     stretch; branch ``seattle15``); the scan's points smoothed as the submap's are (``[slam.normals]
     smooth_scan``) or only points whose whole neighbourhood is one face smoothed (``smooth_whole_face_only``),
-    each removing that turn and each worse on other logs (branch ``wheels21``); a sequential match turned
+    each removing that turn and each worse on other logs (branch ``wheels21``), or only points whose neighbours
+    on their face span a short piece of wall smoothed (``smooth_max_span_m``: Seattle within 0.15 m on every
+    run, Freiburg 101 and the own-wheel ACES and Intel turned further about their start; branch ``radish23``);
+    a sequential match turned
     beyond ``[slam.matching] match_heading_sigmas`` of the prediction searched again (branches ``radish18``,
     ``guard19``); the loop candidates' gap as travel where the scans lie farther apart than a metre
     (``[slam.loop] min_gap_m`` 30: :func:`mazebot.slam.loop_closure.keyframe_gap`; every log at its own rate the

@@ -18,7 +18,7 @@ odometry predicts:
   hit on a surface SLAM's local submap holds (a point of it within the same margin): the
   grid marks only hits within ``[slam.map] map_max_range_m`` and lets farther ones clear
   space, so a board seen only from beyond it, at a grazing angle, is free in the grid,
-  never marked, though the keyframes hold its points (their hits reach the lidar's range);
+  never marked, though the keyframes hold its points (hits up to ``[slam.prepare] max_range_m``);
   the robot's first near hits on it are right, and a kidnapped robot's hits, deep in a
   corridor, are near no surface.
 - **lost**: ``lost_after`` revolutions in a row contradicting the map more than

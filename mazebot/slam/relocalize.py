@@ -14,7 +14,13 @@ odometry predicts:
   so exploring new corridors does not look like being lost). A cell the map once held
   occupied never contradicts, however free it is now: a board marked from close by and
   then worn free by far beams grazing it (:mod:`mazebot.slam.grid`) is still a board,
-  while a kidnapped robot's hits fall on corridor cells that were never walls.
+  while a kidnapped robot's hits fall on corridor cells that were never walls. Nor does a
+  hit on a surface SLAM's local submap holds (a point of it within the same margin): the
+  grid marks only hits within ``[slam.map] map_max_range_m`` and lets farther ones clear
+  space, so a board seen only from beyond it, at a grazing angle, is free in the grid,
+  never marked, though the keyframes hold its points (hits up to ``[slam.prepare] max_range_m``);
+  the robot's first near hits on it are right, and a kidnapped robot's hits, deep in a
+  corridor, are near no surface.
 - **lost**: ``lost_after`` revolutions in a row contradicting the map more than
   ``max_contradiction`` mean the robot does not know where it is. Those revolutions
   never reach SLAM (the map stays as it was), the daemon raises a ``localization``
@@ -158,20 +164,24 @@ class SearchResult:
     partial: bool = False  # found from the known part of the view only: to be confirmed by the next revolution
 
 
-def scan_fit(grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2) -> ScanFit:
-    """Look hits (N, 2, map frame) up in the grid: see :class:`ScanFit`."""
-    _, known, contradicting, on_walls = _classify(grid, hits_map, free_margin_cells)
+def scan_fit(
+    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2, surfaces: Target | None = None
+) -> ScanFit:
+    """Look hits (N, 2, map frame) up in the grid (and ``surfaces``, see :func:`hit_classes`): see :class:`ScanFit`."""
+    _, known, contradicting, on_walls = _classify(grid, hits_map, free_margin_cells, surfaces)
     return ScanFit.count(known, contradicting, on_walls)
 
 
 def hit_classes(
-    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2
+    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int = 2, surfaces: Target | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per hit (N, 2, map frame): (in known space, contradicting the map, on a wall), boolean (N,) each.
 
-    Hits within ``free_margin_cells`` of the grid's edge are in none of the three.
+    Hits within ``free_margin_cells`` of the grid's edge are in none of the three. With
+    ``surfaces`` (SLAM's local submap), a hit within the margin of one of its points does
+    not contradict the map either (:func:`_off_surfaces`).
     """
-    inside, known_in, contradicting_in, on_walls_in = _classify(grid, hits_map, free_margin_cells)
+    inside, known_in, contradicting_in, on_walls_in = _classify(grid, hits_map, free_margin_cells, surfaces)
     out = []
     for values in (known_in, contradicting_in, on_walls_in):
         full = np.zeros(inside.shape[0], dtype=bool)
@@ -181,7 +191,7 @@ def hit_classes(
 
 
 def _classify(
-    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int
+    grid: OccupancyGrid, hits_map: np.ndarray, free_margin_cells: int, surfaces: Target | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(inside the grid's margin (N,), then known, contradicting, on a wall for the hits inside)."""
     hits_map = np.asarray(hits_map, dtype=np.float64).reshape(-1, 2)
@@ -204,7 +214,31 @@ def _classify(
     near = (np.abs(dr) <= 1) & (np.abs(dc) <= 1)
     wall_near = (around[:, near] > grid.occupied_logodds).any(axis=1)
     known = (here < grid.free_logodds) | (here > grid.occupied_logodds) | wall_near
-    return inside, known, free_all & known, wall_near
+    contradicting = free_all & known
+    if surfaces is not None and contradicting.any():
+        margin_m = m * grid.resolution_m
+        contradicting[contradicting] = _off_surfaces(surfaces, hits_map[inside][contradicting], margin_m)
+    return inside, known, contradicting, wall_near
+
+
+def _off_surfaces(surfaces: Target, hits_map: np.ndarray, margin_m: float) -> np.ndarray:
+    """Per hit (N, 2, map frame): no point of ``surfaces`` lies within ``margin_m`` of it.
+
+    The grid marks a wall only from hits within ``[slam.map] map_max_range_m`` (1.2 m); a
+    farther hit becomes a ray that clears space and ends short of the wall by three times
+    the range noise along its beam (:func:`mazebot.slam.keyframes.map_rays`). At a grazing
+    angle that margin is mostly along the board, hardly across it, so the rays clear the
+    board's own cells: a board seen only from far (a corridor's side wall, seen from its
+    other end) is free in the grid and was never marked, while the keyframes hold its
+    points. The robot's first near hits on it then fall "in free space" though SLAM's pose
+    is right (a contest maze: 26 of 143 known hits, the robot within 5 mm of the truth,
+    24 of them within 27 mm of a submap point). Only the few hits the grid calls
+    contradicting are looked up, in the submap's own kd-tree.
+    """
+    if len(surfaces) == 0 or hits_map.shape[0] == 0:
+        return np.ones(hits_map.shape[0], dtype=bool)
+    dist_m, _ = surfaces.tree.query(hits_map, distance_upper_bound=margin_m)
+    return np.asarray(~np.isfinite(dist_m), dtype=bool)
 
 
 def _offsets(margin: int) -> tuple[np.ndarray, np.ndarray]:
@@ -506,7 +540,9 @@ class LocalizationGuard:
         mount = (slam.params.prepare.mount_x_m, slam.params.prepare.mount_y_m)
         hits = hits_in_map(scan, slam.map_from_odom, odometry, time_offset_s=slam.time_offset.offset_s,
                            mount_xy_m=mount, stride=p.stride)
-        known, contradicting, on_walls = hit_classes(slam.grid, hits, p.free_margin_cells)
+        # judged against the grid and the local submap's surfaces; the search judges its poses against
+        # the grid alone: a pose it takes moves SLAM for good, so it keeps the stricter test
+        known, contradicting, on_walls = hit_classes(slam.grid, hits, p.free_margin_cells, slam.target)
         fit = ScanFit.count(known, contradicting, on_walls)
         self.last_fit = fit
         if self.lost:

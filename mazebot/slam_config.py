@@ -547,7 +547,7 @@ class WallSection:
         "keyframe's faces is joined by their own mean, at a std of their spread and of the boards' own turn (estimated "
         "from every keyframe's faces), counting the boards both read once, while that turn is within "
         "wall_max_face_spread_rad (boards turned by hand keep the judged anchor); "
-        "off: the judged anchor alone"))] = False
+        "off: the judged anchor alone"))] = True
 
 
 @dataclass(frozen=True)

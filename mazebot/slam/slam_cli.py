@@ -154,9 +154,16 @@ def laser_log_params(
 
     - verified with the whole scan (``max_range_m`` None): the maze's 2 m crop leaves a few dozen
       points of a 2 m wide corridor;
-    - searched up to 5 m away and allowed to move a pose by up to 1.5 m, or by more where the chain's
-      own uncertainty says so (3 standard deviations of its drift, ``correction_sigmas``): a building's
-      loops are longer than any fixed cap;
+    - searched within 1 m plus 3 standard deviations of the chain's drift, with no fixed cap, and
+      allowed to move a pose by up to 1.5 m, or by more where the chain's own uncertainty says so (3
+      standard deviations of its drift, ``correction_sigmas``): a building's loops are longer than any
+      fixed cap. The cap of 5 m it had let a drift of 7–8 m outgrow it: back at its start on wheels
+      whose heading drifts 3° a metre, the ACES log verified only the nearest keyframe in the drifted
+      estimate, a corridor 7 m from the truth, for 20 keyframes and never closed that loop (branch
+      ``loops23``);
+    - the nearest keyframes of up to three distinct places verified each attempt (``max_candidates``,
+      ``distinct_places``): where the radius spans metres of drift the nearest place in the estimate
+      is as likely a wrong one, and the strict tests pick the right one among them;
     - keyframe 0 not verified as an extra candidate (``anchor_candidate`` off): it lost ACES with
       systematic odometry;
     - the inlier ratio over all points (``overlap_fitness`` off): the overlap-aware ratio let wrong
@@ -217,7 +224,9 @@ def laser_log_params(
         loop=replace(
             base.loop,
             search_radius_m=1.0,
-            max_search_radius_m=5.0,
+            max_search_radius_m=math.inf,  # the chain's drift alone bounds it: see the docstring
+            max_candidates=3,
+            distinct_places=True,
             min_keyframe_gap=30,
             submap_half_width=5,
             attempt_every=1,

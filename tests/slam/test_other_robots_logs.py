@@ -166,7 +166,8 @@ def test_a_loop_back_to_the_start_closes_on_wheels_whose_drift_put_it_metres_awa
     odometry alone 24 m RMS off): back at its start (keyframes 249-268, 0.1-0.5 m from keyframes 4-18) the
     estimate had drifted 7-8 m, beyond a fixed 5 m search; the nearest keyframe in the estimate was a corridor
     7 m from the truth, and the loop never closed. Searched as far as the chain's drift reaches, one keyframe
-    of each distinct place, it closes, every closure there within 0.5 m and 5° of the corrected poses."""
+    of each distinct place (``wide_loop_search``), it closes, every closure there within 0.5 m and 5° of the
+    corrected poses."""
     log = one_laser(read_carmen(carmen_log("aces-corrected.log.gz")))
     scans = 270
     lasers = log.lasers[:scans]
@@ -175,7 +176,8 @@ def test_a_loop_back_to_the_start_closes_on_wheels_whose_drift_put_it_metres_awa
                                     bias_walk_rad_per_m_per_sqrt_m=0.006)
     odometry = from_first_pose(worse_wheels(log_odometry(log), model, seed=2)[:scans], reference)
     config = load_config(None)
-    slam = Slam(laser_log_params(SlamParams.from_config(config.slam, config.lidar)), initial_pose=np.zeros(3))
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar), wide_loop_search=True)
+    slam = Slam(params, initial_pose=np.zeros(3))
     scan_of = {u.keyframe: k for k, u in enumerate(log_updates(slam, lasers, odometry)) if u.keyframe is not None}
     home = [c for c in slam.closures if scan_of[c.new] >= 249 and scan_of[c.old] <= 20]
     assert len(home) >= 3

@@ -233,6 +233,10 @@ class LoopSection:
         "worker's CPU on a 6x6 maze but let a 16x16 tour's largest error grow from 8.4-11.4 to 12.2 mm, "
         "3 kept it at 10.6 mm)"))] = 3
     max_candidates: Annotated[int, Field(ge=1, description="candidates verified per attempt (nearest first)")] = 1
+    distinct_places: Annotated[bool, Field(description=(
+        "candidates beyond the nearest are other places, and only where sigma_scale std of the drift exceed "
+        "search_radius_m: a keyframe whose submap (submap_half_width each side) overlaps a chosen candidate's is "
+        "passed over (off: the nearest keyframes, mostly one place's)"))] = False
     anchor_candidate: Annotated[bool, Field(description=(
         "verify keyframe 0 too whenever it is in sight within max_search_radius_m, against its revolutions at "
         "rest alone (closures to it turn the map about the start onto the start's own view: they anchor the "

@@ -184,6 +184,27 @@ def keyframe_gap(poses: np.ndarray, new: int, params: LoopSection) -> int:
     return max(2, min(gap, round(params.min_gap_m / spacing_m)))
 
 
+def distinct_places(nearest: np.ndarray, others: np.ndarray, submap_half_width: int) -> np.ndarray:
+    """``nearest`` then those of ``others`` (keyframe indices, nearest first) whose submap overlaps no earlier one's.
+
+    A candidate is verified against the submap of keyframes ``i ± submap_half_width``; a second
+    candidate whose submap overlaps the first's tests the same walls again. After a drift of
+    metres the search radius holds several places, and the nearest in the drifted estimate is as
+    likely a wrong one (the ACES log on wheels whose heading drifts 3° a metre: back at its start,
+    the estimate 7–8 m off, every nearest candidate a corridor 7 m from the truth, the right
+    keyframes 7–8 m away in the estimate): one candidate per place lets the strict tests of
+    :func:`verify` find the right one among them (Olson, RAS 2009: every hypothesis within the
+    uncertainty is matched, the tests reject the wrong ones). ``others`` are only the keyframes
+    whose drift reaches beyond the search radius itself (:func:`find_candidates`): where the chain
+    is sure to within the radius, the nearest place is the one.
+    """
+    chosen: list[int] = [int(i) for i in nearest]
+    for i in others:
+        if all(abs(int(i) - j) > 2 * submap_half_width for j in chosen):
+            chosen.append(int(i))
+    return np.asarray(chosen, dtype=np.intp)
+
+
 def find_candidates(
     poses: np.ndarray,
     new: int,
@@ -202,6 +223,9 @@ def find_candidates(
     radius = np.minimum(params.max_search_radius_m, params.search_radius_m + params.sigma_scale * np.sqrt(var_xy[old]))
     near = old[dist <= radius]
     order = near[np.argsort(dist[near], kind="stable")]
+    if params.distinct_places and order.size:
+        drifted = params.sigma_scale * np.sqrt(var_xy[order]) > params.search_radius_m
+        order = distinct_places(order[:1], order[1:][drifted[1:]], params.submap_half_width)
     chosen = list(order[: params.max_candidates])
     if params.anchor_candidate and dist[0] <= params.max_search_radius_m and 0 not in chosen:
         chosen.append(0)  # the map's own frame, as far as any candidate may be: see LoopSection.anchor_candidate

@@ -106,7 +106,7 @@ LASER_LOG_CALIBRATION_FALSE_ALARM = 0.001
 
 def laser_log_params(
     base: SlamParams, calibrate_heading: bool = True, closure_ambiguity: bool = False, match_doubt: bool = False,
-    calibrate_distance: bool = False, calibrate_lever_arm: bool = True,
+    calibrate_distance: bool = False, calibrate_lever_arm: bool = True, wide_loop_search: bool = False,
 ) -> SlamParams:
     """SLAM settings for an indoor laser log (SICK LMS, metres between scans) from the maze ones.
 
@@ -144,6 +144,14 @@ def laser_log_params(
     another alignment of its window, parted from the best by a dip in the score, scores
     :data:`LASER_LOG_AMBIGUITY_RATIO` of it. It refuses a 7.5 m look-alike on ACES with drifting odometry
     but also right closures in long Intel corridors (branches ``reallogs8``, ``reallogs9``): not the default.
+
+    ``wide_loop_search`` (``slam run --wide-loop-search``; off): loop candidates searched within 1 m plus 3
+    standard deviations of the chain's drift with no 5 m cap, and beyond the nearest, where that drift exceeds
+    the 1 m itself, the nearest keyframe of up to two more distinct places (``distinct_places``). A drift of
+    7–8 m outgrows the cap: back at its start on wheels whose heading drifts 3° a metre, the ACES log verified
+    only the nearest keyframe of the drifted estimate, a corridor 7 m from the truth, for 20 keyframes and never
+    closed that loop (0.42 m RMS; 0.11 m with it). But the closures the extra places add make ACES on its own
+    wheels and on milder bad wheels worse (0.10 to 0.23 m RMS; branch ``loops23``): not the default.
 
     ``match_doubt`` (``slam run --match-doubt``; off): a sequential match whose residual exceeds
     :data:`LASER_LOG_DOUBT_RATIO` times the recent median is searched again and replaced only by a match
@@ -220,7 +228,9 @@ def laser_log_params(
         loop=replace(
             base.loop,
             search_radius_m=1.0,
-            max_search_radius_m=5.0,
+            max_search_radius_m=math.inf if wide_loop_search else 5.0,  # see wide_loop_search in the docstring
+            max_candidates=3 if wide_loop_search else 1,
+            distinct_places=wide_loop_search,
             min_keyframe_gap=30,
             submap_half_width=5,
             attempt_every=1,
@@ -499,6 +509,7 @@ def run_carmen(
     calibrate_distance: bool = False,
     calibrate_lever_arm: bool = True,
     search_odometry_gaps: bool = False,
+    wide_loop_search: bool = False,
 ) -> dict[str, Any]:
     """Run SLAM on a CARMEN log, write the outputs into ``out_dir``, return the statistics.
 
@@ -519,7 +530,8 @@ def run_carmen(
     (branch ``wheels22``): it holds Seattle's 80° turn at scan 27 through a 4 m and a 5.6 m laser (30.6 and
     30.5 m RMS without it, 0.54 and 0.36 m with it) and takes that scan's heading error from 80° to 1°, but on
     Seattle as logged, which holds without it, the map comes out turned further about its start (0.165 to
-    0.265 m RMS): an option.
+    0.265 m RMS): an option. ``wide_loop_search``: loop candidates as far as the chain's drift reaches, at
+    distinct places (:func:`laser_log_params`).
     """
     log = one_laser(read_carmen(log_path))
     if not log.lasers:
@@ -546,7 +558,7 @@ def run_carmen(
     config = load_config(config_path)
     params = laser_log_params(
         SlamParams.from_config(config.slam, config.lidar), calibrate_odometry, closure_ambiguity, match_doubt,
-        calibrate_distance, calibrate_lever_arm,
+        calibrate_distance, calibrate_lever_arm, wide_loop_search,
     )
     odometry = from_first_pose(odometry, reference)
     slam = Slam(params, initial_pose=np.zeros(3))
@@ -603,6 +615,7 @@ def run_carmen(
         "loop_closures_off_reference": closures_off_reference(slam, keyframe_scans, reference) if judged else None,
         "odometry_gaps": int(np.count_nonzero(gaps)),
         "odometry_gaps_searched": search_odometry_gaps,
+        "wide_loop_search": wide_loop_search,
         "searches": slam.searches,
         "searches_won": slam.searches_won,
         "matches_doubted": slam.matches_doubted,
@@ -949,6 +962,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         args.carmen, args.out, _parse_noise(args.odom_noise), args.seed, args.max_scans, args.config, systematic,
         args.consistency_scans, not args.no_reanchor, args.odom_calibration, args.closure_ambiguity, args.match_doubt,
         args.start_placement, args.odom_distance_calibration, args.lever_arm, args.odometry_gaps,
+        args.wide_loop_search,
     )
     print(json.dumps(stats))
     return EXIT_OK
@@ -1019,6 +1033,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="match a scan the log's own odometry was silent before (no ODOM reading for over ten of its periods) "
         "as after unknown motion: the whole correlative window at every heading, the prediction widened to it; "
         "off by default (the gaps are counted either way)",
+    )
+    run.add_argument(
+        "--wide-loop-search",
+        action="store_true",
+        help="look for loop closures as far as 3 std of the chain's drift reach (no 5 m cap) and, where that drift "
+        "exceeds 1 m, verify the nearest keyframe of up to three distinct places; off by default",
     )
     run.add_argument(
         "--closure-ambiguity",

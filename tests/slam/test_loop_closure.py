@@ -478,3 +478,28 @@ def test_laser_logs_at_half_the_scan_rate_are_offered_the_whole_logs_loops(aces)
     assert len(shared) >= 0.85 * len(whole)  # 37
     apart_m = [float(np.hypot(*(poses[whole[k], :2] - poses[half[k], :2]))) for k in shared]
     assert np.median(apart_m) <= 0.5
+
+
+def test_a_laser_logs_candidates_reach_the_place_a_drift_of_metres_put_far_away() -> None:
+    """Back at its start after a long loop, the drifted estimate puts the new keyframe 11 m from the keyframe
+    it truly revisits and 0.3 m from a wrong one: the laser log's search verifies the nearest keyframe of each
+    distinct place within 3 σ of the chain's drift (``wide_loop_search``), the true one among them, where the
+    default search, capped at 5 m and nearest first, verifies only the wrong one."""
+    from mazebot.slam.slam import SlamParams
+    from mazebot.slam.slam_cli import laser_log_params
+
+    params = laser_log_params(SlamParams(), wide_loop_search=True).loop
+    corridor = np.column_stack((np.arange(21.0), np.zeros(21), np.zeros(21)))  # keyframes 0-20, a metre apart
+    elsewhere = np.column_stack((np.arange(39.0), np.full(39, 50.0), np.zeros(39)))  # keyframes 21-59, far off
+    new_estimate = np.array([[12.3, 0.2, 0.0]])  # truly at (1.2, 0): keyframe 1's place
+    poses = np.vstack((corridor, elsewhere, new_estimate))
+    var_xy = np.full(len(poses) - 1, 0.3)  # 3 σ of 59 such edges: 16 m
+    var_th = np.full(len(poses) - 1, 1e-8)
+    found = [c.old for c in find_candidates(poses, 60, var_xy, var_th, params)]
+    assert found[0] == 12  # the nearest in the estimate, a wrong place, still first
+    assert 1 in found  # the place truly revisited
+    default = laser_log_params(SlamParams()).loop
+    assert [c.old for c in find_candidates(poses, 60, var_xy, var_th, default)] == [12]
+    # where the chain is sure to within the search radius, the nearest place alone
+    sure = [c.old for c in find_candidates(poses, 60, np.full(len(poses) - 1, 1e-4), var_th, params)]
+    assert sure == [12]

@@ -428,6 +428,9 @@ class MatchingSection:
         "doubt: the correlative search looks over its whole window, and its match replaces ICP's if it has the "
         "smaller residual, at least the inlier ratio and at least the likelihood table's score (0: off; 4 with slam "
         "run --match-doubt)"))] = 0.0
+    match_residual_ratio: Annotated[float, Field(ge=0, description=(
+        "a match whose residual exceeds this many times the median of the recent matched scans' (the last "
+        "match_doubt_scans) is not acceptable, as one beyond max_match_rmse_m (0: off)"))] = 0.0
     match_doubt_scans: Annotated[int, Field(ge=1, description=(
         "... the recent matched scans whose residuals that median is taken over"))] = 50
     match_heading_sigmas: Annotated[float, Field(ge=0, description=(
@@ -450,6 +453,14 @@ class MatchingSection:
     corr_uncertain_std_rad: Annotated[float, Field(gt=0, description="... or its heading std this")] = 0.035
     corr_window_sigmas: Annotated[float, Field(gt=0, description=(
         "that search's half-widths: this many prediction stds (at most the search's own window)"))] = 3.0
+    failed_search_any_heading: Annotated[bool, Field(description=(
+        "where ICP from the prediction failed and the correlative search over its window found no acceptable "
+        "match either, search again over every heading (the window's position, no heading prior), and take a "
+        "match that pins every direction: the odometry missed a turn (false: the odometry's step is taken; slam run "
+        "on a laser log: always on)"))] = False
+    failed_search_residual_ratio: Annotated[float, Field(gt=0, description=(
+        "... and whose residual is at most this many times the median of the recent matched scans' (the last "
+        "match_doubt_scans; a turned look-alike fits with several times the right matches' residual)"))] = 4.0
     corr_override_score: Annotated[float, Field(ge=0, le=1, description=(
         "its match replaces an acceptable ICP match scoring this much less on the likelihood table"))] = 0.05
     match_overlap_fitness: Annotated[bool, Field(description=(

@@ -21,9 +21,10 @@ from mazebot.slam.slam_cli import from_first_pose, laser_log_params, log_odometr
 from tests.data_paths import carmen_log
 
 
-def _laser_log_params(**changes: float) -> SlamParams:
+def _laser_log_params(match_residual_ratio: float = 0.0) -> SlamParams:
     config = load_config(None)
-    return replace(laser_log_params(SlamParams.from_config(config.slam, config.lidar)), **changes)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    return replace(params, match_residual_ratio=match_residual_ratio)
 
 
 def _online_errors(

@@ -461,6 +461,11 @@ class MatchingSection:
     failed_search_residual_ratio: Annotated[float, Field(gt=0, description=(
         "... and whose residual is at most this many times the median of the recent matched scans' (the last "
         "match_doubt_scans; a turned look-alike fits with several times the right matches' residual)"))] = 4.0
+    failed_search_ambiguity_ratio: Annotated[float, Field(ge=0, le=1, description=(
+        "... and where no heading failed_search_heading_separation_rad or more from the best scores this share of "
+        "it on the likelihood table (a corridor seen half a turn round fits about as well; 0: no such test)"))] = 0.9
+    failed_search_heading_separation_rad: Annotated[float, Field(gt=0, le=3.1416, description=(
+        "... the headings that far from the best being another alignment (nearer, the best's own peak)"))] = 0.52
     corr_override_score: Annotated[float, Field(ge=0, le=1, description=(
         "its match replaces an acceptable ICP match scoring this much less on the likelihood table"))] = 0.05
     match_overlap_fitness: Annotated[bool, Field(description=(

@@ -1484,7 +1484,9 @@ class Slam:
         if failed and window_theta < math.pi and p.failed_search_any_heading and not self._found(refined):
             yield
             self.searches_any_heading += 1
-            table, src, refined = yield from self._refined_search_steps(prepared, guess, window_xy, math.pi)
+            table, src, refined = yield from self._refined_search_steps(
+                prepared, guess, window_xy, math.pi, p.failed_search_ambiguity_ratio
+            )
             if not self._found(refined) or refined is None or refined.degenerate or not self._fits_as_well(refined):
                 return match
         if refined is None or not self.acceptable(refined):
@@ -1527,12 +1529,15 @@ class Slam:
         return math.isfinite(limit_m) and match.rmse_m <= limit_m
 
     def _refined_search_steps(
-        self, prepared: PreparedScan, guess: np.ndarray, window_xy_m: float, window_theta_rad: float
+        self, prepared: PreparedScan, guess: np.ndarray, window_xy_m: float, window_theta_rad: float,
+        heading_ambiguity_ratio: float = 0.0,
     ) -> Generator[None, None, tuple[LikelihoodTable, np.ndarray, IcpResult | None]]:
         """The correlative search over ``±window_xy_m`` / ``±window_theta_rad`` about ``guess``, ICP from its best pose.
 
         Returns the likelihood table and the scan's points it scored (to score other poses
-        alike), and ICP's match (None when the search's best scored under ``min_score``).
+        alike), and ICP's match (None when the search's best scored under ``min_score``, or when
+        ``heading_ambiguity_ratio`` > 0 and another heading scores that share of it:
+        :meth:`_heading_ambiguous`).
         """
         p = self.params
         search = p.correlative
@@ -1543,11 +1548,34 @@ class Slam:
         found = correlative_match(table, src, guess, window_xy_m, window_theta_rad, prepared.sensor_xy)
         if found.score < search.min_score:
             return table, src, None
+        if heading_ambiguity_ratio > 0.0 and self._heading_ambiguous(
+            table, src, guess, window_xy_m, found.pose, found.score * heading_ambiguity_ratio, prepared.sensor_xy
+        ):
+            return table, src, None
         yield
         refined = yield from match_scan_steps(
             self.target, prepared.points_match, found.pose, p.icp, sensor_xy=prepared.sensor_xy
         )
         return table, src, refined
+
+    def _heading_ambiguous(
+        self, table: LikelihoodTable, src: np.ndarray, guess: np.ndarray, window_xy_m: float, best_pose: np.ndarray,
+        floor: float, sensor_xy: np.ndarray | None,
+    ) -> bool:
+        """Does any heading ``failed_search_heading_separation_rad`` or more from ``best_pose``'s score ``floor``?
+
+        A search over every heading has no motion prior to part a corridor seen one way from
+        the same corridor seen turned half round, or a room's two square corners: the ratio
+        test of the best against the second-best distinct alignment (Lowe, IJCV 2004, 7.1),
+        here over headings. The other headings are searched about ``guess``'s position, centred
+        half a turn from the best and reaching to the separation on either side of it.
+        """
+        separation_rad = self.params.failed_search_heading_separation_rad
+        opposite = np.array([guess[0], guess[1], float(best_pose[2]) + math.pi])
+        other = correlative_match(
+            table, src, opposite, window_xy_m, math.pi - separation_rad, sensor_xy, floor=floor
+        )
+        return bool(other.score >= floor > 0.0)
 
     def _doubt_steps(
         self, prepared: PreparedScan, guess: np.ndarray, match: IcpResult

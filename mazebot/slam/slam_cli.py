@@ -147,8 +147,10 @@ def laser_log_params(
 
     ``failed_search_any_heading`` (on here, off for the maze robot): a scan that neither ICP from the prediction
     nor the correlative search over its window could match is searched again over every heading, and a match
-    that pins every direction with a residual within ``failed_search_residual_ratio`` of the run's recent ones
-    is taken: the odometry missed a turn inside the step. Seattle at half the scan rate, where the log's 80°
+    that pins every direction, with a residual within ``failed_search_residual_ratio`` of the run's recent ones
+    and no other heading scoring ``failed_search_ambiguity_ratio`` of it, is taken: the odometry missed a turn
+    inside the step. Without the heading test a 4 m laser's corridor seen half a turn round was taken
+    (Freiburg 101) and ACES at half the scan rate was lost. Seattle at half the scan rate, where the log's 80°
     turn without an odometry reading falls inside one step, held with it (30.5 m to 0.26 m RMS); the four logs
     as logged gave the same trajectories to the digit (branch ``robust23``).
 

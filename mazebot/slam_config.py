@@ -456,8 +456,7 @@ class MatchingSection:
     failed_search_any_heading: Annotated[bool, Field(description=(
         "where ICP from the prediction failed and the correlative search over its window found no acceptable "
         "match either, search again over every heading (the window's position, no heading prior), and take a "
-        "match that pins every direction: the odometry missed a turn (false: the odometry's step is taken; slam run "
-        "on a laser log: always on)"))] = False
+        "match that pins every direction: the odometry missed a turn (false: the odometry's step is taken)"))] = False
     failed_search_residual_ratio: Annotated[float, Field(gt=0, description=(
         "... and whose residual is at most this many times the median of the recent matched scans' (the last "
         "match_doubt_scans; a turned look-alike fits with several times the right matches' residual)"))] = 4.0

@@ -145,14 +145,13 @@ def laser_log_params(
     :data:`LASER_LOG_AMBIGUITY_RATIO` of it. It refuses a 7.5 m look-alike on ACES with drifting odometry
     but also right closures in long Intel corridors (branches ``reallogs8``, ``reallogs9``): not the default.
 
-    ``failed_search_any_heading`` (on here, off for the maze robot): a scan that neither ICP from the prediction
-    nor the correlative search over its window could match is searched again over every heading, and a match
-    that pins every direction, with a residual within ``failed_search_residual_ratio`` of the run's recent ones
-    and no other heading scoring ``failed_search_ambiguity_ratio`` of it, is taken: the odometry missed a turn
-    inside the step. Without the heading test a 4 m laser's corridor seen half a turn round was taken
-    (Freiburg 101) and ACES at half the scan rate was lost. Seattle at half the scan rate, where the log's 80°
-    turn without an odometry reading falls inside one step, held with it (30.5 m to 0.26 m RMS); the four logs
-    as logged gave the same trajectories to the digit (branch ``robust23``).
+    ``[slam.matching] failed_search_any_heading`` (from ``--config``; off): a scan that neither ICP from the
+    prediction nor the correlative search over its window could match is searched again over every heading, and
+    a match that pins every direction, with a residual within ``failed_search_residual_ratio`` of the run's
+    recent ones and no other heading scoring ``failed_search_ambiguity_ratio`` of it, is taken: the odometry
+    missed a turn inside the step. It holds Seattle at half the scan rate (30.5 m to 0.26 m RMS) and through a
+    4 m and a 5.6 m laser (30.6 / 30.5 m to 0.68 / 0.44 m), the four logs as logged and the Radish seeds the
+    same to the digit, but loses ACES at half the scan rate (0.39 to 34.4 m): an option (branch ``robust23``).
 
     ``match_doubt`` (``slam run --match-doubt``; off): a sequential match whose residual exceeds
     :data:`LASER_LOG_DOUBT_RATIO` times the recent median is searched again and replaced only by a match
@@ -261,9 +260,6 @@ def laser_log_params(
         # a sequential match under min_match_fitness stays refused (``match_overlap_fitness`` false): judged where
         # the submap saw, the maps are more consistent but turn about the start by more (branch reallogs4)
         retry_headings_rad=(0.05, -0.05, 0.1, -0.1, 0.15, -0.15),
-        # a turn the odometry missed inside a step (a half-rate log's 80° at Seattle's scan 27): every heading
-        # searched where the window found nothing, a match taken only as well-fitting as the run's own
-        failed_search_any_heading=True,
         wall_prior=False,
         calibrate_heading=calibrate_heading,
         calibrate_distance=calibrate_distance,

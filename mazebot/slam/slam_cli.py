@@ -152,7 +152,7 @@ def laser_log_params(
     missed a turn inside the step. It holds Seattle at half the scan rate (30.5 m to 0.26 m RMS) and through a
     4 m and a 5.6 m laser (30.6 / 30.5 m to 0.68 / 0.44 m), the four logs as logged and the Radish seeds the
     same to the digit, but loses ACES at half the scan rate (0.39 to 34.4 m) and through a 4 m laser (0.54 to
-    14.9 m): an option (branch ``robust23``).
+    14.9 m; Intel there 0.49 to 4.3 m max): an option (branch ``robust23``).
 
     ``match_doubt`` (``slam run --match-doubt``; off): a sequential match whose residual exceeds
     :data:`LASER_LOG_DOUBT_RATIO` times the recent median is searched again and replaced only by a match

@@ -435,6 +435,9 @@ class MatchingSection:
         "doubt: the correlative search looks over its whole window, and its match replaces ICP's if it has the "
         "smaller residual, at least the inlier ratio and at least the likelihood table's score (0: off; 4 with slam "
         "run --match-doubt)"))] = 0.0
+    match_residual_ratio: Annotated[float, Field(ge=0, description=(
+        "a match whose residual exceeds this many times the median of the recent matched scans' (the last "
+        "match_doubt_scans) is not acceptable, as one beyond max_match_rmse_m (0: off)"))] = 0.0
     match_doubt_scans: Annotated[int, Field(ge=1, description=(
         "... the recent matched scans whose residuals that median is taken over"))] = 50
     match_heading_sigmas: Annotated[float, Field(ge=0, description=(
@@ -457,6 +460,18 @@ class MatchingSection:
     corr_uncertain_std_rad: Annotated[float, Field(gt=0, description="... or its heading std this")] = 0.035
     corr_window_sigmas: Annotated[float, Field(gt=0, description=(
         "that search's half-widths: this many prediction stds (at most the search's own window)"))] = 3.0
+    failed_search_any_heading: Annotated[bool, Field(description=(
+        "where ICP from the prediction failed and the correlative search over its window found no acceptable "
+        "match either, search again over every heading (the window's position, no heading prior), and take a "
+        "match that pins every direction: the odometry missed a turn (false: the odometry's step is taken)"))] = False
+    failed_search_residual_ratio: Annotated[float, Field(gt=0, description=(
+        "... and whose residual is at most this many times the median of the recent matched scans' (the last "
+        "match_doubt_scans; a turned look-alike fits with several times the right matches' residual)"))] = 4.0
+    failed_search_ambiguity_ratio: Annotated[float, Field(ge=0, le=1, description=(
+        "... and where no heading failed_search_heading_separation_rad or more from the best scores this share of "
+        "it on the likelihood table (a corridor seen half a turn round fits about as well; 0: no such test)"))] = 0.9
+    failed_search_heading_separation_rad: Annotated[float, Field(gt=0, le=3.1416, description=(
+        "... the headings that far from the best being another alignment (nearer, the best's own peak)"))] = 0.52
     corr_override_score: Annotated[float, Field(ge=0, le=1, description=(
         "its match replaces an acceptable ICP match scoring this much less on the likelihood table"))] = 0.05
     match_overlap_fitness: Annotated[bool, Field(description=(

@@ -613,9 +613,12 @@ class Slam:
         self.matched_scans = 0
         self.searches = 0  # correlative searches run (sequential matches)
         self.searches_won = 0  # ... whose match replaced ICP's from the prediction
+        self.searches_any_heading = 0  # ... searched again over every heading, the window's having found nothing
         self.matches_doubted = 0  # ... run because ICP's residual stood out of the recent matches' (match_residuals)
         self.doubts_won = 0  # ... and whose match replaced that one
         self._residuals = MatchResiduals(p.match_doubt_ratio, p.match_doubt_scans)
+        self._any_heading_residuals = MatchResiduals(p.failed_search_residual_ratio, p.match_doubt_scans)
+        self._outlying_residuals = MatchResiduals(p.match_residual_ratio, p.match_doubt_scans)
         self.closures_downweighted = 0  # loop closures the last optimization all but switched off
         self.closures_from_set = 0  # loop closures a set accepted after the thresholds refused them
         # closures verified as a set: recent ones in the graph, and tentative ones waiting (closure_set)
@@ -843,6 +846,8 @@ class Slam:
         self.matched_scans += matched
         if matched and match is not None:
             self._residuals.add(match.rmse_m)
+            self._any_heading_residuals.add(match.rmse_m)
+            self._outlying_residuals.add(match.rmse_m)
         self._last_match = match if matched else None
         pose = self.ekf.mean.copy()
         if (paint and matched and raw_increment is not None and calibrated_increment is not None
@@ -1257,9 +1262,15 @@ class Slam:
         return not bool((self.grid.log_odds[rows[inside], cols[inside]] > self.grid.occupied_logodds).any())
 
     def acceptable(self, match: IcpResult) -> bool:
-        """A match good enough by SLAM's own limits (converged, inlier ratio, residual)."""
+        """A match good enough by SLAM's own limits (converged, inlier ratio, residual).
+
+        With ``match_residual_ratio`` the residual must also stay within that many times the recent matched
+        scans' median (:mod:`mazebot.slam.match_residuals`): one limit adapted to how well the run's right
+        matches fit, rather than ``max_match_rmse_m`` alone (1 m on the laser logs).
+        """
         p = self.params
-        return match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
+        return (match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
+                and not self._outlying_residuals.in_doubt(match.rmse_m))
 
     def usable(self, match: IcpResult) -> bool:
         """A sequential match that needs no second look: :meth:`acceptable`, and turned from the prediction no
@@ -1440,6 +1451,10 @@ class Slam:
         - ICP from the prediction failed: the refined match, if acceptable. A match turned
           beyond the heading gate (:meth:`heading_plausible`) is searched as a failed one; the
           refined match replaces an acceptable one only from within the gate.
+        - ICP from the prediction failed and nothing acceptable within the window either
+          (``failed_search_any_heading``): the window's position searched again over every
+          heading, and the refined match taken if it pins every direction and fits as well as
+          the run's recent matches (:meth:`_fits_as_well`): a turn the odometry did not see.
         - Re-localized and the prediction's match is acceptable: it stays.
         - The prediction was only uncertain and both matches are acceptable: the refined one
           replaces ICP's if it scores ``corr_override_score`` more on the likelihood table (at
@@ -1466,6 +1481,14 @@ class Slam:
             window_theta = math.pi
             self._search_any_heading = False
         table, src, refined = yield from self._refined_search_steps(prepared, guess, window_xy, window_theta)
+        if failed and window_theta < math.pi and p.failed_search_any_heading and not self._found(refined):
+            yield
+            self.searches_any_heading += 1
+            table, src, refined = yield from self._refined_search_steps(
+                prepared, guess, window_xy, math.pi, p.failed_search_ambiguity_ratio
+            )
+            if not self._found(refined) or refined is None or refined.degenerate or not self._fits_as_well(refined):
+                return match
         if refined is None or not self.acceptable(refined):
             return match
         if failed and (self.usable(refined) or not self.acceptable(match)):
@@ -1489,13 +1512,32 @@ class Slam:
             return refined
         return match
 
+    def _found(self, refined: IcpResult | None) -> bool:
+        """Did a search find an acceptable match?"""
+        return refined is not None and self.acceptable(refined)
+
+    def _fits_as_well(self, match: IcpResult) -> bool:
+        """Is ``match``'s residual within ``failed_search_residual_ratio`` times the recent matched scans' median?
+
+        A search over every heading finds, at a scan that sees a room the submap never saw, some
+        turned alignment whose inlier ratio passes; its residual gives it away, several times
+        those of the right matches around it (KISS-ICP's threshold from the residuals its
+        registration has recently seen: Vizzo et al., IEEE RA-L 2023, III.C). Before the run has
+        ten matched scans there is nothing to compare with, and no such match is taken.
+        """
+        limit_m = self._any_heading_residuals.limit_m()
+        return math.isfinite(limit_m) and match.rmse_m <= limit_m
+
     def _refined_search_steps(
-        self, prepared: PreparedScan, guess: np.ndarray, window_xy_m: float, window_theta_rad: float
+        self, prepared: PreparedScan, guess: np.ndarray, window_xy_m: float, window_theta_rad: float,
+        heading_ambiguity_ratio: float = 0.0,
     ) -> Generator[None, None, tuple[LikelihoodTable, np.ndarray, IcpResult | None]]:
         """The correlative search over ``±window_xy_m`` / ``±window_theta_rad`` about ``guess``, ICP from its best pose.
 
         Returns the likelihood table and the scan's points it scored (to score other poses
-        alike), and ICP's match (None when the search's best scored under ``min_score``).
+        alike), and ICP's match (None when the search's best scored under ``min_score``, or when
+        ``heading_ambiguity_ratio`` > 0 and another heading scores that share of it:
+        :meth:`_heading_ambiguous`).
         """
         p = self.params
         search = p.correlative
@@ -1506,11 +1548,34 @@ class Slam:
         found = correlative_match(table, src, guess, window_xy_m, window_theta_rad, prepared.sensor_xy)
         if found.score < search.min_score:
             return table, src, None
+        if heading_ambiguity_ratio > 0.0 and self._heading_ambiguous(
+            table, src, guess, window_xy_m, found.pose, found.score * heading_ambiguity_ratio, prepared.sensor_xy
+        ):
+            return table, src, None
         yield
         refined = yield from match_scan_steps(
             self.target, prepared.points_match, found.pose, p.icp, sensor_xy=prepared.sensor_xy
         )
         return table, src, refined
+
+    def _heading_ambiguous(
+        self, table: LikelihoodTable, src: np.ndarray, guess: np.ndarray, window_xy_m: float, best_pose: np.ndarray,
+        floor: float, sensor_xy: np.ndarray | None,
+    ) -> bool:
+        """Does any heading ``failed_search_heading_separation_rad`` or more from ``best_pose``'s score ``floor``?
+
+        A search over every heading has no motion prior to part a corridor seen one way from
+        the same corridor seen turned half round, or a room's two square corners: the ratio
+        test of the best against the second-best distinct alignment (Lowe, IJCV 2004, 7.1),
+        here over headings. The other headings are searched about ``guess``'s position, centred
+        half a turn from the best and reaching to the separation on either side of it.
+        """
+        separation_rad = self.params.failed_search_heading_separation_rad
+        opposite = np.array([guess[0], guess[1], float(best_pose[2]) + math.pi])
+        other = correlative_match(
+            table, src, opposite, window_xy_m, math.pi - separation_rad, sensor_xy, floor=floor
+        )
+        return bool(other.score >= floor > 0.0)
 
     def _doubt_steps(
         self, prepared: PreparedScan, guess: np.ndarray, match: IcpResult

@@ -153,6 +153,15 @@ def laser_log_params(
     closed that loop (0.42 m RMS; 0.11 m with it). But the closures the extra places add make ACES on its own
     wheels and on milder bad wheels worse (0.10 to 0.23 m RMS; branch ``loops23``): not the default.
 
+    ``[slam.matching] failed_search_any_heading`` (from ``--config``; off): a scan that neither ICP from the
+    prediction nor the correlative search over its window could match is searched again over every heading, and
+    a match that pins every direction, with a residual within ``failed_search_residual_ratio`` of the run's
+    recent ones and no other heading scoring ``failed_search_ambiguity_ratio`` of it, is taken: the odometry
+    missed a turn inside the step. It holds Seattle at half the scan rate (30.5 m to 0.26 m RMS) and through a
+    4 m and a 5.6 m laser (30.6 / 30.5 m to 0.68 / 0.44 m), the four logs as logged and the Radish seeds the
+    same to the digit, but loses ACES at half the scan rate (0.39 to 34.4 m) and through a 4 m laser (0.54 to
+    14.9 m; Intel there 0.49 to 4.3 m max): an option (branch ``robust23``).
+
     ``match_doubt`` (``slam run --match-doubt``; off): a sequential match whose residual exceeds
     :data:`LASER_LOG_DOUBT_RATIO` times the recent median is searched again and replaced only by a match
     better on residual, inlier ratio and score. It puts right a 40° wrong match on real Intel scans but
@@ -190,8 +199,10 @@ def laser_log_params(
     (``[slam.loop] min_gap_m`` 30: :func:`mazebot.slam.loop_closure.keyframe_gap`; every log at its own rate the
     same to the digit, at half the rate ACES and Intel better, Freiburg 101 worse; branch ``rate22``); closures
     accepted in the directions they constrain (``[slam.loop] accept_degenerate``;
-    branch ``corridor17``); closures verified as a set rather than each alone (``[slam.loop] set_verify``;
-    branch ``reallogs6``).
+    branch ``corridor17``); a match whose residual exceeds four times the recent matched scans' median refused as one
+    beyond ``max_match_rmse_m`` (``[slam.matching] match_residual_ratio`` 4: Freiburg 101 through a 4 m laser held,
+    the Intel log lost a stretch; branch ``robust23``); closures verified as a set rather than each alone
+    (``[slam.loop] set_verify``; branch ``reallogs6``).
 
     The correlative search (:mod:`mazebot.slam.correlative`) on 5 cm cells smoothed by
     10 cm (a beam every 1° is ~9 cm apart at 5 m), with points up to 10 m: ±0.5 m and ±30°
@@ -618,6 +629,7 @@ def run_carmen(
         "wide_loop_search": wide_loop_search,
         "searches": slam.searches,
         "searches_won": slam.searches_won,
+        "searches_any_heading": slam.searches_any_heading,
         "matches_doubted": slam.matches_doubted,
         "doubts_won": slam.doubts_won,
         "matches_seen_rescued": slam.matches_seen_rescued,

@@ -121,8 +121,9 @@ log = logging.getLogger(__name__)
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
 
-#: A degenerate match's free direction is a slide along a corridor when its position part is at least this share
-#: of the unit pose step (the rest a turn): only then is it matched again along it (:meth:`Slam._degenerate_retry_steps`).
+#: A degenerate match's free direction is a slide along a corridor when its position part is at least this
+#: share of the unit pose step (the rest a turn): only then is it matched again along it
+#: (:meth:`Slam._degenerate_retry_steps`).
 DEGENERATE_POSITION_SHARE = 0.5
 
 

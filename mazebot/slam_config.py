@@ -442,8 +442,8 @@ class MatchingSection:
     degenerate_retry_sigmas: Annotated[float, Field(ge=0, le=5, description=(
         "an acceptable sequential match that ICP left degenerate (a direction kept at the prediction) is matched "
         "again from the prediction moved along that direction by 1, 2, ... up to this many of the prediction's "
-        "standard deviations along it, each way; a restart that fixes every direction with a smaller residual "
-        "within one more of them replaces it (0: off)"))] = 0.0
+        "standard deviations along it, each way; a restart that fixes every direction with a residual markedly "
+        "smaller (under 0.8 of it) within one more of them replaces it (0: off)"))] = 0.0
     match_deskew_variance: Annotated[bool, Field(description=(
         "a moving revolution's match also carries the de-skew's error: the motion model's variance of the "
         "revolution's odometry increment is added to the match's covariance along the direction of travel, where "

@@ -449,6 +449,11 @@ class MatchingSection:
         "the prediction is surer along it than this over the square root of 3; where ICP does not come back, the "
         "match's information along that direction is widened to the span it cannot tell apart, and the odometry "
         "decides there (mazebot.slam.basin_probe; 0: off)"))] = 0.0
+    degenerate_retry_sigmas: Annotated[float, Field(ge=0, le=5, description=(
+        "an acceptable sequential match that ICP left degenerate (a direction kept at the prediction) is matched "
+        "again from the prediction moved along that direction by 1, 2, ... up to this many of the prediction's "
+        "standard deviations along it, each way; a restart that fixes every direction with a residual markedly "
+        "smaller (under 0.8 of it) within one more of them replaces it (0: off)"))] = 0.0
     match_deskew_variance: Annotated[bool, Field(description=(
         "a moving revolution's match also carries the de-skew's error: the motion model's variance of the "
         "revolution's odometry increment is added to the match's covariance along the direction of travel, where "

@@ -121,6 +121,16 @@ log = logging.getLogger(__name__)
 #: Loop-closure candidates kept while a job runs (the newest).
 PENDING_CANDIDATES = 4
 
+#: A degenerate match's free direction is a slide along a corridor when its position part is at least this
+#: share of the unit pose step (the rest a turn): only then is it matched again along it
+#: (:meth:`Slam._degenerate_retry_steps`).
+DEGENERATE_POSITION_SHARE = 0.5
+#: ... and a restart replaces it only with a residual under this share of its: the RMS of a scan's ~100 point-to-line
+#: residuals varies by about 1/√(2N) ≈ 7 % from one alignment to the next, so a residual 5 % smaller says nothing
+#: (along the ACES log's featureless corridors restarts end 3-11 % under the degenerate match, 50-170 mm off the
+#: corrected poses), one three of those smaller says the degenerate match sat off the scan's own walls.
+DEGENERATE_RETRY_RMSE_SHARE = 0.8
+
 
 #: Decides, once a revolution is matched, whether SLAM paints it: ``decide(match, matched)``.
 PaintDecision = Callable[["IcpResult | None", bool], bool]
@@ -662,6 +672,8 @@ class Slam:
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
         self.matches_seen_rescued = 0  # sequential matches counted by their inliers where the submap saw
         self.matches_widened = 0  # sequential matches whose basin did not hold along their weakest direction
+        self.degenerate_retries = 0  # degenerate sequential matches tried again along their free direction
+        self.degenerate_retries_won = 0  # ... and replaced by a restart that fixed every direction
         self._keyframes_since_target = 0
         # every scan's pose relative to the keyframe before it: the trajectory follows optimizations
         self._scan_log: list[tuple[float, int, np.ndarray]] = []
@@ -1312,8 +1324,17 @@ class Slam:
 
         With ``params.correlative``, a prediction that is uncertain is checked by a
         correlative search over a window about it (:meth:`_search_steps`) before the
-        heading retries.
+        heading retries; with ``params.degenerate_retry_sigmas``, a match ICP left
+        degenerate is tried again along its free direction (:meth:`_degenerate_retry_steps`).
         """
+        match = yield from self._predicted_match_steps(prepared)
+        if self.params.degenerate_retry_sigmas > 0.0 and match.degenerate and self.acceptable(match):
+            yield
+            match = yield from self._degenerate_retry_steps(prepared, match)
+        return match
+
+    def _predicted_match_steps(self, prepared: PreparedScan) -> Generator[None, None, IcpResult]:
+        """ICP from the prediction, the correlative search and the heading retries where it is in doubt."""
         p = self.params
         assert self.target is not None
         guess = self.ekf.mean
@@ -1342,6 +1363,56 @@ class Slam:
         if not self.acceptable(match) and p.match_overlap_fitness:
             return self._judged_where_seen(prepared, match)
         return match  # acceptable but turned beyond the gate, and no match within it: the scan's evidence stands
+
+    def _degenerate_retry_steps(self, prepared: PreparedScan, match: IcpResult) -> Generator[None, None, IcpResult]:
+        """``match`` matched again from the prediction moved along the direction ICP left free, where that fixes it.
+
+        ICP's degeneracy test (the Hessian's eigenvalue ratio; Zhang, Kaess and Singh, "On
+        degeneracy of optimization-based state estimation problems", ICRA 2016) is taken where
+        ICP stopped, and what it sees from there depends on where it started. Along a corridor
+        a few door frames and alcoves fix the position only within a few centimetres of the
+        right one: started a prediction's error away (the odometry's noise over a metre's
+        step), their points pair with the side walls' lines or fall outside the robust kernel,
+        the direction looks unobservable, it is kept at the prediction, and the map takes the
+        odometry's length there, a random error per corridor that white noise does not average
+        out. Restarted from the right place the same scan and submap fix every direction to a
+        few millimetres, with a smaller residual. So ICP is started again from the prediction
+        moved along the free direction by whole multiples of the prediction's standard
+        deviation along it (the filter's covariance: the learnt odometry noise), each way, up
+        to ``degenerate_retry_sigmas``. A restart that ends acceptable, not degenerate, within
+        the heading gate, no farther along than one more standard deviation, and with a
+        residual markedly under the degenerate match's (:data:`DEGENERATE_RETRY_RMSE_SHARE`)
+        replaces it (the smallest residual wins). Where nothing along the corridor fixes it,
+        every restart is degenerate too, or ends as poorly, and the match stands.
+        """
+        p = self.params
+        assert self.target is not None
+        if match.weak_direction is None:
+            return match
+        along = np.asarray(match.weak_direction[:2], dtype=np.float64)
+        share = math.hypot(float(along[0]), float(along[1]))
+        if share < DEGENERATE_POSITION_SHARE:  # a heading ICP could not fix, not a slide along a corridor
+            return match
+        along = along / share
+        guess = self.ekf.mean.copy()
+        sigma_m = math.sqrt(max(float(along @ self.ekf.covariance[:2, :2] @ along), 0.0))
+        reach_m = (p.degenerate_retry_sigmas + 1.0) * sigma_m
+        self.degenerate_retries += 1
+        best = match
+        for multiple in range(1, int(p.degenerate_retry_sigmas) + 1):
+            for side in (1.0, -1.0):
+                yield
+                start = guess + np.append(side * multiple * sigma_m * along, 0.0)
+                retry = yield from match_scan_steps(
+                    self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy
+                )
+                offset_m = float(along @ (retry.pose[:2] - guess[:2]))
+                if (self.acceptable(retry) and not retry.degenerate and retry.rmse_m < best.rmse_m
+                        and retry.rmse_m < DEGENERATE_RETRY_RMSE_SHARE * match.rmse_m
+                        and abs(offset_m) <= reach_m and self.heading_plausible(retry)):
+                    best = retry
+        self.degenerate_retries_won += int(best is not match)
+        return best
 
     def _better_retry(self, retry: IcpResult, best: IcpResult | None) -> bool:
         """Is ``retry`` a better pick than ``best``? Acceptable; within the heading gate before beyond it; then

@@ -634,6 +634,8 @@ def run_carmen(
         "doubts_won": slam.doubts_won,
         "matches_seen_rescued": slam.matches_seen_rescued,
         "matches_widened": slam.matches_widened,
+        "degenerate_retries": slam.degenerate_retries,
+        "degenerate_retries_won": slam.degenerate_retries_won,
         "odom_noise": None if odom_noise is None else list(odom_noise),
         "odom_model": "log" if odom_noise is None and systematic is None else
         ("systematic" if systematic is not None else "white"),

@@ -95,6 +95,7 @@ class FakeSlam:
     # what the localization guard reads (an empty grid: every revolution is "ok")
     time_offset: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(offset_s=0.0))
     params: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(prepare=PrepareParams()))
+    target: None = None  # no local submap: the guard judges by the grid alone
     anchored: bool = True
     final_jobs: int = 0
 

@@ -47,12 +47,17 @@ class MatchResiduals:
         """One more matched scan's residual (m)."""
         self._recent.append(float(rmse_m))
 
-    def limit_m(self) -> float:
-        """The residual (m) beyond which a match is in doubt (infinite while the test is off or has too few)."""
-        if self.ratio <= 0 or len(self._recent) < MIN_RESIDUALS:
-            return float("inf")
-        return self.ratio * float(np.median(np.fromiter(self._recent, dtype=np.float64)))
+    def limit_m(self, ratio: float | None = None) -> float:
+        """The residual (m) beyond which a match is in doubt (infinite while the test is off or has too few).
 
-    def in_doubt(self, rmse_m: float) -> bool:
-        """Does a match with this residual (m) stand out of the recent ones?"""
-        return float(rmse_m) > self.limit_m()
+        ``ratio`` (default: the doubt's own) lets other tests that judge a match by the same recent
+        residuals, at their own multiple of the median, share this one history.
+        """
+        ratio = self.ratio if ratio is None else float(ratio)
+        if ratio <= 0 or len(self._recent) < MIN_RESIDUALS:
+            return float("inf")
+        return ratio * float(np.median(np.fromiter(self._recent, dtype=np.float64)))
+
+    def in_doubt(self, rmse_m: float, ratio: float | None = None) -> bool:
+        """Does a match with this residual (m) stand out of the recent ones (by ``ratio``, see :meth:`limit_m`)?"""
+        return float(rmse_m) > self.limit_m(ratio)

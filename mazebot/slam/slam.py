@@ -626,9 +626,8 @@ class Slam:
         self.searches_any_heading = 0  # ... searched again over every heading, the window's having found nothing
         self.matches_doubted = 0  # ... run because ICP's residual stood out of the recent matches' (match_residuals)
         self.doubts_won = 0  # ... and whose match replaced that one
+        # the recent matches' residuals: the doubt, match_residual_ratio and the every-heading search judge by them
         self._residuals = MatchResiduals(p.match_doubt_ratio, p.match_doubt_scans)
-        self._any_heading_residuals = MatchResiduals(p.failed_search_residual_ratio, p.match_doubt_scans)
-        self._outlying_residuals = MatchResiduals(p.match_residual_ratio, p.match_doubt_scans)
         self.closures_downweighted = 0  # loop closures the last optimization all but switched off
         self.closures_from_set = 0  # loop closures a set accepted after the thresholds refused them
         # closures verified as a set: recent ones in the graph, and tentative ones waiting (closure_set)
@@ -858,8 +857,6 @@ class Slam:
         self.matched_scans += matched
         if matched and match is not None:
             self._residuals.add(match.rmse_m)
-            self._any_heading_residuals.add(match.rmse_m)
-            self._outlying_residuals.add(match.rmse_m)
         self._last_match = match if matched else None
         pose = self.ekf.mean.copy()
         if (paint and matched and raw_increment is not None and calibrated_increment is not None
@@ -1282,7 +1279,7 @@ class Slam:
         """
         p = self.params
         return (match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
-                and not self._outlying_residuals.in_doubt(match.rmse_m))
+                and not self._residuals.in_doubt(match.rmse_m, p.match_residual_ratio))
 
     def usable(self, match: IcpResult) -> bool:
         """A sequential match that needs no second look: :meth:`acceptable`, and turned from the prediction no
@@ -1596,7 +1593,7 @@ class Slam:
         registration has recently seen: Vizzo et al., IEEE RA-L 2023, III.C). Before the run has
         ten matched scans there is nothing to compare with, and no such match is taken.
         """
-        limit_m = self._any_heading_residuals.limit_m()
+        limit_m = self._residuals.limit_m(self.params.failed_search_residual_ratio)
         return math.isfinite(limit_m) and match.rmse_m <= limit_m
 
     def _refined_search_steps(

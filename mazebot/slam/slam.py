@@ -103,7 +103,6 @@ from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan, voxel_downsample
 from mazebot.slam.robust_closures import optimize_dcs
-from mazebot.slam.submap_error import with_covariance_floor
 from mazebot.slam.start_anchor import (
     BOARD_TURN_STD_RAD,
     StartFit,
@@ -112,6 +111,7 @@ from mazebot.slam.start_anchor import (
     start_anchor_fit,
     start_view_rad,
 )
+from mazebot.slam.submap_error import with_covariance_floor
 from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method

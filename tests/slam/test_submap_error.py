@@ -36,7 +36,8 @@ def _loop_errors(floor_std_rad: float, seed: int) -> tuple[float, float]:
     chain = np.zeros(3)
     for k, step in enumerate(steps):
         degenerate = k in DEGENERATE
-        error = np.array([rng.normal(0.0, ICP_STD_M), rng.normal(0.0, ICP_STD_M), rng.normal(0.0, TRUE_HEADING_STD_RAD)])
+        error = np.array([rng.normal(0.0, ICP_STD_M), rng.normal(0.0, ICP_STD_M),
+                          rng.normal(0.0, TRUE_HEADING_STD_RAD)])
         icp_info = np.diag([ICP_STD_M**-2, ICP_STD_M**-2, ICP_HEADING_STD_RAD[degenerate] ** -2])
         if degenerate:
             error[0] = rng.normal(0.0, ODOMETRY_STD[0])  # the odometry's length kept along the corridor

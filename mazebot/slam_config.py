@@ -454,6 +454,12 @@ class MatchingSection:
         "again from the prediction moved along that direction by 1, 2, ... up to this many of the prediction's "
         "standard deviations along it, each way; a restart that fixes every direction with a residual markedly "
         "smaller (under 0.8 of it) within one more of them replaces it (0: off)"))] = 0.0
+    edge_floor_std_m: Annotated[float, Field(ge=0, description=(
+        "a sequential edge's match also carries the submap's own error (its keyframes' placement, which ICP's "
+        "Hessian holds fixed): this std is added to the match's covariance on each position axis of the edge, "
+        "before the odometry's information is added (mazebot.slam.submap_error; 0: ICP's alone)"))] = 0.0
+    edge_floor_std_rad: Annotated[float, Field(ge=0, description=(
+        "... and this one to its heading (0: ICP's alone)"))] = 0.0
     match_deskew_variance: Annotated[bool, Field(description=(
         "a moving revolution's match also carries the de-skew's error: the motion model's variance of the "
         "revolution's odometry increment is added to the match's covariance along the direction of travel, where "

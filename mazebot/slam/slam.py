@@ -111,6 +111,7 @@ from mazebot.slam.start_anchor import (
     start_anchor_fit,
     start_view_rad,
 )
+from mazebot.slam.submap_error import with_covariance_floor
 from mazebot.slam.wall_faces import Faces, face_spread, quarter_turns, wall_faces
 from mazebot.slam.wall_priors import LATTICE_REFIT_GROWTH, wall_priors, wrap_quarter
 from mazebot.steps import all_at_once_method
@@ -1723,15 +1724,18 @@ class Slam:
     def _sequential_information(self, z: np.ndarray, odom: np.ndarray) -> np.ndarray:
         """Information of the edge previous keyframe → this one: odometry plus, if matched, ICP.
 
-        Both are re-expressed in the frame of the edge's residual (the new keyframe's).
+        Both are re-expressed in the frame of the edge's residual (the new keyframe's); ICP's
+        covariance there takes the submap's own error (``edge_floor_std_m``, ``edge_floor_std_rad``:
+        :mod:`mazebot.slam.submap_error`; 0: ICP's alone).
         """
         p = self.params
         increment = relative_pose(self._odom_at_keyframe, odom) if self._odom_at_keyframe is not None else z
         odom_cov = self.ekf.noise.covariance(increment) + np.diag([1e-8, 1e-8, 1e-8])
         info = rotate_information(np.linalg.inv(odom_cov), float(z[2]))
         if self._last_match is not None:
-            icp_info = self._last_match.edge_information * p.match_information_scale
-            info = info + rotate_information(icp_info, float(self.ekf.mean[2]))
+            icp_info = rotate_information(self._last_match.edge_information * p.match_information_scale,
+                                          float(self.ekf.mean[2]))
+            info = info + with_covariance_floor(icp_info, p.edge_floor_std_m, p.edge_floor_std_rad)
         return 0.5 * (info + info.T)
 
     def prepare(self, scan: Scan, odometry: OdometrySource) -> tuple[PreparedScan, np.ndarray]:

@@ -489,6 +489,10 @@ class MatchingSection:
         "a match under min_match_fitness that nothing else rescued still counts if its inlier ratio among the "
         "points the local submap could have seen (inside its keyframes' beams) reaches min_match_fitness: a scan "
         "through a doorway sees much the submap never saw (off: the ratio among all points)"))] = False
+    turn_overlap_fitness: Annotated[bool, Field(description=(
+        "as match_overlap_fitness, for a match refused while the robot has only turned since the last keyframe "
+        "(within keyframe_distance_m of it): a laser of less than a full turn loses part of the submap's view to "
+        "the turn alone (off: the ratio among all points)"))] = False
     match_min_overlap: Annotated[float, Field(ge=0, le=1, description=(
         "... and at least this share of the scan's points lies where the submap could have seen it"))] = 0.5
     match_overlap_margin_m: Annotated[float, Field(ge=0, description=(

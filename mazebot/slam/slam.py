@@ -1358,8 +1358,10 @@ class Slam:
                 best = retry
         if best is not None and (self.usable(best) or not self.acceptable(match)):
             return best
+        if not self.acceptable(match) and p.turn_overlap_fitness and self._turned_in_place(match):
+            return self._judged_where_seen(prepared, match, 1.0)
         if not self.acceptable(match) and p.match_overlap_fitness:
-            return self._judged_where_seen(prepared, match)
+            return self._judged_where_seen(prepared, match, p.match_overlap_information_scale)
         return match  # acceptable but turned beyond the gate, and no match within it: the scan's evidence stands
 
     def _degenerate_retry_steps(self, prepared: PreparedScan, match: IcpResult) -> Generator[None, None, IcpResult]:
@@ -1423,7 +1425,23 @@ class Slam:
             return self.usable(retry)
         return retry.rmse_m < best.rmse_m
 
-    def _judged_where_seen(self, prepared: PreparedScan, match: IcpResult) -> IcpResult:
+    def _turned_in_place(self, match: IcpResult) -> bool:
+        """Has the robot only turned since the last keyframe (``match`` within ``keyframe_distance_m`` of it)?
+
+        Then the scan's points the submap never saw are those the turn brought into a laser's
+        field of view of less than a full turn (a 180° SICK turned by 30° keeps about 83 %
+        of its view), and those beyond the keyframes' beams, not a room behind a doorway.
+        The ACES log's first step (30° about a point 7 cm away) leaves 63 % of the scan's
+        points where keyframe 0's beams reached and 44 % matched in all; among the 63 %, two
+        in three are matched, within 0.35° and 2 cm of the corrected poses' step.
+        """
+        if not self.keyframes:
+            return False
+        last = self.keyframes[-1].pose
+        return math.hypot(float(match.pose[0] - last[0]), float(match.pose[1] - last[1])) <= (
+            self.params.keyframe_distance_m)
+
+    def _judged_where_seen(self, prepared: PreparedScan, match: IcpResult, information_scale: float) -> IcpResult:
         """``match`` with its inlier ratio taken among the points the local submap could have seen, if that passes.
 
         A laser log's scans are a metre apart: one that passes a doorway or a corridor's
@@ -1460,7 +1478,7 @@ class Slam:
         if float(seen.mean()) < p.match_min_overlap or ratio < p.min_match_fitness:
             return match
         self.matches_seen_rescued += 1
-        scale = p.match_overlap_information_scale
+        scale = information_scale
         graph = None if match.graph_information is None else match.graph_information * scale
         return replace(match, fitness=ratio, information=match.information * scale, graph_information=graph)
 

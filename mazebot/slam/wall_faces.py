@@ -51,6 +51,27 @@ FACE_MIN_LENGTH_M = 0.12
 #: well-seen face.
 FACE_MAX_STDERR_RAD = math.radians(0.1)
 
+#: A face seen at rest may run over two or three boards in line, each set at its own offset
+#: (σ 4 mm) and thickness (6-20 mm): the face steps across by a few millimetres where they
+#: meet, too little to split it (``FACE_GAP_ACROSS_M``), and one least-squares line through
+#: the step reads it as a turn of up to 2° (the bench's hand-built 8×8 seed 6: two boards
+#: turned +0.21° and -0.75° read -2.18°). With ``steps`` a face's direction is the common
+#: slope of its pieces, each with an offset of its own (an analysis of covariance: the slope
+#: within the pieces, Scheffé 1959, ch. 6), cut where the step between the pieces is at least
+#: ``FACE_STEP_MIN_M`` and ``FACE_STEP_SIGNIFICANCE`` of its standard errors ...
+FACE_STEP_MIN_M = 0.003
+FACE_STEP_SIGNIFICANCE = 5.0
+
+#: ... each piece at least this long (a board is 0.28 m; a shorter piece is a post's end) ...
+FACE_PIECE_MIN_M = 0.08
+
+#: ... and at most this many cuts (a face of three boards in line; the longest faces seen at rest).
+FACE_MAX_STEPS = 2
+
+#: Cut positions tried per piece: evenly spread over the piece's points (the step sits within a
+#: post's width, 12 mm, of the best of them; the common slope moves little across that).
+FACE_CUTS_TRIED = 60
+
 
 @dataclass(frozen=True)
 class Faces:
@@ -87,13 +108,15 @@ class Faces:
 NO_FACES = Faces(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.intp))
 
 
-def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> Faces:
+def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float, steps: bool = False) -> Faces:
     """The straight faces among surface points of one place (module docstring), in their frame.
 
     ``points`` (N, 2) and ``normals`` (N, 2) are a place's surface points (a keyframe's
     frame); ``grid_rad`` the wall grid's direction in that frame (modulo 90°), which sorts
     the points by the axis their normals face. A face's own direction is its least-squares
-    line's; only faces that pass the module's tests are kept.
+    line's; only faces that pass the module's tests are kept. With ``steps`` (the faces seen
+    at rest, many revolutions pooled) a face's direction is taken across the steps between
+    boards in line (:func:`slope_across_steps`); which faces are kept does not change.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
@@ -115,6 +138,8 @@ def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float) -> Face
                 if fitted is None:
                     continue
                 slope, mid_across, mid_along = fitted
+                if steps:
+                    slope = slope_across_steps(a, b)
                 centre = (mid_across, mid_along) if axis == 0 else (mid_along, mid_across)
                 rows.append((*centre, nominal + sign * math.atan(slope), 0.5 * float(b[-1] - b[0]), a.size))
     if not rows:
@@ -171,6 +196,80 @@ def _faces(across: np.ndarray, along: np.ndarray) -> list[tuple[np.ndarray, np.n
             if end - first >= FACE_MIN_POINTS and b[end - 1] - b[first] >= FACE_MIN_LENGTH_M:
                 faces.append((a[first:end].copy(), b[first:end].copy()))
     return faces
+
+
+def slope_across_steps(across: np.ndarray, along: np.ndarray) -> float:
+    """The slope of ``across`` against ``along`` (sorted by ``along``) common to the boards in line a face runs over.
+
+    A piece of the face is one board, offset from its neighbours by a step: cut greedily where
+    the common slope with an offset per piece (:func:`_common_slope`) leaves the least squared
+    residual, each cut kept only if its step is at least ``FACE_STEP_MIN_M`` and
+    ``FACE_STEP_SIGNIFICANCE`` of its standard errors (a face of one board keeps its one line:
+    the lidar's noise does not pose as a step), at most ``FACE_MAX_STEPS`` cuts. The slope
+    within pieces is unbiased with or without a step; cut where there is none, it only loses
+    a little precision.
+    """
+    piece = np.zeros(across.size, dtype=np.intp)
+    for _ in range(FACE_MAX_STEPS):
+        cut = _best_cut(across, along, piece)
+        if cut is None or not _step_holds(across, along, piece, cut):
+            break
+        piece = _cut_at(piece, cut)
+    return _common_slope(across, along, piece)[0]
+
+
+def _common_slope(across: np.ndarray, along: np.ndarray, piece: np.ndarray) -> tuple[float, np.ndarray]:
+    """The slope common to every piece, each with an offset of its own, and the residuals (ANCOVA)."""
+    count = np.bincount(piece)
+    mean_along = (np.bincount(piece, weights=along) / count)[piece]
+    mean_across = (np.bincount(piece, weights=across) / count)[piece]
+    centred_along, centred_across = along - mean_along, across - mean_across
+    slope = float(centred_along @ centred_across) / float(centred_along @ centred_along)
+    return slope, centred_across - slope * centred_along
+
+
+def _best_cut(across: np.ndarray, along: np.ndarray, piece: np.ndarray) -> int | None:
+    """The index (points sorted by ``along``) where one more cut leaves the least squared residual, or None."""
+    best: tuple[float, int] | None = None
+    for label in range(int(piece.max()) + 1):
+        members = np.flatnonzero(piece == label)
+        first = int(np.searchsorted(along[members], along[members[0]] + FACE_PIECE_MIN_M))
+        end = int(np.searchsorted(along[members], along[members[-1]] - FACE_PIECE_MIN_M))
+        for k in range(first, end, max(1, (end - first) // FACE_CUTS_TRIED)):
+            _, residual = _common_slope(across, along, _cut_at(piece, int(members[k])))
+            squared = float(residual @ residual)
+            if best is None or squared < best[0]:
+                best = (squared, int(members[k]))
+    return None if best is None else best[1]
+
+
+def _cut_at(piece: np.ndarray, index: int) -> np.ndarray:
+    """``piece`` with the points of ``index``'s piece from ``index`` on made a piece of their own."""
+    cut = piece.copy()
+    tail = (np.arange(piece.size) >= index) & (piece == piece[index])
+    cut[tail] = piece.max() + 1
+    return cut
+
+
+def _step_holds(across: np.ndarray, along: np.ndarray, piece: np.ndarray, index: int) -> bool:
+    """Whether the step between the two pieces a cut at ``index`` makes is large and significant.
+
+    The step is the two pieces' lines' difference at the cut, along the common slope; its
+    standard error that of two fitted lines' values there (the residuals' scatter).
+    """
+    cut = _cut_at(piece, index)
+    slope, residual = _common_slope(across, along, cut)
+    sigma2 = float(residual @ residual) / max(1, across.size - int(cut.max()) - 2)
+    at_m = 0.5 * float(along[index - 1] + along[index])
+    values, variance = [], 0.0
+    for label in (piece[index], cut[index]):
+        members = cut == label
+        mean_along = float(along[members].mean())
+        spread = float(np.sum((along[members] - mean_along) ** 2))
+        values.append(float(across[members].mean()) + slope * (at_m - mean_along))
+        variance += sigma2 * (1.0 / members.sum() + (at_m - mean_along) ** 2 / max(spread, 1e-12))
+    step_m = abs(values[1] - values[0])
+    return step_m >= FACE_STEP_MIN_M and step_m >= FACE_STEP_SIGNIFICANCE * math.sqrt(variance)
 
 
 def _runs(gap_after: np.ndarray) -> list[tuple[int, int]]:

@@ -7,6 +7,7 @@ simulated mazes, built exactly and by hand, seen by a Slam standing there.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from mazebot.io.scan import Scan
 from mazebot.sim.world_source import make_world
 from mazebot.slam.ekf import OdometryHistory
 from mazebot.slam.slam import Slam, SlamParams
-from mazebot.slam.wall_faces import face_spread, face_turns
+from mazebot.slam.wall_faces import face_spread, face_turns, quarter_turns, wall_faces
 
 
 def board(centre: tuple[float, float], along_rad: float, length_m: float, normal_sign: float,
@@ -67,11 +68,15 @@ def standing_slam(world_build: str, seed: int, cast_scan) -> Slam:
     """A Slam that stood ``anchor_revolutions`` at the start of a bench 6×6 maze (its pose exact), then moved."""
     config = Config()
     config.sim.maze_build = world_build
-    world = make_world(config, None, seed, (6, 6))
+    return standing_slam_in(make_world(config, None, seed, (6, 6)), cast_scan)
+
+
+def standing_slam_in(world, cast_scan, **param_changes) -> Slam:
+    """A Slam that stood ``anchor_revolutions`` at ``world``'s start (its pose exact, 1 % range noise)."""
     history = OdometryHistory()
     history.append(0.0, 0.0, 0.0, 0.0)
     history.append(100.0, 0.0, 0.0, 0.0)
-    slam = Slam(SlamParams())
+    slam = Slam(replace(SlamParams(), **param_changes))
     pose = np.array(world.start_pose)
     for k in range(slam.params.anchor_revolutions):
         angles, ranges = cast_scan(world, pose, noise_rel=0.01, seed=k)
@@ -122,3 +127,84 @@ def test_faces_among_scattered_returns_are_the_boards_and_the_runs_are_np_split_
     for gaps in (np.array([], bool), np.array([False]), np.array([True, False, True, True]), rng.random(50) > 0.7):
         expected = np.split(np.arange(gaps.size + 1), np.flatnonzero(gaps) + 1)
         assert [(int(p[0]), int(p[-1]) + 1) for p in expected] == _runs(gaps)
+
+
+def test_a_face_over_two_boards_in_line_reads_their_turn_not_the_step_between_them() -> None:
+    # two boards of 0.28 m end to end (a 12 mm post between them), turned +0.2° and -0.6°, the second set
+    # 3.5 mm nearer: too little to split the face (FACE_GAP_ACROSS_M), and one line through both
+    # reads the step as a turn of about a degree
+    rng = np.random.default_rng(3)
+    turns_deg = (0.2, -0.6)
+    first = board((0.15, -0.146), math.pi / 2 + math.radians(turns_deg[0]), 0.28, -1.0, rng)
+    second = board((0.1465, 0.146), math.pi / 2 + math.radians(turns_deg[1]), 0.28, -1.0, rng)
+    points = np.concatenate((first[0], second[0]))
+    normals = np.concatenate((first[1], second[1]))
+    one_line = wall_faces(points, normals, 0.0)
+    stepped = wall_faces(points, normals, 0.0, steps=True)
+    assert len(one_line) == len(stepped) == 1  # one face either way: the same faces are kept
+    mean_deg = float(np.mean(turns_deg))
+    assert abs(math.degrees(quarter_turns(one_line.normal_rad)[0]) - mean_deg) > 0.5
+    assert math.degrees(quarter_turns(stepped.normal_rad)[0]) == pytest.approx(mean_deg, abs=0.15)
+
+
+def test_a_face_of_one_board_is_read_as_one_line_with_steps_asked_for() -> None:
+    rng = np.random.default_rng(4)
+    points, normals = board((0.0, 0.2), math.radians(0.4), 0.5, -1.0, rng)
+    one_line = wall_faces(points, normals, 0.0)
+    stepped = wall_faces(points, normals, 0.0, steps=True)
+    assert np.array_equal(one_line.normal_rad, stepped.normal_rad)  # no step: no cut
+
+
+def _true_turns_under(faces, start: np.ndarray, geometry) -> list[list[float]]:
+    """The simulator's turns (degrees) of the boards under each of keyframe 0's faces (its frame; ``start``
+    the true pose it stood at): boards along the face's line, within a board's thickness and 2 cm across and
+    overlapping its extent."""
+    c, s = math.cos(start[2]), math.sin(start[2])
+    ca, sa = math.cos(geometry.angle_rad), math.sin(geometry.angle_rad)
+    under = []
+    for (x, y), normal, half in zip(faces.centre_xy, faces.normal_rad, faces.half_length_m, strict=True):
+        wx, wy = start[0] + c * x - s * y, start[1] + s * x + c * y
+        u, v = ca * wx + sa * wy, -sa * wx + ca * wy
+        on_grid = normal + start[2] - geometry.angle_rad
+        along_axis = 1 if round((on_grid - math.remainder(on_grid, math.pi / 2)) / (math.pi / 2)) % 2 == 0 else 0
+        across, along = (u, v) if along_axis == 1 else (v, u)
+        turns = []
+        for cu, cv, axis, _, turn, thickness, length in geometry.boards:
+            board_across, board_along = (cu, cv) if along_axis == 1 else (cv, cu)
+            if (int(axis) == along_axis and abs(board_across - across) < 0.5 * thickness + 0.02
+                    and abs(board_along - along) < 0.5 * length + half - 0.01):
+                turns.append(math.degrees(turn))
+        under.append(turns)
+    return under
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 6, 7])
+def test_the_start_s_faces_at_rest_read_the_boards_under_them_across_the_steps(seed: int, cast_scan) -> None:
+    # The bench's hand-built 8x8 mazes of these seeds: a face seen from the start runs over two or three
+    # boards in line, and one line through the steps between them read it 1.2-2.3° off its boards' mean
+    # turn (seed 6: -2.15° over boards at +0.21° and -0.75°), so the map's anchor stood 0.5-0.9° off the
+    # maze's grid and the whole map turned about the start with it. Read across the steps, every face is
+    # within 0.9° of its boards' mean turn.
+    from mazebot.sim.hand_maze import HandBuild, hand_geometry
+    from mazebot.sim.maze_generator import generate_maze
+
+    config = Config()
+    config.sim.maze_build = "hand"  # type: ignore[assignment]
+    world = make_world(config, None, seed, (8, 8))
+    layout = generate_maze(8, 8, seed, kind=config.sim.maze_kind, cell_size_m=config.sim.cell_size_m)
+    geometry = hand_geometry(layout, HandBuild.from_sim(config.sim), seed)
+    start = np.array(world.start_pose)
+    grid = float(geometry.angle_rad - start[2])  # the maze's grid in keyframe 0's frame
+    errors = {}
+    for steps in (False, True):
+        slam = standing_slam_in(world, cast_scan, rest_face_steps=steps)
+        assert slam.anchor_face_spread_rad is not None
+        faces = slam._start_faces
+        assert faces is not None and len(faces) >= 3
+        measured = np.degrees(quarter_turns(faces.normal_rad - grid))
+        boards = _true_turns_under(faces, start, geometry)
+        assert all(boards)
+        errors[steps] = np.abs(measured - np.array([np.mean(b) for b in boards]))
+    assert errors[False].max() > 1.2  # one line through the steps: a face read more than a degree off
+    assert errors[True].max() < 0.9, errors[True]

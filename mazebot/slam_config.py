@@ -395,6 +395,10 @@ class FilterSection:
         "learn the odometry's distance scale (the wheels' mean diameter) from the scan matches that fix the "
         "direction of travel, with the heading calibration's memory and limit, applied as its posterior mean "
         "under a prior of a couple of percent on the wheels"))] = False
+    distance_scale_degenerate_only: Annotated[bool, Field(description=(
+        "with calibrate_distance: the learnt distance scale moves the pose only along the free direction of a "
+        "match that leaves the direction of travel to the odometry (a corridor driven along), every other "
+        "prediction taking the odometry's own length as with the calibration off"))] = False
     calibrate_lever_arm: Annotated[bool, Field(description=(
         "learn where the tracked sensor sits relative to the point the odometry measures from the matched "
         "turns, with the heading calibration's memory and test (on for laser logs, whose laser may sit ahead "

@@ -816,11 +816,17 @@ class Slam:
 
         # 2. predict: the odometry increment since the last scan moves the filter
         raw_increment = calibrated_increment = predicted_increment = None
+        distance_shift_m = None  # the distance scale's move of this step, held back for a degenerate match
         if self._last_odom is None:
             self.ekf.reset(compose(self.initial_pose, odom), self.ekf.covariance)
         else:
             raw_increment = relative_pose(self._last_odom, odom)
-            calibrated_increment = self.distance_calibration.correct(self.calibration.correct(raw_increment))
+            heading_calibrated = self.calibration.correct(raw_increment)
+            if p.distance_scale_degenerate_only:
+                calibrated_increment = heading_calibrated
+                distance_shift_m = self._distance_shift_m(heading_calibrated)
+            else:
+                calibrated_increment = self.distance_calibration.correct(heading_calibrated)
             predicted_increment = self.lever_arm.correct(calibrated_increment)
             self.ekf.predict(predicted_increment)
         if self._motion_unknown:
@@ -847,6 +853,8 @@ class Slam:
             self.matches_widened += int(widened_m2 > 0.0)
         if match is not None and good_match and p.match_deskew_variance and predicted_increment is not None:
             match = self._deskewed(match, predicted_increment, predicted_theta)
+        if match is not None and good_match and distance_shift_m is not None:
+            self._shift_along_free_direction(match, distance_shift_m)
         if match is not None and good_match:
             matched = self.ekf.correct(match.pose, match.information * p.match_information_scale)
         if callable(paint):
@@ -1677,6 +1685,28 @@ class Slam:
             return refined
         return match
 
+    def _distance_shift_m(self, increment: np.ndarray) -> np.ndarray:
+        """The map-frame move (x, y) the distance calibration would add to the prediction by ``increment`` from the
+        filter's pose before it (:meth:`DistanceCalibration.correct`: the translation times ``1 + m``)."""
+        theta = float(self.ekf.mean[2])
+        dx, dy = self.distance_calibration.estimate * float(increment[0]), self.distance_calibration.estimate * float(
+            increment[1])
+        return np.array([math.cos(theta) * dx - math.sin(theta) * dy, math.sin(theta) * dx + math.cos(theta) * dy])
+
+    def _shift_along_free_direction(self, match: IcpResult, shift_m: np.ndarray) -> None:
+        """The prediction moved by the distance scale's ``shift_m`` along the match's free direction, when that
+        direction is the direction of travel (``distance_scale_degenerate_only``).
+
+        There the match leaves the pose to the prediction, so the step takes the odometry's length, scaled or
+        not (Borenstein & Feng 1996: ``E_s``); where a match fixes the direction of travel the scan decides and the
+        prediction keeps the raw odometry's length, as with the calibration off, so that every run whose matches
+        fix their steps computes what it computed without the calibration."""
+        if match.weak_direction is None or fixes_travel(match.degenerate, match.weak_direction, float(match.pose[2])):
+            return
+        free_xy = np.asarray(match.weak_direction, dtype=np.float64)[:2]
+        free_xy = free_xy / float(np.hypot(free_xy[0], free_xy[1]))
+        self.ekf.mean[:2] += float(shift_m @ free_xy) * free_xy
+
     def _observe_distance(self, match: IcpResult | None, raw_increment: np.ndarray | None) -> None:
         """One sample of the odometry's distance scale if this scan's match and the previous scan's fixed the
         pose along the direction of travel (:mod:`mazebot.slam.distance_calibration`): the step between the two
@@ -1768,7 +1798,9 @@ class Slam:
             x, y, th = odometry.at(times_s)
             rel = relative_pose(end_odom, np.column_stack((np.ravel(x), np.ravel(y), np.ravel(th))))
             theta = rel[:, 2] if calibration is None else calibration.correct_many(rel[:, 0], rel[:, 2])
-            x, y = self.distance_calibration.correct_many(rel[:, 0], rel[:, 1])
+            x, y = rel[:, 0], rel[:, 1]
+            if not self.params.distance_scale_degenerate_only:
+                x, y = self.distance_calibration.correct_many(x, y)
             return x, y, theta
 
         return pose_at

@@ -283,6 +283,10 @@ class LoopSection:
     dcs_phi: Annotated[float, Field(ge=0, description=(
         "dynamic covariance scaling (Agarwal et al., ICRA 2013): a closure whose chi2 exceeds this loses "
         "weight in the optimization (0: plain least squares)"))] = 11.34
+    dcs_sequential_phi: Annotated[float, Field(ge=0, description=(
+        "the same scaling on the sequential edges that an accepted closure spans (a cycle the loops close), with "
+        "this phi: a match wrong along a corridor that the loops contradict loses weight; an edge no closure spans "
+        "keeps its whole weight, or the chain would come apart (0: the sequential edges trusted whole)"))] = 0.0
     min_std_m: Annotated[float, Field(gt=0, description=(
         "floor of the chain's position std in the consistency test"))] = 0.005
     min_std_rad: Annotated[float, Field(gt=0, description="floor of the chain's heading std")] = 0.005

@@ -102,7 +102,7 @@ from mazebot.slam.params import GridParams as GridParams  # re-exported: the faÃ
 from mazebot.slam.params import SlamParams as SlamParams
 from mazebot.slam.posegraph import OptimizeResult, PoseGraph
 from mazebot.slam.preprocess import PoseAtTime, PreparedScan, prepare_scan, voxel_downsample
-from mazebot.slam.robust_closures import optimize_dcs
+from mazebot.slam.robust_closures import DOWNWEIGHTED, optimize_dcs, robust_edges
 from mazebot.slam.start_anchor import (
     BOARD_TURN_STD_RAD,
     StartFit,
@@ -163,7 +163,11 @@ class LoopClosureResult:
     lattice_fit: PitchFit | None = None  # the lattice the walls were fitted to (None: not looked for)
     lattice_fit_keyframes: int = 0  # how many keyframes the job had when that lattice was fitted
     cpu_s: float = 0.0  # thread CPU time the job took (where it ran: a thread or a worker process)
-    downweighted: int = 0  # loop closures in the graph whose robust weight fell below 0.1 (robust_closures)
+    downweighted: int = 0  # loop closures in the graph whose robust weight fell below DOWNWEIGHTED (robust_closures)
+    # sequential edges made robust ([slam.loop] dcs_sequential_phi: the ones a closure spans), and of them those
+    # whose weight fell below DOWNWEIGHTED
+    sequential_robust: int = 0
+    sequential_downweighted: int = 0
     # closures waiting for a set (``tentative`` verdicts, of this job or before) that the set accepted
     set_accepted: tuple[Verdict, ...] = ()
     # the wall grid's direction in keyframe 0's frame and its std, measured by each closure to keyframe 0's
@@ -296,9 +300,9 @@ class LoopClosureJob:
             parts.append((priors.i, priors.j, priors.z, priors.information))
         edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
         ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
-        closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k
+        robust_mask, phi, sequential = robust_edges(ai, aj, count, p.loop.dcs_phi, p.loop.dcs_sequential_phi)
         robust = optimize_dcs(
-            vertices, (ai, aj, edges[2], edges[3]), closure, p.loop.dcs_phi, max_iterations=p.optimize_iterations
+            vertices, (ai, aj, edges[2], edges[3]), robust_mask, phi, max_iterations=p.optimize_iterations
         )
         optimization = robust.optimization
         wall_reference = None if priors is None else wrap_quarter(float(robust.vertices[count, 2]))
@@ -322,7 +326,9 @@ class LoopClosureJob:
             wall_reference,
             lattice_fit=self.lattice_fit,
             lattice_fit_keyframes=self.lattice_fit_keyframes,
-            downweighted=int(np.sum(robust.weights < 0.1)),
+            downweighted=int(np.sum(robust.weights[~sequential] < DOWNWEIGHTED)),
+            sequential_downweighted=int(np.sum(robust.weights[sequential] < DOWNWEIGHTED)),
+            sequential_robust=int(np.count_nonzero(sequential)),
             set_accepted=tuple(set_accepted),
             start_turns=start_turns,
         )
@@ -630,6 +636,8 @@ class Slam:
         # the recent matches' residuals: the doubt, match_residual_ratio and the every-heading search judge by them
         self._residuals = MatchResiduals(p.match_doubt_ratio, p.match_doubt_scans)
         self.closures_downweighted = 0  # loop closures the last optimization all but switched off
+        self.sequential_robust = 0  # sequential edges the last optimization made robust (dcs_sequential_phi)
+        self.sequential_downweighted = 0  # ... and of them the ones it all but switched off
         self.closures_from_set = 0  # loop closures a set accepted after the thresholds refused them
         # closures verified as a set: recent ones in the graph, and tentative ones waiting (closure_set)
         self._set_members: list[Verdict] = []
@@ -998,6 +1006,8 @@ class Slam:
         if result.poses is None:
             return False
         self.closures_downweighted = result.downweighted
+        self.sequential_robust = result.sequential_robust
+        self.sequential_downweighted = result.sequential_downweighted
         if result.wall_reference_rad is not None:
             self.wall_reference_rad = result.wall_reference_rad
         count = result.poses.shape[0]

@@ -622,6 +622,8 @@ def run_carmen(
         "loop_closures_rejected": sum(slam.rejections.values()),
         "rejections": dict(slam.rejections.most_common()),
         "loop_closures_downweighted": slam.closures_downweighted,
+        "sequential_robust": slam.sequential_robust,
+        "sequential_downweighted": slam.sequential_downweighted,
         "loop_closures_set": slam.closures_from_set,
         "loop_closures_off_reference": closures_off_reference(slam, keyframe_scans, reference) if judged else None,
         "odometry_gaps": int(np.count_nonzero(gaps)),

@@ -132,6 +132,10 @@ class IcpParams:
     information_cluster_filter: Annotated[bool, Field(description=(
         "the filter takes that clustered information too (false: only the pose graph's sequential edges and loop "
         "closures do; the filter, and the correlative window its uncertainty sets, keep the Hessian's)"))] = True
+    fitness_beam_spacing: Annotated[float, Field(ge=0, description=(
+        "the sequential match's inlier ratio also counts a scan point whose nearest submap point lies within this "
+        "many times the spacing of neighbouring beams' hits at its range (range x the scan's angular step), where "
+        "that is wider than ICP's gate; the pose is not changed (0: off, the gate alone)"))] = 0.0
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:

@@ -671,6 +671,7 @@ class Slam:
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
         self.matches_seen_rescued = 0  # sequential matches counted by their inliers where the submap saw
+        self.matches_spacing_rescued = 0  # acceptable sequential matches the gate's inliers alone would refuse
         self.matches_widened = 0  # sequential matches whose basin did not hold along their weakest direction
         self.degenerate_retries = 0  # degenerate sequential matches tried again along their free direction
         self.degenerate_retries_won = 0  # ... and replaced by a restart that fixed every direction
@@ -838,6 +839,8 @@ class Slam:
         matched = False
         predicted_theta = float(self.ekf.mean[2])
         good_match = match is not None and self.acceptable(match)
+        if good_match and match is not None and match.gated_fitness is not None:
+            self.matches_spacing_rescued += int(match.gated_fitness < p.min_match_fitness)
         if match is not None and good_match and p.basin_probe_m > 0.0:
             assert self.target is not None
             match, widened_m2 = yield from probed_steps(
@@ -1337,7 +1340,8 @@ class Slam:
         assert self.target is not None
         guess = self.ekf.mean
         match = yield from match_scan_steps(
-            self.target, prepared.points_match, guess, p.icp, sensor_xy=prepared.sensor_xy
+            self.target, prepared.points_match, guess, p.icp, sensor_xy=prepared.sensor_xy,
+            beam_step_rad=self._beam_step_rad(prepared),
         )
         if p.correlative is not None and self._search_wanted(match, guess):
             yield
@@ -1352,7 +1356,8 @@ class Slam:
             yield
             start = guess + np.array([0.0, 0.0, turn])
             retry = yield from match_scan_steps(
-                self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy, prior_pose=guess
+                self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy, prior_pose=guess,
+                beam_step_rad=self._beam_step_rad(prepared),
             )
             if self._better_retry(retry, best):
                 best = retry
@@ -1361,6 +1366,15 @@ class Slam:
         if not self.acceptable(match) and p.match_overlap_fitness:
             return self._judged_where_seen(prepared, match)
         return match  # acceptable but turned beyond the gate, and no match within it: the scan's evidence stands
+
+    def _beam_step_rad(self, prepared: PreparedScan) -> float:
+        """The angle between the scan's neighbouring beams (the median step between its kept hits' bearings), for
+        the inlier ratio counted at the beams' spacing (``[slam.icp] fitness_beam_spacing``; 0 when that is off)."""
+        if self.params.icp.fitness_beam_spacing <= 0.0 or prepared.angle_rad.size < 2:
+            return 0.0
+        steps_rad = np.abs(np.diff(prepared.angle_rad))
+        steps_rad = steps_rad[(steps_rad > 0.0) & (steps_rad < math.pi)]
+        return float(np.median(steps_rad)) if steps_rad.size else 0.0
 
     def _degenerate_retry_steps(self, prepared: PreparedScan, match: IcpResult) -> Generator[None, None, IcpResult]:
         """``match`` matched again from the prediction moved along the direction ICP left free, where that fixes it.
@@ -1402,7 +1416,8 @@ class Slam:
                 yield
                 start = guess + np.append(side * multiple * sigma_m * along, 0.0)
                 retry = yield from match_scan_steps(
-                    self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy
+                    self.target, prepared.points_match, start, p.icp, sensor_xy=prepared.sensor_xy,
+                    beam_step_rad=self._beam_step_rad(prepared),
                 )
                 offset_m = float(along @ (retry.pose[:2] - guess[:2]))
                 if (self.acceptable(retry) and not retry.degenerate and retry.rmse_m < best.rmse_m
@@ -1623,7 +1638,8 @@ class Slam:
             return table, src, None
         yield
         refined = yield from match_scan_steps(
-            self.target, prepared.points_match, found.pose, p.icp, sensor_xy=prepared.sensor_xy
+            self.target, prepared.points_match, found.pose, p.icp, sensor_xy=prepared.sensor_xy,
+            beam_step_rad=self._beam_step_rad(prepared),
         )
         return table, src, refined
 

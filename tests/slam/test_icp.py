@@ -401,3 +401,72 @@ def test_intel_triangles_the_clustered_information_is_nearer_calibrated(intel_lo
         medians[cluster_rad] = float(np.median([_triangle_chi2(lasers, i, params) for i in range(0, 100, 2)]))
     assert medians[0.0] > 5.0
     assert 1.5 < medians[0.35] < 0.7 * medians[0.0]
+
+
+#: a 1° laser, the laser logs' (SICK LMS in its 1° mode)
+BEAM_STEP_RAD = math.radians(1.0)
+
+
+def _wall_hits(bearings_rad: np.ndarray, normal: tuple[float, float], offset_m: float) -> np.ndarray:
+    """Where beams from the origin at ``bearings_rad`` hit the line ``nᵀx = offset_m``."""
+    n = np.asarray(normal, dtype=np.float64)
+    beams = np.column_stack((np.cos(bearings_rad), np.sin(bearings_rad)))
+    return beams * (offset_m / (beams @ n))[:, None]
+
+
+def _room_with_a_far_wall(far_wall_m: float, bearing_shift_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """A scan from the origin at 1° steps: near walls 1–1.6 m away behind and to the right, a wall ``far_wall_m`` ahead
+    (more than half the points); the walls' unit normals (towards the origin) with it.
+
+    ``bearing_shift_rad`` turns the bearings of the far wall's beams: half a step gives a submap whose far points
+    lie between the scan's, as one seen from another pose does.
+    """
+    near_behind = np.radians(np.arange(160.0, 201.0))  # x = −1.5, 41 beams
+    near_right = np.radians(np.arange(-80.0, -59.0))  # y = −1, 21 beams
+    far = np.radians(np.arange(-35.0, 36.0)) + bearing_shift_rad  # x = far_wall_m, 71 beams
+    points = np.vstack((
+        _wall_hits(near_behind, (-1.0, 0.0), 1.5), _wall_hits(near_right, (0.0, -1.0), 1.0),
+        _wall_hits(far, (1.0, 0.0), far_wall_m),
+    ))
+    normals = np.vstack((
+        np.tile((1.0, 0.0), (near_behind.size, 1)), np.tile((0.0, 1.0), (near_right.size, 1)),
+        np.tile((-1.0, 0.0), (far.size, 1)),
+    ))
+    return points, normals
+
+
+def _far_wall_match(fitness_beam_spacing: float, far_wall_m: float = 10.0) -> IcpResult:
+    """The scan matched from the true pose (the origin) against a submap of the same walls whose far points lie
+    half a beam step aside (8.7 cm at 10 m), near walls sampled densely, through a fixed gate of 5 cm."""
+    target_points, target_normals = _room_with_a_far_wall(10.0, 0.5 * BEAM_STEP_RAD)
+    dense_behind = np.column_stack((np.full(300, -1.5), np.linspace(-0.55, 0.55, 300)))
+    dense_right = np.column_stack((np.linspace(0.17, 0.58, 100), np.full(100, -1.0)))
+    far_only = target_points[np.isclose(target_points[:, 0], 10.0)]
+    points = np.vstack((dense_behind, dense_right, far_only))
+    normals = np.vstack((
+        np.tile((1.0, 0.0), (300, 1)), np.tile((0.0, 1.0), (100, 1)), np.tile((-1.0, 0.0), (far_only.shape[0], 1)),
+    ))
+    assert target_normals.shape[1] == 2
+    target = Target(points, viewpoints_xy=np.zeros(2), normals=normals)
+    scan, _ = _room_with_a_far_wall(far_wall_m, 0.0)
+    params = IcpParams(max_correspondence_m=0.05, min_correspondence_m=0.05, fitness_beam_spacing=fitness_beam_spacing)
+    return match_scan(target, scan, np.zeros(3), params, beam_step_rad=BEAM_STEP_RAD)
+
+
+def test_a_right_match_counts_a_far_walls_points_within_the_beams_spacing() -> None:
+    """At 10 m a 1° laser's hits are 17 cm apart, the submap's nearest far point up to half that from a right
+    scan point and beyond ICP's gate: the gate alone counts the match's inliers under a half; the beams' spacing
+    counts them, and the pose is the same (the truth)."""
+    gated = _far_wall_match(0.0)
+    spaced = _far_wall_match(1.0)
+    assert gated.fitness < 0.5
+    assert spaced.fitness >= 0.9
+    assert spaced.gated_fitness == pytest.approx(gated.fitness)
+    np.testing.assert_array_equal(spaced.pose, gated.pose)
+    assert float(np.hypot(*spaced.pose[:2])) < 1e-3 and abs(float(spaced.pose[2])) < math.radians(0.05)
+
+
+def test_the_beams_spacing_does_not_count_a_wall_half_a_metre_off() -> None:
+    """The scan's far wall 0.5 m beyond the submap's (another wall): its points stay outside the spacing (17 cm)."""
+    spaced = _far_wall_match(1.0, far_wall_m=10.5)
+    assert spaced.fitness < 0.5

@@ -580,9 +580,9 @@ class WallSection:
         "off: the judged anchor alone"))] = True
     rest_face_steps: Annotated[bool, Field(description=(
         "each face keyframe 0 sees at rest is read across the steps between boards in line (one direction, "
-        "an offset per board, cut where the step is at least 3 mm and 5 standard errors) instead of one line "
-        "through them: the start's faces read their boards' turns, not the steps between them; off: one line "
-        "per face"))] = False
+        "an offset per board, cut where the step is large and significant: mazebot.slam.wall_faces) instead "
+        "of one line through them: the start's faces read their boards' turns, not the steps between them; "
+        "off: one line per face"))] = False
 
 
 @dataclass(frozen=True)

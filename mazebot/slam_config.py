@@ -497,6 +497,15 @@ class MatchingSection:
         "... and such a match's information is this share of ICP's: few inliers at a doorway, less sure than "
         "its Hessian says (against the Intel log's corrected poses ICP's information looked 64 times too sure; "
         "about 3 times on triangles of its scans, which need no reference)"))] = 1 / 64
+    near_gate_fitness: Annotated[float, Field(ge=0, le=1, description=(
+        "a sequential match refused only for its inlier ratio, that nothing else rescued, whose ratio is at least "
+        "this (under min_match_fitness) is taken if it agrees with the odometry's prediction within near_gate_chi2, "
+        "its information scaled from none at this ratio to all of it at min_match_fitness: its weight no longer "
+        "jumps at the gate (mazebot.slam.near_gate; 0: off)"))] = 0.0
+    near_gate_chi2: Annotated[float, Field(gt=0, description=(
+        "... agreeing: its squared Mahalanobis distance from the prediction, under the prediction's covariance plus "
+        "the match's scaled one, at most this (χ² of 3 degrees of freedom at 99.9 %, the filter's own gate on the "
+        "maze robot, filter_gate_chi2)"))] = 16.27
 
 
 @dataclass(frozen=True)

@@ -96,6 +96,7 @@ from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.lever_arm import LeverArmCalibration
 from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, keyframe_gap, verify
 from mazebot.slam.match_residuals import MatchResiduals
+from mazebot.slam.near_gate import NearGateMatch, agreed_near_gate
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
 from mazebot.slam.overlap import ObservedArea
 from mazebot.slam.params import GridParams as GridParams  # re-exported: the façade's parameter objects
@@ -671,6 +672,7 @@ class Slam:
         self._target_position: np.ndarray | None = None
         self._target_keyframes: list[int] = []  # the keyframes the local submap was built from
         self.matches_seen_rescued = 0  # sequential matches counted by their inliers where the submap saw
+        self.matches_near_gate = 0  # sequential matches under the inlier gate taken as agreeing with the prediction
         self.matches_widened = 0  # sequential matches whose basin did not hold along their weakest direction
         self.degenerate_retries = 0  # degenerate sequential matches tried again along their free direction
         self.degenerate_retries_won = 0  # ... and replaced by a restart that fixed every direction
@@ -1274,12 +1276,15 @@ class Slam:
     def acceptable(self, match: IcpResult) -> bool:
         """A match good enough by SLAM's own limits (converged, inlier ratio, residual).
 
-        With ``match_residual_ratio`` the residual must also stay within that many times the recent matched
-        scans' median (:mod:`mazebot.slam.match_residuals`): one limit adapted to how well the run's right
+        A match under the inlier ratio that agreed with the prediction (:class:`NearGateMatch`,
+        ``near_gate_fitness``) passes the ratio for what it is. With ``match_residual_ratio`` the
+        residual must also stay within that many times the recent matched scans' median
+        (:mod:`mazebot.slam.match_residuals`): one limit adapted to how well the run's right
         matches fit, rather than ``max_match_rmse_m`` alone (1 m on the laser logs).
         """
         p = self.params
-        return (match.converged and match.fitness >= p.min_match_fitness and match.rmse_m <= p.max_match_rmse_m
+        enough = match.fitness >= p.min_match_fitness or isinstance(match, NearGateMatch)
+        return (match.converged and enough and match.rmse_m <= p.max_match_rmse_m
                 and not self._residuals.in_doubt(match.rmse_m, p.match_residual_ratio))
 
     def usable(self, match: IcpResult) -> bool:
@@ -1359,7 +1364,9 @@ class Slam:
         if best is not None and (self.usable(best) or not self.acceptable(match)):
             return best
         if not self.acceptable(match) and p.match_overlap_fitness:
-            return self._judged_where_seen(prepared, match)
+            match = self._judged_where_seen(prepared, match)
+        if not self.acceptable(match) and p.near_gate_fitness > 0.0:
+            return self._agreed_near_gate(match)
         return match  # acceptable but turned beyond the gate, and no match within it: the scan's evidence stands
 
     def _degenerate_retry_steps(self, prepared: PreparedScan, match: IcpResult) -> Generator[None, None, IcpResult]:
@@ -1463,6 +1470,24 @@ class Slam:
         scale = p.match_overlap_information_scale
         graph = None if match.graph_information is None else match.graph_information * scale
         return replace(match, fitness=ratio, information=match.information * scale, graph_information=graph)
+
+    def _agreed_near_gate(self, match: IcpResult) -> IcpResult:
+        """``match``, refused only for its inlier ratio, taken at a share of its information if it agrees with the
+        prediction (:mod:`mazebot.slam.near_gate`); otherwise ``match`` as it was.
+
+        Called where the filter holds the prediction. A match refused for its residual or the
+        residual's doubt, or that did not converge, stays refused.
+        """
+        p = self.params
+        if (not match.converged or match.rmse_m > p.max_match_rmse_m
+                or self._residuals.in_doubt(match.rmse_m, p.match_residual_ratio)):
+            return match
+        agreed = agreed_near_gate(match, self.ekf, p.near_gate_fitness, p.min_match_fitness, p.near_gate_chi2,
+                                  p.match_information_scale)
+        if agreed is None:
+            return match
+        self.matches_near_gate += 1
+        return agreed
 
     _match = all_at_once_method(
         _match_steps,

@@ -635,6 +635,7 @@ def run_carmen(
         "matches_doubted": slam.matches_doubted,
         "doubts_won": slam.doubts_won,
         "matches_seen_rescued": slam.matches_seen_rescued,
+        "matches_near_gate": slam.matches_near_gate,
         "matches_widened": slam.matches_widened,
         "degenerate_retries": slam.degenerate_retries,
         "degenerate_retries_won": slam.degenerate_retries_won,

@@ -642,7 +642,7 @@ def weak_direction_rival(
     frame, the corridor's end, or a submap that stops short of where the scan still sees walls, so
     that the scan fits best where most of it lies over the submap. On the ACES log two closures
     came 1.7 m and 2.8 m along a corridor from the right place, each claiming 3 cm, the prior
-    within 7 cm of the truth: the submap's keyframes had kept walls only to 4–5 m ahead, and the
+    within 7 cm of the truth: the submap's keyframes had kept walls only to 4–6 m ahead, and the
     scan slid back along the corridor onto them. A match is only to be believed along such a
     direction where its score there stands out. The scan is scored (the correlative table of
     :mod:`mazebot.slam.correlative`, ``search``'s cells and smoothing and points) at the match's

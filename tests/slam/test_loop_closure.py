@@ -421,12 +421,12 @@ def _aces_keyframe_closure(old: int, new: int, prior_error: np.ndarray, weak_dir
 @pytest.mark.slow
 def test_a_closure_slid_along_a_real_corridor_onto_the_submaps_end_is_refused() -> None:
     """The ACES log's return at scan 363 to scan 194's corridor, the chain's prior at the right place but for its
-    heading (1° off, as the runs with the heading floor had it). Each keyframe keeps walls only to 4-5 m ahead
-    (its surface from its own 1° beams), while the new scan sees 20 m down the corridor: at the right place a
-    fifth of its points lie on the submap, ICP from the prior fails, and the closure search finds where most of
-    the scan lies over the submap, 2.75 m back along the corridor, where a feature pins ICP (a 3 cm claim). It
-    passes every other test (the chain's σ is 1.3 m). Along the match's weakest direction, the scan scores
-    0.94 of the match's score half a metre back toward the prior: refused."""
+    heading (1° off, as the runs with the heading floor had it). Each keyframe keeps walls only to 4-6 m ahead
+    (its own 1° beams give its hits beyond 6 m no normal), while the new scan sees 20 m down the corridor: at the
+    right place (in the run) a fifth of its points lay within 0.1 m of the submap, ICP from the prior fails, and
+    the closure search finds where most of the scan lies over the submap, 2.75 m back along the corridor, where a
+    feature pins ICP (a 3 cm claim). It passes every other test (the chain's σ is 1.3 m). Along the match's weakest
+    direction, the scan scores 0.94 of the match's score half a metre back toward the prior: refused."""
     error = np.array([0.0, 0.0, math.radians(1.0)])
     slid, truth = _aces_keyframe_closure(194, 363, error, 0.0)
     assert slid.accepted and np.hypot(*relative_pose(truth, slid.measurement)[:2]) > 2.0  # the look-alike, off

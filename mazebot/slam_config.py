@@ -278,6 +278,11 @@ class LoopSection:
     search_peak_separation_m: Annotated[float, Field(gt=0, description=(
         "... counting poses this far from the best and farther and parted from it by a dip in the score below "
         "that share of theirs (nearer ones, and a ridge along a corridor, are the best's own peak)"))] = 1.0
+    weak_direction_ratio: Annotated[float, Field(ge=0, le=1, description=(
+        "refuse a closure whose match lies farther than ICP's correspondence gate from the prior along the "
+        "match's weakest direction when the scan scores at least this share of the match's score at a pose on "
+        "the way back toward the prior: a corridor's walls fit all along it, and the match pulled the chain "
+        "along it where the scan fits no better (0: off)"))] = 0.0
     information_scale: Annotated[float, Field(gt=0, le=1, description=(
         "scale of a loop closure's ICP information"))] = 0.1
     dcs_phi: Annotated[float, Field(ge=0, description=(

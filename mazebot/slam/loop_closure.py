@@ -53,7 +53,11 @@ search is accepted with it too. Accepted only if
    residual at most ``ambiguity_rmse_ratio`` times its (relative, because at the edge
    of the lidar's range a shifted copy always loses a few points); and a closure the
    correlative search found is refused when its window holds another alignment that
-   scores nearly as well (``search_ambiguity_ratio``, :meth:`WindowSearch.rival`).
+   scores nearly as well (``search_ambiguity_ratio``, :meth:`WindowSearch.rival`);
+5. with ``weak_direction_ratio``, it does not slide the chain along a ridge: a match that
+   lies farther than ICP's correspondence gate from the prior along its own weakest
+   direction is refused when the scan scores nearly as well on the way back toward the
+   prior (:func:`weak_direction_rival`).
 """
 
 from __future__ import annotations
@@ -360,6 +364,14 @@ def _verify_from(
             elsewhere = math.hypot(apart[0], apart[1]) > params.ambiguity_tolerance_m
             if elsewhere and _as_good(other, result, params):
                 return short or _reject(candidate, "ambiguous", "another alignment one shift away fits as well", **fit)
+    # 5. not slid along a ridge (a degenerate closure keeps the prior along its free direction already)
+    if params.weak_direction_ratio > 0 and observed_dirs is None:
+        slid = weak_direction_rival(
+            result, candidate.prior, target, source_xy, sensor_xy, icp.max_correspondence_m,
+            params.weak_direction_ratio, params.search or CorrelativeParams(),
+        )
+        if slid:
+            return short or _reject(candidate, "ambiguous along its weakest direction", slid, **fit)
     if observed_dirs is not None:
         icp_information = observed_dirs.information
     information = rotate_information(icp_information, float(measurement[2]))
@@ -598,6 +610,70 @@ def search_window(
     if found.score < search.min_score:
         return None
     return WindowSearch(found, table, src, np.asarray(sensor_xy, dtype=np.float64), prior, search)
+
+
+def weakest_translation(information: np.ndarray) -> np.ndarray:
+    """The unit translation (2,) a match's information (3×3, x y θ) pins least, its heading left free.
+
+    The information of the position alone, whatever the heading, is the Schur complement of the
+    heading's block (the marginal's information); its smallest eigenvalue's vector is the direction
+    along which the scan fits about as well a little way off: along a corridor, its axis.
+    """
+    info = 0.5 * (np.asarray(information, dtype=np.float64) + np.asarray(information, dtype=np.float64).T)
+    position = info[:2, :2]
+    if info[2, 2] > 0:
+        position = position - np.outer(info[:2, 2], info[2, :2]) / info[2, 2]
+    return np.asarray(np.linalg.eigh(position)[1][:, 0], dtype=np.float64)
+
+
+def weak_direction_rival(
+    result: IcpResult,
+    prior: np.ndarray,
+    target: Target,
+    source_xy: np.ndarray,
+    sensor_xy: np.ndarray,
+    separation_m: float,
+    ratio: float,
+    search: CorrelativeParams,
+) -> str:
+    """Empty, or why ``result`` slid the chain along its weakest direction where the scan fits no better.
+
+    Along a corridor the scan fits the walls all along it; what pins the match there is a door
+    frame, the corridor's end, or a submap that stops short of where the scan still sees walls, so
+    that the scan fits best where most of it lies over the submap. On the ACES log two closures
+    came 1.7 m and 2.8 m along a corridor from the right place, each claiming 3 cm, the prior
+    within 7 cm of the truth: the submap's keyframes had kept walls only to 4–6 m ahead, and the
+    scan slid back along the corridor onto them. A match is only to be believed along such a
+    direction where its score there stands out. The scan is scored (the correlative table of
+    :mod:`mazebot.slam.correlative`, ``search``'s cells and smoothing and points) at the match's
+    heading along the match's weakest direction (:func:`weakest_translation`), from
+    ``separation_m`` (ICP's gate: a start nearer would converge back to the match) to where the
+    prior lies along it; a pose scoring ``ratio`` of the match's own says the scan cannot tell the
+    match from the way back to the chain's estimate, and the closure is refused (Olson,
+    "Recognizing places using spectrally clustered local matches", RAS 2009: a match is accepted
+    only where no other hypothesis within the prior's uncertainty explains the data about as well;
+    the ratio as in Lowe, IJCV 2004, section 7.1). Only the way back toward the prior is asked: a
+    match at the prior with a ridge running on beyond it moves the chain nowhere along the ridge.
+    """
+    along = weakest_translation(result.edge_information)
+    pose = np.asarray(result.pose, dtype=np.float64)
+    slide_m = float(along @ (np.asarray(prior, dtype=np.float64)[:2] - pose[:2]))
+    if abs(slide_m) < separation_m:
+        return ""
+    points = select_points(source_xy, sensor_xy, search)
+    sensor_m = math.hypot(*np.asarray(sensor_xy, dtype=np.float64).reshape(2))
+    centre = pose[:2] + 0.5 * slide_m * along
+    reach_m = 0.5 * abs(slide_m) + sensor_m + search.max_range_m + 3.0 * search.sigma_m + 0.5
+    table = LikelihoodTable(target.points, search.resolution_m, search.sigma_m, levels=0, crop=(centre, reach_m))
+    steps = np.arange(separation_m, abs(slide_m) + 1e-9, search.resolution_m) * math.copysign(1.0, slide_m)
+    poses = np.column_stack((pose[0] + steps * along[0], pose[1] + steps * along[1], np.full(steps.size, pose[2])))
+    own = float(table.score(pose[None, :], points)[0])
+    scores = table.score(poses, points)
+    best = int(np.argmax(scores))
+    if own <= 0 or scores[best] < ratio * own:
+        return ""
+    back_m = abs(float(steps[best]))
+    return f"{scores[best] / own:.2f} of its score {back_m:.1f} m back toward the prior along its weakest direction"
 
 
 def _as_good(other: IcpResult, match: IcpResult, params: LoopClosureParams) -> bool:

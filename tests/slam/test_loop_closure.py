@@ -13,7 +13,7 @@ from mazebot.io.scan import Scan
 from mazebot.sim.world import World, rectangles_outline
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import rotate_information
-from mazebot.slam.icp import IcpParams
+from mazebot.slam.icp import IcpParams, match_scan
 from mazebot.slam.keyframes import Keyframe, build_target
 from mazebot.slam.loop_closure import (
     Candidate,
@@ -22,6 +22,8 @@ from mazebot.slam.loop_closure import (
     correction_limits,
     find_candidates,
     verify,
+    weak_direction_rival,
+    weakest_translation,
 )
 from mazebot.slam.preprocess import PrepareParams, prepare_scan
 
@@ -174,6 +176,32 @@ def test_a_drift_beyond_the_fixed_cap_closes_when_the_chain_allows_it(hall_world
     # the same correction with a chain that claims 2 cm of drift stays rejected
     sure = Candidate(0, 1, candidate.prior, np.diag([0.02**2, 0.02**2, 0.01**2]), 0.3)
     assert not verify(sure, target, new.match_points, new.sensor_xy, IcpParams(), params).accepted
+
+
+def test_a_right_closure_far_from_its_prior_is_kept_by_the_weak_direction_test(hall_world: World, cast_scan) -> None:
+    # The chain believes the robot 0.5 m from where it is (its σ 0.3 m): the match moves it farther along its
+    # weakest direction than ICP's gate, so the scan is scored on the way back toward the prior; in a hall whose
+    # boxes pin every direction it scores far less there than at the match, and the closure is kept, measured.
+    old = np.array([-0.5, 0.2, 0.3])
+    new_true = compose(old, np.array([0.3, -0.1, 0.5]))
+    new_est = compose(new_true, np.array([0.4, -0.3, math.radians(2.0)]))
+    search = CorrelativeParams(window_xy_m=0.6, window_theta_rad=0.1, levels=3)
+    olds = [_keyframe(hall_world, compose(old, d), cast_scan, k) for k, d in
+            enumerate(np.array([[-0.2, 0.0, 0.0], [0.0, 0.0, 0.0], [0.2, 0.05, 0.1]]))]
+    target = build_target(olds, 0.01, frame=old)
+    new = _keyframe(hall_world, new_true, cast_scan, 99)
+    candidate = Candidate(0, 1, relative_pose(old, new_est), np.diag([0.3**2, 0.3**2, math.radians(1.5) ** 2]), 0.5)
+    params = LoopClosureParams(correction_sigmas=3.0, max_rmse_m=0.03, weak_direction_ratio=0.9, search=search)
+    verdict = verify(candidate, target, new.match_points, new.sensor_xy, IcpParams(), params)
+    assert verdict.accepted, verdict.reason + " " + verdict.detail
+    truth = relative_pose(old, new_true)
+    assert np.hypot(*(verdict.measurement[:2] - truth[:2])) < 0.01
+    # the test was asked: the match lies beyond ICP's gate from the prior along its weakest direction
+    result = match_scan(target, new.match_points, verdict.measurement, IcpParams(), sensor_xy=new.sensor_xy)
+    along = weakest_translation(result.edge_information)
+    assert abs(float(along @ (candidate.prior[:2] - result.pose[:2]))) > IcpParams().max_correspondence_m
+    assert weak_direction_rival(result, candidate.prior, target, new.match_points, new.sensor_xy,
+                                IcpParams().max_correspondence_m, 0.5, search) == ""
 
 
 def test_chain_uncertainty_matches_propagation_by_hand() -> None:
@@ -357,6 +385,76 @@ def test_a_right_closure_the_search_finds_on_real_scans_is_kept(aces, old: int, 
     assert np.hypot(error[0], error[1]) < 0.05 and abs(error[2]) < math.radians(1.0)
 
 
+def _aces_keyframe_closure(old: int, new: int, prior_error: np.ndarray, weak_direction_ratio: float):
+    """Scan ``new`` of the ACES log verified against the submap SLAM would build of scans ``old ± 5`` (each scan a
+    keyframe at its corrected pose, its surface from its own scan, as the laser-log settings make them), from a
+    prior ``prior_error`` (dx, dy, dθ) off the corrected relative pose with the chain's σ of the run (1.3 m,
+    4.3°); returns the verdict and the truth."""
+    from mazebot.config import load_config
+    from mazebot.slam.carmen import read_carmen
+    from mazebot.slam.slam import SlamParams
+    from mazebot.slam.slam_cli import laser_log_params
+    from tests.data_paths import carmen_log
+
+    lasers = read_carmen(carmen_log(ACES_LOG)).lasers
+    config = load_config(None)
+    params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    ref = np.array([r.pose for r in lasers])
+
+    def keyframe(k: int) -> Keyframe:
+        prepared = prepare_scan(lasers[k].to_scan(), None, params.prepare)
+        return Keyframe.from_scan(k, ref[k], prepared, params.normals, params.map_max_range_m)
+
+    window = range(old - 5, old + 6)
+    target = build_target([keyframe(k) for k in window], params.submap_voxel_m, frame=ref[old],
+                          poses=[ref[k] for k in window])
+    scan = keyframe(new)
+    truth = relative_pose(ref[old], ref[new])
+    prior = compose(truth, prior_error)
+    candidate = Candidate(old, new, prior, np.diag([1.3**2, 1.3**2, math.radians(4.3) ** 2]),
+                          float(np.hypot(*prior[:2])))
+    loop = replace(params.loop, weak_direction_ratio=weak_direction_ratio)
+    verdict = verify(candidate, target, scan.match_points.astype(np.float64), scan.sensor_xy, params.icp, loop)
+    return verdict, truth
+
+
+@pytest.mark.slow
+def test_a_closure_slid_along_a_real_corridor_onto_the_submaps_end_is_refused() -> None:
+    """The ACES log's return at scan 363 to scan 194's corridor, the chain's prior at the right place but for its
+    heading (1° off, as the runs with the heading floor had it). Each keyframe keeps walls only to 4-6 m ahead
+    (its own 1° beams give its hits beyond 6 m no normal), while the new scan sees 20 m down the corridor: at the
+    right place (in the run) a fifth of its points lay within 0.1 m of the submap, ICP from the prior fails, and
+    the closure search finds where most of the scan lies over the submap, 2.75 m back along the corridor, where a
+    feature pins ICP (a 3 cm claim). It passes every other test (the chain's σ is 1.3 m). Along the match's weakest
+    direction, the scan scores 0.94 of the match's score half a metre back toward the prior: refused."""
+    error = np.array([0.0, 0.0, math.radians(1.0)])
+    slid, truth = _aces_keyframe_closure(194, 363, error, 0.0)
+    assert slid.accepted and np.hypot(*relative_pose(truth, slid.measurement)[:2]) > 2.0  # the look-alike, off
+    verdict, _ = _aces_keyframe_closure(194, 363, error, 0.9)
+    assert not verdict.accepted and verdict.reason == "ambiguous along its weakest direction", verdict.reason
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("log", "old", "new", "offset"), [
+    (ACES_LOG, 146, 311, (0.9, -0.5, 0.1)),
+    (ACES_LOG, 66, 416, (0.9, -0.5, 0.1)),
+    ("intel.gfs.log", 75, 166, (0.0, -0.6, 0.0)),
+])
+def test_right_closures_the_search_finds_are_kept_with_the_weak_direction_test(
+    log: str, old: int, new: int, offset: tuple[float, float, float]
+) -> None:
+    """The right closures of the tests above (ACES: the prior 1 m and 6° off; Intel: 0.6 m across the corridor,
+    its score along the corridor a ridge 0.91 of the best 1 m on), verified with the weak direction's test on:
+    each match is where the prior is along its weakest direction, or the scan scores less on the way back."""
+    lasers, loop, icp = _log_and_closure_settings(log)
+    settings = (lasers, replace(loop, weak_direction_ratio=0.9), icp)
+    truth = relative_pose(np.array(lasers[old].pose), np.array(lasers[new].pose))
+    verdict, _ = _aces_closure(settings, old, new, compose(truth, np.array(offset)), 0.5, 0.07)
+    assert verdict.accepted, (verdict.reason, verdict.detail)
+    error = relative_pose(truth, verdict.measurement)
+    assert np.hypot(error[0], error[1]) < 0.05 and abs(error[2]) < math.radians(1.0)
+
+
 @pytest.fixture(scope="module")
 def twin_corridors() -> World:
     """Two straight corridors 1.5 m wide along x, 40 m long, 2.5 m apart centre to centre: within the lidar's
@@ -392,14 +490,19 @@ def _corridor_closure(world: World, cast_scan, new_true: np.ndarray, params: Loo
     return verify(candidate, target, new.match_points, new.sensor_xy, IcpParams(), params), candidate
 
 
-def test_a_closure_along_a_straight_corridor_corrects_only_what_it_sees(twin_corridors: World, cast_scan) -> None:
+@pytest.mark.parametrize("weak_direction_ratio", [0.0, 0.9])
+def test_a_closure_along_a_straight_corridor_corrects_only_what_it_sees(
+    twin_corridors: World, cast_scan, weak_direction_ratio: float
+) -> None:
     # Back in corridor A with the chain 0.6 m off along it and 0.1 m across: the match fixes the offset across
     # and the heading, not the position along it. Accepted (accept_degenerate) with the offset across and the
     # heading measured, the prior's position along the corridor, and no information along it (Zhang, Kaess &
     # Singh, ICRA 2016). ICP restarted one cell along the corridor lands on the same alignment across it: not
     # another place (the ambiguity test judged along the free direction refused every such closure).
     new_true = np.array([0.4, 0.15, 0.03])
-    params = LoopClosureParams(accept_degenerate=True, max_rmse_m=0.03, correction_sigmas=3.0, min_fitness=0.6)
+    # (the weak direction's test leaves it alone: the prior's position along the corridor is kept already)
+    params = LoopClosureParams(accept_degenerate=True, max_rmse_m=0.03, correction_sigmas=3.0, min_fitness=0.6,
+                               weak_direction_ratio=weak_direction_ratio)
     verdict, candidate = _corridor_closure(twin_corridors, cast_scan, new_true, params)
     assert verdict.accepted, (verdict.reason, verdict.detail)
     truth = relative_pose(np.zeros(3), new_true)

@@ -139,7 +139,7 @@ def wall_faces(points: np.ndarray, normals: np.ndarray, grid_rad: float, steps: 
                     continue
                 slope, mid_across, mid_along = fitted
                 if steps:
-                    slope = slope_across_steps(a, b)
+                    slope = slope_across_steps(a, b, slope)
                 centre = (mid_across, mid_along) if axis == 0 else (mid_along, mid_across)
                 rows.append((*centre, nominal + sign * math.atan(slope), 0.5 * float(b[-1] - b[0]), a.size))
     if not rows:
@@ -198,7 +198,7 @@ def _faces(across: np.ndarray, along: np.ndarray) -> list[tuple[np.ndarray, np.n
     return faces
 
 
-def slope_across_steps(across: np.ndarray, along: np.ndarray) -> float:
+def slope_across_steps(across: np.ndarray, along: np.ndarray, one_line: float) -> float:
     """The slope of ``across`` against ``along`` (sorted by ``along``) common to the boards in line a face runs over.
 
     A piece of the face is one board, offset from its neighbours by a step: cut greedily where
@@ -208,6 +208,12 @@ def slope_across_steps(across: np.ndarray, along: np.ndarray) -> float:
     the lidar's noise does not pose as a step), at most ``FACE_MAX_STEPS`` cuts. The slope
     within pieces is unbiased with or without a step; cut where there is none, it only loses
     a little precision.
+
+    Where no cut holds the face is one line, and its least-squares slope ``one_line``
+    (:func:`_slope`'s) is returned as it is. The one piece's common slope is the same fit
+    summed in another order (its means by ``np.bincount``, not ``mean``'s pairwise sum) and
+    may differ in the last bits; it could move a face of a maze built exactly by a unit in
+    the last place of its normal, and a run would then part from the run with one line.
     """
     piece = np.zeros(across.size, dtype=np.intp)
     for _ in range(FACE_MAX_STEPS):
@@ -215,6 +221,8 @@ def slope_across_steps(across: np.ndarray, along: np.ndarray) -> float:
         if cut is None or not _step_holds(across, along, piece, cut):
             break
         piece = _cut_at(piece, cut)
+    if not piece.any():
+        return one_line
     return _common_slope(across, along, piece)[0]
 
 

@@ -155,6 +155,18 @@ def test_a_face_of_one_board_is_read_as_one_line_with_steps_asked_for() -> None:
     assert np.array_equal(one_line.normal_rad, stepped.normal_rad)  # no step: no cut
 
 
+def test_a_face_with_no_step_keeps_its_one_line_to_the_last_bit() -> None:
+    # A face of an exact maze has no step, so no cut holds; its slope must then be the one line's
+    # own, not the one piece's common slope: that is the same fit summed in another order, and on
+    # this face it turns the normal by a unit in the last place (2.2e-16 rad).
+    rng = np.random.default_rng(18)
+    points, normals = board((0.0, -0.2), math.radians(0.02), 0.5, 1.0, rng)
+    one_line = wall_faces(points, normals, 1e-4)
+    stepped = wall_faces(points, normals, 1e-4, steps=True)
+    assert len(one_line) == 1
+    assert np.array_equal(one_line.normal_rad, stepped.normal_rad)
+
+
 def _true_turns_under(faces, start: np.ndarray, geometry) -> list[list[float]]:
     """The simulator's turns (degrees) of the boards under each of keyframe 0's faces (its frame; ``start``
     the true pose it stood at): boards along the face's line, within a board's thickness and 2 cm across and

@@ -587,7 +587,7 @@ class WallSection:
         "each face keyframe 0 sees at rest is read across the steps between boards in line (one direction, "
         "an offset per board, cut where the step is large and significant: mazebot.slam.wall_faces) instead "
         "of one line through them: the start's faces read their boards' turns, not the steps between them; "
-        "off: one line per face"))] = False
+        "off: one line per face"))] = True
 
 
 @dataclass(frozen=True)

@@ -427,9 +427,8 @@ def pooled_normals(
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     pool = np.vstack((bare_xy, points_xy))
     views = np.vstack((bare_views_xy, views_xy))
-    nrm, good = estimate_normals(pool, params.neighbours, params.radius_m, params.max_line_spread, views)
-    b = bare_xy.shape[0]
-    nrm, good = nrm[:b], good[:b]
+    queries = np.arange(bare_xy.shape[0])
+    nrm, good = estimate_normals(pool, params.neighbours, params.radius_m, params.max_line_spread, views, queries)
     flip = np.einsum("ij,ij->i", nrm, bare_views_xy - bare_xy) < 0
     return np.where(flip[:, None], -nrm, nrm), good
 

@@ -148,7 +148,7 @@ class Keyframe:
         self.normal_params = normal_params or NormalParams()
         #: (points, normals) packed (:func:`pack`), once computed
         self._surface: tuple[np.ndarray, np.ndarray] | None = None
-        #: the hits without a normal of their own, packed, computed with the surface if ``pool_far_normals``
+        #: the hits without a normal of their own, packed, computed with the surface if ``pool_far_normals_beyond_m``
         self._bare: np.ndarray | None = None
         self._walls: tuple[float, float, int] | None = None
         self._lattice: LatticeFaces | None = None
@@ -270,13 +270,13 @@ class Keyframe:
             hits = self.hits
             pts, nrm, good = _line_surface(hits, self.sensor_xy, self.normal_params)
             surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
-            if self.normal_params.pool_far_normals:
+            if self.normal_params.pool_far_normals_beyond_m > 0.0:
                 self._bare = pack(hits[~good], POINT_STEP_M)
             self._surface = surface  # a race with another thread computes the same values
         return surface
 
     def bare_hits(self) -> np.ndarray:
-        """(B, 2) its hits its own scan gives no usable normal (robot frame); none unless ``pool_far_normals``.
+        """(B, 2) its hits its own scan gives no usable normal (robot frame); none unless ``pool_far_normals_beyond_m``.
 
         A submap gives them a normal from its keyframes' points pooled (:func:`build_target`).
         """
@@ -651,7 +651,7 @@ def build_target_steps(
     )
     normals = np.column_stack((c * local_nrm[:, 0] - sn * local_nrm[:, 1], sn * local_nrm[:, 0] + c * local_nrm[:, 1]))
     views = np.repeat(views_kf, counts, axis=0)
-    if any(keyframes[k].normal_params.pool_far_normals for k in kept):
+    if any(keyframes[k].normal_params.pool_far_normals_beyond_m > 0.0 for k in kept):
         points, normals, views = _with_pooled_normals(
             [keyframes[k] for k in kept], cos, sin, pose_arr, views_kf, points, normals, views
         )
@@ -693,6 +693,8 @@ def _with_pooled_normals(
         )
     )
     bare_views = np.repeat(views_kf, counts, axis=0)
+    far = np.hypot(*(bare_xy - bare_views).T) > keyframes[0].normal_params.pool_far_normals_beyond_m
+    bare_xy, bare_views = bare_xy[far], bare_views[far]
     far_nrm, good = pooled_normals(points, views, bare_xy, bare_views, keyframes[0].normal_params)
     return (
         np.vstack((points, bare_xy[good])),

@@ -386,13 +386,13 @@ def test_a_right_closure_the_search_finds_on_real_scans_is_kept(aces, old: int, 
 
 
 def _aces_keyframe_closure(
-    old: int, new: int, prior_error: np.ndarray, weak_direction_ratio: float, pool_far_normals: bool = False
+    old: int, new: int, prior_error: np.ndarray, weak_direction_ratio: float, pool_beyond_m: float = 0.0
 ):
     """Scan ``new`` of the ACES log verified against the submap SLAM would build of scans ``old ± 5`` (each scan a
     keyframe at its corrected pose, its surface from its own scan, as the laser-log settings make them), from a
     prior ``prior_error`` (dx, dy, dθ) off the corrected relative pose with the chain's σ of the run (1.3 m,
-    4.3°); returns the verdict and the truth. ``pool_far_normals``: the ``[slam.normals]`` key of that name."""
-    target, truth, scan, params = _aces_keyframe_submap(old, new, pool_far_normals)
+    4.3°); returns the verdict and the truth. ``pool_beyond_m``: ``[slam.normals] pool_far_normals_beyond_m``."""
+    target, truth, scan, params = _aces_keyframe_submap(old, new, pool_beyond_m)
     prior = compose(truth, prior_error)
     candidate = Candidate(old, new, prior, np.diag([1.3**2, 1.3**2, math.radians(4.3) ** 2]),
                           float(np.hypot(*prior[:2])))
@@ -401,7 +401,7 @@ def _aces_keyframe_closure(
     return verdict, truth
 
 
-def _aces_keyframe_submap(old: int, new: int, pool_far_normals: bool):
+def _aces_keyframe_submap(old: int, new: int, pool_beyond_m: float):
     """The submap SLAM builds of ACES scans ``old ± 5`` at their corrected poses (in ``old``'s frame), the truth
     (the corrected pose of ``new`` in that frame), scan ``new`` as a keyframe, and the laser-log parameters."""
     from mazebot.config import load_config
@@ -413,7 +413,7 @@ def _aces_keyframe_submap(old: int, new: int, pool_far_normals: bool):
     lasers = read_carmen(carmen_log(ACES_LOG)).lasers
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
-    params = replace(params, normals=replace(params.normals, pool_far_normals=pool_far_normals))
+    params = replace(params, normals=replace(params.normals, pool_far_normals_beyond_m=pool_beyond_m))
     ref = np.array([r.pose for r in lasers])
 
     def keyframe(k: int) -> Keyframe:
@@ -445,9 +445,10 @@ def test_a_closure_slid_along_a_real_corridor_onto_the_submaps_end_is_refused() 
 def test_a_real_corridors_far_walls_get_normals_along_the_walls_from_the_keyframes_pooled() -> None:
     """ACES scans 189-199 as keyframes: each scan's own 1° beams give its hits beyond 6 m down the corridors no
     normal (they lie 0.3-1.9 m apart on walls seen at a grazing angle), so the submap stops there. Pooled with
-    the other keyframes' points, the same neighbour rule (10 within 0.3 m) gives them one. The wall's direction
+    the other keyframes' points, the same neighbour rule (10 within 0.3 m) gives them one (here those beyond 4 m
+    of their lidar, ``[slam.normals] pool_far_normals_beyond_m = 4``). The wall's direction
     is the submap's near normals' (within 4 m) dominant one, modulo 90° (ACES's corridors meet at right angles)."""
-    target, _, _, _ = _aces_keyframe_submap(194, 363, pool_far_normals=True)
+    target, _, _, _ = _aces_keyframe_submap(194, 363, pool_beyond_m=4.0)
     points, normals = np.asarray(target.points), np.asarray(target.normals)
     distance = np.hypot(*points.T)
     four = 4.0 * np.arctan2(normals[distance < 4.0, 1], normals[distance < 4.0, 0])
@@ -465,7 +466,7 @@ def test_the_slid_closure_along_a_real_corridor_is_not_taken_with_the_far_walls_
     far walls got normals from the keyframes pooled: the scan lies over the corridor's walls at the right place,
     so the search no longer slides it 2.75 m onto the submap's end. Along the corridor it is degenerate, and
     ``verify`` says so rather than accept a look-alike."""
-    verdict, truth = _aces_keyframe_closure(194, 363, np.array([0.0, 0.0, math.radians(1.0)]), 0.0, True)
+    verdict, truth = _aces_keyframe_closure(194, 363, np.array([0.0, 0.0, math.radians(1.0)]), 0.0, 4.0)
     if verdict.accepted:
         assert np.hypot(*relative_pose(truth, verdict.measurement)[:2]) < 0.3
 

@@ -169,6 +169,12 @@ class NormalParams:
     smooth_max_span_m: Annotated[float, Field(ge=0, description=(
         "with smooth, move only points whose neighbours on their face span at most this length of their line "
         "(0: no limit)"))] = 0.0
+    pool_far_normals_beyond_m: Annotated[float, Field(ge=0, description=(
+        "give a submap the hits farther than this from their lidar that their own scan gives no normal (far hits "
+        "on walls seen at a grazing angle, their neighbours farther apart than radius_m) a normal estimated from "
+        "all its keyframes' points pooled, so its walls reach as far as the scans saw (0: off, each keyframe keeps "
+        "only the hits with a normal of their own, on a laser log's corridor none beyond about 6 m; the near hits "
+        "without one are mostly clutter and corners, and given one they turned the Intel map by 1.5 degrees)"))] = 0.0
 
 
 @dataclass(frozen=True)

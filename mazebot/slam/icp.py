@@ -201,6 +201,7 @@ def estimate_normals(
     radius_m: float,
     max_line_spread: float,
     viewpoints_xy: np.ndarray | None = None,
+    queries: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 2) by PCA of each point's neighbourhood, and a mask of usable ones.
 
@@ -209,17 +210,22 @@ def estimate_normals(
     A normal is usable with at least 3 neighbours and ``λ_min / λ_max <= max_line_spread``.
     With ``viewpoints_xy`` (M, 2) only neighbours seen from the same side count, so the
     two faces of a 12 mm wall, seen from opposite sides, do not blur into one thick line.
+    ``queries`` (indices): only those points' normals are estimated (M is their count), their
+    neighbours still taken among all the points.
     """
-    m = points_xy.shape[0]
+    n = points_xy.shape[0]
+    m = n if queries is None else int(queries.shape[0])
     if m == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
-    k = min(neighbours, m)
-    dist, idx = cKDTree(points_xy).query(points_xy, k=k, distance_upper_bound=radius_m)
+    k = min(neighbours, n)
+    asked = points_xy if queries is None else points_xy[queries]
+    dist, idx = cKDTree(points_xy).query(asked, k=k, distance_upper_bound=radius_m)
     dist, idx = dist.reshape(m, k), idx.reshape(m, k)
     ok = np.isfinite(dist)
     if viewpoints_xy is not None:
-        look = viewpoints_xy - points_xy
-        look_pad = np.vstack((look, np.zeros((1, 2))))
+        look_all = viewpoints_xy - points_xy
+        look = look_all if queries is None else look_all[queries]
+        look_pad = np.vstack((look_all, np.zeros((1, 2))))
         ok &= np.einsum("md,mkd->mk", look, look_pad[idx]) > 0
     count = ok.sum(axis=1)
     pad = np.vstack((points_xy, np.zeros((1, 2))))

@@ -103,6 +103,7 @@ class Keyframe:
     """
 
     __slots__ = (
+        "_bare",
         "_faces",
         "_hits",
         "_lattice",
@@ -147,6 +148,8 @@ class Keyframe:
         self.normal_params = normal_params or NormalParams()
         #: (points, normals) packed (:func:`pack`), once computed
         self._surface: tuple[np.ndarray, np.ndarray] | None = None
+        #: the hits without a normal of their own, packed, computed with the surface if ``pool_far_normals_beyond_m``
+        self._bare: np.ndarray | None = None
         self._walls: tuple[float, float, int] | None = None
         self._lattice: LatticeFaces | None = None
         self._faces: Faces | None = None
@@ -170,6 +173,8 @@ class Keyframe:
                   "ray_hit_bits": self._ray_hit_bits}
         if self._surface is not None:
             arrays["surface_points"], arrays["surface_normals"] = self._surface
+        if self._bare is not None:
+            arrays["bare_hits"] = self._bare
         return arrays
 
     def use_packed(self, arrays: dict[str, np.ndarray]) -> None:
@@ -180,6 +185,7 @@ class Keyframe:
         self._ray_hit_bits = arrays.get("ray_hit_bits", self._ray_hit_bits)
         if "surface_points" in arrays and "surface_normals" in arrays:
             self._surface = (arrays["surface_points"], arrays["surface_normals"])
+        self._bare = arrays.get("bare_hits", self._bare)
 
     def caches(self) -> dict[str, Any]:
         """What it has computed from its arrays besides the surface (wall direction, lattice faces)."""
@@ -211,7 +217,7 @@ class Keyframe:
         kf.integrated_pose, kf.normal_params, kf._ray_count = integrated_pose, normal_params, ray_count
         kf._hits = kf._match = kf._ray_ends = _NO_POINTS
         kf._ray_hit_bits = np.zeros(0, dtype=np.uint8)
-        kf._surface, kf._walls, kf._lattice, kf._faces = None, None, None, None
+        kf._surface, kf._bare, kf._walls, kf._lattice, kf._faces = None, None, None, None, None
         kf.use_packed(arrays)
         return kf
 
@@ -261,10 +267,22 @@ class Keyframe:
         """:meth:`surface` as kept (:func:`pack`'s int16 or float32), computed if need be: no copy made."""
         surface = self._surface
         if surface is None:
-            pts, nrm = line_surface(self.hits, self.sensor_xy, self.normal_params)
+            hits = self.hits
+            pts, nrm, good = _line_surface(hits, self.sensor_xy, self.normal_params)
             surface = (pack(pts, POINT_STEP_M), pack(nrm, NORMAL_STEP))
+            if self.normal_params.pool_far_normals_beyond_m > 0.0:
+                self._bare = pack(hits[~good], POINT_STEP_M)
             self._surface = surface  # a race with another thread computes the same values
         return surface
+
+    def bare_hits(self) -> np.ndarray:
+        """(B, 2) its hits its own scan gives no usable normal (robot frame); none unless ``pool_far_normals_beyond_m``.
+
+        A submap gives them a normal from its keyframes' points pooled (:func:`build_target`).
+        """
+        self.packed_surface()
+        bare = self._bare
+        return np.zeros((0, 2)) if bare is None else unpack(bare, POINT_STEP_M)
 
     def wall_direction(self) -> tuple[float, float, int]:
         """Dominant wall direction in the robot frame, modulo 90°: ``(angle_rad, strength, count)``.
@@ -370,13 +388,49 @@ def oriented_normals(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalP
 
 def line_surface(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> tuple[np.ndarray, np.ndarray]:
     """A keyframe's surface: ``(points, normals)`` of the hits with a usable normal, smoothed if ``params.smooth``."""
+    pts, nrm, _ = _line_surface(hits_xy, sensor_xy, params)
+    return pts, nrm
+
+
+def _line_surface(
+    hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`line_surface` and the mask (H,) of the hits that have a usable normal."""
     nrm, good = oriented_normals(hits_xy, sensor_xy, params)
     pts, nrm = hits_xy[good], nrm[good]
     if params.smooth:
         pts = smooth_onto_lines(
             pts, nrm, params.radius_m, params.neighbours, params.smooth_whole_face_only, params.smooth_max_span_m
         )
-    return pts, nrm
+    return pts, nrm, good
+
+
+def pooled_normals(
+    points_xy: np.ndarray,
+    views_xy: np.ndarray,
+    bare_xy: np.ndarray,
+    bare_views_xy: np.ndarray,
+    params: NormalParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(normals (B, 2), usable (B,))`` of the bare hits, from the submap's points pooled with them.
+
+    Along a corridor a scan's far hits fall on the walls at a grazing angle, so far apart
+    (range times the beam step over the sine of the incidence: 0.3-1.9 m at 10-20 m for a
+    SICK's 1° beams) that fewer than three lie within ``radius_m`` of one another, and its
+    own scan gives them no normal. The keyframes of a submap saw the same walls from
+    other places, their hits falling between each other's: pooled, the wall is dense
+    enough for the same neighbour rule (:func:`mazebot.slam.icp.estimate_normals`, only
+    points seen from the same side counting). Each normal is turned towards the lidar
+    that made its hit; the hits keep their measured positions.
+    """
+    if bare_xy.shape[0] == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    pool = np.vstack((bare_xy, points_xy))
+    views = np.vstack((bare_views_xy, views_xy))
+    queries = np.arange(bare_xy.shape[0])
+    nrm, good = estimate_normals(pool, params.neighbours, params.radius_m, params.max_line_spread, views, queries)
+    flip = np.einsum("ij,ij->i", nrm, bare_views_xy - bare_xy) < 0
+    return np.where(flip[:, None], -nrm, nrm), good
 
 
 def smoothed_match_points(
@@ -597,6 +651,10 @@ def build_target_steps(
     )
     normals = np.column_stack((c * local_nrm[:, 0] - sn * local_nrm[:, 1], sn * local_nrm[:, 0] + c * local_nrm[:, 1]))
     views = np.repeat(views_kf, counts, axis=0)
+    if any(keyframes[k].normal_params.pool_far_normals_beyond_m > 0.0 for k in kept):
+        points, normals, views = _with_pooled_normals(
+            [keyframes[k] for k in kept], cos, sin, pose_arr, views_kf, points, normals, views
+        )
     if clip is not None:
         near = np.hypot(*(points - np.asarray(clip[0], dtype=np.float64).reshape(1, 2)).T) <= clip[1]
         points, normals, views = points[near], normals[near], views[near]
@@ -606,6 +664,45 @@ def build_target_steps(
     first = voxel_downsample(points, voxel_m)
     yield
     return Target(points[first], views[first], normals[first])
+def _with_pooled_normals(
+    keyframes: Sequence[Keyframe],
+    cos: np.ndarray,
+    sin: np.ndarray,
+    pose_arr: np.ndarray,
+    views_kf: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    views: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The submap's points, normals and viewpoints with its keyframes' bare hits that the pool gives a normal.
+
+    The keyframes are :func:`build_target_steps`'s kept ones, with their cosines, sines and
+    poses in the output frame; the submap is built once per keyframe (sequential) or per
+    closure (loop), so the pooling is too.
+    """
+    bare = [kf.bare_hits() for kf in keyframes]
+    counts = np.array([b.shape[0] for b in bare])
+    if not counts.sum():
+        return points, normals, views
+    local = np.concatenate(bare)
+    c, sn = np.repeat(cos, counts), np.repeat(sin, counts)
+    bare_xy = np.column_stack(
+        (
+            c * local[:, 0] - sn * local[:, 1] + np.repeat(pose_arr[:, 0], counts),
+            sn * local[:, 0] + c * local[:, 1] + np.repeat(pose_arr[:, 1], counts),
+        )
+    )
+    bare_views = np.repeat(views_kf, counts, axis=0)
+    far = np.hypot(*(bare_xy - bare_views).T) > keyframes[0].normal_params.pool_far_normals_beyond_m
+    bare_xy, bare_views = bare_xy[far], bare_views[far]
+    far_nrm, good = pooled_normals(points, views, bare_xy, bare_views, keyframes[0].normal_params)
+    return (
+        np.vstack((points, bare_xy[good])),
+        np.vstack((normals, far_nrm[good])),
+        np.vstack((views, bare_views[good])),
+    )
+
+
 build_target = all_at_once(
     build_target_steps,
     """The union of the keyframes' points and normals as an ICP target, one point per voxel.

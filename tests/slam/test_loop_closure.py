@@ -385,11 +385,25 @@ def test_a_right_closure_the_search_finds_on_real_scans_is_kept(aces, old: int, 
     assert np.hypot(error[0], error[1]) < 0.05 and abs(error[2]) < math.radians(1.0)
 
 
-def _aces_keyframe_closure(old: int, new: int, prior_error: np.ndarray, weak_direction_ratio: float):
+def _aces_keyframe_closure(
+    old: int, new: int, prior_error: np.ndarray, weak_direction_ratio: float, pool_beyond_m: float = 0.0
+):
     """Scan ``new`` of the ACES log verified against the submap SLAM would build of scans ``old ± 5`` (each scan a
     keyframe at its corrected pose, its surface from its own scan, as the laser-log settings make them), from a
     prior ``prior_error`` (dx, dy, dθ) off the corrected relative pose with the chain's σ of the run (1.3 m,
-    4.3°); returns the verdict and the truth."""
+    4.3°); returns the verdict and the truth. ``pool_beyond_m``: ``[slam.normals] pool_far_normals_beyond_m``."""
+    target, truth, scan, params = _aces_keyframe_submap(old, new, pool_beyond_m)
+    prior = compose(truth, prior_error)
+    candidate = Candidate(old, new, prior, np.diag([1.3**2, 1.3**2, math.radians(4.3) ** 2]),
+                          float(np.hypot(*prior[:2])))
+    loop = replace(params.loop, weak_direction_ratio=weak_direction_ratio)
+    verdict = verify(candidate, target, scan.match_points.astype(np.float64), scan.sensor_xy, params.icp, loop)
+    return verdict, truth
+
+
+def _aces_keyframe_submap(old: int, new: int, pool_beyond_m: float):
+    """The submap SLAM builds of ACES scans ``old ± 5`` at their corrected poses (in ``old``'s frame), the truth
+    (the corrected pose of ``new`` in that frame), scan ``new`` as a keyframe, and the laser-log parameters."""
     from mazebot.config import load_config
     from mazebot.slam.carmen import read_carmen
     from mazebot.slam.slam import SlamParams
@@ -399,6 +413,7 @@ def _aces_keyframe_closure(old: int, new: int, prior_error: np.ndarray, weak_dir
     lasers = read_carmen(carmen_log(ACES_LOG)).lasers
     config = load_config(None)
     params = laser_log_params(SlamParams.from_config(config.slam, config.lidar))
+    params = replace(params, normals=replace(params.normals, pool_far_normals_beyond_m=pool_beyond_m))
     ref = np.array([r.pose for r in lasers])
 
     def keyframe(k: int) -> Keyframe:
@@ -408,14 +423,7 @@ def _aces_keyframe_closure(old: int, new: int, prior_error: np.ndarray, weak_dir
     window = range(old - 5, old + 6)
     target = build_target([keyframe(k) for k in window], params.submap_voxel_m, frame=ref[old],
                           poses=[ref[k] for k in window])
-    scan = keyframe(new)
-    truth = relative_pose(ref[old], ref[new])
-    prior = compose(truth, prior_error)
-    candidate = Candidate(old, new, prior, np.diag([1.3**2, 1.3**2, math.radians(4.3) ** 2]),
-                          float(np.hypot(*prior[:2])))
-    loop = replace(params.loop, weak_direction_ratio=weak_direction_ratio)
-    verdict = verify(candidate, target, scan.match_points.astype(np.float64), scan.sensor_xy, params.icp, loop)
-    return verdict, truth
+    return target, relative_pose(ref[old], ref[new]), keyframe(new), params
 
 
 @pytest.mark.slow
@@ -432,6 +440,35 @@ def test_a_closure_slid_along_a_real_corridor_onto_the_submaps_end_is_refused() 
     assert slid.accepted and np.hypot(*relative_pose(truth, slid.measurement)[:2]) > 2.0  # the look-alike, off
     verdict, _ = _aces_keyframe_closure(194, 363, error, 0.9)
     assert not verdict.accepted and verdict.reason == "ambiguous along its weakest direction", verdict.reason
+
+
+def test_a_real_corridors_far_walls_get_normals_along_the_walls_from_the_keyframes_pooled() -> None:
+    """ACES scans 189-199 as keyframes: each scan's own 1° beams give its hits beyond 6 m down the corridors no
+    normal (they lie 0.3-1.9 m apart on walls seen at a grazing angle), so the submap stops there. Pooled with
+    the other keyframes' points, the same neighbour rule (10 within 0.3 m) gives them one (here those beyond 4 m
+    of their lidar, ``[slam.normals] pool_far_normals_beyond_m = 4``). The wall's direction
+    is the submap's near normals' (within 4 m) dominant one, modulo 90° (ACES's corridors meet at right angles)."""
+    target, _, _, _ = _aces_keyframe_submap(194, 363, pool_beyond_m=4.0)
+    points, normals = np.asarray(target.points), np.asarray(target.normals)
+    distance = np.hypot(*points.T)
+    four = 4.0 * np.arctan2(normals[distance < 4.0, 1], normals[distance < 4.0, 0])
+    walls = 0.25 * math.atan2(float(np.mean(np.sin(four))), float(np.mean(np.cos(four))))
+    far = distance > 6.0
+    off = np.abs(np.remainder(np.arctan2(normals[far, 1], normals[far, 0]) - walls + math.pi / 4, math.pi / 2)
+                 - math.pi / 4)
+    assert far.sum() >= 100 and float(np.max(distance)) > 20.0, (far.sum(), np.max(distance))
+    assert np.degrees(np.median(off)) < 5.0, np.degrees(np.median(off))
+
+
+@pytest.mark.slow
+def test_the_slid_closure_along_a_real_corridor_is_not_taken_with_the_far_walls_kept() -> None:
+    """The closure of the test above (scan 363 onto scan 194's corridor, prior 1° off) against the submap whose
+    far walls got normals from the keyframes pooled: the scan lies over the corridor's walls at the right place,
+    so the search no longer slides it 2.75 m onto the submap's end. Along the corridor it is degenerate, and
+    ``verify`` says so rather than accept a look-alike."""
+    verdict, truth = _aces_keyframe_closure(194, 363, np.array([0.0, 0.0, math.radians(1.0)]), 0.0, 4.0)
+    if verdict.accepted:
+        assert np.hypot(*relative_pose(truth, verdict.measurement)[:2]) < 0.3
 
 
 @pytest.mark.slow

@@ -664,6 +664,8 @@ def build_target_steps(
     first = voxel_downsample(points, voxel_m)
     yield
     return Target(points[first], views[first], normals[first])
+
+
 def _with_pooled_normals(
     keyframes: Sequence[Keyframe],
     cos: np.ndarray,

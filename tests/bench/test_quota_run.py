@@ -211,16 +211,14 @@ def session_processes(sid: int) -> list[int]:
 def test_ctrl_c_or_sigterm_to_every_process_ends_them_all_and_removes_the_cgroup(sig: int, tmp_path: Path) -> None:
     """As a terminal's Ctrl-C does: the signal goes to every process of the group at once."""
     log = tmp_path / "stderr.txt"
-    # three seeds, though the signal comes during the first: on a loaded machine the daemon can take most of
-    # the wait below to come up, and a single 4×4 run may then have ended before the signal reaches it
     with open(log, "wb") as stderr:
         bench = subprocess.Popen(
-            [sys.executable, "-m", "mazebot", "bench", "--cpu-quota", "50", "--size", "4x4", "--seeds", "3",
+            [sys.executable, "-m", "mazebot", "bench", "--cpu-quota", "50", "--size", "4x4", "--seeds", "1",
              "--out", str(tmp_path)],
             start_new_session=True, stdout=subprocess.DEVNULL, stderr=stderr,
         )
     try:
-        names = [f"mazebot-bench-{bench.pid}-{run}" for run in (1, 2, 3)]
+        names = [f"mazebot-bench-{bench.pid}-1"]
         dirs = [d / name for name in names for d in (CGROUP_ROOT, CGROUP_ROOT / "cpu", CGROUP_ROOT / "cpuacct")]
         procs = [d / "cgroup.procs" for d in dirs]
         deadline = time.monotonic() + 60

@@ -381,9 +381,13 @@ def oriented_normals(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalP
     """``(normals, usable)`` of a scan's hits (robot frame), each normal turned towards the lidar at ``sensor_xy``."""
     view = np.broadcast_to(sensor_xy, hits_xy.shape)
     nrm, good = estimate_normals(hits_xy, params.neighbours, params.radius_m, params.max_line_spread, view)
-    # orient towards the lidar: the side of the wall the scan saw
-    flip = np.einsum("ij,ij->i", nrm, view - hits_xy) < 0
-    return np.where(flip[:, None], -nrm, nrm), good
+    return _towards(nrm, hits_xy, view), good
+
+
+def _towards(normals: np.ndarray, points_xy: np.ndarray, views_xy: np.ndarray) -> np.ndarray:
+    """Each normal turned towards the lidar that made its point: the side of the wall the scan saw."""
+    flip = np.einsum("ij,ij->i", normals, views_xy - points_xy) < 0
+    return np.where(flip[:, None], -normals, normals)
 
 
 def line_surface(hits_xy: np.ndarray, sensor_xy: np.ndarray, params: NormalParams) -> tuple[np.ndarray, np.ndarray]:
@@ -429,8 +433,7 @@ def pooled_normals(
     views = np.vstack((bare_views_xy, views_xy))
     queries = np.arange(bare_xy.shape[0])
     nrm, good = estimate_normals(pool, params.neighbours, params.radius_m, params.max_line_spread, views, queries)
-    flip = np.einsum("ij,ij->i", nrm, bare_views_xy - bare_xy) < 0
-    return np.where(flip[:, None], -nrm, nrm), good
+    return _towards(nrm, bare_xy, bare_views_xy), good
 
 
 def smoothed_match_points(

@@ -18,8 +18,9 @@ that forks without exec, :func:`gc.freeze`), and nothing of the daemon's but its
 into the server: every inherited file descriptor is let go of (the daemon's pipes must see their
 ends close when the daemon's do; each becomes /dev/null rather than closed, so that no number a
 stale object of the daemon's still names is handed to a child's next file), stdout and stderr
-are made afresh on descriptors 1 and 2, signal handlers go back to an interpreter's defaults, and the
-server leaves through ``os._exit`` (the daemon's exit handlers are not the server's).
+are made afresh on descriptors 1 and 2, signal handlers go back to an interpreter's defaults (Ctrl-C
+ignored where the daemon ignores it), and the server leaves through ``os._exit`` (the daemon's exit
+handlers are not the server's).
 
 The server is then multiprocessing's own (:func:`multiprocessing.forkserver.main`), registered
 as the one this process's ``forkserver`` context uses: the rest of multiprocessing (the
@@ -90,7 +91,12 @@ def _become_the_server(listener_fd: int, alive_r: int, preload: list[str]) -> No
         signal.set_wakeup_fd(-1)
         for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM):
             signal.signal(sig, signal.SIG_DFL)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        # Ctrl-C as an interpreter started by the daemon would take it: ignored where the daemon
+        # ignores it (Python keeps an inherited SIG_IGN for SIGINT; the quota bench's daemon is
+        # stopped by its parent, and a server or worker dying at a Ctrl-C would fail under it),
+        # a KeyboardInterrupt otherwise (the control process brakes on it)
+        if signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         forkserver.main(listener_fd, alive_r, preload)
         code = 0
     except SystemExit:  # the server's way out once every client is gone

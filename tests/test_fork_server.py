@@ -27,7 +27,14 @@ def child_writes():  # in a child: write to stderr, then open a file; the number
     return fd
 
 
+def sigint_in_child():  # in a child: what Ctrl-C does to it
+    handler = signal.getsignal(signal.SIGINT)
+    return "ignored" if handler == signal.SIG_IGN else getattr(handler, "__name__", str(handler))
+
+
 def main():
+    if sys.argv[4] == "ignore":  # as the quota bench's daemon: Ctrl-C left to whoever started it
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.argv[1] == "thread":
         threading.Thread(target=threading.Event().wait, daemon=True).start()
     r, w = os.pipe()  # a pipe of the daemon's own: the server must not hold an end of it
@@ -40,6 +47,7 @@ def main():
     with ctx.Pool(1) as pool:
         worker_parent = pool.apply(os.getppid)
         child_fd = pool.apply(child_writes)
+        child_sigint = pool.apply(sigint_in_child)
     server = forkserver._forkserver._forkserver_pid
     held = sorted(os.readlink(f"/proc/{server}/fd/{fd}") for fd in os.listdir(f"/proc/{server}/fd"))
     with open(f"/proc/{server}/cmdline", "rb") as f:
@@ -47,7 +55,8 @@ def main():
     log.flush()
     print(json.dumps({"forked": forked, "again": again, "stale_fd": log.fileno(), "child_fd": child_fd,
                       "server": server, "worker_parent": worker_parent, "held": held,
-                      "pipe": os.readlink(f"/proc/self/fd/{r}"), "server_cmd": server_cmd}), flush=True)
+                      "pipe": os.readlink(f"/proc/self/fd/{r}"), "server_cmd": server_cmd,
+                      "child_sigint": child_sigint}), flush=True)
     if sys.argv[2] == "kill":
         os.kill(os.getpid(), signal.SIGKILL)
 
@@ -57,10 +66,10 @@ if __name__ == "__main__":
 """
 
 
-def _run(tmp_path: Path, threads: str, end: str) -> dict[str, object]:
+def _run(tmp_path: Path, threads: str, end: str, sigint: str = "default") -> dict[str, object]:
     script = tmp_path / "daemon.py"
     script.write_text(START)
-    out = subprocess.run([sys.executable, str(script), threads, end, str(tmp_path / "daemon.log")],
+    out = subprocess.run([sys.executable, str(script), threads, end, str(tmp_path / "daemon.log"), sigint],
                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert out.stdout, out.stderr
     result: dict[str, object] = json.loads(out.stdout.splitlines()[0])
@@ -93,6 +102,14 @@ def test_children_come_from_a_server_forked_from_the_daemon(tmp_path: Path) -> N
     assert seen["child_fd"] != seen["stale_fd"]
     assert "from the child" in str(seen["stderr"])
     assert _gone_soon(int(str(seen["server"])))  # the daemon exited: so did its server
+
+
+def test_children_take_ctrl_c_as_the_daemon_does(tmp_path: Path) -> None:
+    # a daemon that takes Ctrl-C: its children get a KeyboardInterrupt (the control process brakes on it)
+    assert _run(tmp_path, "alone", "exit")["child_sigint"] == "default_int_handler"
+    # a daemon that ignores it (the quota bench's, stopped by its parent): the server and its children
+    # ignore it too, from the server's first instruction; neither dies under the daemon's feet
+    assert _run(tmp_path, "alone", "exit", "ignore")["child_sigint"] == "ignored"
 
 
 def test_the_server_leaves_when_the_daemon_is_killed(tmp_path: Path) -> None:

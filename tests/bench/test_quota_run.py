@@ -216,6 +216,9 @@ def test_ctrl_c_or_sigterm_to_every_process_ends_them_all_and_removes_the_cgroup
             [sys.executable, "-m", "mazebot", "bench", "--cpu-quota", "50", "--size", "4x4", "--seeds", "1",
              "--out", str(tmp_path)],
             start_new_session=True, stdout=subprocess.DEVNULL, stderr=stderr,
+            # as a terminal's foreground job: a shell's background job (a CI script run with `&`)
+            # starts with Ctrl-C ignored, which Python, and so the bench, would keep
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
     try:
         names = [f"mazebot-bench-{bench.pid}-1"]

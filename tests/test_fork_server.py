@@ -33,8 +33,9 @@ def sigint_in_child():  # in a child: what Ctrl-C does to it
 
 
 def main():
-    if sys.argv[4] == "ignore":  # as the quota bench's daemon: Ctrl-C left to whoever started it
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # as the quota bench's daemon (Ctrl-C left to whoever started it), or as a terminal's foreground
+    # job (a test run as a shell's background job starts with it ignored)
+    signal.signal(signal.SIGINT, signal.SIG_IGN if sys.argv[4] == "ignore" else signal.default_int_handler)
     if sys.argv[1] == "thread":
         threading.Thread(target=threading.Event().wait, daemon=True).start()
     r, w = os.pipe()  # a pipe of the daemon's own: the server must not hold an end of it

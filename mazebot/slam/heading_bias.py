@@ -1,13 +1,13 @@
 """A heading bias shared by every sequential match, estimated from a finished pose graph's loops.
 
-A scan matcher can turn every match a little the same way in the sensor's frame: on the
-Seattle laser log each sequential match against the smoothed submap turns by a few
-hundredths of a degree. Along one corridor the chain then bends, and the bend is in the
-chain's own edges, so nothing the chain measures shows it. Loop closures do: a chain that
-drives out along a corridor and back along it bends one way geometrically going out and
-the other way coming back (the same turn in the sensor's frame), and the closures between
-the two passes can only meet them halfway. What is left of the bend after the
-optimization turns the whole map about its start.
+A scan matcher can turn every match a little the same way in the robot's frame: on the
+Seattle laser log each sequential edge turns about a hundredth of a degree more than the
+finished map does, going west along its first corridor and coming back east alike. Along
+one corridor the chain then bends, and the bend is in the chain's own edges, so nothing
+the chain measures shows it. Loop closures do: a turn of the same sense bends the pass
+out one way in the map and the pass back the other way, and the closures between the
+passes meet them where their counts balance (two passes west and one east keep a third of
+the westward bend). What is left of the bend turns the whole map about its start.
 
 The bias is estimated as one more unknown of the graph's headings, the way the planar
 pose graph's orientations are estimated apart from its positions (Carlone et al., "A fast

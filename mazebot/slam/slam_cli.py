@@ -61,6 +61,7 @@ from mazebot.geometry import compose, inverse, relative_pose, wrap_angle
 from mazebot.slam.carmen import MOUNTED_KINDS, CarmenLog, LaserRecord, odometry_at, one_laser, read_carmen
 from mazebot.slam.correlative import CorrelativeParams
 from mazebot.slam.ekf import MotionNoise, OdometryHistory
+from mazebot.slam.heading_bias import sequential_heading_bias
 from mazebot.slam.loop_closure import ObservedDirections
 from mazebot.slam.map_consistency import (
     Neighbourhood,
@@ -73,6 +74,8 @@ from mazebot.slam.map_consistency import (
 )
 from mazebot.slam.map_export import write_map_png, write_ros_map
 from mazebot.slam.odometry_errors import SystematicOdometryModel, parse_systematic, systematic_odometry
+from mazebot.slam.posegraph import PoseGraph
+from mazebot.slam.robust_closures import optimize_dcs
 from mazebot.slam.slam import GridParams, Slam, SlamParams, SlamUpdate
 from mazebot.slam.trajectory_metrics import aligned_error, anchored_error, relative_error
 
@@ -588,6 +591,7 @@ def run_carmen(
         if update.keyframe is not None:
             keyframe_scans[update.keyframe] = (k, update.matched)
     points = match_points(lasers, params)
+    bias = remove_heading_bias(slam, params.sequential_heading_bias_sigmas)
     _, before_anchoring = slam.trajectory()
     edges = edge_chi2(slam, keyframe_scans, reference)
     # the map judged by itself, before it is re-anchored (a rigid move: only the first scan's row changes)
@@ -681,6 +685,7 @@ def run_carmen(
         "error_aligned": aligned_error(final, reference) if judged else None,
         "relative_error": relative_error(final, reference, lag=1) if judged else None,
         "relative_error_odometry": relative_error(odometry, reference, lag=1) if judged else None,
+        "heading_bias": bias,
         "reanchor": anchoring,
         "start_placement": placing,
         "error_before_start_placement": anchored_error(before_placing, reference) if judged else None,
@@ -859,6 +864,48 @@ def reanchor(slam: Slam, corrections: np.ndarray, heading_noise_rad: float | Non
         "heading_deg": round(math.degrees(heading_rad), 3),
         "shift_m": round(shift_m, 4),
         "noise_deg": None if heading_noise_rad is None else round(math.degrees(heading_noise_rad), 3),
+    }
+
+
+def remove_heading_bias(slam: Slam, sigmas: float) -> dict[str, Any] | None:
+    """Take the heading bias every sequential match shares out of the finished graph, where significant.
+
+    :func:`mazebot.slam.heading_bias.sequential_heading_bias` estimates it with the graph's headings
+    from its loops; beyond ``sigmas`` standard errors it is subtracted from every sequential edge's
+    measured turn and the graph optimized again as a loop-closure job does (closures robust, the
+    first keyframe held), the keyframes moved to the result. Within them nothing moves: the
+    map is the one the run made. ``sigmas`` 0 (``[slam.graph] sequential_heading_bias_sigmas``,
+    the default): nothing is estimated. Returns what was found and done (None: off, or no loop).
+    """
+    if sigmas <= 0 or len(slam.keyframes) < 3:
+        return None
+    cpu0 = time.thread_time()
+    ei, ej, z, omega = slam.graph.edge_arrays
+    vertices = slam.keyframe_poses()
+    sequential = ej == ei + 1
+    found = sequential_heading_bias(vertices, ei, ej, z, omega, sequential)
+    if found is None:
+        return None
+    applied = found.significant(sigmas)
+    if applied:
+        corrected = z.copy()
+        corrected[sequential, 2] -= found.bias_rad
+        robust = optimize_dcs(
+            vertices, (ei, ej, corrected, omega), ej - ei > 1, slam.params.loop.dcs_phi,
+            max_iterations=slam.params.optimize_iterations,
+        )
+        graph = PoseGraph()
+        graph.add_vertices(robust.vertices)
+        graph.add_edges(ei, ej, corrected, omega)
+        slam.graph = graph
+        for keyframe, pose in zip(slam.keyframes, robust.vertices, strict=True):
+            keyframe.pose = pose.copy()
+    return {
+        "applied": applied,
+        "bias_deg": round(math.degrees(found.bias_rad), 5),
+        "std_deg": round(math.degrees(found.std_rad), 5),
+        "variance_factor": round(found.variance_factor, 3),
+        "cpu_ms": round((time.thread_time() - cpu0) * 1e3, 1),  # the estimate and, if applied, the optimization
     }
 
 

@@ -594,6 +594,10 @@ class WallSection:
         "an offset per board, cut where the step is large and significant: mazebot.slam.wall_faces) instead "
         "of one line through them: the start's faces read their boards' turns, not the steps between them; "
         "off: one line per face"))] = True
+    rest_face_end_trim_m: Annotated[float, Field(ge=0, le=0.1, description=(
+        "each face keyframe 0 sees at rest is read without its points within this of either end: they were "
+        "smoothed onto lines through neighbours past the end (a post, the gap to the next board), about five "
+        "beams at the A1's 1 degree, 13-40 mm at 0.15-0.45 m (mazebot.slam.wall_faces); 0: the whole face"))] = 0.0
 
 
 @dataclass(frozen=True)

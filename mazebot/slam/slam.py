@@ -739,7 +739,8 @@ class Slam:
                 return None
             points = np.concatenate([pts for pts, _ in self._anchor_surfaces])
             normals = np.concatenate([nrm for _, nrm in self._anchor_surfaces])
-            faces = wall_faces(points, normals, direction, steps=self.params.rest_face_steps)
+            faces = wall_faces(points, normals, direction, steps=self.params.rest_face_steps,
+                               end_trim_m=self.params.rest_face_end_trim_m)
             self._start_faces = faces
             first = voxel_downsample(points, self.params.submap_voxel_m)
             self._rest_surface = (points[first], normals[first])

@@ -220,3 +220,33 @@ def test_the_start_s_faces_at_rest_read_the_boards_under_them_across_the_steps(s
         errors[steps] = np.abs(measured - np.array([np.mean(b) for b in boards]))
     assert errors[False].max() > 1.2  # one line through the steps: a face read more than a degree off
     assert errors[True].max() < 0.9, errors[True]
+
+
+def test_a_face_of_one_board_seen_at_rest_is_read_without_its_bent_ends(cast_scan) -> None:
+    # The bench's hand-built 8x8 seed 8: from the start a face of one board turned -0.11° lies 0.45 m
+    # away. Its points near both ends are smoothed onto lines through neighbours past the end (about
+    # five beams, 4 cm there), and its one line read it +0.46°, 0.58° off. Read without 4 cm at each
+    # end, every face of one board is within 0.15° of its board.
+    from mazebot.sim.hand_maze import HandBuild, hand_geometry
+    from mazebot.sim.maze_generator import generate_maze
+
+    seed = 8
+    config = Config()
+    config.sim.maze_build = "hand"  # type: ignore[assignment]
+    world = make_world(config, None, seed, (8, 8))
+    layout = generate_maze(8, 8, seed, kind=config.sim.maze_kind, cell_size_m=config.sim.cell_size_m)
+    geometry = hand_geometry(layout, HandBuild.from_sim(config.sim), seed)
+    start = np.array(world.start_pose)
+    grid = float(geometry.angle_rad - start[2])  # the maze's grid in keyframe 0's frame
+    errors = {}
+    for trim_m in (0.0, 0.04):
+        slam = standing_slam_in(world, cast_scan, rest_face_end_trim_m=trim_m)
+        assert slam.anchor_face_spread_rad is not None
+        faces = slam._start_faces
+        assert faces is not None and len(faces) == 4  # the same faces either way
+        measured = np.degrees(quarter_turns(faces.normal_rad - grid))
+        boards = _true_turns_under(faces, start, geometry)
+        errors[trim_m] = [abs(m - b[0]) for m, b in zip(measured, boards, strict=True) if len(b) == 1]
+        assert len(errors[trim_m]) == 3
+    assert max(errors[0.0]) > 0.5  # the whole face: 0.58° off its board
+    assert max(errors[0.04]) < 0.15, errors[0.04]

@@ -562,6 +562,10 @@ class WallSection:
     wall_prior: Annotated[bool, Field(description=(
         "walls meet at right angles (a maze): each keyframe's walls give a weak heading prior"))] = True
     wall_prior_std_rad: Annotated[float, Field(gt=0, description="trust in one keyframe's wall direction")] = 0.01
+    wall_prior_faces: Annotated[bool, Field(description=(
+        "each keyframe's wall direction for its prior is its faces' mean turn, each face by its length "
+        "(mazebot.slam.keyframes.Keyframe.face_wall_direction), where it has a face: a board counts by how much "
+        "of it was seen, not by its points (the nearest board gives the most); off: the mean of its normals"))] = False
     wall_min_strength: Annotated[float, Field(ge=0, le=1, description=(
         "use a keyframe only if its wall normals are this aligned to a right-angle grid ..."))] = 0.6
     wall_min_normals: Annotated[int, Field(ge=1, description="... with at least this many normals ...")] = 40

@@ -32,7 +32,7 @@ from mazebot.geometry import relative_pose
 from mazebot.slam.endpoint_smoothing import EndpointSmoothing, smooth_endpoints
 from mazebot.slam.icp import Target, estimate_normals
 from mazebot.slam.preprocess import PreparedScan, voxel_downsample
-from mazebot.slam.wall_faces import NO_FACES, Faces, wall_faces
+from mazebot.slam.wall_faces import NO_FACES, Faces, quarter_turns, wall_faces
 from mazebot.slam.wall_lattice import LatticeFaces, LatticeParams, measure_faces
 from mazebot.slam_config import NormalParams as NormalParams  # the [slam.normals] section
 from mazebot.steps import all_at_once
@@ -317,6 +317,22 @@ class Keyframe:
             points, normals = self.surface()
             self._faces = wall_faces(points, normals, direction) if strength > 0 else NO_FACES
         return self._faces
+
+    def face_wall_direction(self) -> float | None:
+        """Its wall direction as its faces show it (robot frame, modulo 90°), or None without a face.
+
+        The mean of its faces' turns from :meth:`wall_direction`, each weighted by its length:
+        a board counts by how much of it was seen, not by its points. The normals' mean counts
+        points, and a board 0.15 m from the lidar gives three times the points of one at 0.45 m
+        (the A1's 1° beams): near the start of the bench's hand-built 8×8 seed 8 the keyframes'
+        wall directions stood +0.59° off the maze's grid on average, the nearest board's +0.71°.
+        """
+        faces = self.wall_faces()
+        if len(faces) == 0:
+            return None
+        direction = self.wall_direction()[0]
+        turns = quarter_turns(faces.normal_rad - direction)
+        return direction + float(np.average(turns, weights=faces.half_length_m))
 
     def lattice_faces(self, psi_rad: float, params: LatticeParams) -> LatticeFaces:
         """The keyframe's wall faces on the lattice (:func:`mazebot.slam.wall_lattice.measure_faces`), cached.

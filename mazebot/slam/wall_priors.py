@@ -107,6 +107,9 @@ def wall_priors(
             direction, strength, count = keyframes[k].wall_direction()
             if strength < walls.wall_min_strength or count < walls.wall_min_normals:
                 continue
+            if walls.wall_prior_faces:
+                by_faces = keyframes[k].face_wall_direction()
+                direction = direction if by_faces is None else by_faces
             std = walls.wall_prior_std_rad
         theta = float(poses[k, 2])
         deviation = wrap_quarter(direction + theta - reference)

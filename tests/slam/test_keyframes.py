@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mazebot.slam.keyframes import NORMAL_STEP, POINT_STEP_M, Keyframe, pack, unpack, unpack_all
 
@@ -84,3 +85,48 @@ def test_unpack_all_gives_the_values_of_each_part_unpacked_in_turn() -> None:
     for parts in ([near, near], [near, far, near]):
         expected = np.concatenate([unpack(part, POINT_STEP_M) for part in parts])
         np.testing.assert_array_equal(unpack_all(parts, POINT_STEP_M), expected)
+
+
+def _two_boards(near_m: float, near_deg: float, far_m: float, far_deg: float, half_m: float = 0.25) -> np.ndarray:
+    """Hits (N, 2) of beams 1° apart from the origin on two boards along x, each ``half_m`` either side of x = 0:
+    one ``near_m`` to the left turned ``near_deg``, one ``far_m`` to the right turned ``far_deg`` (no noise)."""
+    hits = []
+    for angle in np.radians(np.arange(-180.0, 180.0, 1.0)):
+        d = np.array([np.cos(angle), np.sin(angle)])
+        for offset, turn in ((near_m, near_deg), (-far_m, far_deg)):
+            slope = np.tan(np.radians(turn))  # the board: y = offset + slope x
+            denominator = d[1] - slope * d[0]
+            if abs(denominator) < 1e-9:
+                continue
+            r = offset / denominator
+            if r > 0 and abs(r * d[0]) <= half_m:
+                hits.append(r * d)
+    return np.array(hits)
+
+
+def test_a_keyframe_s_faces_count_each_board_by_its_length_not_its_points() -> None:
+    # Two boards of one length turned +0.7° and -0.7°, one 0.17 m from the lidar and one 0.5 m: the near one
+    # gives about three times the points, and the normals' mean leans to its turn; the faces' mean by length
+    # is the boards' mean (0°).
+    kf = _wall_keyframe(_two_boards(0.17, 0.7, 0.5, -0.7))
+    direction, strength, count = kf.wall_direction()
+    assert strength > 0.9 and count > 100
+    assert np.degrees(direction) > 0.2
+    faces = kf.face_wall_direction()
+    assert faces is not None and abs(np.degrees(faces)) < 0.05, np.degrees(faces)
+
+
+def test_the_wall_prior_takes_the_faces_direction_when_asked() -> None:
+    from dataclasses import replace
+
+    from mazebot.slam.slam import SlamParams
+    from mazebot.slam.wall_priors import wall_priors
+
+    kf = _wall_keyframe(_two_boards(0.17, 0.7, 0.5, -0.7))
+    by_face = kf.face_wall_direction()
+    assert by_face is not None
+    cases = ((SlamParams(), kf.wall_direction()[0]), (replace(SlamParams(), wall_prior_faces=True), by_face))
+    for walls, expected in cases:
+        priors, _ = wall_priors([kf, kf], np.zeros((2, 3)), 0.0, walls, None)
+        assert priors is not None
+        assert priors.z[0, 2] == pytest.approx(-expected, abs=1e-12)  # wall -> keyframe 1: theta - phi

@@ -1779,6 +1779,8 @@ class Slam:
         A keyframe's surface (normals, points smoothed onto their lines) is computed the
         first time a submap needs it, one to four of them per rebuild, about a
         millisecond each; the submap (transform, voxel filter, kd-tree) comes after them.
+        With ``pool_far_normals_one_pass`` a submap that holds older keyframes near the robot
+        besides the recent ones (a place seen again) is built without the pooled far hits.
         """
         p = self.params
         count = len(self.keyframes)
@@ -1795,7 +1797,10 @@ class Slam:
             if not self.keyframes[k].has_surface:
                 self.keyframes[k].packed_surface()
                 yield
-        self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m)
+        # a revisit (older keyframes near the robot): its two passes' far walls disagree by their drift
+        revisit = len(chosen) > count - first_recent
+        pool = not (revisit and p.normals.pool_far_normals_one_pass)
+        self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m, pool=pool)
         self._target_keyframes = chosen
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0

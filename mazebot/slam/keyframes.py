@@ -620,7 +620,6 @@ def build_target_steps(
     frame: np.ndarray | None = None,
     poses: Sequence[np.ndarray] | None = None,
     clip: tuple[np.ndarray, float] | None = None,
-    pool: bool = True,
 ) -> Generator[None, None, Target | None]:
     """:func:`build_target` in stages (:mod:`mazebot.steps`): the union, the voxel filter, the kd-tree."""
     kept = [k for k, kf in enumerate(keyframes) if kf.surface_size]
@@ -655,7 +654,7 @@ def build_target_steps(
     )
     normals = np.column_stack((c * local_nrm[:, 0] - sn * local_nrm[:, 1], sn * local_nrm[:, 0] + c * local_nrm[:, 1]))
     views = np.repeat(views_kf, counts, axis=0)
-    if pool and any(keyframes[k].normal_params.pool_far_normals_beyond_m > 0.0 for k in kept):
+    if any(keyframes[k].normal_params.pool_far_normals_beyond_m > 0.0 for k in kept):
         points, normals, views = _with_pooled_normals(
             [keyframes[k] for k in kept], cos, sin, pose_arr, views_kf, points, normals, views
         )
@@ -716,8 +715,7 @@ build_target = all_at_once(
     Points are expressed in the map frame, or in the frame of pose ``frame`` if given
     (loop closure matches in the candidate keyframe's frame). ``poses`` overrides the
     keyframes' own poses (a snapshot taken for a background job). ``clip`` ``(centre (2,),
-    radius_m)`` keeps only points that close to a centre (in the output frame). ``pool`` false
-    leaves out the bare hits the pool would give a normal (``pool_far_normals_beyond_m``). None if empty.
+    radius_m)`` keeps only points that close to a centre (in the output frame). None if empty.
 
     All keyframes are moved in one vectorized pass (each point with its keyframe's cosine,
     sine and translation), the same arithmetic as :func:`transform` point by point.

@@ -1779,8 +1779,9 @@ class Slam:
         A keyframe's surface (normals, points smoothed onto their lines) is computed the
         first time a submap needs it, one to four of them per rebuild, about a
         millisecond each; the submap (transform, voxel filter, kd-tree) comes after them.
-        With ``pool_far_normals_one_pass`` a submap that holds older keyframes near the robot
-        besides the recent ones (a place seen again) is built without the pooled far hits.
+        With ``pool_far_normals_one_pass`` (and the far hits pooled) the older keyframes near the
+        robot are only those of the pass it is on: a keyframe at least ``loop.min_keyframe_gap``
+        older than the newest is an earlier pass, which loop closures join.
         """
         p = self.params
         count = len(self.keyframes)
@@ -1792,15 +1793,15 @@ class Slam:
             dist = np.hypot(xy[:, 0] - here[0], xy[:, 1] - here[1])
             near = np.flatnonzero(dist <= p.submap_radius_m)
             near = near[np.argsort(dist[near], kind="stable")[: p.submap_near_keyframes]]
+            if p.normals.pool_far_normals_one_pass and p.normals.pool_far_normals_beyond_m > 0.0:
+                # an earlier pass, before a loop closure has made it agree: the match would snap onto it
+                near = near[near > count - 1 - p.loop.min_keyframe_gap]
             chosen = sorted(near.tolist()) + chosen
         for k in chosen:
             if not self.keyframes[k].has_surface:
                 self.keyframes[k].packed_surface()
                 yield
-        # a revisit (older keyframes near the robot): its two passes' far walls disagree by their drift
-        revisit = len(chosen) > count - first_recent
-        pool = not (revisit and p.normals.pool_far_normals_one_pass)
-        self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m, pool=pool)
+        self.target = yield from build_target_steps([self.keyframes[k] for k in chosen], p.submap_voxel_m)
         self._target_keyframes = chosen
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0

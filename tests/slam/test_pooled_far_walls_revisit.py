@@ -7,8 +7,8 @@ passes that no loop closure has made agree yet. The match of scan 97 or 98 snaps
 pass, and the sequential edge into it takes the loop's drift as a step (1.1-2.0° and 0.1-0.5 m off
 the corrected poses' increment on seeds 1, 3 and 4) with the information of a good match; the
 loop closures that follow cannot undo it, and the finished map stays bent after its start.
-``pool_far_normals_one_pass`` leaves the earlier pass out of the sequential submap (loop closures
-join the passes): the edges follow the increment.
+``pool_far_normals_one_pass`` leaves the earlier pass out of the sequential submap until a loop
+closure from a recent keyframe has joined it: the edges follow the increment.
 """
 
 from __future__ import annotations

@@ -175,6 +175,13 @@ class NormalParams:
         "all its keyframes' points pooled, so its walls reach as far as the scans saw (0: off, each keyframe keeps "
         "only the hits with a normal of their own, on a laser log's corridor none beyond about 6 m; the near hits "
         "without one are mostly clutter and corners, and given one they turned the Intel map by 1.5 degrees)"))] = 0.0
+    pool_far_normals_one_pass: Annotated[bool, Field(description=(
+        "with pool_far_normals_beyond_m, the sequential submap leaves out the keyframes near the robot from an "
+        "earlier pass (at least the loop's min_keyframe_gap older than the newest) until a loop closure from a "
+        "recent keyframe has joined one: with the far walls kept the chain drifts little, so back at the Intel "
+        "log's start a match snapped onto the earlier pass and its sequential edge took the loop's 0.1-0.5 m and "
+        "1-2 degrees as a step, with the information of a good match, and the map stayed bent (false: those "
+        "keyframes kept, as without the pool)"))] = False
 
 
 @dataclass(frozen=True)

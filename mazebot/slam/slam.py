@@ -1779,6 +1779,10 @@ class Slam:
         A keyframe's surface (normals, points smoothed onto their lines) is computed the
         first time a submap needs it, one to four of them per rebuild, about a
         millisecond each; the submap (transform, voxel filter, kd-tree) comes after them.
+        With ``pool_far_normals_one_pass`` (and the far hits pooled) the older keyframes near the
+        robot are only those of the pass it is on (a keyframe at least ``loop.min_keyframe_gap``
+        older than the newest is an earlier pass) until a loop closure from one of the recent
+        keyframes has joined an earlier pass.
         """
         p = self.params
         count = len(self.keyframes)
@@ -1790,6 +1794,11 @@ class Slam:
             dist = np.hypot(xy[:, 0] - here[0], xy[:, 1] - here[1])
             near = np.flatnonzero(dist <= p.submap_radius_m)
             near = near[np.argsort(dist[near], kind="stable")[: p.submap_near_keyframes]]
+            earlier = count - 1 - p.loop.min_keyframe_gap
+            if (p.normals.pool_far_normals_one_pass and p.normals.pool_far_normals_beyond_m > 0.0
+                    and not self._joined_to_earlier_pass(first_recent, earlier)):
+                # an earlier pass no loop closure has joined yet: the match would snap onto it
+                near = near[near > earlier]
             chosen = sorted(near.tolist()) + chosen
         for k in chosen:
             if not self.keyframes[k].has_surface:
@@ -1799,6 +1808,19 @@ class Slam:
         self._target_keyframes = chosen
         self._target_position = self.keyframes[-1].pose[:2].copy()
         self._keyframes_since_target = 0
+
+    def _joined_to_earlier_pass(self, first_recent: int, earlier: int) -> bool:
+        """A loop closure accepted from keyframe ``first_recent`` or newer onto keyframe ``earlier`` or older.
+
+        Closures are kept in the order they were accepted, their new ends rising with it, so the
+        search stops at the first one older than ``first_recent``.
+        """
+        for closure in reversed(self.closures):
+            if closure.new < first_recent:
+                return False
+            if closure.old <= earlier:
+                return True
+        return False
 
     _rebuild_target = all_at_once_method(
         _rebuild_target_steps,

@@ -594,6 +594,11 @@ class WallSection:
         "an offset per board, cut where the step is large and significant: mazebot.slam.wall_faces) instead "
         "of one line through them: the start's faces read their boards' turns, not the steps between them; "
         "off: one line per face"))] = True
+    line_tie_std_m: Annotated[float, Field(ge=0, le=0.1, description=(
+        "two keyframes of different passes (min_keyframe_gap apart) that see faces of one straight wall in line "
+        "(facing the same way, within 4 cm across, meeting along) are tied across the wall at this std: places "
+        "that meet only across a wall are never in sight of each other for a loop closure, and the wall they both "
+        "see is all they share (mazebot.slam.line_ties; needs no lattice; 0: off)"))] = 0.0
 
 
 @dataclass(frozen=True)

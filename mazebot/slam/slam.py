@@ -94,6 +94,7 @@ from mazebot.slam.keyframes import (
 )
 from mazebot.slam.lattice_fit import PitchFit, cell_offset_on_lattice
 from mazebot.slam.lever_arm import LeverArmCalibration
+from mazebot.slam.line_ties import line_ties
 from mazebot.slam.loop_closure import Candidate, ObservedDirections, Verdict, find_candidates, keyframe_gap, verify
 from mazebot.slam.match_residuals import MatchResiduals
 from mazebot.slam.odometry_noise import OdometryNoiseEstimate
@@ -294,6 +295,8 @@ class LoopClosureJob:
         if priors is not None:  # vertex ``count``: the wall grid's direction, estimated with the poses
             vertices = np.vstack([self.poses, priors.vertex])
             parts.append((priors.i, priors.j, priors.z, priors.information))
+        if p.line_tie_std_m > 0:  # one straight wall seen on two passes (robust, as the closures)
+            parts.append(line_ties(self.keyframes, self.poses, p.line_tie_std_m, p.loop.min_keyframe_gap))
         edges = tuple(np.concatenate([np.asarray(part[k]) for part in parts]) for k in range(4))
         ai, aj = edges[0].astype(np.intp), edges[1].astype(np.intp)
         closure = (aj - ai > 1) & (aj < count) & (ai < count)  # the chain's edges join k - 1 and k

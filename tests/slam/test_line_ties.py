@@ -46,22 +46,31 @@ def route_poses(world) -> np.ndarray:
     return np.array(rows)
 
 
-def drifted_route(world, cast_scan) -> tuple[np.ndarray, np.ndarray, list[Keyframe]]:
-    """The truth, the chain's poses (keyframes 6.. slipped 12 mm east and 8 mm south) and the keyframes."""
-    truth = route_poses(world)
+def drifted_route(world, cast_scan, per_cell: int = 1) -> tuple[np.ndarray, np.ndarray, list[Keyframe]]:
+    """The truth, the chain's poses (the second half slipped 12 mm east and 8 mm south) and the keyframes.
+
+    ``per_cell`` keyframes in each cell of the route, a few millimetres and a turn apart.
+    """
+    truth = np.repeat(route_poses(world), per_cell, axis=0)
+    if per_cell > 1:
+        truth[:, 2] += np.tile(np.linspace(0.0, 1.0, per_cell, endpoint=False), len(ROUTE))
+        truth[:, :2] += np.random.default_rng(7).uniform(-0.01, 0.01, (len(truth), 2))
     keyframes = [keyframe_at(world, cast_scan, k, p, seed=k) for k, p in enumerate(truth)]
     drifted = truth.copy()
-    drifted[6:, :2] += (0.012, -0.008)
+    drifted[len(truth) // 2 :, :2] += (0.012, -0.008)
     for kf, pose in zip(keyframes, drifted, strict=True):
         kf.pose = pose.copy()
     return truth, drifted, keyframes
 
 
-def test_a_tie_says_how_far_across_the_wall_the_second_pass_lies(maze_world, cast_scan):
-    """Each tie's measurement puts the newer keyframe where the truth has it, across the wall."""
-    truth, drifted, keyframes = drifted_route(maze_world, cast_scan)
-    i, j, z, info = line_ties(keyframes, drifted, 0.005, min_gap=2)
-    across = (i < 6) & (j >= 6)
+@pytest.mark.parametrize("per_cell", [1, 3])
+def test_a_tie_says_how_far_across_the_wall_the_second_pass_lies(maze_world, cast_scan, per_cell):
+    """Each tie's measurement puts the newer keyframe where the truth has it, across the wall (with three
+    keyframes a cell, enough pairs of one stretch see both sides of a board to give its thickness)."""
+    truth, drifted, keyframes = drifted_route(maze_world, cast_scan, per_cell)
+    i, j, z, info = line_ties(keyframes, drifted, 0.005, min_gap=2 * per_cell)
+    half = len(truth) // 2
+    across = (i < half) & (j >= half)
     assert across.sum() >= 2
     for a, b, meas, omega in zip(i[across], j[across], z[across], info[across], strict=True):
         true_rel = relative_pose(truth[a], truth[b])

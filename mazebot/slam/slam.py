@@ -1812,15 +1812,10 @@ class Slam:
     def _joined_to_earlier_pass(self, first_recent: int, earlier: int) -> bool:
         """A loop closure accepted from keyframe ``first_recent`` or newer onto keyframe ``earlier`` or older.
 
-        Closures are kept in the order they were accepted, their new ends rising with it, so the
-        search stops at the first one older than ``first_recent``.
+        Every closure is looked at: their order of acceptance is not their new ends' (a set's members
+        are accepted together, after closures of newer keyframes).
         """
-        for closure in reversed(self.closures):
-            if closure.new < first_recent:
-                return False
-            if closure.old <= earlier:
-                return True
-        return False
+        return any(c.new >= first_recent and c.old <= earlier for c in self.closures)
 
     _rebuild_target = all_at_once_method(
         _rebuild_target_steps,
